@@ -1,0 +1,240 @@
+"""BranchRange's one configuration file: TOML sections validated into frozen dataclasses.
+
+Sections: `[camera]`, `[stereo]`, `[cutpoints]`, `[mavlink]`, `[api]`, `[log]`. Every option has a
+default, so an empty file is a valid configuration; an unknown key, a value of the wrong type or
+out of range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
+Examples live in `deploy/onboard.toml` and `deploy/serve.toml`.
+
+To add an option: add a typed field with a default to its section's dataclass, and a range check
+in `__post_init__` if it has one. The loader reads the field list, so nothing else changes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A configuration file or value that cannot be used; the message names the key at fault."""
+
+
+Vector3 = tuple[float, float, float]
+
+
+def _require(condition: bool, key: str, value: Any, expected: str) -> None:
+    """Raise `ConfigError` naming `key` when `condition` is false."""
+    if not condition:
+        raise ConfigError(f"{key} = {value!r}: expected {expected}")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Where frames come from and how the camera sits on the vehicle.
+
+    `mount_rpy_deg` is the camera's roll, pitch, yaw in degrees relative to a camera looking
+    straight ahead (body FRD, right-handed: pitch > 0 tilts the optical axis up, yaw > 0 turns it
+    right); `mount_xyz_m` the camera's optical centre in body FRD metres from the vehicle origin.
+    `stall_timeout_s`: no frame for this long means the camera is lost (watchdog).
+    """
+
+    source: str = "zed:0"
+    calibration: str = ""
+    resolution: str = "HD720"
+    mount_rpy_deg: Vector3 = (0.0, 0.0, 0.0)
+    mount_xyz_m: Vector3 = (0.0, 0.0, 0.0)
+    stall_timeout_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        _require(bool(self.source.strip()), "camera.source", self.source, "a source spec such as 'zed:0', 'oak' or 'replay:PATH'")
+        _require(self.stall_timeout_s > 0, "camera.stall_timeout_s", self.stall_timeout_s, "seconds > 0")
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments)."""
+
+    backend: str = "sgbm"
+    weights: str = ""
+    max_disp: int = 192
+    device: str = "cpu"
+    precision: str = "fp32"
+
+    def __post_init__(self) -> None:
+        _require(self.backend in ("sgbm", "emcstereo"), "stereo.backend", self.backend, "'sgbm' or 'emcstereo'")
+        _require(self.max_disp > 0 and self.max_disp % 4 == 0, "stereo.max_disp", self.max_disp, "a positive multiple of 4 (pixels)")
+        _require(self.precision in ("fp32", "fp16"), "stereo.precision", self.precision, "'fp32' or 'fp16'")
+
+
+@dataclass(frozen=True)
+class CutpointsConfig:
+    """How branch masks are found and where on a branch the cut goes."""
+
+    masks: str = "geometric"
+    cut_offset_m: float = 0.05
+    min_confidence: float = 0.0
+
+    def __post_init__(self) -> None:
+        _require(self.masks in ("file", "geometric", "model"), "cutpoints.masks", self.masks, "'file', 'geometric' or 'model'")
+        _require(self.cut_offset_m >= 0, "cutpoints.cut_offset_m", self.cut_offset_m, "metres >= 0")
+        _require(0.0 <= self.min_confidence <= 1.0, "cutpoints.min_confidence", self.min_confidence, "a number in [0, 1]")
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    """The link to the flight controller and what is sent over it (see `branchrange.mavlink`).
+
+    `url` is a pymavlink connection string: `udpout:HOST:PORT`, `udpin:HOST:PORT`,
+    `tcp:HOST:PORT`, or a serial device path with `baud`. `signing_key_file` holds the 32-byte
+    MAVLink 2 signing key ("" = unsigned). `target_as_obstacle` sends the target branch to the
+    autopilot's proximity fence too (off by default: ArduPilot keeps AVOID_MARGIN from every
+    obstacle, so the drone would stop short of the branch it must cut). Results older than
+    `max_result_age_s` are reported as "no target"; messages go out at least `send_rate_hz` times
+    a second even without new results (ArduPilot and PX4 call a proximity sensor stale at 0.5 s).
+    """
+
+    enabled: bool = True
+    url: str = "udpout:127.0.0.1:14550"
+    baud: int = 921600
+    system_id: int = 1
+    component_id: int = 191
+    signing_key_file: str = ""
+    target_as_obstacle: bool = False
+    max_result_age_s: float = 0.5
+    send_rate_hz: float = 4.0
+    min_distance_m: float = 0.2
+    max_distance_m: float = 10.0
+    sensor_id: int = 0
+    reconnect_interval_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        _require(bool(self.url.strip()), "mavlink.url", self.url, "a pymavlink connection string such as 'udpout:127.0.0.1:14550' or '/dev/ttyTHS1'")
+        _require(self.baud > 0, "mavlink.baud", self.baud, "a positive baud rate")
+        _require(1 <= self.system_id <= 255, "mavlink.system_id", self.system_id, "an integer in [1, 255]")
+        _require(1 <= self.component_id <= 255, "mavlink.component_id", self.component_id, "an integer in [1, 255]")
+        _require(self.max_result_age_s > 0, "mavlink.max_result_age_s", self.max_result_age_s, "seconds > 0")
+        _require(self.send_rate_hz >= 2.0, "mavlink.send_rate_hz", self.send_rate_hz, "at least 2 Hz (autopilots call a sensor stale after 0.5 s)")
+        _require(0 <= self.min_distance_m < self.max_distance_m, "mavlink.min_distance_m", self.min_distance_m, f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})")
+        _require(self.max_distance_m * 100 + 1 < 65535, "mavlink.max_distance_m", self.max_distance_m, "below 655 m (DISTANCE_SENSOR carries uint16 centimetres)")
+        _require(0 <= self.sensor_id <= 255, "mavlink.sensor_id", self.sensor_id, "an integer in [0, 255]")
+        _require(self.reconnect_interval_s > 0, "mavlink.reconnect_interval_s", self.reconnect_interval_s, "seconds > 0")
+
+
+@dataclass(frozen=True)
+class ApiConfig:
+    """The HTTP service: address, bearer token and resource limits.
+
+    An empty `token` disables authentication, which `branchrange serve` allows on loopback only.
+    `max_concurrency` inferences run at once; one more request gets 503 with `Retry-After:
+    retry_after_s` instead of waiting in an unbounded queue.
+    """
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 8080
+    token: str = ""
+    max_upload_mb: float = 20.0
+    max_pixels: int = 2208 * 1242
+    max_concurrency: int = 1
+    retry_after_s: int = 1
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.port <= 65535, "api.port", self.port, "a TCP port in [0, 65535]")
+        _require(self.max_upload_mb > 0, "api.max_upload_mb", self.max_upload_mb, "megabytes > 0")
+        _require(self.max_pixels > 0, "api.max_pixels", self.max_pixels, "a positive pixel count (width × height)")
+        _require(self.max_concurrency >= 1, "api.max_concurrency", self.max_concurrency, "an integer >= 1")
+        _require(self.retry_after_s >= 1, "api.retry_after_s", self.retry_after_s, "whole seconds >= 1")
+
+    @property
+    def max_upload_bytes(self) -> int:
+        """`max_upload_mb` in bytes (MiB)."""
+        return int(self.max_upload_mb * 1024 * 1024)
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    """Where per-frame results go and how often the daemon reports its status."""
+
+    results_jsonl: str = ""
+    level: str = "INFO"
+    status_interval_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _require(self.level in ("DEBUG", "INFO", "WARNING", "ERROR"), "log.level", self.level, "DEBUG, INFO, WARNING or ERROR")
+        _require(self.status_interval_s > 0, "log.status_interval_s", self.status_interval_s, "seconds > 0")
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration, one dataclass per TOML section."""
+
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    cutpoints: CutpointsConfig = field(default_factory=CutpointsConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    api: ApiConfig = field(default_factory=ApiConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+
+
+def _coerce(key: str, value: Any, annotation: Any) -> Any:
+    """Check one TOML value against a field's type; ints are accepted where floats are expected."""
+    if annotation is bool:
+        _require(isinstance(value, bool), key, value, "true or false")
+        return value
+    if annotation is int:
+        _require(isinstance(value, int) and not isinstance(value, bool), key, value, "an integer")
+        return value
+    if annotation is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        _require(ok, key, value, "a finite number")
+        return float(value)
+    if annotation is str:
+        _require(isinstance(value, str), key, value, "a string")
+        return value
+    if typing.get_origin(annotation) is tuple:
+        items = typing.get_args(annotation)
+        ok = isinstance(value, list) and len(value) == len(items)
+        _require(ok, key, value, f"a list of {len(items)} numbers")
+        return tuple(_coerce(f"{key}[{i}]", v, t) for i, (v, t) in enumerate(zip(value, items)))
+    raise TypeError(f"config field {key} has an unsupported type {annotation!r}")
+
+
+def _section(cls: type, name: str, table: Any) -> Any:
+    """Build section dataclass `cls` from TOML table `table`, rejecting unknown keys."""
+    _require(isinstance(table, dict), name, table, f"a table [{name}]")
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise ConfigError(f"{name}.{unknown[0]}: unknown option; [{name}] takes {', '.join(sorted(known))}")
+    return cls(**{key: _coerce(f"{name}.{key}", value, hints[key]) for key, value in table.items()})
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Validate a parsed TOML document into a `Config`; raises `ConfigError` naming the key."""
+    sections = {f.name: typing.get_type_hints(Config)[f.name] for f in dataclasses.fields(Config)}
+    unknown = sorted(set(data) - set(sections))
+    if unknown:
+        raise ConfigError(f"[{unknown[0]}]: unknown section; the file takes {', '.join(f'[{s}]' for s in sections)}")
+    return Config(**{name: _section(cls, name, data[name]) for name, cls in sections.items() if name in data})
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read and validate a TOML configuration file; `None` gives the defaults."""
+    if path is None:
+        return Config()
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: configuration file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

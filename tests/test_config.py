@@ -1,0 +1,69 @@
+"""The TOML configuration: defaults, the deploy/ examples, and errors that name the key."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from branchrange.config import Config, ConfigError, config_from_dict, load_config
+
+DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+
+
+def test_no_file_and_an_empty_file_give_the_defaults(tmp_path):
+    empty = tmp_path / "empty.toml"
+    empty.write_text("")
+    assert load_config(None) == load_config(empty) == Config()
+    assert Config().mavlink.component_id == 191 and Config().api.host == "127.0.0.1"
+
+
+def test_values_are_read_and_ints_are_accepted_for_floats(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text('[mavlink]\nurl = "/dev/ttyTHS1"\nbaud = 921600\nmax_result_age_s = 1\n'
+                    '[camera]\nmount_rpy_deg = [0, -20, 0]\nmount_xyz_m = [0.12, 0.0, 0.05]\n')
+    cfg = load_config(path)
+    assert cfg.mavlink.url == "/dev/ttyTHS1" and cfg.mavlink.max_result_age_s == 1.0
+    assert isinstance(cfg.mavlink.max_result_age_s, float)
+    assert cfg.camera.mount_rpy_deg == (0.0, -20.0, 0.0) and cfg.camera.mount_xyz_m == (0.12, 0.0, 0.05)
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"mavlink": {"send_rate_hz": 1.0}}, r"mavlink\.send_rate_hz = 1\.0: expected at least 2 Hz"),
+    ({"mavlink": {"system_id": 0}}, r"mavlink\.system_id = 0"),
+    ({"mavlink": {"baud": "fast"}}, r"mavlink\.baud = 'fast': expected an integer"),
+    ({"mavlink": {"target_as_obstacle": 1}}, r"mavlink\.target_as_obstacle = 1: expected true or false"),
+    ({"camera": {"mount_rpy_deg": [0, 0]}}, r"camera\.mount_rpy_deg = \[0, 0\]: expected a list of 3 numbers"),
+    ({"camera": {"mount_xyz_m": [0, "x", 0]}}, r"camera\.mount_xyz_m\[1\] = 'x'"),
+    ({"stereo": {"backend": "raft"}}, r"stereo\.backend = 'raft': expected 'sgbm' or 'emcstereo'"),
+    ({"stereo": {"max_disp": 190}}, r"stereo\.max_disp = 190: expected a positive multiple of 4"),
+    ({"api": {"port": 70000}}, r"api\.port = 70000"),
+    ({"api": {"prot": 8080}}, r"api\.prot: unknown option; \[api\] takes .*port"),
+    ({"mavlnk": {}}, r"\[mavlnk\]: unknown section"),
+    ({"log": {"level": "LOUD"}}, r"log\.level = 'LOUD'"),
+    ({"mavlink": {"min_distance_m": 12.0}}, r"mavlink\.min_distance_m = 12\.0: expected .*below mavlink\.max_distance_m"),
+    ({"mavlink": "udp"}, r"mavlink = 'udp': expected a table \[mavlink\]"),
+])
+def test_bad_values_name_the_key_and_what_was_expected(data, message):
+    with pytest.raises(ConfigError, match=message):
+        config_from_dict(data)
+
+
+def test_file_errors_name_the_file(tmp_path):
+    with pytest.raises(ConfigError, match="nope.toml: configuration file not found"):
+        load_config(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[mavlink\nurl = 1")
+    with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
+        load_config(bad)
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text("[api]\nmax_concurrency = 0\n")
+    with pytest.raises(ConfigError, match=r"wrong.toml: api\.max_concurrency = 0"):
+        load_config(wrong)
+
+
+def test_deploy_examples_load_with_the_values_they_document():
+    onboard = load_config(DEPLOY / "onboard.toml")
+    assert (onboard.camera.resolution, onboard.mavlink.url, onboard.mavlink.baud) == ("HD720", "/dev/ttyTHS1", 921600)
+    assert onboard.mavlink.target_as_obstacle is False and onboard.api.enabled is True
+    serve = load_config(DEPLOY / "serve.toml")
+    assert serve.api.host == "0.0.0.0" and serve.mavlink.enabled is False and serve.api.retry_after_s == 2
