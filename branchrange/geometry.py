@@ -1,0 +1,229 @@
+"""Stereo geometry for cut points: disparity → 3D points, projection, and a robust 3D line fit.
+
+Frames and units (design.md): 3D points are metres in the rectified left camera frame with OpenCV
+axes (x right, y down, z forward); pixels are (u, v) = (column, row) of the rectified left image at
+the resolution the disparity was computed; disparity is in pixels, positive, left reference.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class GeometryError(ValueError):
+    """Camera parameters or point sets that cannot give a meaningful 3D result."""
+
+
+@dataclass(frozen=True)
+class StereoGeometry:
+    """Pinhole model of a rectified stereo pair.
+
+    `focal_px` is the rectified focal length in pixels at the disparity's resolution, `baseline_m`
+    the distance between the optical centres in metres, `(cx, cy)` the principal point in pixels.
+    """
+
+    focal_px: float
+    baseline_m: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        for name in ("focal_px", "baseline_m", "cx", "cy"):
+            value = getattr(self, name)
+            if not np.isfinite(value):
+                raise GeometryError(f"StereoGeometry.{name} = {value!r} is not a finite number")
+        if self.focal_px <= 0:
+            raise GeometryError(f"StereoGeometry.focal_px = {self.focal_px!r} must be > 0 (pixels)")
+        if self.baseline_m <= 0:
+            raise GeometryError(f"StereoGeometry.baseline_m = {self.baseline_m!r} must be > 0 (metres)")
+
+    @classmethod
+    def centred(cls, focal_px: float, baseline_m: float, width: int, height: int) -> "StereoGeometry":
+        """A geometry whose principal point is the image centre, for when only f and B are known."""
+        return cls(float(focal_px), float(baseline_m), (width - 1) / 2.0, (height - 1) / 2.0)
+
+    @property
+    def fb(self) -> float:
+        """f·B in pixel·metres: depth Z = fb / disparity."""
+        return self.focal_px * self.baseline_m
+
+
+def valid_disparity(disparity: np.ndarray, max_disparity: float | None = None) -> np.ndarray:
+    """Boolean `H×W` mask of usable disparities: finite, > 0 and, when given, < `max_disparity`."""
+    disparity = np.asarray(disparity)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(disparity) & (disparity > 0)
+        if max_disparity is not None:
+            valid &= disparity < max_disparity
+    return valid
+
+
+def disparity_to_depth(disparity: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
+    """Depth `Z = f·B/d` in metres (`float32`, same shape as `disparity` in px); inf where invalid."""
+    disparity = np.asarray(disparity, dtype=np.float32)
+    depth = np.full(disparity.shape, np.inf, dtype=np.float32)
+    valid = valid_disparity(disparity)
+    depth[valid] = geometry.fb / disparity[valid]
+    return depth
+
+
+def backproject(u: np.ndarray, v: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
+    """3D points `(N, 3)` in metres from pixel coordinates `u, v` `(N,)` and disparities `(N,)` in px.
+
+    The caller passes only valid (positive, finite) disparities; `Z = f·B/d`, `X = (u − cx)·Z/f`,
+    `Y = (v − cy)·Z/f`.
+    """
+    d = np.asarray(disparity, dtype=np.float64)
+    if d.size and not (np.all(np.isfinite(d)) and np.all(d > 0)):
+        raise GeometryError("backproject needs finite, positive disparities; filter with valid_disparity first")
+    z = geometry.fb / d
+    x = (np.asarray(u, dtype=np.float64) - geometry.cx) * z / geometry.focal_px
+    y = (np.asarray(v, dtype=np.float64) - geometry.cy) * z / geometry.focal_px
+    return np.stack([x, y, z], axis=-1)
+
+
+def project(points: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
+    """Pixel coordinates `(N, 2)` as (u, v) of 3D points `(N, 3)` in metres (z must be > 0)."""
+    points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+    z = points[:, 2]
+    if np.any(z <= 0):
+        raise GeometryError("cannot project points at or behind the camera (z <= 0)")
+    u = geometry.focal_px * points[:, 0] / z + geometry.cx
+    v = geometry.focal_px * points[:, 1] / z + geometry.cy
+    return np.stack([u, v], axis=-1)
+
+
+def pixel_ray(u: float, v: float, geometry: StereoGeometry) -> np.ndarray:
+    """Unit direction `(3,)` of the viewing ray through pixel (u, v), from the left camera centre."""
+    ray = np.array([(u - geometry.cx) / geometry.focal_px, (v - geometry.cy) / geometry.focal_px, 1.0])
+    return ray / np.linalg.norm(ray)
+
+
+@dataclass(frozen=True)
+class Line3D:
+    """A 3D line `point + t·direction` (metres; `direction` is a unit vector `(3,)`)."""
+
+    point: np.ndarray
+    direction: np.ndarray
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """Perpendicular distance `(N,)` in metres of each point `(N, 3)` from the line."""
+        offsets = np.asarray(points, dtype=np.float64) - self.point
+        along = offsets @ self.direction
+        return np.linalg.norm(offsets - along[:, None] * self.direction, axis=1)
+
+    def parameters(self, points: np.ndarray) -> np.ndarray:
+        """Signed position `t` `(N,)` in metres of each point's foot on the line."""
+        return (np.asarray(points, dtype=np.float64) - self.point) @ self.direction
+
+    def at(self, t: float | np.ndarray) -> np.ndarray:
+        """The point(s) `point + t·direction` (`(3,)` or `(N, 3)`)."""
+        t = np.asarray(t, dtype=np.float64)
+        return self.point + t[..., None] * self.direction
+
+    def closest_to_ray(self, ray_direction: np.ndarray) -> np.ndarray:
+        """The point `(3,)` of this line closest to the ray from the origin along `ray_direction`.
+
+        Used to lift a pixel (a mask end) onto the fitted axis; falls back to the foot of the ray
+        origin when line and ray are parallel.
+        """
+        r = np.asarray(ray_direction, dtype=np.float64)
+        r = r / np.linalg.norm(r)
+        d = self.direction
+        w0 = self.point  # line point minus ray origin (the camera centre, 0)
+        b = float(d @ r)
+        denom = 1.0 - b * b
+        if denom < 1e-9:
+            return self.at(-float(w0 @ d))
+        t = (b * float(w0 @ r) - float(w0 @ d)) / denom
+        return self.at(t)
+
+
+@dataclass(frozen=True)
+class LineFit:
+    """Result of `fit_line_robust`: the line, which input points were inliers, and the fit quality.
+
+    `residual_m` is the RMS perpendicular distance of the inliers in metres; `inliers` is a boolean
+    `(N,)` mask over the input points.
+    """
+
+    line: Line3D
+    inliers: np.ndarray
+    residual_m: float
+
+    @property
+    def inlier_fraction(self) -> float:
+        """Share of the input points the fit kept, in [0, 1]."""
+        return float(self.inliers.mean()) if self.inliers.size else 0.0
+
+
+def _principal_line(points: np.ndarray, weights: np.ndarray | None = None) -> Line3D:
+    """Weighted least-squares (orthogonal) line through `(N, 3)` points: centroid + top eigenvector."""
+    if weights is None:
+        weights = np.ones(len(points))
+    w = weights / weights.sum()
+    centroid = w @ points
+    centred = points - centroid
+    scatter = (centred * w[:, None]).T @ centred
+    _, vectors = np.linalg.eigh(scatter)
+    direction = vectors[:, -1]
+    return Line3D(centroid, direction / np.linalg.norm(direction))
+
+
+def fit_line_robust(
+    points: np.ndarray,
+    inlier_threshold_m: float,
+    *,
+    iterations: int = 200,
+    irls_steps: int = 5,
+    seed: int = 0,
+) -> LineFit:
+    """Robust 3D line through `(N, 3)` points in metres: RANSAC on point pairs, then IRLS refit.
+
+    Why robust: branch points come with silhouette and occlusion outliers (background or trunk depth
+    bleeding into the mask) as the normal case. RANSAC picks the pair-line with most points within
+    `inlier_threshold_m`; the refit then re-weights all points with Tukey's biweight of their
+    distance (scale = `inlier_threshold_m`), which keeps inliers' full weight and ignores the rest.
+    Deterministic for a given `seed`. Needs at least 2 distinct points.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise GeometryError(f"fit_line_robust expects points of shape (N, 3), got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise GeometryError("fit_line_robust got non-finite points")
+    if inlier_threshold_m <= 0:
+        raise GeometryError(f"inlier_threshold_m = {inlier_threshold_m!r} must be > 0 (metres)")
+    n = len(points)
+    if n < 2 or np.ptp(points, axis=0).max() == 0:
+        raise GeometryError(f"a line needs at least 2 distinct points, got {n}")
+
+    rng = np.random.default_rng(seed)
+    best_count, best_line = -1, None
+    pairs = rng.integers(0, n, size=(iterations, 2))
+    for i, j in pairs:
+        delta = points[j] - points[i]
+        norm = np.linalg.norm(delta)
+        if norm < 1e-9:
+            continue
+        candidate = Line3D(points[i], delta / norm)
+        count = int(np.count_nonzero(candidate.distances(points) < inlier_threshold_m))
+        if count > best_count:
+            best_count, best_line = count, candidate
+    if best_line is None:  # every sampled pair coincided: fall back to the plain fit
+        best_line = _principal_line(points)
+
+    line = best_line
+    for _ in range(irls_steps):
+        r = line.distances(points) / inlier_threshold_m
+        weights = np.where(r < 1.0, (1.0 - r * r) ** 2, 0.0)
+        if np.count_nonzero(weights) < 2:
+            break
+        line = _principal_line(points, weights)
+
+    inliers = line.distances(points) < inlier_threshold_m
+    if np.count_nonzero(inliers) >= 2:
+        residual = float(np.sqrt(np.mean(line.distances(points[inliers]) ** 2)))
+    else:
+        residual = float("inf")
+    return LineFit(line, inliers, residual)

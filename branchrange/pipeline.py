@@ -1,0 +1,292 @@
+"""The per-frame pipeline: stereo pair (+ optional mask) → cut points in the `branchrange/v1` schema.
+
+Stages, each timed in `timing_ms`: rectify (when a raw calibration is given) → stereo backend →
+masks (given, or the segmenter) → cut points → tracking (stable ids) → target. One `Pipeline` is
+built once per camera and reused for every frame; it holds the backend, the rectification maps
+and the tracker's state. `process_disparity` runs the stages after stereo on a given disparity
+(ground truth in evaluation, a disparity computed elsewhere).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from branchrange.cutpoints import TARGET_POLICIES, CutPointConfig, CutPointResult, estimate_cut_points, select_target
+from branchrange.geometry import StereoGeometry, valid_disparity
+from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks, MaskKind, masks_from_array, read_mask, validate_masks
+from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
+from branchrange.tracking import BranchTracker, TrackerConfig
+
+SCHEMA_ID = "branchrange/v1"
+SCHEMA_PATH = Path(__file__).with_name("schemas") / "result_v1.json"
+
+MaskInput = BranchMasks | np.ndarray | str | Path | None
+
+
+class PipelineInputError(ValueError):
+    """A frame, mask or camera description the pipeline cannot work with; the message says which."""
+
+
+class PipelineConfigError(ValueError):
+    """A pipeline setting out of its range; the message names the key."""
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of the whole per-frame chain.
+
+    - `backend`, `weights`, `max_disp`, `device`, `precision`: `stereo.backends.make_backend` arguments.
+    - `trunk_id`: the trunk's id in instance masks (None: no trunk id); `mask_kind`: how mask
+      files/arrays are read ('auto', 'instance', 'binary').
+    - `target_policy`: 'nearest', 'most_confident' or 'thickest'; `target_min_confidence`: a branch
+      below it is never the target.
+    - `tracking`: give branches stable ids across frames (else ids are per-frame mask order).
+    """
+
+    backend: str = "sgbm"
+    weights: str | None = None
+    max_disp: int = 192
+    device: str = "cpu"
+    precision: str = "fp32"
+    trunk_id: int | None = DEFAULT_TRUNK_ID
+    mask_kind: MaskKind = "auto"
+    target_policy: str = "nearest"
+    target_min_confidence: float = 0.3
+    tracking: bool = True
+    cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
+    segmenter: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    def __post_init__(self) -> None:
+        if self.target_policy not in TARGET_POLICIES:
+            raise PipelineConfigError(f"target_policy = {self.target_policy!r}: expected one of {', '.join(TARGET_POLICIES)}")
+        if not 0 <= self.target_min_confidence <= 1:
+            raise PipelineConfigError(f"target_min_confidence = {self.target_min_confidence!r}: expected a number in [0, 1]")
+        if self.mask_kind not in ("auto", "instance", "binary"):
+            raise PipelineConfigError(f"mask_kind = {self.mask_kind!r}: expected 'auto', 'instance' or 'binary'")
+        if self.max_disp <= 0:
+            raise PipelineConfigError(f"max_disp = {self.max_disp!r}: expected a positive number of pixels")
+
+
+def _check_image(image: Any, which: str) -> np.ndarray:
+    """The image itself when it is a `uint8 H×W×3` array, else `PipelineInputError` naming it."""
+    if not isinstance(image, np.ndarray):
+        raise PipelineInputError(f"{which} image must be a numpy array, got {type(image).__name__}")
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise PipelineInputError(f"{which} image must be uint8 H×W×3 RGB, got {image.dtype} of shape {image.shape}")
+    if image.shape[0] < 2 or image.shape[1] < 2:
+        raise PipelineInputError(f"{which} image is empty: shape {image.shape}")
+    return image
+
+
+def _timed(timing: dict[str, float], stage: str, start: float) -> float:
+    """Record milliseconds since `start` under `stage`; returns now."""
+    now = time.perf_counter()
+    timing[stage] = round((now - start) * 1000.0, 3)
+    return now
+
+
+class Pipeline:
+    """Cut points of one stereo frame after another.
+
+    Camera: either `calibration` (a `camera.StereoCalibration`; raw pairs are rectified unless
+    `rectified=True` or the calibration says so) or `focal_px` + `baseline_m` (+ `principal_point`,
+    default the image centre) of an already rectified pair. `backend` and `segmenter` may be
+    passed in ready-made (tests, a learned segmenter); otherwise they are built from `config`,
+    the backend lazily on the first frame.
+    """
+
+    def __init__(
+        self,
+        config: PipelineConfig | None = None,
+        *,
+        calibration: Any = None,
+        focal_px: float | None = None,
+        baseline_m: float | None = None,
+        principal_point: tuple[float, float] | None = None,
+        rectified: bool = False,
+        backend: Any = None,
+        segmenter: Segmenter | None = None,
+    ) -> None:
+        self.config = config or PipelineConfig()
+        self.rectifier = None
+        self._size: tuple[int, int] | None = None  # (width, height) the camera description fits
+        if calibration is not None:
+            if focal_px is not None or baseline_m is not None:
+                raise PipelineInputError("give either a calibration or focal_px + baseline_m, not both")
+            self._size = tuple(calibration.image_size)  # type: ignore[assignment]
+            if rectified or calibration.is_rectified:
+                focal_px, baseline_m = float(calibration.K1[0, 0]), float(calibration.baseline_m)
+                principal_point = (float(calibration.K1[0, 2]), float(calibration.K1[1, 2]))
+            else:
+                from camera import Rectifier
+
+                self.rectifier = Rectifier(calibration)
+                focal_px, baseline_m = self.rectifier.focal_px, self.rectifier.baseline_m
+                principal_point = self.rectifier.principal_point
+        if focal_px is None or baseline_m is None:
+            raise PipelineInputError("the pipeline needs a calibration, or focal_px and baseline_m of a rectified pair")
+        # validated now (GeometryError names the value) rather than at the first frame
+        StereoGeometry(float(focal_px), float(baseline_m), 0.0, 0.0)
+        self.focal_px, self.baseline_m = float(focal_px), float(baseline_m)
+        self.principal_point = principal_point
+        self._backend = backend
+        self.segmenter: Segmenter = segmenter or GeometricSegmenter(self.config.segmenter)
+        self.tracker = BranchTracker(self.config.tracker)
+
+    @property
+    def backend(self) -> Any:
+        """The stereo backend, built from the config on first use."""
+        if self._backend is None:
+            from stereo.backends import make_backend
+
+            cfg = self.config
+            self._backend = make_backend(cfg.backend, weights=cfg.weights, max_disp=cfg.max_disp,
+                                         device=cfg.device, precision=cfg.precision)
+        return self._backend
+
+    def geometry_for(self, width: int, height: int) -> StereoGeometry:
+        """The rectified camera model for frames of `width × height` px."""
+        if self._size is not None and self._size != (width, height):
+            raise PipelineInputError(
+                f"the calibration is for {self._size[0]}×{self._size[1]} px images but the frames are "
+                f"{width}×{height} px; use the calibration of this resolution (e.g. --resolution)")
+        if self.principal_point is None:
+            return StereoGeometry.centred(self.focal_px, self.baseline_m, width, height)
+        return StereoGeometry(self.focal_px, self.baseline_m, *self.principal_point)
+
+    def reset(self) -> None:
+        """Forget tracked branches (a new sequence or after the camera was lost)."""
+        self.tracker.reset()
+
+    def _masks(self, mask: MaskInput, shape: tuple[int, int]) -> BranchMasks | None:
+        """The frame's `BranchMasks` from a path, array or ready instance (None when not given)."""
+        if mask is None:
+            return None
+        cfg = self.config
+        if isinstance(mask, (str, Path)):
+            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind)
+        elif isinstance(mask, BranchMasks):
+            masks = mask
+        else:
+            masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind)
+        if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
+            validate_masks(masks, shape)
+            masks = BranchMasks(_rectify_labels(self.rectifier, masks.labels), masks.trunk_id, masks.source)
+        validate_masks(masks, shape)
+        return masks
+
+    def process(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
+                index: int = 0, timestamp_ns: int = 0) -> dict:
+        """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → result dict.
+
+        `mask`: an instance-id / binary mask (array, path or `BranchMasks`) in the left image's
+        pixels, or None for the segmenter.
+        """
+        start = t = time.perf_counter()
+        timing: dict[str, float] = {}
+        left, right = _check_image(left, "left"), _check_image(right, "right")
+        if left.shape != right.shape:
+            raise PipelineInputError(f"left {left.shape[1]}×{left.shape[0]} and right {right.shape[1]}×{right.shape[0]} "
+                                     "images differ in size; a stereo pair must match pixel for pixel")
+        geometry = self.geometry_for(left.shape[1], left.shape[0])
+        masks = self._masks(mask, left.shape[:2])
+        if self.rectifier is not None:
+            left, right = self.rectifier.rectify(left, right)
+        t = _timed(timing, "rectify", t)
+        stereo = self.backend.compute(left, right)
+        t = _timed(timing, "stereo", t)
+        return self._finish(left, stereo.disparity, stereo.confidence, geometry, masks, index, timestamp_ns,
+                            backend=stereo.backend or self.backend.name, max_disparity=int(stereo.max_disparity),
+                            timing=timing, start=start, t=t)
+
+    def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
+                          mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
+                          backend: str = "given") -> dict:
+        """The stages after stereo on a rectified left image and its `float32 H×W` disparity (px).
+
+        `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
+        """
+        start = t = time.perf_counter()
+        timing: dict[str, float] = {"rectify": 0.0, "stereo": 0.0}
+        left = _check_image(left, "left")
+        disparity = np.asarray(disparity, dtype=np.float32)
+        if disparity.shape != left.shape[:2]:
+            raise PipelineInputError(f"disparity is {disparity.shape[1]}×{disparity.shape[0]} px but the left "
+                                     f"image is {left.shape[1]}×{left.shape[0]} px")
+        if confidence is None:
+            confidence = valid_disparity(disparity).astype(np.float32)
+        elif np.shape(confidence) != disparity.shape:
+            raise PipelineInputError(f"confidence has shape {np.shape(confidence)}, expected {disparity.shape}")
+        if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
+            raise PipelineInputError("process_disparity needs a rectified frame; this pipeline rectifies raw pairs")
+        geometry = self.geometry_for(left.shape[1], left.shape[0])
+        masks = self._masks(mask, left.shape[:2])
+        finite_max = np.nanmax(np.where(np.isfinite(disparity), disparity, np.nan)) if np.isfinite(disparity).any() else 0.0
+        return self._finish(left, disparity, confidence, geometry, masks, index, timestamp_ns, backend=backend,
+                            max_disparity=max(1, int(np.ceil(finite_max)) + 1), timing=timing, start=start, t=t)
+
+    def _finish(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray, geometry: StereoGeometry,
+                masks: BranchMasks | None, index: int, timestamp_ns: int, *, backend: str, max_disparity: int,
+                timing: dict[str, float], start: float, t: float) -> dict:
+        """Masks → cut points → tracking → the result dict (shared by both entry points)."""
+        valid = valid_disparity(disparity, max_disparity)
+        # non-finite values are no evidence: keep them out of every later stage
+        disparity = np.where(valid, disparity, 0.0).astype(np.float32)
+        confidence = np.where(valid, np.nan_to_num(confidence, nan=0.0), 0.0).astype(np.float32)
+        reason = None
+        cut = CutPointResult()
+        if masks is None:
+            masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
+        t = _timed(timing, "masks", t)
+        if not valid.any():
+            reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
+        elif not masks.branch_ids():
+            reason = (f"the mask ({masks.source}) holds no branch instance" if masks.source != self.segmenter.name
+                      else f"the {masks.source} segmenter found no branch")
+        else:
+            cut = estimate_cut_points(masks, disparity, geometry, self.config.cutpoints,
+                                      confidence=confidence, max_disparity=max_disparity)
+            if not cut.branches:
+                reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
+                    f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5])
+        t = _timed(timing, "cutpoints", t)
+        if self.config.tracking:
+            self.tracker.update(cut.branches)
+        t = _timed(timing, "tracking", t)
+        target = select_target(cut.branches, self.config.target_policy, self.config.target_min_confidence)
+        if target is None and cut.branches:
+            reason = f"no branch reaches the target confidence {self.config.target_min_confidence}"
+        timing["total"] = round((time.perf_counter() - start) * 1000.0, 3)
+        result = {
+            "schema": SCHEMA_ID,
+            "frame": {"index": int(index), "timestamp_ns": int(timestamp_ns),
+                      "width": int(left.shape[1]), "height": int(left.shape[0])},
+            "camera": {"focal_px": geometry.focal_px, "baseline_m": geometry.baseline_m,
+                       "cx": geometry.cx, "cy": geometry.cy},
+            "stereo": {"backend": backend, "max_disparity": int(max_disparity),
+                       "valid_fraction": round(float(valid.mean()), 4)},
+            "timing_ms": timing,
+            "masks": {"source": masks.source if masks is not None else "none",
+                      "instances": len(masks.branch_ids()) if masks is not None else 0,
+                      "trunk": masks is not None and masks.trunk() is not None},
+            "branches": [b.to_dict() for b in sorted(cut.branches, key=lambda b: b.id)],
+            "dropped": [d.to_dict() for d in cut.dropped],
+            "target_id": None if target is None else int(target.id),
+        }
+        if reason is not None:
+            result["reason"] = reason
+        return result
+
+
+def _rectify_labels(rectifier: Any, labels: np.ndarray) -> np.ndarray:
+    """Instance labels drawn on the raw left image, moved to the rectified left image (nearest id)."""
+    c = rectifier.calibration
+    map_x, map_y = cv2.initUndistortRectifyMap(c.K1, c.D1, rectifier.R1, rectifier.P1, c.image_size, cv2.CV_32FC1)
+    return cv2.remap(labels.astype(np.float32), map_x, map_y, cv2.INTER_NEAREST,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.int32)
