@@ -18,6 +18,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from .model import EMCStereo, ModelConfig
@@ -45,6 +46,13 @@ _PSMNET_RENAMES = (
 
 #: Tensors of the authors' model that PSMNet lacks, set so the output is PSMNet's.
 _PSMNET_MISSING_BIASES = ("backbone.layer2.0.downsample.0.bias", "backbone.layer3.0.downsample.0.bias")
+
+
+#: Training checkpoints often carry metric dicts of numpy scalars; these rebuild plain numbers only.
+_NUMPY_SCALAR_GLOBALS = [
+    np._core.multiarray.scalar, np.dtype,
+    *(type(np.dtype(t)) for t in (np.float16, np.float32, np.float64, np.int32, np.int64, np.bool_)),
+]
 
 
 class CheckpointError(ValueError):
@@ -76,7 +84,8 @@ def _torch_load(path: Path) -> Any:
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        with torch.serialization.safe_globals(_NUMPY_SCALAR_GLOBALS):
+            return torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as exc:
         raise CheckpointError(
             f"{path}: not a readable torch checkpoint ({path.stat().st_size} bytes; truncated or "

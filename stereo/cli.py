@@ -13,6 +13,7 @@ from collections.abc import Sequence
 #: Subcommand modules, in the order `--help` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
     "stereo.commands.params",
+    "stereo.commands.weights",
 )
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -32,7 +33,8 @@ def state_from_listing(listing: Path, seed: int = 0) -> dict[str, torch.Tensor]:
 def authors_checkpoint(tmp_path, reference_docs) -> tuple[Path, dict[str, torch.Tensor]]:
     state = state_from_listing(reference_docs / "emcstereo_authors_state_dict.txt")
     path = tmp_path / "emcstereo_virtualtree_best.pth"
-    torch.save({"model": state, "optimizer": {}, "epoch": 252, "global_step": 279312}, path)
+    metrics = {"epe": np.float64(1.314849), "d1_all": np.float32(0.058)}  # as training scripts store them
+    torch.save({"model": state, "optimizer": {}, "epoch": 252, "global_step": 279312, "val_metrics": metrics}, path)
     return path, state
 
 
