@@ -1,0 +1,69 @@
+"""The interface every stereo backend keeps: a rectified RGB pair in, disparity and confidence out."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+PRECISIONS = ("fp32", "fp16", "bf16")
+
+
+class StereoInputError(ValueError):
+    """A stereo pair handed to a backend is not two equally sized uint8 H×W×3 RGB images."""
+
+
+class BackendConfigError(ValueError):
+    """A backend was asked for a setting it cannot honour (unknown name, bad max_disp, device, precision)."""
+
+
+@dataclass(frozen=True)
+class StereoResult:
+    """What a backend returns for one pair.
+
+    disparity: float32 `H×W`, pixels, left reference; invalid pixels are 0.
+    confidence: float32 `H×W` in [0, 1]; 0 wherever the disparity is invalid.
+    timing_ms: wall-clock milliseconds per stage, always with a `total` entry.
+    """
+
+    disparity: np.ndarray
+    confidence: np.ndarray
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    backend: str = ""
+    max_disparity: int = 0
+
+
+@runtime_checkable
+class StereoBackend(Protocol):
+    """A disparity estimator for rectified pairs; `max_disparity` is its search range in pixels."""
+
+    name: str
+    max_disparity: int
+
+    def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
+        """Disparity and confidence of the left image of a rectified RGB uint8 `H×W×3` pair."""
+        ...
+
+
+def stage_timings_ms(start: float, marks: list[tuple[str, float]]) -> dict[str, float]:
+    """Milliseconds per stage from perf_counter marks [(stage, end time)], plus `total` from `start`."""
+    timing: dict[str, float] = {}
+    previous = start
+    for stage, end in marks:
+        timing[stage] = (end - previous) * 1e3
+        previous = end
+    timing["total"] = (previous - start) * 1e3
+    return timing
+
+
+def validate_pair(left: np.ndarray, right: np.ndarray) -> None:
+    """Raise StereoInputError unless left and right are both uint8 `H×W×3` arrays of the same shape."""
+    for side, image in (("left", left), ("right", right)):
+        if not isinstance(image, np.ndarray):
+            raise StereoInputError(f"{side} image must be a numpy array, got {type(image).__name__}")
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            raise StereoInputError(f"{side} image must be uint8 H×W×3 RGB, got {image.dtype} of shape {image.shape}")
+        if image.shape[0] == 0 or image.shape[1] == 0:
+            raise StereoInputError(f"{side} image is empty: shape {image.shape}")
+    if left.shape != right.shape:
+        raise StereoInputError(f"left {left.shape} and right {right.shape} images must have the same shape (a rectified pair)")

@@ -1,0 +1,106 @@
+"""EMCStereo inference backend: numpy RGB pair → normalised, padded tensors → network → un-padded maps.
+
+Precision: fp16/bf16 run under CUDA autocast only; asking for them on the CPU raises
+BackendConfigError (CPU autocast would change numerics without a speed-up we have measured).
+"""
+from __future__ import annotations
+
+import time
+from contextlib import nullcontext
+
+import numpy as np
+import torch
+
+from stereo.backends.base import PRECISIONS, BackendConfigError, StereoResult, stage_timings_ms, validate_pair
+from stereo.model import EMCStereo
+from stereo.padding import compute_padding, pad_image, unpad
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+DISPARITY_MULTIPLE = 4
+_AUTOCAST_DTYPES = {"fp16": torch.float16, "bf16": torch.bfloat16}
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """The torch device for a name like "cpu", "cuda" or "cuda:1"; BackendConfigError when unusable here."""
+    try:
+        resolved = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise BackendConfigError(f"device {device!r} is not a torch device name (try 'cpu' or 'cuda')") from exc
+    if resolved.type == "cuda" and not torch.cuda.is_available():
+        raise BackendConfigError(f"device {device!r} requested but CUDA is not available on this machine; use 'cpu'")
+    if resolved.type not in ("cpu", "cuda"):
+        raise BackendConfigError(f"device {device!r} is not supported; use 'cpu' or 'cuda[:N]'")
+    return resolved
+
+
+def normalize_images(images: np.ndarray, device: torch.device) -> torch.Tensor:
+    """RGB uint8 `(N, H, W, 3)` → ImageNet-normalised float32 `(N, 3, H, W)` on `device`."""
+    tensor = torch.from_numpy(np.ascontiguousarray(images)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+    mean = torch.tensor(IMAGENET_MEAN, device=device).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD, device=device).view(1, 3, 1, 1)
+    return (tensor - mean) / std
+
+
+class EMCStereoBackend:
+    """Runs an EMCStereo model on rectified RGB pairs of any size (≥ 1×1); confidence from the soft-argmin."""
+
+    name = "emcstereo"
+
+    def __init__(
+        self,
+        model: EMCStereo,
+        *,
+        max_disp: int | None = None,
+        device: str | torch.device = "cpu",
+        precision: str = "fp32",
+    ) -> None:
+        max_disp = model.max_disp if max_disp is None else max_disp
+        if not isinstance(max_disp, int) or max_disp <= 0 or max_disp % DISPARITY_MULTIPLE or max_disp > model.max_disp:
+            raise BackendConfigError(
+                f"emcstereo max_disp must be a multiple of {DISPARITY_MULTIPLE} in (0, {model.max_disp}] "
+                f"(the model's trained range), got {max_disp!r}"
+            )
+        if precision not in PRECISIONS:
+            raise BackendConfigError(f"precision {precision!r} is not one of {PRECISIONS}")
+        self.device = resolve_device(device)
+        if precision != "fp32" and self.device.type != "cuda":
+            raise BackendConfigError(
+                f"precision {precision!r} needs a CUDA device (autocast is CUDA-only here); use precision='fp32' on {self.device}"
+            )
+        self.max_disparity = max_disp
+        self.precision = precision
+        self.model = model.to(self.device).eval()
+
+    def _autocast(self) -> torch.autocast | nullcontext[None]:
+        """Mixed-precision context for fp16/bf16 on CUDA, nothing for fp32."""
+        if self.precision == "fp32":
+            return nullcontext()
+        return torch.autocast(device_type="cuda", dtype=_AUTOCAST_DTYPES[self.precision])
+
+    def _now(self) -> float:
+        """perf_counter after the device's queued work has finished (so stage timings are real)."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        return time.perf_counter()
+
+    def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
+        """Disparity (float32 px, dense; non-finite outputs become 0) and confidence in [0, 1] of a rectified pair."""
+        validate_pair(left, right)
+        height, width = left.shape[:2]
+        padding = compute_padding(height, width)
+        start = self._now()
+        with torch.inference_mode():
+            images = pad_image(normalize_images(np.stack([left, right]), self.device), padding)
+            prepared = self._now()
+            with self._autocast():
+                disparity, confidence = self.model.infer(images[:1], images[1:], max_disp=self.max_disparity)
+            inferred = self._now()
+            disparity = unpad(disparity[0].float(), padding).cpu().numpy()
+            confidence = unpad(confidence[0].float(), padding).cpu().numpy()
+        finite = np.isfinite(disparity) & np.isfinite(confidence)
+        disparity = np.where(finite, disparity, 0.0).astype(np.float32)
+        confidence = np.where(finite, np.clip(confidence, 0.0, 1.0), 0.0).astype(np.float32)
+        end = self._now()
+        timing = stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)])
+        return StereoResult(disparity, confidence, timing, self.name, self.max_disparity)
