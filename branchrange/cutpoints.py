@@ -180,6 +180,15 @@ class _ImageAxis:
         return count / (hi - lo)
 
 
+def _median_width(axis: "_ImageAxis", slice_px: float = 2.0) -> float:
+    """Median silhouette width (px) over slices across the axis: robust to a few slices that are
+    occluded (a branch crossing the trunk) or widened (a stub)."""
+    bins = np.floor((axis.s - axis.s_lo) / slice_px).astype(np.int64)
+    counts = np.bincount(bins[bins >= 0])
+    counts = counts[: max(1, int(axis.length_px // slice_px))]
+    return float(np.median(counts)) / slice_px
+
+
 def _image_axis(mask: np.ndarray) -> _ImageAxis:
     """Principal axis of a boolean `H×W` mask's pixels; extent from the 0.2/99.8 % quantiles."""
     v, u = np.nonzero(mask)
@@ -202,8 +211,9 @@ def _end_centre(axis: _ImageAxis, at_low_end: bool, depth_px: float) -> np.ndarr
     return axis.point(s_end, n_mid)
 
 
-def _base_is_low_end(axis: _ImageAxis, trunk: np.ndarray | None) -> bool:
-    """Which silhouette end is the base: nearer the trunk when one is known, else the thicker one."""
+def _base_is_low_end(axis: _ImageAxis, trunk: np.ndarray | None) -> tuple[bool, bool]:
+    """Which silhouette end is the base — nearer the trunk when one is known, else the thicker
+    one — and whether the trunk decided it."""
     slice_px = max(3.0, 0.15 * axis.length_px)
     if trunk is not None:
         distance_to_trunk = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
@@ -213,10 +223,10 @@ def _base_is_low_end(axis: _ImageAxis, trunk: np.ndarray | None) -> bool:
             u, v = _end_centre(axis, low, slice_px)
             ends.append(distance_to_trunk[int(np.clip(round(v), 0, h - 1)), int(np.clip(round(u), 0, w - 1))])
         if abs(ends[0] - ends[1]) > 0.1 * axis.length_px:
-            return bool(ends[0] < ends[1])
+            return bool(ends[0] < ends[1]), True
     width_low = axis.width_near(axis.s_lo + slice_px / 2, slice_px / 2)
     width_high = axis.width_near(axis.s_hi - slice_px / 2, slice_px / 2)
-    return bool(width_low >= width_high)
+    return bool(width_low >= width_high), False
 
 
 def _surface_offset_factor(half_width_px: float, erode_px: int) -> float:
@@ -232,6 +242,14 @@ def _surface_offset_factor(half_width_px: float, erode_px: int) -> float:
     return (math.asin(a) + a * math.sqrt(1.0 - a * a)) / (2.0 * a)
 
 
+def _radius_from_width(half_width_px: float, surface_depth_m: float, focal_px: float, erode_px: int) -> float:
+    """Cylinder radius (m) from its silhouette half-width (px) and the median depth of its visible
+    front (m): the axis lies `k·r` behind that front, so `r = w·(Z + k·r)/f`, i.e.
+    `r = w·Z / (f − w·k)` with `k` from `_surface_offset_factor`."""
+    k = _surface_offset_factor(half_width_px, erode_px)
+    return half_width_px * surface_depth_m / max(focal_px - half_width_px * k, 1e-6 * focal_px)
+
+
 def _pushed_back(line: Line3D, amount_m: float) -> Line3D:
     """The line moved `amount_m` away from the camera, perpendicular to itself (toward the axis)."""
     away = line.point / np.linalg.norm(line.point)
@@ -240,6 +258,61 @@ def _pushed_back(line: Line3D, amount_m: float) -> Line3D:
     if norm < 1e-6:  # line through the camera: no perpendicular direction away from it
         return line
     return Line3D(line.point + amount_m * away / norm, line.direction)
+
+
+@dataclass(frozen=True)
+class TrunkModel:
+    """The trunk as a cylinder: its axis (a `Line3D`, metres) and radius (m), fitted from its mask."""
+
+    axis: Line3D
+    radius_m: float
+
+    def exit_point(self, branch_axis: Line3D, toward_tip: np.ndarray) -> np.ndarray | None:
+        """Where the branch axis leaves the trunk surface on its way to the tip (3,), metres.
+
+        Solves |offset of axis(t) from the trunk axis| = radius for t (a quadratic) and keeps the
+        crossing furthest along `toward_tip` (the axis also crosses the trunk's far side); None
+        when the branch axis misses the trunk cylinder.
+        """
+        a = self.axis.direction
+        d_perp = branch_axis.direction - (branch_axis.direction @ a) * a
+        w = branch_axis.point - self.axis.point
+        w_perp = w - (w @ a) * a
+        qa, qb, qc = d_perp @ d_perp, d_perp @ w_perp, w_perp @ w_perp - self.radius_m ** 2
+        disc = qb * qb - qa * qc
+        if qa < 1e-9 or disc < 0:
+            return None
+        roots = (-qb + np.array([-1.0, 1.0]) * math.sqrt(disc)) / qa
+        sign = 1.0 if branch_axis.direction @ toward_tip >= 0 else -1.0
+        return branch_axis.at(roots[np.argmax(sign * roots)])
+
+
+def fit_trunk(trunk: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
+              max_disparity: float | None = None) -> TrunkModel | None:
+    """A `TrunkModel` from the boolean `H×W` trunk mask and the disparity (px); None when the
+    trunk's depth is too thin to fit or it is not elongated (no axis to speak of)."""
+    core = erode(trunk, config.erode_px)
+    rows, cols = np.nonzero(core)
+    d = disparity[rows, cols]
+    valid = valid_disparity(d, max_disparity)
+    if valid.sum() < config.min_points:
+        return None
+    points = backproject(cols[valid], rows[valid], d[valid], geometry)
+    axis2d = _image_axis(trunk)
+    half_width_px = _median_width(axis2d) / 2
+    if axis2d.length_px < 3.0 * half_width_px:
+        return None
+    z_median = float(np.median(points[:, 2]))
+    radius_m = _radius_from_width(half_width_px, z_median, geometry.focal_px, config.erode_px)
+    band_m = max(config.min_inlier_band_m, 3.0 * z_median ** 2 / geometry.fb * config.disparity_noise_px, radius_m)
+    try:
+        fit = fit_line_robust(points, band_m)
+    except GeometryError:
+        return None
+    line = fit.line
+    if config.surface_correction:
+        line = _pushed_back(line, radius_m * _surface_offset_factor(half_width_px, config.erode_px))
+    return TrunkModel(line, radius_m)
 
 
 def _confidence(valid_fraction: float, fit: LineFit, band_m: float, stereo_conf: float, n_inliers: int,
@@ -262,12 +335,14 @@ def estimate_branch(
     *,
     confidence: np.ndarray | None = None,
     trunk: np.ndarray | None = None,
+    trunk_model: TrunkModel | None = None,
     max_disparity: float | None = None,
 ) -> BranchEstimate | DroppedBranch:
     """Cut point of one branch from its boolean `H×W` mask and the `H×W` disparity (px).
 
     `confidence` (`H×W` in [0, 1]) is the stereo backend's per-pixel confidence (1 when None),
-    `trunk` the boolean trunk mask when known. Returns a `DroppedBranch` with the reason when the
+    `trunk` the boolean trunk mask when known and `trunk_model` its fitted cylinder (the base is
+    then where the axis pierces the bark). Returns a `DroppedBranch` with the reason when the
     evidence does not support a cut point.
     """
     core = erode(mask, config.erode_px)
@@ -286,8 +361,8 @@ def estimate_branch(
 
     z_median = float(np.median(points[:, 2]))
     axis2d = _image_axis(mask)
-    half_width_px = axis2d.width_near(0.5 * (axis2d.s_lo + axis2d.s_hi), axis2d.length_px / 2) / 2
-    radius_guess_m = half_width_px * z_median / geometry.focal_px
+    half_width_px = _median_width(axis2d) / 2
+    radius_guess_m = _radius_from_width(half_width_px, z_median, geometry.focal_px, config.erode_px)
     depth_noise_m = z_median ** 2 / geometry.fb * config.disparity_noise_px
     band_m = max(config.min_inlier_band_m, 3.0 * depth_noise_m, radius_guess_m)
     try:
@@ -299,7 +374,7 @@ def estimate_branch(
         return DroppedBranch(mask_id, f"line fit kept {n_inliers} points, fewer than {config.min_points}")
 
     slice_px = max(3.0, 0.15 * axis2d.length_px)
-    low_is_base = _base_is_low_end(axis2d, trunk)
+    low_is_base, base_at_trunk = _base_is_low_end(axis2d, trunk)
     elongated = axis2d.length_px >= 2.0 * max(1.0, 2.0 * half_width_px)
     line = fit.line
     if config.surface_correction:
@@ -310,6 +385,13 @@ def estimate_branch(
         tip_px = _end_centre(axis2d, not low_is_base, slice_px)
         base_m = line.closest_to_ray(pixel_ray(*base_px, geometry))
         tip_m = line.closest_to_ray(pixel_ray(*tip_px, geometry))
+        if base_at_trunk and trunk_model is not None:
+            # the mask's end is where the branch vanishes into the trunk's silhouette, which for a
+            # branch pointing at or away from the camera is far from where it leaves the bark
+            exit_m = trunk_model.exit_point(line, tip_m - base_m)
+            if exit_m is not None and (np.linalg.norm(exit_m - base_m)
+                                       < 0.5 * np.linalg.norm(tip_m - base_m) + 2.0 * trunk_model.radius_m):
+                base_m = exit_m
     else:  # seen end-on: the silhouette has no ends; the deeper 3D end is the base
         t = line.parameters(points[fit.inliers])
         ends = line.at(np.quantile(t, [0.02, 0.98]))
@@ -358,10 +440,12 @@ def estimate_cut_points(
     if disparity.shape != masks.shape:
         raise ValueError(f"disparity is {disparity.shape} but the mask is {masks.shape} (H, W)")
     trunk = masks.trunk()
+    trunk_model = None if trunk is None else fit_trunk(trunk, disparity, geometry, config, max_disparity)
     result = CutPointResult()
     for mask_id in masks.branch_ids():
         outcome = estimate_branch(mask_id, masks.branch(mask_id), disparity, geometry, config,
-                                  confidence=confidence, trunk=trunk, max_disparity=max_disparity)
+                                  confidence=confidence, trunk=trunk, trunk_model=trunk_model,
+                                  max_disparity=max_disparity)
         if isinstance(outcome, DroppedBranch):
             result.dropped.append(outcome)
         else:

@@ -15,6 +15,9 @@ import numpy as np
 
 #: The trunk's id in instance masks unless configured otherwise (the synthetic generator's value).
 DEFAULT_TRUNK_ID = 65535
+#: Ids that are neither branch nor trunk unless configured otherwise: the top of the 16-bit range
+#: is reserved for twigs (65534) and leaves (65533), as the synthetic generator writes them.
+DEFAULT_IGNORED_IDS: tuple[int, ...] = (65533, 65534)
 
 MaskKind = Literal["auto", "instance", "binary"]
 
@@ -27,13 +30,15 @@ class MaskError(ValueError):
 class BranchMasks:
     """Branch instances of one frame.
 
-    `labels` is an `H×W` `int32` image (0 background, `trunk_id` the trunk when not None, any other
-    value one branch); `source` says where the instances came from (e.g. a file name, "segmenter").
+    `labels` is an `H×W` `int32` image (0 background, `trunk_id` the trunk when not None, values
+    in `ignored_ids` neither branch nor trunk, any other value one branch); `source` says where the
+    instances came from (e.g. a file name, "geometric").
     """
 
     labels: np.ndarray
     trunk_id: int | None = None
     source: str = "array"
+    ignored_ids: tuple[int, ...] = ()
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -43,7 +48,7 @@ class BranchMasks:
     def branch_ids(self) -> list[int]:
         """Ids of the branch instances present, ascending (background and trunk excluded)."""
         ids = np.unique(self.labels)
-        return [int(i) for i in ids if i != 0 and i != self.trunk_id]
+        return [int(i) for i in ids if i != 0 and i != self.trunk_id and i not in self.ignored_ids]
 
     def branch(self, branch_id: int) -> np.ndarray:
         """Boolean `H×W` mask of one branch instance."""
@@ -85,10 +90,12 @@ def masks_from_array(
     trunk_id: int | None = DEFAULT_TRUNK_ID,
     kind: MaskKind = "auto",
     source: str = "array",
+    ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS,
 ) -> BranchMasks:
     """`BranchMasks` from an `H×W` integer or boolean array.
 
-    `kind="instance"` keeps ids as they are; `"binary"` splits non-zero pixels into connected
+    `kind="instance"` keeps ids as they are (`ignored_ids` are neither branch nor trunk);
+    `"binary"` splits non-zero pixels into connected
     components (no trunk); `"auto"` treats boolean arrays and 8-bit masks holding only 0/255 as
     binary and everything else as instance ids.
     """
@@ -115,10 +122,11 @@ def masks_from_array(
         return BranchMasks(split_binary(array), None, source)
     if kind != "instance":
         raise MaskError(f"{source}: mask kind {kind!r} is not one of 'auto', 'instance', 'binary'")
-    return BranchMasks(array.astype(np.int32), trunk_id, source)
+    return BranchMasks(array.astype(np.int32), trunk_id, source, tuple(ignored_ids))
 
 
-def read_mask(path: str | Path, *, trunk_id: int | None = DEFAULT_TRUNK_ID, kind: MaskKind = "auto") -> BranchMasks:
+def read_mask(path: str | Path, *, trunk_id: int | None = DEFAULT_TRUNK_ID, kind: MaskKind = "auto",
+              ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS) -> BranchMasks:
     """Read an instance-id PNG (8- or 16-bit) or a binary mask image into `BranchMasks`."""
     path = Path(path)
     if not path.is_file():
@@ -128,7 +136,7 @@ def read_mask(path: str | Path, *, trunk_id: int | None = DEFAULT_TRUNK_ID, kind
         raise MaskError(f"mask file {path} could not be decoded as an image (expected an 8- or 16-bit PNG)")
     if image.dtype not in (np.uint8, np.uint16):
         raise MaskError(f"mask file {path} has pixel type {image.dtype}; expected 8- or 16-bit integers")
-    return masks_from_array(image, trunk_id=trunk_id, kind=kind, source=str(path))
+    return masks_from_array(image, trunk_id=trunk_id, kind=kind, source=str(path), ignored_ids=ignored_ids)
 
 
 def write_instance_mask(path: str | Path, masks: BranchMasks | np.ndarray) -> Path:

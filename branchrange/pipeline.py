@@ -9,7 +9,7 @@ and the tracker's state. `process_disparity` runs the stages after stereo on a g
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from branchrange.cutpoints import TARGET_POLICIES, CutPointConfig, CutPointResult, estimate_cut_points, select_target
 from branchrange.geometry import StereoGeometry, valid_disparity
-from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks, MaskKind, masks_from_array, read_mask, validate_masks
+from branchrange.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID, BranchMasks, MaskKind, masks_from_array, read_mask, validate_masks
 from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
 from branchrange.tracking import BranchTracker, TrackerConfig
 
@@ -41,8 +41,9 @@ class PipelineConfig:
     """Settings of the whole per-frame chain.
 
     - `backend`, `weights`, `max_disp`, `device`, `precision`: `stereo.backends.make_backend` arguments.
-    - `trunk_id`: the trunk's id in instance masks (None: no trunk id); `mask_kind`: how mask
-      files/arrays are read ('auto', 'instance', 'binary').
+    - `trunk_id`: the trunk's id in instance masks (None: no trunk id); `ignored_ids`: ids that
+      are neither branch nor trunk (twigs, leaves); `mask_kind`: how mask files/arrays are read
+      ('auto', 'instance', 'binary').
     - `target_policy`: 'nearest', 'most_confident' or 'thickest'; `target_min_confidence`: a branch
       below it is never the target.
     - `tracking`: give branches stable ids across frames (else ids are per-frame mask order).
@@ -54,6 +55,7 @@ class PipelineConfig:
     device: str = "cpu"
     precision: str = "fp32"
     trunk_id: int | None = DEFAULT_TRUNK_ID
+    ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS
     mask_kind: MaskKind = "auto"
     target_policy: str = "nearest"
     target_min_confidence: float = 0.3
@@ -170,14 +172,14 @@ class Pipeline:
             return None
         cfg = self.config
         if isinstance(mask, (str, Path)):
-            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind)
+            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind, ignored_ids=cfg.ignored_ids)
         elif isinstance(mask, BranchMasks):
             masks = mask
         else:
-            masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind)
+            masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind, ignored_ids=cfg.ignored_ids)
         if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
             validate_masks(masks, shape)
-            masks = BranchMasks(_rectify_labels(self.rectifier, masks.labels), masks.trunk_id, masks.source)
+            masks = replace(masks, labels=_rectify_labels(self.rectifier, masks.labels))
         validate_masks(masks, shape)
         return masks
 

@@ -79,3 +79,12 @@ def test_erosion_shrinks_but_never_erases():
     thin = np.zeros((20, 20), dtype=bool)
     thin[10, 2:18] = True
     assert erode(thin, 1).sum() == thin.sum()
+
+
+def test_reserved_twig_and_leaf_ids_are_neither_branch_nor_trunk():
+    labels = two_branches_and_trunk(65535)
+    labels[30:32, 0:5] = 65534
+    labels[35:37, 0:5] = 65533
+    masks = masks_from_array(labels.astype(np.uint16))
+    assert masks.branch_ids() == [1, 2]
+    assert masks_from_array(labels.astype(np.uint16), ignored_ids=()).branch_ids() == [1, 2, 65533, 65534]
