@@ -1,0 +1,87 @@
+"""Latest-frame-wins: a capture thread drains a live source so a slow consumer never gets stale frames."""
+from __future__ import annotations
+
+import threading
+
+from camera.sources.frame import SourceBase, SourceError, StereoFrame, StereoSource
+
+
+class LatestFrameSource(SourceBase):
+    """Wraps a source; a background thread reads it continuously and keeps only the newest frame.
+
+    `next()` returns the newest frame not yet returned, waiting for one if needed; frames the
+    consumer was too slow for are dropped (counted in `dropped`). Recoverable SourceErrors of
+    the inner source (CorruptFrameError, SourceDisconnected) are handed to the consumer by the
+    next `next()` call and capture goes on; any other exception ends capture and is raised once,
+    after which iteration stops. `get(timeout)` is `next()` with a timeout (None when nothing
+    new came). `is_lost` and `calibration` are the inner source's. Closing closes the inner source.
+    """
+
+    def __init__(self, source: StereoSource) -> None:
+        self.source = source
+        self.calibration = source.calibration
+        self.dropped = 0
+        self._condition = threading.Condition()
+        self._latest: StereoFrame | None = None
+        self._errors: list[BaseException] = []
+        self._finished = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._capture, name="latest-frame-capture", daemon=True)
+        self._thread.start()
+
+    @property
+    def is_lost(self) -> bool:
+        return self.source.is_lost
+
+    def _capture(self) -> None:
+        try:
+            while not self._stop.is_set():
+                try:
+                    frame = next(self.source)
+                except StopIteration:
+                    break
+                except SourceError as error:
+                    with self._condition:
+                        self._errors.append(error)
+                        self._condition.notify_all()
+                    continue
+                with self._condition:
+                    if self._latest is not None:
+                        self.dropped += 1
+                    self._latest = frame
+                    self._condition.notify_all()
+        except BaseException as error:  # handed to the consumer thread, which raises it
+            with self._condition:
+                self._errors.append(error)
+        finally:
+            with self._condition:
+                self._finished = True
+                self._condition.notify_all()
+
+    def get(self, timeout: float | None = None) -> StereoFrame | None:
+        """The newest unseen frame, waiting up to `timeout` s (None: forever); None on timeout.
+
+        Raises StopIteration when the inner source has ended and everything was handed out.
+        """
+        with self._condition:
+            ready = self._condition.wait_for(lambda: self._latest is not None or self._errors or self._finished,
+                                             timeout)
+            if not ready:
+                return None
+            if self._errors:
+                raise self._errors.pop(0)
+            if self._latest is None:
+                raise StopIteration
+            frame, self._latest = self._latest, None
+            return frame
+
+    def __next__(self) -> StereoFrame:
+        frame = self.get()
+        assert frame is not None  # get() without a timeout only returns a frame or raises
+        return frame
+
+    def close(self) -> None:
+        """Stop the capture thread and close the inner source."""
+        self._stop.set()
+        self.source.close()
+        self._thread.join(timeout=5.0)

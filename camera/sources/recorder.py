@@ -1,0 +1,111 @@
+"""Recording stereo frames in the replay format (see camera.sources.recording_format)."""
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+from camera.calibration import StereoCalibration
+from camera.opencv_file import write_opencv_file
+from camera.sources.frame import StereoFrame
+from camera.sources.image_files import write_rgb
+from camera.sources.recording_format import (CALIBRATION_NAME, MANIFEST_NAME, TIMESTAMP_COLUMNS, TIMESTAMPS_NAME,
+                                             write_manifest)
+
+IMAGE_FORMATS = ("png", "jpg")
+
+
+class Recorder:
+    """Writes frames to a recording directory that `ReplaySource` replays.
+
+    `calibration` is saved as calibration.yaml; `source_spec` is noted in the manifest;
+    `image_format` is "png" (lossless, default) or "jpg". The directory must be empty or new
+    unless `overwrite` is set. Use as a context manager, or call `close()` to finish the manifest.
+    """
+
+    def __init__(self, out_dir: str | Path, *, calibration: StereoCalibration | None = None, source_spec: str = "",
+                 image_format: str = "png", overwrite: bool = False) -> None:
+        if image_format not in IMAGE_FORMATS:
+            raise ValueError(f"image_format is {image_format!r}; expected one of {', '.join(IMAGE_FORMATS)}")
+        self.directory = Path(out_dir)
+        if self.directory.exists() and any(self.directory.iterdir()) and not overwrite:
+            raise FileExistsError(f"{self.directory}: not empty; choose a new directory or allow overwriting")
+        for sub in ("left", "right"):
+            (self.directory / sub).mkdir(parents=True, exist_ok=True)
+        self.image_format = image_format
+        self.frames = 0
+        self._size: tuple[int, int] | None = None
+        self._first_ts: int | None = None
+        self._last_ts: int | None = None
+        self._manifest = {"source": source_spec, "image_format": image_format, "calibration": None}
+        if calibration is not None:
+            write_opencv_file(calibration, self.directory / CALIBRATION_NAME)
+            self._manifest["calibration"] = CALIBRATION_NAME
+        self._csv_file = (self.directory / TIMESTAMPS_NAME).open("w", newline="", encoding="utf-8")
+        self._csv = csv.writer(self._csv_file)
+        self._csv.writerow(TIMESTAMP_COLUMNS)
+        self._write_manifest(complete=False)
+        self._closed = False
+
+    def write(self, frame: StereoFrame) -> None:
+        """Append one pair; its views must keep the size of the first frame and its timestamp must increase."""
+        if self._closed:
+            raise ValueError(f"{self.directory}: recorder is closed")
+        if self._size is None:
+            self._size = frame.size
+        elif frame.size != self._size:
+            raise ValueError(f"frame {frame.index} is {frame.size[0]}×{frame.size[1]}; the recording is "
+                             f"{self._size[0]}×{self._size[1]}")
+        if self._last_ts is not None and frame.timestamp_ns <= self._last_ts:
+            raise ValueError(f"frame {frame.index} timestamp {frame.timestamp_ns} ns does not follow "
+                             f"{self._last_ts} ns; expected increasing capture times")
+        name = f"{self.frames:06d}.{self.image_format}"
+        write_rgb(self.directory / "left" / name, frame.left)
+        write_rgb(self.directory / "right" / name, frame.right)
+        self._csv.writerow([self.frames, frame.timestamp_ns, f"left/{name}", f"right/{name}"])
+        self._csv_file.flush()
+        if self._first_ts is None:
+            self._first_ts = frame.timestamp_ns
+        self._last_ts = frame.timestamp_ns
+        self.frames += 1
+
+    def _write_manifest(self, complete: bool) -> None:
+        width, height = self._size or (None, None)
+        duration_s = ((self._last_ts or 0) - (self._first_ts or 0)) / 1e9
+        fps = (self.frames - 1) / duration_s if self.frames > 1 and duration_s > 0 else None
+        write_manifest(self.directory, {**self._manifest, "frames": self.frames, "width": width, "height": height,
+                                        "first_timestamp_ns": self._first_ts, "last_timestamp_ns": self._last_ts,
+                                        "fps": fps, "complete": complete})
+
+    def close(self) -> Path:
+        """Finish the recording (final manifest) and return the path of the manifest."""
+        if not self._closed:
+            self._closed = True
+            self._csv_file.close()
+            self._write_manifest(complete=True)
+        return self.directory / MANIFEST_NAME
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def record(frames: Iterable[StereoFrame], recorder: Recorder, limit: int | None = None,
+           on_frame: Callable[[StereoFrame], None] | None = None) -> int:
+    """Write frames from `frames` (a source) into `recorder` until it ends or `limit` pairs are written.
+
+    `on_frame` is called after each pair is written (a progress bar). Returns the number written.
+    """
+    written = 0
+    if limit is not None and limit <= 0:
+        return written
+    for frame in frames:
+        recorder.write(frame)
+        written += 1
+        if on_frame is not None:
+            on_frame(frame)
+        if limit is not None and written >= limit:
+            break
+    return written

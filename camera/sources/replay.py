@@ -1,0 +1,209 @@
+"""Replay of recorded stereo sequences: a recording directory or a side-by-side video file.
+
+This is also the file-based camera the tests and the daemon's tests use in place of hardware.
+"""
+from __future__ import annotations
+
+import statistics
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+
+from camera.calibration import StereoCalibration
+from camera.load import load_calibration
+from camera.sources.frame import SourceBase, SourceConfigError, SourceUnavailable, StereoFrame
+from camera.sources.image_files import read_rgb, split_side_by_side
+from camera.sources.recording_format import read_manifest, read_timestamps
+
+#: Pacing modes: "recorded" waits so frames come at the recorded rate, "fast" returns them at once.
+PACES = ("recorded", "fast")
+DEFAULT_PERIOD_NS = 33_333_333
+
+
+class _DirectoryFrames:
+    """Frames of a recording directory, by position in timestamps.csv."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self.manifest = read_manifest(directory)
+        self.rows = read_timestamps(directory)
+        deltas = [b.timestamp_ns - a.timestamp_ns for a, b in zip(self.rows, self.rows[1:])]
+        self.period_ns = int(statistics.median(deltas)) if deltas else DEFAULT_PERIOD_NS
+        self.count = len(self.rows)
+        self._position = 0
+
+    def seek(self, position: int) -> None:
+        self._position = position
+
+    def read(self) -> StereoFrame | None:
+        """The next frame (with the recorded index and timestamp), None at the end of the recording."""
+        if self._position >= self.count:
+            return None
+        row = self.rows[self._position]
+        self._position += 1
+        left = read_rgb(self.directory / row.left)
+        right = read_rgb(self.directory / row.right)
+        return StereoFrame(left, right, row.timestamp_ns, row.index)
+
+    def calibration(self) -> StereoCalibration | None:
+        name = self.manifest.get("calibration")
+        if not name:
+            return None
+        return load_calibration(self.directory / name, self.manifest.get("calibration_resolution"))
+
+    def close(self) -> None:
+        """Nothing stays open between reads."""
+
+
+class _VideoFrames:
+    """Frames of a side-by-side video file (left half | right half), timestamps from the frame rate."""
+
+    def __init__(self, path: Path, fps: float | None) -> None:
+        self.path = path
+        self._capture: cv2.VideoCapture | None = None
+        self._open()
+        assert self._capture is not None
+        reported = self._capture.get(cv2.CAP_PROP_FPS)
+        rate = fps if fps is not None else reported
+        if not rate or rate <= 0:
+            raise SourceConfigError(f"{path}: the video reports no frame rate; pass fps= to replay it")
+        self.period_ns = int(round(1e9 / rate))
+        self.count = int(self._capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+
+    def _open(self) -> None:
+        if self._capture is not None:
+            self._capture.release()
+        self._capture = cv2.VideoCapture(str(self.path))
+        if not self._capture.isOpened():
+            raise SourceUnavailable(f"{self.path}: OpenCV cannot open this video; expected a side-by-side "
+                                    "stereo video (e.g. .avi/.mkv/.mp4) readable by OpenCV's FFmpeg backend")
+        self._position = 0
+
+    def seek(self, position: int) -> None:
+        """Reopen and read forward to `position` (exact, unlike codec-dependent seeking)."""
+        self._open()
+        while self._position < position and self._grab():
+            pass
+
+    def _grab(self) -> bool:
+        assert self._capture is not None
+        if not self._capture.grab():
+            return False
+        self._position += 1
+        return True
+
+    def read(self) -> StereoFrame | None:
+        """The next frame, None at the end of the video."""
+        assert self._capture is not None
+        ok, bgr = self._capture.read()
+        if not ok:
+            return None
+        index = self._position
+        self._position += 1
+        left, right = split_side_by_side(bgr)
+        return StereoFrame(left, right, index * self.period_ns, index)
+
+    def calibration(self) -> StereoCalibration | None:
+        return None
+
+    def close(self) -> None:
+        if self._capture is not None:
+            self._capture.release()
+            self._capture = None
+
+
+class ReplaySource(SourceBase):
+    """Replays a recording directory (`branchrange record` layout) or a side-by-side video file.
+
+    `pace="recorded"` waits so frames come at the recorded rate, `"fast"` as fast as they decode.
+    `loop=True` starts again at `start` after the last frame; indices then keep growing (recorded
+    index + pass × frame count) and timestamps keep increasing by the sequence's duration.
+    `start` is the position (0-based) of the first frame replayed. `calibration` overrides the
+    recording's own copy (a video has none: pass one, or leave it None). `fps` overrides a video's
+    frame rate. A frame whose image cannot be decoded raises CorruptFrameError; the next call goes on.
+    """
+
+    def __init__(self, path: str | Path, *, pace: str = "recorded", loop: bool = False, start: int = 0,
+                 calibration: StereoCalibration | None = None, fps: float | None = None,
+                 clock: Callable[[], int] = time.monotonic_ns) -> None:
+        if pace not in PACES:
+            raise SourceConfigError(f"pace is {pace!r}; expected one of {', '.join(PACES)}")
+        if start < 0:
+            raise SourceConfigError(f"start is {start}; expected a frame position ≥ 0")
+        self.path = Path(path)
+        if self.path.is_dir():
+            self._frames: _DirectoryFrames | _VideoFrames = _DirectoryFrames(self.path)
+        elif self.path.is_file():
+            self._frames = _VideoFrames(self.path, fps)
+        else:
+            raise SourceUnavailable(f"{self.path}: no such recording directory or video file")
+        if self._frames.count is not None and start >= self._frames.count:
+            raise SourceConfigError(f"start is {start}; {self.path} has {self._frames.count} frames")
+        self.calibration = calibration if calibration is not None else self._frames.calibration()
+        self.pace, self.loop, self.start = pace, loop, start
+        self._clock = clock
+        self._stop = threading.Event()
+        self._frames.seek(start)
+        self._pass = 0
+        self._offset_ns = 0
+        self._io_lock = threading.Lock()
+        self._first_ts: int | None = None
+        self._last_ts: int | None = None
+        self._last_index = -1
+        self._wall_start: int | None = None
+        self._stream_start: int | None = None
+
+    @property
+    def frame_count(self) -> int | None:
+        """Frames in the recording (None for a video whose container does not say)."""
+        return self._frames.count
+
+    def __next__(self) -> StereoFrame:
+        with self._io_lock:
+            if self._stop.is_set():
+                raise StopIteration
+            frame = self._frames.read()
+            if frame is None:
+                frame = self._wrap()
+        if self._pass == 0:
+            if self._first_ts is None:
+                self._first_ts = frame.timestamp_ns
+            self._last_ts, self._last_index = frame.timestamp_ns, frame.index
+        frame = StereoFrame(frame.left, frame.right, frame.timestamp_ns + self._offset_ns,
+                            frame.index + self._pass * (self._last_index + 1))
+        self._wait_for(frame.timestamp_ns)
+        if self._stop.is_set():
+            raise StopIteration
+        return frame
+
+    def _wrap(self) -> StereoFrame:
+        """Go back to `start` when looping (StopIteration otherwise) and read the first frame again."""
+        if not self.loop or self._first_ts is None or self._last_ts is None:
+            raise StopIteration
+        self._pass += 1
+        self._offset_ns += self._last_ts - self._first_ts + self._frames.period_ns
+        self._frames.seek(self.start)
+        frame = self._frames.read()
+        if frame is None:
+            raise StopIteration
+        return frame
+
+    def _wait_for(self, timestamp_ns: int) -> None:
+        if self.pace == "fast":
+            return
+        now = self._clock()
+        if self._wall_start is None or self._stream_start is None:
+            self._wall_start, self._stream_start = now, timestamp_ns
+            return
+        delay_ns = (timestamp_ns - self._stream_start) - (now - self._wall_start)
+        if delay_ns > 0:
+            self._stop.wait(delay_ns / 1e9)
+
+    def close(self) -> None:
+        """Stop replaying (a paced wait in another thread returns at once) and release the video."""
+        self._stop.set()
+        with self._io_lock:
+            self._frames.close()

@@ -1,0 +1,70 @@
+"""`open_source(spec)`: a frame source from a short text spec, as the command line and config files give it.
+
+Specs: `zed:0`, `zed:0:HD720`, `zed:/dev/video0`, `zed:/dev/video0:VGA` (device index or path, then
+an optional mode), `oak`, `oak:640x400`, `oak:1280x800@60` (output size and fps), `replay:PATH`
+(a recording directory or a side-by-side video file).
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from camera.calibration import StereoCalibration
+from camera.load import load_calibration
+from camera.sources.frame import SourceBase, SourceConfigError
+from camera.sources.latest import LatestFrameSource
+from camera.sources.replay import ReplaySource
+from camera.sources.zed_uvc import ZED_MODES, ZedUvcSource
+
+_OAK_OPTIONS = re.compile(r"^(\d+)x(\d+)(?:@(\d+(?:\.\d+)?))?$")
+
+
+def parse_zed_spec(rest: str) -> tuple[int | str, str]:
+    """(device, mode) from what follows `zed:`: an index or path, then an optional `:MODE`."""
+    device_text, mode = rest, "HD720"
+    head, sep, tail = rest.rpartition(":")
+    if sep and tail.upper() in ZED_MODES:
+        device_text, mode = head, tail.upper()
+    elif rest.upper() in ZED_MODES:
+        device_text, mode = "0", rest.upper()
+    device_text = device_text or "0"
+    device: int | str = int(device_text) if device_text.isdigit() else device_text
+    return device, mode
+
+
+def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None = None, latest: bool = False,
+                pace: str = "recorded", loop: bool = False, start: int = 0) -> SourceBase:
+    """Open the source a spec names (see the module docstring).
+
+    `calibration`: a StereoCalibration or a calibration file (a ZED conf is read at the mode's
+    resolution) overriding what the source knows. `latest=True` wraps a live source in
+    LatestFrameSource. `pace`, `loop`, `start` apply to replays.
+    """
+    kind, _, rest = spec.strip().partition(":")
+    kind = kind.lower()
+    if kind == "zed":
+        device, mode = parse_zed_spec(rest)
+        source: SourceBase = ZedUvcSource(device, mode, calibration=calibration)
+    elif kind == "oak":
+        from camera.sources.oak import OakConfig, OakSource  # depthai is imported only when an OAK is used
+
+        match = _OAK_OPTIONS.match(rest) if rest else None
+        if rest and match is None:
+            raise SourceConfigError(f"source spec {spec!r}: expected oak, oak:WIDTHxHEIGHT or oak:WIDTHxHEIGHT@FPS")
+        config = OakConfig() if match is None else OakConfig(
+            size=(int(match[1]), int(match[2])), fps=float(match[3]) if match[3] else OakConfig.fps)
+        source = OakSource(config, calibration=_loaded(calibration, None, config.size))
+    elif kind == "replay":
+        if not rest:
+            raise SourceConfigError(f"source spec {spec!r}: expected replay:PATH")
+        source = ReplaySource(rest, pace=pace, loop=loop, start=start, calibration=_loaded(calibration, None, None))
+    else:
+        raise SourceConfigError(f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]] or replay:PATH")
+    return LatestFrameSource(source) if latest and kind != "replay" else source
+
+
+def _loaded(calibration: StereoCalibration | str | Path | None, resolution: str | None,
+            size: tuple[int, int] | None) -> StereoCalibration | None:
+    if calibration is None or isinstance(calibration, StereoCalibration):
+        return calibration
+    return load_calibration(calibration, resolution, size=size)
