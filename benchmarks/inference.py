@@ -1,0 +1,231 @@
+"""Inference latency and peak memory of the stereo backends on the CPU, with the machine's FLOP rate.
+
+Every configuration runs in its own child process, so that each peak RSS is that configuration's
+alone; a float32 matmul timed on the same number of threads, in the same run, is the baseline.
+Prints one table and the full model's efficiency at 384×1248: model GFLOP / latency / matmul rate.
+
+    .venv/bin/python benchmarks/inference.py                      # 256×512 and 384×1248, 1+3 runs
+    .venv/bin/python benchmarks/inference.py --sizes 256x512 --repeats 1 --warmup 0   # quick look
+
+To benchmark something new, add a runner to RUNNERS and configurations to `build_configs`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+#: The full model's forward pass at 384×1248 (max_disp 192), in GFLOP, the figure the
+#: efficiency line is defined with. (torch's FlopCounterMode counts 1338.8 for convolutions and
+#: matmuls alone; the GFLOP column shows that count per size.)
+FULL_MODEL_GFLOP_384x1248 = 1350.6
+EFFICIENCY_SIZE = (384, 1248)
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """One measurement: which runner, at what input size, on how many threads."""
+
+    runner: str
+    height: int
+    width: int
+    threads: int = 2
+    max_disp: int = 192
+    warmup: int = 1
+    repeats: int = 3
+
+
+@dataclass
+class BenchResult:
+    """What a child process reports for one configuration (times in seconds, memory in MiB)."""
+
+    latencies_s: list[float]
+    peak_rss_mib: float
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+def random_pair(height: int, width: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A random-texture RGB uint8 pair `H×W×3`, the right view shifted by 8 px."""
+    rng = np.random.default_rng(seed)
+    scene = rng.integers(0, 256, (height, width + 8, 3), dtype=np.uint8)
+    return np.ascontiguousarray(scene[:, 8:]), np.ascontiguousarray(scene[:, :width])
+
+
+def _timed(call: Callable[[], object], config: BenchConfig) -> list[float]:
+    """Run `call` warm-up times untimed, then `repeats` times; the wall-clock seconds of each timed run."""
+    for _ in range(config.warmup):
+        call()
+    latencies = []
+    for _ in range(config.repeats):
+        start = time.perf_counter()
+        call()
+        latencies.append(time.perf_counter() - start)
+    return latencies
+
+
+def run_emcstereo(config: BenchConfig) -> BenchResult:
+    """The full (EMA+MSF+Coord) model behind the emcstereo backend, fp32, random weights."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from stereo.backends.emcstereo import EMCStereoBackend
+    from stereo.model import EMCStereo
+    from stereo.padding import compute_padding
+
+    torch.manual_seed(0)
+    backend = EMCStereoBackend(EMCStereo(), max_disp=config.max_disp)
+    left, right = random_pair(config.height, config.width)
+    network_ms: list[float] = []
+
+    def call() -> None:
+        network_ms.append(backend.compute(left, right).timing_ms["network"])
+
+    latencies = _timed(call, config)
+    # FLOPs of convolutions and matmuls, counted on the meta device (no compute).
+    padded = compute_padding(config.height, config.width).padded_shape
+    with torch.device("meta"):
+        meta_model = EMCStereo().eval()
+        image = torch.empty(1, 3, *padded)
+    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
+        meta_model.infer(image, image, max_disp=config.max_disp)
+    network = network_ms[config.warmup :]
+    return BenchResult(latencies, 0.0, {"network_ms": statistics.median(network), "gflop": counter.get_total_flops() / 1e9})
+
+
+def run_sgbm(config: BenchConfig) -> BenchResult:
+    """OpenCV SGBM with the left-right check, as the sgbm backend runs it."""
+    from stereo.backends.sgbm import SGBMBackend
+
+    backend = SGBMBackend(max_disp=config.max_disp)
+    left, right = random_pair(config.height, config.width)
+    return BenchResult(_timed(lambda: backend.compute(left, right), config), 0.0)
+
+
+def run_matmul(config: BenchConfig) -> BenchResult:
+    """A square float32 matmul of side `height`: the FLOP rate the threads reach (GFLOP/s)."""
+    import torch
+
+    n = config.height
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    latencies = _timed(lambda: a @ b, config)
+    return BenchResult(latencies, 0.0, {"gflops_per_s": 2 * n**3 / statistics.median(latencies) / 1e9})
+
+
+RUNNERS: dict[str, Callable[[BenchConfig], BenchResult]] = {
+    "emcstereo": run_emcstereo,
+    "sgbm": run_sgbm,
+    "matmul": run_matmul,
+}
+
+
+def child_main(config_json: str) -> None:
+    """In the child: set the thread counts, run one configuration, print its result as JSON."""
+    import cv2
+    import torch
+
+    config = BenchConfig(**json.loads(config_json))
+    torch.set_num_threads(config.threads)
+    cv2.setNumThreads(config.threads)
+    result = RUNNERS[config.runner](config)
+    result.peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
+    print(json.dumps(asdict(result)))
+
+
+def measure(config: BenchConfig) -> BenchResult:
+    """Run one configuration in a fresh Python process and parse its report."""
+    completed = subprocess.run(
+        [sys.executable, __file__, "--child", json.dumps(asdict(config))], capture_output=True, text=True, check=False
+    )
+    if completed.returncode != 0:
+        raise RuntimeError(f"benchmark child for {config} failed:\n{completed.stderr[-2000:]}")
+    return BenchResult(**json.loads(completed.stdout.strip().splitlines()[-1]))
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'384x1248' → (384, 1248)."""
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"size {text!r} must look like HEIGHTxWIDTH, e.g. 384x1248") from exc
+    if height <= 0 or width <= 0:
+        raise argparse.ArgumentTypeError(f"size {text!r} must be positive")
+    return height, width
+
+
+def build_configs(args: argparse.Namespace) -> list[BenchConfig]:
+    """The matmul baseline, then each backend at each size."""
+    common = {"threads": args.threads, "warmup": args.warmup, "repeats": args.repeats}
+    configs = [BenchConfig("matmul", args.matmul_size, args.matmul_size, **common)]
+    for runner in args.backends:
+        for height, width in args.sizes:
+            configs.append(BenchConfig(runner, height, width, max_disp=args.max_disp, **common))
+    return configs
+
+
+def format_row(config: BenchConfig, result: BenchResult) -> str:
+    """One line of the table."""
+    median_ms = statistics.median(result.latencies_s) * 1e3
+    size = f"{config.height}x{config.width}" if config.runner != "matmul" else f"{config.height}^2"
+    network = f"{result.extra['network_ms']:10.1f}" if "network_ms" in result.extra else f"{'':>10}"
+    if "gflop" in result.extra:
+        work = f"{result.extra['gflop']:9.1f} GFLOP"
+    elif "gflops_per_s" in result.extra:
+        work = f"{result.extra['gflops_per_s']:9.1f} GFLOP/s"
+    else:
+        work = ""
+    return (
+        f"{config.runner:<10} {size:>9} {config.threads:>7} {config.max_disp if config.runner != 'matmul' else '':>8} "
+        f"{median_ms:10.1f} {min(result.latencies_s) * 1e3:9.1f} {network} {result.peak_rss_mib:9.0f}  {work}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run every configuration, print the table and the efficiency line."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=lambda s: [parse_size(v) for v in s.split(",")], default=[(256, 512), (384, 1248)],
+                        help="comma-separated HEIGHTxWIDTH list (default 256x512,384x1248)")
+    parser.add_argument("--backends", type=lambda s: s.split(","), default=["emcstereo", "sgbm"], help="comma-separated runners")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--max-disp", type=int, default=192)
+    parser.add_argument("--matmul-size", type=int, default=2048)
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        child_main(args.child)
+        return 0
+    unknown = [name for name in args.backends if name not in RUNNERS]
+    if unknown or args.repeats < 1 or args.warmup < 0 or args.threads < 1:
+        parser.error(f"need known runners {sorted(RUNNERS)} (got {unknown}), repeats ≥ 1, warmup ≥ 0, threads ≥ 1")
+
+    print(f"{'backend':<10} {'size':>9} {'threads':>7} {'max_disp':>8} {'median ms':>10} {'min ms':>9} "
+          f"{'network ms':>10} {'peak MiB':>9}  work")
+    results: dict[BenchConfig, BenchResult] = {}
+    for config in build_configs(args):
+        results[config] = measure(config)
+        print(format_row(config, results[config]), flush=True)
+
+    rate = next(r.extra["gflops_per_s"] for c, r in results.items() if c.runner == "matmul")
+    full = [r for c, r in results.items()
+            if c.runner == "emcstereo" and (c.height, c.width) == EFFICIENCY_SIZE and c.max_disp == 192]
+    if full:
+        latency = statistics.median(full[0].latencies_s)
+        efficiency = FULL_MODEL_GFLOP_384x1248 / latency / rate
+        print(f"\nefficiency at 384x1248: {FULL_MODEL_GFLOP_384x1248} GFLOP / {latency:.2f} s / {rate:.1f} GFLOP/s "
+              f"(matmul, {args.threads} threads) = {efficiency:.1%}")
+    else:
+        print("\nefficiency: needs emcstereo at 384x1248 with max_disp 192 among the configurations")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
