@@ -72,16 +72,26 @@ class StereoConfig:
 
 @dataclass(frozen=True)
 class CutpointsConfig:
-    """How branch masks are found and where on a branch the cut goes."""
+    """Where on a branch the cut goes and which branch is the target (`branchrange.pipeline`).
 
-    masks: str = "geometric"
+    `target_policy`: 'nearest', 'most_confident' or 'thickest'; branches below
+    `target_min_confidence` are never the target, below `min_confidence` not reported at all.
+    `tracking` keeps branch ids stable across frames (the daemon and replay want it).
+    """
+
     cut_offset_m: float = 0.05
     min_confidence: float = 0.0
+    target_policy: str = "nearest"
+    target_min_confidence: float = 0.3
+    tracking: bool = True
 
     def __post_init__(self) -> None:
-        _require(self.masks in ("file", "geometric", "model"), "cutpoints.masks", self.masks, "'file', 'geometric' or 'model'")
         _require(self.cut_offset_m >= 0, "cutpoints.cut_offset_m", self.cut_offset_m, "metres >= 0")
         _require(0.0 <= self.min_confidence <= 1.0, "cutpoints.min_confidence", self.min_confidence, "a number in [0, 1]")
+        _require(self.target_policy in ("nearest", "most_confident", "thickest"), "cutpoints.target_policy",
+                 self.target_policy, "'nearest', 'most_confident' or 'thickest'")
+        _require(0.0 <= self.target_min_confidence <= 1.0, "cutpoints.target_min_confidence",
+                 self.target_min_confidence, "a number in [0, 1]")
 
 
 @dataclass(frozen=True)
@@ -238,3 +248,16 @@ def load_config(path: str | Path | None) -> Config:
         return config_from_dict(data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+def pipeline_config(cfg: Config) -> Any:
+    """The `branchrange.pipeline.PipelineConfig` that `[stereo]` and `[cutpoints]` describe."""
+    from branchrange.cutpoints import CutPointConfig
+    from branchrange.pipeline import PipelineConfig
+
+    s, c = cfg.stereo, cfg.cutpoints
+    return PipelineConfig(
+        backend=s.backend, weights=s.weights or None, max_disp=s.max_disp, device=s.device,
+        precision=s.precision, target_policy=c.target_policy,
+        target_min_confidence=c.target_min_confidence, tracking=c.tracking,
+        cutpoints=CutPointConfig(cut_offset_m=c.cut_offset_m, min_confidence=c.min_confidence))

@@ -1,0 +1,58 @@
+"""The app factory: `create_app(settings, estimator, state=None)` wires settings, auth, limits,
+metrics and the routers (FastAPI "bigger applications" layout)."""
+from __future__ import annotations
+
+import time
+from typing import Any, Protocol
+
+from fastapi import FastAPI, Request, Response
+
+from api.estimator import Estimator
+from api.limits import InferenceSlots
+from api.metrics import Metrics
+from api.routers import estimate, status
+from branchrange.config import ApiConfig
+
+DESCRIPTION = """Cut points of tree branches, in metres, from a stereo pair.
+
+`POST /estimate` returns one `branchrange/v1` result (3D points in the rectified left camera frame:
+x right, y down, z forward, metres); `POST /disparity` the disparity map. With a token configured,
+every route but `/health` and `/version` needs `Authorization: Bearer <token>`."""
+
+
+class LiveStatus(Protocol):
+    """What the onboard daemon exposes to the API (daemon mode)."""
+
+    def latest_result(self) -> dict[str, Any] | None:
+        """The newest frame's result, or None before the first one."""
+        ...
+
+    def health(self) -> dict[str, Any]:
+        """`{"camera": {...}, "mavlink": {...} | None}` with at least `camera["lost"]`."""
+        ...
+
+
+def create_app(settings: ApiConfig, estimator: Estimator | None, state: LiveStatus | None = None,
+               metrics: Metrics | None = None) -> FastAPI:
+    """The FastAPI app. `estimator` None leaves out the POST routes (a daemon that only reports);
+    `state` (the daemon) enables `/latest` and the camera/link parts of `/health`."""
+    app = FastAPI(title="BranchRange", version=status.package_version(), description=DESCRIPTION)
+    app.state.settings = settings
+    app.state.estimator = estimator
+    app.state.live = state
+    app.state.metrics = metrics or Metrics()
+    app.state.slots = InferenceSlots(settings.max_concurrency, settings.retry_after_s)
+
+    @app.middleware("http")
+    async def record_metrics(request: Request, call_next: Any) -> Response:
+        start = time.perf_counter()
+        response = await call_next(request)
+        route = request.scope.get("route")
+        app.state.metrics.observe_request(getattr(route, "path", "unmatched"), request.method,
+                                          response.status_code, time.perf_counter() - start)
+        return response
+
+    if estimator is not None:
+        app.include_router(estimate.router)
+    app.include_router(status.router)
+    return app

@@ -1,0 +1,84 @@
+"""The narrow interface the routes need (`Estimator`) and its implementation over the pipeline.
+
+Routes hand over decoded RGB arrays and a `CameraSpec`; an estimator returns the `branchrange/v1`
+result or the disparity. Keeping routes to this protocol lets them be tested with any real
+implementation and keeps FastAPI out of the pipeline.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from branchrange.pipeline import Pipeline, PipelineConfig
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """How to get metres from pixels: a `camera.StereoCalibration` (raw or rectified pair), or
+    `focal_px` (pixels at the uploaded resolution) + `baseline_m` (metres) of a rectified pair."""
+
+    calibration: Any = None
+    focal_px: float | None = None
+    baseline_m: float | None = None
+
+
+class Estimator(Protocol):
+    """What the API calls: one stereo pair in, a result or a disparity out (blocking; run off-loop)."""
+
+    def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
+                 backend: str | None = None, max_disp: int | None = None) -> dict:
+        """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`."""
+        ...
+
+    def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
+                  backend: str | None = None, max_disp: int | None = None) -> np.ndarray:
+        """Disparity `float32 H×W` (pixels, rectified left view) of the pair."""
+        ...
+
+
+class PipelineEstimator:
+    """`Estimator` over `branchrange.pipeline.Pipeline`: one pipeline per request (each request is
+    its own camera; no tracking across requests), stereo backends built once and reused."""
+
+    def __init__(self, config: PipelineConfig | None = None):
+        self.config = replace(config or PipelineConfig(), tracking=False)
+        self._backends: dict[tuple[str, int], Any] = {}
+        self._lock = threading.Lock()  # backends are shared; one inference at a time uses them
+
+    @property
+    def backend_name(self) -> str:
+        """The default backend's name, for /health."""
+        return self.config.backend
+
+    def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None) -> Pipeline:
+        cfg = replace(self.config, backend=backend or self.config.backend,
+                      max_disp=max_disp or self.config.max_disp)
+        key = (cfg.backend, cfg.max_disp)
+        if key not in self._backends:
+            from stereo.backends import make_backend
+
+            self._backends[key] = make_backend(cfg.backend, weights=cfg.weights, max_disp=cfg.max_disp,
+                                               device=cfg.device, precision=cfg.precision)
+        return Pipeline(cfg, calibration=camera.calibration, focal_px=camera.focal_px,
+                        baseline_m=camera.baseline_m, backend=self._backends[key])
+
+    def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
+                 backend: str | None = None, max_disp: int | None = None) -> dict:
+        """See `Estimator.estimate`; input errors are the pipeline's ValueErrors."""
+        with self._lock:
+            return self._pipeline(camera, backend, max_disp).process(left, right, mask)
+
+    def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
+                  backend: str | None = None, max_disp: int | None = None) -> np.ndarray:
+        """See `Estimator.disparity`: rectified when the calibration is raw, then the backend."""
+        with self._lock:
+            pipeline = self._pipeline(camera, backend, max_disp)
+            pipeline.geometry_for(left.shape[1], left.shape[0])  # the calibration must fit the size
+            if left.shape != right.shape:
+                raise ValueError(f"left {left.shape} and right {right.shape} images differ in size")
+            if pipeline.rectifier is not None:
+                left, right = pipeline.rectifier.rectify(left, right)
+            return pipeline.backend.compute(left, right).disparity

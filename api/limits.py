@@ -1,0 +1,113 @@
+"""Resource limits of the service: request size, image pixels, and bounded inference concurrency.
+
+Sizes are checked before work is done: the Content-Length header before the body is parsed, each
+upload while it is read, and an image's width × height from its PNG/JPEG header before it is
+decoded (a small file can decode to gigabytes).
+"""
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import cv2
+import numpy as np
+from fastapi import HTTPException, Request, UploadFile, status
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+JPEG_MAGIC = b"\xff\xd8\xff"
+#: JPEG start-of-frame markers (baseline, progressive, lossless …) that carry the image size.
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _unprocessable(message: str) -> HTTPException:
+    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, message)
+
+
+class InferenceSlots:
+    """At most `capacity` inferences at once; when all are taken, 503 with Retry-After at once."""
+
+    def __init__(self, capacity: int, retry_after_s: int):
+        self.capacity = capacity
+        self.retry_after_s = retry_after_s
+        self._semaphore = asyncio.Semaphore(capacity)
+
+    @property
+    def in_use(self) -> int:
+        """How many slots are taken now."""
+        return self.capacity - self._semaphore._value  # noqa: SLF001 - asyncio exposes no public count
+
+    @asynccontextmanager
+    async def slot(self) -> AsyncIterator[None]:
+        """Hold a slot for the body of the `async with`, or raise 503 without queueing."""
+        if self._semaphore.locked():
+            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
+                                f"all {self.capacity} inference slots are busy; retry in {self.retry_after_s} s",
+                                headers={"Retry-After": str(self.retry_after_s)})
+        async with self._semaphore:
+            yield
+
+
+def check_content_length(request: Request) -> None:
+    """Reject a request whose declared body exceeds `api.max_upload_mb` with 413, before parsing it."""
+    limit = request.app.state.settings.max_upload_bytes
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
+                            f"request body of {int(declared)} bytes exceeds the limit of {limit} bytes (api.max_upload_mb)")
+
+
+async def read_upload(upload: UploadFile, field: str, max_bytes: int) -> bytes:
+    """The bytes of an uploaded file; 413 above `max_bytes`, 422 when empty."""
+    data = await upload.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"{field}: file exceeds {max_bytes} bytes (api.max_upload_mb)")
+    if not data:
+        raise _unprocessable(f"{field}: the uploaded file is empty")
+    return data
+
+
+def image_dimensions(data: bytes, field: str) -> tuple[int, int]:
+    """(width, height) from a PNG or JPEG header without decoding; 415 for other formats."""
+    if data.startswith(PNG_MAGIC) and len(data) >= 24 and data[12:16] == b"IHDR":
+        return struct.unpack(">II", data[16:24])
+    if data.startswith(JPEG_MAGIC):
+        i = 2
+        while i + 9 <= len(data):
+            if data[i] != 0xFF:
+                break
+            marker, length = data[i + 1], struct.unpack(">H", data[i + 2:i + 4])[0]
+            if marker in _JPEG_SOF:
+                height, width = struct.unpack(">HH", data[i + 5:i + 9])
+                return width, height
+            i += 2 + length
+        raise _unprocessable(f"{field}: a JPEG without a readable frame header (truncated or corrupt)")
+    raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE, f"{field}: expected a PNG or JPEG image")
+
+
+def _check_pixels(data: bytes, field: str, max_pixels: int) -> None:
+    width, height = image_dimensions(data, field)
+    if width * height > max_pixels:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
+                            f"{field}: {width}×{height} = {width * height} pixels exceeds the limit of {max_pixels} (api.max_pixels)")
+
+
+def decode_image(data: bytes, field: str, max_pixels: int) -> np.ndarray:
+    """A PNG/JPEG upload as RGB `uint8 H×W×3`, after the pixel-count check."""
+    _check_pixels(data, field, max_pixels)
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise _unprocessable(f"{field}: the image could not be decoded (corrupt or truncated)")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def decode_mask(data: bytes, field: str, max_pixels: int) -> np.ndarray:
+    """A PNG mask (8/16-bit instance ids, or binary) as an `H×W` integer array."""
+    _check_pixels(data, field, max_pixels)
+    mask = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if mask is None:
+        raise _unprocessable(f"{field}: the mask could not be decoded (corrupt or truncated)")
+    if mask.ndim == 3:
+        raise _unprocessable(f"{field}: a mask must be single-channel (instance ids or 0/255), got {mask.shape[2]} channels")
+    return mask

@@ -1,0 +1,1 @@
+"""Routers by concern: `estimate` (POST /estimate, /disparity) and `status` (health, version, metrics, latest)."""

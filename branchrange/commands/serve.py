@@ -1,0 +1,63 @@
+"""`branchrange serve`: the HTTP service (POST /estimate, /disparity; GET /health, /version, /metrics)."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import ipaddress
+import os
+import sys
+
+#: Environment variable read (here, at the command line layer only) when the config has no token.
+TOKEN_ENV = "BRANCHRANGE_API_TOKEN"
+
+
+class ServeError(ValueError):
+    """A service setting that must not be used (e.g. a public address without a token)."""
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` names this machine only (localhost, 127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_bind(host: str, token: str) -> None:
+    """Refuse a non-loopback address without a bearer token: the API would be open to the network."""
+    if not token and not is_loopback(host):
+        raise ServeError(f"refusing to serve on {host} without a token: set [api] token or {TOKEN_ENV}, "
+                         "or bind 127.0.0.1")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `serve` to the `branchrange` command."""
+    p = subparsers.add_parser("serve", help="run the HTTP service", description=__doc__)
+    p.add_argument("--config", help="TOML configuration ([api], [stereo], [cutpoints]); defaults otherwise")
+    p.add_argument("--host", help="address to bind (overrides api.host)")
+    p.add_argument("--port", type=int, help="TCP port (overrides api.port)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load the config, check the bind address, build the app and serve until interrupted."""
+    import uvicorn
+
+    from api import create_app
+    from api.estimator import PipelineEstimator
+    from branchrange.config import ConfigError, load_config, pipeline_config
+
+    try:
+        cfg = load_config(args.config)
+        api = dataclasses.replace(cfg.api, host=args.host or cfg.api.host,
+                                  port=cfg.api.port if args.port is None else args.port,
+                                  token=cfg.api.token or os.environ.get(TOKEN_ENV, ""))
+        check_bind(api.host, api.token)
+    except (ConfigError, ServeError) as exc:
+        print(f"branchrange serve: {exc}", file=sys.stderr)
+        return 2
+    app = create_app(api, PipelineEstimator(pipeline_config(cfg)))
+    uvicorn.run(app, host=api.host, port=api.port, log_level=cfg.log.level.lower())
+    return 0

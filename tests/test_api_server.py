@@ -1,0 +1,121 @@
+"""The service over real HTTP (uvicorn on 127.0.0.1, ephemeral port): auth, health, metrics, latest, serve."""
+from __future__ import annotations
+
+import threading
+import time
+
+import httpx
+import pytest
+import uvicorn
+
+from api import create_app
+from api.estimator import PipelineEstimator
+from api_scene import BASELINE_M, FOCAL_PX, bar_scene
+from branchrange.cli import main as branchrange_main
+from branchrange.commands.serve import check_bind, ServeError
+from branchrange.config import ApiConfig
+
+TOKEN = "s3cret-token"
+
+
+class LiveState:
+    """A daemon's view as the API sees it: the newest result and the camera/link state."""
+
+    def __init__(self):
+        self.result = None
+        self.camera_lost = False
+
+    def latest_result(self):
+        return self.result
+
+    def health(self):
+        return {"camera": {"lost": self.camera_lost, "source": "replay:test"},
+                "mavlink": {"connected": True, "url": "udpout:127.0.0.1:14550"}}
+
+
+@pytest.fixture(scope="module")
+def live():
+    return LiveState()
+
+
+@pytest.fixture(scope="module")
+def server(live):
+    """A real uvicorn server in a thread; yields its base URL."""
+    app = create_app(ApiConfig(token=TOKEN), PipelineEstimator(), state=live)
+    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not srv.started and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert srv.started, "uvicorn did not start within 10 s"
+    port = srv.servers[0].sockets[0].getsockname()[1]
+    yield f"http://127.0.0.1:{port}"
+    srv.should_exit = True
+    thread.join(timeout=5)
+
+
+def auth(token=TOKEN):
+    return {"Authorization": f"Bearer {token}"}
+
+
+def test_requests_without_the_right_token_get_401(server):
+    scene = bar_scene()
+    files = {"left": ("l.png", scene.png("left")), "right": ("r.png", scene.png("right"))}
+    data = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
+    with httpx.Client(base_url=server, timeout=20) as c:
+        assert c.post("/estimate", files=files, data=data).status_code == 401
+        r = c.post("/estimate", files=files, data=data, headers=auth("wrong"))
+        assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+        assert c.get("/metrics").status_code == 401 and c.get("/latest").status_code == 401
+        r = c.post("/estimate", files=files, data=data, headers=auth())
+    assert r.status_code == 200 and r.json()["branches"], r.text
+
+
+def test_health_reports_model_camera_and_link_and_degrades_when_camera_lost(server, live):
+    with httpx.Client(base_url=server, timeout=10) as c:
+        ok = c.get("/health").json()
+        live.camera_lost = True
+        lost = c.get("/health").json()
+        live.camera_lost = False
+        version = c.get("/version").json()
+    assert ok["status"] == "ok" and ok["model"]["backend"] == "sgbm" and ok["mavlink"]["connected"] is True
+    assert lost["status"] == "degraded" and lost["camera"]["lost"] is True
+    assert version["schema"] == "branchrange/v1" and version["name"] == "branchrange"
+
+
+def test_latest_returns_the_daemons_newest_result(server, live):
+    with httpx.Client(base_url=server, timeout=10, headers=auth()) as c:
+        assert c.get("/latest").status_code == 404
+        live.result = {"schema": "branchrange/v1", "frame": {"index": 7, "timestamp_ns": 5, "width": 4, "height": 2},
+                       "camera": {"focal_px": 1.0, "baseline_m": 0.1}, "stereo": {"backend": "sgbm", "max_disparity": 64},
+                       "timing_ms": {"total": 1.0}, "branches": [], "target_id": None}
+        r = c.get("/latest")
+    assert r.status_code == 200 and r.json()["frame"]["index"] == 7
+
+
+def test_metrics_count_requests_latencies_frames_and_errors(server):
+    scene = bar_scene()
+    with httpx.Client(base_url=server, timeout=20, headers=auth()) as c:
+        c.post("/estimate", files={"left": ("l.png", scene.png("left")), "right": ("r.png", scene.png("right"))},
+               data={"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"})
+        c.post("/estimate", files={"left": ("l.png", b"nope"), "right": ("r.png", b"nope")}, data={"focal_px": "1", "baseline_m": "1"})
+        text = c.get("/metrics").text
+    values = {line.rsplit(" ", 1)[0]: float(line.rsplit(" ", 1)[1]) for line in text.splitlines() if not line.startswith("#")}
+    ok = values['branchrange_http_requests_total{route="/estimate",method="POST",status="200"}']
+    assert values['branchrange_http_requests_total{route="/estimate",method="POST",status="415"}'] == 1
+    assert ok >= 1 and values["branchrange_frames_total"] == ok  # every successful estimate is one frame
+    assert values['branchrange_frame_duration_seconds_count{source="api"}'] == ok
+    assert values['branchrange_http_request_duration_seconds_count{route="/estimate"}'] >= ok + 1
+    assert values['branchrange_http_request_duration_seconds_bucket{route="/estimate",le="+Inf"}'] >= ok + 1
+
+
+def test_serve_refuses_a_public_address_without_a_token(capsys, monkeypatch):
+    monkeypatch.delenv("BRANCHRANGE_API_TOKEN", raising=False)
+    assert branchrange_main(["serve", "--host", "0.0.0.0", "--port", "0"]) == 2
+    assert "refusing to serve on 0.0.0.0 without a token" in capsys.readouterr().err
+    check_bind("127.0.0.1", "")
+    check_bind("::1", "")
+    check_bind("0.0.0.0", "tok")
+    with pytest.raises(ServeError):
+        check_bind("192.168.1.5", "")
