@@ -12,6 +12,7 @@ from stereo.cli import run
 #: Subcommand modules, in the order `--help` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.serve",
+    "branchrange.commands.daemon",
 )
 
 

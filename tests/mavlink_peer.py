@@ -41,17 +41,15 @@ class LoopbackPeer:
         return sock.getsockname()[1]
 
     def collect(self, seconds: float, until: Any = None) -> list[Received]:
-        """Read for up to `seconds` (or until `until(received)` is true); returns what arrived."""
+        """Read for up to `seconds` or until `until(received so far)` is true (checked every 20 ms)."""
         start = len(self.received)
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             msg = self.conn.recv_match(blocking=True, timeout=0.02)
-            if msg is None:
-                continue
-            if msg.get_type() == "BAD_DATA":
+            if msg is not None and msg.get_type() == "BAD_DATA":
                 self.bad.append(msg)
-                continue
-            self.received.append(Received(msg, time.monotonic()))
+            elif msg is not None:
+                self.received.append(Received(msg, time.monotonic()))
             if until is not None and until(self.received[start:]):
                 break
         return self.received[start:]

@@ -1,0 +1,96 @@
+"""`branchrange daemon`: camera → cut points → MAVLink + JSONL log (+ /latest, /health, /metrics), onboard."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import os
+import signal
+import sys
+import threading
+from typing import Any
+
+from branchrange.commands.serve import TOKEN_ENV, ServeError, check_bind
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `daemon` to the `branchrange` command."""
+    p = subparsers.add_parser("daemon", help="run onboard: camera → cut points → MAVLink", description=__doc__)
+    p.add_argument("--config", required=True, help="TOML configuration (see deploy/onboard.toml)")
+    p.add_argument("--source", help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH)")
+    p.add_argument("--mavlink", help="MAVLink connection string, overrides mavlink.url")
+    p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
+    p.set_defaults(func=run)
+
+
+def _start_api(cfg: Any, daemon: Any, metrics: Any) -> tuple[Any, threading.Thread]:
+    """uvicorn serving /latest, /health, /metrics in a background thread of this process."""
+    import uvicorn
+
+    from api import create_app
+
+    app = create_app(cfg.api, None, state=daemon, metrics=metrics)
+    server = uvicorn.Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
+    server.install_signal_handlers = lambda: None  # the daemon owns SIGTERM/SIGINT
+    thread = threading.Thread(target=server.run, name="api", daemon=True)
+    thread.start()
+    return server, thread
+
+
+def run(args: argparse.Namespace) -> int:
+    """Build source, pipeline, relay and log from the config; run until the source ends or a signal."""
+    from api.metrics import Metrics
+    from branchrange.config import ConfigError, load_config, pipeline_config
+    from branchrange.daemon import Daemon
+    from branchrange.mavlink import CameraMount, MavlinkRelay
+    from branchrange.mavlink.connection import SigningKeyError
+    from branchrange.pipeline import Pipeline
+    from camera.sources import SourceError, open_source
+
+    try:
+        cfg = load_config(args.config)
+        cfg = dataclasses.replace(
+            cfg, camera=dataclasses.replace(cfg.camera, source=args.source or cfg.camera.source),
+            mavlink=dataclasses.replace(cfg.mavlink, url=args.mavlink or cfg.mavlink.url),
+            api=dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, "")))
+        if cfg.api.enabled:
+            check_bind(cfg.api.host, cfg.api.token)
+    except (ConfigError, ServeError) as exc:
+        print(f"branchrange daemon: {exc}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    calibration = cfg.camera.calibration or None
+
+    def open_camera() -> Any:
+        return open_source(cfg.camera.source, calibration=calibration, pace="recorded")
+
+    try:
+        first = open_camera()
+        if first.calibration is None:
+            raise SourceError(f"{cfg.camera.source}: no calibration; set camera.calibration")
+        pipeline = Pipeline(pipeline_config(cfg), calibration=first.calibration)
+        relay = None
+        if cfg.mavlink.enabled:
+            relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m))
+    except (SourceError, SigningKeyError, ValueError) as exc:
+        print(f"branchrange daemon: {exc}", file=sys.stderr)
+        return 1
+    sources = iter([first])  # the first source is the one already opened; reopening opens new ones
+    metrics = Metrics()
+    daemon = Daemon(cfg, open_source=lambda: next(sources, None) or open_camera(), pipeline=pipeline,
+                    relay=relay, results_path=cfg.log.results_jsonl or None, metrics=metrics)
+    previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    server = thread = None
+    if cfg.api.enabled:
+        server, thread = _start_api(cfg, daemon, metrics)
+    try:
+        frames = daemon.run(max_frames=args.max_frames)
+    finally:
+        daemon.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if server is not None:
+            server.should_exit = True
+            thread.join(timeout=5)
+    logging.getLogger("branchrange.daemon").info("stopped after %d frames", frames)
+    return 0
