@@ -34,6 +34,7 @@ from branchrange.geometry import (
     valid_disparity,
 )
 from branchrange.masks import BranchMasks, erode
+from branchrange.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
 
 TargetPolicy = Literal["nearest", "most_confident", "thickest"]
 TARGET_POLICIES: tuple[str, ...] = ("nearest", "most_confident", "thickest")
@@ -60,7 +61,7 @@ class CutPointConfig:
 
     cut_offset_m: float = 0.05
     erode_px: int = 1
-    min_points: int = 30
+    min_points: int = 12
     min_valid_fraction: float = 0.15
     min_confidence: float = 0.0
     disparity_noise_px: float = 0.5
@@ -146,87 +147,20 @@ class CutPointResult:
     dropped: list[DroppedBranch] = field(default_factory=list)
 
 
-@dataclass(frozen=True)
-class _ImageAxis:
-    """The branch's silhouette in the image: centroid, unit axis and perpendicular (px), pixel
-    coordinates along (`s`) and across (`n`) the axis, and its extent `s_lo..s_hi`."""
-
-    centre: np.ndarray
-    direction: np.ndarray
-    normal: np.ndarray
-    s: np.ndarray
-    n: np.ndarray
-    s_lo: float
-    s_hi: float
-
-    @property
-    def length_px(self) -> float:
-        """Length of the silhouette along its axis in pixels."""
-        return self.s_hi - self.s_lo
-
-    def point(self, s: float, n: float = 0.0) -> np.ndarray:
-        """Pixel (u, v) at position `s` along and `n` across the axis."""
-        return self.centre + s * self.direction + n * self.normal
-
-    def width_near(self, s: float, half_window_px: float) -> float:
-        """Silhouette width in px around position `s`: pixel count per unit length in the window.
-
-        Counting pixels per unit length measures width without raster artefacts at any angle.
-        """
-        lo, hi = max(s - half_window_px, self.s_lo), min(s + half_window_px, self.s_hi)
-        if hi - lo < 1.0:
-            lo, hi = s - 0.5, s + 0.5
-        count = np.count_nonzero((self.s >= lo) & (self.s < hi))
-        return count / (hi - lo)
-
-
-def _median_width(axis: "_ImageAxis", slice_px: float = 2.0) -> float:
-    """Median silhouette width (px) over slices across the axis: robust to a few slices that are
-    occluded (a branch crossing the trunk) or widened (a stub)."""
-    bins = np.floor((axis.s - axis.s_lo) / slice_px).astype(np.int64)
-    counts = np.bincount(bins[bins >= 0])
-    counts = counts[: max(1, int(axis.length_px // slice_px))]
-    return float(np.median(counts)) / slice_px
-
-
-def _image_axis(mask: np.ndarray) -> _ImageAxis:
-    """Principal axis of a boolean `H×W` mask's pixels; extent from the 0.2/99.8 % quantiles."""
-    v, u = np.nonzero(mask)
-    pixels = np.stack([u, v], axis=1).astype(np.float64)
-    centre = pixels.mean(axis=0)
-    centred = pixels - centre
-    _, vectors = np.linalg.eigh(centred.T @ centred)
-    direction = vectors[:, -1]
-    normal = np.array([-direction[1], direction[0]])
-    s, n = centred @ direction, centred @ normal
-    s_lo, s_hi = np.quantile(s, [0.002, 0.998])
-    return _ImageAxis(centre, direction, normal, s, n, float(s_lo) - 0.5, float(s_hi) + 0.5)
-
-
-def _end_centre(axis: _ImageAxis, at_low_end: bool, depth_px: float) -> np.ndarray:
-    """Pixel on the silhouette's centreline at one end (centre across the axis of the end slice)."""
-    s_end = axis.s_lo if at_low_end else axis.s_hi
-    in_slice = (axis.s <= axis.s_lo + depth_px) if at_low_end else (axis.s >= axis.s_hi - depth_px)
-    n_mid = float(np.median(axis.n[in_slice])) if np.any(in_slice) else 0.0
-    return axis.point(s_end, n_mid)
-
-
-def _base_is_low_end(axis: _ImageAxis, trunk: np.ndarray | None) -> tuple[bool, bool]:
+def _base_is_low_end(axis: ImageAxis, profile: WidthProfile, trunk: np.ndarray | None) -> tuple[bool, bool]:
     """Which silhouette end is the base — nearer the trunk when one is known, else the thicker
     one — and whether the trunk decided it."""
-    slice_px = max(3.0, 0.15 * axis.length_px)
     if trunk is not None:
         distance_to_trunk = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
         h, w = trunk.shape
+        slice_px = max(3.0, 0.15 * axis.length_px)
         ends = []
         for low in (True, False):
-            u, v = _end_centre(axis, low, slice_px)
+            u, v = axis.end_centre(low, slice_px)
             ends.append(distance_to_trunk[int(np.clip(round(v), 0, h - 1)), int(np.clip(round(u), 0, w - 1))])
         if abs(ends[0] - ends[1]) > 0.1 * axis.length_px:
             return bool(ends[0] < ends[1]), True
-    width_low = axis.width_near(axis.s_lo + slice_px / 2, slice_px / 2)
-    width_high = axis.width_near(axis.s_hi - slice_px / 2, slice_px / 2)
-    return bool(width_low >= width_high), False
+    return bool(profile.at(axis.s_lo) >= profile.at(axis.s_hi)), False
 
 
 def _surface_offset_factor(half_width_px: float, erode_px: int) -> float:
@@ -242,88 +176,205 @@ def _surface_offset_factor(half_width_px: float, erode_px: int) -> float:
     return (math.asin(a) + a * math.sqrt(1.0 - a * a)) / (2.0 * a)
 
 
-def _radius_from_width(half_width_px: float, surface_depth_m: float, focal_px: float, erode_px: int) -> float:
-    """Cylinder radius (m) from its silhouette half-width (px) and the median depth of its visible
-    front (m): the axis lies `k·r` behind that front, so `r = w·(Z + k·r)/f`, i.e.
-    `r = w·Z / (f − w·k)` with `k` from `_surface_offset_factor`."""
-    k = _surface_offset_factor(half_width_px, erode_px)
-    return half_width_px * surface_depth_m / max(focal_px - half_width_px * k, 1e-6 * focal_px)
+def _pixels_per_metre_across(point: np.ndarray, direction: np.ndarray, geometry: StereoGeometry) -> float:
+    """Image width (px) of 1 m across a cylinder whose axis passes `point` (3,) along `direction`.
+
+    The silhouette's edges lie on either side of the axis along `direction × point` (perpendicular
+    to the axis and to the line of sight); their image separation is measured across the projected
+    axis. Off the optical axis this is up to 1/cos θ more than f/Z — 20 % at 35°.
+    """
+    across = np.cross(direction, point)
+    norm = np.linalg.norm(across)
+    eps = 1e-3 * max(float(point[2]), 1e-3)
+    p0 = project(point, geometry)[0]
+    along_px = project(point + eps * direction, geometry)[0] - p0
+    if norm < 1e-9 or np.linalg.norm(along_px) < 1e-9:  # axis along the line of sight
+        return geometry.focal_px / float(point[2])
+    across_px = (project(point + eps * across / norm, geometry)[0] - p0) / eps
+    image_normal = np.array([-along_px[1], along_px[0]]) / np.linalg.norm(along_px)
+    return abs(float(across_px @ image_normal))
 
 
-def _pushed_back(line: Line3D, amount_m: float) -> Line3D:
-    """The line moved `amount_m` away from the camera, perpendicular to itself (toward the axis)."""
-    away = line.point / np.linalg.norm(line.point)
-    away = away - (away @ line.direction) * line.direction
+def _away_from_camera(point: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Unit vector (3,) perpendicular to `direction` pointing from the camera past `point`."""
+    away = point - (point @ direction) * direction
     norm = np.linalg.norm(away)
-    if norm < 1e-6:  # line through the camera: no perpendicular direction away from it
-        return line
-    return Line3D(line.point + amount_m * away / norm, line.direction)
+    return away / norm if norm > 1e-9 else np.zeros(3)
+
+
+@dataclass(frozen=True)
+class CylinderFit:
+    """A branch or trunk as a cylinder: its axis (`Line3D`, m) and everything measured on the way.
+
+    `axis` is the robust line through the visible surface pushed back onto the axis; `surface`
+    the line fit itself; `silhouette` and `profile` the image axis and width profile; the rest are
+    evidence counts for the confidence.
+    """
+
+    axis: Line3D
+    surface: LineFit
+    silhouette: ImageAxis
+    profile: WidthProfile
+    valid_fraction: float
+    band_m: float
+    points: np.ndarray
+    pixels: tuple[np.ndarray, np.ndarray]
+
+    def radius_at(self, point: np.ndarray, geometry: StereoGeometry) -> float:
+        """Radius (m) at the axis point `point` (3,): local image width over the px-per-metre there."""
+        s = self.silhouette.coordinate(project(point, geometry)[0])
+        s = float(np.clip(s, self.silhouette.s_lo, self.silhouette.s_hi))
+        return 0.5 * self.profile.at(s) / _pixels_per_metre_across(point, self.axis.direction, geometry)
+
+
+def _onto_axis(surface_point: np.ndarray, direction: np.ndarray, silhouette: ImageAxis, profile: WidthProfile,
+               geometry: StereoGeometry, erode_px: int) -> np.ndarray:
+    """A point of the visible-surface line moved back onto the cylinder axis (3,), metres.
+
+    The surface points' centroid lies `k·r` nearer than the axis (`_surface_offset_factor`), with
+    `r` from the local width; two passes, as `r` depends on the depth it is measured at.
+    """
+    s = float(np.clip(silhouette.coordinate(project(surface_point, geometry)[0]), silhouette.s_lo, silhouette.s_hi))
+    half_width_px = 0.5 * profile.at(s)
+    k = _surface_offset_factor(half_width_px, erode_px)
+    away = _away_from_camera(surface_point, direction)
+    point = surface_point
+    for _ in range(2):
+        radius = half_width_px / _pixels_per_metre_across(point, direction, geometry)
+        point = surface_point + k * radius * away
+    return point
+
+
+def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
+                 max_disparity: float | None = None) -> CylinderFit | str:
+    """Fit a (possibly tapered) cylinder to one boolean `H×W` mask and the disparity (px).
+
+    Returns the fit, or the reason why the evidence does not support one.
+    """
+    core = erode(mask, config.erode_px)
+    rows, cols = np.nonzero(core)
+    if rows.size < config.min_points:
+        return f"mask has {rows.size} pixels after erosion, fewer than {config.min_points}"
+    d = disparity[rows, cols]
+    valid = valid_disparity(d, max_disparity)
+    valid_fraction = float(valid.mean())
+    n_valid = int(valid.sum())
+    if n_valid < config.min_points or valid_fraction < config.min_valid_fraction:
+        return (f"only {n_valid} of {rows.size} mask pixels have valid depth "
+                f"(need {config.min_points} and {config.min_valid_fraction:.0%})")
+    rows, cols, d = rows[valid], cols[valid], d[valid]
+    points = backproject(cols, rows, d, geometry)
+    silhouette = image_axis(mask)
+    profile = width_profile(silhouette)
+    z_median = float(np.median(points[:, 2]))
+    radius_guess = 0.5 * profile.at(0.0) * z_median / geometry.focal_px
+    depth_noise = z_median ** 2 / geometry.fb * config.disparity_noise_px
+    # the visible surface strays up to ~1.3 r from the line through its centroid
+    band_m = max(config.min_inlier_band_m, 3.0 * depth_noise, 1.5 * radius_guess)
+    try:
+        surface = fit_line_robust(points, band_m)
+    except GeometryError as exc:
+        return f"no 3D line: {exc}"
+    if surface.inliers.sum() < config.min_points:
+        return f"line fit kept {int(surface.inliers.sum())} points, fewer than {config.min_points}"
+    line = surface.line
+    if config.surface_correction:
+        t = line.parameters(points[surface.inliers])
+        t_lo, t_hi = np.quantile(t, [0.1, 0.9])
+        a = _onto_axis(line.at(t_lo), line.direction, silhouette, profile, geometry, config.erode_px)
+        b = _onto_axis(line.at(t_hi), line.direction, silhouette, profile, geometry, config.erode_px)
+        if np.linalg.norm(b - a) > 1e-3:
+            line = Line3D(a, (b - a) / np.linalg.norm(b - a))
+        else:
+            line = Line3D(a, line.direction)
+    return CylinderFit(line, surface, silhouette, profile, valid_fraction, band_m, points, (rows, cols))
 
 
 @dataclass(frozen=True)
 class TrunkModel:
-    """The trunk as a cylinder: its axis (a `Line3D`, metres) and radius (m), fitted from its mask."""
+    """The trunk as a tapered cylinder fitted from its mask (see `fit_cylinder`)."""
 
-    axis: Line3D
-    radius_m: float
+    cylinder: CylinderFit
+    geometry: StereoGeometry
 
     def exit_point(self, branch_axis: Line3D, toward_tip: np.ndarray) -> np.ndarray | None:
         """Where the branch axis leaves the trunk surface on its way to the tip (3,), metres.
 
         Solves |offset of axis(t) from the trunk axis| = radius for t (a quadratic) and keeps the
-        crossing furthest along `toward_tip` (the axis also crosses the trunk's far side); None
-        when the branch axis misses the trunk cylinder.
+        crossing furthest along `toward_tip` (the axis also crosses the trunk's far side); the
+        radius is the trunk's local one at the crossing (two passes). None when the branch axis
+        misses the trunk.
         """
-        a = self.axis.direction
+        trunk_axis = self.cylinder.axis
+        a = trunk_axis.direction
         d_perp = branch_axis.direction - (branch_axis.direction @ a) * a
-        w = branch_axis.point - self.axis.point
+        w = branch_axis.point - trunk_axis.point
         w_perp = w - (w @ a) * a
-        qa, qb, qc = d_perp @ d_perp, d_perp @ w_perp, w_perp @ w_perp - self.radius_m ** 2
-        disc = qb * qb - qa * qc
-        if qa < 1e-9 or disc < 0:
+        qa, qb = d_perp @ d_perp, d_perp @ w_perp
+        if qa < 1e-9:
             return None
-        roots = (-qb + np.array([-1.0, 1.0]) * math.sqrt(disc)) / qa
         sign = 1.0 if branch_axis.direction @ toward_tip >= 0 else -1.0
-        return branch_axis.at(roots[np.argmax(sign * roots)])
+        t_closest = -qb / qa
+        radius = self.cylinder.radius_at(trunk_axis.at(trunk_axis.parameters(branch_axis.at(t_closest)[None])[0]),
+                                         self.geometry)
+        crossing = None
+        for _ in range(2):
+            disc = qb * qb - qa * (w_perp @ w_perp - radius ** 2)
+            if disc < 0:
+                return None
+            t = (-qb + sign * math.sqrt(disc)) / qa
+            crossing = branch_axis.at(t)
+            foot = trunk_axis.at(trunk_axis.parameters(crossing[None])[0])
+            radius = self.cylinder.radius_at(foot, self.geometry)
+        return crossing
 
 
 def fit_trunk(trunk: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
               max_disparity: float | None = None) -> TrunkModel | None:
     """A `TrunkModel` from the boolean `H×W` trunk mask and the disparity (px); None when the
     trunk's depth is too thin to fit or it is not elongated (no axis to speak of)."""
-    core = erode(trunk, config.erode_px)
-    rows, cols = np.nonzero(core)
-    d = disparity[rows, cols]
-    valid = valid_disparity(d, max_disparity)
-    if valid.sum() < config.min_points:
+    cylinder = fit_cylinder(trunk, disparity, geometry, config, max_disparity)
+    if isinstance(cylinder, str):
         return None
-    points = backproject(cols[valid], rows[valid], d[valid], geometry)
-    axis2d = _image_axis(trunk)
-    half_width_px = _median_width(axis2d) / 2
-    if axis2d.length_px < 3.0 * half_width_px:
+    if cylinder.silhouette.length_px < 1.5 * cylinder.profile.at(0.0):
         return None
-    z_median = float(np.median(points[:, 2]))
-    radius_m = _radius_from_width(half_width_px, z_median, geometry.focal_px, config.erode_px)
-    band_m = max(config.min_inlier_band_m, 3.0 * z_median ** 2 / geometry.fb * config.disparity_noise_px, radius_m)
-    try:
-        fit = fit_line_robust(points, band_m)
-    except GeometryError:
-        return None
-    line = fit.line
-    if config.surface_correction:
-        line = _pushed_back(line, radius_m * _surface_offset_factor(half_width_px, config.erode_px))
-    return TrunkModel(line, radius_m)
+    return TrunkModel(cylinder, geometry)
 
 
-def _confidence(valid_fraction: float, fit: LineFit, band_m: float, stereo_conf: float, n_inliers: int,
-                config: CutPointConfig) -> float:
+def _confidence(cylinder: CylinderFit, stereo_conf: float, config: CutPointConfig) -> float:
     """Product of four scores in [0, 1] — all must be good for a confident cut point:
     valid-depth share (full at ≥ 0.8), fit (inlier share × (1 − ½·residual/band)), mean stereo
     confidence of the points, and amount of evidence (full at 4× `min_points` inliers)."""
-    valid_score = min(1.0, valid_fraction / 0.8)
-    fit_score = fit.inlier_fraction * (1.0 - 0.5 * min(1.0, fit.residual_m / band_m))
-    evidence_score = min(1.0, n_inliers / (4.0 * config.min_points))
+    fit = cylinder.surface
+    valid_score = min(1.0, cylinder.valid_fraction / 0.8)
+    fit_score = fit.inlier_fraction * (1.0 - 0.5 * min(1.0, fit.residual_m / cylinder.band_m))
+    evidence_score = min(1.0, int(fit.inliers.sum()) / (4.0 * config.min_points))
     return float(np.clip(valid_score * fit_score * stereo_conf * evidence_score, 0.0, 1.0))
+
+
+def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: np.ndarray | None,
+          trunk_model: TrunkModel | None) -> tuple[np.ndarray, np.ndarray]:
+    """(base, tip) of a branch on its axis (3,) metres each.
+
+    Elongated silhouettes: the mask's ends lifted onto the axis; at a known trunk the base is
+    where the axis leaves the bark (the mask's end there is where the branch vanishes into the
+    trunk's silhouette, far from the bark when the branch points at or away from the camera).
+    A silhouette seen end-on has no ends: the inlier points' extent, the deeper end as the base.
+    """
+    line, silhouette = cylinder.axis, cylinder.silhouette
+    if silhouette.length_px < 2.0 * max(1.0, cylinder.profile.at(0.0)):
+        t = line.parameters(cylinder.points[cylinder.surface.inliers])
+        ends = line.at(np.quantile(t, [0.02, 0.98]))
+        return (ends[0], ends[1]) if ends[0][2] >= ends[1][2] else (ends[1], ends[0])
+    low_is_base, base_at_trunk = _base_is_low_end(silhouette, cylinder.profile, trunk)
+    slice_px = max(3.0, 0.15 * silhouette.length_px)
+    base = line.closest_to_ray(pixel_ray(*silhouette.end_centre(low_is_base, slice_px), geometry))
+    tip = line.closest_to_ray(pixel_ray(*silhouette.end_centre(not low_is_base, slice_px), geometry))
+    if base_at_trunk and trunk_model is not None:
+        exit_m = trunk_model.exit_point(line, tip - base)
+        if exit_m is not None and np.linalg.norm(exit_m - base) < 0.5 * np.linalg.norm(tip - base) + 0.1:
+            base = exit_m
+    return base, tip
 
 
 def estimate_branch(
@@ -345,57 +396,11 @@ def estimate_branch(
     then where the axis pierces the bark). Returns a `DroppedBranch` with the reason when the
     evidence does not support a cut point.
     """
-    core = erode(mask, config.erode_px)
-    rows, cols = np.nonzero(core)
-    if rows.size < config.min_points:
-        return DroppedBranch(mask_id, f"mask has {rows.size} pixels after erosion, fewer than {config.min_points}")
-    d = disparity[rows, cols]
-    valid = valid_disparity(d, max_disparity)
-    valid_fraction = float(valid.mean())
-    n_valid = int(valid.sum())
-    if n_valid < config.min_points or valid_fraction < config.min_valid_fraction:
-        return DroppedBranch(mask_id, f"only {n_valid} of {rows.size} mask pixels have valid depth "
-                                      f"(need {config.min_points} and {config.min_valid_fraction:.0%})")
-    rows, cols, d = rows[valid], cols[valid], d[valid]
-    points = backproject(cols, rows, d, geometry)
-
-    z_median = float(np.median(points[:, 2]))
-    axis2d = _image_axis(mask)
-    half_width_px = _median_width(axis2d) / 2
-    radius_guess_m = _radius_from_width(half_width_px, z_median, geometry.focal_px, config.erode_px)
-    depth_noise_m = z_median ** 2 / geometry.fb * config.disparity_noise_px
-    band_m = max(config.min_inlier_band_m, 3.0 * depth_noise_m, radius_guess_m)
-    try:
-        fit = fit_line_robust(points, band_m)
-    except GeometryError as exc:
-        return DroppedBranch(mask_id, f"no 3D line: {exc}")
-    n_inliers = int(fit.inliers.sum())
-    if n_inliers < config.min_points:
-        return DroppedBranch(mask_id, f"line fit kept {n_inliers} points, fewer than {config.min_points}")
-
-    slice_px = max(3.0, 0.15 * axis2d.length_px)
-    low_is_base, base_at_trunk = _base_is_low_end(axis2d, trunk)
-    elongated = axis2d.length_px >= 2.0 * max(1.0, 2.0 * half_width_px)
-    line = fit.line
-    if config.surface_correction:
-        line = _pushed_back(line, radius_guess_m * _surface_offset_factor(half_width_px, config.erode_px))
-
-    if elongated:
-        base_px = _end_centre(axis2d, low_is_base, slice_px)
-        tip_px = _end_centre(axis2d, not low_is_base, slice_px)
-        base_m = line.closest_to_ray(pixel_ray(*base_px, geometry))
-        tip_m = line.closest_to_ray(pixel_ray(*tip_px, geometry))
-        if base_at_trunk and trunk_model is not None:
-            # the mask's end is where the branch vanishes into the trunk's silhouette, which for a
-            # branch pointing at or away from the camera is far from where it leaves the bark
-            exit_m = trunk_model.exit_point(line, tip_m - base_m)
-            if exit_m is not None and (np.linalg.norm(exit_m - base_m)
-                                       < 0.5 * np.linalg.norm(tip_m - base_m) + 2.0 * trunk_model.radius_m):
-                base_m = exit_m
-    else:  # seen end-on: the silhouette has no ends; the deeper 3D end is the base
-        t = line.parameters(points[fit.inliers])
-        ends = line.at(np.quantile(t, [0.02, 0.98]))
-        base_m, tip_m = (ends[0], ends[1]) if ends[0][2] >= ends[1][2] else (ends[1], ends[0])
+    cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity)
+    if isinstance(cylinder, str):
+        return DroppedBranch(mask_id, cylinder)
+    base_m, tip_m = _ends(cylinder, geometry, trunk, trunk_model)
+    line = cylinder.axis
     axis = line.direction if line.direction @ (tip_m - base_m) >= 0 else -line.direction
     cut_m = base_m + config.cut_offset_m * axis
     distance = float(np.linalg.norm(cut_m))
@@ -405,21 +410,18 @@ def estimate_branch(
     if cut_m[2] <= 0:
         return DroppedBranch(mask_id, "cut point lies behind the camera")
     pixel = project(cut_m, geometry)[0]
-    s_cut = float((pixel - axis2d.centre) @ axis2d.direction)
-    s_cut = float(np.clip(s_cut, axis2d.s_lo + slice_px / 2, axis2d.s_hi - slice_px / 2)) if elongated else 0.0
-    width_px = axis2d.width_near(s_cut, slice_px / 2)
-    diameter = width_px * float(cut_m[2]) / geometry.focal_px
-
-    stereo_conf = float(np.mean(confidence[rows, cols][fit.inliers])) if confidence is not None else 1.0
-    if not np.isfinite(stereo_conf):
-        stereo_conf = 0.0
-    score = _confidence(valid_fraction, fit, band_m, stereo_conf, n_inliers, config)
+    diameter = 2.0 * cylinder.radius_at(cut_m, geometry)
+    rows, cols = cylinder.pixels
+    inliers = cylinder.surface.inliers
+    stereo_conf = float(np.mean(confidence[rows, cols][inliers])) if confidence is not None else 1.0
+    score = _confidence(cylinder, stereo_conf if np.isfinite(stereo_conf) else 0.0, config)
     if score < config.min_confidence:
         return DroppedBranch(mask_id, f"confidence {score:.2f} below {config.min_confidence}")
     return BranchEstimate(
         mask_id=mask_id, cut_point_m=cut_m, base_m=base_m, axis=axis, distance_m=distance,
         pixel=(float(pixel[0]), float(pixel[1])), diameter_m=float(diameter), confidence=score,
-        valid_fraction=valid_fraction, residual_m=fit.residual_m, n_points=n_inliers, id=mask_id,
+        valid_fraction=cylinder.valid_fraction, residual_m=cylinder.surface.residual_m,
+        n_points=int(inliers.sum()), id=mask_id,
     )
 
 

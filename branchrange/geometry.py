@@ -183,8 +183,9 @@ def fit_line_robust(
 
     Why robust: branch points come with silhouette and occlusion outliers (background or trunk depth
     bleeding into the mask) as the normal case. RANSAC picks the pair-line with most points within
-    `inlier_threshold_m`; the refit then re-weights all points with Tukey's biweight of their
-    distance (scale = `inlier_threshold_m`), which keeps inliers' full weight and ignores the rest.
+    `inlier_threshold_m`; IRLS then re-weights all points with Tukey's biweight of their distance
+    (scale = `inlier_threshold_m`), and a last plain least-squares fit runs over the points within
+    the threshold.
     Deterministic for a given `seed`. Needs at least 2 distinct points.
     """
     points = np.asarray(points, dtype=np.float64)
@@ -222,6 +223,11 @@ def fit_line_robust(
         line = _principal_line(points, weights)
 
     inliers = line.distances(points) < inlier_threshold_m
+    if np.count_nonzero(inliers) >= 2 and np.ptp(points[inliers], axis=0).max() > 0:
+        # plain least squares over the inliers: the weights served to find them, but would pull the
+        # line toward the densest part of a thick point cloud (a cylinder's front, not its centroid)
+        line = _principal_line(points[inliers])
+        inliers = line.distances(points) < inlier_threshold_m
     if np.count_nonzero(inliers) >= 2:
         residual = float(np.sqrt(np.mean(line.distances(points[inliers]) ** 2)))
     else:

@@ -165,14 +165,16 @@ def validate_masks(masks: BranchMasks, image_shape: tuple[int, ...]) -> None:
         )
 
 
-def erode(mask: np.ndarray, pixels: int) -> np.ndarray:
-    """Boolean `H×W` mask shrunk by `pixels` (3×3 cross steps); keeps the original when it would vanish.
+def erode(mask: np.ndarray, pixels: int, keep_fraction: float = 0.3) -> np.ndarray:
+    """Boolean `H×W` mask shrunk by `pixels` (3×3 cross steps), or the mask itself when erosion
+    would keep less than `keep_fraction` of it (a branch only a few pixels wide).
 
     Why: stereo depth at a silhouette mixes the branch and what lies behind it; one or two pixels
-    inward the disparity belongs to the branch.
+    inward the disparity belongs to the branch — unless there is no inward.
     """
+    mask = mask.astype(bool)
     if pixels <= 0:
-        return mask.astype(bool)
+        return mask
     kernel = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     eroded = cv2.erode(mask.astype(np.uint8), kernel, iterations=pixels).astype(bool)
-    return eroded if eroded.any() else mask.astype(bool)
+    return eroded if eroded.sum() >= keep_fraction * mask.sum() else mask
