@@ -178,6 +178,7 @@ def fit_line_robust(
     iterations: int = 200,
     irls_steps: int = 5,
     seed: int = 0,
+    score_points: int = 1500,
 ) -> LineFit:
     """Robust 3D line through `(N, 3)` points in metres: RANSAC on point pairs, then IRLS refit.
 
@@ -186,7 +187,8 @@ def fit_line_robust(
     `inlier_threshold_m`; IRLS then re-weights all points with Tukey's biweight of their distance
     (scale = `inlier_threshold_m`), and a last plain least-squares fit runs over the points within
     the threshold.
-    Deterministic for a given `seed`. Needs at least 2 distinct points.
+    Candidates are scored on at most `score_points` random points. Deterministic for a given
+    `seed`. Needs at least 2 distinct points.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -200,18 +202,21 @@ def fit_line_robust(
         raise GeometryError(f"a line needs at least 2 distinct points, got {n}")
 
     rng = np.random.default_rng(seed)
-    best_count, best_line = -1, None
+    # score candidate lines on at most `score_points` points, all candidates at once
+    scored = points if n <= score_points else points[rng.choice(n, score_points, replace=False)]
     pairs = rng.integers(0, n, size=(iterations, 2))
-    for i, j in pairs:
-        delta = points[j] - points[i]
-        norm = np.linalg.norm(delta)
-        if norm < 1e-9:
-            continue
-        candidate = Line3D(points[i], delta / norm)
-        count = int(np.count_nonzero(candidate.distances(points) < inlier_threshold_m))
-        if count > best_count:
-            best_count, best_line = count, candidate
-    if best_line is None:  # every sampled pair coincided: fall back to the plain fit
+    starts, deltas = points[pairs[:, 0]], points[pairs[:, 1]] - points[pairs[:, 0]]
+    norms = np.linalg.norm(deltas, axis=1)
+    usable = norms > 1e-9
+    if usable.any():
+        starts, directions = starts[usable], deltas[usable] / norms[usable, None]
+        offsets = scored[None, :, :] - starts[:, None, :]
+        perpendicular = np.cross(offsets, directions[:, None, :])
+        counts = np.count_nonzero(np.einsum("kmc,kmc->km", perpendicular, perpendicular)
+                                  < inlier_threshold_m ** 2, axis=1)
+        best = int(np.argmax(counts))
+        best_line = Line3D(starts[best], directions[best])
+    else:  # every sampled pair coincided: fall back to the plain fit
         best_line = _principal_line(points)
 
     line = best_line
