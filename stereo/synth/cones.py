@@ -1,0 +1,169 @@
+"""Tapered cylinders (trunks, branches, twigs), ray-cast exactly in batches.
+
+A cone's surface is the set of points at distance `r0 + k·s` from its axis, `0 ≤ s ≤ length`
+(s: metres along the axis from the base, k = dr/ds); its tip end is closed by a flat disc. A
+ray `o + t·d` meets it where `|w|² − (w·a)² = (r0 + k·(w·a))²` with `w = o + t·d − base`: a
+quadratic in t, solved per sample. Long cones are cut into pieces along the axis (the same
+surface) so each piece's image box stays tight.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stereo.synth.camera import RayGrid, SynthCamera
+from stereo.synth.primitives import (
+    NEAR_M,
+    Hits,
+    Lighting,
+    box_chunks,
+    nearest_per_sample,
+    norm3,
+    perpendicular_frames,
+    rowdot,
+)
+from stereo.synth.textures import TILE_SIZE, sample_tile
+
+_SQUARE = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
+
+
+@dataclass(frozen=True)
+class BarkMaterial:
+    """A bark tile and how it wraps a cylinder: `around` tiles per turn, `along_m` metres per tile."""
+
+    tile: np.ndarray
+    around: int
+    along_m: float
+    tint: np.ndarray = field(default_factory=lambda: np.ones(3))
+
+
+@dataclass(frozen=True)
+class Cone:
+    """A tapered cylinder: axis from `base` along unit `axis` for `length` m, radius `r0` → `r1` (m)."""
+
+    base: np.ndarray
+    axis: np.ndarray
+    length: float
+    r0: float
+    r1: float
+    material: BarkMaterial
+    instance_id: int
+
+    def pieces_for(self, camera: SynthCamera) -> int:
+        """How many pieces keep each piece's image box from being mostly empty (1–32)."""
+        z_near = max(min(self.base[2], self.base[2] + self.length * self.axis[2]), 0.05)
+        length_px = camera.focal_px * self.length / z_near
+        width_px = 2.0 * max(self.r0, self.r1) * camera.focal_px / z_near
+        return int(np.clip(np.ceil(length_px / max(3.0 * width_px, 24.0)), 1, 32))
+
+
+class ConeBatch:
+    """Many cone pieces cast together; part k is piece k (its cone's geometry, range, material, id)."""
+
+    def __init__(self, cones: Sequence[Cone], camera: SynthCamera) -> None:
+        counts = np.array([cone.pieces_for(camera) for cone in cones], dtype=np.int64)
+        owner = np.repeat(np.arange(len(cones)), counts)
+        first = np.repeat(np.cumsum(counts) - counts, counts)
+        fraction = (np.arange(owner.size) - first) / counts[owner]
+        length = np.array([c.length for c in cones])[owner]
+        self.base = np.array([c.base for c in cones], dtype=np.float64)[owner]
+        self.axis = np.array([c.axis for c in cones], dtype=np.float64)[owner]
+        self.length = length
+        self.r0 = np.array([c.r0 for c in cones])[owner]
+        self.r1 = np.array([c.r1 for c in cones])[owner]
+        self.slope = (self.r1 - self.r0) / self.length
+        self.s_lo = fraction * length
+        self.s_hi = (fraction + 1.0 / counts[owner]) * length
+        self.capped = np.isclose(self.s_hi, length)
+        self.ids = np.array([c.instance_id for c in cones], dtype=np.uint16)[owner]
+        tiles = {id(c.material.tile): c.material.tile for c in cones}
+        tile_keys = list(tiles)
+        self.tiles = [tiles[key] for key in tile_keys]
+        self.tile_index = np.array([tile_keys.index(id(c.material.tile)) for c in cones], dtype=np.int64)[owner]
+        self.around = np.array([c.material.around for c in cones], dtype=np.float64)[owner]
+        self.along_m = np.array([c.material.along_m for c in cones])[owner]
+        self.tint = np.array([c.material.tint for c in cones], dtype=np.float64).reshape(-1, 3)[owner]
+        self.e1, self.e2 = perpendicular_frames(self.axis) if owner.size else (self.axis, self.axis)
+        ends = [self.base + s[:, None] * self.axis for s in (self.s_lo, self.s_hi)]
+        radii = [self.r0 + self.slope * s for s in (self.s_lo, self.s_hi)]
+        # a frustum is the convex hull of its end discs; each disc lies in the square ±r·e1 ± r·e2
+        square = _SQUARE[None, :, 0, None] * self.e1[:, None, :] + _SQUARE[None, :, 1, None] * self.e2[:, None, :]
+        self.hulls = np.concatenate([e[:, None, :] + r[:, None, None] * square for e, r in zip(ends, radii)], axis=1)
+        order = np.argsort(self.hulls[:, :, 2].min(axis=1), kind="stable")
+        for name in ("base", "axis", "length", "r0", "r1", "slope", "s_lo", "s_hi", "capped", "ids", "tile_index",
+                     "around", "along_m", "tint", "e1", "e2", "hulls"):
+            setattr(self, name, getattr(self, name)[order])
+
+    def instance_ids(self, part: np.ndarray) -> np.ndarray:
+        return self.ids[part]
+
+    def hits(self, rays: RayGrid, depth: np.ndarray) -> Iterator[Hits]:
+        if self.ids.size == 0:
+            return
+        w0 = rays.origin[None, :] - self.base
+        s0 = rowdot(w0, self.axis)
+        radius0 = self.r0 + self.slope * s0
+        c = rowdot(w0, w0) - s0 * s0 - radius0 * radius0
+        beta = s0 + self.slope * radius0
+        width = rays.shape[1]
+        for part, rows, cols in box_chunks(rays, self.hulls):
+            dx, dy = rays.dx[cols], rays.dy[rows]
+            a = self.axis[part]
+            sd = a[:, 0] * dx + a[:, 1] * dy + a[:, 2]
+            k = self.slope[part]
+            quad_a = dx * dx + dy * dy + 1.0 - (1.0 + k * k) * sd * sd
+            w = w0[part]
+            half_b = w[:, 0] * dx + w[:, 1] * dy + w[:, 2] - beta[part] * sd
+            disc = half_b * half_b - quad_a * c[part]
+            sel = np.flatnonzero(disc >= 0.0)
+            if sel.size == 0:
+                continue
+            part, rows, cols, sd, quad_a, half_b = part[sel], rows[sel], cols[sel], sd[sel], quad_a[sel], half_b[sel]
+            root = np.sqrt(disc[sel])
+            best = np.full(sel.size, np.inf)
+            s_start, lo, hi = s0[part], self.s_lo[part], self.s_hi[part]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                for t in ((-half_b - root) / quad_a, (-half_b + root) / quad_a):
+                    s = s_start + t * sd
+                    best = np.where((t > NEAR_M) & (s >= lo) & (s <= hi) & (t < best), t, best)
+                capped = np.flatnonzero(self.capped[part])
+                if capped.size:
+                    best[capped] = np.minimum(best[capped], self._cap_depth(
+                        part[capped], w0[part[capped]], rays.dx[cols[capped]], rays.dy[rows[capped]], sd[capped], s_start[capped]))
+            index = rows * width + cols
+            keep = np.flatnonzero(best < depth.ravel()[index])
+            if keep.size:
+                yield nearest_per_sample(index[keep], best[keep], part[keep])
+
+    def _cap_depth(self, part: np.ndarray, w0: np.ndarray, dx: np.ndarray, dy: np.ndarray, sd: np.ndarray,
+                   s0: np.ndarray) -> np.ndarray:
+        """Depth of the flat tip caps along the given rays (inf off the disc)."""
+        length = self.length[part]
+        t = (length - s0) / sd
+        rel = w0 + t[:, None] * np.stack([dx, dy, np.ones_like(dx)], axis=1)
+        radial2 = norm3(rel) ** 2 - length ** 2
+        return np.where((t > NEAR_M) & (radial2 <= self.r1[part] ** 2), t, np.inf)
+
+    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting) -> np.ndarray:
+        axis, k = self.axis[part], self.slope[part]
+        rel = points - self.base[part]
+        s = rowdot(rel, axis)
+        radial = rel - s[:, None] * axis
+        dist = np.maximum(norm3(radial), 1e-12)
+        radial_unit = radial / dist[:, None]
+        normals = (radial_unit - k[:, None] * axis) / np.sqrt(1.0 + k * k)[:, None]
+        on_cap = (s >= self.length[part] - 1e-9) & (dist < (self.r0[part] + k * s) * (1 - 1e-6))
+        normals[on_cap] = axis[on_cap]
+        theta = np.arctan2(rowdot(radial_unit, self.e2[part]),
+                           rowdot(radial_unit, self.e1[part]))
+        u = s / self.along_m[part] * TILE_SIZE
+        v = (theta + np.pi) / (2 * np.pi) * self.around[part] * TILE_SIZE
+        albedo = np.empty((part.size, 3), dtype=np.float32)
+        tile_of = self.tile_index[part]
+        for index, tile in enumerate(self.tiles):
+            sel = np.flatnonzero(tile_of == index)
+            if sel.size:
+                albedo[sel] = sample_tile(tile, u[sel], v[sel])
+        return albedo * self.tint[part] * light.diffuse(normals)

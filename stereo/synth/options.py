@@ -1,0 +1,56 @@
+"""Options of the synthetic scene generator, validated once, with the defaults the dataset uses."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any
+
+POSES = ("auto", "upward", "parallel", "downward")
+FOLIAGE = ("auto", "bare", "sparse", "dense")
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    """How scenes are drawn and rendered.
+
+    - `cut_offset_m`: the truth cut point lies this far from the branch base (where the branch
+      leaves the trunk surface) along the axis toward the tip — pruning cuts just outside the
+      branch collar, a few centimetres out (design.md "Cut points").
+    - `supersample`: rays per pixel side for the images (2 → 4 rays per pixel); ground truth
+      (depth, disparity, masks) always comes from the single ray through each pixel centre.
+    - `pose`: camera pitch class ('upward', 'parallel', 'downward'), or 'auto' to draw one.
+    - `foliage`: leaves on the twigs ('bare', 'sparse', 'dense'), or 'auto' to draw one.
+    - `background_trees`: mid-ground trees 4.5–9 m away (mask id 0, not pruning targets).
+    - `noise_std`: sensor noise, standard deviation in 8-bit grey levels, drawn per view.
+    - `view_gain_jitter`: largest relative gain difference per colour channel between the views.
+    """
+
+    cut_offset_m: float = 0.05
+    supersample: int = 2
+    pose: str = "auto"
+    foliage: str = "auto"
+    background_trees: bool = True
+    noise_std: float = 1.0
+    view_gain_jitter: float = 0.02
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.cut_offset_m <= 0.15:
+            raise ValueError(f"cut_offset_m must lie in [0, 0.15] m (branches are ≥ 0.2 m long), got {self.cut_offset_m}")
+        if int(self.supersample) != self.supersample or not 1 <= self.supersample <= 4:
+            raise ValueError(f"supersample must be an integer from 1 to 4 rays per pixel side, got {self.supersample}")
+        if self.pose not in POSES:
+            raise ValueError(f"pose must be one of {POSES}, got {self.pose!r}")
+        if self.foliage not in FOLIAGE:
+            raise ValueError(f"foliage must be one of {FOLIAGE}, got {self.foliage!r}")
+        if not 0.0 <= self.noise_std <= 20.0:
+            raise ValueError(f"noise_std must lie in [0, 20] grey levels, got {self.noise_std}")
+        if not 0.0 <= self.view_gain_jitter <= 0.2:
+            raise ValueError(f"view_gain_jitter must lie in [0, 0.2], got {self.view_gain_jitter}")
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any]) -> SynthOptions:
+        """Options from keyword values; an unknown key raises TypeError naming it and the known ones."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise TypeError(f"unknown synth option(s) {unknown}; known options: {sorted(known)}")
+        return cls(**values)

@@ -1,0 +1,78 @@
+"""Background planes: the ground, far rows of foliage and a leaf canopy overhead.
+
+A plane layer is cast over the whole image at once (every ray may reach it). Its texture is
+anchored to metric plane coordinates (u along `eu`, v along `ev`), holes in foliage come from
+the tile's alpha, and a tree row's canopy line is a periodic height profile over u.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from stereo.synth.camera import RayGrid
+from stereo.synth.primitives import NEAR_M, Hits, Lighting, cross3, dot3, unit
+from stereo.synth.textures import TILE_SIZE, sample_tile
+
+
+@dataclass(frozen=True)
+class PlaneLayer:
+    """A textured plane through `point` with unit axes `eu`, `ev` (metres; `ev` points up for walls).
+
+    `tile` is RGB or RGBA (alpha < 0.5 is a hole), repeated every `tile_m` metres. `profile`
+    (optional, m) limits the layer to `v < profile(u)`: the canopy line of a tree row, sampled
+    periodically every `profile_period_m`. `light_factor` scales the sun on it (foliage is not a
+    flat Lambertian surface). Its pixels are background (mask id 0).
+    """
+
+    point: np.ndarray
+    eu: np.ndarray
+    ev: np.ndarray
+    tile: np.ndarray
+    tile_m: float
+    light_factor: float
+    profile: np.ndarray | None = None
+    profile_period_m: float = 1.0
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Unit normal `eu × ev`."""
+        return unit(cross3(self.eu, self.ev))
+
+    def instance_ids(self, part: np.ndarray) -> np.ndarray:
+        return np.zeros(part.size, dtype=np.uint16)
+
+    def hits(self, rays: RayGrid, depth: np.ndarray) -> Iterator[Hits]:
+        n = self.normal.astype(np.float32)
+        denom = n[0] * rays.dx.astype(np.float32)[None, :] + (n[1] * rays.dy.astype(np.float32) + n[2])[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.float32((self.point - rays.origin) @ self.normal) / denom
+        index = np.flatnonzero((t > NEAR_M) & (t < depth)).astype(np.int64)
+        if index.size == 0:
+            return
+        t = t.ravel()[index].astype(np.float64)
+        if self.profile is not None or self.tile.shape[2] == 4:
+            rows, cols = np.divmod(index, rays.shape[1])
+            keep = self._opaque(rays.origin, rays.dx[cols], rays.dy[rows], t)
+            index, t = index[keep], t[keep]
+        yield Hits(index, t, np.zeros(index.size, dtype=np.int64))
+
+    def _opaque(self, origin: np.ndarray, dx: np.ndarray, dy: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Which hits at depth `t` along rays `(dx, dy, 1)` land on foliage rather than a hole or above the canopy."""
+        rel = origin - self.point
+        u = rel @ self.eu + t * (self.eu[0] * dx + self.eu[1] * dy + self.eu[2])
+        v = rel @ self.ev + t * (self.ev[0] * dx + self.ev[1] * dy + self.ev[2])
+        keep = np.ones(t.size, dtype=bool)
+        if self.profile is not None:
+            positions = np.mod(u / self.profile_period_m, 1.0) * self.profile.size
+            keep &= v < np.interp(positions, np.arange(self.profile.size + 1), np.append(self.profile, self.profile[0]))
+        if self.tile.shape[2] == 4:
+            keep &= sample_tile(self.tile[:, :, 3:], u / self.tile_m * TILE_SIZE, v / self.tile_m * TILE_SIZE)[:, 0] >= 0.5
+        return keep
+
+    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting) -> np.ndarray:
+        rel = points - self.point
+        u, v = dot3(rel, self.eu), dot3(rel, self.ev)
+        albedo = sample_tile(self.tile[:, :, :3], u / self.tile_m * TILE_SIZE, v / self.tile_m * TILE_SIZE)
+        return albedo * (light.ambient_rgb + self.light_factor * light.sun_rgb)[None, :]
