@@ -15,6 +15,7 @@ from stereo.backends import (
     SGBMBackend,
     StereoBackend,
     StereoInputError,
+    StereoResult,
     UntrainedModelWarning,
     make_backend,
 )
@@ -182,10 +183,17 @@ def real_crops(shared_data: Path) -> dict[str, Pair]:
     return crops
 
 
+@pytest.fixture(scope="module")
+def random_results(random_backend: EMCStereoBackend, real_crops: dict[str, Pair]) -> dict[str, StereoResult]:
+    """The random model's result on each crop, computed once (a CPU forward takes seconds)."""
+    return {name: random_backend.compute(pair.left, pair.right) for name, pair in real_crops.items()}
+
+
 @pytest.mark.parametrize("name", ["middlebury2001_tsukuba", "middlebury2001_venus", SCENEFLOW])
-def test_emcstereo_runs_end_to_end_on_real_pairs(random_backend: EMCStereoBackend, real_crops: dict[str, Pair], name: str) -> None:
-    pair = real_crops[name]
-    result = random_backend.compute(pair.left, pair.right)
+def test_emcstereo_runs_end_to_end_on_real_pairs(
+    random_results: dict[str, StereoResult], real_crops: dict[str, Pair], name: str
+) -> None:
+    result = random_results[name]
     assert result.disparity.shape == result.confidence.shape == CROP
     assert result.disparity.dtype == np.float32 and result.confidence.dtype == np.float32
     assert np.isfinite(result.disparity).all() and np.isfinite(result.confidence).all()
@@ -195,14 +203,14 @@ def test_emcstereo_runs_end_to_end_on_real_pairs(random_backend: EMCStereoBacken
     assert (result.backend, result.max_disparity) == ("emcstereo", EMC_MAX_DISP)
     assert set(result.timing_ms) == {"preprocess", "network", "postprocess", "total"}
     assert result.timing_ms["network"] > 0
-    assert image_metrics(result.disparity, pair.gt)["valid_pixels"] > 0  # scoreable against the ground truth
+    assert image_metrics(result.disparity, real_crops[name].gt)["valid_pixels"] > 0  # scoreable against the ground truth
 
 
 def test_emcstereo_backend_equals_the_model_on_hand_normalised_padded_input(
-    random_backend: EMCStereoBackend, real_crops: dict[str, Pair]
+    random_backend: EMCStereoBackend, real_crops: dict[str, Pair], random_results: dict[str, StereoResult]
 ) -> None:
     pair = real_crops["middlebury2001_tsukuba"]
-    result = random_backend.compute(pair.left, pair.right)
+    result = random_results["middlebury2001_tsukuba"]
 
     def prepare(image: np.ndarray) -> torch.Tensor:
         scaled = (image.astype(np.float32) / 255.0 - np.float32(IMAGENET_MEAN)) / np.float32(IMAGENET_STD)
