@@ -61,7 +61,7 @@ class CutPointConfig:
 
     cut_offset_m: float = 0.05
     erode_px: int = 1
-    min_points: int = 12
+    min_points: int = 8
     min_valid_fraction: float = 0.15
     min_confidence: float = 0.0
     disparity_noise_px: float = 0.5
@@ -147,22 +147,6 @@ class CutPointResult:
     dropped: list[DroppedBranch] = field(default_factory=list)
 
 
-def _base_is_low_end(axis: ImageAxis, profile: WidthProfile, trunk: np.ndarray | None) -> tuple[bool, bool]:
-    """Which silhouette end is the base — nearer the trunk when one is known, else the thicker
-    one — and whether the trunk decided it."""
-    if trunk is not None:
-        distance_to_trunk = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
-        h, w = trunk.shape
-        slice_px = max(3.0, 0.15 * axis.length_px)
-        ends = []
-        for low in (True, False):
-            u, v = axis.end_centre(low, slice_px)
-            ends.append(distance_to_trunk[int(np.clip(round(v), 0, h - 1)), int(np.clip(round(u), 0, w - 1))])
-        if abs(ends[0] - ends[1]) > 0.1 * axis.length_px:
-            return bool(ends[0] < ends[1]), True
-    return bool(profile.at(axis.s_lo) >= profile.at(axis.s_hi)), False
-
-
 def _surface_offset_factor(half_width_px: float, erode_px: int) -> float:
     """Mean depth of the visible front of a cylinder in units of its radius, after erosion.
 
@@ -220,9 +204,13 @@ class CylinderFit:
     points: np.ndarray
     pixels: tuple[np.ndarray, np.ndarray]
 
-    def radius_at(self, point: np.ndarray, geometry: StereoGeometry) -> float:
-        """Radius (m) at the axis point `point` (3,): local image width over the px-per-metre there."""
-        s = self.silhouette.coordinate(project(point, geometry)[0])
+    def radius_at(self, point: np.ndarray, geometry: StereoGeometry, s: float | None = None) -> float:
+        """Radius (m) at the axis point `point` (3,): local image width over the px-per-metre there.
+
+        The width is read at the point's own image position, or at `s` (px along the silhouette).
+        """
+        if s is None:
+            s = self.silhouette.coordinate(project(point, geometry)[0])
         s = float(np.clip(s, self.silhouette.s_lo, self.silhouette.s_hi))
         return 0.5 * self.profile.at(s) / _pixels_per_metre_across(point, self.axis.direction, geometry)
 
@@ -297,6 +285,12 @@ class TrunkModel:
     cylinder: CylinderFit
     geometry: StereoGeometry
 
+    def surface_distance(self, point: np.ndarray) -> float:
+        """Distance (m) of `point` (3,) from the trunk's surface (0 on the bark, < 0 inside)."""
+        axis = self.cylinder.axis
+        foot = axis.at(axis.parameters(point[None])[0])
+        return float(np.linalg.norm(point - foot)) - self.cylinder.radius_at(foot, self.geometry)
+
     def exit_point(self, branch_axis: Line3D, toward_tip: np.ndarray) -> np.ndarray | None:
         """Where the branch axis leaves the trunk surface on its way to the tip (3,), metres.
 
@@ -352,11 +346,47 @@ def _confidence(cylinder: CylinderFit, stereo_conf: float, config: CutPointConfi
     return float(np.clip(valid_score * fit_score * stereo_conf * evidence_score, 0.0, 1.0))
 
 
+def _trunk_side_in_image(silhouette: ImageAxis, trunk: np.ndarray, slice_px: float) -> bool | None:
+    """Whether the low end of the silhouette is the one nearer the trunk mask in the image; None
+    when both ends are about equally near (a branch lying across the trunk's silhouette)."""
+    distance_to_trunk = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
+    h, w = trunk.shape
+    ends = []
+    for low in (True, False):
+        u, v = silhouette.end_centre(low, slice_px)
+        ends.append(distance_to_trunk[int(np.clip(round(v), 0, h - 1)), int(np.clip(round(u), 0, w - 1))])
+    if abs(ends[0] - ends[1]) <= 0.1 * silhouette.length_px:
+        return None
+    return bool(ends[0] < ends[1])
+
+
+def _low_end_is_base(cylinder: CylinderFit, ends: tuple[np.ndarray, np.ndarray], geometry: StereoGeometry,
+                     trunk: np.ndarray | None, trunk_model: TrunkModel | None, slice_px: float) -> bool:
+    """Which of the two lifted silhouette ends (low, high) is the base, in order of evidence:
+    1. the end nearer the trunk's surface in 3D (when the trunk was fitted and one end is clearly
+       nearer: 5 cm, or half the other's distance);
+    2. the end nearer the trunk's mask in the image;
+    3. the thicker end in metres (not in pixels: a tip pointing at the camera looks thick).
+    """
+    if trunk_model is not None:
+        gaps = [trunk_model.surface_distance(end) for end in ends]
+        if abs(gaps[0] - gaps[1]) > max(0.05, 0.5 * max(gaps)):
+            return bool(gaps[0] < gaps[1])
+    if trunk is not None:
+        side = _trunk_side_in_image(cylinder.silhouette, trunk, slice_px)
+        if side is not None:
+            return side
+    silhouette = cylinder.silhouette
+    radius_low = cylinder.radius_at(ends[0], geometry, silhouette.s_lo + slice_px / 2)
+    radius_high = cylinder.radius_at(ends[1], geometry, silhouette.s_hi - slice_px / 2)
+    return bool(radius_low >= radius_high)
+
+
 def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: np.ndarray | None,
           trunk_model: TrunkModel | None) -> tuple[np.ndarray, np.ndarray]:
     """(base, tip) of a branch on its axis (3,) metres each.
 
-    Elongated silhouettes: the mask's ends lifted onto the axis; at a known trunk the base is
+    Elongated silhouettes: the mask's ends lifted onto the axis; at a fitted trunk the base is
     where the axis leaves the bark (the mask's end there is where the branch vanishes into the
     trunk's silhouette, far from the bark when the branch points at or away from the camera).
     A silhouette seen end-on has no ends: the inlier points' extent, the deeper end as the base.
@@ -366,11 +396,12 @@ def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: np.ndarray | N
         t = line.parameters(cylinder.points[cylinder.surface.inliers])
         ends = line.at(np.quantile(t, [0.02, 0.98]))
         return (ends[0], ends[1]) if ends[0][2] >= ends[1][2] else (ends[1], ends[0])
-    low_is_base, base_at_trunk = _base_is_low_end(silhouette, cylinder.profile, trunk)
     slice_px = max(3.0, 0.15 * silhouette.length_px)
-    base = line.closest_to_ray(pixel_ray(*silhouette.end_centre(low_is_base, slice_px), geometry))
-    tip = line.closest_to_ray(pixel_ray(*silhouette.end_centre(not low_is_base, slice_px), geometry))
-    if base_at_trunk and trunk_model is not None:
+    low, high = (line.closest_to_ray(pixel_ray(*silhouette.end_centre(at_low, slice_px), geometry))
+                 for at_low in (True, False))
+    base, tip = (low, high) if _low_end_is_base(cylinder, (low, high), geometry, trunk, trunk_model, slice_px) \
+        else (high, low)
+    if trunk_model is not None:
         exit_m = trunk_model.exit_point(line, tip - base)
         if exit_m is not None and np.linalg.norm(exit_m - base) < 0.5 * np.linalg.norm(tip - base) + 0.1:
             base = exit_m

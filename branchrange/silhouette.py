@@ -102,15 +102,33 @@ def _area_along(axis: ImageAxis, count: int) -> np.ndarray:
     return np.bincount(bins[inside], minlength=count) / 16.0
 
 
-def width_profile(axis: ImageAxis, rounds: int = 2) -> WidthProfile:
-    """Robust linear `WidthProfile` of a silhouette from slices of `SLICE_PX` along its axis."""
+def _extent_along(axis: ImageAxis, count: int) -> np.ndarray:
+    """Extent across the axis (px, outermost pixel centres + 1) in each of `count` slices; 0 if empty."""
+    bins = np.floor((axis.s - axis.s_lo) / SLICE_PX).astype(np.int64)
+    inside = (bins >= 0) & (bins < count)
+    high = np.full(count, -np.inf)
+    low = np.full(count, np.inf)
+    np.maximum.at(high, bins[inside], axis.n[inside])
+    np.minimum.at(low, bins[inside], axis.n[inside])
+    return np.where(np.isfinite(high), high - low + 1.0, 0.0)
+
+
+def width_profile(axis: ImageAxis, rounds: int = 3) -> WidthProfile:
+    """Robust linear `WidthProfile` of a silhouette from slices of `SLICE_PX` along its axis.
+
+    Occluders (leaves, twigs, crossing branches) only ever make a silhouette look narrower: a
+    slice with a hole counts its outer extent, and slices well below the fitted line are dropped
+    more readily than slices above it (an upper envelope, not a mean).
+    """
     count = max(1, int(axis.length_px // SLICE_PX))
     widths = _area_along(axis, count) / SLICE_PX
+    extents = _extent_along(axis, count)
+    widths = np.where(extents > widths + 1.5, extents, widths)
     centres = axis.s_lo + (np.arange(count) + 0.5) * SLICE_PX
     if count > 4:  # the end slices are partly outside the silhouette
         widths, centres = widths[1:-1], centres[1:-1]
     if len(widths) < 4:
-        return WidthProfile(float(np.median(widths)), 0.0)
+        return WidthProfile(float(np.max(widths)), 0.0)
     keep = widths > 0
     slope, intercept = 0.0, float(np.median(widths))
     for _ in range(rounds + 1):
@@ -119,5 +137,5 @@ def width_profile(axis: ImageAxis, rounds: int = 2) -> WidthProfile:
         slope, intercept = np.polyfit(centres[keep], widths[keep], 1)
         residual = widths - (intercept + slope * centres)
         spread = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
-        keep = np.abs(residual) <= max(2.5 * spread, 0.75)
+        keep = (residual >= -max(1.5 * spread, 0.5)) & (residual <= max(3.0 * spread, 1.5))
     return WidthProfile(float(intercept), float(slope))

@@ -131,7 +131,7 @@ def test_mostly_missing_depth_is_dropped_not_invented():
 
 def test_a_tiny_mask_is_dropped():
     labels = np.zeros((240, 320), dtype=np.int32)
-    labels[100:102, 100:104] = 1  # 8 pixels
+    labels[100:102, 100:103] = 1  # 6 pixels
     masks = masks_from_array(labels, kind="instance")
     result = estimate_cut_points(masks, np.full((240, 320), 20.0, np.float32), GEOMETRY)
     assert not result.branches and "fewer than" in result.dropped[0].reason
