@@ -24,7 +24,7 @@ from stereo.synth.primitives import (
     perpendicular_frames,
     rowdot,
 )
-from stereo.synth.textures import TILE_SIZE, sample_tile
+from stereo.synth.textures import TILE_SIZE, MipTile
 
 _SQUARE = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
 
@@ -33,7 +33,7 @@ _SQUARE = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
 class BarkMaterial:
     """A bark tile and how it wraps a cylinder: `around` tiles per turn, `along_m` metres per tile."""
 
-    tile: np.ndarray
+    tile: MipTile
     around: int
     along_m: float
     tint: np.ndarray = field(default_factory=lambda: np.ones(3))
@@ -146,7 +146,7 @@ class ConeBatch:
         radial2 = norm3(rel) ** 2 - length ** 2
         return np.where((t > NEAR_M) & (radial2 <= self.r1[part] ** 2), t, np.inf)
 
-    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting) -> np.ndarray:
+    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
         axis, k = self.axis[part], self.slope[part]
         rel = points - self.base[part]
         s = rowdot(rel, axis)
@@ -160,10 +160,12 @@ class ConeBatch:
                            rowdot(radial_unit, self.e1[part]))
         u = s / self.along_m[part] * TILE_SIZE
         v = (theta + np.pi) / (2 * np.pi) * self.around[part] * TILE_SIZE
+        texel_m = np.minimum(self.along_m[part], 2 * np.pi * (self.r0[part] + k * s) / self.around[part]) / TILE_SIZE
+        footprint = light.footprint_m(points, normals, sample_angle) / np.maximum(texel_m, 1e-9)
         albedo = np.empty((part.size, 3), dtype=np.float32)
         tile_of = self.tile_index[part]
         for index, tile in enumerate(self.tiles):
             sel = np.flatnonzero(tile_of == index)
             if sel.size:
-                albedo[sel] = sample_tile(tile, u[sel], v[sel])
+                albedo[sel] = tile.sample(u[sel], v[sel], footprint[sel])
         return albedo * self.tint[part] * light.diffuse(normals)

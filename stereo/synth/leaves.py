@@ -13,7 +13,7 @@ import numpy as np
 
 from stereo.synth.camera import RayGrid
 from stereo.synth.primitives import NEAR_M, Hits, Lighting, box_chunks, cross3, nearest_per_sample, rowdot
-from stereo.synth.textures import TILE_SIZE, sample_tile
+from stereo.synth.textures import TILE_SIZE, MipTile
 
 _SQUARE = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
 
@@ -34,7 +34,7 @@ class Leaf:
 class LeafBatch:
     """All leaves of a scene, sharing one detail tile (veins, mottling)."""
 
-    def __init__(self, leaves: Sequence[Leaf], detail: np.ndarray) -> None:
+    def __init__(self, leaves: Sequence[Leaf], detail: MipTile) -> None:
         self.detail = detail
         self.centre = np.array([leaf.centre for leaf in leaves], dtype=np.float64).reshape(-1, 3)
         self.normal = np.array([leaf.normal for leaf in leaves], dtype=np.float64).reshape(-1, 3)
@@ -80,9 +80,12 @@ class LeafBatch:
             if inside.size:
                 yield nearest_per_sample(index[inside], t[inside], part[inside])
 
-    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting) -> np.ndarray:
+    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
         along, across = self._blade(points - self.centre[part], part)
+        normals = self.normal[part]
+        footprint = light.footprint_m(points, normals, sample_angle) / (2 * self.half_length[part] / TILE_SIZE)
         vein = 1.0 + 0.18 * np.exp(-(across / 0.07) ** 2)
-        detail = sample_tile(self.detail, (along + 1) * 0.5 * TILE_SIZE + 61.0 * part, (across + 1) * 0.5 * TILE_SIZE)[:, 0]
+        detail = self.detail.sample((along + 1) * 0.5 * TILE_SIZE + 61.0 * part, (across + 1) * 0.5 * TILE_SIZE,
+                                    footprint)[:, 0]
         albedo = self.colour[part] * (vein * detail)[:, None]
-        return albedo * light.diffuse(self.normal[part], two_sided=True)
+        return albedo * light.diffuse(normals, two_sided=True)

@@ -12,15 +12,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from stereo.synth.camera import RayGrid
-from stereo.synth.primitives import NEAR_M, Hits, Lighting, cross3, dot3, unit
-from stereo.synth.textures import TILE_SIZE, sample_tile
+from stereo.synth.primitives import FAR_M, NEAR_M, Hits, Lighting, cross3, dot3, unit
+from stereo.synth.textures import TILE_SIZE, MipTile, sample_tile
 
 
 @dataclass(frozen=True)
 class PlaneLayer:
     """A textured plane through `point` with unit axes `eu`, `ev` (metres; `ev` points up for walls).
 
-    `tile` is RGB or RGBA (alpha < 0.5 is a hole), repeated every `tile_m` metres. `profile`
+    `tile` (RGB) repeats every `tile_m` metres; `alpha` (optional, `S×S×1` on the same grid)
+    marks holes where it is below 0.5. `profile`
     (optional, m) limits the layer to `v < profile(u)`: the canopy line of a tree row, sampled
     periodically every `profile_period_m`. `light_factor` scales the sun on it (foliage is not a
     flat Lambertian surface). Its pixels are background (mask id 0).
@@ -29,9 +30,10 @@ class PlaneLayer:
     point: np.ndarray
     eu: np.ndarray
     ev: np.ndarray
-    tile: np.ndarray
+    tile: MipTile
     tile_m: float
     light_factor: float
+    alpha: np.ndarray | None = None
     profile: np.ndarray | None = None
     profile_period_m: float = 1.0
 
@@ -48,11 +50,11 @@ class PlaneLayer:
         denom = n[0] * rays.dx.astype(np.float32)[None, :] + (n[1] * rays.dy.astype(np.float32) + n[2])[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.float32((self.point - rays.origin) @ self.normal) / denom
-        index = np.flatnonzero((t > NEAR_M) & (t < depth)).astype(np.int64)
+        index = np.flatnonzero((t > NEAR_M) & (t < depth) & (t < FAR_M)).astype(np.int64)
         if index.size == 0:
             return
         t = t.ravel()[index].astype(np.float64)
-        if self.profile is not None or self.tile.shape[2] == 4:
+        if self.profile is not None or self.alpha is not None:
             rows, cols = np.divmod(index, rays.shape[1])
             keep = self._opaque(rays.origin, rays.dx[cols], rays.dy[rows], t)
             index, t = index[keep], t[keep]
@@ -67,12 +69,14 @@ class PlaneLayer:
         if self.profile is not None:
             positions = np.mod(u / self.profile_period_m, 1.0) * self.profile.size
             keep &= v < np.interp(positions, np.arange(self.profile.size + 1), np.append(self.profile, self.profile[0]))
-        if self.tile.shape[2] == 4:
-            keep &= sample_tile(self.tile[:, :, 3:], u / self.tile_m * TILE_SIZE, v / self.tile_m * TILE_SIZE)[:, 0] >= 0.5
+        if self.alpha is not None:
+            keep &= sample_tile(self.alpha, u / self.tile_m * TILE_SIZE, v / self.tile_m * TILE_SIZE)[:, 0] >= 0.5
         return keep
 
-    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting) -> np.ndarray:
+    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
         rel = points - self.point
         u, v = dot3(rel, self.eu), dot3(rel, self.ev)
-        albedo = sample_tile(self.tile[:, :, :3], u / self.tile_m * TILE_SIZE, v / self.tile_m * TILE_SIZE)
+        normals = np.broadcast_to(self.normal, points.shape)
+        footprint = light.footprint_m(points, normals, sample_angle) / (self.tile_m / TILE_SIZE)
+        albedo = self.tile.sample(u / self.tile_m * TILE_SIZE, v / self.tile_m * TILE_SIZE, footprint)
         return albedo * (light.ambient_rgb + self.light_factor * light.sun_rgb)[None, :]

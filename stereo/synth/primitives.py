@@ -18,6 +18,8 @@ import numpy as np
 from stereo.synth.camera import RayGrid, enumerate_boxes
 
 NEAR_M = 1e-3
+#: Hits beyond this depth (m) count as sky: the ground near the horizon, like UE5 depth, saturates there.
+FAR_M = 500.0
 #: Samples per chunk of box samples cast at once (bounds memory to a few hundred MB).
 CHUNK_SAMPLES = 1 << 20
 
@@ -66,6 +68,16 @@ class Lighting:
         cosine = np.abs(cosine) if two_sided else np.maximum(cosine, 0.0)
         return self.ambient_rgb[None, :] + cosine[:, None] * self.sun_rgb[None, :]
 
+    def footprint_m(self, points: np.ndarray, normals: np.ndarray, sample_angle: float) -> np.ndarray:
+        """Size (m) of one image sample on the surface at `points` `(N, 3)` seen from the left camera.
+
+        `sample_angle` is the angle one sample subtends (rad, 1/(f·samples)); obliquity, from the
+        unit `normals`, stretches it (capped at 5×). Both views use the left camera's value.
+        """
+        distance = norm3(points)
+        cosine = np.abs(rowdot(points, normals)) / np.maximum(distance, 1e-9)
+        return distance * sample_angle / np.maximum(cosine, 0.2)
+
     def hazed(self, colour: np.ndarray, points: np.ndarray) -> np.ndarray:
         """`colour` `(N, 3)` blended toward the haze colour with distance of `points` `(N, 3)` from the rig."""
         weight = 1.0 - np.exp(-norm3(points) / self.haze_distance_m)
@@ -102,8 +114,11 @@ class Batch(Protocol):
     def instance_ids(self, part: np.ndarray) -> np.ndarray:
         """Mask ids (uint16) of the given parts."""
 
-    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting) -> np.ndarray:
-        """RGB `(N, 3)` (about [0, 1]) of hit `points` `(N, 3)` on the given parts under `light`."""
+    def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
+        """RGB `(N, 3)` (about [0, 1]) of hit `points` `(N, 3)` on the given parts under `light`.
+
+        `sample_angle` (rad per image sample) sets how much the texture is filtered.
+        """
 
 
 def nearest_per_sample(index: np.ndarray, depth: np.ndarray, part: np.ndarray) -> Hits:

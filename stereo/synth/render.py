@@ -66,6 +66,7 @@ def rasterise(batches: Sequence[Batch], rays: RayGrid, light: Lighting | None,
     ids = np.zeros(shape, dtype=np.uint16)
     colour = np.zeros((shape[0] * shape[1], 3), dtype=np.float32) if light is not None else None
     flat_depth, flat_ids = depth.reshape(-1), ids.reshape(-1)
+    sample_angle = 1.0 / (rays.focal_px * rays.samples)
     for batch in batches:
         for hit in batch.hits(rays, depth):
             flat_depth[hit.index] = hit.depth
@@ -73,7 +74,7 @@ def rasterise(batches: Sequence[Batch], rays: RayGrid, light: Lighting | None,
             if colour is not None:
                 rows, cols = np.divmod(hit.index, shape[1])
                 points = rays.origin[None, :] + hit.depth[:, None] * _directions(rays, rows, cols)
-                colour[hit.index] = light.hazed(batch.shade(points, hit.part, light), points)
+                colour[hit.index] = light.hazed(batch.shade(points, hit.part, light, sample_angle), points)
     if colour is not None:
         rows, cols = np.divmod(np.flatnonzero(~np.isfinite(flat_depth)), shape[1])
         colour[rows * shape[1] + cols] = sky.colour(_directions(rays, rows, cols))

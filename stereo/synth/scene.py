@@ -23,6 +23,7 @@ from stereo.synth.primitives import Lighting, cross3, norm3, rowdot, unit, unit_
 from stereo.synth.sky import Sky
 from stereo.synth.textures import (
     BARK_KINDS,
+    MipTile,
     bark_tile,
     cloud_tile,
     detail_tile,
@@ -58,7 +59,7 @@ class SceneDescription:
     lighting: Lighting
     branches: tuple[BranchTruth, ...]
     exposure_target: float
-    leaf_detail: np.ndarray
+    leaf_detail: MipTile
 
 
 class _Frame:
@@ -95,7 +96,7 @@ class _SceneBuilder:
         self.frame = _Frame(pitch, np.radians(rng.uniform(-6.0, 6.0)))
         self.cones: list[Cone] = []
         self.leaves: list[Leaf] = []
-        self.detail = detail_tile(rng)
+        self.detail = MipTile(detail_tile(rng))
         self.leaf_colour = np.array(_LEAF_COLOURS[str(rng.choice(list(_LEAF_COLOURS), p=[0.3, 0.4, 0.15, 0.15]))])
 
     # -- checks in the camera frame ---------------------------------------------------------
@@ -115,7 +116,7 @@ class _SceneBuilder:
         """World points along an axis, in the camera frame `(n, 3)`."""
         return self.frame.point(base[None, :] + np.linspace(0.0, length, n)[:, None] * axis[None, :])
 
-    def _bark(self, tile: np.ndarray, radius: float, tint: np.ndarray) -> BarkMaterial:
+    def _bark(self, tile: MipTile, radius: float, tint: np.ndarray) -> BarkMaterial:
         """Bark wrapped so its features scale with the branch (about 12 cm of bark per tile on a trunk)."""
         around = int(np.clip(round(2 * np.pi * radius / 0.12), 1, 12))
         return BarkMaterial(tile, around, 2.5 * 2 * np.pi * radius / around, tint)
@@ -201,7 +202,7 @@ class _SceneBuilder:
                 return base, axis, length, r0, r1
         return None
 
-    def _twigs(self, base: np.ndarray, axis: np.ndarray, length: float, radius, tile: np.ndarray,
+    def _twigs(self, base: np.ndarray, axis: np.ndarray, length: float, radius, tile: MipTile,
                ids: tuple[int, int] = (TWIG_ID, LEAF_ID), depth: int = 0) -> None:
         """Thin twigs (and their leaves) growing from an axis, one level of sub-twigs; `ids`: (twig, leaf) mask ids."""
         rng = self.rng
@@ -248,7 +249,7 @@ class _SceneBuilder:
     def _main_tree(self) -> tuple[list[BranchTruth], float]:
         """Trunk, branches, twigs and leaves of the tree being pruned; returns the truth and ground depth."""
         rng = self.rng
-        tile = bark_tile(rng, str(rng.choice(list(BARK_KINDS))))
+        tile = MipTile(bark_tile(rng, str(rng.choice(list(BARK_KINDS)))))
         for _ in range(10):
             self.cones, self.leaves = [], []
             foot, trunk_axis, trunk_len, r_ground, r_top, ground_y = self._trunk()
@@ -275,7 +276,7 @@ class _SceneBuilder:
         raise RuntimeError("could not place two branches in view after 10 tree layouts; the camera is too narrow")
 
     def _crown(self, foot: np.ndarray, trunk_axis: np.ndarray, trunk_len: float, trunk_radius,
-               tile: np.ndarray) -> None:
+               tile: MipTile) -> None:
         """Branches of the same tree beyond the 4 m working range (mask id 0, like all background)."""
         rng = self.rng
         far = BRANCH_RANGE_M[1] + 0.2
@@ -301,7 +302,7 @@ class _SceneBuilder:
                            as_tuple(cut), (float(pixel[0]), float(pixel[1])))
 
     # -- mid-ground trees and background ------------------------------------------------------
-    def _background_trees(self, tile: np.ndarray, ground_y: float) -> None:
+    def _background_trees(self, tile: MipTile, ground_y: float) -> None:
         """0–3 leafless trees 4.5–9 m away (mask id 0): clutter a matcher must not confuse with targets."""
         rng = self.rng
         horizontal = unit(np.array([self.frame.forward[0], 0.0, self.frame.forward[2]]))
@@ -330,7 +331,7 @@ class _SceneBuilder:
         grass = np.array([0.26, 0.36, 0.12]) * rng.uniform(0.7, 1.2)
         soil = np.array([0.36, 0.28, 0.19]) * rng.uniform(0.7, 1.2)
         return PlaneLayer(self.frame.point(np.array([0.0, ground_y, 0.0])), self.frame.direction(np.array([1.0, 0, 0])),
-                          self.frame.direction(np.array([0.0, 0, 1.0])), ground_tile(rng, grass, soil),
+                          self.frame.direction(np.array([0.0, 0, 1.0])), MipTile(ground_tile(rng, grass, soil)),
                           rng.uniform(0.8, 2.0), 0.8)
 
     def _crown_line(self, period_m: float, samples: int = 512) -> np.ndarray:
@@ -354,10 +355,11 @@ class _SceneBuilder:
         layers, distance = [], rng.uniform(10.0, 25.0)
         for _ in range(rng.integers(1, 3)):
             hue = np.array([0.16, 0.30, 0.10]) * rng.uniform(0.7, 1.3) + rng.normal(0, 0.02, 3)
+            foliage = foliage_tile(rng, tuple(np.clip(hue, 0.02, 1)), rng.uniform(0.85, 0.97))
             layers.append(PlaneLayer(
                 self.frame.point(np.array([0.0, ground_y, distance])), self.frame.direction(np.array([1.0, 0, 0])),
-                self.frame.direction(UP), foliage_tile(rng, tuple(np.clip(hue, 0.02, 1)), rng.uniform(0.85, 0.97)),
-                rng.uniform(2.0, 4.0), 0.5, self._crown_line(80.0), 80.0))
+                self.frame.direction(UP), MipTile(foliage[:, :, :3]), rng.uniform(2.0, 4.0), 0.5,
+                np.ascontiguousarray(foliage[:, :, 3:]), self._crown_line(80.0), 80.0))
             distance += rng.uniform(8.0, 20.0)
         return layers
 
@@ -368,9 +370,10 @@ class _SceneBuilder:
         if rng.random() >= chance:
             return None
         hue = np.array([0.20, 0.36, 0.12]) * rng.uniform(0.7, 1.3)
+        foliage = foliage_tile(rng, tuple(hue), rng.uniform(0.35, 0.7))
         return PlaneLayer(self.frame.point(np.array([0.0, -rng.uniform(4.0, 9.0), 0.0])),
                           self.frame.direction(np.array([1.0, 0, 0])), self.frame.direction(np.array([0.0, 0, 1.0])),
-                          foliage_tile(rng, tuple(hue), rng.uniform(0.35, 0.7)), rng.uniform(1.5, 3.0), 0.6)
+                          MipTile(foliage[:, :, :3]), rng.uniform(1.5, 3.0), 0.6, np.ascontiguousarray(foliage[:, :, 3:]))
 
     def _sky_and_light(self) -> tuple[Sky, Lighting]:
         rng = self.rng
@@ -400,7 +403,7 @@ class _SceneBuilder:
         tree_cones, tree_leaves = list(self.cones), list(self.leaves)
         self.cones, self.leaves = [], []
         if self.options.background_trees:
-            self._background_trees(bark_tile(self.rng, str(self.rng.choice(list(BARK_KINDS)))), ground_y)
+            self._background_trees(MipTile(bark_tile(self.rng, str(self.rng.choice(list(BARK_KINDS))))), ground_y)
         layers = [self._ground(ground_y), *self._tree_rows(ground_y)]
         canopy = self._canopy()
         if canopy is not None:

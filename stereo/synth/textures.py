@@ -13,6 +13,8 @@ import numpy as np
 
 TILE_SIZE = 256
 _REMAP_WIDTH = 1024
+#: Pre-blurred copies per tile: level l is blurred with σ = 2^(l−1) texels (level 0 sharp).
+MIP_LEVELS = 6
 
 #: Bark albedos (RGB in [0, 1]) with how deep their furrows are and whether they carry lenticels.
 BARK_KINDS: dict[str, tuple[tuple[float, float, float], float, bool]] = {
@@ -101,6 +103,8 @@ def sample_tile(tile: np.ndarray, u_px: np.ndarray, v_px: np.ndarray) -> np.ndar
     tile = np.ascontiguousarray(tile)
     size_v, size_u = tile.shape[:2]
     n = u_px.size
+    if n == 0:
+        return np.zeros((0, tile.shape[2]), dtype=tile.dtype)
     padded = -(-n // _REMAP_WIDTH) * _REMAP_WIDTH
     map_u = np.zeros(padded, dtype=np.float32)
     map_v = np.zeros(padded, dtype=np.float32)
@@ -109,3 +113,39 @@ def sample_tile(tile: np.ndarray, u_px: np.ndarray, v_px: np.ndarray) -> np.ndar
     shape = (padded // _REMAP_WIDTH, _REMAP_WIDTH)
     out = cv2.remap(tile, map_u.reshape(shape), map_v.reshape(shape), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return out.reshape(padded, -1)[:n]
+
+
+def periodic_blur(tile: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur (σ in texels) of a periodic tile `S×S×C`, wrapping around its edges exactly."""
+    size = tile.shape[0]
+    fv = np.fft.fftfreq(size)[:, None]
+    fu = np.fft.rfftfreq(size)[None, :]
+    gain = np.exp(-2.0 * (np.pi * sigma) ** 2 * (fu ** 2 + fv ** 2))[..., None]
+    blurred = np.fft.irfft2(np.fft.rfft2(tile, axes=(0, 1)) * gain, s=tile.shape[:2], axes=(0, 1))
+    return blurred.astype(np.float32)
+
+
+class MipTile:
+    """A periodic tile with blurred copies, so far or oblique surfaces are filtered instead of aliased.
+
+    The level is chosen from the footprint of one image sample on the surface, measured in
+    texels; both views use the left camera's footprint so they pick the same level.
+    """
+
+    def __init__(self, tile: np.ndarray) -> None:
+        tile = np.ascontiguousarray(tile, dtype=np.float32)
+        self.levels = [tile] + [periodic_blur(tile, 2.0 ** (level - 1)) for level in range(1, MIP_LEVELS)]
+
+    @property
+    def channels(self) -> int:
+        """Channels per texel."""
+        return self.levels[0].shape[2]
+
+    def sample(self, u_px: np.ndarray, v_px: np.ndarray, footprint_texels: np.ndarray) -> np.ndarray:
+        """`sample_tile` at the level matching each sample's footprint (texels per image sample) → `(N, C)`."""
+        level = np.clip(np.rint(np.log2(np.maximum(footprint_texels, 1.0))), 0, MIP_LEVELS - 1).astype(np.int64)
+        out = np.empty((u_px.size, self.channels), dtype=np.float32)
+        for index in np.unique(level):
+            sel = np.flatnonzero(level == index)
+            out[sel] = sample_tile(self.levels[index], u_px[sel], v_px[sel])
+        return out

@@ -1,0 +1,76 @@
+"""`emcstereo synth`: render synthetic stereo tree-branch scenes in the VirtualTree layout, or a preview."""
+from __future__ import annotations
+
+import argparse
+import re
+import time
+from pathlib import Path
+
+from stereo.io import write_rgb
+from stereo.synth import SynthCamera, SynthOptions, render_scene
+from stereo.synth.options import FOLIAGE, POSES
+from stereo.synth.preview import preview_image
+from stereo.synth.writer import scene_seed, write_dataset
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'640x360' → (640, 360); argparse reports anything else with the expected form."""
+    match = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", text)
+    if not match:
+        raise argparse.ArgumentTypeError(f"size {text!r} is not WIDTHxHEIGHT in pixels, e.g. 640x360")
+    width, height = int(match.group(1)), int(match.group(2))
+    if width < 64 or height < 64:
+        raise argparse.ArgumentTypeError(f"size {text!r} is too small: width and height must be at least 64 px")
+    return width, height
+
+
+def _options(args: argparse.Namespace) -> SynthOptions:
+    return SynthOptions(cut_offset_m=args.cut_offset, supersample=args.supersample, pose=args.pose,
+                        foliage=args.foliage, noise_std=args.noise, background_trees=not args.no_background_trees)
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.out is None and args.preview is None:
+        raise SystemExit("emcstereo synth: give --out DIR (a dataset), --preview PNG (a picture), or both")
+    width, height = args.size
+    camera = SynthCamera.zed_mini(width, height)
+    options = _options(args)
+    if args.out is not None:
+        start = time.perf_counter()
+        summary = write_dataset(args.out, args.scenes, args.seed, width, height, camera=camera, options=options,
+                                exr_pixel_type="half" if args.exr_half else "float", workers=args.workers,
+                                progress=not args.quiet)
+        seconds = time.perf_counter() - start
+        counts = ", ".join(f"{name} {len(indices)}" for name, indices in summary.splits.items())
+        print(f"wrote {summary.scenes} scenes ({width}×{height}, f = {camera.focal_px:g} px, B = {camera.baseline_m} m) "
+              f"to {summary.root} in {seconds:.1f} s ({seconds / summary.scenes:.2f} s/scene); splits: {counts}")
+    if args.preview is not None:
+        count = min(args.preview_scenes, args.scenes)
+        scenes = [render_scene(scene_seed(args.seed, i), camera, **vars(options)) for i in range(count)]
+        Path(args.preview).parent.mkdir(parents=True, exist_ok=True)
+        write_rgb(args.preview, preview_image(scenes))
+        print(f"wrote preview of scenes 0..{count - 1} to {args.preview} (left | right | disparity | mask, cut points ringed)")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add `synth` to the `emcstereo` command."""
+    parser = sub.add_parser("synth", help="render synthetic tree-branch stereo scenes (VirtualTree layout) or a preview",
+                            description=__doc__)
+    parser.add_argument("--out", type=Path, help="dataset folder to write (created if needed)")
+    parser.add_argument("--scenes", type=int, default=10, help="number of scenes (default 10)")
+    parser.add_argument("--seed", type=int, default=0, help="dataset seed; same seed, same files (default 0)")
+    parser.add_argument("--size", type=parse_size, default=(640, 360), help="WIDTHxHEIGHT in px (default 640x360)")
+    parser.add_argument("--preview", type=Path, help="write a PNG: left | right | disparity | mask per scene")
+    parser.add_argument("--preview-scenes", type=int, default=3, help="scenes in the preview (default 3)")
+    parser.add_argument("--supersample", type=int, default=2, help="rays per pixel side for images (default 2)")
+    parser.add_argument("--cut-offset", type=float, default=0.05,
+                        help="truth cut point: metres from the branch base along its axis (default 0.05)")
+    parser.add_argument("--pose", choices=POSES, default="auto", help="camera pitch class (default: drawn per scene)")
+    parser.add_argument("--foliage", choices=FOLIAGE, default="auto", help="leaves (default: drawn per scene)")
+    parser.add_argument("--noise", type=float, default=1.0, help="sensor noise std in grey levels (default 1)")
+    parser.add_argument("--no-background-trees", action="store_true", help="leave out mid-ground trees")
+    parser.add_argument("--exr-half", action="store_true", help="store depth as fp16 like the UE5 originals")
+    parser.add_argument("--workers", type=int, default=1, help="render in this many processes (default 1)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=_run)
