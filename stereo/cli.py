@@ -14,6 +14,7 @@ from collections.abc import Sequence
 COMMAND_MODULES: tuple[str, ...] = (
     "stereo.commands.params",
     "stereo.commands.weights",
+    "stereo.commands.synth",
 )
 
 
