@@ -15,6 +15,9 @@ COMMAND_MODULES: tuple[str, ...] = (
     "stereo.commands.params",
     "stereo.commands.weights",
     "stereo.commands.synth",
+    "stereo.commands.train",
+    "stereo.commands.finetune",
+    "stereo.commands.evaluate",
 )
 
 
