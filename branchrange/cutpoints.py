@@ -25,10 +25,11 @@ import numpy as np
 from branchrange.geometry import (
     GeometryError,
     Line3D,
-    LineFit,
+    LinearFit,
     StereoGeometry,
     backproject,
     fit_line_robust,
+    fit_linear_robust,
     pixel_ray,
     project,
     valid_disparity,
@@ -188,21 +189,28 @@ def _away_from_camera(point: np.ndarray, direction: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CylinderFit:
-    """A branch or trunk as a cylinder: its axis (`Line3D`, m) and everything measured on the way.
+    """A branch or trunk as a cylinder: its axis (`Line3D`, m) and the evidence behind it.
 
-    `axis` is the robust line through the visible surface pushed back onto the axis; `surface`
-    the line fit itself; `silhouette` and `profile` the image axis and width profile; the rest are
-    evidence counts for the confidence.
+    `silhouette` and `profile` are the image axis and width/centreline profile; `points` the 3D
+    points of the valid pixels `pixels` (rows, cols) and `inliers` which of them the robust fit
+    kept; `residual_m` the inliers' RMS misfit as depth (m) and `residual_ratio` the same
+    relative to the inlier threshold (0 = perfect, 1 = at the threshold).
     """
 
     axis: Line3D
-    surface: LineFit
     silhouette: ImageAxis
     profile: WidthProfile
     valid_fraction: float
-    band_m: float
     points: np.ndarray
     pixels: tuple[np.ndarray, np.ndarray]
+    inliers: np.ndarray
+    residual_m: float
+    residual_ratio: float
+
+    @property
+    def inlier_fraction(self) -> float:
+        """Share of the valid points the fit kept."""
+        return float(self.inliers.mean()) if self.inliers.size else 0.0
 
     def radius_at(self, point: np.ndarray, geometry: StereoGeometry, s: float | None = None) -> float:
         """Radius (m) at the axis point `point` (3,): local image width over the px-per-metre there.
@@ -219,7 +227,7 @@ def _onto_axis(surface_point: np.ndarray, direction: np.ndarray, silhouette: Ima
                geometry: StereoGeometry, erode_px: int) -> np.ndarray:
     """A point of the visible-surface line moved back onto the cylinder axis (3,), metres.
 
-    The surface points' centroid lies `k·r` nearer than the axis (`_surface_offset_factor`), with
+    The surface points' mean depth lies `k·r` nearer than the axis (`_surface_offset_factor`), with
     `r` from the local width; two passes, as `r` depends on the depth it is measured at.
     """
     s = float(np.clip(silhouette.coordinate(project(surface_point, geometry)[0]), silhouette.s_lo, silhouette.s_hi))
@@ -233,11 +241,39 @@ def _onto_axis(surface_point: np.ndarray, direction: np.ndarray, silhouette: Ima
     return point
 
 
+def _surface_line_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis, profile: WidthProfile,
+                                     geometry: StereoGeometry, threshold_px: float,
+                                     min_points: int) -> tuple[Line3D, LinearFit] | str:
+    """The visible surface's line from disparity along the centreline (robust, in px), lifted to 3D.
+
+    Two stations at the 10th and 90th percentile of the inliers' positions: centreline pixel +
+    fitted disparity → 3D points → the line through them.
+    """
+    try:
+        fit = fit_linear_robust(s, d, threshold_px, penalty_above=1.0)
+    except GeometryError as exc:
+        return f"no disparity line: {exc}"
+    if fit.inliers.sum() < min_points:
+        return f"disparity line fit kept {int(fit.inliers.sum())} points, fewer than {min_points}"
+    stations = np.quantile(s[fit.inliers], [0.1, 0.9])
+    disparities = fit.at(stations)
+    if np.any(disparities <= 0):
+        return "fitted disparity along the branch reaches zero (the branch would be at infinity)"
+    pixels = np.stack([profile.centre(silhouette, float(st)) for st in stations])
+    ends = backproject(pixels[:, 0], pixels[:, 1], disparities, geometry)
+    if np.linalg.norm(ends[1] - ends[0]) < 1e-6:
+        return "branch too short to give an axis direction"
+    return Line3D(ends[0], (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])), fit
+
+
 def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
                  max_disparity: float | None = None) -> CylinderFit | str:
     """Fit a (possibly tapered) cylinder to one boolean `H×W` mask and the disparity (px).
 
-    Returns the fit, or the reason why the evidence does not support one.
+    Elongated silhouettes: centreline from the mask, disparity along it by a robust linear fit
+    (see `fit_linear_robust`); seen end-on: a robust 3D line through the points. Either line runs
+    along the visible surface and is then pushed back onto the axis. Returns the fit, or the
+    reason why the evidence does not support one.
     """
     core = erode(mask, config.erode_px)
     rows, cols = np.nonzero(core)
@@ -250,32 +286,44 @@ def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeomet
     if n_valid < config.min_points or valid_fraction < config.min_valid_fraction:
         return (f"only {n_valid} of {rows.size} mask pixels have valid depth "
                 f"(need {config.min_points} and {config.min_valid_fraction:.0%})")
-    rows, cols, d = rows[valid], cols[valid], d[valid]
+    rows, cols, d = rows[valid].astype(np.float64), cols[valid].astype(np.float64), d[valid].astype(np.float64)
     points = backproject(cols, rows, d, geometry)
     silhouette = image_axis(mask)
     profile = width_profile(silhouette)
-    z_median = float(np.median(points[:, 2]))
+    d_median = float(np.median(d))
+    z_median = geometry.fb / d_median
     radius_guess = 0.5 * profile.at(0.0) * z_median / geometry.focal_px
-    depth_noise = z_median ** 2 / geometry.fb * config.disparity_noise_px
-    # the visible surface strays up to ~1.3 r from the line through its centroid
-    band_m = max(config.min_inlier_band_m, 3.0 * depth_noise, 1.5 * radius_guess)
-    try:
-        surface = fit_line_robust(points, band_m)
-    except GeometryError as exc:
-        return f"no 3D line: {exc}"
-    if surface.inliers.sum() < config.min_points:
-        return f"line fit kept {int(surface.inliers.sum())} points, fewer than {config.min_points}"
-    line = surface.line
+    if silhouette.length_px >= 2.0 * max(1.0, profile.at(0.0)):
+        # the visible front spans about d·r/Z px of disparity across the width
+        threshold_px = 3.0 * config.disparity_noise_px + d_median * radius_guess / z_median
+        s = (np.stack([cols, rows], axis=1) - silhouette.centre) @ silhouette.direction
+        lifted = _surface_line_in_disparity_space(s, d, silhouette, profile, geometry, threshold_px,
+                                                  config.min_points)
+        if isinstance(lifted, str):
+            return lifted
+        line, disparity_fit = lifted
+        inliers = disparity_fit.inliers
+        residual_m = disparity_fit.residual * z_median ** 2 / geometry.fb
+        residual_ratio = disparity_fit.residual / threshold_px
+    else:
+        depth_noise = z_median ** 2 / geometry.fb * config.disparity_noise_px
+        # the visible surface strays up to ~1.3 r from the line through its centroid
+        band_m = max(config.min_inlier_band_m, 3.0 * depth_noise, 1.5 * radius_guess)
+        try:
+            fit = fit_line_robust(points, band_m)
+        except GeometryError as exc:
+            return f"no 3D line: {exc}"
+        if fit.inliers.sum() < config.min_points:
+            return f"line fit kept {int(fit.inliers.sum())} points, fewer than {config.min_points}"
+        line, inliers, residual_m, residual_ratio = fit.line, fit.inliers, fit.residual_m, fit.residual_m / band_m
     if config.surface_correction:
-        t = line.parameters(points[surface.inliers])
+        t = line.parameters(points[inliers])
         t_lo, t_hi = np.quantile(t, [0.1, 0.9])
         a = _onto_axis(line.at(t_lo), line.direction, silhouette, profile, geometry, config.erode_px)
         b = _onto_axis(line.at(t_hi), line.direction, silhouette, profile, geometry, config.erode_px)
-        if np.linalg.norm(b - a) > 1e-3:
-            line = Line3D(a, (b - a) / np.linalg.norm(b - a))
-        else:
-            line = Line3D(a, line.direction)
-    return CylinderFit(line, surface, silhouette, profile, valid_fraction, band_m, points, (rows, cols))
+        line = Line3D(a, (b - a) / np.linalg.norm(b - a)) if np.linalg.norm(b - a) > 1e-3 else Line3D(a, line.direction)
+    return CylinderFit(line, silhouette, profile, valid_fraction, points, (rows.astype(np.int64), cols.astype(np.int64)),
+                       inliers, float(residual_m), float(min(1.0, residual_ratio)))
 
 
 @dataclass(frozen=True)
@@ -327,7 +375,10 @@ def fit_trunk(trunk: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry
               max_disparity: float | None = None) -> TrunkModel | None:
     """A `TrunkModel` from the boolean `H×W` trunk mask and the disparity (px); None when the
     trunk's depth is too thin to fit or it is not elongated (no axis to speak of)."""
-    cylinder = fit_cylinder(trunk, disparity, geometry, config, max_disparity)
+    try:
+        cylinder = fit_cylinder(trunk, disparity, geometry, config, max_disparity)
+    except GeometryError:
+        return None
     if isinstance(cylinder, str):
         return None
     if cylinder.silhouette.length_px < 1.5 * cylinder.profile.at(0.0):
@@ -339,10 +390,9 @@ def _confidence(cylinder: CylinderFit, stereo_conf: float, config: CutPointConfi
     """Product of four scores in [0, 1] — all must be good for a confident cut point:
     valid-depth share (full at ≥ 0.8), fit (inlier share × (1 − ½·residual/band)), mean stereo
     confidence of the points, and amount of evidence (full at 4× `min_points` inliers)."""
-    fit = cylinder.surface
     valid_score = min(1.0, cylinder.valid_fraction / 0.8)
-    fit_score = fit.inlier_fraction * (1.0 - 0.5 * min(1.0, fit.residual_m / cylinder.band_m))
-    evidence_score = min(1.0, int(fit.inliers.sum()) / (4.0 * config.min_points))
+    fit_score = cylinder.inlier_fraction * (1.0 - 0.5 * cylinder.residual_ratio)
+    evidence_score = min(1.0, int(cylinder.inliers.sum()) / (4.0 * config.min_points))
     return float(np.clip(valid_score * fit_score * stereo_conf * evidence_score, 0.0, 1.0))
 
 
@@ -393,7 +443,7 @@ def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: np.ndarray | N
     """
     line, silhouette = cylinder.axis, cylinder.silhouette
     if silhouette.length_px < 2.0 * max(1.0, cylinder.profile.at(0.0)):
-        t = line.parameters(cylinder.points[cylinder.surface.inliers])
+        t = line.parameters(cylinder.points[cylinder.inliers])
         ends = line.at(np.quantile(t, [0.02, 0.98]))
         return (ends[0], ends[1]) if ends[0][2] >= ends[1][2] else (ends[1], ends[0])
     slice_px = max(3.0, 0.15 * silhouette.length_px)
@@ -427,6 +477,17 @@ def estimate_branch(
     then where the axis pierces the bark). Returns a `DroppedBranch` with the reason when the
     evidence does not support a cut point.
     """
+    try:
+        return _estimate_branch(mask_id, mask, disparity, geometry, config, confidence, trunk, trunk_model,
+                                max_disparity)
+    except GeometryError as exc:  # e.g. the axis runs behind the camera: the depth is inconsistent
+        return DroppedBranch(mask_id, f"no consistent branch axis: {exc}")
+
+
+def _estimate_branch(mask_id: int, mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
+                     config: CutPointConfig, confidence: np.ndarray | None, trunk: np.ndarray | None,
+                     trunk_model: TrunkModel | None, max_disparity: float | None) -> BranchEstimate | DroppedBranch:
+    """`estimate_branch` without the guard against degenerate geometry."""
     cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity)
     if isinstance(cylinder, str):
         return DroppedBranch(mask_id, cylinder)
@@ -443,7 +504,7 @@ def estimate_branch(
     pixel = project(cut_m, geometry)[0]
     diameter = 2.0 * cylinder.radius_at(cut_m, geometry)
     rows, cols = cylinder.pixels
-    inliers = cylinder.surface.inliers
+    inliers = cylinder.inliers
     stereo_conf = float(np.mean(confidence[rows, cols][inliers])) if confidence is not None else 1.0
     score = _confidence(cylinder, stereo_conf if np.isfinite(stereo_conf) else 0.0, config)
     if score < config.min_confidence:
@@ -451,7 +512,7 @@ def estimate_branch(
     return BranchEstimate(
         mask_id=mask_id, cut_point_m=cut_m, base_m=base_m, axis=axis, distance_m=distance,
         pixel=(float(pixel[0]), float(pixel[1])), diameter_m=float(diameter), confidence=score,
-        valid_fraction=cylinder.valid_fraction, residual_m=cylinder.surface.residual_m,
+        valid_fraction=cylinder.valid_fraction, residual_m=cylinder.residual_m,
         n_points=int(inliers.sum()), id=mask_id,
     )
 

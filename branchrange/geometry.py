@@ -238,3 +238,71 @@ def fit_line_robust(
     else:
         residual = float("inf")
     return LineFit(line, inliers, residual)
+
+
+@dataclass(frozen=True)
+class LinearFit:
+    """`y ≈ intercept + slope·x` from `fit_linear_robust`, with its inliers (boolean `(N,)`) and
+    the RMS residual of the inliers (units of y)."""
+
+    slope: float
+    intercept: float
+    inliers: np.ndarray
+    residual: float
+
+    def at(self, x: float | np.ndarray) -> float | np.ndarray:
+        """The fitted y at `x`."""
+        return self.intercept + self.slope * x
+
+    @property
+    def inlier_fraction(self) -> float:
+        """Share of the input samples the fit kept, in [0, 1]."""
+        return float(self.inliers.mean()) if self.inliers.size else 0.0
+
+
+def fit_linear_robust(x: np.ndarray, y: np.ndarray, threshold: float, *, iterations: int = 100,
+                      penalty_above: float = 0.0, seed: int = 0) -> LinearFit:
+    """Robust straight line `y(x)` through samples `(N,)`: RANSAC on pairs, least squares on inliers.
+
+    Used for disparity along a branch's image axis: a 3D line maps to a line in (u, v, d) space
+    (the map (X, Y, Z) → (u, v, d) is projective), so along the silhouette's centreline disparity
+    is linear in position, and its noise is about constant in pixels — a far better conditioned
+    fit than in metres, where depth noise grows with Z². `threshold` is the largest inlier
+    residual (units of y). `penalty_above` > 0 scores a candidate down by that much for every
+    sample more than `threshold` above it: for disparity inside a visible branch's mask, a sample
+    nearer than the branch contradicts its visibility, while one farther is the usual background
+    bleeding into a thin silhouette — so the near consensus wins over a larger far one.
+    Needs two samples at distinct x.
+    """
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 1:
+        raise GeometryError(f"fit_linear_robust needs two equal (N,) arrays, got {x.shape} and {y.shape}")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise GeometryError("fit_linear_robust got non-finite samples")
+    if threshold <= 0:
+        raise GeometryError(f"threshold = {threshold!r} must be > 0")
+    if x.size < 2 or np.ptp(x) == 0:
+        raise GeometryError(f"a line needs samples at 2 distinct positions, got {x.size}")
+    rng = np.random.default_rng(seed)
+    i, j = rng.integers(0, x.size, size=(2, iterations))
+    usable = x[i] != x[j]
+    i, j = i[usable], j[usable]
+    slopes = (y[j] - y[i]) / (x[j] - x[i])
+    intercepts = y[i] - slopes * x[i]
+    residuals = y[None, :] - (intercepts[:, None] + slopes[:, None] * x[None, :])
+    scores = np.count_nonzero(np.abs(residuals) < threshold, axis=1).astype(np.float64)
+    if penalty_above > 0:
+        scores -= penalty_above * np.count_nonzero(residuals >= threshold, axis=1)
+    best = int(np.argmax(scores)) if scores.size else -1
+    slope, intercept = (slopes[best], intercepts[best]) if best >= 0 else np.polyfit(x, y, 1)
+    inliers = np.abs(y - (intercept + slope * x)) < threshold
+    for _ in range(3):  # refit on the inliers until they settle
+        if np.count_nonzero(inliers) < 2 or np.ptp(x[inliers]) == 0:
+            break
+        slope, intercept = np.polyfit(x[inliers], y[inliers], 1)
+        updated = np.abs(y - (intercept + slope * x)) < threshold
+        if np.array_equal(updated, inliers):
+            break
+        inliers = updated
+    residual = float(np.sqrt(np.mean((y[inliers] - (intercept + slope * x[inliers])) ** 2))) if inliers.any() else float("inf")
+    return LinearFit(float(slope), float(intercept), inliers, residual)

@@ -73,19 +73,28 @@ def image_axis(mask: np.ndarray) -> ImageAxis:
 
 @dataclass(frozen=True)
 class WidthProfile:
-    """Silhouette width (px) as a straight line in `s` (px): `width(s) = intercept + slope·s`.
+    """Silhouette width (px) and centreline as straight lines in `s` (px along the image axis):
+    `width(s) = intercept + slope·s`, centre offset across the axis `centre_intercept +
+    centre_slope·s`.
 
     Fitted to per-slice widths with outlier slices trimmed, so a branch crossing the trunk, a
     twig hiding part of a branch or a stub at the junction does not bend it; a linear model
-    follows the taper and the perspective change along the axis.
+    follows the taper and the perspective change along the axis. The centreline (mid-points of
+    the slices that kept their full width) is the projection of the cylinder's axis.
     """
 
     intercept: float
     slope: float
+    centre_intercept: float = 0.0
+    centre_slope: float = 0.0
 
     def at(self, s: float) -> float:
         """Width (px) at position `s`; never below one pixel."""
         return max(1.0, self.intercept + self.slope * s)
+
+    def centre(self, axis: ImageAxis, s: float) -> np.ndarray:
+        """Pixel (u, v) on the centreline at position `s`."""
+        return axis.point(s, self.centre_intercept + self.centre_slope * s)
 
 
 def _area_along(axis: ImageAxis, count: int) -> np.ndarray:
@@ -102,15 +111,20 @@ def _area_along(axis: ImageAxis, count: int) -> np.ndarray:
     return np.bincount(bins[inside], minlength=count) / 16.0
 
 
-def _extent_along(axis: ImageAxis, count: int) -> np.ndarray:
-    """Extent across the axis (px, outermost pixel centres + 1) in each of `count` slices; 0 if empty."""
+def _extent_along(axis: ImageAxis, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(extent across the axis, mid-point across the axis), px, of each of `count` slices.
+
+    Extent = outermost pixel centres + 1 (0 for an empty slice).
+    """
     bins = np.floor((axis.s - axis.s_lo) / SLICE_PX).astype(np.int64)
     inside = (bins >= 0) & (bins < count)
     high = np.full(count, -np.inf)
     low = np.full(count, np.inf)
     np.maximum.at(high, bins[inside], axis.n[inside])
     np.minimum.at(low, bins[inside], axis.n[inside])
-    return np.where(np.isfinite(high), high - low + 1.0, 0.0)
+    seen = np.isfinite(high)
+    high, low = np.where(seen, high, 0.0), np.where(seen, low, 0.0)
+    return np.where(seen, high - low + 1.0, 0.0), 0.5 * (high + low)
 
 
 def width_profile(axis: ImageAxis, rounds: int = 3) -> WidthProfile:
@@ -122,11 +136,11 @@ def width_profile(axis: ImageAxis, rounds: int = 3) -> WidthProfile:
     """
     count = max(1, int(axis.length_px // SLICE_PX))
     widths = _area_along(axis, count) / SLICE_PX
-    extents = _extent_along(axis, count)
+    extents, mids = _extent_along(axis, count)
     widths = np.where(extents > widths + 1.5, extents, widths)
     centres = axis.s_lo + (np.arange(count) + 0.5) * SLICE_PX
     if count > 4:  # the end slices are partly outside the silhouette
-        widths, centres = widths[1:-1], centres[1:-1]
+        widths, mids, centres = widths[1:-1], mids[1:-1], centres[1:-1]
     if len(widths) < 4:
         return WidthProfile(float(np.max(widths)), 0.0)
     keep = widths > 0
@@ -138,4 +152,7 @@ def width_profile(axis: ImageAxis, rounds: int = 3) -> WidthProfile:
         residual = widths - (intercept + slope * centres)
         spread = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
         keep = (residual >= -max(1.5 * spread, 0.5)) & (residual <= max(3.0 * spread, 1.5))
-    return WidthProfile(float(intercept), float(slope))
+    if keep.sum() < 3:
+        return WidthProfile(float(intercept), float(slope))
+    centre_slope, centre_intercept = np.polyfit(centres[keep], mids[keep], 1)
+    return WidthProfile(float(intercept), float(slope), float(centre_intercept), float(centre_slope))
