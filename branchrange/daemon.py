@@ -12,7 +12,6 @@ newest frame always wins and a slow pipeline never works on old frames. The loop
 """
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -21,6 +20,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from branchrange.config import Config
+from branchrange.frame_results import process_frame, result_line
 from branchrange.mavlink import MavlinkRelay
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 
@@ -87,7 +87,7 @@ class Daemon:
         """One frame through the pipeline to the relay, the log and /latest."""
         received = self._clock()
         try:
-            result = self.pipeline.process(frame.left, frame.right, index=frame.index, timestamp_ns=frame.timestamp_ns)
+            result = process_frame(self.pipeline, frame)
         except ValueError as exc:
             self.rejected += 1
             self._count_error("rejected_frame")
@@ -96,7 +96,7 @@ class Daemon:
         if self.relay is not None:
             self.relay.publish(result, captured_at=received)
         if self._results is not None:
-            self._results.write(json.dumps(result, separators=(",", ":")) + "\n")
+            self._results.write(result_line(result))
         self._latest = result
         self.frames += 1
         latency = self._clock() - received

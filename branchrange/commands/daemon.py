@@ -40,11 +40,11 @@ def _start_api(cfg: Any, daemon: Any, metrics: Any) -> tuple[Any, threading.Thre
 def run(args: argparse.Namespace) -> int:
     """Build source, pipeline, relay and log from the config; run until the source ends or a signal."""
     from api.metrics import Metrics
-    from branchrange.config import ConfigError, load_config, pipeline_config
+    from branchrange.config import ConfigError, load_config
     from branchrange.daemon import Daemon
+    from branchrange.frame_results import pipeline_for
     from branchrange.mavlink import CameraMount, MavlinkRelay
     from branchrange.mavlink.connection import SigningKeyError
-    from branchrange.pipeline import Pipeline
     from camera.sources import SourceError, open_source
 
     try:
@@ -66,9 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         first = open_camera()
-        if first.calibration is None:
-            raise SourceError(f"{cfg.camera.source}: no calibration; set camera.calibration")
-        pipeline = Pipeline(pipeline_config(cfg), calibration=first.calibration)
+        pipeline = pipeline_for(cfg, first.calibration)
         relay = None
         if cfg.mavlink.enabled:
             relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m))

@@ -19,12 +19,17 @@ from camera.calibration import StereoCalibration
 
 @dataclass(frozen=True, eq=False)
 class StereoFrame:
-    """One stereo pair: `left`, `right` H×W×3 uint8 RGB; `timestamp_ns` monotonic ns at capture; `index` ≥ 0."""
+    """One stereo pair: `left`, `right` H×W×3 uint8 RGB; `timestamp_ns` monotonic ns at capture; `index` ≥ 0.
+
+    `mask`: the left view's branch mask (uint8/uint16 H×W, instance ids or binary) when the frame
+    comes with one — a recording of synthetic or annotated data; None from live cameras.
+    """
 
     left: np.ndarray
     right: np.ndarray
     timestamp_ns: int
     index: int
+    mask: np.ndarray | None = None
 
     @property
     def size(self) -> tuple[int, int]:

@@ -29,6 +29,26 @@ def write_rgb(path: Path, image: np.ndarray) -> None:
     encoded.tofile(str(path))
 
 
+def read_mask(path: Path) -> np.ndarray:
+    """An H×W uint8/uint16 mask (instance ids) from a PNG, unchanged; CorruptFrameError when unreadable."""
+    data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else None
+    mask = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data is not None and data.size else None
+    if mask is None or mask.ndim != 2:
+        found = "missing" if data is None else f"not a single-channel image ({data.size} bytes)"
+        raise CorruptFrameError(f"{path}: mask is {found}; expected the 8/16-bit PNG listed in the recording")
+    return mask
+
+
+def write_mask(path: Path, mask: np.ndarray) -> None:
+    """Write an H×W uint8/uint16 mask (instance ids) as a lossless PNG."""
+    if mask.ndim != 2 or mask.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{path}: mask is {mask.dtype} of shape {mask.shape}; expected uint8 or uint16 H×W")
+    ok, encoded = cv2.imencode(".png", mask)
+    if not ok:
+        raise OSError(f"{path}: OpenCV could not encode a {mask.shape} mask as PNG")
+    encoded.tofile(str(path))
+
+
 def split_side_by_side(bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(left, right) RGB halves of a side-by-side BGR frame (H×2W×3), as ZED cameras and SBS videos deliver."""
     if bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.shape[1] % 2:

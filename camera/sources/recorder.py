@@ -8,9 +8,9 @@ from pathlib import Path
 from camera.calibration import StereoCalibration
 from camera.opencv_file import write_opencv_file
 from camera.sources.frame import StereoFrame
-from camera.sources.image_files import write_rgb
+from camera.sources.image_files import write_mask, write_rgb
 from camera.sources.recording_format import (CALIBRATION_NAME, MANIFEST_NAME, TIMESTAMP_COLUMNS, TIMESTAMPS_NAME,
-                                             write_manifest)
+                                             mask_name, write_manifest)
 
 IMAGE_FORMATS = ("png", "jpg")
 
@@ -19,8 +19,9 @@ class Recorder:
     """Writes frames to a recording directory that `ReplaySource` replays.
 
     `calibration` is saved as calibration.yaml; `source_spec` is noted in the manifest;
-    `image_format` is "png" (lossless, default) or "jpg". The directory must be empty or new
-    unless `overwrite` is set. Use as a context manager, or call `close()` to finish the manifest.
+    `image_format` is "png" (lossless, default) or "jpg". Frames with a `mask` have it saved as
+    mask/NNNNNN.png; the first frame decides whether the recording carries masks, and every
+    later frame must agree. The directory must be empty or new unless `overwrite` is set. Use as a context manager, or call `close()` to finish the manifest.
     """
 
     def __init__(self, out_dir: str | Path, *, calibration: StereoCalibration | None = None, source_spec: str = "",
@@ -37,7 +38,7 @@ class Recorder:
         self._size: tuple[int, int] | None = None
         self._first_ts: int | None = None
         self._last_ts: int | None = None
-        self._manifest = {"source": source_spec, "image_format": image_format, "calibration": None}
+        self._manifest = {"source": source_spec, "image_format": image_format, "calibration": None, "masks": False}
         if calibration is not None:
             write_opencv_file(calibration, self.directory / CALIBRATION_NAME)
             self._manifest["calibration"] = CALIBRATION_NAME
@@ -53,15 +54,26 @@ class Recorder:
             raise ValueError(f"{self.directory}: recorder is closed")
         if self._size is None:
             self._size = frame.size
+            self._manifest["masks"] = frame.mask is not None
+            if frame.mask is not None:
+                (self.directory / "mask").mkdir(exist_ok=True)
         elif frame.size != self._size:
             raise ValueError(f"frame {frame.index} is {frame.size[0]}×{frame.size[1]}; the recording is "
                              f"{self._size[0]}×{self._size[1]}")
         if self._last_ts is not None and frame.timestamp_ns <= self._last_ts:
             raise ValueError(f"frame {frame.index} timestamp {frame.timestamp_ns} ns does not follow "
                              f"{self._last_ts} ns; expected increasing capture times")
+        if (frame.mask is not None) != self._manifest["masks"]:
+            raise ValueError(f"frame {frame.index} {'has' if frame.mask is not None else 'lacks'} a mask; "
+                             f"the recording {'has' if self._manifest['masks'] else 'has no'} masks from its first frame")
+        if frame.mask is not None and frame.mask.shape != (self._size[1], self._size[0]):
+            raise ValueError(f"frame {frame.index} mask has shape {frame.mask.shape}; expected "
+                             f"{self._size[1]}×{self._size[0]} like its images")
         name = f"{self.frames:06d}.{self.image_format}"
         write_rgb(self.directory / "left" / name, frame.left)
         write_rgb(self.directory / "right" / name, frame.right)
+        if frame.mask is not None:
+            write_mask(self.directory / mask_name(self.frames), frame.mask)
         self._csv.writerow([self.frames, frame.timestamp_ns, f"left/{name}", f"right/{name}"])
         self._csv_file.flush()
         if self._first_ts is None:

@@ -9,6 +9,8 @@ DIR/timestamps.csv    header "index,timestamp_ns,left,right", one row per pair, 
 DIR/left/000000.png   left views (RGB content, written through OpenCV as usual image files)
 DIR/right/000000.png  right views
 DIR/calibration.yaml  the calibration as an OpenCV FileStorage file (camera.opencv_file), if known
+DIR/mask/000000.png   optional: the left view's branch mask (8/16-bit PNG, instance ids), present for
+                      every frame when the manifest says "masks": true (synthetic or annotated data)
 ```
 The manifest is written when recording starts (`complete: false`) and rewritten on close, and
 timestamps.csv is appended frame by frame, so an interrupted recording still replays.
@@ -29,6 +31,11 @@ MANIFEST_NAME = "recording.json"
 TIMESTAMPS_NAME = "timestamps.csv"
 TIMESTAMP_COLUMNS = ("index", "timestamp_ns", "left", "right")
 CALIBRATION_NAME = "calibration.yaml"
+
+
+def mask_name(position: int) -> str:
+    """Path, relative to the recording directory, of the mask of the pair at `position` in timestamps.csv."""
+    return f"mask/{position:06d}.png"
 
 
 class RecordingFormatError(SourceUnavailable):

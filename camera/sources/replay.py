@@ -15,8 +15,8 @@ import cv2
 from camera.calibration import StereoCalibration
 from camera.load import load_calibration
 from camera.sources.frame import SourceBase, SourceConfigError, SourceUnavailable, StereoFrame
-from camera.sources.image_files import read_rgb, split_side_by_side
-from camera.sources.recording_format import read_manifest, read_timestamps
+from camera.sources.image_files import read_mask, read_rgb, split_side_by_side
+from camera.sources.recording_format import mask_name, read_manifest, read_timestamps
 
 #: Pacing modes: "recorded" waits so frames come at the recorded rate, "fast" returns them at once.
 PACES = ("recorded", "fast")
@@ -33,20 +33,22 @@ class _DirectoryFrames:
         deltas = [b.timestamp_ns - a.timestamp_ns for a, b in zip(self.rows, self.rows[1:])]
         self.period_ns = int(statistics.median(deltas)) if deltas else DEFAULT_PERIOD_NS
         self.count = len(self.rows)
+        self.has_masks = bool(self.manifest.get("masks"))
         self._position = 0
 
     def seek(self, position: int) -> None:
         self._position = position
 
     def read(self) -> StereoFrame | None:
-        """The next frame (with the recorded index and timestamp), None at the end of the recording."""
+        """The next frame (with the recorded index, timestamp and mask), None at the end of the recording."""
         if self._position >= self.count:
             return None
-        row = self.rows[self._position]
+        position, row = self._position, self.rows[self._position]
         self._position += 1
         left = read_rgb(self.directory / row.left)
         right = read_rgb(self.directory / row.right)
-        return StereoFrame(left, right, row.timestamp_ns, row.index)
+        mask = read_mask(self.directory / mask_name(position)) if self.has_masks else None
+        return StereoFrame(left, right, row.timestamp_ns, row.index, mask)
 
     def calibration(self) -> StereoCalibration | None:
         name = self.manifest.get("calibration")
@@ -173,7 +175,7 @@ class ReplaySource(SourceBase):
                 self._first_ts = frame.timestamp_ns
             self._last_ts, self._last_index = frame.timestamp_ns, frame.index
         frame = StereoFrame(frame.left, frame.right, frame.timestamp_ns + self._offset_ns,
-                            frame.index + self._pass * (self._last_index + 1))
+                            frame.index + self._pass * (self._last_index + 1), frame.mask)
         self._wait_for(frame.timestamp_ns)
         if self._stop.is_set():
             raise StopIteration
