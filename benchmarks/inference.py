@@ -24,8 +24,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 #: The full model's forward pass at 384×1248 (max_disp 192), in GFLOP, the figure the
-#: efficiency line is defined with. (torch's FlopCounterMode counts 1338.8 for convolutions and
-#: matmuls alone; the GFLOP column shows that count per size.)
+#: efficiency line is defined with (torch's FlopCounterMode counts 1338.8 for the convolutions
+#: and matmuls alone).
 FULL_MODEL_GFLOP_384x1248 = 1350.6
 EFFICIENCY_SIZE = (384, 1248)
 
@@ -74,11 +74,9 @@ def _timed(call: Callable[[], object], config: BenchConfig) -> list[float]:
 def run_emcstereo(config: BenchConfig) -> BenchResult:
     """The full (EMA+MSF+Coord) model behind the emcstereo backend, fp32, random weights."""
     import torch
-    from torch.utils.flop_counter import FlopCounterMode
 
     from stereo.backends.emcstereo import EMCStereoBackend
     from stereo.model import EMCStereo
-    from stereo.padding import compute_padding
 
     torch.manual_seed(0)
     backend = EMCStereoBackend(EMCStereo(), max_disp=config.max_disp)
@@ -89,15 +87,7 @@ def run_emcstereo(config: BenchConfig) -> BenchResult:
         network_ms.append(backend.compute(left, right).timing_ms["network"])
 
     latencies = _timed(call, config)
-    # FLOPs of convolutions and matmuls, counted on the meta device (no compute).
-    padded = compute_padding(config.height, config.width).padded_shape
-    with torch.device("meta"):
-        meta_model = EMCStereo().eval()
-        image = torch.empty(1, 3, *padded)
-    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
-        meta_model.infer(image, image, max_disp=config.max_disp)
-    network = network_ms[config.warmup :]
-    return BenchResult(latencies, 0.0, {"network_ms": statistics.median(network), "gflop": counter.get_total_flops() / 1e9})
+    return BenchResult(latencies, 0.0, {"network_ms": statistics.median(network_ms[config.warmup :])})
 
 
 def run_sgbm(config: BenchConfig) -> BenchResult:
@@ -175,12 +165,7 @@ def format_row(config: BenchConfig, result: BenchResult) -> str:
     median_ms = statistics.median(result.latencies_s) * 1e3
     size = f"{config.height}x{config.width}" if config.runner != "matmul" else f"{config.height}^2"
     network = f"{result.extra['network_ms']:10.1f}" if "network_ms" in result.extra else f"{'':>10}"
-    if "gflop" in result.extra:
-        work = f"{result.extra['gflop']:9.1f} GFLOP"
-    elif "gflops_per_s" in result.extra:
-        work = f"{result.extra['gflops_per_s']:9.1f} GFLOP/s"
-    else:
-        work = ""
+    work = f"{result.extra['gflops_per_s']:9.1f} GFLOP/s" if "gflops_per_s" in result.extra else ""
     return (
         f"{config.runner:<10} {size:>9} {config.threads:>7} {config.max_disp if config.runner != 'matmul' else '':>8} "
         f"{median_ms:10.1f} {min(result.latencies_s) * 1e3:9.1f} {network} {result.peak_rss_mib:9.0f}  {work}"
@@ -208,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"need known runners {sorted(RUNNERS)} (got {unknown}), repeats ≥ 1, warmup ≥ 0, threads ≥ 1")
 
     print(f"{'backend':<10} {'size':>9} {'threads':>7} {'max_disp':>8} {'median ms':>10} {'min ms':>9} "
-          f"{'network ms':>10} {'peak MiB':>9}  work")
+          f"{'network ms':>10} {'peak MiB':>9}  rate")
     results: dict[BenchConfig, BenchResult] = {}
     for config in build_configs(args):
         results[config] = measure(config)
