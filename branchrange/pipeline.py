@@ -93,6 +93,17 @@ def _timed(timing: dict[str, float], stage: str, start: float) -> float:
     return now
 
 
+@dataclass(frozen=True)
+class FrameArtifacts:
+    """What the last frame left behind, for overlays and debugging: the rectified left image
+    (`uint8 H×W×3`), disparity (`float32 H×W` px, 0 invalid), confidence (`H×W`) and the masks used."""
+
+    left: np.ndarray
+    disparity: np.ndarray
+    confidence: np.ndarray
+    masks: BranchMasks | None
+
+
 class Pipeline:
     """Cut points of one stereo frame after another.
 
@@ -140,6 +151,7 @@ class Pipeline:
         self._backend = backend
         self.segmenter: Segmenter = segmenter or GeometricSegmenter(self.config.segmenter)
         self.tracker = BranchTracker(self.config.tracker)
+        self.last: FrameArtifacts | None = None
 
     @property
     def backend(self) -> Any:
@@ -246,6 +258,7 @@ class Pipeline:
         if masks is None:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = _timed(timing, "masks", t)
+        self.last = FrameArtifacts(left, disparity, confidence, masks)
         if not valid.any():
             reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
         elif not masks.branch_ids():
