@@ -26,6 +26,8 @@ from stereo.synth.primitives import (
 )
 from stereo.synth.textures import TILE_SIZE, MipTile
 
+#: Cone parts closer than this (m, plus their radius) to the cameras' plane are not cast.
+CLIP_Z_M = 0.05
 _SQUARE = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
 
 
@@ -51,31 +53,51 @@ class Cone:
     material: BarkMaterial
     instance_id: int
 
-    def pieces_for(self, camera: SynthCamera) -> int:
-        """How many pieces keep each piece's image box from being mostly empty (1–32)."""
-        z_near = max(min(self.base[2], self.base[2] + self.length * self.axis[2]), 0.05)
-        length_px = camera.focal_px * self.length / z_near
+    def front_range(self) -> tuple[float, float]:
+        """Axis range (m) whose surface lies at least `CLIP_Z_M` in front of the cameras' plane.
+
+        What lies behind is cut off: trunks reaching over or behind the camera would otherwise
+        give boxes over the whole image. Scenes keep everything in view ≥ 0.2 m away, so the
+        cut never removes a visible surface.
+        """
+        z_min = CLIP_Z_M + max(self.r0, self.r1)
+        z0, dz = float(self.base[2]), float(self.axis[2])
+        if abs(dz) < 1e-12:
+            return (0.0, self.length) if z0 >= z_min else (0.0, 0.0)
+        s_cross = (z_min - z0) / dz
+        lo, hi = (max(0.0, s_cross), self.length) if dz > 0 else (0.0, min(self.length, s_cross))
+        return (lo, hi) if hi > lo else (0.0, 0.0)
+
+    def pieces_for(self, camera: SynthCamera, s_range: tuple[float, float]) -> int:
+        """How many pieces of the axis range keep each piece's image box from being mostly empty (0–64)."""
+        length = s_range[1] - s_range[0]
+        if length <= 0:
+            return 0
+        z_near = max(min(self.base[2] + s * self.axis[2] for s in s_range), CLIP_Z_M)
+        length_px = camera.focal_px * length / z_near
         width_px = 2.0 * max(self.r0, self.r1) * camera.focal_px / z_near
-        return int(np.clip(np.ceil(length_px / max(3.0 * width_px, 24.0)), 1, 32))
+        return int(np.clip(np.ceil(length_px / max(3.0 * width_px, 12.0)), 1, 64))
 
 
 class ConeBatch:
     """Many cone pieces cast together; part k is piece k (its cone's geometry, range, material, id)."""
 
     def __init__(self, cones: Sequence[Cone], camera: SynthCamera) -> None:
-        counts = np.array([cone.pieces_for(camera) for cone in cones], dtype=np.int64)
+        ranges = np.array([cone.front_range() for cone in cones], dtype=np.float64).reshape(-1, 2)
+        counts = np.array([cone.pieces_for(camera, tuple(r)) for cone, r in zip(cones, ranges)], dtype=np.int64)
         owner = np.repeat(np.arange(len(cones)), counts)
         first = np.repeat(np.cumsum(counts) - counts, counts)
-        fraction = (np.arange(owner.size) - first) / counts[owner]
+        fraction = (np.arange(owner.size) - first) / np.maximum(counts[owner], 1)
         length = np.array([c.length for c in cones])[owner]
+        start, span = ranges[owner, 0], ranges[owner, 1] - ranges[owner, 0]
         self.base = np.array([c.base for c in cones], dtype=np.float64)[owner]
         self.axis = np.array([c.axis for c in cones], dtype=np.float64)[owner]
         self.length = length
         self.r0 = np.array([c.r0 for c in cones])[owner]
         self.r1 = np.array([c.r1 for c in cones])[owner]
         self.slope = (self.r1 - self.r0) / self.length
-        self.s_lo = fraction * length
-        self.s_hi = (fraction + 1.0 / counts[owner]) * length
+        self.s_lo = start + fraction * span
+        self.s_hi = start + (fraction + 1.0 / np.maximum(counts[owner], 1)) * span
         self.capped = np.isclose(self.s_hi, length)
         self.ids = np.array([c.instance_id for c in cones], dtype=np.uint16)[owner]
         tiles = {id(c.material.tile): c.material.tile for c in cones}

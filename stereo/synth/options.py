@@ -22,6 +22,8 @@ class SynthOptions:
     - `background_trees`: mid-ground trees 4.5–9 m away (mask id 0, not pruning targets).
     - `noise_std`: sensor noise, standard deviation in 8-bit grey levels, drawn per view.
     - `view_gain_jitter`: largest relative gain difference per colour channel between the views.
+    - `threads`: render the left, right and ground-truth passes in this many threads (the
+      result does not depend on it).
     """
 
     cut_offset_m: float = 0.05
@@ -31,6 +33,7 @@ class SynthOptions:
     background_trees: bool = True
     noise_std: float = 1.0
     view_gain_jitter: float = 0.02
+    threads: int = 2
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.cut_offset_m <= 0.15:
@@ -43,6 +46,8 @@ class SynthOptions:
             raise ValueError(f"foliage must be one of {FOLIAGE}, got {self.foliage!r}")
         if not 0.0 <= self.noise_std <= 20.0:
             raise ValueError(f"noise_std must lie in [0, 20] grey levels, got {self.noise_std}")
+        if int(self.threads) != self.threads or not 1 <= self.threads <= 3:
+            raise ValueError(f"threads must be 1, 2 or 3, got {self.threads}")
         if not 0.0 <= self.view_gain_jitter <= 0.2:
             raise ValueError(f"view_gain_jitter must lie in [0, 0.2], got {self.view_gain_jitter}")
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -130,13 +131,17 @@ def render_scene(seed: int, camera: SynthCamera | None = None, **options: object
     rng = np.random.default_rng(seed)
     scene = build_scene(rng, camera, opts)
     batches = scene_batches(scene, camera)
-    views = []
-    for view in ("left", "right"):
-        rays = RayGrid.for_view(camera, view, opts.supersample)
-        _, _, colour = rasterise(batches, rays, scene.lighting, scene.sky)
-        views.append(_box_filter(colour, opts.supersample))
+
+    def colour_view(view: str) -> np.ndarray:
+        _, _, colour = rasterise(batches, RayGrid.for_view(camera, view, opts.supersample), scene.lighting, scene.sky)
+        return _box_filter(colour, opts.supersample)
+
+    # the three passes share nothing mutable; numpy and OpenCV release the GIL in their loops
+    with ThreadPoolExecutor(max_workers=opts.threads) as pool:
+        truth = pool.submit(rasterise, batches, RayGrid.for_view(camera, "left", 1), None, None)
+        views = list(pool.map(colour_view, ("left", "right")))
+        depth, ids, _ = truth.result()
     left, right = _finish(views, scene.exposure_target, opts, rng)
-    depth, ids, _ = rasterise(batches, RayGrid.for_view(camera, "left", 1), None, None)
     depth_m = depth.astype(np.float32)
     return SyntheticScene(left, right, camera.disparity_from_depth(depth), depth_m, ids,
                           _with_visibility(scene.branches, ids), camera, int(seed), scene.pose, scene.foliage,

@@ -145,7 +145,8 @@ class MipTile:
         """`sample_tile` at the level matching each sample's footprint (texels per image sample) → `(N, C)`."""
         level = np.clip(np.rint(np.log2(np.maximum(footprint_texels, 1.0))), 0, MIP_LEVELS - 1).astype(np.int64)
         out = np.empty((u_px.size, self.channels), dtype=np.float32)
-        for index in np.unique(level):
-            sel = np.flatnonzero(level == index)
-            out[sel] = sample_tile(self.levels[index], u_px[sel], v_px[sel])
+        for index, count in enumerate(np.bincount(level, minlength=MIP_LEVELS)):
+            if count:
+                sel = np.flatnonzero(level == index)
+                out[sel] = sample_tile(self.levels[index], u_px[sel], v_px[sel])
         return out
