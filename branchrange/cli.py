@@ -13,6 +13,10 @@ from stereo.cli import run
 COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.serve",
     "branchrange.commands.daemon",
+    "branchrange.commands.replay",
+    "branchrange.commands.estimate",
+    "branchrange.commands.demo",
+    "branchrange.commands.evaluate_cuts",
 )
 
 

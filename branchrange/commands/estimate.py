@@ -1,0 +1,110 @@
+"""`branchrange estimate`: cut points of one stereo pair, as `branchrange/v1` JSON and an overlay image.
+
+The camera is either a calibration file (ZED conf, OpenCV YAML/XML, depthai JSON, KITTI; raw
+pairs are rectified unless --rectified) or the focal length and baseline of an already rectified
+pair. Without --mask the built-in geometric segmenter proposes the branches.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+#: Exit status for input the command cannot use (bad file, size, calibration …).
+EXIT_BAD_INPUT = 2
+
+
+def branch_table(result: dict) -> str:
+    """A plain-text table of a result's cut points (one row per branch, the target starred)."""
+    rows = [f"{'id':>4} {'x':>7} {'y':>7} {'z':>7} {'dist m':>7} {'diam mm':>7} {'conf':>5}  target"]
+    for b in result["branches"]:
+        x, y, z = b["cut_point_m"]
+        star = "*" if b["id"] == result.get("target_id") else ""
+        rows.append(f"{b['id']:>4} {x:>7.3f} {y:>7.3f} {z:>7.3f} {b['distance_m']:>7.3f} "
+                    f"{b['diameter_m'] * 1000:>7.1f} {b['confidence']:>5.2f}  {star}")
+    if not result["branches"]:
+        rows.append(f"  (no cut points: {result.get('reason', 'none found')})")
+    return "\n".join(rows)
+
+
+def add_stereo_arguments(parser: argparse.ArgumentParser, default_backend: str | None) -> None:
+    """--backend/--weights/--max-disp, shared by the commands that run a stereo backend."""
+    parser.add_argument("--backend", choices=("sgbm", "emcstereo"), default=default_backend,
+                        help="stereo backend (default: emcstereo with --weights, else sgbm)")
+    parser.add_argument("--weights", type=Path, help="EMCStereo checkpoint (any supported layout)")
+    parser.add_argument("--max-disp", type=int, default=192, help="disparity search range in px (default 192)")
+
+
+def chosen_backend(args: argparse.Namespace) -> str:
+    """The backend the user asked for, or emcstereo when weights were given and sgbm otherwise."""
+    if args.backend is not None:
+        if args.backend == "emcstereo" and args.weights is None:
+            raise ValueError("--backend emcstereo needs --weights: an untrained network gives meaningless depth")
+        return args.backend
+    return "emcstereo" if args.weights is not None else "sgbm"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `estimate` to the `branchrange` command."""
+    p = subparsers.add_parser("estimate", help="cut points of one stereo pair", description=__doc__)
+    p.add_argument("--left", type=Path, required=True, help="left image (PNG/JPEG)")
+    p.add_argument("--right", type=Path, required=True, help="right image, same size")
+    camera = p.add_mutually_exclusive_group(required=True)
+    camera.add_argument("--calib", type=Path, help="calibration file (format detected from its content)")
+    camera.add_argument("--focal-px", type=float, help="rectified focal length in px (with --baseline-m)")
+    p.add_argument("--baseline-m", type=float, help="baseline in metres (with --focal-px)")
+    p.add_argument("--principal-point", type=float, nargs=2, metavar=("CX", "CY"),
+                   help="rectified principal point in px (with --focal-px; default the image centre)")
+    p.add_argument("--resolution", help="resolution section of a ZED calibration file (2K, FHD, HD, VGA)")
+    p.add_argument("--rectified", action="store_true", help="the images are already rectified: do not rectify")
+    p.add_argument("--mask", type=Path, help="instance-id PNG (8/16-bit) or binary mask; default: segmenter")
+    p.add_argument("--trunk-id", type=int, default=65535, help="trunk id in the instance mask (default 65535)")
+    add_stereo_arguments(p, None)
+    p.add_argument("--json", type=Path, help="write the result JSON here (default: print it)")
+    p.add_argument("--overlay", type=Path, help="write the overlay image here (PNG)")
+    p.set_defaults(func=run)
+
+
+def _pipeline(args: argparse.Namespace, size: tuple[int, int]):
+    """The pipeline the arguments describe (raises ValueError subclasses on bad camera input)."""
+    from branchrange.pipeline import Pipeline, PipelineConfig
+
+    config = PipelineConfig(backend=chosen_backend(args), weights=str(args.weights) if args.weights else None,
+                            max_disp=args.max_disp, trunk_id=args.trunk_id, tracking=False)
+    if args.calib is not None:
+        from camera import load_calibration
+
+        calibration = load_calibration(args.calib, args.resolution, size=size)
+        return Pipeline(config, calibration=calibration, rectified=args.rectified)
+    if args.baseline_m is None:
+        raise ValueError("--focal-px needs --baseline-m (metres)")
+    return Pipeline(config, focal_px=args.focal_px, baseline_m=args.baseline_m,
+                    principal_point=tuple(args.principal_point) if args.principal_point else None)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read the pair, run the pipeline once, write JSON / overlay, print the table."""
+    from branchrange.overlay import write_overlay
+    from stereo.io import read_rgb
+
+    try:
+        left, right = read_rgb(args.left), read_rgb(args.right)
+        pipeline = _pipeline(args, (left.shape[1], left.shape[0]))
+        result = pipeline.process(left, right, mask=args.mask)
+    except (ValueError, OSError) as exc:  # every input error type of the chain is one of these
+        print(f"branchrange estimate: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    text = json.dumps(result, indent=1)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text + "\n", encoding="utf-8")
+        print(branch_table(result))
+        print(f"wrote {args.json}")
+    else:
+        print(text)
+    if args.overlay is not None:
+        artifacts = pipeline.last
+        write_overlay(args.overlay, artifacts.left, result, artifacts.masks)
+        print(f"wrote {args.overlay}", file=sys.stderr if args.json is None else sys.stdout)
+    return 0
