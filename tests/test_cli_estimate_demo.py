@@ -1,0 +1,127 @@
+"""`branchrange estimate`, `demo` and `evaluate-cuts` run end to end on synthetic files."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import jsonschema
+import numpy as np
+import pytest
+
+from branchrange.cli import main
+from branchrange.evaluate_cuts import evaluate_cuts
+from branchrange.pipeline import SCHEMA_PATH
+from camera.calibration import from_rectified
+from camera.opencv_file import write_opencv_file
+from stereo.io import write_rgb
+from stereo.synth import SynthCamera, render_scene
+from stereo.synth.writer import write_dataset, write_mask
+
+SCHEMA = json.loads(SCHEMA_PATH.read_text(encoding="utf-8"))
+
+
+@pytest.fixture(scope="module")
+def pair_files(tmp_path_factory):
+    scene = render_scene(6, SynthCamera.zed_mini(640, 360))
+    folder = tmp_path_factory.mktemp("pair")
+    write_rgb(folder / "left.png", scene.left)
+    write_rgb(folder / "right.png", scene.right)
+    write_mask(folder / "mask.png", scene.instance_mask)
+    return folder, scene
+
+
+def test_estimate_with_focal_and_baseline_writes_json_and_overlay(pair_files, tmp_path, capsys):
+    folder, scene = pair_files
+    out_json, out_png = tmp_path / "r.json", tmp_path / "o.png"
+    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
+               "--focal-px", str(scene.camera.focal_px), "--baseline-m", str(scene.camera.baseline_m),
+               "--mask", str(folder / "mask.png"), "--max-disp", "128", "--json", str(out_json),
+               "--overlay", str(out_png)])
+    assert rc == 0
+    result = json.loads(out_json.read_text())
+    jsonschema.validate(result, SCHEMA)
+    assert result["stereo"]["backend"] == "sgbm" and result["masks"]["instances"] >= 5
+    near = [b for b in scene.branches if b.cut_visible
+            and any(np.linalg.norm(np.array(e["cut_point_m"]) - b.cut_point_m) < 0.05 for e in result["branches"])]
+    assert len(near) >= 5
+    overlay = cv2.imread(str(out_png))
+    assert overlay.shape == (360, 640, 3)
+    assert not np.array_equal(overlay[..., ::-1], scene.left)  # something was drawn
+    assert "target" in capsys.readouterr().out
+
+
+def test_estimate_with_a_calibration_file_prints_schema_json(pair_files, tmp_path, capsys):
+    folder, scene = pair_files
+    cam = scene.camera
+    calib = write_opencv_file(from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height)),
+                              tmp_path / "calib.yaml")
+    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
+               "--calib", str(calib), "--rectified", "--mask", str(folder / "mask.png"), "--max-disp", "128"])
+    assert rc == 0
+    result = json.loads(capsys.readouterr().out)
+    jsonschema.validate(result, SCHEMA)
+    assert result["camera"]["focal_px"] == pytest.approx(cam.focal_px)
+
+
+def test_estimate_reports_bad_input_with_exit_status_2(pair_files, tmp_path, capsys):
+    folder, scene = pair_files
+    small = tmp_path / "small.png"
+    write_rgb(small, scene.right[:, :600])
+    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(small),
+               "--focal-px", "320", "--baseline-m", "0.063"])
+    assert rc == 2
+    assert "differ in size" in capsys.readouterr().err
+    wrong = write_opencv_file(from_rectified(640.0, 639.5, 359.5, 0.063, (1280, 720)), tmp_path / "hd.yaml")
+    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
+               "--calib", str(wrong)])
+    assert rc == 2
+    assert "1280×720" in capsys.readouterr().err
+    rc = main(["estimate", "--left", str(tmp_path / "missing.png"), "--right", str(folder / "right.png"),
+               "--focal-px", "320", "--baseline-m", "0.063"])
+    assert rc == 2 and "missing.png" in capsys.readouterr().err
+
+
+def test_demo_says_sgbm_prints_truth_table_and_writes_overlay(tmp_path, capsys):
+    rc = main(["demo", "--out", str(tmp_path / "demo")])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "using the classical sgbm stereo backend" in out
+    assert "visible cut points within 5 cm" in out
+    result = json.loads((tmp_path / "demo" / "result.json").read_text())
+    jsonschema.validate(result, SCHEMA)
+    assert cv2.imread(str(tmp_path / "demo" / "overlay.png")).shape == (360, 640, 3)
+
+
+def test_demo_refuses_emcstereo_without_weights(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--backend", "emcstereo"]) == 2
+    assert "needs --weights" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def tiny_set(tmp_path_factory):
+    root = tmp_path_factory.mktemp("set")
+    write_dataset(root, 2, 0, 480, 270, progress=False)
+    return root
+
+
+def test_evaluate_cuts_scores_ground_truth_geometry(tiny_set):
+    [gt_gt] = evaluate_cuts(tiny_set, ["gt"], ["gt"])
+    assert gt_gt.frames == 2 and gt_gt.truth >= 3
+    assert gt_gt.recall >= 0.75
+    assert gt_gt.error_quantile(0.5) < 0.015
+    assert gt_gt.false_per_frame <= 1.0
+
+
+def test_evaluate_cuts_command_prints_the_table(tiny_set, tmp_path, capsys):
+    rc = main(["evaluate-cuts", str(tiny_set), "--stereo", "gt", "sgbm", "--limit", "1", "--json", str(tmp_path / "s.json")])
+    out = capsys.readouterr().out
+    assert rc == 0
+    for row in ("gt         gt", "gt         segmenter", "sgbm       gt", "sgbm       segmenter"):
+        assert row in out
+    scores = json.loads((tmp_path / "s.json").read_text())
+    assert len(scores) == 4 and all(s["frames"] == 1 for s in scores)
+
+
+def test_evaluate_cuts_names_a_folder_that_is_not_a_set(tmp_path, capsys):
+    assert main(["evaluate-cuts", str(tmp_path)]) == 2
+    assert "not a set written by `emcstereo synth`" in capsys.readouterr().err
