@@ -45,6 +45,13 @@ class CutPointConfigError(ValueError):
     """A cut-point setting out of its range; the message names the key."""
 
 
+def check_settings(section: str, settings: object, checks: dict[str, bool], error: type[ValueError]) -> None:
+    """Raise `error` naming `section.key` and its value for the first check that failed."""
+    for key, ok in checks.items():
+        if not ok:
+            raise error(f"{section}.{key} = {getattr(settings, key)!r} is out of range")
+
+
 @dataclass(frozen=True)
 class CutPointConfig:
     """Settings of the cut-point stage (lengths in metres, pixels of the disparity's resolution).
@@ -83,9 +90,7 @@ class CutPointConfig:
             "min_range_m": self.min_range_m >= 0,
             "max_range_m": self.max_range_m > self.min_range_m,
         }
-        for key, ok in checks.items():
-            if not ok:
-                raise CutPointConfigError(f"cutpoints.{key} = {getattr(self, key)!r} is out of range")
+        check_settings("cutpoints", self, checks, CutPointConfigError)
 
 
 @dataclass

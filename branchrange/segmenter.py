@@ -35,6 +35,7 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from branchrange.cutpoints import check_settings
 from branchrange.geometry import StereoGeometry, valid_disparity
 from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks
 
@@ -90,9 +91,7 @@ class GeometricSegmenterConfig:
             "min_confidence": 0 <= self.min_confidence <= 1,
             "trunk_id": 0 < self.trunk_id <= 65535,
         }
-        for key, ok in checks.items():
-            if not ok:
-                raise SegmenterConfigError(f"segmenter.{key} = {getattr(self, key)!r} is out of range")
+        check_settings("segmenter", self, checks, SegmenterConfigError)
 
 
 def _depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
