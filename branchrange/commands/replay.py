@@ -1,0 +1,67 @@
+"""`branchrange replay`: a recording → per-frame results (JSONL) as the daemon gives them, a summary, an overlay video."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import sys
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `replay` to the `branchrange` command."""
+    p = subparsers.add_parser("replay", help="turn a recording into results, a summary and an overlay video",
+                              description=__doc__)
+    p.add_argument("recording", help="a recording directory (branchrange record) or a side-by-side video file")
+    p.add_argument("--out", required=True, help="results, one branchrange/v1 JSON line per frame")
+    p.add_argument("--overlay-video", help="write an overlay video here (.mp4 with mp4v; .avi with MJPG when "
+                                           "this OpenCV cannot write mp4v)")
+    p.add_argument("--summary", action="store_true",
+                   help="print a summary and write it as JSON next to --out (NAME.summary.json)")
+    p.add_argument("--config", help="TOML configuration as the daemon reads it ([camera] calibration, [stereo], "
+                                    "[cutpoints]); defaults otherwise")
+    p.add_argument("--backend", choices=("sgbm", "emcstereo"), help="stereo backend (overrides stereo.backend)")
+    p.add_argument("--weights", help="EMCStereo weights (overrides stereo.weights)")
+    p.add_argument("--max-disp", type=int, help="largest disparity searched, px (overrides stereo.max_disp)")
+    p.set_defaults(func=run)
+
+
+def summary_path(out: str | Path) -> Path:
+    """Where `--summary` writes its JSON: beside the results file, `results.summary.json` for `results.jsonl`."""
+    out = Path(out)
+    return out.with_name(out.stem + ".summary.json")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load the config with the command line's overrides, replay, print and write the summary."""
+    from branchrange.config import ConfigError, load_config
+    from branchrange.overlay_video import VideoWriteError
+    from branchrange.replay import replay_recording
+    from camera.sources import SourceError
+
+    try:
+        cfg = load_config(args.config)
+        stereo = dataclasses.replace(
+            cfg.stereo, backend=args.backend or cfg.stereo.backend, weights=args.weights or cfg.stereo.weights,
+            max_disp=cfg.stereo.max_disp if args.max_disp is None else args.max_disp)
+        cfg = dataclasses.replace(cfg, stereo=stereo,
+                                  camera=dataclasses.replace(cfg.camera, source=f"replay:{args.recording}"))
+    except ConfigError as exc:
+        print(f"branchrange replay: {exc}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        summary = replay_recording(args.recording, cfg, args.out, video=args.overlay_video)
+    except (SourceError, VideoWriteError, ValueError) as exc:
+        print(f"branchrange replay: {exc}", file=sys.stderr)
+        return 1
+    print(f"results: {args.out} ({summary.frames} lines)")
+    if args.summary:
+        path = summary_path(args.out)
+        path.write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        print(summary.text())
+        print(f"summary: {path}")
+    elif summary.video:
+        print(f"overlay video: {summary.video} ({summary.video_codec})")
+    return 0 if summary.frames else 1

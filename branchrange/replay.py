@@ -1,0 +1,194 @@
+"""Offline replay: a recording → the daemon's per-frame results (JSONL), a summary, and an overlay video.
+
+After a flight, `replay_recording` runs every frame of a recording (a `branchrange record`
+directory or a side-by-side video) through the pipeline the daemon builds from the same
+configuration (`branchrange.frame_results`), as fast as the machine allows and without dropping
+frames, so its results are the daemon's, frame for frame (timing aside). A corrupt frame is
+skipped and a frame the pipeline rejects is logged, as the daemon does. The summary counts
+frames, branches and tracks, and gives distance statistics and per-stage timing.
+"""
+from __future__ import annotations
+
+import logging
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from branchrange.config import Config
+from branchrange.frame_results import pipeline_for, process_frame, result_line
+from branchrange.masks import masks_from_array
+from branchrange.overlay import draw_overlay
+from branchrange.overlay_video import OverlayVideoWriter, check_video
+from camera.sources import CorruptFrameError, ReplaySource, StereoFrame, open_source
+from camera.sources.recording_format import read_manifest
+
+log = logging.getLogger("branchrange.replay")
+#: Frame rate of the overlay video when the recording does not say (frames per second).
+FALLBACK_VIDEO_FPS = 10.0
+
+
+def _stats(values: list[float], digits: int) -> dict[str, float | int]:
+    """count, min, median, mean, max and (population) std of `values`, rounded; just the count when empty."""
+    if not values:
+        return {"count": 0}
+    return {"count": len(values), "min": round(min(values), digits), "median": round(statistics.median(values), digits),
+            "mean": round(statistics.fmean(values), digits), "max": round(max(values), digits),
+            "std": round(statistics.pstdev(values), digits)}
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay saw: frames, branches and tracks, distances (m), per-stage timing (ms).
+
+    `add` takes each frame's result; `skip_corrupt`/`skip_rejected` count the frames that gave
+    none. `tracks` are distinct branch ids over the sequence (stable ids when tracking is on).
+    """
+
+    recording: str
+    frames: int = 0
+    corrupt: int = 0
+    rejected: int = 0
+    frames_with_branches: int = 0
+    frames_with_target: int = 0
+    detections: int = 0
+    wall_s: float = 0.0
+    video: str | None = None
+    video_codec: str | None = None
+    _tracks: set[int] = field(default_factory=set)
+    _target_tracks: set[int] = field(default_factory=set)
+    _distances: list[float] = field(default_factory=list)
+    _target_distances: list[float] = field(default_factory=list)
+    _timing: dict[str, list[float]] = field(default_factory=dict)
+
+    def add(self, result: dict[str, Any]) -> None:
+        """Count one frame's `branchrange/v1` result."""
+        self.frames += 1
+        branches = result["branches"]
+        self.detections += len(branches)
+        self.frames_with_branches += bool(branches)
+        for branch in branches:
+            self._tracks.add(int(branch["id"]))
+            self._distances.append(float(branch["distance_m"]))
+            if branch["id"] == result["target_id"]:
+                self._target_tracks.add(int(branch["id"]))
+                self._target_distances.append(float(branch["distance_m"]))
+        self.frames_with_target += result["target_id"] is not None
+        for stage, ms in result["timing_ms"].items():
+            self._timing.setdefault(stage, []).append(float(ms))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The summary as JSON-ready values (distances in metres, timing in milliseconds per frame)."""
+        timing = {stage: {k: v for k, v in _stats(values, 3).items() if k != "std"}
+                  for stage, values in self._timing.items()}
+        return {
+            "recording": self.recording,
+            "frames": {"processed": self.frames, "corrupt": self.corrupt, "rejected": self.rejected,
+                       "with_branches": self.frames_with_branches, "with_target": self.frames_with_target},
+            "branches": {"detections": self.detections, "tracks": len(self._tracks),
+                         "target_tracks": len(self._target_tracks),
+                         "per_frame": round(self.detections / self.frames, 3) if self.frames else 0.0},
+            "distance_m": {"all": _stats(self._distances, 4), "target": _stats(self._target_distances, 4)},
+            "timing_ms": timing,
+            "wall_s": round(self.wall_s, 3),
+            "fps": round(self.frames / self.wall_s, 3) if self.wall_s > 0 else 0.0,
+            "video": None if self.video is None else {"path": self.video, "codec": self.video_codec},
+        }
+
+    def text(self) -> str:
+        """The summary for a person, a few lines."""
+        d = self.to_dict()
+        f, b, t = d["frames"], d["branches"], d["distance_m"]["target"]
+        lines = [f"replay of {self.recording}: {f['processed']} frames processed, {f['corrupt']} corrupt, "
+                 f"{f['rejected']} rejected; {d['fps']:.1f} frames/s",
+                 f"branches: {b['detections']} cut points ({b['per_frame']:.2f} per frame) in {b['tracks']} tracks; "
+                 f"a target in {f['with_target']} frames ({b['target_tracks']} tracks)"]
+        if t["count"]:
+            lines.append(f"target distance: median {t['median']:.3f} m, min {t['min']:.3f} m, max {t['max']:.3f} m, "
+                         f"std {t['std']:.3f} m")
+        stages = ", ".join(f"{stage} {s['mean']:.1f}" for stage, s in d["timing_ms"].items() if s["count"])
+        lines.append(f"mean timing per frame (ms): {stages}")
+        if d["video"]:
+            lines.append(f"overlay video: {d['video']['path']} ({d['video']['codec']})")
+        return "\n".join(lines)
+
+
+def recorded_fps(recording: str | Path) -> float:
+    """The recording's frame rate (the manifest's, or the video's), else `FALLBACK_VIDEO_FPS`."""
+    path = Path(recording)
+    if path.is_dir():
+        fps = read_manifest(path).get("fps")
+    else:
+        capture = cv2.VideoCapture(str(path))
+        fps = capture.get(cv2.CAP_PROP_FPS) if capture.isOpened() else None
+        capture.release()
+    return float(fps) if fps and fps > 0 else FALLBACK_VIDEO_FPS
+
+
+def _overlay_frame(pipeline: Any, frame: StereoFrame, result: dict[str, Any]) -> np.ndarray:
+    """The frame's overlay (RGB `uint8 H×W×3`) on the rectified left view the result's pixels refer to."""
+    left, masks = frame.left, None
+    if pipeline.rectifier is not None and not pipeline.rectifier.calibration.is_rectified:
+        left = pipeline.rectifier.rectify(frame.left, frame.right)[0]
+    elif frame.mask is not None:  # a recorded mask is in the (already rectified) left view's pixels
+        cfg = pipeline.config
+        masks = masks_from_array(frame.mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind, ignored_ids=cfg.ignored_ids)
+    return draw_overlay(left, result, masks)
+
+
+def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, *, video: str | Path | None = None,
+                     progress: bool = True) -> ReplaySummary:
+    """Process every frame of `recording` with the pipeline `cfg` describes; write one JSON line per frame
+    to `out_jsonl` and, when `video` is given, an overlay video (checked to read back frame for frame).
+
+    `cfg.camera.calibration` overrides the recording's calibration, as in the daemon. Raises
+    `camera.sources.SourceError` when the recording cannot be opened or has no calibration.
+    """
+    source = open_source(f"replay:{recording}", calibration=cfg.camera.calibration or None, pace="fast")
+    summary = ReplaySummary(str(recording))
+    writer = None
+    try:
+        pipeline = pipeline_for(cfg, source.calibration)
+        if video is not None:
+            writer = OverlayVideoWriter(video, recorded_fps(recording))
+        out = Path(out_jsonl)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        total = source.frame_count if isinstance(source, ReplaySource) else None
+        start = time.perf_counter()
+        with out.open("w", encoding="utf-8") as results, \
+                tqdm(total=total, unit="frame", desc="replay", disable=not progress) as bar:
+            while True:
+                try:
+                    frame = next(source)
+                except StopIteration:
+                    break
+                except CorruptFrameError as exc:
+                    summary.corrupt += 1
+                    log.warning("corrupt frame skipped: %s", exc)
+                    bar.update()
+                    continue
+                bar.update()
+                try:
+                    result = process_frame(pipeline, frame)
+                except ValueError as exc:
+                    summary.rejected += 1
+                    log.warning("frame %d rejected by the pipeline: %s", frame.index, exc)
+                    continue
+                results.write(result_line(result))
+                summary.add(result)
+                if writer is not None:
+                    writer.write(_overlay_frame(pipeline, frame, result))
+        summary.wall_s = time.perf_counter() - start
+    finally:
+        source.close()
+        if writer is not None:
+            writer.close()
+    if writer is not None and writer.codec is not None and writer.size is not None:
+        check_video(writer.path, writer.codec, writer.frames, writer.size)
+        summary.video, summary.video_codec = str(writer.path), writer.codec.fourcc
+    return summary
