@@ -23,7 +23,8 @@ class PlaneLayer:
     `tile` (RGB) repeats every `tile_m` metres; `alpha` (optional, `S×S×1` on the same grid)
     marks holes where it is below 0.5. `profile`
     (optional, m) limits the layer to `v < profile(u)`: the canopy line of a tree row, sampled
-    periodically every `profile_period_m`. `light_factor` scales the sun on it (foliage is not a
+    periodically every `profile_period_m`, and `floor` (optional, m) to `v ≥ floor` (the
+    bottom of the crowns). `light_factor` scales the sun on it (foliage is not a
     flat Lambertian surface). Its pixels are background (mask id 0).
     """
 
@@ -36,6 +37,7 @@ class PlaneLayer:
     alpha: np.ndarray | None = None
     profile: np.ndarray | None = None
     profile_period_m: float = 1.0
+    floor: float | None = None
 
     @property
     def normal(self) -> np.ndarray:
@@ -45,32 +47,37 @@ class PlaneLayer:
     def instance_ids(self, part: np.ndarray) -> np.ndarray:
         return np.zeros(part.size, dtype=np.uint16)
 
+    def _along(self, axis: np.ndarray, rays: RayGrid, t: np.ndarray) -> np.ndarray:
+        """Plane coordinate (m, float32 `Hs×Ws`) along unit `axis` of the points at depth `t` on every ray."""
+        a = axis.astype(np.float32)
+        slope = a[0] * rays.dx.astype(np.float32)[None, :] + (a[1] * rays.dy.astype(np.float32) + a[2])[:, None]
+        return np.float32((rays.origin - self.point) @ axis) + t * slope
+
     def hits(self, rays: RayGrid, depth: np.ndarray) -> Iterator[Hits]:
         n = self.normal.astype(np.float32)
         denom = n[0] * rays.dx.astype(np.float32)[None, :] + (n[1] * rays.dy.astype(np.float32) + n[2])[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.float32((self.point - rays.origin) @ self.normal) / denom
-        index = np.flatnonzero((t > NEAR_M) & (t < depth) & (t < FAR_M)).astype(np.int64)
-        if index.size == 0:
-            return
-        t = t.ravel()[index].astype(np.float64)
-        if self.profile is not None or self.alpha is not None:
-            rows, cols = np.divmod(index, rays.shape[1])
-            keep = self._opaque(rays.origin, rays.dx[cols], rays.dy[rows], t)
-            index, t = index[keep], t[keep]
-        yield Hits(index, t, np.zeros(index.size, dtype=np.int64))
+        index = np.flatnonzero((t > NEAR_M) & (t < depth) & (t < FAR_M))
+        if index.size and (self.profile is not None or self.alpha is not None):
+            u = self._along(self.eu, rays, t).ravel()[index]
+            v = self._along(self.ev, rays, t).ravel()[index]
+            index = index[self._opaque(u, v)]
+        if index.size:
+            yield Hits(index, t.ravel()[index].astype(np.float64), np.zeros(index.size, dtype=np.int64))
 
-    def _opaque(self, origin: np.ndarray, dx: np.ndarray, dy: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Which hits at depth `t` along rays `(dx, dy, 1)` land on foliage rather than a hole or above the canopy."""
-        rel = origin - self.point
-        u = rel @ self.eu + t * (self.eu[0] * dx + self.eu[1] * dy + self.eu[2])
-        v = rel @ self.ev + t * (self.ev[0] * dx + self.ev[1] * dy + self.ev[2])
-        keep = np.ones(t.size, dtype=bool)
+    def _opaque(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Which plane points (u, v in m) are foliage rather than a hole or sky above the canopy line."""
+        keep = np.ones(u.size, dtype=bool) if self.floor is None else v >= np.float32(self.floor)
         if self.profile is not None:
-            positions = np.mod(u / self.profile_period_m, 1.0) * self.profile.size
-            keep &= v < np.interp(positions, np.arange(self.profile.size + 1), np.append(self.profile, self.profile[0]))
+            table = np.append(self.profile, self.profile[0]).astype(np.float32)
+            position = np.mod(u * np.float32(self.profile.size / self.profile_period_m), self.profile.size)
+            cell = np.minimum(position.astype(np.int64), self.profile.size - 1)
+            frac = position - cell
+            keep &= v < table[cell] * (1 - frac) + table[cell + 1] * frac
         if self.alpha is not None:
-            keep &= sample_tile(self.alpha, u / self.tile_m * TILE_SIZE, v / self.tile_m * TILE_SIZE)[:, 0] >= 0.5
+            scale = np.float32(TILE_SIZE / self.tile_m)
+            keep &= sample_tile(self.alpha, u * scale, v * scale)[:, 0] >= 0.5
         return keep
 
     def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:

@@ -101,9 +101,9 @@ def _finish(images: list[np.ndarray], target: float, options: SynthOptions, rng:
     out = []
     for image in images:
         view_gain = 1.0 + rng.uniform(-options.view_gain_jitter, options.view_gain_jitter, 3) / 2
-        levels = np.clip(image * gain * view_gain, 0.0, 1.0) * 255.0
+        levels = np.clip(image * np.float32(gain) * view_gain.astype(np.float32), 0.0, 1.0) * np.float32(255.0)
         if options.noise_std > 0:
-            levels = levels + rng.normal(0.0, options.noise_std, levels.shape)
+            levels += options.noise_std * rng.standard_normal(levels.shape, dtype=np.float32)
         out.append(np.clip(np.rint(levels), 0, 255).astype(np.uint8))
     return out
 

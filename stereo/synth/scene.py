@@ -96,6 +96,7 @@ class _SceneBuilder:
         self.frame = _Frame(pitch, np.radians(rng.uniform(-6.0, 6.0)))
         self.cones: list[Cone] = []
         self.leaves: list[Leaf] = []
+        self.leafy_twigs: list[tuple[np.ndarray, np.ndarray, float, int]] = []
         self.detail = MipTile(detail_tile(rng))
         self.leaf_colour = np.array(_LEAF_COLOURS[str(rng.choice(list(_LEAF_COLOURS), p=[0.3, 0.4, 0.15, 0.15]))])
 
@@ -220,17 +221,21 @@ class _SceneBuilder:
             if self._axis_points(start, twig_axis, twig_len, 6)[:, 2].min() < 0.2:
                 continue
             self._cone(start, twig_axis, twig_len, r0, r1, self._bark(tile, r0, tint), ids[0])
-            self._leaves(start, twig_axis, twig_len, ids[1])
+            self.leafy_twigs.append((start, twig_axis, twig_len, ids[1]))
             if depth == 0:
                 self._twigs(start, twig_axis, twig_len, lambda q, r0=r0, r1=r1, n=twig_len: r0 + (r1 - r0) * q / n,
                             tile, ids, depth=1)
 
-    def _leaves(self, start: np.ndarray, axis: np.ndarray, length: float, leaf_id: int) -> None:
-        """Leaf blades along a twig, angled outward (about 50°) and roughly facing up."""
-        if self.foliage == "bare":
+    def _grow_leaves(self) -> None:
+        """Leaf blades along every recorded twig, angled outward (about 50°) and roughly facing up."""
+        if self.foliage == "bare" or not self.leafy_twigs:
             return
         rng = self.rng
-        n = int(rng.integers(1, 4) if self.foliage == "sparse" else rng.integers(3, 8))
+        start, axis, length, leaf_id = (np.array(column) for column in zip(*self.leafy_twigs))
+        low, high = (1, 4) if self.foliage == "sparse" else (3, 8)
+        twig = np.repeat(np.arange(len(length)), rng.integers(low, high, size=len(length)))
+        n = twig.size
+        start, axis, length = start[twig], axis[twig], length[twig]
         along, half_length = rng.uniform(0.2, 1.0, n), rng.uniform(0.025, 0.055, n)
         side = unit_rows(cross3(axis, rng.normal(size=(n, 3))))
         e1 = unit_rows(np.cos(np.radians(50)) * axis + np.sin(np.radians(50)) * side + rng.normal(0, 0.3, (n, 3)))
@@ -244,14 +249,15 @@ class _SceneBuilder:
         centre_cam, normal_cam, e1_cam = (self.frame.point(v) for v in (centre, normal, e1))
         for i in np.flatnonzero(centre_cam[:, 2] >= 0.2 + half_length):
             self.leaves.append(Leaf(centre_cam[i], normal_cam[i], e1_cam[i], float(half_length[i]), float(widths[i]),
-                                    colour[i], leaf_id))
+                                    colour[i], int(leaf_id[twig[i]])))
+        self.leafy_twigs = []
 
     def _main_tree(self) -> tuple[list[BranchTruth], float]:
         """Trunk, branches, twigs and leaves of the tree being pruned; returns the truth and ground depth."""
         rng = self.rng
         tile = MipTile(bark_tile(rng, str(rng.choice(list(BARK_KINDS)))))
         for _ in range(10):
-            self.cones, self.leaves = [], []
+            self.cones, self.leaves, self.leafy_twigs = [], [], []
             foot, trunk_axis, trunk_len, r_ground, r_top, ground_y = self._trunk()
 
             def trunk_radius(s: float, r_ground=r_ground, r_top=r_top, trunk_len=trunk_len) -> float:
@@ -272,6 +278,7 @@ class _SceneBuilder:
                 self._twigs(base, axis, length, lambda s, r0=r0, r1=r1, n=length: r0 + (r1 - r0) * s / n, tile)
             if len(truths) >= 2:
                 self._crown(foot, trunk_axis, trunk_len, trunk_radius, tile)
+                self._grow_leaves()
                 return truths, ground_y
         raise RuntimeError("could not place two branches in view after 10 tree layouts; the camera is too narrow")
 
@@ -334,11 +341,16 @@ class _SceneBuilder:
                           self.frame.direction(np.array([0.0, 0, 1.0])), MipTile(ground_tile(rng, grass, soil)),
                           rng.uniform(0.8, 2.0), 0.8)
 
-    def _crown_line(self, period_m: float, samples: int = 512) -> np.ndarray:
-        """Heights (m above ground, `(samples,)`) of a row of rounded tree crowns, periodic over `period_m`."""
+    def _crown_line(self, period_m: float, samples: int = 512) -> tuple[np.ndarray, list[tuple[float, float]]]:
+        """A row of rounded tree crowns, periodic over `period_m`.
+
+        Returns the canopy heights (m above ground, `(samples,)`) and each crown's (u, centre
+        height) in metres, where its trunk goes.
+        """
         rng = self.rng
         u = np.arange(samples) * period_m / samples
-        top = np.full(samples, rng.uniform(1.5, 4.0))
+        top = np.zeros(samples)
+        crowns = []
         mean_height, position = rng.uniform(6.0, 14.0), 0.0
         while position < period_m:
             radius = rng.uniform(1.5, 5.0)
@@ -346,20 +358,36 @@ class _SceneBuilder:
             offset = np.mod(u - position - radius + period_m / 2, period_m) - period_m / 2
             dome = centre_height + np.sqrt(np.clip(radius ** 2 - offset ** 2, 0.0, None)) * rng.uniform(0.8, 1.3)
             top = np.where(np.abs(offset) < radius, np.maximum(top, dome), top)
+            crowns.append(((position + radius) % period_m, centre_height))
             position += radius * rng.uniform(1.0, 1.8)
-        return top + 0.25 * periodic_noise(rng, 40.0, 40.0, size=samples)[0]
+        return top + 0.25 * periodic_noise(rng, 40.0, 40.0, size=samples)[0], crowns
 
-    def _tree_rows(self, ground_y: float) -> list[PlaneLayer]:
-        """One or two far rows of trees (10–45 m): rounded crowns, leaf clumps with a few gaps to the sky."""
+    def _tree_rows(self, ground_y: float, bark: MipTile) -> list[PlaneLayer]:
+        """One or two far rows of trees (10–45 m): trunks under rounded crowns of leaf clumps, gaps to the sky.
+
+        The last row's foliage reaches the ground (a wood behind), so the far horizon stays hidden.
+        """
         rng = self.rng
-        layers, distance = [], rng.uniform(10.0, 25.0)
-        for _ in range(rng.integers(1, 3)):
+        layers, distance, period = [], rng.uniform(10.0, 25.0), 80.0
+        rows = int(rng.integers(1, 3))
+        for row in range(rows):
             hue = np.array([0.16, 0.30, 0.10]) * rng.uniform(0.7, 1.3) + rng.normal(0, 0.02, 3)
             foliage = foliage_tile(rng, tuple(np.clip(hue, 0.02, 1)), rng.uniform(0.85, 0.97))
+            profile, crowns = self._crown_line(period)
+            floor = rng.uniform(1.5, 3.5) if row < rows - 1 else None
+            reach = distance * (2 * self.tan_half_h + 0.5) + 10.0
+            tint = np.full(3, rng.uniform(0.5, 0.8))
+            for u, height in crowns:
+                for x in np.arange(u - period * np.ceil(reach / period), reach, period):
+                    if abs(x) < reach:
+                        foot = np.array([x + rng.uniform(-0.3, 0.3), ground_y, distance + rng.uniform(0.2, 1.0)])
+                        radius = rng.uniform(0.1, 0.3)
+                        self._cone(foot, unit(UP + rng.normal(0, 0.04, 3)), max(height, 2.0),
+                                   radius, 0.6 * radius, self._bark(bark, radius, tint), 0)
             layers.append(PlaneLayer(
                 self.frame.point(np.array([0.0, ground_y, distance])), self.frame.direction(np.array([1.0, 0, 0])),
                 self.frame.direction(UP), MipTile(foliage[:, :, :3]), rng.uniform(2.0, 4.0), 0.5,
-                np.ascontiguousarray(foliage[:, :, 3:]), self._crown_line(80.0), 80.0))
+                np.ascontiguousarray(foliage[:, :, 3:]), profile, period, floor))
             distance += rng.uniform(8.0, 20.0)
         return layers
 
@@ -402,9 +430,10 @@ class _SceneBuilder:
         branches, ground_y = self._main_tree()
         tree_cones, tree_leaves = list(self.cones), list(self.leaves)
         self.cones, self.leaves = [], []
+        bark = MipTile(bark_tile(self.rng, str(self.rng.choice(list(BARK_KINDS)))))
         if self.options.background_trees:
-            self._background_trees(MipTile(bark_tile(self.rng, str(self.rng.choice(list(BARK_KINDS))))), ground_y)
-        layers = [self._ground(ground_y), *self._tree_rows(ground_y)]
+            self._background_trees(bark, ground_y)
+        layers = [self._ground(ground_y), *self._tree_rows(ground_y, bark)]
         canopy = self._canopy()
         if canopy is not None:
             layers.append(canopy)

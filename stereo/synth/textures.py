@@ -81,7 +81,7 @@ def ground_tile(rng: np.random.Generator, grass: tuple[float, float, float], soi
     """RGB ground `S×S×3`: grass and soil patches with fine blades/litter."""
     patches = _unit(periodic_noise(rng, 3.0, 3.0))
     fine = _unit(periodic_noise(rng, 60.0, 60.0, slope=1.2))
-    mix = np.clip((patches - 0.35) * 3.0, 0.0, 1.0)[..., None]
+    mix = np.clip((patches - 0.45) * 1.8 + 0.5, 0.0, 1.0)[..., None]
     colour = (np.array(grass) * mix + np.array(soil) * (1 - mix)) * (0.55 + 0.9 * fine[..., None])
     return np.clip(colour, 0.0, 1.0).astype(np.float32)
 
@@ -116,13 +116,13 @@ def sample_tile(tile: np.ndarray, u_px: np.ndarray, v_px: np.ndarray) -> np.ndar
 
 
 def periodic_blur(tile: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian blur (σ in texels) of a periodic tile `S×S×C`, wrapping around its edges exactly."""
-    size = tile.shape[0]
-    fv = np.fft.fftfreq(size)[:, None]
-    fu = np.fft.rfftfreq(size)[None, :]
-    gain = np.exp(-2.0 * (np.pi * sigma) ** 2 * (fu ** 2 + fv ** 2))[..., None]
-    blurred = np.fft.irfft2(np.fft.rfft2(tile, axes=(0, 1)) * gain, s=tile.shape[:2], axes=(0, 1))
-    return blurred.astype(np.float32)
+    """Gaussian blur (σ in texels) of a periodic tile `S×S×C`, wrapping around its edges."""
+    pad = min(int(np.ceil(3 * sigma)), tile.shape[0])
+    padded = np.pad(tile, ((pad, pad), (pad, pad), (0, 0)), mode="wrap")
+    blurred = cv2.GaussianBlur(padded, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    if blurred.ndim == 2:
+        blurred = blurred[..., None]
+    return np.ascontiguousarray(blurred[pad:pad + tile.shape[0], pad:pad + tile.shape[1]], dtype=np.float32)
 
 
 class MipTile:
