@@ -3,6 +3,7 @@
 Every configuration runs in its own child process, so that each peak RSS is that configuration's
 alone; a float32 matmul timed on the same number of threads, in the same run, is the baseline.
 Prints one table and the full model's efficiency at 384×1248: model GFLOP / latency / matmul rate.
+The `cores` column (CPU time / wall time) shows how much of the requested threads a run really got.
 
     .venv/bin/python benchmarks/inference.py                      # 256×512 and 384×1248, 1+3 runs
     .venv/bin/python benchmarks/inference.py --sizes 256x512 --repeats 1 --warmup 0   # quick look
@@ -48,6 +49,7 @@ class BenchResult:
     """What a child process reports for one configuration (times in seconds, memory in MiB)."""
 
     latencies_s: list[float]
+    cpu_s: list[float]
     peak_rss_mib: float
     extra: dict[str, float] = field(default_factory=dict)
 
@@ -59,16 +61,21 @@ def random_pair(height: int, width: int, seed: int = 0) -> tuple[np.ndarray, np.
     return np.ascontiguousarray(scene[:, 8:]), np.ascontiguousarray(scene[:, :width])
 
 
-def _timed(call: Callable[[], object], config: BenchConfig) -> list[float]:
-    """Run `call` warm-up times untimed, then `repeats` times; the wall-clock seconds of each timed run."""
+def _timed(call: Callable[[], object], config: BenchConfig) -> tuple[list[float], list[float]]:
+    """Run `call` warm-up times untimed, then `repeats` times: (wall seconds, process CPU seconds) of each.
+
+    CPU seconds over wall seconds is the number of cores the run really got; on a shared machine
+    it falls below the thread count when other work competes.
+    """
     for _ in range(config.warmup):
         call()
-    latencies = []
+    latencies, cpu = [], []
     for _ in range(config.repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         call()
         latencies.append(time.perf_counter() - start)
-    return latencies
+        cpu.append(time.process_time() - start_cpu)
+    return latencies, cpu
 
 
 def run_emcstereo(config: BenchConfig) -> BenchResult:
@@ -86,8 +93,8 @@ def run_emcstereo(config: BenchConfig) -> BenchResult:
     def call() -> None:
         network_ms.append(backend.compute(left, right).timing_ms["network"])
 
-    latencies = _timed(call, config)
-    return BenchResult(latencies, 0.0, {"network_ms": statistics.median(network_ms[config.warmup :])})
+    latencies, cpu = _timed(call, config)
+    return BenchResult(latencies, cpu, 0.0, {"network_ms": statistics.median(network_ms[config.warmup :])})
 
 
 def run_sgbm(config: BenchConfig) -> BenchResult:
@@ -96,7 +103,7 @@ def run_sgbm(config: BenchConfig) -> BenchResult:
 
     backend = SGBMBackend(max_disp=config.max_disp)
     left, right = random_pair(config.height, config.width)
-    return BenchResult(_timed(lambda: backend.compute(left, right), config), 0.0)
+    return BenchResult(*_timed(lambda: backend.compute(left, right), config), 0.0)
 
 
 def run_matmul(config: BenchConfig) -> BenchResult:
@@ -105,8 +112,8 @@ def run_matmul(config: BenchConfig) -> BenchResult:
 
     n = config.height
     a, b = torch.randn(n, n), torch.randn(n, n)
-    latencies = _timed(lambda: a @ b, config)
-    return BenchResult(latencies, 0.0, {"gflops_per_s": 2 * n**3 / statistics.median(latencies) / 1e9})
+    latencies, cpu = _timed(lambda: a @ b, config)
+    return BenchResult(latencies, cpu, 0.0, {"gflops_per_s": 2 * n**3 / statistics.median(latencies) / 1e9})
 
 
 RUNNERS: dict[str, Callable[[BenchConfig], BenchResult]] = {
@@ -165,10 +172,11 @@ def format_row(config: BenchConfig, result: BenchResult) -> str:
     median_ms = statistics.median(result.latencies_s) * 1e3
     size = f"{config.height}x{config.width}" if config.runner != "matmul" else f"{config.height}^2"
     network = f"{result.extra['network_ms']:10.1f}" if "network_ms" in result.extra else f"{'':>10}"
+    cores = statistics.median(c / w for c, w in zip(result.cpu_s, result.latencies_s))
     work = f"{result.extra['gflops_per_s']:9.1f} GFLOP/s" if "gflops_per_s" in result.extra else ""
     return (
         f"{config.runner:<10} {size:>9} {config.threads:>7} {config.max_disp if config.runner != 'matmul' else '':>8} "
-        f"{median_ms:10.1f} {min(result.latencies_s) * 1e3:9.1f} {network} {result.peak_rss_mib:9.0f}  {work}"
+        f"{median_ms:10.1f} {min(result.latencies_s) * 1e3:9.1f} {network} {cores:6.2f} {result.peak_rss_mib:9.0f}  {work}"
     )
 
 
@@ -193,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"need known runners {sorted(RUNNERS)} (got {unknown}), repeats ≥ 1, warmup ≥ 0, threads ≥ 1")
 
     print(f"{'backend':<10} {'size':>9} {'threads':>7} {'max_disp':>8} {'median ms':>10} {'min ms':>9} "
-          f"{'network ms':>10} {'peak MiB':>9}  rate")
+          f"{'network ms':>10} {'cores':>6} {'peak MiB':>9}  rate")
     results: dict[BenchConfig, BenchResult] = {}
     for config in build_configs(args):
         results[config] = measure(config)
