@@ -9,18 +9,21 @@ import subprocess
 import sys
 import threading
 import time
+from collections import defaultdict
 
 import pytest
 
-from api_scene import BAR_DEPTH_M, BASELINE_M, FOCAL_PX, bar_scene
+from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
 from branchrange.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig, pipeline_config
 from branchrange.daemon import Daemon
+from branchrange.frame_results import pipeline_for
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from branchrange.pipeline import Pipeline
 from camera.calibration import from_rectified
 from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
 from mavlink_peer import LoopbackPeer, of_type
+from synth_recording import tree_scene, truth_of, write_tree_recording
 
 FRAMES = 12
 PERIOD_NS = 250_000_000  # 4 fps: slow enough that a loaded test machine keeps up (latest frame wins)
@@ -38,6 +41,16 @@ def recording(tmp_path_factory):
     return out
 
 
+TREE_FRAMES = 4
+TREE_PERIOD_NS = 500_000_000  # 2 fps: a 480×270 frame takes about 0.3 s here
+
+
+@pytest.fixture(scope="module")
+def tree_recording(tmp_path_factory):
+    """Four still-camera frames of a stereo.synth tree (480×270) with ground-truth instance masks."""
+    return write_tree_recording(tmp_path_factory.mktemp("rec") / "tree", TREE_FRAMES, TREE_PERIOD_NS)
+
+
 class Listener:
     """The peer reading in a thread until `finish()` (messages arrive at >= 4 Hz, so it ends promptly)."""
 
@@ -52,33 +65,78 @@ class Listener:
         self.peer.close()
 
 
-def test_daemon_end_to_end_sends_ground_truth_distances(recording, tmp_path):
+def _frame_sets(received):
+    """The relay's per-frame message sets, keyed by their shared time_boot_ms (DEBUG_VECT: time_usec / 1000)."""
+    sets = defaultdict(list)
+    for r in received:
+        if r.type in ("DISTANCE_SENSOR", "OBSTACLE_DISTANCE_3D"):
+            sets[r.msg.time_boot_ms].append(r)
+        elif r.type == "DEBUG_VECT":
+            sets[r.msg.time_usec // 1000].append(r)
+    return sets
+
+
+def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_recording, tmp_path):
+    """Daemon on a replayed stereo.synth tree with ground-truth masks → a loopback flight controller.
+
+    Tolerance: 0.03 m on the DISTANCE_SENSOR distance, 0.05 m on the DEBUG_VECT point. With sgbm
+    at 480×270 (f = 240 px, B = 0.063 m) a disparity error of 0.4 px is 0.028 m at this target's
+    1.02 m (dZ = Z²/(f·B)·dd), and DISTANCE_SENSOR rounds to whole centimetres; the 3D bound is the
+    pipeline's measured median per-branch cut-point error with sgbm and ground-truth masks at this
+    size over 20 generated scenes (0.039 m), rounded up.
+    """
     peer = LoopbackPeer()
     results = tmp_path / "results.jsonl"
     config = tmp_path / "onboard.toml"
-    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[stereo]\nmax_disp = 64\n'
+    config.write_text(f'[camera]\nsource = "replay:{tree_recording}"\n[stereo]\nmax_disp = 64\n'
                       f'[mavlink]\nurl = "udpout:127.0.0.1:{peer.port}"\n'
                       f'[log]\nresults_jsonl = "{results}"\n')
     listener = Listener(peer)
     try:
-        assert branchrange_main(["daemon", "--config", str(config), "--max-frames", "4"]) == 0
+        assert branchrange_main(["daemon", "--config", str(config), "--max-frames", str(TREE_FRAMES)]) == 0
     finally:
         listener.finish()
     lines = [json.loads(line) for line in results.read_text().splitlines()]
-    assert len(lines) == 4 and all(r["schema"] == "branchrange/v1" for r in lines)
-    expected_cm = {round(r["branches"][0]["distance_m"] * 100) for r in lines}
+    assert len(lines) >= TREE_FRAMES - 1 and all(r["masks"]["source"] == "array" for r in lines)
+    targets = [next(b for b in r["branches"] if b["id"] == r["target_id"]) for r in lines]
+    truth = truth_of(tree_scene(), targets[0]["mask_id"])
+    assert {t["mask_id"] for t in targets} == {truth.id}
+    true_distance = math.dist((0, 0, 0), truth.cut_point_m)
+    true_frd = (truth.cut_point_m[2], truth.cut_point_m[0], truth.cut_point_m[1])  # forward camera, no offset
+
     dists = [d.msg for d in of_type(peer.received, "DISTANCE_SENSOR") if d.msg.current_distance <= d.msg.max_distance]
     assert dists, "no DISTANCE_SENSOR with a target arrived"
-    assert {d.current_distance for d in dists} <= expected_cm
-    # ground truth: the bar's front face is at 1.25 m; the pipeline puts the cut on the axis behind it
+    assert {d.current_distance for d in dists} <= {round(t["distance_m"] * 100) for t in targets}
     for d in dists:
-        assert d.current_distance / 100 == pytest.approx(BAR_DEPTH_M, abs=0.06)
+        assert d.current_distance / 100 == pytest.approx(true_distance, abs=0.03)
+        assert (d.min_distance, d.max_distance, d.covariance, d.orientation) == (20, 1000, 255, 100)
     vects = [v.msg for v in of_type(peer.received, "DEBUG_VECT") if not math.isnan(v.msg.x)]
-    assert vects and all(v.x == pytest.approx(BAR_DEPTH_M, abs=0.06) for v in vects)  # forward = z_cam
-    assert of_type(peer.received, "HEARTBEAT")[0].msg.system_status == 4
-    print("\nMAVLink received in the end-to-end test:")
-    for name in ("HEARTBEAT", "DISTANCE_SENSOR", "OBSTACLE_DISTANCE_3D", "DEBUG_VECT"):
-        print(" ", of_type(peer.received, name)[-1].msg)
+    assert vects and all(v.name == "CUT" and math.dist((v.x, v.y, v.z), true_frd) < 0.05 for v in vects)
+
+    # every set with a target: the other branches as body-FRD obstacles, all stamped alike, within 50 ms
+    def obstacles_of(result):  # the non-target cut points in body FRD, by branch id
+        return {b["id"]: (b["cut_point_m"][2], b["cut_point_m"][0], b["cut_point_m"][1])
+                for b in result["branches"] if b["id"] != result["target_id"]}
+
+    sets = list(_frame_sets(peer.received).values())
+    complete = [s for s in sets if s[-1].type == "DEBUG_VECT"]  # sent last; the listener may stop mid-set
+    assert len(sets) - len(complete) <= 1
+    with_target = [s for s in complete if any(m.type == "DISTANCE_SENSOR" and m.msg.current_distance <= 1000 for m in s)]
+    assert with_target
+    for frame_set in with_target:
+        sent = {m.msg.obstacle_id: (m.msg.x, m.msg.y, m.msg.z) for m in frame_set if m.type == "OBSTACLE_DISTANCE_3D"}
+        assert all(m.msg.frame == 12 for m in frame_set if m.type == "OBSTACLE_DISTANCE_3D")
+        assert any(set(sent) == set(expected) and all(math.dist(sent[i], expected[i]) < 1e-5 for i in sent)
+                   for expected in map(obstacles_of, lines)), f"obstacles {sent} match no logged result"
+        assert max(m.at for m in frame_set) - min(m.at for m in frame_set) < 0.05
+    heartbeat = of_type(peer.received, "HEARTBEAT")[0].msg
+    assert (heartbeat.type, heartbeat.autopilot, heartbeat.system_status) == (18, 8, 4)
+    assert heartbeat.get_srcComponent() == 191
+    print(f"\nMAVLink received in the end-to-end test (truth: cut point {tuple(round(c, 4) for c in truth.cut_point_m)} m "
+          f"camera frame, distance {true_distance:.4f} m):")
+    shown = with_target[-1]
+    for r in [of_type(peer.received, "HEARTBEAT")[-1], *shown]:
+        print(" ", r.msg.to_dict())
 
 
 def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording):
@@ -137,3 +195,52 @@ def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):
     assert "stopped after" in err
     lines = results.read_text().splitlines()
     assert 1 <= len(lines) < FRAMES and all(json.loads(line)["schema"] == "branchrange/v1" for line in lines)
+
+
+def _wait_for(condition, seconds: float) -> bool:
+    """Poll `condition()` every 20 ms for up to `seconds`; whether it became true."""
+    deadline = time.monotonic() + seconds
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def _has_target_distance(received) -> bool:
+    return any(d.msg.current_distance <= d.msg.max_distance for d in of_type(received, "DISTANCE_SENSOR"))
+
+
+def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(recording, tmp_path):
+    peer = LoopbackPeer(url="tcpin:127.0.0.1:0")  # the flight controller listens; the daemon connects
+    port = peer.port
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64),
+                 mavlink=MavlinkConfig(url=f"tcp:127.0.0.1:{port}", reconnect_interval_s=0.2, send_rate_hz=10.0))
+    relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, loop=True), pipeline=pipeline, relay=relay,
+                    results_path=tmp_path / "results.jsonl")
+    loop = threading.Thread(target=daemon.run, daemon=True)
+    loop.start()
+    try:
+        assert _has_target_distance(peer.collect(15.0, until=_has_target_distance)), "no distance before the outage"
+        peer.close()  # the flight controller goes away
+        frames_at_loss = daemon.frames
+        assert _wait_for(lambda: not relay.link_state()["connected"], 5.0), "the relay did not notice the dead link"
+        assert _wait_for(lambda: daemon.frames >= frames_at_loss + 3, 10.0), "the daemon stopped processing"
+        frames_at_return = daemon.frames
+        peer = LoopbackPeer(url=f"tcpin:127.0.0.1:{port}")  # and comes back on the same port
+        after = peer.collect(10.0, until=_has_target_distance)
+    finally:
+        daemon.stop()
+        loop.join(timeout=10)
+        daemon.close()
+        peer.close()
+    assert not loop.is_alive() and daemon.frames > frames_at_return
+    state = relay.link_state()
+    assert state["reconnects"] >= 1 and state["send_errors"] >= 1
+    distances = [d.msg.current_distance for d in of_type(after, "DISTANCE_SENSOR") if d.msg.current_distance <= 1000]
+    logged = {round(b["distance_m"] * 100) for line in (tmp_path / "results.jsonl").read_text().splitlines()
+              for r in [json.loads(line)] for b in r["branches"] if b["id"] == r["target_id"]}
+    assert distances and set(distances) <= logged  # fresh results resumed, not a replay of old ones
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == daemon.frames  # one line per frame
