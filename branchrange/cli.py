@@ -14,6 +14,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.serve",
     "branchrange.commands.daemon",
     "branchrange.commands.replay",
+    "branchrange.commands.record",
     "branchrange.commands.estimate",
     "branchrange.commands.demo",
     "branchrange.commands.evaluate_cuts",

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from camera.calibration import StereoCalibration
 from camera.opencv_file import write_opencv_file
-from camera.sources.frame import StereoFrame
+from camera.sources.frame import CorruptFrameError, StereoFrame
 from camera.sources.image_files import write_mask, write_rgb
 from camera.sources.recording_format import (CALIBRATION_NAME, MANIFEST_NAME, TIMESTAMP_COLUMNS, TIMESTAMPS_NAME,
                                              mask_name, write_manifest)
@@ -21,7 +21,8 @@ class Recorder:
     `calibration` is saved as calibration.yaml; `source_spec` is noted in the manifest;
     `image_format` is "png" (lossless, default) or "jpg". Frames with a `mask` have it saved as
     mask/NNNNNN.png; the first frame decides whether the recording carries masks, and every
-    later frame must agree. The directory must be empty or new unless `overwrite` is set. Use as a context manager, or call `close()` to finish the manifest.
+    later frame must agree. The directory must be empty or new unless `overwrite` is set. Use
+    as a context manager, or call `close()` to finish the manifest.
     """
 
     def __init__(self, out_dir: str | Path, *, calibration: StereoCalibration | None = None, source_spec: str = "",
@@ -105,19 +106,28 @@ class Recorder:
 
 
 def record(frames: Iterable[StereoFrame], recorder: Recorder, limit: int | None = None,
-           on_frame: Callable[[StereoFrame], None] | None = None) -> int:
+           on_frame: Callable[[StereoFrame], None] | None = None,
+           on_corrupt: Callable[[CorruptFrameError], None] | None = None) -> int:
     """Write frames from `frames` (a source) into `recorder` until it ends or `limit` pairs are written.
 
-    `on_frame` is called after each pair is written (a progress bar). Returns the number written.
+    `on_frame` is called after each pair is written (a progress bar). A frame the source cannot
+    decode is skipped and handed to `on_corrupt` when one is given (else the error propagates).
+    Returns the number of pairs written.
     """
     written = 0
-    if limit is not None and limit <= 0:
-        return written
-    for frame in frames:
+    iterator = iter(frames)
+    while limit is None or written < limit:
+        try:
+            frame = next(iterator)
+        except StopIteration:
+            break
+        except CorruptFrameError as error:
+            if on_corrupt is None:
+                raise
+            on_corrupt(error)
+            continue
         recorder.write(frame)
         written += 1
         if on_frame is not None:
             on_frame(frame)
-        if limit is not None and written >= limit:
-            break
     return written
