@@ -60,11 +60,11 @@ class ReplaySummary:
     wall_s: float = 0.0
     video: str | None = None
     video_codec: str | None = None
-    _tracks: set[int] = field(default_factory=set)
-    _target_tracks: set[int] = field(default_factory=set)
-    _distances: list[float] = field(default_factory=list)
-    _target_distances: list[float] = field(default_factory=list)
-    _timing: dict[str, list[float]] = field(default_factory=dict)
+    _tracks: set[int] = field(default_factory=set, init=False, repr=False)
+    _target_tracks: set[int] = field(default_factory=set, init=False, repr=False)
+    _distances: list[float] = field(default_factory=list, init=False, repr=False)
+    _target_distances: list[float] = field(default_factory=list, init=False, repr=False)
+    _timing: dict[str, list[float]] = field(default_factory=dict, init=False, repr=False)
 
     def add(self, result: dict[str, Any]) -> None:
         """Count one frame's `branchrange/v1` result."""
@@ -133,7 +133,7 @@ def recorded_fps(recording: str | Path) -> float:
 def _overlay_frame(pipeline: Any, frame: StereoFrame, result: dict[str, Any]) -> np.ndarray:
     """The frame's overlay (RGB `uint8 H×W×3`) on the rectified left view the result's pixels refer to."""
     left, masks = frame.left, None
-    if pipeline.rectifier is not None and not pipeline.rectifier.calibration.is_rectified:
+    if pipeline.rectifier is not None:  # a raw recording: draw on the rectified view (its mask stays untinted)
         left = pipeline.rectifier.rectify(frame.left, frame.right)[0]
     elif frame.mask is not None:  # a recorded mask is in the (already rectified) left view's pixels
         cfg = pipeline.config
