@@ -22,10 +22,9 @@ from tqdm import tqdm
 
 from branchrange.config import Config
 from branchrange.frame_results import pipeline_for, process_frame, result_line
-from branchrange.masks import masks_from_array
 from branchrange.overlay import draw_overlay
 from branchrange.overlay_video import OverlayVideoWriter, check_video
-from camera.sources import CorruptFrameError, ReplaySource, StereoFrame, open_source
+from camera.sources import CorruptFrameError, ReplaySource, open_source
 from camera.sources.recording_format import read_manifest
 
 log = logging.getLogger("branchrange.replay")
@@ -130,15 +129,10 @@ def recorded_fps(recording: str | Path) -> float:
     return float(fps) if fps and fps > 0 else FALLBACK_VIDEO_FPS
 
 
-def _overlay_frame(pipeline: Any, frame: StereoFrame, result: dict[str, Any]) -> np.ndarray:
-    """The frame's overlay (RGB `uint8 H×W×3`) on the rectified left view the result's pixels refer to."""
-    left, masks = frame.left, None
-    if pipeline.rectifier is not None:  # a raw recording: draw on the rectified view (its mask stays untinted)
-        left = pipeline.rectifier.rectify(frame.left, frame.right)[0]
-    elif frame.mask is not None:  # a recorded mask is in the (already rectified) left view's pixels
-        cfg = pipeline.config
-        masks = masks_from_array(frame.mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind, ignored_ids=cfg.ignored_ids)
-    return draw_overlay(left, result, masks)
+def _overlay_frame(pipeline: Any, result: dict[str, Any]) -> np.ndarray:
+    """The overlay (RGB `uint8 H×W×3`) of the frame the pipeline just processed into `result`: its
+    rectified left view, the masks it used (recorded or segmented) and the cut points."""
+    return draw_overlay(pipeline.last.left, result, pipeline.last.masks)
 
 
 def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, *, video: str | Path | None = None,
@@ -182,7 +176,7 @@ def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, 
                 results.write(result_line(result))
                 summary.add(result)
                 if writer is not None:
-                    writer.write(_overlay_frame(pipeline, frame, result))
+                    writer.write(_overlay_frame(pipeline, result))
         summary.wall_s = time.perf_counter() - start
     finally:
         source.close()
