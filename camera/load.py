@@ -10,10 +10,6 @@ from camera.kitti import from_kitti
 from camera.opencv_file import from_opencv_file
 from camera.zed_conf import from_zed_conf
 
-#: The formats `detect_format` tells apart.
-FORMATS = ("zed", "opencv", "depthai", "kitti")
-
-
 def detect_format(path: str | Path) -> str:
     """Which calibration format a file holds: "zed", "opencv", "depthai" or "kitti"."""
     text = read_calibration_text(path)

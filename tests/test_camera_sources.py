@@ -409,6 +409,8 @@ def test_open_source_replay_and_bad_specs(recording: Path, calibration: StereoCa
                                         np.array([-0.12, 0, 0]), SIZE), other)
     with open_source(f"replay:{recording}", calibration=other, pace="fast") as source:
         assert source.calibration == load_calibration(other)
+    with open_source(f"replay:{recording}", pace="recorded", latest=True) as source:
+        assert isinstance(source, LatestFrameSource) and next(source).index == 0
     for spec, message in [("webcam:0", "expected zed"), ("oak:wide", "oak:WIDTHxHEIGHT"), ("replay:", "replay:PATH")]:
         with pytest.raises(SourceConfigError, match=message):
             open_source(spec)

@@ -37,8 +37,9 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
     """Open the source a spec names (see the module docstring).
 
     `calibration`: a StereoCalibration or a calibration file (a ZED conf is read at the mode's
-    resolution) overriding what the source knows. `latest=True` wraps a live source in
-    LatestFrameSource. `pace`, `loop`, `start` apply to replays.
+    resolution) overriding what the source knows. `latest=True` wraps the source in
+    LatestFrameSource (a slow consumer then always gets the newest frame). `pace`, `loop`, `start`
+    apply to replays.
     """
     kind, _, rest = spec.strip().partition(":")
     kind = kind.lower()
@@ -60,7 +61,7 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
         source = ReplaySource(rest, pace=pace, loop=loop, start=start, calibration=_loaded(calibration, None, None))
     else:
         raise SourceConfigError(f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]] or replay:PATH")
-    return LatestFrameSource(source) if latest and kind != "replay" else source
+    return LatestFrameSource(source) if latest else source
 
 
 def _loaded(calibration: StereoCalibration | str | Path | None, resolution: str | None,
