@@ -192,3 +192,20 @@ def test_rectified_q_matches_opencv_for_a_distortion_free_rig() -> None:
                                         calib.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1)
     np.testing.assert_allclose(ours.P2, p2, atol=1e-9)
     np.testing.assert_allclose(ours.Q, q, atol=1e-9)
+
+
+def test_rectify_maps_are_built_once_and_reused(rendered, monkeypatch: pytest.MonkeyPatch) -> None:
+    calib, left, right = rendered
+    calls: list[int] = []
+    original = cv2.initUndistortRectifyMap
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "initUndistortRectifyMap", counting)
+    rectifier = Rectifier(calib)
+    first = rectifier.rectify(left, right)
+    second = rectifier.rectify(left, right)
+    assert len(calls) == 2  # one map per view, at construction
+    assert np.array_equal(first[0], second[0]) and not np.array_equal(first[0], left)
