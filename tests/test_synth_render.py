@@ -145,7 +145,7 @@ def test_warping_right_into_left_with_truth_disparity_matches_and_zero_disparity
         errors_truth.append(np.abs(warped - left)[valid].mean())
         errors_zero.append(np.abs(right - left)[valid].mean())
     truth, zero = float(np.mean(errors_truth)), float(np.mean(errors_zero))
-    # measured: truth ≈ 1.9 grey levels, zero disparity ≈ 9 (see the report of issue 3)
+    # measured: truth ≈ 2.6 grey levels (0.7 away from depth edges), zero disparity ≈ 13
     assert truth < 3.5, errors_truth
     assert zero > 2.5 * truth, (errors_truth, errors_zero)
 
@@ -186,7 +186,7 @@ def test_scene_uses_reserved_ids_and_inf_depth_only_on_sky(scenes):
 
 def test_same_seed_gives_identical_scene_and_different_seed_does_not():
     camera = SynthCamera.zed_mini(160, 96)
-    a, b, c = render_scene(11, camera), render_scene(11, camera), render_scene(12, camera)
+    a, b, c = render_scene(11, camera, threads=2), render_scene(11, camera, threads=1), render_scene(12, camera)
     for name in ("left", "right", "disparity", "instance_mask"):
         assert np.array_equal(getattr(a, name), getattr(b, name))
     assert a.branches == b.branches
