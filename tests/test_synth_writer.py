@@ -82,6 +82,15 @@ def test_virtualtree_loader_reads_the_set_through_its_split_files(dataset):
     assert np.allclose(sample["disparity"], scene.disparity, rtol=1e-5, atol=1e-6)
 
 
+def test_synthetic_dataset_reads_the_rig_from_synth_json(dataset):
+    synthetic = pytest.importorskip("stereo.datasets.synthetic", reason="synthetic dataset loader not importable")
+    data = synthetic.SyntheticDataset(dataset, "val")
+    assert len(data) == 1
+    index = int(Path(data.records[0].left).stem.split("_")[1])
+    scene = render_scene(scene_seed(7, index), SynthCamera.zed_mini(WIDTH, HEIGHT))
+    assert np.allclose(data[0]["disparity"], scene.disparity, rtol=1e-5, atol=1e-6)
+
+
 def test_mask_png_is_16_bit_and_branches_json_carries_camera_and_truth(dataset):
     scene = render_scene(scene_seed(7, 2), SynthCamera.zed_mini(WIDTH, HEIGHT))
     mask = cv2.imread(str(dataset / "masks" / "mask_2.png"), cv2.IMREAD_UNCHANGED)
