@@ -5,6 +5,7 @@
   at x − d, so the ground truth is exact wherever nothing is occluded.
 - `write_virtualtree_layout`: such scenes written as VirtualTree files (PNG images, EXR depth in
   cm with sky at 65504, six-token split files), the format the real loader reads.
+- `one_thread`: an autouse fixture for the modules that import it (one torch thread).
 - `TinyStereoNet`: a small correlation + soft-argmin network with EMCStereo's forward contract
   (three disparities in training mode, the last in eval mode), for tests whose subject is the
   training machinery (DDP, self-supervision) and not the network.
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -25,6 +27,15 @@ from stereo.datasets.virtualtree import VIRTUALTREE_BASELINE_CM, VIRTUALTREE_FOC
 from stereo.io import write_exr_depth, write_rgb
 
 SKY_CM = 65504.0
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Run a test on one torch thread: on a shared 2-core machine that is several times faster and deterministic."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
 
 
 @dataclass

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from stereo_training_fixtures import planar_scene, write_virtualtree_layout
+from stereo_training_fixtures import one_thread, planar_scene, write_virtualtree_layout  # noqa: F401 (autouse fixture)
 
 from stereo import EMCStereo
 from stereo.checkpoints import save_checkpoint
@@ -16,14 +16,6 @@ from stereo.datasets.transforms import to_network_input
 from stereo.evaluation import disparity_panel, evaluate, predict_disparity
 from stereo.io import colorize_disparity, read_rgb
 from stereo.metrics import image_metrics
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 class FirstChannelEcho(torch.nn.Module):

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from stereo_training_fixtures import TinyStereoNet, planar_scene
+from stereo_training_fixtures import TinyStereoNet, one_thread, planar_scene  # noqa: F401 (autouse fixture)
 
 from stereo.datasets import RectifiedPairsDataset
 from stereo.evaluation import evaluate
@@ -18,14 +18,6 @@ from stereo.training.selfsup import (
     warp_right_to_left,
 )
 from stereo.training.trainer import seed_everything
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 def test_warping_the_right_view_with_true_disparity_rebuilds_the_left_view():

@@ -15,21 +15,13 @@ from pathlib import Path
 
 import pytest
 import torch
-from stereo_training_fixtures import planar_scene, write_virtualtree_layout
+from stereo_training_fixtures import one_thread, planar_scene, write_virtualtree_layout  # noqa: F401 (autouse fixture)
 
 from stereo.training.config import build_config
 from stereo.training.run import run_training
 
 PROJECT = Path(__file__).resolve().parents[1]
 N_STEPS = 3
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="module")

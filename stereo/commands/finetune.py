@@ -8,12 +8,9 @@ if it has ground truth, is then used only for validation.
 from __future__ import annotations
 
 import argparse
-import os
 
-from stereo.commands.train import add_run_arguments, config_from_args, report
+from stereo.commands.train import add_run_arguments, config_from_args, launch
 from stereo.datasets import RectifiedPairsDataset
-from stereo.training.distributed import context_from_env, shutdown
-from stereo.training.run import run_training
 from stereo.training.selfsup import SelfSupConfig
 
 
@@ -22,19 +19,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.freeze:
         extra.append("finetune.freeze=[" + ", ".join(f'"{name}"' for name in args.freeze) + "]")
     config = config_from_args(args, extra)
-    context = context_from_env(os.environ, device=args.device)
-    selfsup = train_set = None
-    if args.unlabelled:
-        selfsup = SelfSupConfig(smoothness_weight=args.smoothness, lr_check=not args.no_lr_check)
-        train_set = RectifiedPairsDataset(args.unlabelled)
-    try:
-        result = run_training(config, context=context, resume=args.resume, show_progress=not args.no_progress,
-                              selfsup=selfsup, train_set=train_set)
-    finally:
-        shutdown(context)
-    if context.is_main:
-        report(result)
-    return 0
+    if not args.unlabelled:
+        return launch(args, config)
+    selfsup = SelfSupConfig(smoothness_weight=args.smoothness, lr_check=not args.no_lr_check)
+    return launch(args, config, selfsup=selfsup, train_set=RectifiedPairsDataset(args.unlabelled))
 
 
 def register(sub: argparse._SubParsersAction) -> None:

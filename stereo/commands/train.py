@@ -4,9 +4,12 @@ from __future__ import annotations
 import argparse
 import os
 
+from torch.utils.data import Dataset
+
 from stereo.training.config import ExperimentConfig, load_config
 from stereo.training.distributed import context_from_env, shutdown
 from stereo.training.run import run_training
+from stereo.training.selfsup import SelfSupConfig
 from stereo.training.trainer import TrainResult
 
 
@@ -44,16 +47,22 @@ def report(result: TrainResult) -> None:
           f"{result.best_epe:.4f} px at epoch {result.best_epoch}")
 
 
-def _run(args: argparse.Namespace) -> int:
-    config = config_from_args(args)
+def launch(args: argparse.Namespace, config: ExperimentConfig, *, selfsup: SelfSupConfig | None = None,
+           train_set: Dataset | None = None) -> int:
+    """Join torchrun's process group (if any), train, leave it, and report on the main process."""
     context = context_from_env(os.environ, device=args.device)
     try:
-        result = run_training(config, context=context, resume=args.resume, show_progress=not args.no_progress)
+        result = run_training(config, context=context, resume=args.resume, show_progress=not args.no_progress,
+                              selfsup=selfsup, train_set=train_set)
     finally:
         shutdown(context)
     if context.is_main:
         report(result)
     return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    return launch(args, config_from_args(args))
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -1,6 +1,6 @@
 """Experiment configuration: TOML files validated into dataclasses.
 
-A file has the sections `[model]`, `[data]`, `[optim]`, `[train]` and `[finetune]`; every key
+A file has the sections `[model]` (the EMCStereo variant, `stereo.model.ModelConfig`), `[data]`, `[optim]`, `[train]` and `[finetune]`; every key
 has a default, unknown keys and wrong types raise `ConfigError` naming `section.key`. A file may
 start with `extends = "other.toml"` (relative to itself): the other file is read first and this
 one's keys override it, which keeps the recipe variants (e.g. the eight-way ablation) short.
@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stereo.model import ModelConfig
 from stereo.training.loss import PAPER_WEIGHTS
 
 DATASET_NAMES = ("virtualtree", "synthetic", "sceneflow", "kitti2012", "kitti2015", "eth3d", "middlebury")
@@ -22,16 +23,6 @@ DATASET_NAMES = ("virtualtree", "synthetic", "sceneflow", "kitti2012", "kitti201
 
 class ConfigError(ValueError):
     """A configuration file or override that is not valid; the message names the key and the fix."""
-
-
-@dataclass(frozen=True)
-class ModelSection:
-    """Which EMCStereo variant to build."""
-
-    ema: bool = True
-    msf: bool = True
-    coord: bool = True
-    max_disp: int = 192
 
 
 @dataclass(frozen=True)
@@ -105,7 +96,7 @@ class FinetuneSection:
 class ExperimentConfig:
     """A whole training / fine-tuning recipe."""
 
-    model: ModelSection = field(default_factory=ModelSection)
+    model: ModelConfig = field(default_factory=ModelConfig)
     data: DataSection = field(default_factory=DataSection)
     optim: OptimSection = field(default_factory=OptimSection)
     train: TrainSection = field(default_factory=TrainSection)
@@ -246,6 +237,6 @@ def replace(config: ExperimentConfig, **sections: dict[str, Any]) -> ExperimentC
 
 
 __all__ = [
-    "ConfigError", "DataSection", "ExperimentConfig", "FinetuneSection", "ModelSection", "OptimSection",
+    "ConfigError", "DataSection", "ExperimentConfig", "FinetuneSection", "OptimSection",
     "TrainSection", "build_config", "load_config", "parse_override", "replace",
 ]

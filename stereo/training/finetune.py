@@ -14,23 +14,21 @@ from pathlib import Path
 from torch import nn
 
 import stereo
-from stereo.model import EMCStereo
-from stereo.training.config import ConfigError, ModelSection
+from stereo.model import EMCStereo, ModelConfig
+from stereo.training.config import ConfigError
 
 
-def warm_start(weights: str | Path, expected: ModelSection | None = None) -> EMCStereo:
+def warm_start(weights: str | Path, expected: ModelConfig | None = None) -> EMCStereo:
     """EMCStereo with the weights of `weights` (any supported layout), in train mode.
 
     When `expected` is given, the checkpoint's variant (modules, max_disp) must match it.
     """
     model = stereo.load_model(weights)
-    if expected is not None:
-        found = model.config.to_dict()
-        wanted = {"ema": expected.ema, "msf": expected.msf, "coord": expected.coord, "max_disp": expected.max_disp}
-        if found != wanted:
-            raise ConfigError(
-                f"{weights}: holds the variant {found} but [model] asks for {wanted}; set [model] to the checkpoint's variant"
-            )
+    if expected is not None and model.config != expected:
+        raise ConfigError(
+            f"{weights}: holds the variant {model.config.to_dict()} but [model] asks for {expected.to_dict()}; "
+            "set [model] to the checkpoint's variant"
+        )
     return model.train()
 
 

@@ -23,8 +23,7 @@ def build_model(config: ExperimentConfig) -> EMCStereo:
         raise ConfigError(f"data.crop {list(config.data.crop)}: EMCStereo needs both sides ≥ {MIN_SIZE}")
     if config.finetune.weights:
         return warm_start(config.finetune.weights, config.model)
-    m = config.model
-    return EMCStereo(ema=m.ema, msf=m.msf, coord=m.coord, max_disp=m.max_disp)
+    return EMCStereo(**config.model.to_dict())
 
 
 def resolve_resume(config: ExperimentConfig, resume: str | None) -> Path | None:
