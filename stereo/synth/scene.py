@@ -38,7 +38,7 @@ BRANCH_RANGE_M = (0.3, 4.0)
 BRANCH_LENGTH_M = (0.2, 1.5)
 BRANCH_BASE_RADIUS_M = (0.0025, 0.030)
 _PITCH_DEG = {"upward": (15.0, 45.0), "parallel": (-10.0, 10.0), "downward": (-40.0, -15.0)}
-_TRUNK_DISTANCE_M = {"upward": (1.2, 3.0), "parallel": (0.9, 2.5), "downward": (1.2, 3.0)}
+_TRUNK_DISTANCE_M = {"upward": (0.8, 3.0), "parallel": (0.5, 2.5), "downward": (0.8, 3.0)}
 _GROUND_BELOW_M = {"upward": (0.5, 1.8), "parallel": (1.0, 2.2), "downward": (1.0, 2.5)}
 _LEAF_COLOURS = {
     "spring": (0.36, 0.56, 0.17), "summer": (0.17, 0.34, 0.10),
@@ -141,7 +141,7 @@ class _SceneBuilder:
         foot = np.array([target[0], ground_y, target[2]])
         top_above_camera = rng.uniform(6.0, 12.0)
         length = (ground_y + top_above_camera) / -axis[1]
-        r_ground = rng.uniform(0.08, 0.22)
+        r_ground = min(rng.uniform(0.08, 0.22), 0.25 * distance)
         return foot, axis, length, r_ground, r_ground * rng.uniform(0.3, 0.5), ground_y
 
     def _visible_trunk_span(self, foot: np.ndarray, axis: np.ndarray, length: float) -> tuple[float, float]:
