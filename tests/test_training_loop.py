@@ -64,3 +64,16 @@ def test_steps_with_non_finite_gradients_are_skipped_and_leave_weights_alone(roo
     assert result.history[0]["skipped_steps"] == 4
     for name, param in trainer.model.named_parameters():
         torch.testing.assert_close(param, before[name], equal_nan=True, msg=name)
+
+
+@pytest.mark.parametrize("precision", ["fp16", "bf16"])
+def test_mixed_precision_steps_train_and_fp16_uses_the_grad_scaler(root, tmp_path, precision):
+    trainer = make_trainer(root, tmp_path, frozen=(), validate=False, precision=precision)
+    before = {n: p.detach().clone() for n, p in trainer.model.named_parameters()}
+    result = trainer.fit()
+    assert result.steps == 4 and trainer.scaler.is_enabled() == (precision == "fp16")
+    assert all(torch.isfinite(p).all() for p in trainer.model.parameters())
+    assert result.history[0]["skipped_steps"] < 4
+    assert any(not torch.equal(p, before[n]) for n, p in trainer.model.named_parameters())
+    if precision == "fp16":
+        assert torch.load(tmp_path / "last.pth", weights_only=True)["scaler"]["scale"] > 0
