@@ -1,6 +1,8 @@
 """Stacked-hourglass 3D cost aggregation (PSMNet) with three residually refined heads."""
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -60,16 +62,29 @@ class StackedHourglass(nn.Module):
         self.classif3 = _classifier()
 
     def forward(self, volume: torch.Tensor) -> list[torch.Tensor]:
-        cost0 = self.dres0(volume)
-        cost0 = self.dres1(cost0) + cost0
-        out1, pre1, post1 = self.dres2(cost0, None, None)
-        out1 = out1 + cost0
-        out2, _, post2 = self.dres3(out1, pre1, post1)
-        out2 = out2 + cost0
+        return list(self.costs(volume))
+
+    def costs(self, volume: torch.Tensor) -> Iterator[torch.Tensor]:
+        """Yield c1, c2 = c1 + ·, c3 = c2 + · in turn, each (B, 1, D/4, h, w).
+
+        Each hourglass output is dropped as soon as its head and the next hourglass have used
+        it, so a consumer that keeps only the last cost (inference) holds at most two 32-channel
+        volumes besides `cost0` at any time.
+        """
+        for layer in self.dres0:  # layer by layer, so the 64-channel volume is freed after the first
+            volume = layer(volume)
+        cost0 = self.dres1(volume) + volume
+        del volume
+        out, pre1, post = self.dres2(cost0, None, None)
+        out = out + cost0
+        cost = self.classif1(out)
+        yield cost
+        out, _, post = self.dres3(out, pre1, post)
+        out = out + cost0
+        cost = self.classif2(out) + cost
+        yield cost
         # PSMNet's original wiring: the third hourglass takes pre1 (not pre2) as its skip.
-        out3, _, _ = self.dres4(out2, pre1, post2)
-        out3 = out3 + cost0
-        cost1 = self.classif1(out1)
-        cost2 = self.classif2(out2) + cost1
-        cost3 = self.classif3(out3) + cost2
-        return [cost1, cost2, cost3]
+        out, _, _ = self.dres4(out, pre1, post)
+        out = out + cost0
+        del cost0, pre1, post
+        yield self.classif3(out) + cost

@@ -9,6 +9,7 @@ from torch import nn
 from .aggregation import StackedHourglass
 from .backbone import FeatureBackbone
 from .cost_volume import concat_cost_volume
+from .fast_inference import FastInference
 from .regression import DisparityRegression, upsample_cost
 
 #: The smallest padded H and W the network accepts (the 64×64 SPP pool at ¼ resolution).
@@ -58,19 +59,41 @@ class EMCStereo(nn.Module):
             return [self.regression(self._upsample(c, self.max_disp, height, width)) for c in costs]
         return self.regression(self._upsample(costs[-1], self.max_disp, height, width))
 
-    def infer(self, left: torch.Tensor, right: torch.Tensor,
-              max_disp: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def infer(self, left: torch.Tensor, right: torch.Tensor, max_disp: int | None = None,
+              *, fast: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """Disparity and soft-argmin confidence, both (B, H, W), over a search range ≤ max_disp.
 
         A smaller `max_disp` (a multiple of 4) for a known working range shrinks the cost volume
         and the 3D work in proportion; the disparity scale stays the one the model was trained with.
+        `fast` (the default) runs `FastInference`, an inference-only copy with BatchNorm folded,
+        channels-last layouts and a row-chunked soft-argmin: the eval-mode result (running BN
+        statistics) whatever mode this model is in, equal to `fast=False` in eval mode up to float
+        rounding. `fast=False` runs this module's own layers, the reference for parity.
         """
         disparities = self.max_disp if max_disp is None else max_disp
         if disparities <= 0 or disparities % 4 or disparities > self.max_disp:
             raise ValueError(f"inference max_disp must be a multiple of 4 in (0, {self.max_disp}], got {max_disp}")
+        if fast:
+            check_input_size(left, right)
+            return self.fast_inference()(left, right, disparities)
         cost = self._costs(left, right, disparities)[-1]
         height, width = left.shape[2:]
         return self.regression.with_confidence(self._upsample(cost, disparities, height, width))
+
+    def fast_inference(self) -> FastInference:
+        """The `FastInference` copy of the current weights, rebuilt when any parameter or buffer changed.
+
+        A change is seen through each tensor's storage address and in-place version counter
+        (`load_state_dict`, optimiser steps and `.to(device)` all move one of them).
+        """
+        fingerprint = tuple((t.data_ptr(), t._version, t.dtype, t.device)
+                            for t in self.state_dict(keep_vars=True).values())
+        cached = self.__dict__.get("_fast_cache")
+        if cached is None or cached[0] != fingerprint:
+            cached = (fingerprint, FastInference(self))
+            # A plain attribute, not a submodule: the copy must stay out of state_dict and parameters().
+            self.__dict__["_fast_cache"] = cached
+        return cached[1]
 
     def _costs(self, left: torch.Tensor, right: torch.Tensor, disparities: int) -> list[torch.Tensor]:
         check_input_size(left, right)

@@ -15,15 +15,79 @@ def upsample_cost(cost: torch.Tensor, disparities: int, height: int, width: int,
     `interpolate(…, [D, H, W], mode='trilinear', align_corners=True)` for the full range, and a
     shorter range (range-limited inference) keeps the same disparity scale the model was trained with.
     """
+    return F.interpolate(upsample_depth(cost, disparities, depth_step), size=(height, width),
+                         mode="bilinear", align_corners=True)
+
+
+def upsample_depth(cost: torch.Tensor, disparities: int, depth_step: float) -> torch.Tensor:
+    """Linear interpolation along depth only: (B, 1, Dl, h, w) → (B, disparities, h, w).
+
+    Index d samples the low-resolution slice at `d · depth_step`, clamped to the slices present.
+    """
     low = cost[:, 0]                                        # (B, Dl, h, w)
-    slices = low.shape[1]
-    pos = torch.arange(disparities, device=cost.device, dtype=torch.float64) * depth_step
-    pos = pos.clamp(max=slices - 1)
-    lower = pos.floor().long().clamp(max=slices - 1)
-    upper = (lower + 1).clamp(max=slices - 1)
-    frac = (pos - lower).to(low.dtype)[None, :, None, None]
-    along_depth = low[:, lower] * (1 - frac) + low[:, upper] * frac   # (B, D, h, w)
-    return F.interpolate(along_depth, size=(height, width), mode="bilinear", align_corners=True)
+    lower, upper, frac = _linear_taps(
+        torch.arange(disparities, device=cost.device, dtype=torch.float64) * depth_step, low.shape[1]
+    )
+    frac = frac.to(low.dtype)[None, :, None, None]
+    return low[:, lower] * (1 - frac) + low[:, upper] * frac   # (B, D, h, w)
+
+
+def _linear_taps(pos: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Neighbour indices and weight of the upper one for sampling positions `pos` on 0..size-1."""
+    pos = pos.clamp(0, size - 1)
+    lower = pos.floor().long().clamp(max=size - 1)
+    upper = (lower + 1).clamp(max=size - 1)
+    return lower, upper, pos - lower
+
+
+def _align_corners_taps(out_size: int, in_size: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`_linear_taps` of bilinear `align_corners=True` resizing from `in_size` to `out_size` samples.
+
+    Positions are computed in float32 as PyTorch's own `interpolate` does, so both round alike.
+    """
+    scale = (in_size - 1) / (out_size - 1) if out_size > 1 else 0.0
+    scale_f32 = torch.tensor(scale, dtype=torch.float32, device=device)
+    return _linear_taps(torch.arange(out_size, device=device, dtype=torch.float32) * scale_f32, in_size)
+
+
+def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int, width: int,
+                          depth_step: float, radius: float = 2.0,
+                          rows_per_chunk: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    """`DisparityRegression.with_confidence(upsample_cost(…))` without the full-resolution volume.
+
+    cost (B, 1, Dl, h, w) low-resolution costs; values (D,) the disparity of each upsampled
+    index, which must be 0, 1, …, D−1 (the confidence window is found by index). Returns
+    disparity and confidence (B, height, width), float32. Softmax is per pixel, so output rows
+    can be produced `rows_per_chunk` at a time, exactly: only a (B, D, rows_per_chunk, width)
+    block ever exists (the full volume is D·H·W floats, 368 MB at 384×1248 and 1.6 GB at
+    1088×1920). Rows are interpolated here at low width; the width is left to `F.interpolate`
+    (full width, so the same align-corners weights as the reference path).
+    """
+    if rows_per_chunk <= 0:
+        raise ValueError(f"rows_per_chunk must be positive, got {rows_per_chunk}")
+    values = values.float()
+    depth = values.numel()
+    deep = upsample_depth(cost.float(), depth, depth_step)                 # (B, D, h, w)
+    batch = deep.shape[0]
+    row_lo, row_hi, row_frac = _align_corners_taps(height, deep.shape[2], cost.device)
+    window = torch.arange(int(2 * radius) + 1, device=cost.device)
+    disparity = deep.new_empty((batch, height, width))
+    confidence = deep.new_empty((batch, height, width))
+    for top in range(0, height, rows_per_chunk):
+        rows = slice(top, min(top + rows_per_chunk, height))
+        count = rows.stop - rows.start
+        low_rows = torch.lerp(deep[:, :, row_lo[rows]], deep[:, :, row_hi[rows]],
+                              row_frac[rows][None, None, :, None].expand(batch, depth, -1, deep.shape[3]))
+        prob = torch.softmax(F.interpolate(low_rows, size=(count, width), mode="bilinear", align_corners=True), dim=1)
+        estimate = torch.matmul(values, prob.reshape(batch, depth, count * width)).reshape(batch, count, width)
+        disparity[:, rows] = estimate
+        # Confidence: the probability within ±radius of the estimate, i.e. of the integer
+        # disparities ceil(d̂ − r) … floor(d̂ + r), at most 2r + 1 of them.
+        candidates = torch.ceil(estimate - radius).clamp(min=0).long().unsqueeze(1) + window[:, None, None]
+        index = candidates.clamp(max=depth - 1)
+        near = (candidates < depth) & ((values[index] - estimate.unsqueeze(1)).abs() <= radius)
+        confidence[:, rows] = (prob.gather(1, index) * near).sum(dim=1).clamp_(0.0, 1.0)
+    return disparity, confidence
 
 
 class DisparityRegression(nn.Module):

@@ -1,0 +1,64 @@
+"""The fast inference path: an inference-only copy of EMCStereo that computes the same disparities.
+
+What it changes against the plain eval forward, all exact up to float rounding:
+- BatchNorm folded into the convolution before it (`fusion.fold_batchnorms`), on a copy;
+- convolutions as direct oneDNN calls with the ReLU fused in (`onednn.fuse_convolutions`);
+- channels-last layouts (NHWC / NDHWC), on which oneDNN's convolutions run several times faster
+  on CPU than on NCHW / NCDHW (measured in `benchmarks/RESULTS.md`);
+- the cost volume written straight into a channels-last tensor;
+- hourglass outputs dropped as soon as the third head no longer needs them, and the heap the 2D
+  backbone freed handed back before the 3D volumes are allocated (`memory.release_freed_memory`);
+- the trilinear upsampling fused with the soft-argmin, a few rows at a time, so the
+  full-resolution (D, H, W) volume never exists.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .cost_volume import concat_cost_volume
+from .fusion import fold_batchnorms
+from .memory import release_freed_memory
+from .onednn import fuse_convolutions
+from .regression import upsampled_soft_argmin
+
+
+class FastInference(nn.Module):
+    """Eval-mode EMCStereo (running BN statistics) for inference only; built from a model, never trained.
+
+    `forward(left, right, disparities) -> (disparity, confidence)`, both (B, H, W) float32;
+    inputs as for `EMCStereo.forward`, `disparities` a multiple of 4 ≤ the model's `max_disp`.
+    `use_onednn=False` keeps PyTorch's public convolution calls (what runs on CUDA anyway).
+    """
+
+    def __init__(self, model: nn.Module, rows_per_chunk: int = 32, use_onednn: bool = True) -> None:
+        super().__init__()
+        values = model.regression.weight.detach().reshape(-1)
+        if not torch.equal(values, torch.arange(values.numel(), dtype=values.dtype, device=values.device)):
+            raise ValueError("the soft-argmin weights (regression.weight) must be 0, 1, …, max_disp−1")
+        self.max_disp = model.max_disp
+        self.rows_per_chunk = rows_per_chunk
+        self.backbone = fuse_convolutions(fold_batchnorms(model.backbone), use_onednn)
+        self.aggregation = fuse_convolutions(fold_batchnorms(model.aggregation), use_onednn)
+        self.register_buffer("disparity_values", values.float().clone())
+        self.requires_grad_(False)
+        self.eval()
+
+    @torch.inference_mode()
+    def forward(self, left: torch.Tensor, right: torch.Tensor,
+                disparities: int) -> tuple[torch.Tensor, torch.Tensor]:
+        height, width = left.shape[2:]
+        images = torch.cat([left, right], dim=0).contiguous(memory_format=torch.channels_last)
+        reference, target = self.backbone(images).chunk(2, dim=0)
+        del images
+        release_freed_memory()
+        costs = self.aggregation.costs(
+            concat_cost_volume(reference, target, disparities // 4, memory_format=torch.channels_last_3d)
+        )
+        del reference, target
+        cost = None
+        for cost in costs:
+            pass
+        depth_step = (self.max_disp // 4 - 1) / (self.max_disp - 1)
+        return upsampled_soft_argmin(cost, self.disparity_values[:disparities], height, width,
+                                     depth_step, rows_per_chunk=self.rows_per_chunk)
