@@ -117,6 +117,19 @@ def test_same_seed_writes_byte_identical_files(tmp_path):
     assert a["left image/left_0.png"] != c["left image/left_0.png"]
 
 
+def test_half_exr_stores_fp16_like_ue5_with_sky_at_fp16_max(tmp_path):
+    import OpenEXR
+
+    write_dataset(tmp_path, 1, 2, 96, 64, exr_pixel_type="half", progress=False)
+    with OpenEXR.File(str(tmp_path / "left depth" / "depth_0.exr"), separate_channels=True) as exr:
+        depth = np.asarray(exr.channels()["R"].pixels)
+    assert depth.dtype == np.float16
+    scene = render_scene(scene_seed(2, 0), SynthCamera.zed_mini(96, 64))
+    sky = ~np.isfinite(scene.depth_m)
+    assert np.all(depth[sky] == np.float16(65504))
+    assert np.allclose(depth[~sky], scene.depth_m[~sky] * 100.0, rtol=1e-3)
+
+
 def test_write_dataset_rejects_bad_arguments(tmp_path):
     with pytest.raises(SynthWriteError, match="scenes"):
         write_dataset(tmp_path, 0, 0, 96, 64, progress=False)
@@ -133,6 +146,11 @@ def test_synth_command_writes_dataset_and_preview(tmp_path, capsys):
     assert (tmp_path / "set" / "left image" / "left_1.png").is_file()
     picture = read_rgb(preview)
     assert picture.shape == (2 * 64, 4 * 96, 3)
+
+
+def test_synth_command_names_an_out_of_range_option():
+    with pytest.raises(SystemExit, match="cut_offset_m"):
+        emcstereo(["synth", "--preview", "x.png", "--cut-offset", "0.5"])
 
 
 def test_synth_command_rejects_malformed_size(capsys):

@@ -25,13 +25,20 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def _options(args: argparse.Namespace) -> SynthOptions:
-    return SynthOptions(cut_offset_m=args.cut_offset, supersample=args.supersample, pose=args.pose,
-                        foliage=args.foliage, noise_std=args.noise, background_trees=not args.no_background_trees)
+    """The generator options the flags ask for; an out-of-range value exits with its message."""
+    try:
+        return SynthOptions(cut_offset_m=args.cut_offset, supersample=args.supersample, pose=args.pose,
+                            foliage=args.foliage, noise_std=args.noise, background_trees=not args.no_background_trees)
+    except ValueError as exc:
+        raise SystemExit(f"emcstereo synth: {exc}") from exc
 
 
 def _run(args: argparse.Namespace) -> int:
     if args.out is None and args.preview is None:
         raise SystemExit("emcstereo synth: give --out DIR (a dataset), --preview PNG (a picture), or both")
+    if args.scenes < 1 or args.workers < 1 or args.preview_scenes < 1:
+        raise SystemExit(f"emcstereo synth: --scenes ({args.scenes}), --workers ({args.workers}) and "
+                         f"--preview-scenes ({args.preview_scenes}) must be at least 1")
     width, height = args.size
     camera = SynthCamera.zed_mini(width, height)
     options = _options(args)
