@@ -131,7 +131,10 @@ class _SceneBuilder:
 
     # -- the main tree ----------------------------------------------------------------------
     def _trunk(self) -> tuple[np.ndarray, np.ndarray, float, float, float, float]:
-        """Place the trunk; returns (ground point, axis, length, radius at ground, at top, ground depth)."""
+        """Place the trunk; returns (foot on the ground, axis, length, radius at ground, at top, ground y).
+
+        World y of the ground = how far below the camera it lies (m).
+        """
         rng = self.rng
         distance = rng.uniform(*_TRUNK_DISTANCE_M[self.pose])
         frac = rng.uniform(-0.8, 0.8) if rng.random() < 0.85 else rng.choice([-1, 1]) * rng.uniform(1.0, 1.3)
@@ -273,8 +276,13 @@ class _SceneBuilder:
                     continue
                 base, axis, length, r0, r1 = drawn
                 tint = np.clip(rng.uniform(0.9, 1.15) + rng.normal(0, 0.04, 3), 0.7, 1.3)
-                cone = self._cone(base, axis, length, r0, r1, self._bark(tile, r0, tint), len(truths) + 1)
-                truths.append(self._truth(cone))
+                # the surface starts inside the trunk (same taper), so no open end shows at an oblique junction
+                root = foot + (base - foot) @ trunk_axis * trunk_axis
+                sunk = float(np.sqrt(np.sum((base - root) ** 2)))
+                slope = (r1 - r0) / length
+                cone = self._cone(base - sunk * axis, axis, length + sunk, r0 - slope * sunk, r1,
+                                  self._bark(tile, r0, tint), len(truths) + 1)
+                truths.append(self._truth(cone.instance_id, self.frame.point(base), cone.axis, length, r0, r1))
                 self._twigs(base, axis, length, lambda s, r0=r0, r1=r1, n=length: r0 + (r1 - r0) * s / n, tile)
             if len(truths) >= 2:
                 self._crown(foot, trunk_axis, trunk_len, trunk_radius, tile)
@@ -300,13 +308,14 @@ class _SceneBuilder:
             self._cone(start, axis, length, r0, r1, self._bark(tile, r0, np.ones(3)), 0)
             self._twigs(start, axis, length, lambda s, r0=r0, r1=r1, n=length: r0 + (r1 - r0) * s / n, tile, (0, 0))
 
-    def _truth(self, cone: Cone) -> BranchTruth:
-        """The branch truth of a camera-frame cone."""
-        cut = cone.base + self.options.cut_offset_m * cone.axis
+    def _truth(self, branch_id: int, base: np.ndarray, axis: np.ndarray, length: float, r0: float,
+               r1: float) -> BranchTruth:
+        """The truth of a branch given in the camera frame (base on the trunk surface)."""
+        cut = base + self.options.cut_offset_m * axis
         pixel = self.camera.project(cut[None, :])[0]
         as_tuple = lambda v: (float(v[0]), float(v[1]), float(v[2]))  # noqa: E731
-        return BranchTruth(cone.instance_id, as_tuple(cone.base), as_tuple(cone.axis), cone.length, cone.r0, cone.r1,
-                           as_tuple(cut), (float(pixel[0]), float(pixel[1])))
+        return BranchTruth(branch_id, as_tuple(base), as_tuple(axis), length, r0, r1, as_tuple(cut),
+                           (float(pixel[0]), float(pixel[1])))
 
     # -- mid-ground trees and background ------------------------------------------------------
     def _background_trees(self, tile: MipTile, ground_y: float) -> None:
