@@ -270,3 +270,14 @@ def test_emcstereo_mixed_precision_on_cuda_stays_close_to_fp32(precision: str) -
     mixed = EMCStereoBackend(model, max_disp=EMC_MAX_DISP, device="cuda", precision=precision).compute(left, right)
     assert mixed.disparity.dtype == np.float32 and np.isfinite(mixed.disparity).all()
     assert np.abs(mixed.disparity - reference.disparity).mean() < 1.0
+
+
+def test_dense_output_sanitising_invalidates_non_finite_pixels_and_clips_confidence() -> None:
+    from stereo.backends.base import sanitize_dense_output
+
+    disparity, confidence = sanitize_dense_output(
+        np.array([[1.5, np.nan, 3.0, np.inf]], np.float64), np.array([[0.5, 0.9, 1.2, 0.7]], np.float64)
+    )
+    assert disparity.dtype == np.float32 and confidence.dtype == np.float32
+    assert disparity.tolist() == [[1.5, 0.0, 3.0, 0.0]]
+    assert confidence.tolist() == [[0.5, 0.0, 1.0, 0.0]]

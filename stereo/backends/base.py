@@ -56,6 +56,15 @@ def stage_timings_ms(start: float, marks: list[tuple[str, float]]) -> dict[str, 
     return timing
 
 
+def sanitize_dense_output(disparity: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A network's float `H×W` disparity and confidence as StereoResult wants them: float32,
+    non-finite pixels invalid (0, confidence 0), confidence clipped to [0, 1]."""
+    finite = np.isfinite(disparity) & np.isfinite(confidence)
+    disparity = np.where(finite, disparity, 0.0).astype(np.float32)
+    confidence = np.where(finite, np.clip(confidence, 0.0, 1.0), 0.0).astype(np.float32)
+    return disparity, confidence
+
+
 def validate_pair(left: np.ndarray, right: np.ndarray) -> None:
     """Raise StereoInputError unless left and right are both uint8 `H×W×3` arrays of the same shape."""
     for side, image in (("left", left), ("right", right)):

@@ -11,7 +11,14 @@ from contextlib import nullcontext
 import numpy as np
 import torch
 
-from stereo.backends.base import PRECISIONS, BackendConfigError, StereoResult, stage_timings_ms, validate_pair
+from stereo.backends.base import (
+    PRECISIONS,
+    BackendConfigError,
+    StereoResult,
+    sanitize_dense_output,
+    stage_timings_ms,
+    validate_pair,
+)
 from stereo.model import EMCStereo
 from stereo.padding import compute_padding, pad_image, unpad
 
@@ -98,9 +105,7 @@ class EMCStereoBackend:
             inferred = self._now()
             disparity = unpad(disparity[0].float(), padding).cpu().numpy()
             confidence = unpad(confidence[0].float(), padding).cpu().numpy()
-        finite = np.isfinite(disparity) & np.isfinite(confidence)
-        disparity = np.where(finite, disparity, 0.0).astype(np.float32)
-        confidence = np.where(finite, np.clip(confidence, 0.0, 1.0), 0.0).astype(np.float32)
+        disparity, confidence = sanitize_dense_output(disparity, confidence)
         end = self._now()
         timing = stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)])
         return StereoResult(disparity, confidence, timing, self.name, self.max_disparity)
