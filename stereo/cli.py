@@ -18,6 +18,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "stereo.commands.train",
     "stereo.commands.finetune",
     "stereo.commands.evaluate",
+    "stereo.commands.export",
 )
 
 

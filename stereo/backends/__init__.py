@@ -7,7 +7,7 @@ import warnings
 from stereo.backends.base import BackendConfigError, StereoBackend, StereoInputError, StereoResult, validate_pair
 from stereo.backends.sgbm import SGBMBackend
 
-BACKEND_NAMES = ("sgbm", "emcstereo")
+BACKEND_NAMES = ("sgbm", "emcstereo", "onnx")
 
 
 class UntrainedModelWarning(UserWarning):
@@ -50,6 +50,10 @@ def make_backend(
         else:
             model = load_model(weights, device=resolve_device(device))
         return EMCStereoBackend(model, max_disp=max_disp, device=device, precision=precision)
+    if name == "onnx":  # an exported EMCStereo graph under ONNX Runtime (stereo/backends/onnx.py)
+        from stereo.backends.onnx import make_onnx_backend
+
+        return make_onnx_backend(weights, max_disp, device, precision)
     raise BackendConfigError(f"unknown stereo backend {name!r}; choose one of {BACKEND_NAMES}")
 
 

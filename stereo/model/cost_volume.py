@@ -18,7 +18,8 @@ def concat_cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: int
     volume = torch.empty((b, 2 * c, disparities, h, w), dtype=left.dtype, device=left.device,
                          memory_format=memory_format)
     for d in range(disparities):
-        volume[:, :, d, :, :d] = 0
+        if d:  # no empty slice assignment: ONNX export cannot express it
+            volume[:, :, d, :, :d] = 0
         volume[:, :c, d, :, d:] = left[..., d:]
         volume[:, c:, d, :, d:] = right[..., : w - d]
     return volume

@@ -75,7 +75,8 @@ class EMCStereo(nn.Module):
             raise ValueError(f"inference max_disp must be a multiple of 4 in (0, {self.max_disp}], got {max_disp}")
         if fast:
             check_input_size(left, right)
-            return self.fast_inference()(left, right, disparities)
+            with torch.inference_mode():
+                return self.fast_inference()(left, right, disparities)
         cost = self._costs(left, right, disparities)[-1]
         height, width = left.shape[2:]
         return self.regression.with_confidence(self._upsample(cost, disparities, height, width))

@@ -44,7 +44,6 @@ class FastInference(nn.Module):
         self.requires_grad_(False)
         self.eval()
 
-    @torch.inference_mode()
     def forward(self, left: torch.Tensor, right: torch.Tensor,
                 disparities: int) -> tuple[torch.Tensor, torch.Tensor]:
         height, width = left.shape[2:]

@@ -71,8 +71,7 @@ def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int,
     batch = deep.shape[0]
     row_lo, row_hi, row_frac = _align_corners_taps(height, deep.shape[2], cost.device)
     window = torch.arange(int(2 * radius) + 1, device=cost.device)
-    disparity = deep.new_empty((batch, height, width))
-    confidence = deep.new_empty((batch, height, width))
+    disparity, confidence = [], []
     for top in range(0, height, rows_per_chunk):
         rows = slice(top, min(top + rows_per_chunk, height))
         count = rows.stop - rows.start
@@ -80,14 +79,14 @@ def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int,
                               row_frac[rows][None, None, :, None].expand(batch, depth, -1, deep.shape[3]))
         prob = torch.softmax(F.interpolate(low_rows, size=(count, width), mode="bilinear", align_corners=True), dim=1)
         estimate = torch.matmul(values, prob.reshape(batch, depth, count * width)).reshape(batch, count, width)
-        disparity[:, rows] = estimate
+        disparity.append(estimate)
         # Confidence: the probability within ±radius of the estimate, i.e. of the integer
         # disparities ceil(d̂ − r) … floor(d̂ + r), at most 2r + 1 of them.
         candidates = torch.ceil(estimate - radius).clamp(min=0).long().unsqueeze(1) + window[:, None, None]
         index = candidates.clamp(max=depth - 1)
         near = (candidates < depth) & ((values[index] - estimate.unsqueeze(1)).abs() <= radius)
-        confidence[:, rows] = (prob.gather(1, index) * near).sum(dim=1).clamp_(0.0, 1.0)
-    return disparity, confidence
+        confidence.append((prob.gather(1, index) * near).sum(dim=1).clamp_(0.0, 1.0))
+    return torch.cat(disparity, dim=1), torch.cat(confidence, dim=1)
 
 
 class DisparityRegression(nn.Module):

@@ -1,0 +1,32 @@
+"""`emcstereo export --onnx OUT`: write the inference graph for ONNX Runtime (the `onnx` backend)."""
+from __future__ import annotations
+
+import argparse
+
+from stereo.checkpoints import load_model
+from stereo.export import ExportError, export_onnx
+from stereo.model import EMCStereo
+
+
+def _run(args: argparse.Namespace) -> int:
+    model = EMCStereo() if args.weights is None else load_model(args.weights)
+    if args.weights is None:
+        print("warning: no --weights given, exporting a randomly initialised full model")
+    try:
+        path = export_onnx(model, args.onnx, args.height, args.width, args.max_disp)
+    except ExportError as exc:
+        print(f"error: {exc}")
+        return 2
+    print(f"wrote {path} ({args.height}×{args.width}, max_disp {args.max_disp or model.max_disp})")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add `export` to the `emcstereo` command."""
+    parser = sub.add_parser("export", help="export the network for ONNX Runtime")
+    parser.add_argument("--onnx", required=True, help="output .onnx file")
+    parser.add_argument("--weights", help="checkpoint in any supported layout (default: random weights)")
+    parser.add_argument("--height", type=int, default=384, help="padded input height, multiple of 32, ≥ 256")
+    parser.add_argument("--width", type=int, default=1248, help="padded input width, multiple of 32, ≥ 256")
+    parser.add_argument("--max-disp", type=int, default=None, help="disparity range (default: the model's)")
+    parser.set_defaults(func=_run)
