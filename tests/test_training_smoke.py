@@ -38,9 +38,10 @@ def test_full_model_loss_falls_and_held_out_epe_improves_on_synthetic_scenes(tmp
     trained = evaluate(model, held_out, max_disp=48).mean["epe"]
     print(f"train loss per epoch {losses}; held-out EPE {untrained:.3f} → {trained:.3f} px")
     assert result.steps == 6 and len(losses) == 3
-    # Measured when written: loss 35.2 → 6.9 → 2.4; held-out EPE 21.3 → 14.2–14.6 px. The held-out
+    # Measured when written (three runs): loss 35–37 → 6.2–6.9 → 1.8–2.4; held-out EPE 21.1–21.3 →
+    # 14.2–15.6 px (the synthetic scenes were still being tuned between runs). The held-out
     # score lags the training loss because eval-mode BatchNorm statistics are still mostly their
     # initial values after 6 steps (momentum 0.1).
     assert losses[-1] < 0.2 * losses[0], losses
-    assert trained < 0.8 * untrained, (untrained, trained)
+    assert trained < 0.85 * untrained, (untrained, trained)
     assert (tmp_path / "run" / "training_curve.png").is_file()
