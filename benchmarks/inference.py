@@ -7,8 +7,12 @@ The `cores` column (CPU time / wall time) shows how much of the requested thread
 
     .venv/bin/python benchmarks/inference.py                      # 256×512 and 384×1248, 1+3 runs
     .venv/bin/python benchmarks/inference.py --sizes 256x512 --repeats 1 --warmup 0   # quick look
+    .venv/bin/python benchmarks/inference.py --sizes 384x1248 --backends emcstereo,plain,parity --max-disp 192,96,64
 
-To benchmark something new, add a runner to RUNNERS and configurations to `build_configs`.
+Runners: `emcstereo` (the backend, fast path), `plain` (the same model's plain eager fp32 forward),
+`onnx` (ONNX Runtime), `parity` (max |fast − plain| on the real pairs), `sgbm`; baselines `matmul`
+(torch `@`, MKL) and `matmul-dnn` (oneDNN). To benchmark something new, add a runner to RUNNERS
+and configurations to `build_configs`.
 """
 from __future__ import annotations
 
@@ -116,11 +120,114 @@ def run_matmul(config: BenchConfig) -> BenchResult:
     return BenchResult(latencies, cpu, 0.0, {"gflops_per_s": 2 * n**3 / statistics.median(latencies) / 1e9})
 
 
+def _network_inputs(config: BenchConfig) -> tuple["torch.Tensor", "torch.Tensor"]:
+    """The random pair as the emcstereo backend feeds it to the network: normalised, padded tensors."""
+    import torch
+
+    from stereo.backends.emcstereo import normalize_images
+    from stereo.padding import compute_padding, pad_image
+
+    left, right = random_pair(config.height, config.width)
+    images = pad_image(normalize_images(np.stack([left, right]), torch.device("cpu")),
+                       compute_padding(config.height, config.width))
+    return images[:1], images[1:]
+
+
+def run_emcstereo_plain(config: BenchConfig) -> BenchResult:
+    """The same model's plain eager fp32 forward (`infer(fast=False)`), network only: the parity reference."""
+    import torch
+
+    from stereo.model import EMCStereo
+
+    torch.manual_seed(0)
+    model = EMCStereo().eval()
+    left, right = _network_inputs(config)
+    with torch.inference_mode():
+        return BenchResult(*_timed(lambda: model.infer(left, right, config.max_disp, fast=False), config), 0.0)
+
+
+def run_onnx(config: BenchConfig) -> BenchResult:
+    """The same model exported to ONNX at this size and range, under ONNX Runtime (export time apart)."""
+    import tempfile
+
+    import torch
+
+    from stereo.backends.onnx import OnnxBackend
+    from stereo.export import export_onnx
+    from stereo.model import EMCStereo
+    from stereo.padding import compute_padding
+
+    torch.manual_seed(0)
+    padded = compute_padding(config.height, config.width).padded_shape
+    with tempfile.TemporaryDirectory() as folder:
+        start = time.perf_counter()
+        path = export_onnx(EMCStereo().eval(), f"{folder}/model.onnx", *padded, config.max_disp)
+        export_s = time.perf_counter() - start
+        backend = OnnxBackend(path, threads=config.threads)
+    left, right = random_pair(config.height, config.width)
+    return BenchResult(*_timed(lambda: backend.compute(left, right), config), 0.0, {"export_s": export_s})
+
+
+#: Real pairs the parity runner compares the fast path on (../shared/data/stereo).
+PARITY_PAIRS = (("middlebury2001_tsukuba", "imL.png", "imR.png"), ("middlebury2001_venus", "imL.png", "imR.png"))
+
+
+def run_parity(config: BenchConfig) -> BenchResult:
+    """Max |fast − plain eager fp32| disparity (px) of the seeded model on the real pairs, at the pairs' own sizes."""
+    from pathlib import Path
+
+    import torch
+
+    from stereo.backends.emcstereo import normalize_images
+    from stereo.io.images import read_rgb
+    from stereo.model import EMCStereo
+    from stereo.padding import compute_padding, pad_image
+
+    torch.manual_seed(0)
+    model = EMCStereo().eval()
+    root = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "stereo"
+    worst = 0.0
+    latencies, cpu = [], []
+    for folder, left_name, right_name in PARITY_PAIRS:
+        pair = np.stack([read_rgb(root / folder / left_name), read_rgb(root / folder / right_name)])
+        images = pad_image(normalize_images(pair, torch.device("cpu")), compute_padding(*pair.shape[1:3]))
+        with torch.inference_mode():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            fast, _ = model.infer(images[:1], images[1:], config.max_disp)
+            latencies.append(time.perf_counter() - start)
+            cpu.append(time.process_time() - start_cpu)
+            plain, _ = model.infer(images[:1], images[1:], config.max_disp, fast=False)
+        worst = max(worst, float((fast - plain).abs().max()))
+    return BenchResult(latencies, cpu, 0.0, {"parity_px": worst})
+
+
+def run_matmul_onednn(config: BenchConfig) -> BenchResult:
+    """The same square float32 product through oneDNN (a 1×1 convolution, channels-last): GFLOP/s.
+
+    PyTorch's `@` goes to MKL, which on AMD CPUs can stay far below the machine's rate; the
+    efficiency line uses the faster of the two baselines, so it never flatters the model.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    n = config.height
+    x = torch.randn(1, n, 1, n).contiguous(memory_format=torch.channels_last)
+    w = torch.randn(n, n, 1, 1)
+    latencies, cpu = _timed(lambda: F.conv2d(x, w), config)
+    return BenchResult(latencies, cpu, 0.0, {"gflops_per_s": 2 * n**3 / statistics.median(latencies) / 1e9})
+
+
 RUNNERS: dict[str, Callable[[BenchConfig], BenchResult]] = {
     "emcstereo": run_emcstereo,
+    "plain": run_emcstereo_plain,
+    "onnx": run_onnx,
+    "parity": run_parity,
     "sgbm": run_sgbm,
     "matmul": run_matmul,
+    "matmul-dnn": run_matmul_onednn,
 }
+#: Runners that measure the machine, not a backend; they run once, before the backends.
+BASELINES = ("matmul", "matmul-dnn")
 
 
 def child_main(config_json: str) -> None:
@@ -160,22 +267,32 @@ def parse_size(text: str) -> tuple[int, int]:
 def build_configs(args: argparse.Namespace) -> list[BenchConfig]:
     """The matmul baseline, then each backend at each size."""
     common = {"threads": args.threads, "warmup": args.warmup, "repeats": args.repeats}
-    configs = [BenchConfig("matmul", args.matmul_size, args.matmul_size, **common)]
+    configs = [BenchConfig(runner, args.matmul_size, args.matmul_size, **common) for runner in BASELINES]
     for runner in args.backends:
+        if runner == "parity":  # the real pairs have their own sizes
+            configs.append(BenchConfig(runner, 0, 0, max_disp=args.max_disp[0], threads=args.threads, warmup=0, repeats=1))
+            continue
         for height, width in args.sizes:
-            configs.append(BenchConfig(runner, height, width, max_disp=args.max_disp, **common))
+            for max_disp in args.max_disp if runner != "sgbm" else args.max_disp[:1]:
+                configs.append(BenchConfig(runner, height, width, max_disp=max_disp, **common))
     return configs
 
 
 def format_row(config: BenchConfig, result: BenchResult) -> str:
     """One line of the table."""
     median_ms = statistics.median(result.latencies_s) * 1e3
-    size = f"{config.height}x{config.width}" if config.runner != "matmul" else f"{config.height}^2"
+    size = f"{config.height}^2" if config.runner in BASELINES else f"{config.height}x{config.width}"
+    if config.runner == "parity":
+        size = "real"
     network = f"{result.extra['network_ms']:10.1f}" if "network_ms" in result.extra else f"{'':>10}"
     cores = statistics.median(c / w for c, w in zip(result.cpu_s, result.latencies_s))
     work = f"{result.extra['gflops_per_s']:9.1f} GFLOP/s" if "gflops_per_s" in result.extra else ""
+    if "parity_px" in result.extra:
+        work = f"max |fast - plain| {result.extra['parity_px']:.2e} px"
+    if "export_s" in result.extra:
+        work = f"export {result.extra['export_s']:.0f} s"
     return (
-        f"{config.runner:<10} {size:>9} {config.threads:>7} {config.max_disp if config.runner != 'matmul' else '':>8} "
+        f"{config.runner:<10} {size:>9} {config.threads:>7} {config.max_disp if config.runner not in BASELINES else '':>8} "
         f"{median_ms:10.1f} {min(result.latencies_s) * 1e3:9.1f} {network} {cores:6.2f} {result.peak_rss_mib:9.0f}  {work}"
     )
 
@@ -189,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--max-disp", type=int, default=192)
+    parser.add_argument("--max-disp", type=lambda s: [int(v) for v in s.split(",")], default=[192],
+                        help="comma-separated disparity ranges for the network runners (default 192)")
     parser.add_argument("--matmul-size", type=int, default=2048)
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -207,15 +325,16 @@ def main(argv: list[str] | None = None) -> int:
         results[config] = measure(config)
         print(format_row(config, results[config]), flush=True)
 
-    rate = next(r.extra["gflops_per_s"] for c, r in results.items() if c.runner == "matmul")
-    full = [r for c, r in results.items()
-            if c.runner == "emcstereo" and (c.height, c.width) == EFFICIENCY_SIZE and c.max_disp == 192]
-    if full:
-        latency = statistics.median(full[0].latencies_s)
+    rate = max(r.extra["gflops_per_s"] for c, r in results.items() if c.runner in BASELINES)
+    print()
+    measured = [(c.runner, r) for c, r in results.items()
+                if c.runner in ("emcstereo", "plain") and (c.height, c.width) == EFFICIENCY_SIZE and c.max_disp == 192]
+    for runner, result in measured:
+        latency = statistics.median(result.latencies_s)
         efficiency = FULL_MODEL_GFLOP_384x1248 / latency / rate
-        print(f"\nefficiency at 384x1248: {FULL_MODEL_GFLOP_384x1248} GFLOP / {latency:.2f} s / {rate:.1f} GFLOP/s "
-              f"(matmul, {args.threads} threads) = {efficiency:.1%}")
-    else:
+        print(f"efficiency at 384x1248 ({runner}): {FULL_MODEL_GFLOP_384x1248} GFLOP / {latency:.2f} s / "
+              f"{rate:.1f} GFLOP/s (faster matmul, {args.threads} threads) = {efficiency:.1%}")
+    if not measured:
         print("\nefficiency: needs emcstereo at 384x1248 with max_disp 192 among the configurations")
     return 0
 
