@@ -159,10 +159,27 @@ def test_exr_reader_takes_r_of_a_ue5_style_rgb_file(tmp_path: Path) -> None:
     np.testing.assert_array_equal(depth, [[120.0, 65504.0]])
 
 
+@pytest.mark.parametrize(("pixel_type", "dtype"), [("half", np.float16), ("float", np.float32)])
+def test_exr_writer_uses_the_ue5_layout_depth_in_r_and_nan_in_g_and_b(tmp_path: Path, pixel_type: str, dtype: type) -> None:
+    import OpenEXR
+
+    depth_cm = np.array([[150.0, 65504.0], [33.25, 1.0]], np.float32)
+    path = tmp_path / "depth.exr"
+    write_exr_depth(path, depth_cm, pixel_type=pixel_type)
+    with OpenEXR.File(str(path), separate_channels=True) as exr:
+        channels = {name: np.asarray(channel.pixels) for name, channel in exr.channels().items()}
+    assert sorted(channels) == ["B", "G", "R"]
+    assert all(pixels.dtype == dtype and pixels.shape == (2, 2) for pixels in channels.values())
+    assert np.isnan(channels["G"]).all() and np.isnan(channels["B"]).all()
+    # the authors read it with OpenCV as a BGR image and take index 2
+    bgr = np.stack([channels["B"], channels["G"], channels["R"]], axis=2)
+    np.testing.assert_array_equal(bgr[:, :, 2], depth_cm)
+
+
 def test_exr_without_the_channel_names_the_channels_found(tmp_path: Path) -> None:
     path = tmp_path / "z.exr"
     write_exr_depth(path, np.ones((2, 2), np.float32))
-    with pytest.raises(MalformedFileError, match=r"no channel 'Z'.*\['R'\]"):
+    with pytest.raises(MalformedFileError, match=r"no channel 'Z'.*\['B', 'G', 'R'\]"):
         read_exr_depth(path, channel="Z")
 
 

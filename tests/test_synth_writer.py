@@ -69,6 +69,19 @@ def test_exr_holds_depth_in_centimetres_with_sky_at_65504(dataset):
     assert np.array_equal(read_rgb(dataset / "right image" / "right_4.png"), scene.right)
 
 
+def test_depth_exr_has_the_ue5_channel_layout_r_depth_g_and_b_nan(dataset):
+    import OpenEXR
+
+    with OpenEXR.File(str(dataset / "left depth" / "depth_4.exr"), separate_channels=True) as exr:
+        channels = {name: np.asarray(channel.pixels) for name, channel in exr.channels().items()}
+    assert sorted(channels) == ["B", "G", "R"]
+    assert np.isnan(channels["G"]).all() and np.isnan(channels["B"]).all()
+    # the authors' loader: OpenCV's BGR order, channel index 2 is the depth in cm
+    bgr = np.stack([channels["B"], channels["G"], channels["R"]], axis=2)
+    np.testing.assert_array_equal(bgr[:, :, 2], read_exr_depth(dataset / "left depth" / "depth_4.exr"))
+    assert np.isfinite(bgr[:, :, 2]).all() and bgr[:, :, 2].min() > 0
+
+
 def test_virtualtree_loader_reads_the_set_through_its_split_files(dataset):
     virtualtree = pytest.importorskip("stereo.datasets.virtualtree", reason="VirtualTree loader not importable")
     camera = SynthCamera.zed_mini(WIDTH, HEIGHT)

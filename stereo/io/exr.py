@@ -2,6 +2,9 @@
 
 VirtualTree stores centimetres, with sky at about 65504 (the fp16 maximum); converting units and
 masking sky is the dataset's job, not this reader's. Files may hold HALF or FLOAT channels.
+The UE5 files carry three channels, R (depth), G and B (NaN everywhere): read with OpenCV they
+are a 3-channel BGR image whose index 2 is the depth, which is how the authors' loader reads them.
+The writer produces the same layout so that any reader of the real files reads ours.
 """
 from __future__ import annotations
 
@@ -41,7 +44,8 @@ def read_exr_depth(path: str | Path, channel: str = "R") -> np.ndarray:
 def write_exr_depth(
     path: str | Path, depth: np.ndarray, *, pixel_type: Literal["half", "float"] = "float"
 ) -> None:
-    """Write float `H×W` depth (any unit; VirtualTree uses cm) as the R channel of a ZIP-compressed EXR.
+    """Write float `H×W` depth (any unit; VirtualTree uses cm) in the UE5 layout: a ZIP-compressed EXR whose
+    R channel is the depth and whose G and B channels are NaN.
 
     `pixel_type="half"` stores fp16 as UE5 does: values above 65504 become infinite.
     """
@@ -53,5 +57,6 @@ def write_exr_depth(
         raise ArrayFormatError(f"cannot write {path}: expected a numeric H×W depth map, got {depth.dtype} {depth.shape}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     pixels = np.ascontiguousarray(depth, dtype=_PIXEL_TYPES[pixel_type])
-    with OpenEXR.File(header, {"R": pixels}) as exr:
+    unused = np.full_like(pixels, np.nan)
+    with OpenEXR.File(header, {"R": pixels, "G": unused, "B": unused}) as exr:
         exr.write(str(path))

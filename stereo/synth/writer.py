@@ -3,7 +3,8 @@
 Under the output folder::
 
     left image/left_N.png     right image/right_N.png     (RGB 8-bit PNG)
-    left depth/depth_N.exr    (depth in centimetres in the R channel; sky 65504, the fp16 maximum)
+    left depth/depth_N.exr    (depth in centimetres in the R channel, G and B NaN as UE5 writes them;
+                               sky 65504, the fp16 maximum)
     masks/mask_N.png          (16-bit instance ids, see stereo.synth.truth)
     branches/branches_N.json  (camera f, B, size; per-branch geometry and truth cut point, metres)
     virtualtree_train.txt, virtualtree_val.txt, virtualtree_test.txt   (80/10/10)
