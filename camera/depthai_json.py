@@ -46,6 +46,19 @@ def socket_number(socket: int | str) -> int:
     return SOCKETS[text]
 
 
+def integer_field(value: Any, source: str, key: str, expected: str) -> int:
+    """An integer from a JSON field (socket numbers, enums), or a CalibrationError naming the key."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise CalibrationError(source, key, f"is {value!r}", expected)
+    try:
+        number = float(value)
+    except ValueError:
+        raise CalibrationError(source, key, f"is {value!r}", expected) from None
+    if not number.is_integer():
+        raise CalibrationError(source, key, f"is {value!r}", expected)
+    return int(number)
+
+
 def scale_intrinsics(matrix: np.ndarray, calib_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
     """A 3×3 pinhole matrix at `calib_size` (w, h) moved to `size` (w, h): width-ratio scale, centred vertically."""
     scale = size[0] / calib_size[0]
@@ -68,7 +81,7 @@ class _Cameras:
             if not (isinstance(item, list) and len(item) == 2 and isinstance(item[1], dict)):
                 raise CalibrationError(source, f"cameraData[{index}]", f"is {str(item)[:60]}",
                                        "a [socket, {intrinsicMatrix, …}] pair")
-            self.entries[int(item[0])] = item[1]
+            self.entries[integer_field(item[0], source, f"cameraData[{index}][0]", "a socket number")] = item[1]
 
     def entry(self, socket: int) -> dict[str, Any]:
         if socket not in self.entries:
@@ -93,7 +106,9 @@ class _Cameras:
 
     def intrinsics(self, socket: int, size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         entry = self.entry(socket)
-        if int(entry.get("cameraType", 0)) != 0:
+        camera_type = integer_field(entry.get("cameraType", 0), self.source, f"cameraData[{socket}].cameraType",
+                                    "0 (perspective)")
+        if camera_type != 0:
             raise CalibrationError(self.source, f"cameraData[{socket}].cameraType", f"is {entry['cameraType']}",
                                    "0 (perspective); fisheye and other models are not supported")
         matrix = self.array(socket, "intrinsicMatrix", (3, 3))
@@ -102,10 +117,19 @@ class _Cameras:
         except (KeyError, TypeError, ValueError):
             raise CalibrationError(self.source, f"cameraData[{socket}].width/height", "is missing",
                                    "the calibration image size in pixels") from None
-        coeffs = np.array(entry.get("distortionCoeff") or [0.0] * 14, dtype=np.float64)
+        if min(calib_size) <= 0:
+            raise CalibrationError(self.source, f"cameraData[{socket}].width/height", f"is {calib_size}",
+                                   "a positive calibration image size in pixels")
+        raw_coeffs = entry.get("distortionCoeff") or [0.0] * 14
+        label = f"cameraData[{socket}].distortionCoeff"
+        try:
+            coeffs = np.array(raw_coeffs, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise CalibrationError(self.source, label, f"is {str(raw_coeffs)[:60]}",
+                                   "a list of 14 OpenCV distortion coefficients") from None
         if coeffs.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(coeffs)):
-            raise CalibrationError(self.source, f"cameraData[{socket}].distortionCoeff",
-                                   f"has {coeffs.size} values", "14 finite OpenCV distortion coefficients")
+            raise CalibrationError(self.source, label, f"has {coeffs.size} values",
+                                   "14 finite OpenCV distortion coefficients")
         out_size = calib_size if size is None else (int(size[0]), int(size[1]))
         return scale_intrinsics(matrix, calib_size, out_size), coeffs, out_size
 
@@ -116,7 +140,8 @@ class _Cameras:
         current = socket
         while True:
             extrinsics = self.entry(current).get("extrinsics") or {}
-            target = int(extrinsics.get("toCameraSocket", -1))
+            target = integer_field(extrinsics.get("toCameraSocket", -1), self.source,
+                                   f"cameraData[{current}].extrinsics.toCameraSocket", "a socket number (-1: none)")
             if target < 0:
                 return transform, current
             if target in seen:
@@ -130,7 +155,8 @@ class _Cameras:
             except (KeyError, TypeError, ValueError):
                 raise CalibrationError(self.source, f"cameraData[{current}].extrinsics.translation",
                                        "is missing or incomplete", "{x, y, z} in centimetres") from None
-            unit = int(extrinsics.get("lengthUnit", DEFAULT_LENGTH_UNIT))
+            unit = integer_field(extrinsics.get("lengthUnit", DEFAULT_LENGTH_UNIT), self.source,
+                                 f"cameraData[{current}].extrinsics.lengthUnit", f"one of {sorted(LENGTH_UNITS_M)}")
             if unit not in LENGTH_UNITS_M:
                 raise CalibrationError(self.source, f"cameraData[{current}].extrinsics.lengthUnit", f"is {unit}",
                                        f"one of {sorted(LENGTH_UNITS_M)} (m, cm, mm, inch, foot)")
@@ -149,8 +175,12 @@ def _chosen_socket(data: dict[str, Any], source: str, chosen: int | str | None, 
             return socket_number(chosen)
         except ValueError as error:
             raise CalibrationError(source, key, str(error), "a depthai camera socket") from None
-    value = (data.get("stereoRectificationData") or {}).get(key)
-    return fallback if value is None or int(value) < 0 else int(value)
+    section = data.get("stereoRectificationData")
+    value = section.get(key) if isinstance(section, dict) else None
+    if value is None:
+        return fallback
+    number = integer_field(value, source, f"stereoRectificationData.{key}", "a socket number")
+    return fallback if number < 0 else number
 
 
 def calibration_from_depthai_dict(data: Any, source: str, left_socket: int | str | None = None,

@@ -56,9 +56,16 @@ def _read_array(storage: cv2.FileStorage, path: Path, key: str, size: int | None
             break
     else:
         raise CalibrationError(path, key, "key is missing", f"a {'3×3 matrix' if size == 9 else 'number list'}")
-    values = np.array(_node_values(node), dtype=np.float64)
+    expected = f"{size} numbers" if size else "numbers"
+    try:
+        numbers = [] if node.isString() else _node_values(node)
+    except cv2.error:  # a map or string that is not an !!opencv-matrix
+        numbers = []
+    values = np.array(numbers, dtype=np.float64)
+    if values.size == 0 and not node.isSeq():
+        raise CalibrationError(path, name, "is not a matrix or a list of numbers", expected)
     if values.size == 0 or (size is not None and values.size != size):
-        raise CalibrationError(path, name, f"holds {values.size} numbers", f"{size} numbers" if size else "numbers")
+        raise CalibrationError(path, name, f"holds {values.size} numbers", expected)
     return values
 
 

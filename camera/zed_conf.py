@@ -46,6 +46,14 @@ def resolution_name(resolution: str) -> str:
     return name
 
 
+def resolution_for_size(size: tuple[int, int]) -> str | None:
+    """The file's resolution name for one eye's (width, height) in pixels, None when no ZED resolution has it."""
+    for name, resolution_size in ZED_RESOLUTIONS.items():
+        if tuple(size) == resolution_size:
+            return name
+    return None
+
+
 def parse_ini(text: str, source: str | Path) -> dict[str, dict[str, str]]:
     """Sections of an INI text as {SECTION: {key: value}}, section names upper-case, keys lower-case."""
     sections: dict[str, dict[str, str]] = {}

@@ -260,6 +260,42 @@ def test_depthai_json_errors_name_socket_and_key(oak_json: Path, tmp_path: Path)
         from_depthai_json(oak_json, "CAM_Q")
 
 
+@pytest.mark.parametrize("edit, key, expected", [
+    (lambda d: d["cameraData"][0].__setitem__(0, "left"), r"cameraData\[0\]\[0\]", "socket number"),
+    (lambda d: d["cameraData"][1][1].__setitem__("cameraType", "fisheye"), r"cameraData\[1\]\.cameraType",
+     r"0 \(perspective\)"),
+    (lambda d: d["cameraData"][1][1].__setitem__("distortionCoeff", ["k1"] * 14), r"cameraData\[1\]\.distortionCoeff",
+     "14 OpenCV distortion"),
+    (lambda d: d["cameraData"][1][1]["extrinsics"].__setitem__("toCameraSocket", "C"),
+     r"cameraData\[1\]\.extrinsics\.toCameraSocket", "socket number"),
+    (lambda d: d["cameraData"][1][1]["extrinsics"].__setitem__("lengthUnit", "cm"),
+     r"cameraData\[1\]\.extrinsics\.lengthUnit", r"one of \[0, 1, 2, 3, 4\]"),
+    (lambda d: d["stereoRectificationData"].__setitem__("leftCameraSocket", "B"),
+     r"stereoRectificationData\.leftCameraSocket", "socket number"),
+    (lambda d: d["cameraData"][1][1].__setitem__("width", 0), r"cameraData\[1\]\.width/height", "positive"),
+])
+def test_depthai_json_with_wrongly_typed_fields_names_the_key(oak_json: Path, tmp_path: Path, edit, key: str,
+                                                              expected: str) -> None:
+    data = json.loads(oak_json.read_text())
+    data["cameraData"].sort(key=lambda item: item[0])  # sockets 0 (A), 1 (B), 2 (C)
+    edit(data)
+    broken = tmp_path / "typed.json"
+    broken.write_text(json.dumps(data))
+    with pytest.raises(CalibrationError, match=rf"typed\.json: {key}: .*\(expected .*{expected}"):
+        from_depthai_json(broken, size=(640, 400))
+
+
+def test_opencv_file_with_text_where_a_matrix_belongs_names_the_key(zed_hd: StereoCalibration, tmp_path: Path) -> None:
+    path = tmp_path / "text.json"
+    path.write_text(json.dumps({"K1": "see datasheet", "D1": [0] * 5, "K2": zed_hd.K2.tolist(), "D2": [0] * 5,
+                                "R": {"yaw": 0}, "T": [-0.06, 0, 0], "image_width": 1280, "image_height": 720}))
+    with pytest.raises(CalibrationError, match=r"text\.json: K1: is not a matrix or a list of numbers \(expected 9"):
+        from_opencv_file(path)
+    path.write_text(path.read_text().replace('"see datasheet"', json.dumps(zed_hd.K1.tolist())))
+    with pytest.raises(CalibrationError, match=r"text\.json: R: is not a matrix or a list of numbers"):
+        from_opencv_file(path)
+
+
 # ---------------------------------------------------------------- KITTI and rectified-only
 
 def test_kitti_real_file_gives_p_rect_focal_and_baseline(kitti_file: Path) -> None:

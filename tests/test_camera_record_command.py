@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -71,3 +72,24 @@ def test_record_command_rejects_bad_source_and_existing_output(source_recording:
     assert "no such recording" in capsys.readouterr().err
     assert _run(["record", "--source", f"replay:{source_recording}", "--out", str(source_recording)]) == 2
     assert "--overwrite" in capsys.readouterr().err
+
+
+def test_record_command_stops_on_an_error_and_keeps_what_it_wrote(source_recording: Path, tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    assert cv2.imwrite(str(source_recording / "left" / "000003.png"), np.zeros((12, 16, 3), np.uint8))
+    out = tmp_path / "copy"
+    assert _run(["record", "--source", f"replay:{source_recording}", "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "recorded 3 pairs" in captured.out and "stopped by an error" in captured.out
+    assert "frame 3 is 16×12; the recording is 32×24" in captured.err
+    copy = ReplaySource(out, pace="fast")
+    assert [f.index for f in copy] == [0, 1, 2]
+    assert json.loads((out / "recording.json").read_text())["complete"] is True
+
+
+def test_record_command_rejects_a_file_as_output(source_recording: Path, tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    target = tmp_path / "a_file"
+    target.write_text("not a directory")
+    assert _run(["record", "--source", f"replay:{source_recording}", "--out", str(target), "--overwrite"]) == 2
+    assert f"--out {target}" in capsys.readouterr().err

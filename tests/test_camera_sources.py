@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from camera import StereoCalibration, from_zed_conf, load_calibration
+from camera import CalibrationError, StereoCalibration, from_zed_conf, load_calibration
 from camera.sources import (Backoff, CorruptFrameError, FaultInjectingSource, FaultPlan, LatestFrameSource, Recorder,
                             RecordingFormatError, ReplaySource, SourceConfigError, SourceDisconnected,
                             SourceUnavailable, StereoFrame, StereoSource, ZedUvcSource, open_source, record)
@@ -100,6 +100,22 @@ def test_interrupted_recording_still_replays(tmp_path: Path, frames: list[Stereo
     # no close(): the manifest still says complete: false, timestamps.csv has every written row
     assert json.loads((tmp_path / "cut" / "recording.json").read_text())["complete"] is False
     assert [f.index for f in ReplaySource(tmp_path / "cut", pace="fast")] == [0, 1, 2, 3]
+    recorder.close()
+
+
+def test_interrupted_recording_keeps_its_size_and_masks(tmp_path: Path, frames: list[StereoFrame]) -> None:
+    masked = [StereoFrame(f.left, f.right, f.timestamp_ns, f.index, np.full((SIZE[1], SIZE[0]), i + 1, np.uint16))
+              for i, f in enumerate(frames[:3])]
+    recorder = Recorder(tmp_path / "cut")
+    for frame in masked:
+        recorder.write(frame)
+    # no close(): the manifest written after the first frame already says masks and size
+    manifest = json.loads((tmp_path / "cut" / "recording.json").read_text())
+    assert manifest["complete"] is False and manifest["masks"] is True
+    assert (manifest["width"], manifest["height"]) == SIZE
+    replayed = ReplaySource(tmp_path / "cut", pace="fast")
+    assert replayed.frame_size == SIZE
+    assert [int(f.mask[0, 0]) for f in replayed] == [1, 2, 3]
     recorder.close()
 
 
@@ -396,6 +412,27 @@ def test_zed_uvc_rejects_bad_mode_fps_device_and_foreign_camera(vga_frames) -> N
                                             ("/dev/video0:hd1080", ("/dev/video0", "HD1080")), ("", (0, "HD720"))])
 def test_zed_spec_parses_device_and_mode(rest: str, expected: tuple[int | str, str]) -> None:
     assert parse_zed_spec(rest) == expected
+
+
+def test_zed_spec_with_an_unknown_mode_names_the_modes() -> None:
+    for rest in ("0:HD4K", "/dev/video0:UHD", "4K"):
+        with pytest.raises(SourceConfigError, match=r"mode '.*' is unknown; expected one of HD2K, HD1080, HD720, VGA"):
+            parse_zed_spec(rest)
+    by_path = "/dev/v4l/by-path/pci-0000:00:14.0-usb-0:1:1.0-video-index0"
+    assert parse_zed_spec(by_path) == (by_path, "HD720")
+    assert parse_zed_spec(by_path + ":vga") == (by_path, "VGA")
+
+
+def test_replay_with_a_zed_conf_reads_it_at_the_recording_resolution(vga_frames, tmp_path: Path,
+                                                                       shared_data: Path) -> None:
+    conf = shared_data / "calibration" / "zed" / "SN1010.conf"
+    with open_source(f"replay:{tmp_path / 'zed'}", calibration=conf, pace="fast") as source:
+        assert source.frame_size == (672, 376)
+        assert source.calibration == from_zed_conf(conf, "VGA")
+    with Recorder(tmp_path / "odd") as recorder:
+        record(iter(make_frames(2, size=(100, 60))), recorder)
+    with pytest.raises(CalibrationError, match=r"SN1010\.conf: resolution: the frames are 100×60 px .*672×376"):
+        open_source(f"replay:{tmp_path / 'odd'}", calibration=conf)
 
 
 def test_open_source_replay_and_bad_specs(recording: Path, calibration: StereoCalibration, tmp_path: Path) -> None:

@@ -23,7 +23,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Record until the source ends, --frames pairs are written or Ctrl-C; 0 on success, 2 on bad input."""
+    """Record until the source ends, --frames pairs are written or Ctrl-C.
+
+    Returns 0 on success (Ctrl-C included), 1 when recording stopped on an error (what was written
+    still replays), 2 on bad input.
+    """
     from tqdm import tqdm
 
     from camera import CalibrationError
@@ -38,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"branchrange record: {error}", file=sys.stderr)
         return 2
     skipped: list[CorruptFrameError] = []
-    interrupted = False
+    stopped_by = ""  # why recording ended before the source did or --frames were written
+    failed = False
     try:
         with source, Recorder(args.out, calibration=source.calibration, source_spec=args.source,
                               image_format=args.image_format, overwrite=args.overwrite) as recorder, \
@@ -51,12 +56,18 @@ def run(args: argparse.Namespace) -> int:
                 written = record(source, recorder, args.frames, on_frame=lambda _: bar.update(1),
                                  on_corrupt=note_corrupt)
             except KeyboardInterrupt:
-                written, interrupted = recorder.frames, True
+                written, stopped_by = recorder.frames, "Ctrl-C"
+            except (SourceError, ValueError, OSError) as error:  # camera gone, frame size changed, disk full
+                written, stopped_by, failed = recorder.frames, "an error", True
+                bar.write(f"branchrange record: {error}", file=sys.stderr)
     except FileExistsError as error:
         print(f"branchrange record: {error} (or pass --overwrite)", file=sys.stderr)
         return 2
+    except OSError as error:
+        print(f"branchrange record: --out {args.out}: {error}; expected a new or empty directory", file=sys.stderr)
+        return 2
     calibration = "with calibration" if source.calibration is not None else "without calibration"
-    note = " (stopped by Ctrl-C)" if interrupted else ""
+    note = f" (stopped by {stopped_by})" if stopped_by else ""
     print(f"recorded {written} pairs to {args.out} {calibration}{note}"
           + (f"; skipped {len(skipped)} corrupt frames" if skipped else ""))
-    return 0
+    return 1 if failed else 0

@@ -81,6 +81,8 @@ class Recorder:
             self._first_ts = frame.timestamp_ns
         self._last_ts = frame.timestamp_ns
         self.frames += 1
+        if self.frames == 1:  # size and masks are known now: an interrupted recording keeps them
+            self._write_manifest(complete=False)
 
     def _write_manifest(self, complete: bool) -> None:
         width, height = self._size or (None, None)

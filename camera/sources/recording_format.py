@@ -12,8 +12,9 @@ DIR/calibration.yaml  the calibration as an OpenCV FileStorage file (camera.open
 DIR/mask/000000.png   optional: the left view's branch mask (8/16-bit PNG, instance ids), present for
                       every frame when the manifest says "masks": true (synthetic or annotated data)
 ```
-The manifest is written when recording starts (`complete: false`) and rewritten on close, and
-timestamps.csv is appended frame by frame, so an interrupted recording still replays.
+The manifest is written when recording starts (`complete: false`), again after the first frame
+(size, masks) and on close, and timestamps.csv is appended frame by frame, so an interrupted
+recording still replays, with its masks.
 """
 from __future__ import annotations
 

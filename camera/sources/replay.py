@@ -39,6 +39,14 @@ class _DirectoryFrames:
     def seek(self, position: int) -> None:
         self._position = position
 
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of one view: from the manifest, else (an interrupted recording) the first image."""
+        width, height = self.manifest.get("width"), self.manifest.get("height")
+        if isinstance(width, int) and isinstance(height, int):
+            return width, height
+        first = read_rgb(self.directory / self.rows[0].left)
+        return int(first.shape[1]), int(first.shape[0])
+
     def read(self) -> StereoFrame | None:
         """The next frame (with the recorded index, timestamp and mask), None at the end of the recording."""
         if self._position >= self.count:
@@ -83,6 +91,12 @@ class _VideoFrames:
             raise SourceUnavailable(f"{self.path}: OpenCV cannot open this video; expected a side-by-side "
                                     "stereo video (e.g. .avi/.mkv/.mp4) readable by OpenCV's FFmpeg backend")
         self._position = 0
+
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of one view: half the video's width, its full height."""
+        assert self._capture is not None
+        return (int(self._capture.get(cv2.CAP_PROP_FRAME_WIDTH)) // 2,
+                int(self._capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
 
     def seek(self, position: int) -> None:
         """Reopen and read forward to `position` (exact, unlike codec-dependent seeking)."""
@@ -157,6 +171,11 @@ class ReplaySource(SourceBase):
         self._last_index = -1
         self._wall_start: int | None = None
         self._stream_start: int | None = None
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of each view in pixels, known before the first frame is read."""
+        return self._frames.frame_size()
 
     @property
     def frame_count(self) -> int | None:

@@ -9,24 +9,33 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from camera.calibration import StereoCalibration
-from camera.load import load_calibration
-from camera.sources.frame import SourceBase, SourceConfigError
+from camera.calibration import CalibrationError, StereoCalibration
+from camera.load import detect_format, load_calibration
+from camera.sources.frame import SourceBase, SourceConfigError, SourceError
 from camera.sources.latest import LatestFrameSource
 from camera.sources.replay import ReplaySource
 from camera.sources.zed_uvc import ZED_MODES, ZedUvcSource
+from camera.zed_conf import ZED_RESOLUTIONS, resolution_for_size
 
 _OAK_OPTIONS = re.compile(r"^(\d+)x(\d+)(?:@(\d+(?:\.\d+)?))?$")
+_MODE_LIKE = re.compile(r"^[A-Za-z0-9]*[A-Za-z][A-Za-z0-9]*$")  # a bare word with a letter, no path characters
 
 
 def parse_zed_spec(rest: str) -> tuple[int | str, str]:
-    """(device, mode) from what follows `zed:`: an index or path, then an optional `:MODE`."""
+    """(device, mode) from what follows `zed:`: an index or path, then an optional `:MODE`.
+
+    A (trailing `:`) word that looks like a mode name but is none raises SourceConfigError; other
+    colons belong to the path (udev's /dev/v4l/by-path names contain some).
+    """
     device_text, mode = rest, "HD720"
     head, sep, tail = rest.rpartition(":")
     if sep and tail.upper() in ZED_MODES:
         device_text, mode = head, tail.upper()
     elif rest.upper() in ZED_MODES:
         device_text, mode = "0", rest.upper()
+    elif _MODE_LIKE.match(tail):
+        raise SourceConfigError(f"source spec 'zed:{rest}': mode {tail!r} is unknown; expected one of "
+                                f"{', '.join(ZED_MODES)} (after a device index or /dev/video path)")
     device_text = device_text or "0"
     device: int | str = int(device_text) if device_text.isdigit() else device_text
     return device, mode
@@ -36,8 +45,9 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
                 pace: str = "recorded", loop: bool = False, start: int = 0) -> SourceBase:
     """Open the source a spec names (see the module docstring).
 
-    `calibration`: a StereoCalibration or a calibration file (a ZED conf is read at the mode's
-    resolution) overriding what the source knows. `latest=True` wraps the source in
+    `calibration`: a StereoCalibration or a calibration file overriding what the source knows; a
+    file is read for the source's frame size (a ZED conf at the ZED mode's or the recording's
+    resolution, a depthai JSON scaled to the OAK output or recording size). `latest=True` wraps the source in
     LatestFrameSource (a slow consumer then always gets the newest frame). `pace`, `loop`, `start`
     apply to replays.
     """
@@ -54,18 +64,33 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
             raise SourceConfigError(f"source spec {spec!r}: expected oak, oak:WIDTHxHEIGHT or oak:WIDTHxHEIGHT@FPS")
         config = OakConfig() if match is None else OakConfig(
             size=(int(match[1]), int(match[2])), fps=float(match[3]) if match[3] else OakConfig.fps)
-        source = OakSource(config, calibration=_loaded(calibration, None, config.size))
+        source = OakSource(config, calibration=_loaded(calibration, config.size))
     elif kind == "replay":
         if not rest:
             raise SourceConfigError(f"source spec {spec!r}: expected replay:PATH")
-        source = ReplaySource(rest, pace=pace, loop=loop, start=start, calibration=_loaded(calibration, None, None))
+        source = ReplaySource(rest, pace=pace, loop=loop, start=start)
+        if calibration is not None:
+            try:
+                source.calibration = _loaded(calibration, source.frame_size)
+            except (CalibrationError, SourceError):
+                source.close()
+                raise
     else:
         raise SourceConfigError(f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]] or replay:PATH")
     return LatestFrameSource(source) if latest else source
 
 
-def _loaded(calibration: StereoCalibration | str | Path | None, resolution: str | None,
-            size: tuple[int, int] | None) -> StereoCalibration | None:
+def _loaded(calibration: StereoCalibration | str | Path | None, size: tuple[int, int]) -> StereoCalibration | None:
+    """A calibration given as an object or a file, for frames of `size` (w, h) px.
+
+    A ZED conf is read at the resolution of that size, a depthai JSON is scaled to it, and an
+    OpenCV file without an image size takes it.
+    """
     if calibration is None or isinstance(calibration, StereoCalibration):
         return calibration
+    resolution = resolution_for_size(size)
+    if resolution is None and detect_format(calibration) == "zed":
+        sizes = ", ".join(f"{w}×{h}" for w, h in ZED_RESOLUTIONS.values())
+        raise CalibrationError(calibration, "resolution", f"the frames are {size[0]}×{size[1]} px per view, "
+                               "which is no ZED resolution", f"frames of {sizes} px per view")
     return load_calibration(calibration, resolution, size=size)
