@@ -183,6 +183,15 @@ def _chosen_socket(data: dict[str, Any], source: str, chosen: int | str | None, 
     return fallback if number < 0 else number
 
 
+def calibrated_size(data: Any, socket: int | str, source: str) -> tuple[int, int]:
+    """(width, height) in pixels at which `socket`'s camera in a parsed depthai calibration was calibrated."""
+    try:
+        number = socket_number(socket)
+    except ValueError as error:
+        raise CalibrationError(source, "socket", str(error), "a depthai camera socket") from None
+    return _Cameras(data, source).intrinsics(number, None)[2]
+
+
 def calibration_from_depthai_dict(data: Any, source: str, left_socket: int | str | None = None,
                                   right_socket: int | str | None = None,
                                   size: tuple[int, int] | None = None) -> StereoCalibration:

@@ -10,6 +10,7 @@ import pytest
 
 from camera import (CalibrationError, StereoCalibration, detect_format, from_depthai_json, from_kitti,
                     from_opencv_file, from_rectified, from_zed_conf, load_calibration, write_opencv_file)
+from camera.depthai_json import calibrated_size
 from camera.zed_conf import available_resolutions
 
 ZED_FILES = ("SN1010", "SN14966", "SN1499")
@@ -243,6 +244,14 @@ def test_depthai_json_chains_extrinsics_through_other_cameras(oak_handler, oak_j
     np.testing.assert_allclose(calib.R, expected[:3, :3], atol=1e-5)
     np.testing.assert_allclose(calib.T, expected[:3, 3] / 100.0, atol=1e-6)
     assert load_calibration(oak_json, size=(640, 400)) == from_depthai_json(oak_json, 1, 2, (640, 400))
+
+
+def test_depthai_calibrated_size_is_each_sockets_own(oak_json: Path) -> None:
+    data = json.loads(oak_json.read_text())
+    assert calibrated_size(data, "CAM_B", "eeprom") == (1280, 800)
+    assert calibrated_size(data, 0, "eeprom") == (4056, 3040)
+    with pytest.raises(CalibrationError, match=r"eeprom: socket: unknown camera socket 'CAM_Q'"):
+        calibrated_size(data, "CAM_Q", "eeprom")
 
 
 def test_depthai_json_errors_name_socket_and_key(oak_json: Path, tmp_path: Path) -> None:

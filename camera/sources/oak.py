@@ -9,7 +9,10 @@ linked into a `dai.node.Sync` node run on the host that groups frames whose time
 Hardware status: nothing here has run on an OAK device. The tests run the real depthai pipeline
 machinery on the host (a host-only `dai.Pipeline(False)`, the real Sync node, real ImgFrame and
 MessageGroup messages) with file-fed host nodes in place of the two Camera nodes, which depthai
-cannot create without a device; `add_stereo_cameras` itself (the device half) is untested.
+cannot create without a device. The device half is split so that what can be checked is:
+`camera_requests` (sockets, size, frame type, resize mode, fps) is tested, and `add_stereo_cameras`
+is run against a recording stand-in pipeline and against depthai's own signatures; building real
+Camera nodes, `readCalibration()` and frames from real sensors have not run.
 """
 from __future__ import annotations
 
@@ -24,14 +27,19 @@ import depthai as dai
 import numpy as np
 
 from camera.calibration import StereoCalibration
-from camera.depthai_json import calibration_from_depthai_dict, socket_number
+from camera.depthai_json import calibrated_size, calibration_from_depthai_dict, socket_number
 from camera.sources.frame import (Backoff, CorruptFrameError, SourceBase, SourceConfigError, SourceDisconnected,
                                   SourceUnavailable, StereoFrame)
 
 
 @dataclass(frozen=True)
 class OakConfig:
-    """What to ask an OAK for: sockets (names or numbers), output size (w, h), fps, colour or mono, pairing."""
+    """What to ask an OAK for: sockets (names or numbers), output size (w, h), fps, colour or mono, pairing.
+
+    `size` must be at least as wide, relative to its height, as the sensor's calibration size (e.g.
+    640×400 or 1280×720 for a 1280×800 mono pair); narrower sizes are refused when the device opens
+    (see `check_output_aspect`).
+    """
 
     left_socket: str | int = "CAM_B"
     right_socket: str | int = "CAM_C"
@@ -65,14 +73,60 @@ class OakSession:
     calibration: StereoCalibration | None
 
 
-def add_stereo_cameras(pipeline: dai.Pipeline, config: OakConfig) -> tuple[Any, Any]:
-    """Camera nodes on both sockets, each with one output at the configured size, type and fps (needs a device)."""
+@dataclass(frozen=True)
+class CameraRequest:
+    """What one Camera node is built with and asked for: socket, output size (w, h) px, type, resize, fps."""
+
+    socket: dai.CameraBoardSocket
+    size: tuple[int, int]
+    frame_type: dai.ImgFrame.Type
+    resize_mode: dai.ImgResizeMode
+    fps: float
+
+
+def camera_requests(config: OakConfig) -> tuple[CameraRequest, CameraRequest]:
+    """The left and right Camera node requests for a config (no device needed: this is what tests check).
+
+    Mono sensors give GRAY8, colour ones RGB888i; CROP keeps the aspect ratio (no warping), which
+    the calibration scaling of camera.depthai_json assumes (see `check_output_aspect`).
+    """
     frame_type = dai.ImgFrame.Type.RGB888i if config.color else dai.ImgFrame.Type.GRAY8
+    left, right = (CameraRequest(dai.CameraBoardSocket(socket_number(socket)), (int(config.size[0]), int(config.size[1])),
+                                 frame_type, dai.ImgResizeMode.CROP, float(config.fps))
+                   for socket in (config.left_socket, config.right_socket))
+    return left, right
+
+
+def add_stereo_cameras(pipeline: dai.Pipeline, config: OakConfig) -> tuple[Any, Any]:
+    """Camera nodes on both sockets, each with one output as `camera_requests` says; (left, right) outputs.
+
+    Needs a pipeline bound to a device: depthai refuses device nodes in a host-only pipeline.
+    """
     outputs = []
-    for socket in (config.left_socket, config.right_socket):
-        camera = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket(socket_number(socket)))
-        outputs.append(camera.requestOutput(tuple(config.size), frame_type, fps=float(config.fps)))
+    for request in camera_requests(config):
+        camera = pipeline.create(dai.node.Camera).build(request.socket)
+        # enableUndistortion=False: the host Rectifier undistorts with the EEPROM's coefficients; frames
+        # undistorted on the device as well would be corrected twice.
+        outputs.append(camera.requestOutput(request.size, request.frame_type, resizeMode=request.resize_mode,
+                                            fps=request.fps, enableUndistortion=False))
     return outputs[0], outputs[1]
+
+
+def check_output_aspect(calibrated_size: tuple[int, int], config: OakConfig) -> None:
+    """Refuse an output size narrower than the sensor's calibrated aspect ratio (SourceConfigError).
+
+    Why: for such sizes the Camera node's CROP trims the sides and scales by the height, while
+    depthai's `getCameraIntrinsics` (and camera.depthai_json, which matches it) scale by the width,
+    so the focal length would be off by the ratio of the two aspect ratios. For outputs as wide as
+    the sensor or wider, both crop top and bottom and agree.
+    """
+    width, height = config.size
+    calib_width, calib_height = calibrated_size
+    if width * calib_height < calib_width * height * (1 - 1e-3):
+        raise SourceConfigError(
+            f"OakConfig.size is {width}×{height}, narrower than the {calib_width}×{calib_height} the sensor on "
+            f"{config.left_socket} was calibrated at; expected an aspect ratio ≥ {calib_width / calib_height:.3f} "
+            f"(e.g. {width}×{int(width * calib_height / calib_width)})")
 
 
 def add_pair_sync(pipeline: dai.Pipeline, left: Any, right: Any, config: OakConfig) -> Any:
@@ -91,8 +145,9 @@ def open_oak_device(config: OakConfig) -> OakSession:
         pipeline = dai.Pipeline()
     except RuntimeError as error:
         raise SourceUnavailable(f"no OAK device could be opened: {error}") from None
-    left, right = add_stereo_cameras(pipeline, config)
     eeprom = pipeline.getDefaultDevice().readCalibration().eepromToJson()
+    check_output_aspect(calibrated_size(eeprom, config.left_socket, "OAK device EEPROM"), config)
+    left, right = add_stereo_cameras(pipeline, config)
     calibration = calibration_from_depthai_dict(eeprom, "OAK device EEPROM", config.left_socket,
                                                 config.right_socket, tuple(config.size))
     return OakSession(pipeline, left, right, calibration)
