@@ -8,11 +8,17 @@ INI sections `[LEFT_CAM_<RES>]`, `[RIGHT_CAM_<RES>]` (RES: 2K, FHD, HD, VGA) wit
 Files in the wild carry a UTF-8 byte-order mark, CRLF line endings, either spelling of Baseline and
 no p1/p2/k3 (taken as 0, as the ZED SDK does). Section and key names are case-insensitive.
 
-Geometry: as in Stereolabs' own OpenCV rectification sample, `R = Rodrigues([RX, CV, RZ])` is used
-as OpenCV's left→right rotation and the translation lies along [Baseline, TY, TZ]. We store it
-with OpenCV's sign, `T = -[Baseline, TY, TZ] / 1000` metres, so that the rectified right projection
-has `P2[0,3] < 0` and disparities of points in front are positive; the rectification maps are the
-same either way (stereoRectify aligns the x axis with the line of T).
+Geometry: as in Stereolabs' own OpenCV rectification sample (`initCalibration` in
+zed-open-capture's examples/include/calibration.hpp, the same in zed-opencv-native),
+`R = Rodrigues([RX, CV, RZ])` is used as OpenCV's left→right rotation and the translation lies
+along [Baseline, TY_<RES>, TZ_<RES>]. The sample passes that translation with a positive sign; we
+store it with OpenCV's, `T = -[Baseline, TY, TZ] / 1000` metres (as rtabmap's ZED Open Capture
+driver does), so that the rectified right projection has `P2[0,3] < 0`, `|P2[0,3] / P2[0,0]|` is the
+baseline and disparities of points in front are positive. stereoRectify rotates T onto ±x by the
+same rotation whatever its sign, so R1, R2, P1 and the maps are exactly the sample's
+(tests/test_camera_rectify.py pins this on the real files). Not verified on real images: that the
+Rodrigues vector is left→right and not its inverse. Reading it the other way round would leave
+rows 5–13 px apart at HD on the shared files (see camera/README.md for the check to run on a camera).
 """
 from __future__ import annotations
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from camera import FrameSizeError, Rectifier, StereoCalibration, from_kitti, from_rectified, from_zed_conf
+from camera.zed_conf import parse_ini
 
 WIDTH, HEIGHT = 640, 400
 
@@ -164,6 +165,31 @@ def test_real_zed_calibration_rectifies_to_its_baseline_with_aligned_rows(shared
     np.testing.assert_allclose(rect_left[:, 1], rect_right[:, 1], atol=0.01)
     depth = rectifier.depth_m(rect_left[:, 0] - rect_right[:, 0])
     np.testing.assert_allclose(depth, (points @ rectifier.R1.T)[:, 2], rtol=1e-4)
+
+
+@pytest.mark.parametrize("serial", ["SN1010", "SN14966", "SN1499"])
+def test_zed_rectification_is_stereolabs_samples_with_opencvs_sign_of_t(shared_data: Path, serial: str) -> None:
+    """Stereolabs' OpenCV sample feeds stereoRectify R = Rodrigues([RX, CV, RZ]) and T = +[Baseline, TY, TZ] mm.
+
+    We keep its R and store T with OpenCV's sign (metres): the rectifying rotations and projections
+    must be the sample's, except that P2[0,3] flips to negative (right camera on the +x side).
+    """
+    path = shared_data / "calibration" / "zed" / f"{serial}.conf"
+    calib = from_zed_conf(path, "HD")
+    stereo = parse_ini(path.read_bytes().decode("utf-8-sig"), path)["STEREO"]
+    vector = np.array([float(stereo[f"{axis}_hd"]) for axis in ("rx", "cv", "rz")])
+    t_mm = np.array([float(stereo["baseline"]), float(stereo.get("ty_hd", 0.0)), float(stereo.get("tz_hd", 0.0))])
+    r1, r2, p1, p2, _, _, _ = cv2.stereoRectify(calib.K1, calib.D1, calib.K2, calib.D2, (1280, 720),
+                                                cv2.Rodrigues(vector)[0], t_mm.reshape(3, 1),
+                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0, newImageSize=(1280, 720))
+    ours = Rectifier(calib)
+    np.testing.assert_allclose(ours.R1, r1, atol=1e-12)
+    np.testing.assert_allclose(ours.R2, r2, atol=1e-12)
+    np.testing.assert_allclose(ours.P1, p1, atol=1e-9)
+    np.testing.assert_allclose(ours.P2[:, :3], p2[:, :3], atol=1e-9)
+    assert p2[0, 3] > 0 > ours.P2[0, 3]
+    assert ours.P2[0, 3] == pytest.approx(-p2[0, 3] / 1000.0, rel=1e-9)
+    assert abs(ours.P2[0, 3] / ours.P2[0, 0]) == pytest.approx(np.linalg.norm(t_mm) / 1000.0, rel=1e-9)
 
 
 def test_frame_of_wrong_size_is_rejected_with_expected_size(rendered) -> None:
