@@ -84,12 +84,14 @@ class _Cameras:
             self.entries[integer_field(item[0], source, f"cameraData[{index}][0]", "a socket number")] = item[1]
 
     def entry(self, socket: int) -> dict[str, Any]:
+        """The cameraData entry of a socket, or a CalibrationError listing the file's sockets."""
         if socket not in self.entries:
             raise CalibrationError(self.source, f"cameraData socket {socket}", "is missing",
                                    f"one of the file's sockets {sorted(self.entries)}")
         return self.entries[socket]
 
     def array(self, socket: int, key: str, shape: tuple[int, ...], where: str = "") -> np.ndarray:
+        """A finite numeric array of `shape` from the socket's entry (or its `where` sub-dict)."""
         container = self.entry(socket)
         if where:
             container = container.get(where) or {}
@@ -105,6 +107,7 @@ class _Cameras:
         return values
 
     def intrinsics(self, socket: int, size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+        """(K scaled to `size` (3×3 px), distortion (n,), size (w, h)); `size` None keeps the calibration size."""
         entry = self.entry(socket)
         camera_type = integer_field(entry.get("cameraType", 0), self.source, f"cameraData[{socket}].cameraType",
                                     "0 (perspective)")

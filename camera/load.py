@@ -10,6 +10,7 @@ from camera.kitti import from_kitti
 from camera.opencv_file import from_opencv_file
 from camera.zed_conf import from_zed_conf
 
+
 def detect_format(path: str | Path) -> str:
     """Which calibration format a file holds: "zed", "opencv", "depthai" or "kitti"."""
     text = read_calibration_text(path)

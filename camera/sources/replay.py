@@ -37,6 +37,7 @@ class _DirectoryFrames:
         self._position = 0
 
     def seek(self, position: int) -> None:
+        """Make `position` (0-based row of timestamps.csv) the next frame read."""
         self._position = position
 
     def frame_size(self) -> tuple[int, int]:
@@ -59,6 +60,7 @@ class _DirectoryFrames:
         return StereoFrame(left, right, row.timestamp_ns, row.index, mask)
 
     def calibration(self) -> StereoCalibration | None:
+        """The recording's calibration copy named in the manifest, None when it has none."""
         name = self.manifest.get("calibration")
         if not name:
             return None
@@ -123,9 +125,11 @@ class _VideoFrames:
         return StereoFrame(left, right, index * self.period_ns, index)
 
     def calibration(self) -> StereoCalibration | None:
+        """None: a video carries no calibration (pass one to ReplaySource)."""
         return None
 
     def close(self) -> None:
+        """Release the video file."""
         if self._capture is not None:
             self._capture.release()
             self._capture = None
