@@ -429,6 +429,15 @@ def test_replay_with_a_zed_conf_reads_it_at_the_recording_resolution(vga_frames,
     with open_source(f"replay:{tmp_path / 'zed'}", calibration=conf, pace="fast") as source:
         assert source.frame_size == (672, 376)
         assert source.calibration == from_zed_conf(conf, "VGA")
+    _, side_by_side = vga_frames
+    video = tmp_path / "zed_sbs.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (1344, 376))
+    for image in side_by_side:
+        writer.write(image)
+    writer.release()
+    with open_source(f"replay:{video}", calibration=conf, pace="fast") as source:
+        assert source.frame_size == (672, 376) and source.calibration == from_zed_conf(conf, "VGA")
+        assert len(list(source)) == 3
     with Recorder(tmp_path / "odd") as recorder:
         record(iter(make_frames(2, size=(100, 60))), recorder)
     with pytest.raises(CalibrationError, match=r"SN1010\.conf: resolution: the frames are 100×60 px .*672×376"):
