@@ -74,7 +74,11 @@ class StereoCalibration:
                                        "finite numbers")
             array.setflags(write=False)
             object.__setattr__(self, key, array)
-        width, height = (int(v) for v in self.image_size)
+        try:
+            width, height = (int(v) for v in self.image_size)
+        except (TypeError, ValueError):
+            raise CalibrationError(self.source, "image_size", f"is {self.image_size!r}",
+                                   "(width, height) in pixels") from None
         if width <= 0 or height <= 0:
             raise CalibrationError(self.source, "image_size", f"is {self.image_size}",
                                    "a positive (width, height) in pixels")

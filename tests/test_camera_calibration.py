@@ -357,3 +357,9 @@ def test_load_calibration_dispatches_on_content(zed_dir: Path, kitti_file: Path,
     unknown.write_text("hello: world\n")
     with pytest.raises(CalibrationError, match="no known calibration format"):
         load_calibration(unknown)
+
+
+def test_calibration_with_a_malformed_image_size_names_it() -> None:
+    k = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    with pytest.raises(CalibrationError, match=r"image_size: is \(640,\) \(expected \(width, height\) in pixels\)"):
+        StereoCalibration(k, np.zeros(5), k, np.zeros(5), np.eye(3), np.array([-0.1, 0, 0]), (640,))

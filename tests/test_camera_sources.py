@@ -393,7 +393,7 @@ def test_zed_uvc_without_reconnect_raises_disconnected(vga_frames) -> None:
     assert source.is_lost
 
 
-def test_zed_uvc_rejects_bad_mode_fps_device_and_foreign_camera(vga_frames) -> None:
+def test_zed_uvc_rejects_bad_mode_fps_calibration_device_and_foreign_camera(vga_frames, shared_data: Path) -> None:
     _, images = vga_frames
     with pytest.raises(SourceConfigError, match="HD4K.*HD2K, HD1080, HD720, VGA"):
         ZedUvcSource(0, "HD4K", capture_factory=CaptureFactory(images, []))
@@ -401,6 +401,9 @@ def test_zed_uvc_rejects_bad_mode_fps_device_and_foreign_camera(vga_frames) -> N
         ZedUvcSource(0, "HD1080", 60, capture_factory=CaptureFactory(images, []))
     with pytest.raises(SourceUnavailable, match="cannot be opened"):
         ZedUvcSource(2, "VGA", capture_factory=CaptureFactory(images, [(False, None)]))
+    with pytest.raises(CalibrationError, match=r"image_size: is 1280×720 px \(expected 672×376 px, one eye in mode VGA"):
+        ZedUvcSource(0, "VGA", calibration=from_zed_conf(shared_data / "calibration" / "zed" / "SN1010.conf", "HD"),
+                     capture_factory=CaptureFactory(images, []))
     with pytest.raises(SourceConfigError, match=r"delivers 640×480 instead of mode VGA \(1344×376\)"):
         ZedUvcSource(0, "VGA", capture_factory=CaptureFactory(images, [(True, None)], native_size=(640, 480)))
 

@@ -19,7 +19,7 @@ from typing import Any
 
 import cv2
 
-from camera.calibration import StereoCalibration
+from camera.calibration import FrameSizeError, StereoCalibration
 from camera.sources.frame import (Backoff, CorruptFrameError, SourceBase, SourceConfigError, SourceDisconnected,
                                   SourceUnavailable, StereoFrame)
 from camera.sources.image_files import split_side_by_side
@@ -69,7 +69,8 @@ class ZedUvcSource(SourceBase):
     calibration file, e.g. the camera's `SN<serial>.conf` (read at the mode's resolution). `reconnect=False` raises
     SourceDisconnected instead of reopening. `capture_factory`, `sleep` and `clock` are injection
     points for tests (a fake capture, no real waiting, a fake clock).
-    The constructor raises SourceUnavailable when the device cannot be opened at all.
+    The constructor raises SourceUnavailable when the device cannot be opened at all, and
+    FrameSizeError when the calibration is for another image size than one eye of the mode.
     """
 
     def __init__(self, device: int | str = 0, mode: str = "HD720", fps: int | None = None, *,
@@ -85,6 +86,11 @@ class ZedUvcSource(SourceBase):
                                     f"{', '.join(map(str, self.mode.fps))}")
         if isinstance(calibration, (str, Path)):
             calibration = load_calibration(calibration, self.mode.resolution)
+        eye_size = (self.mode.width // 2, self.mode.height)
+        if calibration is not None and calibration.image_size != eye_size:
+            raise FrameSizeError(calibration.source, "image_size",
+                                 f"is {calibration.width}×{calibration.height} px",
+                                 f"{eye_size[0]}×{eye_size[1]} px, one eye in mode {self.mode_name}")
         self.calibration = calibration
         self.reconnect = reconnect
         self.backoff = backoff or Backoff()
