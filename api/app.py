@@ -8,7 +8,7 @@ from typing import Any, Protocol
 from fastapi import FastAPI, Request, Response
 
 from api.estimator import Estimator
-from api.limits import InferenceSlots
+from api.limits import BodySizeLimit, InferenceSlots
 from api.metrics import Metrics
 from api.routers import estimate, status
 from branchrange.config import ApiConfig
@@ -42,6 +42,7 @@ def create_app(settings: ApiConfig, estimator: Estimator | None, state: LiveStat
     app.state.live = state
     app.state.metrics = metrics or Metrics()
     app.state.slots = InferenceSlots(settings.max_concurrency, settings.retry_after_s)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)  # inside the metrics: 413s are counted
 
     @app.middleware("http")
     async def record_metrics(request: Request, call_next: Any) -> Response:

@@ -56,6 +56,9 @@ class PipelineEstimator:
     def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None) -> Pipeline:
         cfg = replace(self.config, backend=backend or self.config.backend,
                       max_disp=max_disp or self.config.max_disp)
+        if cfg.backend == "emcstereo" and not cfg.weights:
+            raise ValueError("backend 'emcstereo' has no weights on this server (stereo.weights); "
+                             "an untrained network would give meaningless cut points")
         key = (cfg.backend, cfg.max_disp)
         if key not in self._backends:
             from stereo.backends import make_backend

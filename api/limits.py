@@ -1,8 +1,9 @@
 """Resource limits of the service: request size, image pixels, and bounded inference concurrency.
 
-Sizes are checked before work is done: the Content-Length header before the body is parsed, each
-upload while it is read, and an image's width × height from its PNG/JPEG header before it is
-decoded (a small file can decode to gigabytes).
+Sizes are checked before work is done: the request body by `BodySizeLimit` as it arrives (FastAPI
+parses a multipart body, spooling files to disk, before any dependency runs, so the limit has to
+sit in front of the app), each upload while it is read, and an image's width × height from its
+PNG/JPEG header before it is decoded (a small file can decode to gigabytes).
 """
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ from contextlib import asynccontextmanager
 
 import cv2
 import numpy as np
-from fastapi import HTTPException, Request, UploadFile, status
+from fastapi import HTTPException, UploadFile, status
+from starlette.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"
@@ -49,13 +52,42 @@ class InferenceSlots:
             yield
 
 
-def check_content_length(request: Request) -> None:
-    """Reject a request whose declared body exceeds `api.max_upload_mb` with 413, before parsing it."""
-    limit = request.app.state.settings.max_upload_bytes
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
-                            f"request body of {int(declared)} bytes exceeds the limit of {limit} bytes (api.max_upload_mb)")
+def _body_too_large(size: int | str, limit: int) -> str:
+    return f"request body of {size} bytes exceeds the limit of {limit} bytes (api.max_upload_mb)"
+
+
+class BodySizeLimit:
+    """ASGI middleware: 413 for a request body above `max_bytes`, before the app reads it.
+
+    A declared Content-Length above the limit is answered at once; a body without one (chunked)
+    is counted as it streams in and cut off with 413 at the first byte over the limit.
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length", b"").decode("latin-1")
+        if declared.isdigit() and int(declared) > self.max_bytes:
+            response = JSONResponse({"detail": _body_too_large(declared, self.max_bytes)},
+                                    status.HTTP_413_CONTENT_TOO_LARGE, headers={"Connection": "close"})
+            await response(scope, receive, send)
+            return
+        received = 0
+
+        async def counting_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            received += len(message.get("body", b""))
+            if received > self.max_bytes:  # raised inside the route: FastAPI turns it into the response
+                raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, _body_too_large(f"more than {self.max_bytes}", self.max_bytes))
+            return message
+
+        await self.app(scope, counting_receive, send)
 
 
 async def read_upload(upload: UploadFile, field: str, max_bytes: int) -> bytes:

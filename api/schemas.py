@@ -1,8 +1,11 @@
 """Pydantic models of what the API returns, so that the OpenAPI document describes it.
 
-`EstimateResult` mirrors the `branchrange/v1` JSON schema (branchrange/schemas/result_v1.json):
-units are metres, pixels and milliseconds; 3D points are in the rectified left camera frame
-(x right, y down, z forward). Extra keys the pipeline adds are passed through.
+`EstimateResult` mirrors the `branchrange/v1` JSON schema (branchrange/schemas/result_v1.json),
+field for field (tests/test_api_estimate.py holds the two together): units are metres, pixels and
+milliseconds; 3D points are in the rectified left camera frame (x right, y down, z forward).
+Routes return results with `response_model_exclude_unset`, so optional keys the pipeline did not
+write stay out rather than turning into nulls, and keys the schema gains later pass through: the
+API's JSON is the daemon's and the replay's.
 """
 from __future__ import annotations
 
@@ -10,60 +13,111 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+Vector3 = list[float]
 
-class Frame(BaseModel):
+
+class ResultPart(BaseModel):
+    """A part of the `branchrange/v1` result; keys beyond the declared ones pass through."""
+
     model_config = ConfigDict(extra="allow")
-    index: int
-    timestamp_ns: int = Field(description="monotonic capture time, nanoseconds (0 for uploads)")
-    width: int = Field(description="pixels")
-    height: int = Field(description="pixels")
 
 
-class CameraInfo(BaseModel):
-    model_config = ConfigDict(extra="allow")
-    focal_px: float = Field(description="rectified focal length, pixels at this resolution")
-    baseline_m: float = Field(description="metres")
+class Frame(ResultPart):
+    """Which frame the result is of."""
+
+    index: int = Field(ge=0, description="frame number (0 for uploads)")
+    timestamp_ns: int = Field(ge=0, description="monotonic capture time, nanoseconds (0 for uploads)")
+    width: int = Field(ge=1, description="pixels")
+    height: int = Field(ge=1, description="pixels")
 
 
-class StereoInfo(BaseModel):
-    model_config = ConfigDict(extra="allow")
+class CameraInfo(ResultPart):
+    """The rectified geometry metres were computed with."""
+
+    focal_px: float = Field(gt=0, description="rectified focal length, pixels at the disparity's resolution")
+    baseline_m: float = Field(gt=0, description="metres")
+    cx: float | None = Field(None, description="principal point x, pixels")
+    cy: float | None = Field(None, description="principal point y, pixels")
+
+
+class StereoInfo(ResultPart):
+    """The stereo backend that computed the disparity."""
+
     backend: str
-    max_disparity: int = Field(description="pixels")
+    max_disparity: int = Field(ge=1, description="pixels")
+    valid_fraction: float | None = Field(None, ge=0, le=1, description="share of pixels with a valid disparity")
 
 
-class Branch(BaseModel):
-    model_config = ConfigDict(extra="allow")
-    id: int
-    cut_point_m: list[float] = Field(description="[x, y, z] metres, camera frame (x right, y down, z forward)")
-    distance_m: float = Field(description="camera origin to cut point, metres")
-    pixel: list[float] = Field(description="[u, v] of the cut point in the rectified left image")
-    diameter_m: float | None = None
-    axis: list[float] | None = Field(None, description="unit vector base → tip, camera frame")
-    base_m: list[float] | None = None
+class Timing(ResultPart):
+    """Milliseconds per stage of this frame (`total` covers them all)."""
+
+    rectify: float = Field(ge=0)
+    stereo: float = Field(ge=0)
+    masks: float | None = Field(None, ge=0)
+    cutpoints: float = Field(ge=0)
+    tracking: float | None = Field(None, ge=0)
+    total: float = Field(ge=0)
+
+
+class MasksInfo(ResultPart):
+    """Where the branch masks came from."""
+
+    source: str = Field(description="'file', 'array' or the segmenter's name")
+    instances: int = Field(ge=0, description="branch instances in the mask")
+    trunk: bool | None = Field(None, description="whether a trunk was known")
+
+
+class DroppedInstance(ResultPart):
+    """A mask instance that gave no cut point."""
+
+    mask_id: int = Field(ge=0)
+    reason: str
+
+
+class Branch(ResultPart):
+    """One branch's cut point and geometry."""
+
+    id: int = Field(ge=0, description="branch id, stable across frames when tracking is on")
+    mask_id: int | None = Field(None, ge=0, description="instance id in this frame's mask")
+    cut_point_m: Vector3 = Field(min_length=3, max_length=3, description="[x, y, z] metres, camera frame (x right, y down, z forward)")
+    distance_m: float = Field(ge=0, description="camera origin to cut point, metres")
+    pixel: list[float] = Field(min_length=2, max_length=2, description="[u, v] of the cut point in the rectified left image, pixels")
+    diameter_m: float = Field(ge=0, description="branch diameter at the cut, metres")
+    axis: Vector3 = Field(min_length=3, max_length=3, description="unit vector base → tip, camera frame")
+    base_m: Vector3 = Field(min_length=3, max_length=3, description="where the branch meets the trunk (or its thicker end), metres, camera frame")
     confidence: float = Field(ge=0.0, le=1.0)
+    valid_fraction: float | None = Field(None, ge=0, le=1, description="share of the mask with valid disparity")
+    residual_m: float | None = Field(None, ge=0, description="robust axis-fit residual, metres")
+    points: int | None = Field(None, ge=0, description="3D points the fit used")
 
 
-class EstimateResult(BaseModel):
+class EstimateResult(ResultPart):
     """One frame's cut points (`branchrange/v1`)."""
 
-    model_config = ConfigDict(extra="allow")
     schema_: str = Field("branchrange/v1", alias="schema")
     frame: Frame
     camera: CameraInfo
     stereo: StereoInfo
-    timing_ms: dict[str, float]
+    timing_ms: Timing
+    masks: MasksInfo | None = None
     branches: list[Branch]
-    target_id: int | None = Field(description="id of the branch to cut next, null when none")
+    dropped: list[DroppedInstance] | None = Field(None, description="mask instances that gave no cut point, with the reason")
+    target_id: int | None = Field(description="id of the branch to cut next, null when none is confident enough")
+    reason: str | None = Field(None, description="why there are no branches or no target, when so")
 
 
 class Health(BaseModel):
+    """Service state for probes and the ground crew."""
+
     status: str = Field(description="'ok', or 'degraded' when the camera is lost or the link is down")
-    model: dict[str, Any]
+    model: dict[str, Any] = Field(description="the stereo backend in use and the inference slots")
     camera: dict[str, Any] | None = Field(None, description="daemon mode: camera source state")
     mavlink: dict[str, Any] | None = Field(None, description="daemon mode: MAVLink link state")
 
 
 class Version(BaseModel):
+    """Package, result-schema and API versions."""
+
     name: str
     version: str
     schema_: str = Field(alias="schema")
@@ -71,4 +125,6 @@ class Version(BaseModel):
 
 
 class ErrorBody(BaseModel):
+    """A 4xx/5xx answer: what was wrong, naming the field or file."""
+
     detail: str

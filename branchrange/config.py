@@ -36,6 +36,9 @@ def _require(condition: bool, key: str, value: Any, expected: str) -> None:
 class CameraConfig:
     """Where frames come from and how the camera sits on the vehicle.
 
+    `source` is a `camera.sources.open_source` spec; a ZED's mode is part of it
+    (`zed:/dev/zedmini:HD720`, HD720 when left out). `calibration` is a calibration file that
+    overrides what the source knows (a ZED factory `.conf` is read at the spec's mode).
     `mount_rpy_deg` is the camera's roll, pitch, yaw in degrees relative to a camera looking
     straight ahead (body FRD, right-handed: pitch > 0 tilts the optical axis up, yaw > 0 turns it
     right); `mount_xyz_m` the camera's optical centre in body FRD metres from the vehicle origin.
@@ -44,7 +47,6 @@ class CameraConfig:
 
     source: str = "zed:0"
     calibration: str = ""
-    resolution: str = "HD720"
     mount_rpy_deg: Vector3 = (0.0, 0.0, 0.0)
     mount_xyz_m: Vector3 = (0.0, 0.0, 0.0)
     stall_timeout_s: float = 2.0
@@ -56,7 +58,11 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class StereoConfig:
-    """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments)."""
+    """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments).
+
+    `emcstereo` needs `weights`: a network without them gives meaningless disparities, which the
+    daemon would send to the flight controller as cut points.
+    """
 
     backend: str = "sgbm"
     weights: str = ""
@@ -66,6 +72,8 @@ class StereoConfig:
 
     def __post_init__(self) -> None:
         _require(self.backend in ("sgbm", "emcstereo"), "stereo.backend", self.backend, "'sgbm' or 'emcstereo'")
+        _require(self.backend != "emcstereo" or bool(self.weights.strip()), "stereo.weights", self.weights,
+                 "a checkpoint path when stereo.backend = 'emcstereo'")
         _require(self.max_disp > 0 and self.max_disp % 4 == 0, "stereo.max_disp", self.max_disp, "a positive multiple of 4 (pixels)")
         _require(self.precision in ("fp32", "fp16"), "stereo.precision", self.precision, "'fp32' or 'fp16'")
 

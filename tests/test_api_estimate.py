@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 
 import cv2
+import jsonschema
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -13,8 +15,10 @@ from api import create_app
 from api.estimator import PipelineEstimator
 from api_scene import BAR_DEPTH_M, BAR_DISPARITY, BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.config import ApiConfig
+from branchrange.pipeline import SCHEMA_PATH
 
 FB = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
+RESULT_SCHEMA = json.loads(SCHEMA_PATH.read_text())
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +48,7 @@ def test_estimate_returns_the_bar_cut_point_in_metres(client, scene):
     r = client.post("/estimate", files=pair_files(scene), data=FB)
     assert r.status_code == 200, r.text
     body = r.json()
+    jsonschema.validate(body, RESULT_SCHEMA)  # no nulls for keys the pipeline left out
     assert body["schema"] == "branchrange/v1" and body["frame"]["width"] == 320
     (branch,) = body["branches"]
     assert body["target_id"] == branch["id"]
@@ -89,6 +94,9 @@ def test_disparity_as_kitti_png_and_npy(client, scene):
     assert disp.dtype == np.float32 and np.median(disp[scene.mask > 0]) == pytest.approx(BAR_DISPARITY, abs=0.5)
 
 
+PNG_1x1 = cv2.imencode(".png", np.zeros((1, 1, 3), np.uint8))[1].tobytes()
+
+
 @pytest.mark.parametrize("change, code, message", [
     (lambda f, d: f.update(left=("l.png", b"not an image at all", "image/png")), 415, "left: expected a PNG or JPEG"),
     (lambda f, d: f.update(right=("r.png", f["right"][1][:200], "image/png")), 422, "right: the image could not be decoded"),
@@ -100,6 +108,16 @@ def test_disparity_as_kitti_png_and_npy(client, scene):
     (lambda f, d: (f.update(calibration=("x.conf", b"hello", "text/plain")), d.pop("focal_px"), d.pop("baseline_m")), 422, "calibration: x.conf"),
     (lambda f, d: f.update(calibration=("x.conf", b"hello", "text/plain")), 422, "not both"),
     (lambda f, d: f.update(left=("big.png", cv2.imencode(".png", np.zeros((400, 400, 3), np.uint8))[1].tobytes(), "image/png")), 413, "pixels exceeds the limit"),
+    (lambda f, d: f.update(left=("l.png", f["left"][1][:100], "image/png")), 422, "left: the image could not be decoded"),
+    (lambda f, d: f.update(left=("l.png", PNG_1x1, "image/png"), right=("r.png", PNG_1x1, "image/png")), 422, "left image"),
+    (lambda f, d: f.update(mask=("m.png", cv2.imencode(".png", np.zeros((100, 120), np.uint8))[1].tobytes(), "image/png")),
+     422, "mask is 120×100 px but the images are 320×256 px"),
+    (lambda f, d: (f.update(calibration=("rig.xml", b"<?xml version='1.0'?><opencv_storage><K1>", "text/xml")),
+                   d.pop("focal_px"), d.pop("baseline_m")), 422, "calibration: rig.xml: not a readable calibration file"),
+    (lambda f, d: d.update(focal_px="inf"), 422, "focal_px"),
+    (lambda f, d: d.update(baseline_m="nan"), 422, "baseline_m"),
+    (lambda f, d: d.update(backend="emcstereo"), 422, "backend 'emcstereo' has no weights on this server"),
+    (lambda f, d: d.update(max_disp="1000"), 422, "max_disp"),
 ])
 def test_bad_requests_get_4xx_with_a_message(client, scene, change, code, message):
     files, data = pair_files(scene), dict(FB)
@@ -133,9 +151,51 @@ def test_saturated_service_answers_503_with_retry_after(client, scene):
     assert client.post("/estimate", files=pair_files(scene), data=FB).status_code == 200
 
 
-def test_openapi_documents_the_result_schema(client):
+def _resolve(spec: dict, schema: dict) -> dict:
+    """An OpenAPI schema with its `$ref` (or `anyOf: [$ref, null]`) followed."""
+    for option in schema.get("anyOf", [schema]):
+        if "$ref" in option:
+            return spec["components"]["schemas"][option["$ref"].rsplit("/", 1)[1]]
+    return schema
+
+
+def _missing_properties(spec: dict, openapi: dict, json_schema: dict, where: str) -> list[str]:
+    """Property paths of the branchrange/v1 JSON schema that the OpenAPI model lacks, recursively."""
+    if "$ref" in json_schema:
+        json_schema = RESULT_SCHEMA["$defs"][json_schema["$ref"].rsplit("/", 1)[1]]
+    if json_schema.get("type") == "array" and "items" in json_schema:
+        openapi = _resolve(spec, openapi)
+        items = next(o for o in openapi.get("anyOf", [openapi]) if o.get("type") == "array")["items"]
+        return _missing_properties(spec, _resolve(spec, items), json_schema["items"], where + "[]")
+    missing = []
+    openapi = _resolve(spec, openapi)
+    for name, sub in json_schema.get("properties", {}).items():
+        if name not in openapi.get("properties", {}):
+            missing.append(f"{where}.{name}")
+        else:
+            missing += _missing_properties(spec, openapi["properties"][name], sub, f"{where}.{name}")
+    return missing
+
+
+def test_openapi_documents_every_route_the_result_schema_and_the_bearer_scheme(client):
     spec = client.get("/openapi.json").json()
-    result = spec["components"]["schemas"]["EstimateResult"]
-    assert {"schema", "frame", "branches", "target_id"} <= set(result["properties"])
-    assert "metres" in spec["components"]["schemas"]["Branch"]["properties"]["cut_point_m"]["description"]
-    assert "/estimate" in spec["paths"] and "/disparity" in spec["paths"]
+    schemas = spec["components"]["schemas"]
+    assert {"/estimate", "/disparity", "/health", "/version", "/metrics", "/latest"} <= set(spec["paths"])
+    assert all(op.get("summary") and op.get("description") for ops in spec["paths"].values() for op in ops.values())
+    # the result model carries every key of branchrange/v1, with units
+    assert _missing_properties(spec, schemas["EstimateResult"], RESULT_SCHEMA, "result") == []
+    assert set(schemas["EstimateResult"]["required"]) == set(RESULT_SCHEMA["required"]) - {"schema"}
+    assert "metres" in schemas["Branch"]["properties"]["cut_point_m"]["description"]
+    assert spec["paths"]["/latest"]["get"]["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith("/EstimateResult")
+    # both POST routes describe their shared fields alike, and name the errors they answer with
+    forms = [_resolve(spec, spec["paths"][p]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"])
+             for p in ("/estimate", "/disparity")]
+    for field in ("left", "right", "calibration", "resolution", "focal_px", "baseline_m", "backend", "max_disp"):
+        assert forms[0]["properties"][field].get("description"), field
+        assert forms[0]["properties"][field] == forms[1]["properties"][field], field
+    assert {"413", "415", "422", "503"} <= set(spec["paths"]["/estimate"]["post"]["responses"])
+    # bearer auth is declared where the token is checked, and only there
+    assert spec["components"]["securitySchemes"]["HTTPBearer"] == {
+        "type": "http", "scheme": "bearer", "description": spec["components"]["securitySchemes"]["HTTPBearer"]["description"]}
+    secured = {path for path, ops in spec["paths"].items() for op in ops.values() if op.get("security")}
+    assert secured == {"/estimate", "/disparity", "/metrics", "/latest"}

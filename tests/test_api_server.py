@@ -1,6 +1,8 @@
 """The service over real HTTP (uvicorn on 127.0.0.1, ephemeral port): auth, health, metrics, latest, serve."""
 from __future__ import annotations
 
+import json
+import socket
 import threading
 import time
 
@@ -14,8 +16,10 @@ from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.serve import check_bind, ServeError
 from branchrange.config import ApiConfig
+from branchrange.pipeline import Pipeline, PipelineConfig
 
 TOKEN = "s3cret-token"
+UPLOAD_LIMIT_MB = 1.0
 
 
 class LiveState:
@@ -41,7 +45,7 @@ def live():
 @pytest.fixture(scope="module")
 def server(live):
     """A real uvicorn server in a thread; yields its base URL."""
-    app = create_app(ApiConfig(token=TOKEN), PipelineEstimator(), state=live)
+    app = create_app(ApiConfig(token=TOKEN, max_upload_mb=UPLOAD_LIMIT_MB), PipelineEstimator(), state=live)
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
     thread = threading.Thread(target=srv.run, daemon=True)
     thread.start()
@@ -84,14 +88,16 @@ def test_health_reports_model_camera_and_link_and_degrades_when_camera_lost(serv
     assert version["schema"] == "branchrange/v1" and version["name"] == "branchrange"
 
 
-def test_latest_returns_the_daemons_newest_result(server, live):
+def test_latest_returns_the_daemons_newest_result_unchanged(server, live):
+    scene = bar_scene()
+    pipeline = Pipeline(PipelineConfig(max_disp=64), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
+    result = pipeline.process(scene.left, scene.right, scene.mask, index=7, timestamp_ns=5)
     with httpx.Client(base_url=server, timeout=10, headers=auth()) as c:
         assert c.get("/latest").status_code == 404
-        live.result = {"schema": "branchrange/v1", "frame": {"index": 7, "timestamp_ns": 5, "width": 4, "height": 2},
-                       "camera": {"focal_px": 1.0, "baseline_m": 0.1}, "stereo": {"backend": "sgbm", "max_disparity": 64},
-                       "timing_ms": {"total": 1.0}, "branches": [], "target_id": None}
+        live.result = result
         r = c.get("/latest")
-    assert r.status_code == 200 and r.json()["frame"]["index"] == 7
+    assert r.status_code == 200 and r.json()["frame"]["index"] == 7 and r.json()["branches"]
+    assert r.json() == json.loads(json.dumps(result))  # the daemon's log line, key for key (no nulls added)
 
 
 def test_metrics_count_requests_latencies_frames_and_errors(server):
@@ -108,6 +114,31 @@ def test_metrics_count_requests_latencies_frames_and_errors(server):
     assert values['branchrange_frame_duration_seconds_count{source="api"}'] == ok
     assert values['branchrange_http_request_duration_seconds_count{route="/estimate"}'] >= ok + 1
     assert values['branchrange_http_request_duration_seconds_bucket{route="/estimate",le="+Inf"}'] >= ok + 1
+
+
+def test_declared_oversized_body_gets_413_before_the_server_reads_it(server):
+    host, port = server.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=5) as sock:
+        # headers only: a server that waited for the 50 MB body would time out here
+        sock.sendall(b"POST /estimate HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                     b"Content-Length: 50000000\r\n\r\n")
+        answer = b""
+        while chunk := sock.recv(4096):  # the server closes the connection after its answer
+            answer += chunk
+    answer = answer.decode("latin-1")
+    assert answer.startswith("HTTP/1.1 413") and "exceeds the limit of 1048576 bytes (api.max_upload_mb)" in answer
+
+
+def test_streamed_body_without_length_is_cut_off_at_the_limit(server):
+    def chunks():  # a 2 MiB file part in 64 KiB pieces, chunked transfer encoding (no Content-Length)
+        yield b'--b\r\nContent-Disposition: form-data; name="left"; filename="l.png"\r\nContent-Type: image/png\r\n\r\n'
+        for _ in range(32):
+            yield b"x" * 65536
+
+    with httpx.Client(base_url=server, timeout=20, headers=auth()) as c:
+        r = c.post("/estimate", content=chunks(), headers={"Content-Type": "multipart/form-data; boundary=b"})
+    # counted as it streamed in: the limit names no declared size
+    assert r.status_code == 413 and r.json()["detail"].startswith("request body of more than 1048576 bytes exceeds")
 
 
 def test_serve_refuses_a_public_address_without_a_token(capsys, monkeypatch):

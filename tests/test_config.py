@@ -36,6 +36,8 @@ def test_values_are_read_and_ints_are_accepted_for_floats(tmp_path):
     ({"camera": {"mount_xyz_m": [0, "x", 0]}}, r"camera\.mount_xyz_m\[1\] = 'x'"),
     ({"stereo": {"backend": "raft"}}, r"stereo\.backend = 'raft': expected 'sgbm' or 'emcstereo'"),
     ({"stereo": {"max_disp": 190}}, r"stereo\.max_disp = 190: expected a positive multiple of 4"),
+    ({"stereo": {"backend": "emcstereo"}}, r"stereo\.weights = '': expected a checkpoint path when stereo\.backend = 'emcstereo'"),
+    ({"camera": {"resolution": "HD720"}}, r"camera\.resolution: unknown option; \[camera\] takes calibration, "),
     ({"api": {"port": 70000}}, r"api\.port = 70000"),
     ({"api": {"prot": 8080}}, r"api\.prot: unknown option; \[api\] takes .*port"),
     ({"mavlnk": {}}, r"\[mavlnk\]: unknown section"),
@@ -63,7 +65,9 @@ def test_file_errors_name_the_file(tmp_path):
 
 def test_deploy_examples_load_with_the_values_they_document():
     onboard = load_config(DEPLOY / "onboard.toml")
-    assert (onboard.camera.resolution, onboard.mavlink.url, onboard.mavlink.baud) == ("HD720", "/dev/ttyTHS1", 921600)
+    assert onboard.camera.source == "zed:/dev/zedmini:HD720"  # the udev rule's name for the ZED Mini
+    assert (onboard.mavlink.url, onboard.mavlink.baud) == ("/dev/ttyTHS1", 921600)
+    assert onboard.stereo.backend == "emcstereo" and onboard.stereo.weights.endswith(".pth")
     assert onboard.mavlink.target_as_obstacle is False and onboard.api.enabled is True
     serve = load_config(DEPLOY / "serve.toml")
     assert serve.api.host == "0.0.0.0" and serve.mavlink.enabled is False and serve.api.retry_after_s == 2

@@ -1,11 +1,16 @@
-"""POST /estimate and POST /disparity: a multipart stereo pair in, cut points or disparity out."""
+"""POST /estimate and POST /disparity: a multipart stereo pair in, cut points or disparity out.
+
+Both take the same pair and camera fields (`stereo_request`, a dependency, so the OpenAPI
+document describes them once and alike); /estimate adds a mask, /disparity an output format.
+"""
 from __future__ import annotations
 
 import io
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, status
@@ -13,10 +18,10 @@ from starlette.concurrency import run_in_threadpool
 
 from api.auth import require_token
 from api.estimator import CameraSpec
-from api.limits import check_content_length, decode_image, decode_mask, read_upload
+from api.limits import decode_image, decode_mask, read_upload
 from api.schemas import ErrorBody, EstimateResult
 
-router = APIRouter(dependencies=[Depends(require_token), Depends(check_content_length)])
+router = APIRouter(dependencies=[Depends(require_token)])
 
 ERRORS = {code: {"model": ErrorBody} for code in (401, 413, 415, 422, 503)}
 Backend = Literal["sgbm", "emcstereo"]
@@ -26,8 +31,19 @@ def _unprocessable(message: str) -> HTTPException:
     return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, message)
 
 
-async def _load_calibration(upload: UploadFile, resolution: str | None, size: tuple[int, int], max_bytes: int):
-    """A `camera.StereoCalibration` from an uploaded file of any format `camera` reads."""
+@dataclass(frozen=True)
+class StereoRequest:
+    """A decoded upload: RGB `uint8 H×W×3` pair, its camera, and the stereo options asked for."""
+
+    left: np.ndarray
+    right: np.ndarray
+    camera: CameraSpec
+    backend: str | None
+    max_disp: int | None
+
+
+async def _load_calibration(upload: UploadFile, resolution: str | None, size: tuple[int, int], max_bytes: int) -> Any:
+    """A `camera.StereoCalibration` from an uploaded file of any format `camera` reads; 422 when it cannot be read."""
     from camera import load_calibration
 
     data = await read_upload(upload, "calibration", max_bytes)
@@ -39,33 +55,53 @@ async def _load_calibration(upload: UploadFile, resolution: str | None, size: tu
             return await run_in_threadpool(load_calibration, path, resolution, size=size)
         except ValueError as exc:
             raise _unprocessable(f"calibration: {str(exc).replace(str(path), name)}") from None
+        except Exception as exc:  # noqa: BLE001 - an uploaded file is untrusted: a parser crash on it is bad input too
+            raise _unprocessable(f"calibration: {name}: not a readable calibration file "
+                                 f"({type(exc).__name__} in its parser)") from None
 
 
-async def _pair(request: Request, left: UploadFile, right: UploadFile, calibration: UploadFile | None,
-                resolution: str | None, focal_px: float | None, baseline_m: float | None):
-    """Decoded RGB pair and its `CameraSpec`; 4xx with a message for anything unusable."""
+async def _decoded(upload: UploadFile, field: str, settings: Any) -> np.ndarray:
+    """An uploaded image as RGB `uint8 H×W×3`, read and decoded off the event loop (4xx when unusable)."""
+    data = await read_upload(upload, field, settings.max_upload_bytes)
+    return await run_in_threadpool(decode_image, data, field, settings.max_pixels)
+
+
+async def stereo_request(
+    request: Request,
+    left: Annotated[UploadFile, File(description="left image, PNG or JPEG")],
+    right: Annotated[UploadFile, File(description="right image, PNG or JPEG, the left one's size")],
+    calibration: Annotated[UploadFile | None, File(
+        description="ZED .conf, OpenCV YAML/JSON/XML, depthai JSON or KITTI calib; the pair is raw and gets "
+                    "rectified (instead of focal_px + baseline_m)")] = None,
+    resolution: Annotated[str | None, Form(description="ZED .conf files: 2K, FHD, HD or VGA")] = None,
+    focal_px: Annotated[float | None, Form(gt=0, allow_inf_nan=False, description=(
+        "rectified pair: focal length, pixels at the uploaded size (with baseline_m)"))] = None,
+    baseline_m: Annotated[float | None, Form(gt=0, allow_inf_nan=False, description=(
+        "rectified pair: baseline, metres (with focal_px)"))] = None,
+    backend: Annotated[Backend | None, Form(description="stereo backend; the server's default when left out")] = None,
+    max_disp: Annotated[int | None, Form(gt=0, le=512, description="disparity search range, pixels")] = None,
+) -> StereoRequest:
+    """The decoded pair and its `CameraSpec`; 4xx with a message for anything unusable."""
     settings = request.app.state.settings
-    limit = settings.max_upload_bytes
-    left_img = decode_image(await read_upload(left, "left", limit), "left", settings.max_pixels)
-    right_img = decode_image(await read_upload(right, "right", limit), "right", settings.max_pixels)
+    left_img = await _decoded(left, "left", settings)
+    right_img = await _decoded(right, "right", settings)
     if left_img.shape != right_img.shape:
         raise _unprocessable(f"left is {left_img.shape[1]}×{left_img.shape[0]} px but right is "
                              f"{right_img.shape[1]}×{right_img.shape[0]} px; a stereo pair must match")
-    has_fb = focal_px is not None or baseline_m is not None
-    if calibration is not None and has_fb:
+    if calibration is not None and (focal_px is not None or baseline_m is not None):
         raise _unprocessable("give either a calibration file or focal_px + baseline_m, not both")
     if calibration is not None:
         size = (left_img.shape[1], left_img.shape[0])
-        camera = CameraSpec(calibration=await _load_calibration(calibration, resolution, size, limit))
+        camera = CameraSpec(calibration=await _load_calibration(calibration, resolution, size, settings.max_upload_bytes))
     elif focal_px is not None and baseline_m is not None:
         camera = CameraSpec(focal_px=focal_px, baseline_m=baseline_m)
     else:
         raise _unprocessable("missing camera: upload a calibration file (with resolution for ZED files), "
                              "or give focal_px and baseline_m of the rectified pair")
-    return left_img, right_img, camera
+    return StereoRequest(left_img, right_img, camera, backend, max_disp)
 
 
-async def _infer(request: Request, func, *args, **kwargs):
+async def _infer(request: Request, func: Any, *args: Any, **kwargs: Any) -> Any:
     """Run blocking `func` in the thread pool inside an inference slot; ValueError → 422."""
     state = request.app.state
     async with state.slots.slot():
@@ -79,28 +115,26 @@ async def _infer(request: Request, func, *args, **kwargs):
         return out
 
 
-@router.post("/estimate", response_model=EstimateResult, responses=ERRORS,
+@router.post("/estimate", response_model=EstimateResult, response_model_exclude_unset=True, responses=ERRORS,
              summary="Cut points of the branches in a stereo pair")
 async def post_estimate(
     request: Request,
-    left: Annotated[UploadFile, File(description="left image, PNG or JPEG")],
-    right: Annotated[UploadFile, File(description="right image, same size")],
-    mask: Annotated[UploadFile | None, File(description="instance-id PNG (0 = background) or binary mask")] = None,
-    calibration: Annotated[UploadFile | None, File(description="ZED .conf, OpenCV YAML/JSON, depthai JSON or KITTI calib")] = None,
-    resolution: Annotated[str | None, Form(description="ZED files: 2K, FHD, HD or VGA")] = None,
-    focal_px: Annotated[float | None, Form(gt=0, description="rectified focal length, pixels")] = None,
-    baseline_m: Annotated[float | None, Form(gt=0, description="baseline, metres")] = None,
-    backend: Annotated[Backend | None, Form()] = None,
-    max_disp: Annotated[int | None, Form(gt=0, le=512, description="disparity search range, pixels")] = None,
+    pair: Annotated[StereoRequest, Depends(stereo_request)],
+    mask: Annotated[UploadFile | None, File(description=(
+        "instance-id PNG (0 = background, 8 or 16 bit) or binary mask, the left image's size; "
+        "the server's segmenter runs when left out"))] = None,
 ) -> dict:
     """Stereo pair (+ optional mask) and camera → the `branchrange/v1` result."""
     settings = request.app.state.settings
-    left_img, right_img, camera = await _pair(request, left, right, calibration, resolution, focal_px, baseline_m)
     mask_arr = None
     if mask is not None:
-        mask_arr = decode_mask(await read_upload(mask, "mask", settings.max_upload_bytes), "mask", settings.max_pixels)
-    return await _infer(request, request.app.state.estimator.estimate, left_img, right_img, mask_arr, camera,
-                        backend=backend, max_disp=max_disp)
+        data = await read_upload(mask, "mask", settings.max_upload_bytes)
+        mask_arr = await run_in_threadpool(decode_mask, data, "mask", settings.max_pixels)
+        if mask_arr.shape != pair.left.shape[:2]:
+            raise _unprocessable(f"mask is {mask_arr.shape[1]}×{mask_arr.shape[0]} px but the images are "
+                                 f"{pair.left.shape[1]}×{pair.left.shape[0]} px; it must match the left image")
+    return await _infer(request, request.app.state.estimator.estimate, pair.left, pair.right, mask_arr, pair.camera,
+                        backend=pair.backend, max_disp=pair.max_disp)
 
 
 def _encode_kitti_png(disparity: np.ndarray) -> bytes:
@@ -117,20 +151,12 @@ def _encode_kitti_png(disparity: np.ndarray) -> bytes:
              response_class=Response, summary="Disparity of a stereo pair (KITTI PNG or .npy)")
 async def post_disparity(
     request: Request,
-    left: Annotated[UploadFile, File()],
-    right: Annotated[UploadFile, File()],
-    calibration: Annotated[UploadFile | None, File()] = None,
-    resolution: Annotated[str | None, Form()] = None,
-    focal_px: Annotated[float | None, Form(gt=0)] = None,
-    baseline_m: Annotated[float | None, Form(gt=0)] = None,
-    backend: Annotated[Backend | None, Form()] = None,
-    max_disp: Annotated[int | None, Form(gt=0, le=512)] = None,
+    pair: Annotated[StereoRequest, Depends(stereo_request)],
     format: Annotated[Literal["png", "npy"], Form(description="png: KITTI 16-bit (value/256 px); npy: float32")] = "png",
 ) -> Response:
     """Disparity of the (rectified) left view in pixels; KITTI PNG by default, `.npy` on request."""
-    left_img, right_img, camera = await _pair(request, left, right, calibration, resolution, focal_px, baseline_m)
-    disparity = await _infer(request, request.app.state.estimator.disparity, left_img, right_img, camera,
-                             backend=backend, max_disp=max_disp)
+    disparity = await _infer(request, request.app.state.estimator.disparity, pair.left, pair.right, pair.camera,
+                             backend=pair.backend, max_disp=pair.max_disp)
     if format == "npy":
         buffer = io.BytesIO()
         np.save(buffer, disparity.astype(np.float32))

@@ -40,20 +40,21 @@ def get_health(request: Request) -> dict:
     return body
 
 
-@router.get("/version", response_model=Version)
+@router.get("/version", response_model=Version, summary="Package, result-schema and API versions")
 def get_version() -> dict:
     """Package, result-schema and API versions."""
     return {"name": "branchrange", "version": package_version(), "schema": SCHEMA_ID, "api": API_VERSION}
 
 
 @router.get("/metrics", response_class=PlainTextResponse, dependencies=[Depends(require_token)],
-            summary="Prometheus metrics (text format 0.0.4)")
+            responses={401: {"model": ErrorBody}}, summary="Prometheus metrics (text format 0.0.4)")
 def get_metrics(request: Request) -> PlainTextResponse:
     """Requests, latencies, frames and errors in the Prometheus text format."""
     return PlainTextResponse(request.app.state.metrics.render(), media_type="text/plain; version=0.0.4")
 
 
-@router.get("/latest", response_model=EstimateResult, dependencies=[Depends(require_token)],
+@router.get("/latest", response_model=EstimateResult, response_model_exclude_unset=True,
+            dependencies=[Depends(require_token)],
             responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}}, summary="Daemon mode: the newest result")
 def get_latest(request: Request) -> dict:
     """The newest frame's result in daemon mode; 404 outside it or before the first frame."""
