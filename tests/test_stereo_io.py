@@ -238,6 +238,11 @@ def test_write_rgb_rejects_float_images(tmp_path: Path) -> None:
         write_rgb(tmp_path / "f.png", np.zeros((2, 2, 3), np.float32))
 
 
+def test_write_rgb_names_an_extension_without_encoder(tmp_path: Path) -> None:
+    with pytest.raises(ArrayFormatError, match=r"no encoder for the extension '\.xyz'"):
+        write_rgb(tmp_path / "f.xyz", np.zeros((2, 2, 3), np.uint8))
+
+
 # ---------------------------------------------------------------- Middlebury 2001
 @pytest.mark.parametrize(("scene", "scale", "levels"), [("tsukuba", 16, {0, 80, 96, 112, 128, 160, 176, 224}), ("venus", 8, None)])
 def test_middlebury_palette_ground_truth_becomes_grey_over_scale(shared_data: Path, scene: str, scale: int, levels: set | None) -> None:

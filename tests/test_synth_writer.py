@@ -153,10 +153,12 @@ def test_write_dataset_rejects_bad_arguments(tmp_path):
 def test_synth_command_writes_dataset_and_preview(tmp_path, capsys):
     preview = tmp_path / "preview.png"
     status = emcstereo(["synth", "--out", str(tmp_path / "set"), "--scenes", "2", "--seed", "1", "--size", "96x64",
-                        "--preview", str(preview), "--quiet"])
+                        "--leaf-shape", "needles", "--preview", str(preview), "--quiet"])
     assert status == 0
     assert "wrote 2 scenes" in capsys.readouterr().out
     assert (tmp_path / "set" / "left image" / "left_1.png").is_file()
+    assert json.loads((tmp_path / "set" / "branches" / "branches_1.json").read_text())["leaf_shape"] == "needles"
+    assert json.loads((tmp_path / "set" / "synth.json").read_text())["options"]["leaf_shape"] == "needles"
     picture = read_rgb(preview)
     assert picture.shape == (2 * 64, 4 * 96, 3)
 
@@ -170,3 +172,18 @@ def test_synth_command_rejects_malformed_size(capsys):
     with pytest.raises(SystemExit):
         emcstereo(["synth", "--preview", "x.png", "--size", "640by360"])
     assert "WIDTHxHEIGHT" in capsys.readouterr().err
+
+
+def test_synth_command_names_an_unwritable_output(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    with pytest.raises(SystemExit, match=r"cannot write the dataset under --out .*a_file"):
+        emcstereo(["synth", "--out", str(blocker / "set"), "--scenes", "1", "--size", "64x64", "--quiet"])
+    with pytest.raises(SystemExit, match=r"--preview .*p\.xyz: no image format"):
+        emcstereo(["synth", "--preview", str(tmp_path / "p.xyz")])
+
+
+def test_synth_command_rejects_an_oversized_image(capsys):
+    with pytest.raises(SystemExit):
+        emcstereo(["synth", "--preview", "x.png", "--size", "100000x360"])
+    assert "at most 4096 px" in capsys.readouterr().err

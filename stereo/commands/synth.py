@@ -6,11 +6,16 @@ import re
 import time
 from pathlib import Path
 
-from stereo.io import write_rgb
+import cv2
+
+from stereo.io import StereoIOError, write_rgb
 from stereo.synth import SynthCamera, SynthOptions, render_scene
-from stereo.synth.options import FOLIAGE, POSES
+from stereo.synth.options import FOLIAGE, LEAF_SHAPES, POSES
 from stereo.synth.preview import preview_image
 from stereo.synth.writer import scene_seed, write_dataset
+
+#: Largest side accepted (px): a 2×2-supersampled 4096² render already needs a few GB of memory.
+MAX_SIDE_PX = 4096
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -21,6 +26,8 @@ def parse_size(text: str) -> tuple[int, int]:
     width, height = int(match.group(1)), int(match.group(2))
     if width < 64 or height < 64:
         raise argparse.ArgumentTypeError(f"size {text!r} is too small: width and height must be at least 64 px")
+    if width > MAX_SIDE_PX or height > MAX_SIDE_PX:
+        raise argparse.ArgumentTypeError(f"size {text!r} is too large: width and height must be at most {MAX_SIDE_PX} px")
     return width, height
 
 
@@ -28,7 +35,8 @@ def _options(args: argparse.Namespace) -> SynthOptions:
     """The generator options the flags ask for; an out-of-range value exits with its message."""
     try:
         return SynthOptions(cut_offset_m=args.cut_offset, supersample=args.supersample, pose=args.pose,
-                            foliage=args.foliage, noise_std=args.noise, background_trees=not args.no_background_trees)
+                            foliage=args.foliage, leaf_shape=args.leaf_shape, noise_std=args.noise,
+                            background_trees=not args.no_background_trees)
     except ValueError as exc:
         raise SystemExit(f"emcstereo synth: {exc}") from exc
 
@@ -39,14 +47,20 @@ def _run(args: argparse.Namespace) -> int:
     if args.scenes < 1 or args.workers < 1 or args.preview_scenes < 1:
         raise SystemExit(f"emcstereo synth: --scenes ({args.scenes}), --workers ({args.workers}) and "
                          f"--preview-scenes ({args.preview_scenes}) must be at least 1")
+    if args.preview is not None and not cv2.haveImageWriter(str(args.preview)):
+        raise SystemExit(f"emcstereo synth: --preview {args.preview}: no image format for the extension "
+                         f"{args.preview.suffix!r}; use .png")
     width, height = args.size
     camera = SynthCamera.zed_mini(width, height)
     options = _options(args)
     if args.out is not None:
         start = time.perf_counter()
-        summary = write_dataset(args.out, args.scenes, args.seed, width, height, camera=camera, options=options,
-                                exr_pixel_type="half" if args.exr_half else "float", workers=args.workers,
-                                progress=not args.quiet)
+        try:
+            summary = write_dataset(args.out, args.scenes, args.seed, width, height, camera=camera, options=options,
+                                    exr_pixel_type="half" if args.exr_half else "float", workers=args.workers,
+                                    progress=not args.quiet)
+        except OSError as exc:
+            raise SystemExit(f"emcstereo synth: cannot write the dataset under --out {args.out}: {exc}") from exc
         seconds = time.perf_counter() - start
         counts = ", ".join(f"{name} {len(indices)}" for name, indices in summary.splits.items())
         print(f"wrote {summary.scenes} scenes ({width}×{height}, f = {camera.focal_px:g} px, B = {camera.baseline_m} m) "
@@ -54,8 +68,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.preview is not None:
         count = min(args.preview_scenes, args.scenes)
         scenes = [render_scene(scene_seed(args.seed, i), camera, **vars(options)) for i in range(count)]
-        Path(args.preview).parent.mkdir(parents=True, exist_ok=True)
-        write_rgb(args.preview, preview_image(scenes))
+        try:
+            args.preview.parent.mkdir(parents=True, exist_ok=True)
+            write_rgb(args.preview, preview_image(scenes))
+        except (OSError, StereoIOError) as exc:
+            raise SystemExit(f"emcstereo synth: cannot write --preview {args.preview}: {exc}") from exc
         print(f"wrote preview of scenes 0..{count - 1} to {args.preview} (left | right | disparity | mask, cut points ringed)")
     return 0
 
@@ -75,6 +92,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         help="truth cut point: metres from the branch base along its axis (default 0.05)")
     parser.add_argument("--pose", choices=POSES, default="auto", help="camera pitch class (default: drawn per scene)")
     parser.add_argument("--foliage", choices=FOLIAGE, default="auto", help="leaves (default: drawn per scene)")
+    parser.add_argument("--leaf-shape", choices=LEAF_SHAPES, default="broad",
+                        help="broad leaf blades, conifer needle clusters, or auto: drawn per scene (default broad)")
     parser.add_argument("--noise", type=float, default=1.0, help="sensor noise std in grey levels (default 1)")
     parser.add_argument("--no-background-trees", action="store_true", help="leave out mid-ground trees")
     parser.add_argument("--exr-half", action="store_true", help="store depth as fp16 like the UE5 originals")

@@ -57,7 +57,10 @@ def write_rgb(path: str | Path, image: np.ndarray) -> None:
             f"cannot write {path}: expected uint8 H×W×3 RGB or H×W grey, got {image.dtype} of shape {image.shape}"
         )
     bgr = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    ok, encoded = cv2.imencode(path.suffix or ".png", bgr)
+    try:
+        ok, encoded = cv2.imencode(path.suffix or ".png", bgr)
+    except cv2.error:  # OpenCV raises rather than returning False for an extension it has no encoder for
+        ok = False
     if not ok:
         raise ArrayFormatError(f"cannot write {path}: OpenCV has no encoder for the extension {path.suffix!r}")
     path.write_bytes(encoded.tobytes())

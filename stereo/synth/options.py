@@ -6,6 +6,7 @@ from typing import Any
 
 POSES = ("auto", "upward", "parallel", "downward")
 FOLIAGE = ("auto", "bare", "sparse", "dense")
+LEAF_SHAPES = ("broad", "needles", "auto")
 
 
 @dataclass(frozen=True)
@@ -19,6 +20,9 @@ class SynthOptions:
       (depth, disparity, masks) always comes from the single ray through each pixel centre.
     - `pose`: camera pitch class ('upward', 'parallel', 'downward'), or 'auto' to draw one.
     - `foliage`: leaves on the twigs ('bare', 'sparse', 'dense'), or 'auto' to draw one.
+    - `leaf_shape`: 'broad' leaf blades, 'needles' (clusters of conifer needles, thin tapered
+      cylinders fanning out from the twigs), or 'auto' to draw one per scene. The default
+      'broad' draws nothing extra, so scenes of a seed stay as they were before the option.
     - `background_trees`: mid-ground trees 4.5–9 m away (mask id 0, not pruning targets).
     - `noise_std`: sensor noise, standard deviation in 8-bit grey levels, drawn per view.
     - `view_gain_jitter`: largest relative gain difference per colour channel between the views.
@@ -30,6 +34,7 @@ class SynthOptions:
     supersample: int = 2
     pose: str = "auto"
     foliage: str = "auto"
+    leaf_shape: str = "broad"
     background_trees: bool = True
     noise_std: float = 1.0
     view_gain_jitter: float = 0.02
@@ -44,6 +49,8 @@ class SynthOptions:
             raise ValueError(f"pose must be one of {POSES}, got {self.pose!r}")
         if self.foliage not in FOLIAGE:
             raise ValueError(f"foliage must be one of {FOLIAGE}, got {self.foliage!r}")
+        if self.leaf_shape not in LEAF_SHAPES:
+            raise ValueError(f"leaf_shape must be one of {LEAF_SHAPES}, got {self.leaf_shape!r}")
         if not 0.0 <= self.noise_std <= 20.0:
             raise ValueError(f"noise_std must lie in [0, 20] grey levels, got {self.noise_std}")
         if int(self.threads) != self.threads or not 1 <= self.threads <= 3:

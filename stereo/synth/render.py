@@ -35,6 +35,7 @@ class SyntheticScene:
     - `depth_m`: float32 `H×W` metres (z, not range); inf on sky.
     - `instance_mask`: uint16 `H×W`; ids as in `stereo.synth.truth`.
     - `branches`: the pruning-target branches, ids 1..N, in the left camera frame.
+    - `pose`, `foliage`, `leaf_shape`: the classes drawn for the scene ('auto' resolved).
     """
 
     left: np.ndarray
@@ -47,6 +48,7 @@ class SyntheticScene:
     seed: int
     pose: str
     foliage: str
+    leaf_shape: str
     cut_offset_m: float
 
 
@@ -145,4 +147,4 @@ def render_scene(seed: int, camera: SynthCamera | None = None, **options: object
     depth_m = depth.astype(np.float32)
     return SyntheticScene(left, right, camera.disparity_from_depth(depth), depth_m, ids,
                           _with_visibility(scene.branches, ids), camera, int(seed), scene.pose, scene.foliage,
-                          opts.cut_offset_m)
+                          scene.leaf_shape, opts.cut_offset_m)

@@ -52,6 +52,7 @@ class SceneDescription:
 
     pose: str
     foliage: str
+    leaf_shape: str
     cones: tuple[Cone, ...]
     leaves: tuple[Leaf, ...]
     layers: tuple[PlaneLayer, ...]
@@ -92,6 +93,8 @@ class _SceneBuilder:
             rng.choice(["upward", "parallel", "downward"], p=[0.35, 0.35, 0.30]))
         self.foliage = options.foliage if options.foliage != "auto" else str(
             rng.choice(["bare", "sparse", "dense"], p=[0.4, 0.35, 0.25]))
+        self.leaf_shape = options.leaf_shape if options.leaf_shape != "auto" else str(
+            rng.choice(["broad", "needles"]))
         pitch = np.radians(rng.uniform(*_PITCH_DEG[self.pose]))
         self.frame = _Frame(pitch, np.radians(rng.uniform(-6.0, 6.0)))
         self.cones: list[Cone] = []
@@ -230,19 +233,28 @@ class _SceneBuilder:
                             tile, ids, depth=1)
 
     def _grow_leaves(self) -> None:
-        """Leaf blades along every recorded twig, angled outward (about 50°) and roughly facing up."""
+        """Leaves at random points of every recorded twig: blades, or needle clusters when `leaf_shape` says so."""
         if self.foliage == "bare" or not self.leafy_twigs:
             return
         rng = self.rng
         start, axis, length, leaf_id = (np.array(column) for column in zip(*self.leafy_twigs))
         low, high = (1, 4) if self.foliage == "sparse" else (3, 8)
         twig = np.repeat(np.arange(len(length)), rng.integers(low, high, size=len(length)))
-        n = twig.size
-        start, axis, length = start[twig], axis[twig], length[twig]
-        along, half_length = rng.uniform(0.2, 1.0, n), rng.uniform(0.025, 0.055, n)
+        along = rng.uniform(0.2, 1.0, twig.size)
+        attach = start[twig] + (along * length[twig])[:, None] * axis[twig]
+        grow = self._needle_clusters if self.leaf_shape == "needles" else self._leaf_blades
+        grow(attach, axis[twig], leaf_id[twig])
+        self.leafy_twigs = []
+
+    def _leaf_blades(self, attach: np.ndarray, axis: np.ndarray, leaf_id: np.ndarray) -> None:
+        """Leaf blades at world points `attach` `(n, 3)` of twigs with unit `axis` `(n, 3)`, angled outward
+        (about 50°) and roughly facing up."""
+        rng = self.rng
+        n = attach.shape[0]
+        half_length = rng.uniform(0.025, 0.055, n)
         side = unit_rows(cross3(axis, rng.normal(size=(n, 3))))
         e1 = unit_rows(np.cos(np.radians(50)) * axis + np.sin(np.radians(50)) * side + rng.normal(0, 0.3, (n, 3)))
-        centre = start + (along * length)[:, None] * axis + (1.1 * half_length)[:, None] * e1
+        centre = attach + (1.1 * half_length)[:, None] * e1
         up = unit_rows(UP - (e1 @ UP)[:, None] * e1)
         normal = unit_rows(cross3(e1, rng.normal(size=(n, 3))))
         normal = unit_rows(normal + 1.2 * up * np.sign(rowdot(normal, up) + 1e-9)[:, None])
@@ -252,8 +264,27 @@ class _SceneBuilder:
         centre_cam, normal_cam, e1_cam = (self.frame.point(v) for v in (centre, normal, e1))
         for i in np.flatnonzero(centre_cam[:, 2] >= 0.2 + half_length):
             self.leaves.append(Leaf(centre_cam[i], normal_cam[i], e1_cam[i], float(half_length[i]), float(widths[i]),
-                                    colour[i], int(leaf_id[twig[i]])))
-        self.leafy_twigs = []
+                                    colour[i], int(leaf_id[i])))
+
+    def _needle_clusters(self, attach: np.ndarray, axis: np.ndarray, leaf_id: np.ndarray) -> None:
+        """A tuft of 5–10 needles at each world point `attach` `(n, 3)`: thin cones 2–6 cm long, 1–1.6 mm
+        thick at the base, fanning 15–60° out of the twig direction `axis` `(n, 3)`, with the leaves' mask id."""
+        rng = self.rng
+        n = attach.shape[0]
+        cluster = np.repeat(np.arange(n), rng.integers(5, 11, size=n))
+        m = cluster.size
+        spread = np.radians(rng.uniform(15.0, 60.0, m))
+        side = unit_rows(cross3(axis[cluster], rng.normal(size=(m, 3))))
+        direction = unit_rows(np.cos(spread)[:, None] * axis[cluster] + np.sin(spread)[:, None] * side)
+        length = rng.uniform(0.02, 0.06, n)[cluster] * rng.uniform(0.85, 1.15, m)
+        radius = rng.uniform(0.0005, 0.0008, n)[cluster]
+        tints = np.clip(self.leaf_colour * rng.uniform(0.7, 1.1, (n, 1)), 0.02, 1.0)
+        materials = [BarkMaterial(self.detail, 1, 0.02, tint) for tint in tints]
+        in_front = self.frame.point(attach)[cluster, 2] >= 0.2 + length
+        for i in np.flatnonzero(in_front):
+            c = cluster[i]
+            self._cone(attach[c], direction[i], float(length[i]), float(radius[i]), 0.3 * float(radius[i]),
+                       materials[c], int(leaf_id[c]))
 
     def _main_tree(self) -> tuple[list[BranchTruth], float]:
         """Trunk, branches, twigs and leaves of the tree being pruned; returns the truth and ground depth."""
@@ -446,7 +477,7 @@ class _SceneBuilder:
         canopy = self._canopy()
         if canopy is not None:
             layers.append(canopy)
-        return SceneDescription(self.pose, self.foliage, tuple(tree_cones + self.cones), tuple(tree_leaves),
+        return SceneDescription(self.pose, self.foliage, self.leaf_shape, tuple(tree_cones + self.cones), tuple(tree_leaves),
                                 tuple(layers), sky, light, tuple(branches), float(self.rng.uniform(0.36, 0.5)),
                                 self.detail)
 

@@ -3,7 +3,7 @@
 Instance ids in the 16-bit masks: 0 is background (sky, ground, far foliage, mid-ground trees),
 1..N are the pruning-target branches in `branches` order, and the top of the range is reserved:
 `TRUNK_ID` (65535) the main trunk, `TWIG_ID` (65534) the thin twigs growing from the branches,
-`LEAF_ID` (65533) their leaves. A branch's own pixels are its tapered axis cylinder only, so a
+`LEAF_ID` (65533) their leaves or needles. A branch's own pixels are its tapered axis cylinder only, so a
 line fit through them recovers its axis.
 """
 from __future__ import annotations

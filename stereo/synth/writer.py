@@ -115,6 +115,7 @@ def scene_record(scene: SyntheticScene, index: int, dataset_seed: int | None) ->
         "frame": "rectified left camera; metres; x right, y down, z forward",
         "pose": scene.pose,
         "foliage": scene.foliage,
+        "leaf_shape": scene.leaf_shape,
         "cut_offset_m": scene.cut_offset_m,
         "instance_ids": {"background": 0, "branches": "1..N (branch id)", "trunk": TRUNK_ID, "twig": TWIG_ID,
                          "leaf": LEAF_ID},
