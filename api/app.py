@@ -28,7 +28,8 @@ class LiveStatus(Protocol):
         ...
 
     def health(self) -> dict[str, Any]:
-        """`{"camera": {...}, "mavlink": {...} | None}` with at least `camera["lost"]`."""
+        """`{"camera": {...}, "mavlink": {...} | None, "model": {...}}` with at least `camera["lost"]`
+        ("model", optional, describes the daemon's stereo backend)."""
         ...
 
 

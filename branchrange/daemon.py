@@ -7,7 +7,9 @@ newest frame always wins and a slow pipeline never works on old frames. The loop
 - is the camera watchdog: no frame for `camera.stall_timeout_s` (or the source saying it is lost)
   marks the camera lost (HEARTBEAT CRITICAL, results go stale → "no target"); after three stall
   timeouts it closes the source and opens a fresh one, and forgets tracked branches;
-- logs a status line (fps, latency, drops, camera, link) every `log.status_interval_s`.
+- logs a status line (fps, latency, drops, camera, link) every `log.status_interval_s`;
+- warns when a result is already older than `mavlink.max_result_age_s` when it is published: the
+  relay then reports "no target" for it, so a pipeline that slow never gives the autopilot one.
 `stop()` (the SIGTERM/SIGINT handler calls it) ends the loop within one stall timeout.
 """
 from __future__ import annotations
@@ -53,6 +55,7 @@ class Daemon:
         self.rejected = 0
         self.reopens = 0
         self.dropped = 0
+        self.late = 0  # results older than mavlink.max_result_age_s when published
         self._dropped_by_closed_sources = 0
         self._latencies: list[float] = []
 
@@ -61,10 +64,12 @@ class Daemon:
         return self._latest
 
     def health(self) -> dict[str, Any]:
-        """Camera and link state (for GET /health)."""
+        """Model, camera and link state (for GET /health)."""
         camera = {"source": self.cfg.camera.source, "lost": self.camera_lost, "frames": self.frames,
-                  "dropped": self.dropped, "corrupt": self.corrupt, "reopens": self.reopens}
-        return {"camera": camera, "mavlink": None if self.relay is None else self.relay.link_state()}
+                  "dropped": self.dropped, "corrupt": self.corrupt, "reopens": self.reopens, "late": self.late}
+        model = {"loaded": True, "backend": self.cfg.stereo.backend, "max_disp": self.cfg.stereo.max_disp}
+        return {"model": model, "camera": camera,
+                "mavlink": None if self.relay is None else self.relay.link_state()}
 
     def stop(self) -> None:
         """Ask the loop to finish (safe from a signal handler or another thread)."""
@@ -95,6 +100,7 @@ class Daemon:
             return
         if self.relay is not None:
             self.relay.publish(result, captured_at=received)
+            self._check_age(self._clock() - received)
         if self._results is not None:
             self._results.write(result_line(result))
         self._latest = result
@@ -104,13 +110,23 @@ class Daemon:
         if self.metrics is not None:
             self.metrics.observe_frame(latency, "daemon")
 
+    def _check_age(self, age_s: float) -> None:
+        """Count a result that was stale on publishing; warn on the first one."""
+        if age_s <= self.cfg.mavlink.max_result_age_s:
+            return
+        self.late += 1
+        if self.late == 1:
+            log.warning("frame took %.0f ms, more than mavlink.max_result_age_s = %.0f ms: its result goes out as "
+                        "'no target'; a faster stereo backend or smaller max_disp is needed for the autopilot to "
+                        "get targets", 1000 * age_s, 1000 * self.cfg.mavlink.max_result_age_s)
+
     def _status(self, since: float, now: float, frames_then: int) -> None:
         fps = (self.frames - frames_then) / max(now - since, 1e-9)
         latency = 1000 * sum(self._latencies) / len(self._latencies) if self._latencies else 0.0
         self._latencies.clear()
         link = "off" if self.relay is None else ("up" if self.relay.link_state()["connected"] else "down")
-        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d corrupt=%d camera=%s link=%s",
-                 self.frames, fps, latency, self.dropped, self.corrupt,
+        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d corrupt=%d late=%d camera=%s link=%s",
+                 self.frames, fps, latency, self.dropped, self.corrupt, self.late,
                  "lost" if self.camera_lost else "ok", link)
 
     def run(self, max_frames: int | None = None) -> int:

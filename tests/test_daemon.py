@@ -2,15 +2,17 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
-import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
 from collections import defaultdict
 
+import httpx
 import pytest
 
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
@@ -139,7 +141,8 @@ def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_rec
         print(" ", r.msg.to_dict())
 
 
-def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording):
+def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
+    caplog.set_level(logging.INFO, logger="branchrange.daemon")
     peer = LoopbackPeer()
     cfg = Config(camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.3),
                  stereo=StereoConfig(max_disp=64), log=LogConfig(status_interval_s=0.5),
@@ -173,6 +176,12 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording):
     statuses = [h.msg.system_status for h in of_type(peer.received, "HEARTBEAT")]
     assert 5 in statuses, "no CRITICAL heartbeat while the camera was gone"
     assert statuses[-1] == 4 and daemon.camera_lost is False
+    # a status line every log.status_interval_s (0.5 s over a run of several seconds), one at the end
+    status_lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("status ")]
+    assert len(status_lines) >= 4, status_lines
+    assert any("camera=lost" in line for line in status_lines) and "link=up" in status_lines[-1]
+    last = dict(field.split("=") for field in status_lines[-1].split()[1:])
+    assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
 
 
 def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):
@@ -244,3 +253,81 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
               for r in [json.loads(line)] for b in r["branches"] if b["id"] == r["target_id"]}
     assert distances and set(distances) <= logged  # fresh results resumed, not a replay of old ones
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == daemon.frames  # one line per frame
+
+
+def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, caplog):
+    """A pipeline slower than mavlink.max_result_age_s never gives the autopilot a target: say so."""
+    caplog.set_level(logging.WARNING, logger="branchrange.daemon")
+    peer = LoopbackPeer()
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64),
+                 mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{peer.port}", max_result_age_s=0.001))
+    relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="fast"), pipeline=pipeline, relay=relay)
+    try:
+        assert daemon.run(max_frames=3) == 3
+        got = peer.collect(0.3)
+    finally:
+        daemon.close()
+        peer.close()
+    assert daemon.late == 3 and daemon.health()["camera"]["late"] == 3
+    warnings = [r.getMessage() for r in caplog.records if "mavlink.max_result_age_s" in r.getMessage()]
+    assert len(warnings) == 1 and "'no target'" in warnings[0]
+    dists = of_type(got, "DISTANCE_SENSOR")
+    assert dists and all(d.msg.current_distance == 1001 for d in dists)  # the stale results never went out
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, tmp_path):
+    peer = LoopbackPeer()
+    port = _free_port()
+    results = tmp_path / "results.jsonl"
+    config = tmp_path / "onboard.toml"
+    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[stereo]\nmax_disp = 64\n'
+                      f'[mavlink]\nurl = "udpout:127.0.0.1:{peer.port}"\n[log]\nresults_jsonl = "{results}"\n'
+                      f'[api]\nenabled = true\nport = {port}\n')
+    seen: dict = {}
+
+    def poll() -> None:  # the ground crew's laptop, while the daemon runs
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=2) as c:
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and "latest" not in seen:
+                try:
+                    latest = c.get("/latest")
+                except httpx.TransportError:  # not listening yet
+                    time.sleep(0.05)
+                    continue
+                if latest.status_code == 200:
+                    seen.update(latest=latest.json(), health=c.get("/health").json(), metrics=c.get("/metrics").text)
+                time.sleep(0.05)
+
+    poller = threading.Thread(target=poll, daemon=True)
+    poller.start()
+    try:
+        assert branchrange_main(["daemon", "--config", str(config), "--max-frames", "8"]) == 0
+    finally:
+        poller.join(timeout=10)
+        peer.close()
+    logged = [json.loads(line) for line in results.read_text().splitlines()]
+    assert seen, "the daemon's API never answered /latest"
+    assert seen["latest"] in logged  # /latest is a logged result, key for key
+    health = seen["health"]
+    assert health["status"] == "ok" and health["camera"]["lost"] is False and health["camera"]["frames"] >= 1
+    assert health["model"]["backend"] == "sgbm" and health["model"]["loaded"] is True
+    assert health["mavlink"]["connected"] is True and health["mavlink"]["url"].startswith("udpout:")
+    frames = [line for line in seen["metrics"].splitlines() if line.startswith("branchrange_frame_duration_seconds_count")]
+    assert frames and frames[0].startswith('branchrange_frame_duration_seconds_count{source="daemon"}')
+    assert float(frames[0].rsplit(" ", 1)[1]) >= 1
+
+
+def test_daemon_refuses_an_open_api_on_a_public_address(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("BRANCHRANGE_API_TOKEN", raising=False)
+    config = tmp_path / "onboard.toml"
+    config.write_text('[camera]\nsource = "replay:/nonexistent"\n[api]\nenabled = true\nhost = "0.0.0.0"\n')
+    assert branchrange_main(["daemon", "--config", str(config)]) == 2
+    assert "refusing to serve on 0.0.0.0 without a token" in capsys.readouterr().err

@@ -32,6 +32,7 @@ def get_health(request: Request) -> dict:
     body = {"status": "ok", "model": model, "camera": None, "mavlink": None}
     if state.live is not None:
         live = state.live.health()
+        model.update(live.get("model") or {})  # the daemon's pipeline, when the API has no estimator of its own
         body.update(camera=live.get("camera"), mavlink=live.get("mavlink"))
         camera_lost = bool((body["camera"] or {}).get("lost"))
         link_down = body["mavlink"] is not None and not body["mavlink"].get("connected", False)

@@ -64,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     def open_camera() -> Any:
         return open_source(cfg.camera.source, calibration=calibration, pace="recorded")
 
+    first = None
     try:
         first = open_camera()
         pipeline = pipeline_for(cfg, first.calibration)
@@ -71,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
         if cfg.mavlink.enabled:
             relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m))
     except (SourceError, SigningKeyError, ValueError) as exc:
+        if first is not None:
+            first.close()
         print(f"branchrange daemon: {exc}", file=sys.stderr)
         return 1
     sources = iter([first])  # the first source is the one already opened; reopening opens new ones
