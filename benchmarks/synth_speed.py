@@ -13,6 +13,7 @@ import argparse
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -23,7 +24,7 @@ from stereo.synth.scene import build_scene
 from stereo.synth.writer import write_dataset
 
 
-def timed(function, *args, **kwargs) -> tuple[float, float]:
+def timed(function: Callable[..., object], *args: object, **kwargs: object) -> tuple[float, float]:
     """(wall s, CPU s of this process, all threads) of one call."""
     wall, cpu = time.perf_counter(), time.process_time()
     function(*args, **kwargs)
@@ -52,6 +53,7 @@ def pair_rows(sizes: list[tuple[int, int]], seeds: list[int]) -> list[tuple[str,
 
 
 def main() -> None:
+    """Print the pair and dataset timings."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3, help="scenes per pair measurement (median)")
     parser.add_argument("--dataset-scenes", type=int, default=100, help="scenes of the dataset run (0: skip)")

@@ -42,6 +42,7 @@ def _options(args: argparse.Namespace) -> SynthOptions:
 
 
 def _run(args: argparse.Namespace) -> int:
+    """Write the dataset and/or the preview the flags ask for; exit with a message naming a bad flag or path."""
     if args.out is None and args.preview is None:
         raise SystemExit("emcstereo synth: give --out DIR (a dataset), --preview PNG (a picture), or both")
     if args.scenes < 1 or args.workers < 1 or args.preview_scenes < 1:

@@ -119,9 +119,11 @@ class ConeBatch:
             setattr(self, name, getattr(self, name)[order])
 
     def instance_ids(self, part: np.ndarray) -> np.ndarray:
+        """Batch protocol: mask ids (uint16 `(N,)`) of the given parts."""
         return self.ids[part]
 
     def hits(self, rays: RayGrid, depth: np.ndarray) -> Iterator[Hits]:
+        """Batch protocol: nearest hits nearer than `depth` (`Hs×Ws`, m), chunk by chunk."""
         if self.ids.size == 0:
             return
         w0 = rays.origin[None, :] - self.base
@@ -169,6 +171,7 @@ class ConeBatch:
         return np.where((t > NEAR_M) & (radial2 <= self.r1[part] ** 2), t, np.inf)
 
     def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
+        """Batch protocol: RGB `(N, 3)` of hit `points` `(N, 3)` on the given parts under `light`."""
         axis, k = self.axis[part], self.slope[part]
         rel = points - self.base[part]
         s = rowdot(rel, axis)

@@ -52,6 +52,7 @@ class LeafBatch:
             setattr(self, name, getattr(self, name)[order])
 
     def instance_ids(self, part: np.ndarray) -> np.ndarray:
+        """Batch protocol: mask ids (uint16 `(N,)`) of the given parts."""
         return self.ids[part]
 
     def _blade(self, rel: np.ndarray, part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,6 +60,7 @@ class LeafBatch:
         return rowdot(rel, self.e1[part]) / self.half_length[part], rowdot(rel, self.e2[part]) / self.half_width[part]
 
     def hits(self, rays: RayGrid, depth: np.ndarray) -> Iterator[Hits]:
+        """Batch protocol: nearest hits nearer than `depth` (`Hs×Ws`, m), chunk by chunk."""
         if self.ids.size == 0:
             return
         to_centre = self.centre - rays.origin[None, :]
@@ -81,6 +83,7 @@ class LeafBatch:
                 yield nearest_per_sample(index[inside], t[inside], part[inside])
 
     def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
+        """Batch protocol: RGB `(N, 3)` of hit `points` `(N, 3)` on the given parts under `light`."""
         along, across = self._blade(points - self.centre[part], part)
         normals = self.normal[part]
         footprint = light.footprint_m(points, normals, sample_angle) / (2 * self.half_length[part] / TILE_SIZE)

@@ -45,6 +45,7 @@ class PlaneLayer:
         return unit(cross3(self.eu, self.ev))
 
     def instance_ids(self, part: np.ndarray) -> np.ndarray:
+        """Batch protocol: mask ids (uint16 `(N,)`) of the given parts."""
         return np.zeros(part.size, dtype=np.uint16)
 
     def _along(self, axis: np.ndarray, rays: RayGrid, t: np.ndarray) -> np.ndarray:
@@ -54,6 +55,7 @@ class PlaneLayer:
         return np.float32((rays.origin - self.point) @ axis) + t * slope
 
     def hits(self, rays: RayGrid, depth: np.ndarray) -> Iterator[Hits]:
+        """Batch protocol: nearest hits nearer than `depth` (`Hs×Ws`, m), chunk by chunk."""
         n = self.normal.astype(np.float32)
         denom = n[0] * rays.dx.astype(np.float32)[None, :] + (n[1] * rays.dy.astype(np.float32) + n[2])[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -81,6 +83,7 @@ class PlaneLayer:
         return keep
 
     def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
+        """Batch protocol: RGB `(N, 3)` of hit `points` `(N, 3)` on the given parts under `light`."""
         rel = points - self.point
         u, v = dot3(rel, self.eu), dot3(rel, self.ev)
         normals = np.broadcast_to(self.normal, points.shape)

@@ -135,6 +135,7 @@ def render_scene(seed: int, camera: SynthCamera | None = None, **options: object
     batches = scene_batches(scene, camera)
 
     def colour_view(view: str) -> np.ndarray:
+        """Box-filtered linear colour (float32 `H×W×3`) of the 'left' or 'right' view."""
         _, _, colour = rasterise(batches, RayGrid.for_view(camera, view, opts.supersample), scene.lighting, scene.sky)
         return _box_filter(colour, opts.supersample)
 

@@ -10,6 +10,7 @@ in view.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,8 @@ from stereo.synth.textures import (
 from stereo.synth.truth import LEAF_ID, TRUNK_ID, TWIG_ID, BranchTruth
 
 UP = np.array([0.0, -1.0, 0.0])
+#: Radius (m) of a cone at a distance (m) from its base along the axis.
+RadiusProfile = Callable[[float], float]
 BRANCH_RANGE_M = (0.3, 4.0)
 BRANCH_LENGTH_M = (0.2, 1.5)
 BRANCH_BASE_RADIUS_M = (0.0025, 0.030)
@@ -189,7 +192,7 @@ class _SceneBuilder:
         return self._in_image_fraction(pts) >= 0.5 and self._in_image_fraction(cut, margin=0.02) == 1.0
 
     def _draw_branch(self, foot: np.ndarray, trunk_axis: np.ndarray, span: tuple[float, float],
-                     trunk_radius) -> tuple[np.ndarray, np.ndarray, float, float, float] | None:
+                     trunk_radius: RadiusProfile) -> tuple[np.ndarray, np.ndarray, float, float, float] | None:
         """(base on the trunk surface, axis, length, r0, r1) of a branch that fits, or None after 40 tries."""
         rng = self.rng
         for _ in range(40):
@@ -209,7 +212,7 @@ class _SceneBuilder:
                 return base, axis, length, r0, r1
         return None
 
-    def _twigs(self, base: np.ndarray, axis: np.ndarray, length: float, radius, tile: MipTile,
+    def _twigs(self, base: np.ndarray, axis: np.ndarray, length: float, radius: RadiusProfile, tile: MipTile,
                ids: tuple[int, int] = (TWIG_ID, LEAF_ID), depth: int = 0) -> None:
         """Thin twigs (and their leaves) growing from an axis, one level of sub-twigs; `ids`: (twig, leaf) mask ids."""
         rng = self.rng
@@ -294,7 +297,9 @@ class _SceneBuilder:
             self.cones, self.leaves, self.leafy_twigs = [], [], []
             foot, trunk_axis, trunk_len, r_ground, r_top, ground_y = self._trunk()
 
-            def trunk_radius(s: float, r_ground=r_ground, r_top=r_top, trunk_len=trunk_len) -> float:
+            def trunk_radius(s: float, r_ground: float = r_ground, r_top: float = r_top,
+                             trunk_len: float = trunk_len) -> float:
+                """Trunk radius (m) at `s` m above its foot."""
                 return r_ground + (r_top - r_ground) * s / trunk_len
 
             trunk = self._cone(foot, trunk_axis, trunk_len, r_ground, r_top, self._bark(tile, r_ground, np.ones(3)), TRUNK_ID)
@@ -321,7 +326,7 @@ class _SceneBuilder:
                 return truths, ground_y
         raise RuntimeError("could not place two branches in view after 10 tree layouts; the camera is too narrow")
 
-    def _crown(self, foot: np.ndarray, trunk_axis: np.ndarray, trunk_len: float, trunk_radius,
+    def _crown(self, foot: np.ndarray, trunk_axis: np.ndarray, trunk_len: float, trunk_radius: RadiusProfile,
                tile: MipTile) -> None:
         """Branches of the same tree beyond the 4 m working range (mask id 0, like all background)."""
         rng = self.rng
@@ -374,6 +379,7 @@ class _SceneBuilder:
                 self._cone(start, b_axis, b_len, b_r0, 0.3 * b_r0, self._bark(tile, b_r0, tint), 0)
 
     def _ground(self, ground_y: float) -> PlaneLayer:
+        """The ground plane `ground_y` m below the camera: grass and soil patches."""
         rng = self.rng
         grass = np.array([0.26, 0.36, 0.12]) * rng.uniform(0.7, 1.2)
         soil = np.array([0.36, 0.28, 0.19]) * rng.uniform(0.7, 1.2)
@@ -444,6 +450,7 @@ class _SceneBuilder:
                           MipTile(foliage[:, :, :3]), rng.uniform(1.5, 3.0), 0.6, np.ascontiguousarray(foliage[:, :, 3:]))
 
     def _sky_and_light(self) -> tuple[Sky, Lighting]:
+        """A sunny (65 %) or overcast sky with clouds, and the sun, ambient light and haze that go with it."""
         rng = self.rng
         sunny = rng.random() < 0.65
         if sunny:
