@@ -143,24 +143,55 @@ def depth_edges(depth: np.ndarray) -> np.ndarray:
     return cv2.dilate(jumps, np.ones((3, 3), np.uint8)) > 0
 
 
+def warp_errors(scene) -> tuple[float, float, float]:
+    """Mean |left − right warped by the truth disparity| (grey levels) on non-occluded pixels, the same away
+    from depth edges, and |left − right| with zero disparity on those pixels."""
+    height, width = scene.disparity.shape
+    valid = (scene.disparity > 0) & ~occluded_in_right(scene.disparity)
+    xs = np.arange(width, dtype=np.float32)[None, :] - scene.disparity
+    valid &= xs >= 0
+    ys = np.repeat(np.arange(height, dtype=np.float32)[:, None], width, axis=1)
+    warped = cv2.remap(scene.right, xs.astype(np.float32), ys, cv2.INTER_LINEAR).astype(np.float64)
+    left, right = scene.left.astype(np.float64), scene.right.astype(np.float64)
+    error = np.abs(warped - left).mean(axis=2)
+    zero = np.abs(right - left).mean(axis=2)
+    return error[valid].mean(), error[valid & ~depth_edges(scene.depth_m)].mean(), zero[valid].mean()
+
+
 def test_warping_right_into_left_with_truth_disparity_matches_and_zero_disparity_does_not(scenes):
-    truth, smooth, zero = [], [], []
-    for scene in scenes:
-        height, width = scene.disparity.shape
-        valid = (scene.disparity > 0) & ~occluded_in_right(scene.disparity)
-        xs = np.arange(width, dtype=np.float32)[None, :] - scene.disparity
-        valid &= xs >= 0
-        ys = np.repeat(np.arange(height, dtype=np.float32)[:, None], width, axis=1)
-        warped = cv2.remap(scene.right, xs.astype(np.float32), ys, cv2.INTER_LINEAR).astype(np.float64)
-        left, right = scene.left.astype(np.float64), scene.right.astype(np.float64)
-        error = np.abs(warped - left).mean(axis=2)
-        truth.append(error[valid].mean())
-        smooth.append(error[valid & ~depth_edges(scene.depth_m)].mean())
-        zero.append(np.abs(right - left).mean(axis=2)[valid].mean())
+    truth, smooth, zero = zip(*(warp_errors(scene) for scene in scenes))
     # measured (grey levels): 3.0 on all non-occluded pixels, 0.7 away from depth edges, 13.9 with zero disparity
     assert np.mean(smooth) < 1.5, smooth
     assert np.mean(truth) < 4.5, truth
     assert np.mean(zero) > 3 * np.mean(truth), (truth, zero)
+
+
+def test_any_focal_length_and_baseline_give_a_consistent_pair():
+    camera = SynthCamera(320, 180, 250.0, 0.12)
+    scene = render_scene(2, camera, noise_std=0.0, view_gain_jitter=0.0)
+    finite = np.isfinite(scene.depth_m)
+    assert np.allclose(scene.disparity[finite], 250.0 * 0.12 / scene.depth_m[finite], rtol=1e-5)
+    truth, smooth, zero = warp_errors(scene)
+    # measured 5.2 (depth edges included), 0.9 and 32.6 grey levels
+    assert smooth < 2.0 and truth < 7.0 and zero > 3 * truth, (truth, smooth, zero)
+
+
+def test_sensor_noise_and_view_gain_jitter_are_applied_per_view():
+    camera = SynthCamera.zed_mini(160, 96)
+    clean = render_scene(4, camera, noise_std=0.0, view_gain_jitter=0.0)
+    noisy = render_scene(4, camera, noise_std=4.0, view_gain_jitter=0.0)
+    noise = [noisy.left.astype(np.float64) - clean.left, noisy.right.astype(np.float64) - clean.right]
+    unclipped = [(c > 12) & (c < 243) for c in (clean.left, clean.right)]
+    for n, keep in zip(noise, unclipped):
+        assert 3.6 < n[keep].std() < 4.4
+    both = unclipped[0] & unclipped[1]
+    assert abs(np.corrcoef(noise[0][both], noise[1][both])[0, 1]) < 0.05  # drawn independently per view
+    jittered = render_scene(4, camera, noise_std=0.0, view_gain_jitter=0.2)
+    # per-channel gain of each view (±10 % at most); measured left (1.00, 0.98, 1.06), right (0.99, 1.07, 0.96)
+    gains = np.array([[(j[..., ch][k[..., ch]] / c[..., ch][k[..., ch]].astype(np.float64)).mean() for ch in range(3)]
+                      for j, c, k in ((jittered.left, clean.left, unclipped[0]), (jittered.right, clean.right, unclipped[1]))])
+    assert np.all(np.abs(gains - 1.0) < 0.11) and np.abs(gains[0] - gains[1]).max() > 0.02, gains
+    assert np.array_equal(jittered.instance_mask, clean.instance_mask)
 
 
 def test_every_scene_has_branch_pixels_under_4_px_wide(scenes):

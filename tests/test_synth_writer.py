@@ -143,6 +143,12 @@ def test_half_exr_stores_fp16_like_ue5_with_sky_at_fp16_max(tmp_path):
     assert np.allclose(depth[~sky], scene.depth_m[~sky] * 100.0, rtol=1e-3)
 
 
+def test_write_dataset_shows_a_progress_bar(tmp_path, capsys):
+    write_dataset(tmp_path, 2, 0, 64, 64, progress=True)
+    err = capsys.readouterr().err
+    assert "synth scenes" in err and "2/2" in err
+
+
 def test_write_dataset_rejects_bad_arguments(tmp_path):
     with pytest.raises(SynthWriteError, match="scenes"):
         write_dataset(tmp_path, 0, 0, 96, 64, progress=False)
