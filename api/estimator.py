@@ -53,9 +53,15 @@ class PipelineEstimator:
         """The default backend's name, for /health."""
         return self.config.backend
 
-    def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None) -> Pipeline:
-        cfg = replace(self.config, backend=backend or self.config.backend,
-                      max_disp=max_disp or self.config.max_disp)
+    def _settings(self, backend: str | None, max_disp: int | None) -> PipelineConfig:
+        """The configuration with a request's backend and max_disp in place of the defaults."""
+        return replace(self.config, backend=backend or self.config.backend, max_disp=max_disp or self.config.max_disp)
+
+    def backend(self, backend: str | None = None, max_disp: int | None = None) -> Any:
+        """The stereo backend for these options (default: the configured one), built on first use and
+        kept. ValueError when it cannot be built; `branchrange serve` builds the default one at start,
+        so a bad [stereo] section fails before the service listens."""
+        cfg = self._settings(backend, max_disp)
         if cfg.backend == "emcstereo" and not cfg.weights:
             raise ValueError("backend 'emcstereo' has no weights on this server (stereo.weights); "
                              "an untrained network would give meaningless cut points")
@@ -65,8 +71,11 @@ class PipelineEstimator:
 
             self._backends[key] = make_backend(cfg.backend, weights=cfg.weights, max_disp=cfg.max_disp,
                                                device=cfg.device, precision=cfg.precision)
-        return Pipeline(cfg, calibration=camera.calibration, focal_px=camera.focal_px,
-                        baseline_m=camera.baseline_m, backend=self._backends[key])
+        return self._backends[key]
+
+    def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None) -> Pipeline:
+        return Pipeline(self._settings(backend, max_disp), calibration=camera.calibration, focal_px=camera.focal_px,
+                        baseline_m=camera.baseline_m, backend=self.backend(backend, max_disp))
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
                  backend: str | None = None, max_disp: int | None = None) -> dict:

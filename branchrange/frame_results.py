@@ -14,15 +14,20 @@ from camera.sources import SourceError, StereoFrame
 
 
 def pipeline_for(cfg: Config, calibration: Any) -> Any:
-    """The `Pipeline` that `[stereo]` and `[cutpoints]` describe, for a source's calibration.
+    """The `Pipeline` that `[stereo]` and `[cutpoints]` describe, for a source's calibration, with
+    its stereo backend already built: a missing checkpoint or a max_disp the backend cannot use
+    fails here, at start-up, rather than as a rejected frame on every frame.
 
-    Raises `SourceError` naming `camera.source` when the source brought no calibration.
+    Raises `SourceError` naming `camera.source` when the source brought no calibration, and the
+    backend's `ValueError` (`BackendConfigError`, `CheckpointError`) when it cannot be built.
     """
     from branchrange.pipeline import Pipeline
 
     if calibration is None:
         raise SourceError(f"{cfg.camera.source}: no calibration; set camera.calibration")
-    return Pipeline(pipeline_config(cfg), calibration=calibration)
+    pipeline = Pipeline(pipeline_config(cfg), calibration=calibration)
+    _ = pipeline.backend  # the property builds it
+    return pipeline
 
 
 def process_frame(pipeline: Any, frame: StereoFrame) -> dict[str, Any]:

@@ -150,3 +150,10 @@ def test_serve_refuses_a_public_address_without_a_token(capsys, monkeypatch):
     check_bind("0.0.0.0", "tok")
     with pytest.raises(ServeError):
         check_bind("192.168.1.5", "")
+
+
+def test_serve_fails_at_start_when_the_stereo_backend_cannot_be_built(tmp_path, capsys):
+    config = tmp_path / "serve.toml"
+    config.write_text(f'[stereo]\nbackend = "emcstereo"\nweights = "{tmp_path / "missing.pth"}"\n')
+    assert branchrange_main(["serve", "--config", str(config), "--port", "0"]) == 2
+    assert "missing.pth: no such checkpoint file" in capsys.readouterr().err

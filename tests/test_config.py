@@ -36,6 +36,7 @@ def test_values_are_read_and_ints_are_accepted_for_floats(tmp_path):
     ({"camera": {"mount_xyz_m": [0, "x", 0]}}, r"camera\.mount_xyz_m\[1\] = 'x'"),
     ({"stereo": {"backend": "raft"}}, r"stereo\.backend = 'raft': expected 'sgbm' or 'emcstereo'"),
     ({"stereo": {"max_disp": 190}}, r"stereo\.max_disp = 190: expected a positive multiple of 4"),
+    ({"stereo": {"max_disp": 100}}, r"stereo\.max_disp = 100: expected a multiple of 16 with stereo\.backend = 'sgbm'"),
     ({"stereo": {"backend": "emcstereo"}}, r"stereo\.weights = '': expected a checkpoint path when stereo\.backend = 'emcstereo'"),
     ({"camera": {"resolution": "HD720"}}, r"camera\.resolution: unknown option; \[camera\] takes calibration, "),
     ({"api": {"port": 70000}}, r"api\.port = 70000"),

@@ -325,6 +325,14 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
     assert float(frames[0].rsplit(" ", 1)[1]) >= 1
 
 
+def test_daemon_fails_at_start_when_the_stereo_backend_cannot_be_built(recording, tmp_path, capsys):
+    config = tmp_path / "onboard.toml"
+    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[mavlink]\nenabled = false\n'
+                      f'[stereo]\nbackend = "emcstereo"\nweights = "{tmp_path / "missing.pth"}"\n')
+    assert branchrange_main(["daemon", "--config", str(config)]) == 1
+    assert "missing.pth: no such checkpoint file" in capsys.readouterr().err
+
+
 def test_daemon_refuses_an_open_api_on_a_public_address(tmp_path, capsys, monkeypatch):
     monkeypatch.delenv("BRANCHRANGE_API_TOKEN", raising=False)
     config = tmp_path / "onboard.toml"

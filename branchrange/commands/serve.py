@@ -58,6 +58,12 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, ServeError) as exc:
         print(f"branchrange serve: {exc}", file=sys.stderr)
         return 2
-    app = create_app(api, PipelineEstimator(pipeline_config(cfg)))
+    estimator = PipelineEstimator(pipeline_config(cfg))
+    try:
+        estimator.backend()  # a missing checkpoint or an unusable max_disp fails now, not on every request
+    except ValueError as exc:
+        print(f"branchrange serve: {exc}", file=sys.stderr)
+        return 2
+    app = create_app(api, estimator)
     uvicorn.run(app, host=api.host, port=api.port, log_level=cfg.log.level.lower())
     return 0
