@@ -1,6 +1,9 @@
 """The TOML configuration: defaults, the deploy/ examples, and errors that name the key."""
 from __future__ import annotations
 
+import configparser
+import re
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -72,3 +75,34 @@ def test_deploy_examples_load_with_the_values_they_document():
     assert onboard.mavlink.target_as_obstacle is False and onboard.api.enabled is True
     serve = load_config(DEPLOY / "serve.toml")
     assert serve.api.host == "0.0.0.0" and serve.mavlink.enabled is False and serve.api.retry_after_s == 2
+
+
+def test_deploy_files_agree_on_paths_names_and_devices():
+    """The systemd unit, the container recipe, the udev rules and onboard.toml name the same things."""
+    unit = configparser.ConfigParser(interpolation=None, strict=False)
+    unit.optionxform = str  # systemd keys are case-sensitive
+    unit.read(DEPLOY / "branchrange-daemon.service")
+    service = unit["Service"]
+    venv_bin, script, command, _, config_path = re.fullmatch(
+        r"(/\S+/\.venv/bin)/(\S+) (\S+) (--config) (\S+)", service["ExecStart"]).groups()
+    scripts = tomllib.loads((DEPLOY.parent / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts[script] == "branchrange.cli:main" and command == "daemon"
+    assert config_path == "/etc/branchrange/onboard.toml"
+    onboard = load_config(DEPLOY / "onboard.toml")
+    state_dir = f"/var/lib/{service['StateDirectory']}"
+    assert onboard.log.results_jsonl.startswith(state_dir + "/") and service["ReadWritePaths"] == state_dir
+    assert "2" in service["RestartPreventExitStatus"].split()  # exit status of a configuration error
+    assert {"video", "dialout"} <= set(service["SupplementaryGroups"].split())
+    # the ZED Mini is found by the udev rule's name, in the unit and in the container alike
+    symlink = re.search(r'SUBSYSTEM=="video4linux".*SYMLINK\+="(\w+)"', (DEPLOY / "99-branchrange-cameras.rules").read_text())
+    assert onboard.camera.source.startswith(f"zed:/dev/{symlink.group(1)}:")
+    docker = (DEPLOY / "Dockerfile.jetson").read_text()
+    assert f"--device /dev/{symlink.group(1)}:/dev/{symlink.group(1)}" in docker
+    assert f"--device {onboard.mavlink.url}" in docker  # the autopilot's serial port
+    assert f'CMD ["{command}", "--config", "{config_path}"]' in docker and 'ENTRYPOINT ["branchrange"]' in docker
+    assert f"WORKDIR {venv_bin.removesuffix('/.venv/bin')}" in docker
+    # the container installs torch first and everything else with the tested pins
+    pins = dict(line.split("==") for line in (DEPLOY / "constraints.txt").read_text().splitlines()
+                if "==" in line and not line.startswith("#"))
+    assert f'TORCH_SPEC="torch=={pins["torch"].split("+")[0]}"' in docker
+    assert "pip install -c /tmp/constraints-jetson.txt ." in docker
