@@ -22,6 +22,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from branchrange.cylinder_section import cross_section, radius_from_silhouette
 from branchrange.geometry import (
     GeometryError,
     Line3D,
@@ -225,7 +226,9 @@ class CylinderFit:
         if s is None:
             s = self.silhouette.coordinate(project(point, geometry)[0])
         s = float(np.clip(s, self.silhouette.s_lo, self.silhouette.s_hi))
-        return 0.5 * self.profile.at(s) / _pixels_per_metre_across(point, self.axis.direction, geometry)
+        return radius_from_silhouette(self.profile.centre(self.silhouette, s), self.silhouette.normal,
+                                      0.5 * self.profile.at(s), Line3D(np.asarray(point, dtype=np.float64),
+                                                                       self.axis.direction), geometry)
 
 
 def _onto_axis(surface_point: np.ndarray, direction: np.ndarray, silhouette: ImageAxis, profile: WidthProfile,
@@ -246,13 +249,16 @@ def _onto_axis(surface_point: np.ndarray, direction: np.ndarray, silhouette: Ima
     return point
 
 
-def _surface_line_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis, profile: WidthProfile,
-                                     geometry: StereoGeometry, threshold_px: float,
-                                     min_points: int) -> tuple[Line3D, LinearFit] | str:
-    """The visible surface's line from disparity along the centreline (robust, in px), lifted to 3D.
+def _axis_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis, profile: WidthProfile,
+                             geometry: StereoGeometry, threshold_px: float, min_points: int,
+                             margin_px: float | None) -> tuple[Line3D, LinearFit] | str:
+    """A branch's line from disparity along the centreline (robust fit in px), lifted to 3D.
 
-    Two stations at the 10th and 90th percentile of the inliers' positions: centreline pixel +
-    fitted disparity → 3D points → the line through them.
+    Two stations at the 10th and 90th percentile of the inliers' positions. With `margin_px`
+    None: centreline pixel + fitted disparity → the visible surface's line. Otherwise the axis
+    itself: at each station the perspective-exact `cross_section` of the silhouette, whose
+    fitted disparity is the mean over the pixels `margin_px` inside the edges; the direction it
+    needs comes from the previous pass (three passes, starting from the surface line).
     """
     try:
         fit = fit_linear_robust(s, d, threshold_px, penalty_above=1.0)
@@ -264,15 +270,21 @@ def _surface_line_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: I
     disparities = fit.at(stations)
     if np.any(disparities <= 0):
         return "fitted disparity along the branch reaches zero (the branch would be at infinity)"
-    pixels = np.stack([profile.centre(silhouette, float(st)) for st in stations])
-    ends = backproject(pixels[:, 0], pixels[:, 1], disparities, geometry)
+    centres = [profile.centre(silhouette, float(st)) for st in stations]
+    ends = backproject(np.array([c[0] for c in centres]), np.array([c[1] for c in centres]), disparities, geometry)
+    for _ in range(0 if margin_px is None else 3):
+        if np.linalg.norm(ends[1] - ends[0]) < 1e-6:
+            break
+        ends = np.stack([cross_section(centre, silhouette.normal, 0.5 * profile.at(float(st)), margin_px,
+                                       float(disparity), ends[1] - ends[0], geometry).axis_point_m
+                         for centre, st, disparity in zip(centres, stations, disparities)])
     if np.linalg.norm(ends[1] - ends[0]) < 1e-6:
         return "branch too short to give an axis direction"
     return Line3D(ends[0], (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])), fit
 
 
 def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
-                 max_disparity: float | None = None) -> CylinderFit | str:
+                 max_disparity: float | None = None, cut_by: np.ndarray | None = None) -> CylinderFit | str:
     """Fit a (possibly tapered) cylinder to one boolean `H×W` mask and the disparity (px).
 
     Elongated silhouettes: centreline from the mask, disparity along it by a robust linear fit
@@ -281,6 +293,7 @@ def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeomet
     reason why the evidence does not support one.
     """
     core = erode(mask, config.erode_px)
+    eroded_px = config.erode_px if np.count_nonzero(core) < np.count_nonzero(mask) else 0
     rows, cols = np.nonzero(core)
     if rows.size < config.min_points:
         return f"mask has {rows.size} pixels after erosion, fewer than {config.min_points}"
@@ -293,7 +306,7 @@ def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeomet
                 f"(need {config.min_points} and {config.min_valid_fraction:.0%})")
     rows, cols, d = rows[valid].astype(np.float64), cols[valid].astype(np.float64), d[valid].astype(np.float64)
     points = backproject(cols, rows, d, geometry)
-    silhouette = image_axis(mask)
+    silhouette = image_axis(mask, cut_by)
     profile = width_profile(silhouette)
     d_median = float(np.median(d))
     z_median = geometry.fb / d_median
@@ -302,8 +315,10 @@ def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeomet
         # the visible front spans about d·r/Z px of disparity across the width
         threshold_px = 3.0 * config.disparity_noise_px + d_median * radius_guess / z_median
         s = (np.stack([cols, rows], axis=1) - silhouette.centre) @ silhouette.direction
-        lifted = _surface_line_in_disparity_space(s, d, silhouette, profile, geometry, threshold_px,
-                                                  config.min_points)
+        # erosion removes the pixels within erode_px (in u or v) of the edge: that far across it
+        margin_px = eroded_px * float(np.max(np.abs(silhouette.normal)))
+        lifted = _axis_in_disparity_space(s, d, silhouette, profile, geometry, threshold_px, config.min_points,
+                                          margin_px if config.surface_correction else None)
         if isinstance(lifted, str):
             return lifted
         line, disparity_fit = lifted
@@ -321,12 +336,12 @@ def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeomet
         if fit.inliers.sum() < config.min_points:
             return f"line fit kept {int(fit.inliers.sum())} points, fewer than {config.min_points}"
         line, inliers, residual_m, residual_ratio = fit.line, fit.inliers, fit.residual_m, fit.residual_m / band_m
-    if config.surface_correction:
-        t = line.parameters(points[inliers])
-        t_lo, t_hi = np.quantile(t, [0.1, 0.9])
-        a = _onto_axis(line.at(t_lo), line.direction, silhouette, profile, geometry, config.erode_px)
-        b = _onto_axis(line.at(t_hi), line.direction, silhouette, profile, geometry, config.erode_px)
-        line = Line3D(a, (b - a) / np.linalg.norm(b - a)) if np.linalg.norm(b - a) > 1e-3 else Line3D(a, line.direction)
+        if config.surface_correction:
+            t = line.parameters(points[inliers])
+            t_lo, t_hi = np.quantile(t, [0.1, 0.9])
+            a = _onto_axis(line.at(t_lo), line.direction, silhouette, profile, geometry, eroded_px)
+            b = _onto_axis(line.at(t_hi), line.direction, silhouette, profile, geometry, eroded_px)
+            line = Line3D(a, (b - a) / np.linalg.norm(b - a)) if np.linalg.norm(b - a) > 1e-3 else Line3D(a, line.direction)
     return CylinderFit(line, silhouette, profile, valid_fraction, points, (rows.astype(np.int64), cols.astype(np.int64)),
                        inliers, float(residual_m), float(min(1.0, residual_ratio)))
 
@@ -493,7 +508,7 @@ def _estimate_branch(mask_id: int, mask: np.ndarray, disparity: np.ndarray, geom
                      config: CutPointConfig, confidence: np.ndarray | None, trunk: np.ndarray | None,
                      trunk_model: TrunkModel | None, max_disparity: float | None) -> BranchEstimate | DroppedBranch:
     """`estimate_branch` without the guard against degenerate geometry."""
-    cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity)
+    cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
     if isinstance(cylinder, str):
         return DroppedBranch(mask_id, cylinder)
     base_m, tip_m = _ends(cylinder, geometry, trunk, trunk_model)
