@@ -2,14 +2,17 @@
 
 Per branch (design.md, Cut points):
 1. 3D points from valid disparity inside the slightly eroded mask.
-2. A robust 3D line fit (RANSAC + IRLS) gives the axis. Stereo sees the branch's front surface,
-   which lies about π/4·r nearer than the axis on average, so the fitted line is pushed back by
-   that amount (`surface_correction`).
+2. The axis: disparity along the silhouette's centreline by a robust line fit (in px), and at
+   two stations the perspective-exact cross-section (`branchrange.cylinder_section`: the
+   silhouette's edges are tangent planes, the mean disparity across sets the distance), so a
+   near, thick trunk off the optical axis is fitted on its axis, not beside it. A silhouette
+   seen end-on: a robust 3D line (RANSAC + IRLS) through the points, pushed back from the
+   visible surface by the expected π/4·r (`surface_correction` switches both corrections).
 3. The ends come from the mask in the image (exact where depth is not: near the trunk, depth is
    often occluded), lifted onto the 3D axis. The base is the end meeting the trunk when a trunk is
    known, else the thicker end (for a branch seen end-on, the deeper end).
 4. Cut point = base + `cut_offset_m` along the axis toward the tip; distance from the camera;
-   diameter = image width across the axis × Z / f; confidence ∈ [0, 1] from the valid-depth
+   diameter = 2·D·sin β from the silhouette's width (D the camera's distance from the axis); confidence ∈ [0, 1] from the valid-depth
    fraction, the fit (inlier share and residual), the stereo confidence and the amount of evidence.
 A branch with too little evidence is dropped with a reason, never invented.
 """
@@ -65,7 +68,7 @@ class CutPointConfig:
     - `disparity_noise_px`: expected disparity noise, sets the line fit's inlier band with depth.
     - `min_inlier_band_m`: the inlier band's floor.
     - `min_range_m`, `max_range_m`: the working range; cut points outside it are dropped.
-    - `surface_correction`: push the axis back from the visible surface by the expected amount.
+    - `surface_correction`: move the line from the visible surface onto the axis (cross-sections).
     """
 
     cut_offset_m: float = 0.05
