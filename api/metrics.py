@@ -30,10 +30,12 @@ class Histogram:
         self.sums: dict[Labels, float] = defaultdict(float)
 
     def observe(self, labels: Labels, value: float) -> None:
+        """Count one observation of `value` seconds under `labels`."""
         self.counts[labels][bisect.bisect_left(self.buckets, value)] += 1
         self.sums[labels] += value
 
     def lines(self, name: str) -> list[str]:
+        """The exposition lines (`_bucket`, `_sum`, `_count`) of histogram `name`, label sets sorted."""
         out = []
         for labels, counts in sorted(self.counts.items()):
             running = 0

@@ -53,6 +53,14 @@ def tree_recording(tmp_path_factory):
     return write_tree_recording(tmp_path_factory.mktemp("rec") / "tree", TREE_FRAMES, TREE_PERIOD_NS)
 
 
+def onboard_config(tmp_path, recording, mavlink_url: str, results, extra: str = ""):
+    """An onboard.toml for `branchrange daemon`: the replayed recording, sgbm at max_disp 64, the link, the log."""
+    config = tmp_path / "onboard.toml"
+    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[stereo]\nmax_disp = 64\n'
+                      f'[mavlink]\nurl = "{mavlink_url}"\n[log]\nresults_jsonl = "{results}"\n{extra}')
+    return config
+
+
 class Listener:
     """The peer reading in a thread until `finish()` (messages arrive at >= 4 Hz, so it ends promptly)."""
 
@@ -89,10 +97,7 @@ def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_rec
     """
     peer = LoopbackPeer()
     results = tmp_path / "results.jsonl"
-    config = tmp_path / "onboard.toml"
-    config.write_text(f'[camera]\nsource = "replay:{tree_recording}"\n[stereo]\nmax_disp = 64\n'
-                      f'[mavlink]\nurl = "udpout:127.0.0.1:{peer.port}"\n'
-                      f'[log]\nresults_jsonl = "{results}"\n')
+    config = onboard_config(tmp_path, tree_recording, f"udpout:127.0.0.1:{peer.port}", results)
     listener = Listener(peer)
     try:
         assert branchrange_main(["daemon", "--config", str(config), "--max-frames", str(TREE_FRAMES)]) == 0
@@ -186,9 +191,7 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
 
 def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):
     results = tmp_path / "results.jsonl"
-    config = tmp_path / "onboard.toml"
-    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[stereo]\nmax_disp = 64\n'
-                      f'[mavlink]\nurl = "udpout:127.0.0.1:9"\n[log]\nresults_jsonl = "{results}"\n')
+    config = onboard_config(tmp_path, recording, "udpout:127.0.0.1:9", results)
     proc = subprocess.Popen([sys.executable, "-m", "branchrange.cli", "daemon", "--config", str(config)],
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -287,10 +290,8 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
     peer = LoopbackPeer()
     port = _free_port()
     results = tmp_path / "results.jsonl"
-    config = tmp_path / "onboard.toml"
-    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[stereo]\nmax_disp = 64\n'
-                      f'[mavlink]\nurl = "udpout:127.0.0.1:{peer.port}"\n[log]\nresults_jsonl = "{results}"\n'
-                      f'[api]\nenabled = true\nport = {port}\n')
+    config = onboard_config(tmp_path, recording, f"udpout:127.0.0.1:{peer.port}", results,
+                            f"[api]\nenabled = true\nport = {port}\n")
     seen: dict = {}
 
     def poll() -> None:  # the ground crew's laptop, while the daemon runs
