@@ -1,6 +1,7 @@
 """The link under the relay: MAVLink 2 signing, TCP peers that go away and come back, serial ports."""
 from __future__ import annotations
 
+import math
 import os
 import select
 import time
@@ -83,7 +84,8 @@ def test_signing_key_file_takes_raw_bytes_or_hex_and_names_a_bad_file(tmp_path, 
 def test_relay_keeps_working_after_the_tcp_peer_goes_away_and_comes_back():
     peer = LoopbackPeer(url="tcpin:127.0.0.1:0")
     port = peer.port
-    cfg = MavlinkConfig(url=f"tcp:127.0.0.1:{port}", reconnect_interval_s=0.2, send_rate_hz=10.0)
+    # results stay fresh for 2 s: a loaded machine's slow reconnect must not turn this into a staleness test
+    cfg = MavlinkConfig(url=f"tcp:127.0.0.1:{port}", reconnect_interval_s=0.2, send_rate_hz=10.0, max_result_age_s=2.0)
     with MavlinkRelay(cfg, CameraMount.from_rpy()) as relay:
         relay.publish(RESULT)
         assert of_type(peer.collect(1.0, until=lambda r: bool(of_type(r, "DISTANCE_SENSOR"))), "DISTANCE_SENSOR")
@@ -113,7 +115,9 @@ def test_relay_speaks_over_a_serial_port():
         with MavlinkRelay(cfg, CameraMount.from_rpy()) as relay:
             relay.publish(RESULT)
             deadline = time.monotonic() + 2.0
-            while time.monotonic() < deadline and not any(m.get_type() == "DEBUG_VECT" for m in got):
+            # until the published target's set is complete (DEBUG_VECT is its last message); sets sent
+            # before `publish` say "no target" (NaN)
+            while time.monotonic() < deadline and not any(m.get_type() == "DEBUG_VECT" and not math.isnan(m.x) for m in got):
                 if select.select([master], [], [], 0.05)[0]:
                     got += parser.parse_buffer(os.read(master, 4096)) or []
     finally:
