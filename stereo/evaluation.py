@@ -3,13 +3,18 @@
 Each pair is padded at the top and right to the network's sizes (×32, ≥256; edge mode), run in
 eval mode at batch 1, and the prediction is un-padded (`[top:, :W−right]`) before any metric.
 Metrics come from `stereo.metrics` (per image over valid pixels, then averaged over images).
-Results go to a JSON file and a text table; the first N pairs can be drawn as left image /
-prediction / ground truth, prediction and ground truth on the same colour scale.
+An image without valid ground truth is *skipped*; an image whose prediction is NaN/Inf at a valid
+pixel *failed* (logged, not averaged) and makes the split's `selection_epe` infinite, so a
+diverged model is never kept as the best checkpoint. Results go to a JSON file and a text table;
+the first N pairs can be drawn as left image / prediction / ground truth, prediction and ground
+truth on the same colour scale.
 """
 from __future__ import annotations
 
 import json
-from contextlib import nullcontext
+import logging
+import math
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,28 +26,43 @@ from tqdm import tqdm
 
 from stereo.datasets.transforms import to_network_input
 from stereo.io import colorize_disparity, write_rgb
-from stereo.metrics import MetricAverager
+from stereo.metrics import MetricAverager, valid_mask
 from stereo.padding import compute_padding, pad_image, unpad
 
 #: The columns of the paper's table, in its order, and how the text report names them.
 PAPER_COLUMNS = {"epe": "EPE", "d1_all": "D1-all", "bad_1": "Bad-1", "bad_3": "Bad-3", "rmse": "RMSE",
                  "abs_rel": "AbsRel", "delta1": "δ1"}
 
+log = logging.getLogger(__name__)
+
 
 @dataclass
 class EvaluationResult:
-    """Averaged metrics, the per-image metrics (with names) and the count of unscorable images."""
+    """Metrics averaged over the scored images, the per-image metrics (with names), and the names of
+    images skipped (no valid ground truth) or failed (non-finite prediction at a valid pixel).
+
+    `mean` is empty when no image was scored.
+    """
 
     mean: dict[str, float]
     per_image: list[dict[str, Any]] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+
+    @property
+    def selection_epe(self) -> float:
+        """The EPE that model selection compares: the mean EPE, or +inf when any image failed or none was scored."""
+        if self.failed or not self.per_image:
+            return math.inf
+        return self.mean["epe"]
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
-        return {"images": len(self.per_image), "skipped": self.skipped, "mean": self.mean, "per_image": self.per_image}
+        return {"images": len(self.per_image), "skipped": self.skipped, "failed": self.failed, "mean": self.mean,
+                "per_image": self.per_image}
 
 
-def autocast_context(device: torch.device, precision: str):
+def autocast_context(device: torch.device, precision: str) -> AbstractContextManager:
     """torch.autocast for "fp16"/"bf16" on `device`, or a no-op for "fp32"."""
     if precision == "fp32":
         return nullcontext()
@@ -106,25 +126,31 @@ def evaluate(
         )[0].cpu().numpy()
         gt = raw["disparity"]
         name = str(raw["meta"]["name"])
-        metrics = averager.update(pred, gt)
-        if metrics is None:
+        if not np.isfinite(pred[valid_mask(gt, max_disp)]).all():
+            log.warning("%s: the prediction is NaN/Inf at valid ground-truth pixels; image counted as failed", name)
+            result.failed.append(name)
+        elif (metrics := averager.update(pred, gt)) is None:
             result.skipped.append(name)
         else:
             result.per_image.append({"name": name, **metrics})
         if vis_dir is not None and index < vis_count:
             vis_dir.mkdir(parents=True, exist_ok=True)
             write_rgb(vis_dir / f"{index:04d}.png", disparity_panel(raw["left"], pred, gt, max_disp))
-    result.mean = averager.mean()
+    if averager.count:
+        result.mean = averager.mean()
+    else:
+        log.warning("no image of %d could be scored (%d without valid ground truth, %d failed)",
+                    count, len(result.skipped), len(result.failed))
     return result
 
 
 def format_table(results: dict[str, EvaluationResult]) -> str:
-    """A text table of the paper's columns, one row per split name."""
-    header = f"{'split':<12}{'images':>8}" + "".join(f"{label:>10}" for label in PAPER_COLUMNS.values())
+    """A text table of the paper's columns, one row per split name (`images` scored, `failed` non-finite)."""
+    header = f"{'split':<12}{'images':>8}{'failed':>8}" + "".join(f"{label:>10}" for label in PAPER_COLUMNS.values())
     lines = [header]
     for split, result in results.items():
         cells = "".join(f"{result.mean.get(key, float('nan')):>10.4f}" for key in PAPER_COLUMNS)
-        lines.append(f"{split:<12}{len(result.per_image):>8}{cells}")
+        lines.append(f"{split:<12}{len(result.per_image):>8}{len(result.failed):>8}{cells}")
     return "\n".join(lines) + "\n"
 
 

@@ -5,14 +5,16 @@
   at x − d, so the ground truth is exact wherever nothing is occluded.
 - `write_virtualtree_layout`: such scenes written as VirtualTree files (PNG images, EXR depth in
   cm with sky at 65504, six-token split files), the format the real loader reads.
-- `one_thread`: an autouse fixture for the modules that import it (one torch thread).
+- `one_thread`: an autouse fixture for the modules that import it (one torch thread);
+  `single_torch_thread` the same as a context manager, for module-scoped fixtures.
 - `TinyStereoNet`: a small correlation + soft-argmin network with EMCStereo's forward contract
   (three disparities in training mode, the last in eval mode), for tests whose subject is the
   training machinery (DDP, self-supervision) and not the network.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,13 +31,22 @@ from stereo.io import write_exr_depth, write_rgb
 SKY_CM = 65504.0
 
 
+@contextmanager
+def single_torch_thread() -> Iterator[None]:
+    """Run the body on one torch thread (module-scoped fixtures use it: they start before `one_thread`)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 @pytest.fixture(autouse=True)
 def one_thread():
     """Run a test on one torch thread: on a shared 2-core machine that is several times faster and deterministic."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+    with single_torch_thread():
+        yield
 
 
 @dataclass

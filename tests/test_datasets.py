@@ -215,5 +215,7 @@ def test_group_split_keeps_every_tree_on_one_side():
     assert group_split(names, r"tree(\d+)_", 0.2, seed=0) == (train, val)
     with pytest.raises(DatasetError, match=r"group pattern .*scene.* does not match record name"):
         group_split(names, r"scene(\d+)")
+    with pytest.raises(DatasetError, match=r"group pattern 'tree\(': not a valid regular expression"):
+        group_split(names, "tree(")
 
 

@@ -1,19 +1,27 @@
-"""Evaluation pads top/right, un-pads before scoring, averages per image and writes JSON, text and panels."""
+"""Evaluation pads top/right, un-pads before scoring, averages per image and writes JSON, text and panels;
+a non-finite prediction fails its image without stopping the evaluation."""
 from __future__ import annotations
 
 import json
+import logging
+import math
 
 import numpy as np
 import pytest
 import torch
-from stereo_training_fixtures import one_thread, planar_scene, write_virtualtree_layout  # noqa: F401 (autouse fixture)
+from stereo_training_fixtures import (  # noqa: F401 (one_thread: autouse fixture)
+    one_thread,
+    planar_scene,
+    single_torch_thread,
+    write_virtualtree_layout,
+)
 
 from stereo import EMCStereo
 from stereo.checkpoints import save_checkpoint
 from stereo.cli import main
 from stereo.datasets import VirtualTreeDataset
 from stereo.datasets.transforms import to_network_input
-from stereo.evaluation import disparity_panel, evaluate, predict_disparity
+from stereo.evaluation import disparity_panel, evaluate, format_table, predict_disparity
 from stereo.io import colorize_disparity, read_rgb
 from stereo.metrics import image_metrics
 
@@ -42,16 +50,21 @@ def pairs(tmp_path_factory):
     return root, EMCStereo(max_disp=48).eval()
 
 
-def test_metrics_are_averaged_over_images_and_panels_share_one_scale(pairs, tmp_path):
+@pytest.fixture(scope="module")
+def val_predictions(pairs):
+    """The model's un-padded prediction of each val pair, computed directly (not through `evaluate`)."""
+    root, model = pairs
+    dataset = VirtualTreeDataset(root, "val")
+    with single_torch_thread():
+        return [predict_disparity(model, *(to_network_input(dataset[i])[k][None] for k in ("left", "right")))[0].numpy()
+                for i in range(len(dataset))]
+
+
+def test_metrics_are_averaged_over_images_and_panels_share_one_scale(pairs, val_predictions, tmp_path):
     root, model = pairs
     dataset = VirtualTreeDataset(root, "val")
     result = evaluate(model, dataset, max_disp=48, vis_dir=tmp_path, vis_count=1)
-    per_image = []
-    for index in range(2):
-        raw = dataset[index]
-        sample = to_network_input(raw)
-        pred = predict_disparity(model, sample["left"][None], sample["right"][None])[0].numpy()
-        per_image.append(image_metrics(pred, raw["disparity"], max_disp=48))
+    per_image = [image_metrics(pred, dataset[i]["disparity"], max_disp=48) for i, pred in enumerate(val_predictions)]
     for key in ("epe", "d1_all", "bad_1", "bad_3", "rmse", "abs_rel", "delta1"):
         assert result.mean[key] == pytest.approx((per_image[0][key] + per_image[1][key]) / 2, rel=1e-6)
     assert [r["name"] for r in result.per_image] == ["left image/left_0.png", "left image/left_1.png"]
@@ -59,11 +72,10 @@ def test_metrics_are_averaged_over_images_and_panels_share_one_scale(pairs, tmp_
     gt = dataset[0]["disparity"]
     assert panel.shape == (750, 300, 3) and not (tmp_path / "0001.png").exists()
     np.testing.assert_array_equal(panel[500:], colorize_disparity(gt, max_disp=float(gt.max())))
-    prediction = predict_disparity(model, *(to_network_input(dataset[0])[k][None] for k in ("left", "right")))[0]
-    np.testing.assert_array_equal(panel, disparity_panel(dataset[0]["left"], prediction.numpy(), gt, 48))
+    np.testing.assert_array_equal(panel, disparity_panel(dataset[0]["left"], val_predictions[0], gt, 48))
 
 
-def test_evaluate_command_writes_json_and_text_tables(pairs, tmp_path, capsys):
+def test_evaluate_command_writes_json_and_text_tables(pairs, val_predictions, tmp_path, capsys):
     root, model = pairs
     weights = save_checkpoint(model, tmp_path / "w.pth")
     out = tmp_path / "eval"
@@ -73,10 +85,42 @@ def test_evaluate_command_writes_json_and_text_tables(pairs, tmp_path, capsys):
     assert status == 0
     report = json.loads((out / "metrics.json").read_text())
     test = report["splits"]["test"]
-    assert test["images"] == 1 and test["per_image"][0]["name"] == "left image/left_1.png"
-    direct = evaluate(model, VirtualTreeDataset(root, "test"), max_disp=48)
-    assert test["mean"]["epe"] == pytest.approx(direct.mean["epe"], rel=1e-6)
+    assert test["images"] == 1 and test["per_image"][0]["name"] == "left image/left_1.png" and test["failed"] == []
+    direct = image_metrics(val_predictions[1], VirtualTreeDataset(root, "test")[0]["disparity"], max_disp=48)["epe"]
+    assert test["mean"]["epe"] == pytest.approx(direct, rel=1e-6)
     table = (out / "metrics.txt").read_text()
-    assert "EPE" in table and "D1-all" in table and f"{direct.mean['epe']:.4f}" in table
-    assert f"{direct.mean['epe']:.4f}" in capsys.readouterr().out
+    assert "EPE" in table and "D1-all" in table and f"{direct:.4f}" in table
+    assert f"{direct:.4f}" in capsys.readouterr().out
     assert (out / "vis" / "test" / "0000.png").is_file()
+
+
+class NanOnFirstPair(torch.nn.Module):
+    """Predicts NaN everywhere for the first pair it sees and 5 px for every later one."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = 0
+
+    def forward(self, left, right):
+        self.calls += 1
+        return torch.full((left.shape[0], *left.shape[-2:]), math.nan if self.calls == 1 else 5.0)
+
+
+def test_nan_prediction_fails_its_image_with_a_warning_and_makes_the_selection_epe_infinite(pairs, caplog):
+    root, _ = pairs
+    dataset = VirtualTreeDataset(root, "val")
+    with caplog.at_level(logging.WARNING, logger="stereo.evaluation"):
+        result = evaluate(NanOnFirstPair(), dataset, max_disp=48)
+    assert result.failed == ["left image/left_0.png"] and result.skipped == []
+    assert "left image/left_0.png: the prediction is NaN/Inf" in caplog.text
+    assert [r["name"] for r in result.per_image] == ["left image/left_1.png"]
+    gt = dataset[1]["disparity"]
+    assert result.mean["epe"] == pytest.approx(image_metrics(np.full_like(gt, 5.0), gt, max_disp=48)["epe"])
+    assert result.selection_epe == math.inf
+    assert result.to_dict()["failed"] == ["left image/left_0.png"]
+    row = format_table({"val": result}).splitlines()[1].split()
+    assert row[:3] == ["val", "1", "1"] and float(row[3]) == pytest.approx(result.mean["epe"], abs=1e-4)
+    with caplog.at_level(logging.WARNING, logger="stereo.evaluation"):
+        nothing = evaluate(NanOnFirstPair(), VirtualTreeDataset(root, "test"), max_disp=48)
+    assert nothing.mean == {} and nothing.failed == ["left image/left_1.png"] and nothing.selection_epe == math.inf
+    assert "no image of 1 could be scored" in caplog.text

@@ -1,6 +1,8 @@
-"""Trainer behaviours on a small network: gradient accumulation, early stopping, non-finite steps skipped."""
+"""Trainer behaviours on a small network: gradient accumulation, early stopping, non-finite steps skipped,
+a diverged (NaN) validation that is never the best, and exact resume of every piece of training state."""
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -22,10 +24,10 @@ def root(tmp_path_factory):
     return write_virtualtree_layout(tmp_path_factory.mktemp("vt"), scenes, {"train": [0, 1, 2, 3], "val": [4]})
 
 
-def make_trainer(root, out, *, frozen=("features",), validate=True, **train) -> Trainer:
+def make_trainer(root, out, *, frozen=("features",), validate=True, jitter=False, **train) -> Trainer:
     config = build_config({
         "model": {"max_disp": 16},
-        "data": {"dataset": "virtualtree", "root": str(root), "crop": [64, 96], "num_workers": 0, "color_jitter": False},
+        "data": {"dataset": "virtualtree", "root": str(root), "crop": [64, 96], "num_workers": 0, "color_jitter": jitter},
         "optim": {"warmup_steps": 1, "lr": train.pop("lr", 1e-3)},
         "train": {"epochs": 1, "batch_size": 1, "precision": "fp32", "vis_count": 0, "out_dir": str(out), **train},
     })
@@ -77,3 +79,49 @@ def test_mixed_precision_steps_train_and_fp16_uses_the_grad_scaler(root, tmp_pat
     assert any(not torch.equal(p, before[n]) for n, p in trainer.model.named_parameters())
     if precision == "fp16":
         assert torch.load(tmp_path / "last.pth", weights_only=True)["scaler"]["scale"] > 0
+
+
+def test_nan_validation_is_counted_as_failed_never_best_and_training_goes_on(root, tmp_path):
+    trainer = make_trainer(root, tmp_path, frozen=(), epochs=5, patience=2)
+    with torch.no_grad():
+        trainer.model.heads[2].bias.fill_(math.nan)  # every prediction NaN, in training and validation
+    result = trainer.fit()
+    assert result.stopped_early and result.epochs_completed == 2, "failed epochs count towards patience"
+    assert [row["val_epe"] for row in result.history] == [math.inf, math.inf]
+    assert [row["val_failed"] for row in result.history] == [1, 1]
+    assert result.best_epe == math.inf and result.best_epoch == -1
+    assert not (tmp_path / "best.pth").exists()
+    rows = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=lambda c: pytest.fail(f"non-JSON {c}"))
+    assert [row["val_epe"] for row in rows] == [None, None]
+
+
+def _training_state(trainer: Trainer) -> dict:
+    return {"model": trainer.model.state_dict(), "ema": trainer.ema.state_dict(), "scaler": trainer.scaler.state_dict(),
+            "optimizer": trainer.optimizer.state_dict()["state"], "lr": trainer.optimizer.param_groups[0]["lr"],
+            "progress": {k: v for k, v in trainer.progress.items() if k != "history"},
+            "history": [{k: v for k, v in row.items() if k != "seconds"} for row in trainer.progress["history"]]}
+
+
+def test_k_steps_then_resume_equals_n_steps_in_one_go_with_ema_scaler_and_jitter(root, tmp_path):
+    """In-process interruption (max_steps) mid-epoch, resumed across an epoch end with validation.
+
+    The real network's resume, after a SIGKILL, is pinned in test_training_resume.py.
+    """
+    settings = dict(frozen=(), jitter=True, epochs=2, precision="fp16", ema_decay=0.9)
+    one_go = make_trainer(root, tmp_path / "one", max_steps=6, **settings)
+    assert one_go.fit().steps == 6
+    first = make_trainer(root, tmp_path / "split", max_steps=3, **settings).fit()
+    assert first.interrupted and first.steps == 3 and first.epochs_completed == 0
+    saved = torch.load(tmp_path / "split" / "last.pth", weights_only=True)["progress"]
+    assert (saved["step"], saved["batch_in_epoch"]) == (3, 3)
+    resumed = make_trainer(root, tmp_path / "split", max_steps=6, **settings)
+    resumed.resume(tmp_path / "split" / "last.pth")
+    assert resumed.fit().steps == 6
+    expected, actual = _training_state(one_go), _training_state(resumed)
+    assert actual["progress"] == expected["progress"] and actual["history"] == expected["history"]
+    assert actual["lr"] == expected["lr"] and actual["scaler"] == expected["scaler"]
+    for part in ("model", "ema"):
+        for key, value in expected[part].items():
+            torch.testing.assert_close(actual[part][key], value, msg=f"{part}.{key}")
+    for index, state in expected["optimizer"].items():
+        torch.testing.assert_close(actual["optimizer"][index]["exp_avg"], state["exp_avg"])

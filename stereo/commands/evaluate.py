@@ -12,7 +12,8 @@ from pathlib import Path
 import torch
 
 import stereo
-from stereo.datasets import SPLIT_FILE_DATASETS, StereoDataset, open_dataset
+from stereo.commands.train import run_reporting_input_errors
+from stereo.datasets import SPLIT_FILE_DATASETS, DatasetError, StereoDataset, open_dataset
 from stereo.datasets.splits import split_train_val
 from stereo.evaluation import EvaluationResult, evaluate, format_table, write_reports
 from stereo.training.config import DATASET_NAMES
@@ -26,12 +27,17 @@ def split_dataset(name: str, root: str, split: str, val_fraction: float = 0.1, s
     if split == "all":
         return full
     if split not in ("train", "val"):
-        raise SystemExit(f"--split {split!r}: {name} has no split files; use val, train or all")
+        raise DatasetError(f"--split {split!r}: {name} has no split files; use val, train or all")
     train_idx, val_idx = split_train_val(len(full), val_fraction, seed)
     return full.subset(val_idx if split == "val" else train_idx)
 
 
 def _run(args: argparse.Namespace) -> int:
+    return run_reporting_input_errors("evaluate", lambda: _evaluate(args))
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    """Score the weights on every requested split, write the reports and print the table."""
     device = torch.device(args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
     model = stereo.load_model(args.weights, device=device)
     splits = args.split or (["test"] if args.dataset in SPLIT_FILE_DATASETS else ["val"])

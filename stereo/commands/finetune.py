@@ -9,12 +9,17 @@ from __future__ import annotations
 
 import argparse
 
-from stereo.commands.train import add_run_arguments, config_from_args, launch
+from stereo.commands.train import add_run_arguments, config_from_args, launch, run_reporting_input_errors
 from stereo.datasets import RectifiedPairsDataset
 from stereo.training.selfsup import SelfSupConfig
 
 
 def _run(args: argparse.Namespace) -> int:
+    return run_reporting_input_errors("finetune", lambda: _finetune(args))
+
+
+def _finetune(args: argparse.Namespace) -> int:
+    """Warm-started training from the flags: supervised, or self-supervised with `--unlabelled`."""
     extra = [f'finetune.weights="{args.weights}"']
     if args.freeze:
         extra.append("finetune.freeze=[" + ", ".join(f'"{name}"' for name in args.freeze) + "]")

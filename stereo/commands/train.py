@@ -3,14 +3,32 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
+from collections.abc import Callable
 
 from torch.utils.data import Dataset
 
-from stereo.training.config import ExperimentConfig, load_config
+from stereo.checkpoints import CheckpointError
+from stereo.datasets import DatasetError
+from stereo.io import StereoIOError
+from stereo.training.config import ConfigError, ExperimentConfig, load_config
 from stereo.training.distributed import context_from_env, shutdown
 from stereo.training.run import run_training
 from stereo.training.selfsup import SelfSupConfig
 from stereo.training.trainer import TrainResult
+
+
+#: Errors caused by what the user gave (config, data, weights); the commands print them without a traceback.
+INPUT_ERRORS = (ConfigError, DatasetError, CheckpointError, StereoIOError)
+
+
+def run_reporting_input_errors(command: str, body: Callable[[], int]) -> int:
+    """Run a command's body; an input error becomes one `emcstereo COMMAND: error: …` line and exit status 2."""
+    try:
+        return body()
+    except INPUT_ERRORS as exc:
+        print(f"emcstereo {command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,7 +80,7 @@ def launch(args: argparse.Namespace, config: ExperimentConfig, *, selfsup: SelfS
 
 
 def _run(args: argparse.Namespace) -> int:
-    return launch(args, config_from_args(args))
+    return run_reporting_input_errors("train", lambda: launch(args, config_from_args(args)))
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -32,9 +32,17 @@ def split_train_val(n: int, val_fraction: float = 0.1, seed: int = 0) -> tuple[l
     return [i for i in range(n) if i not in held_out], [i for i in range(n) if i in held_out]
 
 
+def compile_group_pattern(pattern: str | re.Pattern[str]) -> re.Pattern[str]:
+    """The compiled group pattern, or DatasetError naming it when it is not a valid regular expression."""
+    try:
+        return re.compile(pattern)
+    except re.error as exc:
+        raise DatasetError(f"group pattern {pattern!r}: not a valid regular expression ({exc})") from exc
+
+
 def group_id(name: str, pattern: str | re.Pattern[str]) -> str:
     """The group id in `name`: the regex's first capture group, or the whole match without groups."""
-    regex = re.compile(pattern)
+    regex = compile_group_pattern(pattern)
     match = regex.search(name)
     if match is None:
         raise DatasetError(f"group pattern {regex.pattern!r} does not match record name {name!r}")
@@ -45,7 +53,8 @@ def group_split(
     names: Sequence[str], pattern: str, val_fraction: float = 0.1, seed: int = 0
 ) -> tuple[list[int], list[int]]:
     """(train, val) indices with no group on both sides; `max(1, round(f·G))` of the G groups held out."""
-    ids = [group_id(name, pattern) for name in names]
+    regex = compile_group_pattern(pattern)
+    ids = [group_id(name, regex) for name in names]
     groups = sorted(set(ids))
     if len(groups) < 2:
         raise DatasetError(

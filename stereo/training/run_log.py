@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,11 @@ def open_tensorboard(log_dir: Path) -> Any | None:
     except ImportError:
         return None
     return SummaryWriter(log_dir=str(log_dir))
+
+
+def _json_safe(history: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The history with NaN/Inf floats (e.g. the EPE of a failed validation) as null, which strict JSON allows."""
+    return [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()} for row in history]
 
 
 class RunLog:
@@ -48,7 +54,7 @@ class RunLog:
             writer = csv.DictWriter(handle, fieldnames=columns)
             writer.writeheader()
             writer.writerows(history)
-        (self.out_dir / "metrics.json").write_text(json.dumps(list(history), indent=2), encoding="utf-8")
+        (self.out_dir / "metrics.json").write_text(json.dumps(_json_safe(history), indent=2), encoding="utf-8")
         write_training_curve(history, self.out_dir / "training_curve.png")
         if self.tensorboard is not None:
             last = history[-1]

@@ -281,6 +281,8 @@ class Trainer:
                               vis_dir=self.out_dir / "vis" if train.vis_count > 0 else None,
                               vis_count=train.vis_count)
             row.update({f"val_{k}": v for k, v in result.mean.items()})
+            # A NaN/Inf prediction on any validation image makes the epoch's EPE inf: never the best.
+            row.update(val_epe=result.selection_epe, val_failed=len(result.failed))
             if row["val_epe"] < p["best_epe"]:
                 p.update(best_epe=row["val_epe"], best_epoch=row["epoch"], bad_epochs=0)
                 best = model_payload(self.evaluated_model())
