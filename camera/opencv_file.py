@@ -26,8 +26,9 @@ def _open(path: Path) -> cv2.FileStorage:
         raise CalibrationError(path, "<file>", "does not exist", "an OpenCV YAML/JSON/XML calibration file")
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as error:
-        raise CalibrationError(path, "<file>", f"is not a valid FileStorage file ({error.err})",
+    except (cv2.error, SystemError) as error:  # OpenCV 5 surfaces parser errors as SystemError
+        reason = getattr(error, "err", None) or getattr(error.__cause__, "err", None) or "parse error"
+        raise CalibrationError(path, "<file>", f"is not a valid FileStorage file ({reason})",
                                "OpenCV YAML, JSON or XML") from None
     if not storage.isOpened():
         raise CalibrationError(path, "<file>", "could not be opened by cv2.FileStorage", "OpenCV YAML, JSON or XML")

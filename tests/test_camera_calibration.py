@@ -363,3 +363,10 @@ def test_calibration_with_a_malformed_image_size_names_it() -> None:
     k = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     with pytest.raises(CalibrationError, match=r"image_size: is \(640,\) \(expected \(width, height\) in pixels\)"):
         StereoCalibration(k, np.zeros(5), k, np.zeros(5), np.eye(3), np.array([-0.1, 0, 0]), (640,))
+
+
+def test_truncated_opencv_xml_is_a_calibration_error_naming_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "stereo.xml"
+    path.write_text('<?xml version="1.0"?>\n<opencv_storage><K1 type_id="opencv-matrix"><rows>3</rows')
+    with pytest.raises(CalibrationError, match=r"stereo\.xml: <file>: is not a valid FileStorage file"):
+        load_calibration(path)
