@@ -84,22 +84,25 @@ class StereoConfig:
 class CutpointsConfig:
     """Where on a branch the cut goes and which branch is the target (`branchrange.pipeline`).
 
-    `target_policy`: 'nearest', 'most_confident' or 'thickest'; branches below
+    `target_policy`: 'nearest_confident' (distance / confidence), 'nearest', 'most_confident' or
+    'thickest' (`branchrange.cutpoints.select_target`); branches below
     `target_min_confidence` are never the target, below `min_confidence` not reported at all.
     `tracking` keeps branch ids stable across frames (the daemon and replay want it).
     """
 
     cut_offset_m: float = 0.05
     min_confidence: float = 0.0
-    target_policy: str = "nearest"
+    target_policy: str = "nearest_confident"
     target_min_confidence: float = 0.3
     tracking: bool = True
 
     def __post_init__(self) -> None:
         _require(self.cut_offset_m >= 0, "cutpoints.cut_offset_m", self.cut_offset_m, "metres >= 0")
         _require(0.0 <= self.min_confidence <= 1.0, "cutpoints.min_confidence", self.min_confidence, "a number in [0, 1]")
-        _require(self.target_policy in ("nearest", "most_confident", "thickest"), "cutpoints.target_policy",
-                 self.target_policy, "'nearest', 'most_confident' or 'thickest'")
+        from branchrange.cutpoints import TARGET_POLICIES
+
+        _require(self.target_policy in TARGET_POLICIES, "cutpoints.target_policy",
+                 self.target_policy, "one of " + ", ".join(repr(p) for p in TARGET_POLICIES))
         _require(0.0 <= self.target_min_confidence <= 1.0, "cutpoints.target_min_confidence",
                  self.target_min_confidence, "a number in [0, 1]")
 

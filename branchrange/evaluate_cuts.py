@@ -6,7 +6,9 @@ Scores:
 - recall: share of visible truth branches whose matched cut point lies within 5 cm;
 - median and 90th-percentile 3D cut-point error over the matched pairs (m);
 - median distance error: |estimated − true camera distance| / true distance, in %;
-- false cut points per frame: estimates with no truth cut point (visible or not) within 5 cm.
+- false cut points per frame: estimates with no truth cut point (visible or not) within 5 cm;
+- target within 5 cm: share of frames with a target (the pipeline's `target_id`, by its target
+  policy) whose cut point lies within 5 cm of a truth cut point.
 Stereo: the set's exact disparity ('gt', the geometry's own error), 'sgbm', or 'emcstereo' (with
 weights); masks: the set's instance masks ('gt') or the built-in segmenter ('segmenter').
 """
@@ -100,6 +102,8 @@ class CutScores:
     errors_m: list[float] = field(default_factory=list)
     distance_errors_pct: list[float] = field(default_factory=list)
     false_cut_points: int = 0
+    targets: int = 0
+    targets_within: int = 0
     seconds: float = 0.0
 
     @property
@@ -121,10 +125,19 @@ class CutScores:
         """Estimated cut points with no truth within 5 cm, per frame."""
         return self.false_cut_points / self.frames if self.frames else float("nan")
 
-    def add_frame(self, truth: Sequence[dict], estimated: Sequence[dict]) -> None:
-        """Match one frame's estimates to its truth and accumulate the scores."""
+    @property
+    def target_accuracy(self) -> float:
+        """Share of the frames' targets that lie within 5 cm of a truth cut point."""
+        return self.targets_within / self.targets if self.targets else float("nan")
+
+    def add_frame(self, truth: Sequence[dict], estimated: Sequence[dict], target: dict | None = None) -> None:
+        """Match one frame's estimates (and its `target` branch, if any) to its truth and accumulate the scores."""
         self.frames += 1
         true_points = [np.asarray(b["cut_point_m"], dtype=np.float64) for b in truth]
+        if target is not None:
+            self.targets += 1
+            aim = np.asarray(target["cut_point_m"], dtype=np.float64)
+            self.targets_within += any(float(np.linalg.norm(aim - t)) <= RECALL_RADIUS_M for t in true_points)
         guesses = [np.asarray(b["cut_point_m"], dtype=np.float64) for b in estimated]
         pairs = sorted((float(np.linalg.norm(g - t)), ti, gi)
                        for ti, t in enumerate(true_points) for gi, g in enumerate(guesses))
@@ -196,8 +209,9 @@ def evaluate_cuts(root: str | Path, stereo_modes: Sequence[str] = ("gt", "sgbm")
                 result = pipeline.process_disparity(frame.left, disparity, confidence,
                                                     mask=frame.mask if masks == "gt" else None, backend=stereo)
                 estimated = [b for b in result["branches"] if b["confidence"] >= min_confidence]
+                target = next((b for b in result["branches"] if b["id"] == result["target_id"]), None)
                 entry = scores[(stereo, masks)]
-                entry.add_frame(frame.branches, estimated)
+                entry.add_frame(frame.branches, estimated, target)
                 entry.seconds += stereo_seconds + time.perf_counter() - start
     return list(scores.values())
 
@@ -205,13 +219,14 @@ def evaluate_cuts(root: str | Path, stereo_modes: Sequence[str] = ("gt", "sgbm")
 def format_table(scores: Sequence[CutScores]) -> str:
     """The scores as a fixed-width text table, one row per (stereo, masks)."""
     header = (f"{'stereo':<10} {'masks':<10} {'frames':>6} {'branches':>8} {'recall@5cm':>10} "
-              f"{'median 3D':>10} {'p90 3D':>8} {'med dist err':>12} {'false/frame':>11} {'s/frame':>8}")
+              f"{'median 3D':>10} {'p90 3D':>8} {'med dist err':>12} {'false/frame':>11} {'target@5cm':>10} "
+              f"{'s/frame':>8}")
     lines = [header, "-" * len(header)]
     for s in scores:
         lines.append(f"{s.stereo:<10} {s.masks:<10} {s.frames:>6} {s.truth:>8} {100 * s.recall:>9.1f}% "
                      f"{100 * s.error_quantile(0.5):>8.2f}cm {100 * s.error_quantile(0.9):>6.2f}cm "
                      f"{s.median_distance_error_pct:>11.2f}% {s.false_per_frame:>11.2f} "
-                     f"{s.seconds / max(s.frames, 1):>8.2f}")
+                     f"{100 * s.target_accuracy:>9.1f}% {s.seconds / max(s.frames, 1):>8.2f}")
     return "\n".join(lines)
 
 
@@ -220,4 +235,5 @@ def scores_as_dict(scores: Sequence[CutScores]) -> list[dict]:
     return [{"stereo": s.stereo, "masks": s.masks, "frames": s.frames, "branches": s.truth,
              "recall": s.recall, "median_error_m": s.error_quantile(0.5), "p90_error_m": s.error_quantile(0.9),
              "median_distance_error_pct": s.median_distance_error_pct, "false_per_frame": s.false_per_frame,
+             "targets": s.targets, "target_within_5cm": s.target_accuracy,
              "seconds_per_frame": s.seconds / max(s.frames, 1)} for s in scores]

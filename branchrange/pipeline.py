@@ -16,7 +16,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from branchrange.cutpoints import TARGET_POLICIES, CutPointConfig, CutPointResult, estimate_cut_points, select_target
+from branchrange.cutpoints import (
+    DEFAULT_TARGET_POLICY,
+    TARGET_POLICIES,
+    CutPointConfig,
+    CutPointResult,
+    estimate_cut_points,
+    select_target,
+)
 from branchrange.geometry import StereoGeometry, valid_disparity
 from branchrange.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID, BranchMasks, MaskKind, masks_from_array, read_mask, validate_masks
 from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
@@ -57,7 +64,7 @@ class PipelineConfig:
     trunk_id: int | None = DEFAULT_TRUNK_ID
     ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS
     mask_kind: MaskKind = "auto"
-    target_policy: str = "nearest"
+    target_policy: str = DEFAULT_TARGET_POLICY
     target_min_confidence: float = 0.3
     tracking: bool = True
     cutpoints: CutPointConfig = field(default_factory=CutPointConfig)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from branchrange.cli import main
-from branchrange.evaluate_cuts import evaluate_cuts
+from branchrange.evaluate_cuts import CutScores, evaluate_cuts
 from branchrange.pipeline import SCHEMA_PATH
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
@@ -110,6 +110,16 @@ def test_evaluate_cuts_scores_ground_truth_geometry(tiny_set):
     assert gt_gt.recall >= 0.75
     assert gt_gt.error_quantile(0.5) < 0.015
     assert gt_gt.false_per_frame <= 1.0
+    assert gt_gt.targets == 2 and gt_gt.target_accuracy == 1.0
+
+
+def test_evaluate_cuts_scores_a_target_far_from_every_truth_as_a_miss():
+    scores = CutScores("gt", "gt")
+    truth = [{"cut_point_m": [0.0, 0.0, 1.0], "cut_visible": True}]
+    scores.add_frame(truth, [{"cut_point_m": [0.0, 0.0, 1.01]}], target={"cut_point_m": [0.0, 0.0, 1.01]})
+    scores.add_frame(truth, [{"cut_point_m": [0.0, 0.0, 1.2]}], target={"cut_point_m": [0.0, 0.0, 1.2]})
+    scores.add_frame(truth, [], target=None)
+    assert (scores.targets, scores.targets_within, scores.target_accuracy) == (2, 1, 0.5)
 
 
 def test_evaluate_cuts_command_prints_the_table(tiny_set, tmp_path, capsys):
@@ -120,6 +130,11 @@ def test_evaluate_cuts_command_prints_the_table(tiny_set, tmp_path, capsys):
         assert row in out
     scores = json.loads((tmp_path / "s.json").read_text())
     assert len(scores) == 4 and all(s["frames"] == 1 for s in scores)
+
+
+def test_evaluate_cuts_refuses_an_unknown_target_policy(tiny_set, capsys):
+    assert main(["evaluate-cuts", str(tiny_set), "--stereo", "gt", "--target-policy", "farthest"]) == 2
+    assert "target_policy = 'farthest'" in capsys.readouterr().err
 
 
 def test_evaluate_cuts_names_a_folder_that_is_not_a_set(tmp_path, capsys):

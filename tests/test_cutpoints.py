@@ -157,9 +157,13 @@ def _branch(mask_id, distance, confidence, diameter):
 
 
 def test_target_selector_policies_and_confidence_floor():
-    branches = [_branch(1, 1.0, 0.2, 0.02), _branch(2, 1.5, 0.9, 0.03), _branch(3, 2.0, 0.6, 0.05)]
-    assert select_target(branches).mask_id == 2  # nearest among those ≥ 0.3
-    assert select_target(branches, min_confidence=0.1).mask_id == 1
+    branches = [_branch(1, 1.0, 0.2, 0.02), _branch(2, 1.5, 0.9, 0.03), _branch(3, 2.0, 0.6, 0.05),
+                _branch(4, 1.2, 0.45, 0.02)]
+    # default: smallest distance / confidence among those ≥ 0.3 — 1.5/0.9 beats 1.2/0.45 and 2.0/0.6
+    assert select_target(branches).mask_id == 2
+    assert select_target(branches, "nearest").mask_id == 4  # nearest among those ≥ 0.3
+    assert select_target(branches, "nearest", min_confidence=0.1).mask_id == 1
+    assert select_target(branches, min_confidence=0.1).mask_id == 2  # 1.0/0.2 = 5 counts as far
     assert select_target(branches, "most_confident").mask_id == 2
     assert select_target(branches, "thickest").mask_id == 3
     assert select_target(branches, min_confidence=0.95) is None

@@ -65,12 +65,12 @@ def test_sgbm_cut_points_land_near_the_truth(sgbm_result, scene):
     assert within_5cm >= 0.7 * len(truth), errors
 
 
-def test_target_is_the_nearest_confident_branch(sgbm_result):
+def test_target_is_the_nearest_branch_with_distance_weighted_by_confidence(sgbm_result):
     branches = sgbm_result["branches"]
     confident = [b for b in branches if b["confidence"] >= 0.3]
     assert confident
-    nearest = min(confident, key=lambda b: b["distance_m"])
-    assert sgbm_result["target_id"] == nearest["id"]
+    best = min(confident, key=lambda b: b["distance_m"] / b["confidence"])
+    assert sgbm_result["target_id"] == best["id"]
 
 
 def test_ground_truth_disparity_and_masks_give_sub_centimetre_cut_points(scene, validator):

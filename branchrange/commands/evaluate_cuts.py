@@ -1,7 +1,8 @@
 """`branchrange evaluate-cuts DIR`: cut-point accuracy over a synthetic set from `emcstereo synth`.
 
 Prints one table row per (stereo, masks) combination: recall within 5 cm, median and 90th-percentile
-3D cut-point error, median distance error in % of the range, false cut points per frame. Stereo
+3D cut-point error, median distance error in % of the range, false cut points per frame, and how
+often the frame's target lies within 5 cm of a true cut point. Stereo
 'gt' uses the set's exact disparity (the geometry's own error); 'emcstereo' needs --weights.
 """
 from __future__ import annotations
@@ -26,6 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--split", choices=("train", "val", "test"), help="evaluate one split's scenes only")
     p.add_argument("--min-confidence", type=float, default=0.0,
                    help="ignore estimated cut points below this confidence (default 0: count all)")
+    p.add_argument("--target-policy", help="how each frame's target is chosen, scored in the target@5cm column "
+                   "(nearest_confident, nearest, most_confident, thickest; default: the pipeline's, nearest_confident)")
     p.add_argument("--json", type=Path, help="also write the scores as JSON")
     p.set_defaults(func=run)
 
@@ -33,12 +36,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Evaluate and print the table."""
     from branchrange.evaluate_cuts import evaluate_cuts, format_table, scores_as_dict
+    from branchrange.pipeline import PipelineConfig
 
     stereo = args.stereo or (["gt", "sgbm"] + (["emcstereo"] if args.weights else []))
     try:
         scores = evaluate_cuts(args.dir, stereo, args.masks, weights=str(args.weights) if args.weights else None,
                                max_disp=args.max_disp, limit=args.limit, split=args.split,
-                               min_confidence=args.min_confidence)
+                               min_confidence=args.min_confidence,
+                               config=PipelineConfig(tracking=False, max_disp=args.max_disp,
+                                                     **({"target_policy": args.target_policy}
+                                                        if args.target_policy else {})))
     except (ValueError, OSError) as exc:
         print(f"branchrange evaluate-cuts: error: {exc}", file=sys.stderr)
         return 2
