@@ -19,7 +19,7 @@ from stereo import EMCStereo
 from stereo.datasets import SyntheticDataset
 from stereo.evaluation import evaluate
 from stereo.synth.writer import split_line, write_dataset
-from stereo.training.config import build_config
+from stereo.training.config import ExperimentConfig, build_config
 from stereo.training.distributed import DistributedContext
 from stereo.training.selfsup import SelfSupConfig, SelfSupervisedTrainer
 from stereo.training.trainer import Trainer, seed_everything
@@ -28,7 +28,7 @@ from stereo.training.trainer import Trainer, seed_everything
 class WithoutGroundTruth:
     """A dataset view whose samples carry no disparity (self-supervision must not see it)."""
 
-    def __init__(self, dataset):
+    def __init__(self, dataset: SyntheticDataset) -> None:
         self.dataset = dataset
 
     def __len__(self) -> int:
@@ -39,7 +39,7 @@ class WithoutGroundTruth:
         return {**sample, "disparity": sample["disparity"] * 0}
 
 
-def recipe(root: Path, out: Path, args: argparse.Namespace, steps: int, lr: float, pairs: int):
+def recipe(root: Path, out: Path, args: argparse.Namespace, steps: int, lr: float, pairs: int) -> ExperimentConfig:
     """The config of one stage: `steps` steps over whole epochs of `pairs` training pairs."""
     epochs = -(-steps // max(1, pairs // args.batch_size))
     return build_config({
@@ -52,6 +52,7 @@ def recipe(root: Path, out: Path, args: argparse.Namespace, steps: int, lr: floa
 
 
 def row(stage: str, metrics: dict, seconds_per_step: float | None) -> str:
+    """One table line: stage, held-out EPE / D1 / Bad-3 and seconds per iteration."""
     spi = f"{seconds_per_step:8.3f}" if seconds_per_step is not None else f"{'-':>8}"
     return f"{stage:<28}{metrics['epe']:>8.3f}{metrics['d1_all']:>8.3f}{metrics['bad_3']:>8.3f}{spi}"
 

@@ -94,26 +94,36 @@ def test_synthetic_set_from_emcstereo_synth_uses_its_own_rig(tmp_path):
     np.testing.assert_array_equal(sample["left"], truth.left)
 
 
+#: Where the authors' SceneFlow layout keeps one frame of each subset: (frames, disparity, sequence folder).
+SCENEFLOW_PLACES = [
+    ("flyingthings3d__frames", "flyingthings3d_disparity", "A/0000"),
+    ("monkaa__frames", "monkaa_disparity", "a_rain_of_stones_x2"),
+    ("driving__frames", "driving__disparity", "15mm_focallength/scene_forwards/fast"),
+]
+
+
 def _sceneflow_layout(root: Path, shared: Path) -> Path:
-    """The shared FlyingThings3D pair placed where the authors' SceneFlow layout expects it."""
+    """The shared FlyingThings3D pair placed where each SceneFlow subset of the authors' layout expects a frame."""
     src = shared / "stereo" / "sceneflow_flyingthings3d_train_A_0000_0006"
-    seq = Path("A") / "0000"
-    for view in ("left", "right"):
-        (root / "flyingthings3d__frames" / seq / view).mkdir(parents=True)
-        (root / "flyingthings3d__frames" / seq / view / "0006.png").symlink_to(src / f"{view}_cleanpass.png")
-    (root / "flyingthings3d_disparity" / seq / "left").mkdir(parents=True)
-    (root / "flyingthings3d_disparity" / seq / "left" / "0006.pfm").symlink_to(src / "disp_left.pfm")
+    for frames, disparities, seq in SCENEFLOW_PLACES:
+        for view in ("left", "right"):
+            (root / frames / seq / view).mkdir(parents=True)
+            (root / frames / seq / view / "0006.png").symlink_to(src / f"{view}_cleanpass.png")
+        (root / disparities / seq / "left").mkdir(parents=True)
+        (root / disparities / seq / "left" / "0006.pfm").symlink_to(src / "disp_left.pfm")
     return root
 
 
-def test_sceneflow_reads_the_real_flyingthings_pfm(tmp_path, shared_data):
+def test_sceneflow_reads_the_real_flyingthings_pfm_in_all_three_subset_layouts(tmp_path, shared_data):
     root = _sceneflow_layout(tmp_path / "sf", shared_data)
     dataset = SceneFlowDataset(root)
-    assert dataset.names() == ["flyingthings3d/A/0000/0006"]
-    sample = dataset[0]
-    assert sample["left"].shape == (540, 960, 3) and sample["disparity"].shape == (540, 960)
+    assert dataset.names() == ["flyingthings3d/A/0000/0006", "monkaa/a_rain_of_stones_x2/0006",
+                               "driving/15mm_focallength/scene_forwards/fast/0006"]
     expected = read_pfm(root / "flyingthings3d_disparity/A/0000/left/0006.pfm")
-    np.testing.assert_array_equal(sample["disparity"], np.where(expected > 0, expected, 0))
+    for index in range(3):
+        sample = dataset[index]
+        assert sample["left"].shape == (540, 960, 3) and sample["disparity"].shape == (540, 960)
+        np.testing.assert_array_equal(sample["disparity"], np.where(expected > 0, expected, 0))
     assert 0 < float(np.median(sample["disparity"])) < 192
 
 

@@ -125,3 +125,15 @@ def test_k_steps_then_resume_equals_n_steps_in_one_go_with_ema_scaler_and_jitter
             torch.testing.assert_close(actual[part][key], value, msg=f"{part}.{key}")
     for index, state in expected["optimizer"].items():
         torch.testing.assert_close(actual["optimizer"][index]["exp_avg"], state["exp_avg"])
+
+
+def test_gradient_norm_is_clipped_to_grad_clip_before_each_optimiser_step(root, tmp_path):
+    norms: dict[float, list[float]] = {}
+    for clip in (0.0, 1e-3):  # 0 = no clipping
+        trainer = make_trainer(root, tmp_path / str(clip), frozen=(), validate=False, grad_clip=clip)
+        seen = norms.setdefault(clip, [])
+        trainer.optimizer.register_step_pre_hook(lambda opt, args, kwargs, seen=seen: seen.append(math.sqrt(sum(
+            float(p.grad.pow(2).sum()) for group in opt.param_groups for p in group["params"] if p.grad is not None))))
+        assert trainer.fit().steps == 4
+    assert len(norms[1e-3]) == 4 and max(norms[1e-3]) <= 1e-3 * (1 + 1e-4)
+    assert min(norms[0.0]) > 1e-2, norms[0.0]

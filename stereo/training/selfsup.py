@@ -148,6 +148,7 @@ class SelfSupervisedTrainer(Trainer):
         self.selfsup = selfsup
 
     def compute_loss(self, batch: dict[str, Any]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Forward of one micro-batch and its self-supervised loss (right disparity first, for the LR check)."""
         left, right = batch["left"], batch["right"]
         right_disparity = None
         if self.selfsup.lr_check:
