@@ -25,7 +25,8 @@ Where it fails (by construction):
 - anything the stereo backend misses (textureless bark, thin branches below the matcher's
   resolution) is invisible to it; sgbm noise streaks can pass as thin structures;
 - background at working-range depth (a hedge, a wall, the ground) becomes foreground and its thin
-  parts can pass as branches.
+  parts can pass as branches; ground that meets the trunk's foot in the image joins the trunk's
+  thick part and is reported as trunk with it (the synthetic "parallel" views show it).
 """
 from __future__ import annotations
 
