@@ -11,6 +11,7 @@ Every load is strict: each tensor is consumed, none is missing, every shape matc
 from __future__ import annotations
 
 import os
+import pickle
 import re
 import tempfile
 import zipfile
@@ -89,10 +90,19 @@ def _torch_load(path: Path) -> Any:
     except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as exc:
         raise CheckpointError(
             f"{path}: not a readable torch checkpoint ({path.stat().st_size} bytes; truncated or "
-            f"corrupt?): {exc}"
+            f"corrupt?): {_essence(exc)}"
         ) from exc
-    except Exception as exc:  # the unpickler's own error types for foreign pickles
-        raise CheckpointError(f"{path}: not a weights-only torch checkpoint: {exc}") from exc
+    except pickle.UnpicklingError as exc:  # a pickle that needs code to load: never executed here
+        raise CheckpointError(f"{path}: not a weights-only torch checkpoint: {_essence(exc)}") from exc
+
+
+def _essence(exc: BaseException) -> str:
+    """The one line of torch's multi-line load errors that says what was wrong."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    for line in lines:
+        if "Unsupported global" in line or "WeightsUnpickler error" in line:
+            return line
+    return lines[0] if lines else type(exc).__name__
 
 
 def _find_state_dict(raw: Any, path: Path) -> tuple[str, dict[str, torch.Tensor]]:

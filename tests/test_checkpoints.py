@@ -131,3 +131,19 @@ def test_missing_and_misshapen_tensors_are_listed(tmp_path, authors_checkpoint):
 def test_missing_file_is_reported(tmp_path):
     with pytest.raises(CheckpointError, match="no such checkpoint file"):
         read_checkpoint(tmp_path / "absent.pth")
+
+
+def test_pickle_that_needs_code_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "code.pth"
+    torch.save({"model": {}, "hook": pathlib_purepath()}, path)
+    with pytest.raises(CheckpointError) as err:
+        load_model(path)
+    assert "not a weights-only torch checkpoint" in str(err.value) and "\n" not in str(err.value)
+    assert "Unsupported global" in str(err.value)
+
+
+def pathlib_purepath():
+    """An object whose unpickling needs a class import: what weights-only loading refuses."""
+    from pathlib import PurePosixPath
+
+    return PurePosixPath("/x")
