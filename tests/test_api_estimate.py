@@ -113,7 +113,7 @@ PNG_1x1 = cv2.imencode(".png", np.zeros((1, 1, 3), np.uint8))[1].tobytes()
     (lambda f, d: f.update(mask=("m.png", cv2.imencode(".png", np.zeros((100, 120), np.uint8))[1].tobytes(), "image/png")),
      422, "mask is 120×100 px but the images are 320×256 px"),
     (lambda f, d: (f.update(calibration=("rig.xml", b"<?xml version='1.0'?><opencv_storage><K1>", "text/xml")),
-                   d.pop("focal_px"), d.pop("baseline_m")), 422, "calibration: rig.xml: not a readable calibration file"),
+                   d.pop("focal_px"), d.pop("baseline_m")), 422, "calibration: rig.xml: <file>: is not a valid FileStorage file"),
     (lambda f, d: d.update(focal_px="inf"), 422, "focal_px"),
     (lambda f, d: d.update(baseline_m="nan"), 422, "baseline_m"),
     (lambda f, d: d.update(backend="emcstereo"), 422, "backend 'emcstereo' has no weights on this server"),
