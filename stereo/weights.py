@@ -46,9 +46,9 @@ REGISTRY: dict[str, WeightsInfo] = {
             size_bytes=61_866_765,
             variant={"ema": True, "msf": True, "coord": True, "max_disp": 192},
             metrics={
-                "virtualtree/val": {"epe": 1.314849, "d1_all": 0.058010, "bad1": 0.153278, "bad3": 0.073348,
+                "virtualtree/val": {"epe": 1.314849, "d1_all": 0.058010, "bad_1": 0.153278, "bad_3": 0.073348,
                                     "rmse": 4.825643, "abs_rel": 0.056242, "delta1": 0.962039},
-                "virtualtree/test": {"epe": 1.307740, "d1_all": 0.059573, "bad1": 0.151631, "bad3": 0.073064,
+                "virtualtree/test": {"epe": 1.307740, "d1_all": 0.059573, "bad_1": 0.151631, "bad_3": 0.073064,
                                      "rmse": 4.707669, "abs_rel": 0.056088, "delta1": 0.961051},
             },
             description="The authors' deployed EMCStereo (epoch 252 on VirtualTree); input RGB in [0,1], "
