@@ -31,6 +31,11 @@ CLIP_Z_M = 0.05
 _SQUARE = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
 
 
+def _rounded(vector: np.ndarray) -> list[float]:
+    """A 3-vector as plain floats rounded to the µm, for error messages."""
+    return [round(float(v), 6) for v in vector]
+
+
 @dataclass(frozen=True)
 class BarkMaterial:
     """A bark tile and how it wraps a cylinder: `around` tiles per turn, `along_m` metres per tile."""
@@ -77,6 +82,41 @@ class Cone:
         length_px = camera.focal_px * length / z_near
         width_px = 2.0 * max(self.r0, self.r1) * camera.focal_px / z_near
         return int(np.clip(np.ceil(length_px / max(3.0 * width_px, 12.0)), 1, 64))
+
+    def radius_at(self, s: float) -> float:
+        """Radius (m) of the surface `s` m along the axis from the base."""
+        return self.r0 + (self.r1 - self.r0) * s / self.length
+
+    def exit_distance(self, origin: np.ndarray, direction: np.ndarray) -> float:
+        """Distance (m) along unit `direction` `(3,)` from `origin` `(3,)`, a point inside the cone, to
+        where that ray leaves its side surface (exact: the positive root of the module's quadratic).
+
+        Where a branch axis starting inside a trunk leaves the bark. Raises `ValueError` when
+        `origin` is not inside, or the ray leaves through an end disc or never leaves.
+        """
+        k = (self.r1 - self.r0) / self.length
+        w = np.asarray(origin, dtype=np.float64) - self.base
+        d = np.asarray(direction, dtype=np.float64)
+        wa, da = float(w @ self.axis), float(d @ self.axis)
+        w_perp, d_perp = w - wa * self.axis, d - da * self.axis
+        radius0 = self.r0 + k * wa
+        quad_a = float(d_perp @ d_perp) - k * k * da * da
+        quad_b = 2.0 * (float(w_perp @ d_perp) - k * da * radius0)
+        quad_c = float(w_perp @ w_perp) - radius0 * radius0
+        if not (0.0 <= wa <= self.length and radius0 > 0.0 and quad_c < 0.0):
+            raise ValueError(f"exit_distance: origin {_rounded(origin)} is not inside the cone")
+        disc = quad_b * quad_b - 4.0 * quad_a * quad_c
+        # the two roots in the cancellation-free form q/A, C/q; the exit is the nearest one ahead
+        q = -0.5 * (quad_b + np.copysign(np.sqrt(max(disc, 0.0)), quad_b))
+        roots = [r for r in ((q / quad_a if quad_a != 0.0 else np.inf), (quad_c / q if q != 0.0 else np.inf))
+                 if 0.0 < r < np.inf and radius0 + k * da * r >= 0.0]
+        if disc < 0.0 or not roots:
+            raise ValueError(f"exit_distance: the ray along {_rounded(direction)} never leaves the side surface")
+        t = min(roots)
+        if not 0.0 <= wa + t * da <= self.length:
+            raise ValueError(f"exit_distance: the ray along {_rounded(direction)} leaves through an end, "
+                             "not the side surface")
+        return float(t)
 
 
 class ConeBatch:
