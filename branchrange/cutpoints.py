@@ -39,6 +39,7 @@ from branchrange.geometry import (
     valid_disparity,
 )
 from branchrange.masks import BranchMasks, erode
+from branchrange.settings_check import check_settings
 from branchrange.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
 
 TargetPolicy = Literal["nearest_confident", "nearest", "most_confident", "thickest"]
@@ -49,13 +50,6 @@ DEFAULT_TARGET_POLICY = "nearest_confident"
 
 class CutPointConfigError(ValueError):
     """A cut-point setting out of its range; the message names the key."""
-
-
-def check_settings(section: str, settings: object, checks: dict[str, bool], error: type[ValueError]) -> None:
-    """Raise `error` naming `section.key` and its value for the first check that failed."""
-    for key, ok in checks.items():
-        if not ok:
-            raise error(f"{section}.{key} = {getattr(settings, key)!r} is out of range")
 
 
 @dataclass(frozen=True)
@@ -86,15 +80,15 @@ class CutPointConfig:
 
     def __post_init__(self) -> None:
         checks = {
-            "cut_offset_m": self.cut_offset_m >= 0,
-            "erode_px": self.erode_px >= 0,
-            "min_points": self.min_points >= 3,
-            "min_valid_fraction": 0 <= self.min_valid_fraction <= 1,
-            "min_confidence": 0 <= self.min_confidence <= 1,
-            "disparity_noise_px": self.disparity_noise_px > 0,
-            "min_inlier_band_m": self.min_inlier_band_m > 0,
-            "min_range_m": self.min_range_m >= 0,
-            "max_range_m": self.max_range_m > self.min_range_m,
+            "cut_offset_m": (self.cut_offset_m >= 0, "≥ 0 m"),
+            "erode_px": (self.erode_px >= 0, "≥ 0 px"),
+            "min_points": (self.min_points >= 3, "≥ 3 points"),
+            "min_valid_fraction": (0 <= self.min_valid_fraction <= 1, "a fraction in [0, 1]"),
+            "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
+            "disparity_noise_px": (self.disparity_noise_px > 0, "> 0 px"),
+            "min_inlier_band_m": (self.min_inlier_band_m > 0, "> 0 m"),
+            "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
+            "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
         }
         check_settings("cutpoints", self, checks, CutPointConfigError)
 

@@ -51,7 +51,8 @@ class PipelineConfig:
     - `trunk_id`: the trunk's id in instance masks (None: no trunk id); `ignored_ids`: ids that
       are neither branch nor trunk (twigs, leaves); `mask_kind`: how mask files/arrays are read
       ('auto', 'instance', 'binary').
-    - `target_policy`: 'nearest', 'most_confident' or 'thickest'; `target_min_confidence`: a branch
+    - `target_policy`: one of `TARGET_POLICIES` ('nearest_confident', 'nearest', 'most_confident',
+      'thickest'); `target_min_confidence`: a branch
       below it is never the target.
     - `tracking`: give branches stable ids across frames (else ids are per-frame mask order).
     """
@@ -78,6 +79,8 @@ class PipelineConfig:
             raise PipelineConfigError(f"target_min_confidence = {self.target_min_confidence!r}: expected a number in [0, 1]")
         if self.mask_kind not in ("auto", "instance", "binary"):
             raise PipelineConfigError(f"mask_kind = {self.mask_kind!r}: expected 'auto', 'instance' or 'binary'")
+        if self.trunk_id is not None and not 0 < self.trunk_id <= 65535:
+            raise PipelineConfigError(f"trunk_id = {self.trunk_id!r}: expected an id in 1..65535 (0 is background)")
         if self.max_disp <= 0:
             raise PipelineConfigError(f"max_disp = {self.max_disp!r}: expected a positive number of pixels")
 

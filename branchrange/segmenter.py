@@ -36,9 +36,9 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from branchrange.cutpoints import check_settings
-from branchrange.geometry import StereoGeometry, valid_disparity
+from branchrange.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks
+from branchrange.settings_check import check_settings
 
 
 class SegmenterConfigError(ValueError):
@@ -83,14 +83,14 @@ class GeometricSegmenterConfig:
 
     def __post_init__(self) -> None:
         checks = {
-            "min_range_m": self.min_range_m >= 0,
-            "max_range_m": self.max_range_m > self.min_range_m,
-            "max_branch_diameter_m": self.max_branch_diameter_m > 0,
-            "min_branch_length_m": self.min_branch_length_m > 0,
-            "min_elongation": self.min_elongation >= 1,
-            "depth_edge_ratio": self.depth_edge_ratio > 0,
-            "min_confidence": 0 <= self.min_confidence <= 1,
-            "trunk_id": 0 < self.trunk_id <= 65535,
+            "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
+            "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
+            "max_branch_diameter_m": (self.max_branch_diameter_m > 0, "> 0 m"),
+            "min_branch_length_m": (self.min_branch_length_m > 0, "> 0 m"),
+            "min_elongation": (self.min_elongation >= 1, "≥ 1 (length / width)"),
+            "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
+            "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
+            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
         }
         check_settings("segmenter", self, checks, SegmenterConfigError)
 
@@ -140,8 +140,8 @@ class GeometricSegmenter:
         valid = valid_disparity(disparity)
         if confidence is not None:
             valid &= np.nan_to_num(confidence, nan=0.0) >= cfg.min_confidence
-        depth = np.full(disparity.shape, np.inf, dtype=np.float32)
-        depth[valid] = geometry.fb / disparity[valid]
+        depth = disparity_to_depth(disparity, geometry)
+        depth[~valid] = np.inf
         foreground = valid & (depth >= cfg.min_range_m) & (depth <= cfg.max_range_m)
         foreground &= ~_depth_edges(np.where(foreground, depth, np.inf), cfg.depth_edge_ratio)
         return foreground, depth

@@ -40,16 +40,6 @@ class ImageAxis:
         """Position `s` (px) along the axis of a pixel (u, v)."""
         return float((np.asarray(pixel, dtype=np.float64) - self.centre) @ self.direction)
 
-    def width_near(self, s: float, half_window_px: float) -> float:
-        """Silhouette width (px) around position `s`: pixel count per unit length in the window.
-
-        Counting pixels per unit length measures width without raster artefacts at any angle.
-        """
-        lo, hi = max(s - half_window_px, self.s_lo), min(s + half_window_px, self.s_hi)
-        if hi - lo < 1.0:
-            lo, hi = s - 0.5, s + 0.5
-        return np.count_nonzero((self.s >= lo) & (self.s < hi)) / (hi - lo)
-
     def end_centre(self, at_low_end: bool, slice_px: float) -> np.ndarray:
         """Pixel on the centreline at one end (centre across the axis of the last `slice_px`)."""
         s_end = self.s_lo if at_low_end else self.s_hi

@@ -81,6 +81,35 @@ def test_estimate_reports_bad_input_with_exit_status_2(pair_files, tmp_path, cap
     assert rc == 2 and "missing.png" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("case, message", [
+    ("mask_of_wrong_size", "must match the left image"),
+    ("empty_mask", "holds no branch instance"),
+    ("emcstereo_without_weights", "--backend emcstereo needs --weights"),
+    ("trunk_id_0", "trunk_id = 0"),
+    ("json_in_a_file_not_a_folder", "not_a_folder"),
+])
+def test_estimate_names_each_bad_input_and_exits_2_without_a_traceback(case, message, pair_files, tmp_path, capsys):
+    folder, scene = pair_files
+    args = ["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
+            "--focal-px", "320", "--baseline-m", "0.063", "--max-disp", "64", "--mask", str(folder / "mask.png")]
+    if case == "mask_of_wrong_size":
+        write_mask(tmp_path / "small.png", scene.instance_mask[:100, :100])
+        args[-1] = str(tmp_path / "small.png")
+    elif case == "empty_mask":
+        write_mask(tmp_path / "empty.png", np.zeros_like(scene.instance_mask))
+        args[-1] = str(tmp_path / "empty.png")
+    elif case == "emcstereo_without_weights":
+        args += ["--backend", "emcstereo"]
+    elif case == "trunk_id_0":
+        args += ["--trunk-id", "0"]
+    else:
+        (tmp_path / "not_a_folder").write_text("a file")
+        args += ["--json", str(tmp_path / "not_a_folder" / "out.json")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("branchrange estimate: error: ") and message in err and "Traceback" not in err
+
+
 def test_demo_says_sgbm_prints_truth_table_and_writes_overlay(tmp_path, capsys):
     rc = main(["demo", "--out", str(tmp_path / "demo")])
     out = capsys.readouterr().out

@@ -144,9 +144,9 @@ def test_out_of_range_cut_points_are_dropped():
 
 
 def test_config_errors_name_the_key():
-    with pytest.raises(CutPointConfigError, match="cutpoints.min_points"):
+    with pytest.raises(CutPointConfigError, match=r"cutpoints\.min_points = 1: expected ≥ 3 points"):
         CutPointConfig(min_points=1)
-    with pytest.raises(CutPointConfigError, match="cutpoints.max_range_m"):
+    with pytest.raises(CutPointConfigError, match=r"cutpoints\.max_range_m = 1\.0: expected > min_range_m \(2\.0 m\)"):
         CutPointConfig(min_range_m=2.0, max_range_m=1.0)
 
 

@@ -1,6 +1,8 @@
 """Stable branch ids across frames: gating, global greedy association, track ageing."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -67,8 +69,9 @@ def test_reset_forgets_tracks_but_not_the_id_counter():
     assert ids(tracker.update([branch(0.0)])) == [2]
 
 
-@pytest.mark.parametrize("kwargs,key", [({"gate_m": 0}, "gate_m"), ({"max_missed": -1}, "max_missed"),
-                                        ({"max_axis_angle_deg": 0}, "max_axis_angle_deg")])
-def test_config_errors_name_the_key(kwargs, key):
-    with pytest.raises(TrackerConfigError, match=key):
+@pytest.mark.parametrize("kwargs,message", [({"gate_m": 0}, "tracking.gate_m = 0: expected > 0 m"),
+                                            ({"max_missed": -1}, "tracking.max_missed = -1: expected ≥ 0 frames"),
+                                            ({"max_axis_angle_deg": 0}, "tracking.max_axis_angle_deg = 0: expected an angle")])
+def test_config_errors_name_the_key_value_and_expectation(kwargs, message):
+    with pytest.raises(TrackerConfigError, match=re.escape(message)):
         TrackerConfig(**kwargs)

@@ -92,19 +92,22 @@ def run(args: argparse.Namespace) -> int:
         left, right = read_rgb(args.left), read_rgb(args.right)
         pipeline = _pipeline(args, (left.shape[1], left.shape[0]))
         result = pipeline.process(left, right, mask=args.mask)
-    except (ValueError, OSError) as exc:  # every input error type of the chain is one of these
+        if args.mask is not None and result["masks"]["instances"] == 0:
+            raise ValueError(f"{args.mask}: the mask holds no branch instance (expected ids other than 0 "
+                             f"and the trunk id {args.trunk_id})")
+        text = json.dumps(result, indent=1)
+        if args.json is not None:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(text + "\n", encoding="utf-8")
+            print(branch_table(result))
+            print(f"wrote {args.json}")
+        else:
+            print(text)
+        if args.overlay is not None:
+            artifacts = pipeline.last
+            write_overlay(args.overlay, artifacts.left, result, artifacts.masks)
+            print(f"wrote {args.overlay}", file=sys.stderr if args.json is None else sys.stdout)
+    except (ValueError, OSError) as exc:  # every input/output error type of the chain is one of these
         print(f"branchrange estimate: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    text = json.dumps(result, indent=1)
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n", encoding="utf-8")
-        print(branch_table(result))
-        print(f"wrote {args.json}")
-    else:
-        print(text)
-    if args.overlay is not None:
-        artifacts = pipeline.last
-        write_overlay(args.overlay, artifacts.left, result, artifacts.masks)
-        print(f"wrote {args.overlay}", file=sys.stderr if args.json is None else sys.stdout)
     return 0
