@@ -87,7 +87,10 @@ def _torch_load(path: Path) -> Any:
     try:
         with torch.serialization.safe_globals(_NUMPY_SCALAR_GLOBALS):
             return torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as exc:
+    # Bytes that are not a torch file reach the legacy unpickler, which fails with whatever its
+    # opcodes hit first (KeyError, ValueError, IndexError, …): all mean the same to the user.
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError, KeyError, ValueError, IndexError,
+            TypeError) as exc:
         raise CheckpointError(
             f"{path}: not a readable torch checkpoint ({path.stat().st_size} bytes; truncated or "
             f"corrupt?): {_essence(exc)}"

@@ -59,7 +59,7 @@ def export_onnx(model: EMCStereo, path: str | os.PathLike[str], height: int, wid
     except ValueError as exc:
         raise ExportError(f"cannot export for {height}×{width}: {exc}") from exc
     path = Path(path)
-    graph = _FixedRangeGraph(model.cpu().eval(), disparities).eval()
+    graph = _FixedRangeGraph(model, disparities).cpu()  # a folded copy: `model` itself stays as it was
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer warnings about Python ints from shapes: the size is fixed on purpose
         torch.onnx.export(graph, (example, example), str(path), input_names=["left", "right"],

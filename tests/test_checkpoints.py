@@ -147,3 +147,10 @@ def pathlib_purepath():
     from pathlib import PurePosixPath
 
     return PurePosixPath("/x")
+
+
+def test_a_file_that_is_not_a_torch_checkpoint_is_rejected_with_its_size(tmp_path):
+    path = tmp_path / "notes.pth"
+    path.write_text("junk\n")
+    with pytest.raises(CheckpointError, match=r"notes\.pth: not a readable torch checkpoint \(5 bytes"):
+        load_model(path)

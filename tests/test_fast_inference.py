@@ -216,3 +216,63 @@ def test_fast_path_rejects_input_that_cannot_go_through_the_network(full_model):
     bad = torch.zeros(1, 3, 250, 256)
     with pytest.raises(ValueError, match="multiples of 32"):
         full_model.infer(bad, bad)
+
+
+def test_release_freed_memory_is_a_no_op_without_malloc_trim(monkeypatch):
+    """musl, macOS and Windows have no `malloc_trim`: the call must do nothing rather than fail."""
+    import ctypes
+
+    from stereo.model import memory
+
+    class LibcWithoutTrim:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+    memory._malloc_trim.cache_clear()
+    try:
+        monkeypatch.setattr(memory.ctypes, "CDLL", LibcWithoutTrim)
+        assert memory.release_freed_memory() is False
+        memory._malloc_trim.cache_clear()
+        monkeypatch.setattr(memory.ctypes.util, "find_library", lambda name: None)
+        assert memory.release_freed_memory() is False
+        memory._malloc_trim.cache_clear()
+        monkeypatch.setattr(memory.ctypes, "CDLL", ctypes.CDLL)
+        monkeypatch.setattr(memory.ctypes.util, "find_library", lambda name: "/nonexistent/libc.so.6")
+        assert memory.release_freed_memory() is False
+    finally:
+        monkeypatch.undo()
+        memory._malloc_trim.cache_clear()
+
+
+def test_release_freed_memory_trims_where_glibc_has_malloc_trim():
+    import ctypes
+
+    from stereo.model import memory
+
+    libc = ctypes.util.find_library("c")
+    if libc is None or not hasattr(ctypes.CDLL(libc), "malloc_trim"):
+        pytest.skip("this C library has no malloc_trim (not glibc); the no-op case is tested above")
+    assert memory.release_freed_memory() is True
+
+
+@pytest.mark.parametrize("behaviour", ["raises", "wrong result"])
+def test_onednn_operators_that_misbehave_are_not_used(monkeypatch, behaviour):
+    """A PyTorch release that changes the private oneDNN operators sends everything to the public path."""
+    import types
+
+    import stereo.model.onednn as onednn
+
+    def pointwise(x, weight, bias, *args):
+        if behaviour == "raises":
+            raise RuntimeError("unexpected arguments")
+        return torch.zeros(1)
+
+    fake = types.SimpleNamespace(_convolution_pointwise=pointwise, _convolution_transpose_pointwise=pointwise)
+    monkeypatch.setattr(torch.ops, "mkldnn", fake)
+    assert onednn.onednn_available.__wrapped__() is False
+    monkeypatch.setattr(onednn, "onednn_available", onednn.onednn_available.__wrapped__)
+    conv = FusedConv(nn.Conv2d(2, 3, 3, padding=1), relu=True)
+    assert conv.use_onednn is False
+    x = torch.randn(1, 2, 5, 5)
+    with torch.no_grad():
+        torch.testing.assert_close(conv(x), F.relu(F.conv2d(x, conv.weight, conv.bias, 1, 1)))

@@ -92,7 +92,8 @@ def test_training_mode_returns_three_predictions_and_eval_the_third(small_pair):
     torch.manual_seed(0)
     model = EMCStereo()
     model.train()
-    preds = model(*small_pair)
+    with torch.no_grad():  # training-mode forward (batch statistics, three heads); no graph needed here
+        preds = model(*small_pair)
     assert len(preds) == 3 and all(p.shape == (1, 256, 288) for p in preds)
     model.eval()
     with torch.inference_mode():

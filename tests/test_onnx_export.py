@@ -63,3 +63,12 @@ def test_onnx_backend_refuses_a_range_other_than_the_exported_one(exported):
 def test_export_refuses_a_size_the_network_cannot_take(tmp_path):
     with pytest.raises(ExportError, match="250×256"):
         export_onnx(EMCStereo(ema=False, msf=False, coord=False), tmp_path / "x.onnx", 250, 256)
+
+
+def test_export_command_reports_a_bad_checkpoint_without_a_traceback(tmp_path, capsys):
+    bad = tmp_path / "bad.pt"
+    bad.write_text("junk\n")
+    status = emcstereo_main(["export", "--onnx", str(tmp_path / "x.onnx"), "--weights", str(bad)])
+    assert status == 2
+    assert "bad.pt: not a readable torch checkpoint" in capsys.readouterr().out
+    assert not (tmp_path / "x.onnx").exists()

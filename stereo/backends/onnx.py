@@ -11,7 +11,14 @@ import time
 import numpy as np
 import torch
 
-from stereo.backends.base import BackendConfigError, StereoInputError, StereoResult, stage_timings_ms, validate_pair
+from stereo.backends.base import (
+    BackendConfigError,
+    StereoInputError,
+    StereoResult,
+    sanitize_dense_output,
+    stage_timings_ms,
+    validate_pair,
+)
 from stereo.backends.emcstereo import normalize_images
 from stereo.export import METADATA_KEYS
 from stereo.padding import Padding, pad_image, unpad
@@ -54,10 +61,7 @@ class OnnxBackend:
         prepared = time.perf_counter()
         disparity, confidence = self._session.run(None, {"left": images[:1], "right": images[1:]})
         inferred = time.perf_counter()
-        disparity, confidence = unpad(disparity[0], padding), unpad(confidence[0], padding)
-        finite = np.isfinite(disparity) & np.isfinite(confidence)
-        disparity = np.where(finite, disparity, 0.0).astype(np.float32)
-        confidence = np.where(finite, np.clip(confidence, 0.0, 1.0), 0.0).astype(np.float32)
+        disparity, confidence = sanitize_dense_output(unpad(disparity[0], padding), unpad(confidence[0], padding))
         end = time.perf_counter()
         timing = stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)])
         return StereoResult(disparity, confidence, timing, self.name, self.max_disparity)

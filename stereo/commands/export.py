@@ -3,18 +3,18 @@ from __future__ import annotations
 
 import argparse
 
-from stereo.checkpoints import load_model
+from stereo.checkpoints import CheckpointError, load_model
 from stereo.export import ExportError, export_onnx
 from stereo.model import EMCStereo
 
 
 def _run(args: argparse.Namespace) -> int:
-    model = EMCStereo() if args.weights is None else load_model(args.weights)
     if args.weights is None:
         print("warning: no --weights given, exporting a randomly initialised full model")
     try:
+        model = EMCStereo() if args.weights is None else load_model(args.weights)
         path = export_onnx(model, args.onnx, args.height, args.width, args.max_disp)
-    except ExportError as exc:
+    except (CheckpointError, ExportError) as exc:
         print(f"error: {exc}")
         return 2
     print(f"wrote {path} ({args.height}×{args.width}, max_disp {args.max_disp or model.max_disp})")

@@ -13,6 +13,8 @@ What it changes against the plain eval forward, all exact up to float rounding:
 """
 from __future__ import annotations
 
+from collections import deque
+
 import torch
 from torch import nn
 
@@ -55,9 +57,9 @@ class FastInference(nn.Module):
             concat_cost_volume(reference, target, disparities // 4, memory_format=torch.channels_last_3d)
         )
         del reference, target
-        cost = None
-        for cost in costs:
-            pass
+        # Only the last cost is needed: consume the generator keeping one at a time, so c1 and
+        # c2 are freed as soon as the next one exists (a list would hold all three).
+        cost = deque(costs, maxlen=1).pop()
         depth_step = (self.max_disp // 4 - 1) / (self.max_disp - 1)
         return upsampled_soft_argmin(cost, self.disparity_values[:disparities], height, width,
                                      depth_step, rows_per_chunk=self.rows_per_chunk)

@@ -5,9 +5,12 @@ PyTorch's CPU dispatch sends a 3D convolution to a slow reference kernel when
 convolution with a bias always; a separate ReLU is one more pass over the activation. The
 `mkldnn._convolution_pointwise` operators (what `torch.compile` emits on CPU) have neither
 problem. They are private to PyTorch, so every module here falls back to the public functional
-call where they are missing, on other devices and for other dtypes; both paths compute the same.
+call where they are missing or misbehave (`onednn_available` checks them once), on other devices
+and for other dtypes; both paths compute the same (tested).
 """
 from __future__ import annotations
+
+import functools
 
 import torch
 import torch.nn.functional as F
@@ -18,11 +21,31 @@ _TRANSPOSED = (nn.ConvTranspose2d, nn.ConvTranspose3d)
 _ONEDNN_DTYPES = (torch.float32, torch.bfloat16)
 
 
+@functools.cache
 def onednn_available() -> bool:
-    """Whether this PyTorch build has oneDNN and its fused convolution operators."""
+    """Whether this PyTorch build's private oneDNN operators exist and take the arguments used here.
+
+    Checked once by calling both on a tiny input and comparing with the public functional
+    convolution: a PyTorch release that drops them or changes their signature or meaning makes
+    every module here use the public path instead of failing.
+    """
     ops = getattr(torch.ops, "mkldnn", None)
-    return (torch.backends.mkldnn.is_available() and ops is not None
-            and hasattr(ops, "_convolution_pointwise") and hasattr(ops, "_convolution_transpose_pointwise"))
+    if not (torch.backends.mkldnn.is_available() and ops is not None
+            and hasattr(ops, "_convolution_pointwise") and hasattr(ops, "_convolution_transpose_pointwise")):
+        return False
+    generator = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 2, 4, 4, generator=generator).contiguous(memory_format=torch.channels_last)
+    weight = torch.randn(3, 2, 3, 3, generator=generator).contiguous(memory_format=torch.channels_last)
+    bias = torch.randn(3, generator=generator)
+    try:
+        with torch.no_grad():
+            fused = ops._convolution_pointwise(x, weight, bias, [1, 1], [1, 1], [1, 1], 1, "relu", [], "")
+            transposed = ops._convolution_transpose_pointwise(
+                fused, weight, bias[:2], [1, 1], [1, 1], [2, 2], [1, 1], 1, "none", [], "")
+            return (torch.allclose(fused, F.relu(F.conv2d(x, weight, bias, 1, 1)), atol=1e-5)
+                    and torch.allclose(transposed, F.conv_transpose2d(fused, weight, bias[:2], 2, 1, 1), atol=1e-5))
+    except (RuntimeError, TypeError):
+        return False
 
 
 def channels_last(weight: torch.Tensor) -> torch.Tensor:
