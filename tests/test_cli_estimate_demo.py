@@ -47,6 +47,10 @@ def test_estimate_with_focal_and_baseline_writes_json_and_overlay(pair_files, tm
     overlay = cv2.imread(str(out_png))
     assert overlay.shape == (360, 640, 3)
     assert not np.array_equal(overlay[..., ::-1], scene.left)  # something was drawn
+    target = next(b for b in result["branches"] if b["id"] == result["target_id"])
+    u, v = (int(round(c)) for c in target["pixel"])
+    ring = overlay[max(v - 12, 0):v + 13, max(u - 12, 0):u + 13].reshape(-1, 3).astype(int)  # BGR
+    assert np.any((ring[:, 2] > 200) & (ring[:, 1] < 80) & (ring[:, 0] < 80))  # the target's red ring
     assert "target" in capsys.readouterr().out
 
 

@@ -7,8 +7,9 @@ import jsonschema
 import numpy as np
 import pytest
 
-from branchrange.masks import MaskError
+from branchrange.masks import MaskError, masks_from_array
 from branchrange.pipeline import SCHEMA_PATH, Pipeline, PipelineConfig, PipelineInputError
+from branchrange.segmenter import Segmenter
 from camera import StereoCalibration
 from stereo.synth import SynthCamera, render_scene
 
@@ -93,6 +94,30 @@ def test_built_in_segmenter_finds_branches_without_a_mask(scene, validator):
     found = [b for b in visible_truth(scene)
              if any(np.linalg.norm(np.array(e["cut_point_m"]) - b.cut_point_m) < 0.05 for e in result["branches"])]
     assert len(found) >= 2
+
+
+class TruthSegmenter:
+    """A plug-in segmenter (as a learned model would be) that returns the scene's own instance mask."""
+
+    name = "truth"
+
+    def __init__(self, instance_mask: np.ndarray) -> None:
+        self.instance_mask = instance_mask
+
+    def segment(self, left, disparity, geometry, confidence=None):
+        return masks_from_array(self.instance_mask, source=self.name)
+
+
+def test_a_plugged_in_segmenter_replaces_the_built_in_one(scene):
+    plugged = TruthSegmenter(scene.instance_mask)
+    assert isinstance(plugged, Segmenter)
+    pipeline = Pipeline(PipelineConfig(tracking=False), focal_px=scene.camera.focal_px,
+                        baseline_m=scene.camera.baseline_m, segmenter=plugged)
+    result = pipeline.process_disparity(scene.left, scene.disparity)
+    given = pipeline_for(scene, tracking=False).process_disparity(scene.left, scene.disparity, mask=scene.instance_mask)
+    assert result["masks"]["source"] == "truth" and result["masks"]["trunk"] is True
+    assert [b["cut_point_m"] for b in result["branches"]] == [b["cut_point_m"] for b in given["branches"]]
+    assert len(result["branches"]) == len(visible_truth(scene))
 
 
 def test_ids_stay_stable_across_frames(scene):
