@@ -125,6 +125,13 @@ def test_demo_says_sgbm_prints_truth_table_and_writes_overlay(tmp_path, capsys):
     assert cv2.imread(str(tmp_path / "demo" / "overlay.png")).shape == (360, 640, 3)
 
 
+def test_demo_names_an_output_folder_it_cannot_create(tmp_path, capsys):
+    (tmp_path / "a_file").write_text("not a folder")
+    assert main(["demo", "--out", str(tmp_path / "a_file" / "demo"), "--size", "320x256"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot write the outputs to" in err and "a_file" in err and "Traceback" not in err
+
+
 def test_demo_refuses_emcstereo_without_weights(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--backend", "emcstereo"]) == 2
     assert "needs --weights" in capsys.readouterr().err

@@ -99,10 +99,14 @@ def run(args: argparse.Namespace) -> int:
     print(branch_table(result))
     print()
     print(truth_table(result, scene.branches))
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_rgb(args.out / "left.png", scene.left)
-    write_rgb(args.out / "right.png", scene.right)
-    (args.out / "result.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
-    overlay = write_overlay(args.out / "overlay.png", pipeline.last.left, result, pipeline.last.masks)
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_rgb(args.out / "left.png", scene.left)
+        write_rgb(args.out / "right.png", scene.right)
+        (args.out / "result.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+        overlay = write_overlay(args.out / "overlay.png", pipeline.last.left, result, pipeline.last.masks)
+    except (ValueError, OSError) as exc:
+        print(f"branchrange demo: error: cannot write the outputs to {args.out}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     print(f"\nwrote {overlay}, {args.out / 'result.json'}, left.png, right.png")
     return 0
