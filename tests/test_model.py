@@ -73,6 +73,15 @@ def test_cost_volume_equals_slice_by_slice_definition():
         torch.testing.assert_close(volume[:, 4:, d], expected_right)
 
 
+def test_cost_volume_in_channels_last_layout_holds_the_same_values():
+    torch.manual_seed(0)
+    left, right = torch.randn(2, 1, 8, 6, 40).unbind(0)
+    dense = concat_cost_volume(left, right, 12)
+    channels_last = concat_cost_volume(left, right, 12, memory_format=torch.channels_last_3d)
+    assert channels_last.is_contiguous(memory_format=torch.channels_last_3d)
+    assert torch.equal(dense, channels_last)
+
+
 def test_upsampling_equals_trilinear_align_corners_over_full_range():
     torch.manual_seed(0)
     cost = torch.randn(2, 1, 48, 8, 10)
