@@ -267,7 +267,8 @@ def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, c
                  mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{peer.port}", max_result_age_s=0.001))
     relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
     pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
-    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="fast"), pipeline=pipeline, relay=relay)
+    # At the recorded 4 fps every frame is processed; "fast" would let latest-frame-wins drop some.
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"), pipeline=pipeline, relay=relay)
     try:
         assert daemon.run(max_frames=3) == 3
         got = peer.collect(0.3)
