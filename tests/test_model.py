@@ -82,6 +82,18 @@ def test_cost_volume_in_channels_last_layout_holds_the_same_values():
     assert torch.equal(dense, channels_last)
 
 
+def test_cost_volume_passes_gradients_to_both_features():
+    left, right = torch.randn(2, 1, 4, 3, 10).unbind(0)
+    left.requires_grad_(True)
+    right.requires_grad_(True)
+    concat_cost_volume(left, right, 5).sum().backward()
+    # left[x] appears in the slices d ≤ x, right[x] in the slices d < w − x (at most 5 of each).
+    expected_left = torch.arange(10).clamp(max=4).add(1).float().expand(1, 4, 3, 10)
+    expected_right = (10 - torch.arange(10)).clamp(max=5).float().expand(1, 4, 3, 10)
+    torch.testing.assert_close(left.grad, expected_left)
+    torch.testing.assert_close(right.grad, expected_right)
+
+
 def test_upsampling_equals_trilinear_align_corners_over_full_range():
     torch.manual_seed(0)
     cost = torch.randn(2, 1, 48, 8, 10)

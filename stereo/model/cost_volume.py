@@ -23,7 +23,8 @@ def concat_cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: int
     # A zero column in front of `right`: every column with no source gathers it.
     padded = F.pad(right, (1, 0)).unsqueeze(2).expand(b, c, disparities, h, w + 1)
     index = (source + 1).clamp(min=0).view(1, 1, disparities, 1, w).expand(b, c, disparities, h, w)
-    if torch.onnx.is_in_onnx_export():  # the exporter records no `out=` writes (and no layouts)
+    needs_graph = torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)
+    if needs_graph or torch.onnx.is_in_onnx_export():  # autograd and the exporter record no `out=` writes
         return torch.cat([left.unsqueeze(2) * visible, torch.gather(padded, 4, index)], dim=1)
     volume = torch.empty((b, 2 * c, disparities, h, w), dtype=left.dtype, device=left.device,
                          memory_format=memory_format)
