@@ -1,5 +1,25 @@
-"""stereo: the EMCStereo network, its datasets, training, evaluation and inference backends."""
-from .checkpoints import CheckpointError, load_model, save_checkpoint
-from .model import EMCStereo, ModelConfig
+"""stereo: the EMCStereo network, its datasets, training, evaluation and inference backends.
 
-__all__ = ["EMCStereo", "ModelConfig", "CheckpointError", "load_model", "save_checkpoint"]
+The network and checkpoint names are imported on first use, so that tools which only need
+`stereo.io`, `stereo.synth` or the command-line plumbing do not pay for importing torch.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "EMCStereo": "stereo.model",
+    "ModelConfig": "stereo.model",
+    "CheckpointError": "stereo.checkpoints",
+    "load_model": "stereo.checkpoints",
+    "save_checkpoint": "stereo.checkpoints",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'stereo' has no attribute {name!r}")
