@@ -91,6 +91,29 @@ class Branch(ResultPart):
     points: int | None = Field(None, ge=0, description="3D points the fit used")
 
 
+class Latency(ResultPart):
+    """Onboard daemon only: milliseconds from the frame's arrival to each hand-over."""
+
+    capture_to_stereo_ms: float | None = Field(None, ge=0, description="arrival → start of the stereo stage")
+    capture_to_geometry_ms: float | None = Field(None, ge=0, description="arrival → start of the geometry stage")
+    capture_to_publish_ms: float | None = Field(None, ge=0, description="arrival → result handed to the MAVLink relay")
+
+
+class RoiRegion(ResultPart):
+    """One full-resolution region matched in stereo mode 'roi'."""
+
+    id: int = Field(description="instance id in this frame's mask")
+    box: list[int] = Field(min_length=4, max_length=4, description="[x0, y0, x1, y1] pixels, exclusive ends")
+    d_min: int = Field(ge=0, description="smallest disparity searched, pixels")
+    d_range: int = Field(ge=1, description="disparities searched from d_min, pixels")
+
+
+class RoiInfo(ResultPart):
+    """Stereo mode 'roi' only: the regions matched at full resolution."""
+
+    regions: list[RoiRegion]
+
+
 class EstimateResult(ResultPart):
     """One frame's cut points (`branchrange/v1`)."""
 
@@ -104,6 +127,8 @@ class EstimateResult(ResultPart):
     dropped: list[DroppedInstance] | None = Field(None, description="mask instances that gave no cut point, with the reason")
     target_id: int | None = Field(description="id of the branch to cut next, null when none is confident enough")
     reason: str | None = Field(None, description="why there are no branches or no target, when so")
+    latency: Latency | None = Field(None, description="onboard daemon only: how old the result was at each stage")
+    roi: RoiInfo | None = Field(None, description="stereo mode 'roi' only: the regions matched at full resolution")
 
 
 class Health(BaseModel):

@@ -1,6 +1,6 @@
 """BranchRange's one configuration file: TOML sections validated into frozen dataclasses.
 
-Sections: `[camera]`, `[stereo]`, `[cutpoints]`, `[mavlink]`, `[api]`, `[log]`. Every option has a
+Sections: `[camera]`, `[stereo]`, `[roi]`, `[cutpoints]`, `[mavlink]`, `[api]`, `[log]`. Every option has a
 default, so an empty file is a valid configuration; an unknown key, a value of the wrong type or
 out of range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
 Examples live in `deploy/onboard.toml` and `deploy/serve.toml`.
@@ -61,7 +61,9 @@ class StereoConfig:
     """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments).
 
     `emcstereo` needs `weights`: a network without them gives meaningless disparities, which the
-    daemon would send to the flight controller as cut points.
+    daemon would send to the flight controller as cut points. `mode`: 'roi' matches the frame at low
+    resolution and each branch at full resolution in its box and disparity window (`[roi]`,
+    `branchrange.roi`) — the real-time onboard default; 'full' matches the whole frame.
     """
 
     backend: str = "sgbm"
@@ -69,8 +71,11 @@ class StereoConfig:
     max_disp: int = 192
     device: str = "cpu"
     precision: str = "fp32"
+    mode: str = "full"
 
     def __post_init__(self) -> None:
+        _require(self.mode in ("roi", "full"), "stereo.mode", self.mode,
+                 "'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)")
         _require(self.backend in ("sgbm", "emcstereo"), "stereo.backend", self.backend, "'sgbm' or 'emcstereo'")
         _require(self.backend != "emcstereo" or bool(self.weights.strip()), "stereo.weights", self.weights,
                  "a checkpoint path when stereo.backend = 'emcstereo'")
@@ -78,6 +83,31 @@ class StereoConfig:
         _require(self.backend != "sgbm" or self.max_disp % 16 == 0, "stereo.max_disp", self.max_disp,
                  "a multiple of 16 with stereo.backend = 'sgbm' (OpenCV's StereoSGBM)")
         _require(self.precision in ("fp32", "fp16"), "stereo.precision", self.precision, "'fp32' or 'fp16'")
+
+
+@dataclass(frozen=True)
+class RoiConfig:
+    """The coarse-to-fine settings of `stereo.mode = "roi"` (`branchrange.roi`; px at full resolution).
+
+    - `coarse_width`: width of the coarse pass in px (frames narrower than 1.5× this are matched
+      coarsely at full resolution, scale 1).
+    - `box_margin_px`: how far each instance's box grows on every side (the matcher's block and the
+      silhouette's edges need context).
+    - `window_margin_px`: how far the disparity window grows beyond the instance's coarse range.
+    - `max_regions`: only the nearest this many instances (by coarse disparity) get a fine pass;
+      the trunk is one of them.
+    """
+
+    coarse_width: int = 640
+    box_margin_px: int = 16
+    window_margin_px: int = 8
+    max_regions: int = 12
+
+    def __post_init__(self) -> None:
+        _require(self.coarse_width >= 64, "roi.coarse_width", self.coarse_width, "at least 64 px")
+        _require(0 <= self.box_margin_px <= 256, "roi.box_margin_px", self.box_margin_px, "0..256 px")
+        _require(0 <= self.window_margin_px <= 64, "roi.window_margin_px", self.window_margin_px, "0..64 px")
+        _require(1 <= self.max_regions <= 256, "roi.max_regions", self.max_regions, "1..256")
 
 
 @dataclass(frozen=True)
@@ -197,6 +227,7 @@ class Config:
 
     camera: CameraConfig = field(default_factory=CameraConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
+    roi: RoiConfig = field(default_factory=RoiConfig)
     cutpoints: CutpointsConfig = field(default_factory=CutpointsConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
@@ -273,4 +304,5 @@ def pipeline_config(cfg: Config) -> Any:
         backend=s.backend, weights=s.weights or None, max_disp=s.max_disp, device=s.device,
         precision=s.precision, target_policy=c.target_policy,
         target_min_confidence=c.target_min_confidence, tracking=c.tracking,
-        cutpoints=CutPointConfig(cut_offset_m=c.cut_offset_m, min_confidence=c.min_confidence))
+        cutpoints=CutPointConfig(cut_offset_m=c.cut_offset_m, min_confidence=c.min_confidence),
+        mode=s.mode, roi=cfg.roi)

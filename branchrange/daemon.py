@@ -1,34 +1,109 @@
 """The onboard daemon: camera source → pipeline → MAVLink relay + JSONL results log (+ API state).
 
-One loop in one process. The source is drained by a capture thread (`LatestFrameSource`), so the
-newest frame always wins and a slow pipeline never works on old frames. The loop
-- processes each frame, publishes the result to the relay, writes one JSON line, keeps it for /latest;
-- skips and logs a corrupt frame, and logs (does not die on) a frame the pipeline rejects;
-- is the camera watchdog: no frame for `camera.stall_timeout_s` (or the source saying it is lost)
-  marks the camera lost (HEARTBEAT CRITICAL, results go stale → "no target"); after three stall
-  timeouts it closes the source and opens a fresh one, and forgets tracked branches;
-- logs a status line (fps, latency, drops, camera, link) every `log.status_interval_s`;
-- warns when a result is already older than `mavlink.max_result_age_s` when it is published: the
-  relay then reports "no target" for it, so a pipeline that slow never gives the autopilot one.
-`stop()` (the SIGTERM/SIGINT handler calls it) ends the loop within one stall timeout.
+Three threads, so no stage waits for a slower one and every stage works on the newest input:
+- **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
+  dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
+  clock — the capture time every age and latency is measured from;
+- **stereo** (the `run()` thread): rectification and disparity (`Pipeline.stereo_stage`; in
+  `stereo.mode = "roi"` the coarse pass, the segmenter and the full-resolution regions); it is
+  also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
+  or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
+  results go stale → "no target"); after three stall timeouts it closes the source, opens a fresh
+  one and forgets tracked branches;
+- **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
+  on the newest stereo output (one slot: an output the worker had no time for is replaced by the
+  next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
+  never waits for either), the JSONL log, /latest and the observers.
+Each result carries `latency` (ms from capture to the stereo stage, to the geometry stage, to
+publishing), besides the per-stage `timing_ms`. A result already older than
+`mavlink.max_result_age_s` when published is counted (`late`) and goes out as "no target". After
+the first `WARMUP_FRAMES` frames the daemon logs, once, whether its measured capture → publish
+time can meet `max_result_age_s`, and what to change when it cannot. A status line (fps, latency,
+drops, camera, link) every `log.status_interval_s`. `stop()` (the SIGTERM/SIGINT handler calls
+it) ends the loop within one stall timeout.
 """
 from __future__ import annotations
 
 import logging
+import statistics
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
 from branchrange.config import Config
-from branchrange.frame_results import process_frame, result_line
+from branchrange.frame_results import result_line
 from branchrange.mavlink import MavlinkRelay
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 
 log = logging.getLogger("branchrange.daemon")
 #: Stall timeouts without a frame after which the source is closed and opened again.
 REOPEN_AFTER_STALLS = 3
+#: Unreadable frames in a row after which the camera counts as lost (a vanished recording, a dying cable).
+CORRUPT_FRAMES_LOST = 5
+#: Frames after which the measured capture → publish time is compared with `max_result_age_s`.
+WARMUP_FRAMES = 3
+
+#: Called once per processed frame with the `branchrange/v1` result and the pipeline's `FrameArtifacts`.
+ResultObserver = Callable[[dict[str, Any], Any], None]
+
+
+@dataclass(frozen=True, eq=False)
+class _StereoOutput:
+    """A frame between the two halves: the stereo stage's output and when the frame arrived (monotonic s)."""
+
+    stage: Any
+    captured_at: float
+    stereo_started_at: float
+    stereo_done_at: float
+
+
+class _NewestSlot:
+    """A one-item mailbox between two threads: `put` replaces what the taker did not get to (counted).
+
+    The taker calls `take()`, works on the item, then `task_done()`; `wait_idle()` waits until the
+    mailbox is empty and the taker is not working on anything.
+    """
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._item: Any = None
+        self._busy = False
+        self._closed = False
+        self.replaced = 0
+
+    def put(self, item: Any) -> None:
+        with self._condition:
+            if self._item is not None:
+                self.replaced += 1
+            self._item = item
+            self._condition.notify_all()
+
+    def take(self) -> Any:
+        """The item, waiting for one; None once closed and empty."""
+        with self._condition:
+            self._condition.wait_for(lambda: self._item is not None or self._closed)
+            item, self._item = self._item, None
+            self._busy = item is not None
+            self._condition.notify_all()
+            return item
+
+    def task_done(self) -> None:
+        with self._condition:
+            self._busy = False
+            self._condition.notify_all()
+
+    def wait_idle(self) -> None:
+        """Block until the mailbox is empty and the taker has finished its item."""
+        with self._condition:
+            self._condition.wait_for(lambda: (self._item is None and not self._busy) or self._closed)
+
+    def close(self) -> None:
+        with self._condition:
+            self._closed = True
+            self._condition.notify_all()
 
 
 class Daemon:
@@ -36,19 +111,21 @@ class Daemon:
 
     def __init__(self, cfg: Config, *, open_source: Callable[[], StereoSource], pipeline: Any,
                  relay: MavlinkRelay | None = None, results_path: str | Path | None = None,
-                 metrics: Any = None, clock: Callable[[], float] = time.monotonic):
+                 metrics: Any = None, observers: Sequence[ResultObserver] = ()):
         self.cfg = cfg
         self._open_source = open_source
         self.pipeline = pipeline
         self.relay = relay
         self.metrics = metrics  # api.metrics.Metrics when the API runs in the same process
-        self._clock = clock
+        self.observers = list(observers)
         self._results: IO[str] | None = None
         if results_path:
             Path(results_path).parent.mkdir(parents=True, exist_ok=True)
             self._results = open(results_path, "a", encoding="utf-8", buffering=1)  # one flushed line per frame
         self._stop = threading.Event()
         self._latest: dict[str, Any] | None = None
+        self._slot = _NewestSlot()
+        self._counts_lock = threading.Lock()
         self.camera_lost = False
         self.frames = 0
         self.corrupt = 0
@@ -57,7 +134,16 @@ class Daemon:
         self.dropped = 0
         self.late = 0  # results older than mavlink.max_result_age_s when published
         self._dropped_by_closed_sources = 0
+        self._corrupt_in_a_row = 0
         self._latencies: list[float] = []
+        self._warmup: list[tuple[float, float, float]] = []  # (capture → publish, stereo, geometry) s
+        self._speed_reported = False
+        self._speed_warned = False
+
+    @property
+    def skipped(self) -> int:
+        """Stereo outputs replaced before the geometry stage took them (it was busy with an older one)."""
+        return self._slot.replaced
 
     def latest_result(self) -> dict[str, Any] | None:
         """The newest frame's result (for GET /latest)."""
@@ -66,8 +152,10 @@ class Daemon:
     def health(self) -> dict[str, Any]:
         """Model, camera and link state (for GET /health)."""
         camera = {"source": self.cfg.camera.source, "lost": self.camera_lost, "frames": self.frames,
-                  "dropped": self.dropped, "corrupt": self.corrupt, "reopens": self.reopens, "late": self.late}
-        model = {"loaded": True, "backend": self.cfg.stereo.backend, "max_disp": self.cfg.stereo.max_disp}
+                  "dropped": self.dropped, "skipped": self.skipped, "corrupt": self.corrupt,
+                  "reopens": self.reopens, "late": self.late}
+        model = {"loaded": True, "backend": self.cfg.stereo.backend, "max_disp": self.cfg.stereo.max_disp,
+                 "mode": self.cfg.stereo.mode}
         return {"model": model, "camera": camera,
                 "mavlink": None if self.relay is None else self.relay.link_state()}
 
@@ -88,91 +176,170 @@ class Daemon:
             if self.relay is not None:
                 self.relay.set_camera_lost(lost)
 
-    def _process(self, frame: Any) -> None:
-        """One frame through the pipeline to the relay, the log and /latest."""
-        received = self._clock()
-        try:
-            result = process_frame(self.pipeline, frame)
-        except ValueError as exc:
+    def _reject(self, index: int, error: Exception) -> None:
+        with self._counts_lock:
             self.rejected += 1
-            self._count_error("rejected_frame")
-            log.warning("frame %d rejected by the pipeline: %s", frame.index, exc)
+        self._count_error("rejected_frame")
+        if isinstance(error, ValueError):
+            log.warning("frame %d rejected by the pipeline: %s", index, error)
+        else:  # a bug, not bad input: keep flying, but leave the traceback in the log
+            log.error("frame %d failed: %r", index, error, exc_info=error)
+
+    def _stereo(self, frame: Any, captured_at: float) -> None:
+        """The stereo half of one frame, handed to the geometry worker."""
+        started = time.monotonic()
+        try:
+            stage = self.pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
+        except Exception as error:  # noqa: BLE001 — one bad frame must not stop the vehicle's sensor
+            self._reject(frame.index, error)
             return
+        self._slot.put(_StereoOutput(stage, captured_at, started, time.monotonic()))
+
+    def _geometry_worker(self) -> None:
+        """The geometry + send thread: the newest stereo output → result → relay, log, /latest, observers."""
+        while (item := self._slot.take()) is not None:
+            try:
+                self._publish(self.pipeline.geometry_stage(item.stage), item)
+            except Exception as error:  # noqa: BLE001 — the next frame may well be fine
+                self._reject(item.stage.index, error)
+            finally:
+                self._slot.task_done()
+
+    def _publish(self, result: dict[str, Any], item: _StereoOutput) -> None:
+        now = time.monotonic()
+        age = now - item.captured_at
+        result["latency"] = {"capture_to_stereo_ms": round(1000 * (item.stereo_started_at - item.captured_at), 3),
+                             "capture_to_geometry_ms": round(1000 * (item.stereo_done_at - item.captured_at), 3),
+                             "capture_to_publish_ms": round(1000 * age, 3)}
         if self.relay is not None:
-            self.relay.publish(result, captured_at=received)
-            self._check_age(self._clock() - received)
+            self.relay.publish(result, captured_at=item.captured_at)
+        self._check_age(age)
         if self._results is not None:
             self._results.write(result_line(result))
         self._latest = result
-        self.frames += 1
-        latency = self._clock() - received
-        self._latencies.append(latency)
+        for observer in self.observers:
+            try:
+                observer(result, self.pipeline.last)
+            except Exception as error:  # noqa: BLE001 — a viewer must never stop the daemon
+                log.warning("result observer %r failed: %r", observer, error)
+        with self._counts_lock:
+            self.frames += 1
+            self._latencies.append(age)
         if self.metrics is not None:
-            self.metrics.observe_frame(latency, "daemon")
+            self.metrics.observe_frame(age, "daemon")
+        if len(self._warmup) < WARMUP_FRAMES:
+            self._warmup.append((age, item.stereo_done_at - item.stereo_started_at, now - item.stereo_done_at))
+            if len(self._warmup) == WARMUP_FRAMES:
+                self._report_speed()
+
+    def _report_speed(self) -> None:
+        """Once, after the first frames: can this configuration meet `max_result_age_s`, and if not, what to change."""
+        if self._speed_reported or not self._warmup:
+            return
+        self._speed_reported = True
+        age, stereo, geometry = (statistics.median(column) for column in zip(*self._warmup))
+        limit = self.cfg.mavlink.max_result_age_s
+        if age <= limit:
+            log.info("speed: capture → publish %.0f ms (stereo %.0f ms, geometry %.0f ms) within "
+                     "mavlink.max_result_age_s = %.0f ms", 1000 * age, 1000 * stereo, 1000 * geometry, 1000 * limit)
+            return
+        self._speed_warned = True
+        advice = ("set stereo.mode = 'roi'" if self.cfg.stereo.mode != "roi" else
+                  "lower stereo.max_disp to the working range, or roi.coarse_width")
+        if self.cfg.stereo.backend != "sgbm":
+            advice += ", or use stereo.backend = 'sgbm' on this computer"
+        log.warning("speed: capture → publish takes %.0f ms (stereo %.0f ms, geometry %.0f ms), more than "
+                    "mavlink.max_result_age_s = %.0f ms: every result goes out as 'no target'. To fix: %s",
+                    1000 * age, 1000 * stereo, 1000 * geometry, 1000 * limit, advice)
 
     def _check_age(self, age_s: float) -> None:
-        """Count a result that was stale on publishing; warn on the first one."""
+        """Count a result that was stale on publishing; after a warm-up that was fast enough, warn on the
+        first one (during the warm-up, the speed report says it)."""
         if age_s <= self.cfg.mavlink.max_result_age_s:
             return
         self.late += 1
-        if self.late == 1:
+        if len(self._warmup) >= WARMUP_FRAMES and not self._speed_warned:
+            self._speed_warned = True
             log.warning("frame took %.0f ms, more than mavlink.max_result_age_s = %.0f ms: its result goes out as "
-                        "'no target'; a faster stereo backend or smaller max_disp is needed for the autopilot to "
-                        "get targets", 1000 * age_s, 1000 * self.cfg.mavlink.max_result_age_s)
+                        "'no target' (the computer may be busy with something else)",
+                        1000 * age_s, 1000 * self.cfg.mavlink.max_result_age_s)
 
     def _status(self, since: float, now: float, frames_then: int) -> None:
-        fps = (self.frames - frames_then) / max(now - since, 1e-9)
-        latency = 1000 * sum(self._latencies) / len(self._latencies) if self._latencies else 0.0
-        self._latencies.clear()
+        with self._counts_lock:
+            fps = (self.frames - frames_then) / max(now - since, 1e-9)
+            latency = 1000 * sum(self._latencies) / len(self._latencies) if self._latencies else 0.0
+            self._latencies.clear()
         link = "off" if self.relay is None else ("up" if self.relay.link_state()["connected"] else "down")
-        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d corrupt=%d late=%d camera=%s link=%s",
-                 self.frames, fps, latency, self.dropped, self.corrupt, self.late,
+        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d skipped=%d corrupt=%d late=%d camera=%s link=%s",
+                 self.frames, fps, latency, self.dropped, self.skipped, self.corrupt, self.late,
                  "lost" if self.camera_lost else "ok", link)
+
+    def _done(self, max_frames: int | None) -> bool:
+        return self._stop.is_set() or (max_frames is not None and self.frames >= max_frames)
 
     def run(self, max_frames: int | None = None) -> int:
         """Process frames until the source ends, `max_frames` are done or `stop()`; returns frames done."""
+        worker = threading.Thread(target=self._geometry_worker, name="geometry-send", daemon=True)
+        self._slot = _NewestSlot()
+        worker.start()
         timeout = self.cfg.camera.stall_timeout_s
         source = self._try_open()
         stalls = 0
-        status_at, frames_then = self._clock(), self.frames
+        status_at, frames_then = time.monotonic(), self.frames
         try:
-            while not self._stop.is_set() and (max_frames is None or self.frames < max_frames):
-                now = self._clock()
+            while not self._done(max_frames):
+                now = time.monotonic()
                 if now - status_at >= self.cfg.log.status_interval_s:
                     self._status(status_at, now, frames_then)
                     status_at, frames_then = now, self.frames
-                frame = None
+                stamped = None
                 if source is None:
                     self._stop.wait(timeout)
                 else:
                     try:
-                        frame = source.get(timeout=timeout)
+                        stamped = source.get_stamped(timeout=timeout)
                     except StopIteration:
                         log.info("source ended")
                         break
                     except CorruptFrameError as exc:
-                        self.corrupt += 1
-                        self._count_error("corrupt_frame")
-                        log.warning("corrupt frame skipped: %s", exc)
+                        self._on_corrupt(exc)
                         continue
                     except SourceDisconnected as exc:
                         log.warning("camera disconnected: %s", exc)
-                if frame is None or source is None or source.is_lost:
+                if stamped is None or source is None or source.is_lost:
                     self._set_camera_lost(True)
-                    stalls += frame is None
+                    stalls += stamped is None
                     if stalls >= REOPEN_AFTER_STALLS:
                         source, stalls = self._reopen(source), 0
-                    if frame is None:
+                    if stamped is None:
                         continue
-                stalls = 0
+                stalls = self._corrupt_in_a_row = 0
                 self._set_camera_lost(False)
                 self.dropped = self._dropped_by_closed_sources + source.dropped
-                self._process(frame)
+                if max_frames is not None:
+                    self._slot.wait_idle()  # a counted run processes every frame it takes, and no more
+                    if self._done(max_frames):
+                        break
+                self._stereo(*stamped)
         finally:
             if source is not None:
                 source.close()
-        self._status(status_at, self._clock(), frames_then)
+            self._slot.wait_idle()  # the last stereo output still gets its geometry and send
+            self._slot.close()
+            worker.join()
+        self._report_speed()  # a run shorter than the warm-up
+        self._status(status_at, time.monotonic(), frames_then)
         return self.frames
+
+    def _on_corrupt(self, error: CorruptFrameError) -> None:
+        """Skip an unreadable frame; several in a row mean the camera (or the recording) is gone."""
+        self.corrupt += 1
+        self._corrupt_in_a_row += 1
+        self._count_error("corrupt_frame")
+        log.warning("corrupt frame skipped: %s", error)
+        if self._corrupt_in_a_row == CORRUPT_FRAMES_LOST:
+            log.warning("%d unreadable frames in a row: treating the camera as lost", CORRUPT_FRAMES_LOST)
+            self._set_camera_lost(True)
 
     def _try_open(self) -> LatestFrameSource | None:
         """A fresh source with its capture thread, or None (logged) when the camera cannot be opened."""
@@ -189,6 +356,7 @@ class Daemon:
             source.close()
             self._dropped_by_closed_sources += source.dropped
         self.reopens += 1
+        self._slot.wait_idle()  # the tracker is the worker's until then
         self.pipeline.reset()
         return self._try_open()
 

@@ -26,13 +26,18 @@ from branchrange.cutpoints import (
 )
 from branchrange.geometry import StereoGeometry, valid_disparity
 from branchrange.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID, BranchMasks, MaskKind, masks_from_array, read_mask, validate_masks
+from branchrange.config import RoiConfig
+from branchrange.roi import CoarseToFine, Region
 from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
+from branchrange.timing import lap_ms
 from branchrange.tracking import BranchTracker, TrackerConfig
 
 SCHEMA_ID = "branchrange/v1"
 SCHEMA_PATH = Path(__file__).with_name("schemas") / "result_v1.json"
 
 MaskInput = BranchMasks | np.ndarray | str | Path | None
+#: 'full': whole-frame stereo at full resolution; 'roi': coarse-to-fine (`branchrange.roi`).
+PIPELINE_MODES: tuple[str, ...] = ("full", "roi")
 
 
 class PipelineInputError(ValueError):
@@ -55,6 +60,10 @@ class PipelineConfig:
       'thickest'); `target_min_confidence`: a branch
       below it is never the target.
     - `tracking`: give branches stable ids across frames (else ids are per-frame mask order).
+    - `mode`: 'full' matches the whole frame at full resolution; 'roi' (`branchrange.roi`) matches
+      the whole frame at low resolution and each branch at full resolution in its own box and
+      disparity window — several times faster at HD720, the onboard default.
+    - `roi`: the coarse-to-fine settings.
     """
 
     backend: str = "sgbm"
@@ -71,8 +80,12 @@ class PipelineConfig:
     cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
     segmenter: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    mode: str = "full"
+    roi: RoiConfig = field(default_factory=RoiConfig)
 
     def __post_init__(self) -> None:
+        if self.mode not in PIPELINE_MODES:
+            raise PipelineConfigError(f"mode = {self.mode!r}: expected one of {', '.join(PIPELINE_MODES)}")
         if self.target_policy not in TARGET_POLICIES:
             raise PipelineConfigError(f"target_policy = {self.target_policy!r}: expected one of {', '.join(TARGET_POLICIES)}")
         if not 0 <= self.target_min_confidence <= 1:
@@ -96,13 +109,6 @@ def _check_image(image: Any, which: str) -> np.ndarray:
     return image
 
 
-def _timed(timing: dict[str, float], stage: str, start: float) -> float:
-    """Record milliseconds since `start` under `stage`; returns now."""
-    now = time.perf_counter()
-    timing[stage] = round((now - start) * 1000.0, 3)
-    return now
-
-
 @dataclass(frozen=True)
 class FrameArtifacts:
     """What the last frame left behind, for overlays and debugging: the rectified left image
@@ -112,6 +118,30 @@ class FrameArtifacts:
     disparity: np.ndarray
     confidence: np.ndarray
     masks: BranchMasks | None
+
+
+@dataclass(frozen=True, eq=False)
+class StereoStage:
+    """What the stereo half of a frame hands to the geometry half.
+
+    `left`: rectified `uint8 H×W×3`; `disparity`: `float32 H×W` px (0 invalid); `confidence`: `H×W`
+    in [0, 1]; `masks`: the frame's instances, or None when the segmenter is to find them;
+    `timing_ms`: the stages so far (ms); `compute_ms`: this half's compute time (ms); `regions`: the
+    fine passes of `mode = "roi"` (None in whole-frame mode).
+    """
+
+    left: np.ndarray
+    disparity: np.ndarray
+    confidence: np.ndarray
+    masks: BranchMasks | None
+    geometry: StereoGeometry
+    index: int
+    timestamp_ns: int
+    backend: str
+    max_disparity: int
+    timing_ms: dict[str, float]
+    compute_ms: float
+    regions: tuple[Region, ...] | None = None
 
 
 class Pipeline:
@@ -162,6 +192,7 @@ class Pipeline:
         self.segmenter: Segmenter = segmenter or GeometricSegmenter(self.config.segmenter)
         self.tracker = BranchTracker(self.config.tracker)
         self.last: FrameArtifacts | None = None
+        self._coarse_to_fine: CoarseToFine | None = None
 
     @property
     def backend(self) -> Any:
@@ -173,6 +204,13 @@ class Pipeline:
             self._backend = make_backend(cfg.backend, weights=cfg.weights, max_disp=cfg.max_disp,
                                          device=cfg.device, precision=cfg.precision)
         return self._backend
+
+    @property
+    def coarse_to_fine(self) -> CoarseToFine:
+        """The coarse-to-fine matcher of `mode = "roi"` around the (fine) backend, built on first use."""
+        if self._coarse_to_fine is None:
+            self._coarse_to_fine = CoarseToFine(self.config.roi, self.backend, self.segmenter, self.config.max_disp)
+        return self._coarse_to_fine
 
     def geometry_for(self, width: int, height: int) -> StereoGeometry:
         """The rectified camera model for frames of `width × height` px."""
@@ -210,9 +248,19 @@ class Pipeline:
         """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → result dict.
 
         `mask`: an instance-id / binary mask (array, path or `BranchMasks`) in the left image's
-        pixels, or None for the segmenter.
+        pixels, or None for the segmenter. The same as `geometry_stage(stereo_stage(...))`.
         """
-        start = t = time.perf_counter()
+        return self.geometry_stage(self.stereo_stage(left, right, mask, index, timestamp_ns))
+
+    def stereo_stage(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
+                     index: int = 0, timestamp_ns: int = 0) -> StereoStage:
+        """The first half of a frame: checks, rectification, masks read, disparity.
+
+        In `mode = "roi"` this is the coarse pass, the segmenter (when no mask is given) and the
+        full-resolution regions of interest; in `"full"` the whole-frame backend. The onboard
+        daemon runs it on its stereo thread and `geometry_stage` on another.
+        """
+        start = time.perf_counter()
         timing: dict[str, float] = {}
         left, right = _check_image(left, "left"), _check_image(right, "right")
         if left.shape != right.shape:
@@ -222,12 +270,20 @@ class Pipeline:
         masks = self._masks(mask, left.shape[:2])
         if self.rectifier is not None:
             left, right = self.rectifier.rectify(left, right)
-        t = _timed(timing, "rectify", t)
-        stereo = self.backend.compute(left, right)
-        t = _timed(timing, "stereo", t)
-        return self._finish(left, stereo.disparity, stereo.confidence, geometry, masks, index, timestamp_ns,
-                            backend=stereo.backend or self.backend.name, max_disparity=int(stereo.max_disparity),
-                            timing=timing, start=start, t=t)
+        t = lap_ms(timing, "rectify", start)
+        if self.config.mode == "roi":
+            fine = self.coarse_to_fine.compute(left, right, masks, geometry)
+            timing.update(fine.timing_ms)
+            disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
+            backend, max_disparity = f"{self.backend.name}-roi", self.config.max_disp
+        else:
+            regions = None
+            stereo = self.backend.compute(left, right)
+            disparity, confidence = stereo.disparity, stereo.confidence
+            backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
+        lap_ms(timing, "stereo", t)
+        return StereoStage(left, disparity, confidence, masks, geometry, int(index), int(timestamp_ns),
+                           backend, max_disparity, timing, (time.perf_counter() - start) * 1000.0, regions)
 
     def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
                           mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
@@ -236,8 +292,7 @@ class Pipeline:
 
         `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
         """
-        start = t = time.perf_counter()
-        timing: dict[str, float] = {"rectify": 0.0, "stereo": 0.0}
+        start = time.perf_counter()
         left = _check_image(left, "left")
         disparity = np.asarray(disparity, dtype=np.float32)
         if disparity.shape != left.shape[:2]:
@@ -252,22 +307,28 @@ class Pipeline:
         geometry = self.geometry_for(left.shape[1], left.shape[0])
         masks = self._masks(mask, left.shape[:2])
         finite_max = np.nanmax(np.where(np.isfinite(disparity), disparity, np.nan)) if np.isfinite(disparity).any() else 0.0
-        return self._finish(left, disparity, confidence, geometry, masks, index, timestamp_ns, backend=backend,
-                            max_disparity=max(1, int(np.ceil(finite_max)) + 1), timing=timing, start=start, t=t)
+        stage = StereoStage(left, disparity, np.asarray(confidence), masks, geometry, int(index), int(timestamp_ns),
+                            backend, max(1, int(np.ceil(finite_max)) + 1), {"rectify": 0.0, "stereo": 0.0},
+                            (time.perf_counter() - start) * 1000.0)
+        return self.geometry_stage(stage)
 
-    def _finish(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray, geometry: StereoGeometry,
-                masks: BranchMasks | None, index: int, timestamp_ns: int, *, backend: str, max_disparity: int,
-                timing: dict[str, float], start: float, t: float) -> dict:
-        """Masks → cut points → tracking → the result dict (shared by both entry points)."""
-        valid = valid_disparity(disparity, max_disparity)
+    def geometry_stage(self, stage: StereoStage) -> dict:
+        """The second half of a frame: masks (the segmenter when none) → cut points → tracking → target → result.
+
+        `timing_ms.total` is the compute time of both halves (ms), not including any wait between them.
+        """
+        start = t = time.perf_counter()
+        timing = dict(stage.timing_ms)
+        left, geometry, masks, max_disparity = stage.left, stage.geometry, stage.masks, stage.max_disparity
+        valid = valid_disparity(stage.disparity, max_disparity)
         # non-finite values are no evidence: keep them out of every later stage
-        disparity = np.where(valid, disparity, 0.0).astype(np.float32)
-        confidence = np.where(valid, np.nan_to_num(confidence, nan=0.0), 0.0).astype(np.float32)
+        disparity = np.where(valid, stage.disparity, 0.0).astype(np.float32)
+        confidence = np.where(valid, np.nan_to_num(stage.confidence, nan=0.0), 0.0).astype(np.float32)
         reason = None
         cut = CutPointResult()
         if masks is None:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
-        t = _timed(timing, "masks", t)
+        t = lap_ms(timing, "masks", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)
         if not valid.any():
             reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
@@ -280,21 +341,21 @@ class Pipeline:
             if not cut.branches:
                 reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
                     f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5])
-        t = _timed(timing, "cutpoints", t)
+        t = lap_ms(timing, "cutpoints", t)
         if self.config.tracking:
             self.tracker.update(cut.branches)
-        t = _timed(timing, "tracking", t)
+        t = lap_ms(timing, "tracking", t)
         target = select_target(cut.branches, self.config.target_policy, self.config.target_min_confidence)
         if target is None and cut.branches:
             reason = f"no branch reaches the target confidence {self.config.target_min_confidence}"
-        timing["total"] = round((time.perf_counter() - start) * 1000.0, 3)
+        timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
         result = {
             "schema": SCHEMA_ID,
-            "frame": {"index": int(index), "timestamp_ns": int(timestamp_ns),
+            "frame": {"index": stage.index, "timestamp_ns": stage.timestamp_ns,
                       "width": int(left.shape[1]), "height": int(left.shape[0])},
             "camera": {"focal_px": geometry.focal_px, "baseline_m": geometry.baseline_m,
                        "cx": geometry.cx, "cy": geometry.cy},
-            "stereo": {"backend": backend, "max_disparity": int(max_disparity),
+            "stereo": {"backend": stage.backend, "max_disparity": int(max_disparity),
                        "valid_fraction": round(float(valid.mean()), 4)},
             "timing_ms": timing,
             "masks": {"source": masks.source if masks is not None else "none",
@@ -306,6 +367,8 @@ class Pipeline:
         }
         if reason is not None:
             result["reason"] = reason
+        if stage.regions is not None:
+            result["roi"] = {"regions": [region.to_dict() for region in stage.regions]}
         return result
 
 

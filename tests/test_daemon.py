@@ -169,8 +169,8 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     listener = Listener(peer)
     try:
         processed = []
-        pipeline_process = pipeline.process
-        pipeline.process = lambda *a, **k: processed.append(k["index"]) or pipeline_process(*a, **k)
+        stereo_stage = pipeline.stereo_stage
+        pipeline.stereo_stage = lambda *a: processed.append(a[3]) or stereo_stage(*a)
         daemon.run()
         time.sleep(0.3)  # heartbeats after the camera came back
     finally:

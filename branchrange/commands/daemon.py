@@ -76,6 +76,11 @@ def run(args: argparse.Namespace) -> int:
             first.close()
         print(f"branchrange daemon: {exc}", file=sys.stderr)
         return 1
+    api = f"http://{cfg.api.host}:{cfg.api.port}" if cfg.api.enabled else "off"
+    logging.getLogger("branchrange.daemon").info(
+        "starting: mode=%s backend=%s max_disp=%d source=%s mavlink=%s api=%s results=%s", cfg.stereo.mode,
+        cfg.stereo.backend, cfg.stereo.max_disp, cfg.camera.source, cfg.mavlink.url if relay else "off", api,
+        cfg.log.results_jsonl or "off")
     sources = iter([first])  # the first source is the one already opened; reopening opens new ones
     metrics = Metrics()
     daemon = Daemon(cfg, open_source=lambda: next(sources, None) or open_camera(), pipeline=pipeline,

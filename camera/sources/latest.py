@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 from camera.sources.frame import SourceBase, SourceError, StereoFrame, StereoSource
 
@@ -14,7 +15,7 @@ class LatestFrameSource(SourceBase):
     the inner source (CorruptFrameError, SourceDisconnected) are handed to the consumer by the
     next `next()` call and capture goes on; any other exception ends capture and is raised once,
     after which iteration stops. `get(timeout)` is `next()` with a timeout (None when nothing
-    new came). `is_lost` and `calibration` are the inner source's. Closing closes the inner source.
+    new came); `get_stamped` adds the frame's arrival time. `is_lost` and `calibration` are the inner source's. Closing closes the inner source.
     """
 
     def __init__(self, source: StereoSource) -> None:
@@ -23,6 +24,7 @@ class LatestFrameSource(SourceBase):
         self.dropped = 0
         self._condition = threading.Condition()
         self._latest: StereoFrame | None = None
+        self._received_at = 0.0  # time.monotonic() when the newest frame came out of the inner source
         self._errors: list[BaseException] = []
         self._finished = False
         self._stop = threading.Event()
@@ -45,10 +47,11 @@ class LatestFrameSource(SourceBase):
                         self._errors.append(error)
                         self._condition.notify_all()
                     continue
+                received_at = time.monotonic()
                 with self._condition:
                     if self._latest is not None:
                         self.dropped += 1
-                    self._latest = frame
+                    self._latest, self._received_at = frame, received_at
                     self._condition.notify_all()
         except BaseException as error:  # handed to the consumer thread, which raises it
             with self._condition:
@@ -63,6 +66,16 @@ class LatestFrameSource(SourceBase):
 
         Raises StopIteration when the inner source has ended and everything was handed out.
         """
+        stamped = self.get_stamped(timeout)
+        return None if stamped is None else stamped[0]
+
+    def get_stamped(self, timeout: float | None = None) -> tuple[StereoFrame, float] | None:
+        """`get`, with the `time.monotonic()` seconds at which the frame left the inner source.
+
+        That instant is the frame's capture time on this computer's clock (a camera's own
+        timestamps may use another clock; a replay releases each frame at its recorded time), so
+        the age of a result is measured from it.
+        """
         with self._condition:
             ready = self._condition.wait_for(lambda: self._latest is not None or self._errors or self._finished,
                                              timeout)
@@ -73,7 +86,7 @@ class LatestFrameSource(SourceBase):
             if self._latest is None:
                 raise StopIteration
             frame, self._latest = self._latest, None
-            return frame
+            return frame, self._received_at
 
     def __next__(self) -> StereoFrame:
         frame = self.get()

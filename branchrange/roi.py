@@ -1,0 +1,240 @@
+"""Coarse-to-fine stereo: find the branches cheaply, then match each one only where and as far as it is.
+
+The application knows what it looks for. A whole frame at full resolution and a full disparity
+range costs W·H·D; the branches fill a small part of the frame and each lies within a narrow band
+of disparities. So, per frame:
+1. **coarse pass** — the pair at `coarse_width` px wide (640 for HD720, scale s = 2), matched by
+   SGBM over `max_disp / s` disparities: the whole scene, cheaply;
+2. **instances** — the given mask (full resolution; its ids are looked up at coarse resolution), or
+   the segmenter run on the coarse disparity;
+3. **regions** — per instance (branches and trunk; the trunk fixes each branch's base), its
+   full-resolution box (+ `box_margin_px`) and its disparity window: the 2nd–98th percentile of its
+   coarse disparities × s, ± `window_margin_px`. An instance without coarse evidence (thinner than
+   a coarse pixel) is searched over the whole range in its box;
+4. **fine pass** — the backend's `compute_roi` on each box over its window (SGBM with a
+   `minDisparity` offset; EMCStereo on the left box and the right box shifted by the window start);
+5. **composition** — the boxes' disparities in one full-resolution map, zero elsewhere; a pixel of
+   instance k takes the value of k's box (boxes overlap where branches meet the trunk).
+A segmenter's coarse labels are brought to full resolution (nearest) and kept where the fine
+disparity lies in the instance's window, so silhouettes (and diameters) are full-resolution ones.
+Cut points then come from full-resolution disparity only.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import cv2
+import numpy as np
+
+from branchrange.config import RoiConfig
+from branchrange.geometry import StereoGeometry
+from branchrange.masks import BranchMasks
+from branchrange.timing import lap_ms
+
+#: SGBM searches disparities in steps of this many pixels.
+DISPARITY_STEP = 16
+#: Fewest coarse disparities an instance needs for its window to come from them.
+MIN_WINDOW_EVIDENCE = 5
+
+
+@dataclass(frozen=True)
+class Region:
+    """One instance's fine pass: `box` = (x0, y0, x1, y1) px at full resolution (exclusive ends);
+    absolute disparities searched: [d_min, d_min + d_range) px at full resolution."""
+
+    instance_id: int
+    box: tuple[int, int, int, int]
+    d_min: int
+    d_range: int
+
+    @property
+    def pixels(self) -> int:
+        x0, y0, x1, y1 = self.box
+        return (x1 - x0) * (y1 - y0)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form of the result's `roi.regions` entries."""
+        return {"id": self.instance_id, "box": list(self.box), "d_min": self.d_min, "d_range": self.d_range}
+
+
+@dataclass(frozen=True, eq=False)
+class CoarseToFineResult:
+    """Full-resolution `disparity` (`float32 H×W` px, 0 outside the regions), `confidence` (`H×W`),
+    the instances used (`masks`), the `regions` matched and the stage times in ms."""
+
+    disparity: np.ndarray
+    confidence: np.ndarray
+    masks: BranchMasks | None
+    regions: list[Region]
+    timing_ms: dict[str, float]
+
+
+def coarse_scale(width: int, coarse_width: int) -> int:
+    """The integer down-scaling factor of the coarse pass: 1 when the frame is already small."""
+    return max(1, int(round(width / coarse_width))) if width >= 1.5 * coarse_width else 1
+
+
+def scaled_geometry(geometry: StereoGeometry, scale: int) -> StereoGeometry:
+    """The camera of an image shrunk `scale` times (pixel centres kept: c' = (c + ½) / s − ½)."""
+    return StereoGeometry(geometry.focal_px / scale, geometry.baseline_m,
+                          (geometry.cx + 0.5) / scale - 0.5, (geometry.cy + 0.5) / scale - 0.5)
+
+
+def instance_ids(masks: BranchMasks) -> list[int]:
+    """The ids that get a fine pass: the branches, then the trunk (drawn first, so branches win overlaps)."""
+    ids = masks.branch_ids()
+    if masks.trunk_id is not None and np.any(masks.labels == masks.trunk_id):
+        ids = [masks.trunk_id, *ids]
+    return ids
+
+
+def instance_boxes(labels: np.ndarray, ids: list[int]) -> dict[int, tuple[int, int, int, int]]:
+    """Bounding box (x0, y0, x1, y1, exclusive ends) of each id in an `H×W` label image, in one pass."""
+    ys, xs = np.nonzero(np.isin(labels, ids))
+    values = labels[ys, xs]
+    boxes = {}
+    order = np.argsort(values, kind="stable")
+    values, xs, ys = values[order], xs[order], ys[order]
+    starts = np.searchsorted(values, ids, side="left")
+    ends = np.searchsorted(values, ids, side="right")
+    for instance, start, end in zip(ids, starts, ends):
+        if end > start:
+            boxes[instance] = (int(xs[start:end].min()), int(ys[start:end].min()),
+                               int(xs[start:end].max()) + 1, int(ys[start:end].max()) + 1)
+    return boxes
+
+
+def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int, max_disp: int) -> tuple[int, int]:
+    """(d_min, d_range) at full resolution from an instance's valid coarse disparities (px at coarse scale).
+
+    The 2nd–98th percentile (a few background pixels at the silhouette do not widen it) × scale,
+    ± `margin_px`, in whole steps of `DISPARITY_STEP` within [0, max_disp). Without enough evidence:
+    the whole range.
+    """
+    if coarse_disparities.size < MIN_WINDOW_EVIDENCE:
+        return 0, max_disp
+    low, high = np.percentile(coarse_disparities, [2.0, 98.0]) * scale
+    d_min = max(0, int(math.floor(low - margin_px)))
+    d_max = min(max_disp, int(math.ceil(high + margin_px)))
+    d_range = DISPARITY_STEP * max(1, math.ceil((d_max - d_min) / DISPARITY_STEP))
+    d_min = max(0, min(d_min, max_disp - d_range))
+    return d_min, min(d_range, max_disp)
+
+
+def plan_regions(labels_full: np.ndarray, labels_coarse: np.ndarray, coarse_disparity: np.ndarray,
+                 ids: list[int], scale: int, config: RoiConfig, max_disp: int) -> list[Region]:
+    """A `Region` per instance id: its full-resolution box grown by the margin, its disparity window
+    from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse labels. When more than
+    `max_regions` instances are present, the nearest ones (largest median coarse disparity) are kept,
+    the trunk always."""
+    height, width = labels_full.shape
+    boxes = instance_boxes(labels_full, ids)
+    regions, nearness = [], []
+    m = config.box_margin_px
+    for instance in ids:
+        if instance not in boxes:
+            continue
+        values = coarse_disparity[(labels_coarse == instance) & (coarse_disparity > 0)]
+        d_min, d_range = disparity_window(values, scale, config.window_margin_px, max_disp)
+        x0, y0, x1, y1 = boxes[instance]
+        box = (max(0, x0 - m), max(0, y0 - m), min(width, x1 + m), min(height, y1 + m))
+        regions.append(Region(int(instance), box, d_min, d_range))
+        nearness.append(float(np.median(values)) if values.size else 0.0)
+    if len(regions) > config.max_regions:
+        order = sorted(range(len(regions)), key=lambda i: -nearness[i])[:config.max_regions]
+        regions = [regions[i] for i in sorted(order)]
+    return regions
+
+
+def refine_labels(coarse_labels: np.ndarray, shape: tuple[int, int], disparity: np.ndarray,
+                  regions: list[Region]) -> np.ndarray:
+    """Full-resolution labels (`int32 H×W`) from coarse ones: nearest up-sampling, each instance grown
+    by one coarse pixel into the background, kept where the fine disparity lies in its window."""
+    height, width = shape
+    labels = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
+    scale = max(1, round(width / coarse_labels.shape[1]))
+    kernel = np.ones((2 * scale + 1, 2 * scale + 1), np.uint8)
+    refined = np.zeros_like(labels)
+    for region in regions:
+        x0, y0, x1, y1 = region.box
+        box_labels = labels[y0:y1, x0:x1]
+        grown = cv2.dilate((box_labels == region.instance_id).astype(np.uint8), kernel).astype(bool)
+        grown &= (box_labels == region.instance_id) | (box_labels == 0)
+        d = disparity[y0:y1, x0:x1]
+        inside = grown & (d >= region.d_min) & (d < region.d_min + region.d_range) & (d > 0)
+        refined[y0:y1, x0:x1][inside] = region.instance_id
+    return refined
+
+
+class CoarseToFine:
+    """The `roi` mode's stereo: see the module docstring.
+
+    `fine_backend` needs `compute_roi(left, right, roi, d_min, d_range)` (`stereo.backends`);
+    the coarse pass is always SGBM (an EMCStereo coarse pass would cost more than it saves).
+    `segmenter` finds instances at coarse resolution when a frame comes without a mask.
+    """
+
+    def __init__(self, config: RoiConfig, fine_backend: Any, segmenter: Any, max_disp: int) -> None:
+        if not hasattr(fine_backend, "compute_roi"):
+            raise ValueError(f"stereo backend {getattr(fine_backend, 'name', fine_backend)!r} cannot match regions "
+                             "of interest; use mode = 'full' with it")
+        self.config = config
+        self.fine = fine_backend
+        self.segmenter = segmenter
+        self.max_disp = int(max_disp)
+        self._coarse: dict[int, Any] = {}  # coarse SGBM backends by coarse max_disp
+
+    def _coarse_backend(self, max_disp: int) -> Any:
+        if max_disp not in self._coarse:
+            from stereo.backends import make_backend
+
+            self._coarse[max_disp] = make_backend("sgbm", max_disp=max_disp)
+        return self._coarse[max_disp]
+
+    def compute(self, left: np.ndarray, right: np.ndarray, masks: BranchMasks | None,
+                geometry: StereoGeometry) -> CoarseToFineResult:
+        """Full-resolution disparity inside each instance's region of a rectified `uint8 H×W×3` pair."""
+        timing: dict[str, float] = {}
+        t = time.perf_counter()
+        height, width = left.shape[:2]
+        scale = coarse_scale(width, self.config.coarse_width)
+        small = (width // scale, height // scale)
+        coarse_max = DISPARITY_STEP * max(1, math.ceil(self.max_disp / scale / DISPARITY_STEP))
+        if scale > 1:
+            left_small = cv2.resize(left, small, interpolation=cv2.INTER_AREA)
+            right_small = cv2.resize(right, small, interpolation=cv2.INTER_AREA)
+        else:
+            left_small, right_small = left, right
+        coarse = self._coarse_backend(coarse_max).compute(left_small, right_small)
+        t = lap_ms(timing, "coarse_stereo", t)
+        if masks is None:
+            found = self.segmenter.segment(left_small, coarse.disparity, scaled_geometry(geometry, scale),
+                                           coarse.confidence)
+            coarse_labels = found.labels
+            labels_full = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
+            instances = BranchMasks(labels_full, found.trunk_id, found.source, found.ignored_ids)
+        else:
+            instances = masks
+            coarse_labels = masks.labels[scale // 2::scale, scale // 2::scale][:small[1], :small[0]]
+            labels_full = masks.labels
+        t = lap_ms(timing, "segment", t)
+        regions = plan_regions(labels_full, coarse_labels, coarse.disparity, instance_ids(instances), scale,
+                               self.config, self.max_disp)
+        disparity = np.zeros((height, width), np.float32)
+        confidence = np.zeros((height, width), np.float32)
+        for region in regions:
+            result = self.fine.compute_roi(left, right, region.box, region.d_min, region.d_range)
+            x0, y0, x1, y1 = region.box
+            own = (labels_full[y0:y1, x0:x1] == region.instance_id) | (disparity[y0:y1, x0:x1] == 0)
+            take = own & (result.disparity > 0)
+            disparity[y0:y1, x0:x1][take] = result.disparity[take]
+            confidence[y0:y1, x0:x1][take] = result.confidence[take]
+        t = lap_ms(timing, "roi_stereo", t)
+        if masks is None:
+            instances = replace(instances, labels=refine_labels(coarse_labels, (height, width), disparity, regions))
+            lap_ms(timing, "refine", t)
+        return CoarseToFineResult(disparity, confidence, instances, regions, timing)
+
