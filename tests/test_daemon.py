@@ -342,3 +342,59 @@ def test_daemon_refuses_an_open_api_on_a_public_address(tmp_path, capsys, monkey
     config.write_text('[camera]\nsource = "replay:/nonexistent"\n[api]\nenabled = true\nhost = "0.0.0.0"\n')
     assert branchrange_main(["daemon", "--config", str(config)]) == 2
     assert "refusing to serve on 0.0.0.0 without a token" in capsys.readouterr().err
+
+
+def test_stereo_and_geometry_run_on_separate_threads_on_the_newest_frames(recording):
+    """Stereo of the next frame overlaps geometry of the last one; frames nobody had time for are dropped, not queued."""
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64),
+                 mavlink=MavlinkConfig(max_result_age_s=5.0))
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    spans: dict[str, list[tuple[int, float, float]]] = {"stereo": [], "geometry": []}
+
+    def slowed(name, stage, index_of):
+        def run(*args):
+            start = time.monotonic()
+            time.sleep(0.3)  # each half alone is slower than the 4 fps camera
+            out = stage(*args)
+            spans[name].append((index_of(args), start, time.monotonic()))
+            return out
+        return run
+
+    pipeline.stereo_stage = slowed("stereo", pipeline.stereo_stage, lambda a: a[3])
+    pipeline.geometry_stage = slowed("geometry", pipeline.geometry_stage, lambda a: a[0].index)
+    published = []
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"), pipeline=pipeline,
+                    observers=[lambda result, artifacts: published.append((result, artifacts))])
+    daemon.run()
+    indices = [result["frame"]["index"] for result, _ in published]
+    assert indices == sorted(indices) and len(indices) < FRAMES
+    assert daemon.dropped + daemon.skipped == FRAMES - len(indices) - daemon.rejected
+    assert daemon.dropped > 0  # the camera's frames were not queued behind the slow stereo stage
+    overlaps = [1 for (_, s_start, _) in spans["stereo"] for (_, g_start, g_end) in spans["geometry"]
+                if g_start < s_start < g_end]
+    assert overlaps, "stereo never ran while geometry did"
+    for result, artifacts in published:
+        latency = result["latency"]
+        assert 0 <= latency["capture_to_stereo_ms"] <= latency["capture_to_geometry_ms"] <= latency["capture_to_publish_ms"]
+        assert latency["capture_to_publish_ms"] >= 600 - 50  # both slowed halves lie between capture and publishing
+        assert artifacts is not None and artifacts.disparity.shape == (256, 320)
+    health = daemon.health()["camera"]
+    assert health["dropped"] == daemon.dropped and health["skipped"] == daemon.skipped
+
+
+def test_a_vanished_recording_marks_the_camera_lost(tmp_path, caplog):
+    """Frames that cannot be read, one after the other, are a lost camera (CRITICAL heartbeat), not a silent stall."""
+    caplog.set_level(logging.WARNING, logger="branchrange.daemon")
+    scene = bar_scene()
+    out = tmp_path / "gone"
+    with Recorder(out, calibration=from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))) as rec:
+        for i in range(8):
+            rec.write(StereoFrame(scene.left, scene.right, i * 50_000_000, i))
+    for image in (out / "left").iterdir():
+        image.unlink()
+    cfg = Config(camera=CameraConfig(source=f"replay:{out}"), stereo=StereoConfig(max_disp=64))
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(out, pace="fast"), pipeline=pipeline)
+    assert daemon.run() == 0
+    assert daemon.corrupt == 8 and daemon.camera_lost
+    assert any("unreadable frames in a row" in r.getMessage() for r in caplog.records)
