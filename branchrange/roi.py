@@ -125,11 +125,12 @@ def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int,
 
 
 def plan_regions(labels_full: np.ndarray, labels_coarse: np.ndarray, coarse_disparity: np.ndarray,
-                 ids: list[int], scale: int, config: RoiConfig, max_disp: int) -> list[Region]:
+                 ids: list[int], scale: int, config: RoiConfig, max_disp: int,
+                 keep_id: int | None = None) -> list[Region]:
     """A `Region` per instance id: its full-resolution box grown by the margin, its disparity window
     from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse labels. When more than
     `max_regions` instances are present, the nearest ones (largest median coarse disparity) are kept,
-    the trunk always."""
+    and `keep_id` (the trunk) always."""
     height, width = labels_full.shape
     boxes = instance_boxes(labels_full, ids)
     regions, nearness = [], []
@@ -142,7 +143,7 @@ def plan_regions(labels_full: np.ndarray, labels_coarse: np.ndarray, coarse_disp
         x0, y0, x1, y1 = boxes[instance]
         box = (max(0, x0 - m), max(0, y0 - m), min(width, x1 + m), min(height, y1 + m))
         regions.append(Region(int(instance), box, d_min, d_range))
-        nearness.append(float(np.median(values)) if values.size else 0.0)
+        nearness.append(math.inf if instance == keep_id else float(np.median(values)) if values.size else 0.0)
     if len(regions) > config.max_regions:
         order = sorted(range(len(regions)), key=lambda i: -nearness[i])[:config.max_regions]
         regions = [regions[i] for i in sorted(order)]
@@ -222,7 +223,7 @@ class CoarseToFine:
             labels_full = masks.labels
         t = lap_ms(timing, "segment", t)
         regions = plan_regions(labels_full, coarse_labels, coarse.disparity, instance_ids(instances), scale,
-                               self.config, self.max_disp)
+                               self.config, self.max_disp, keep_id=instances.trunk_id)
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
         for region in regions:

@@ -1,0 +1,83 @@
+"""Coarse-to-fine planning (`branchrange.roi`): boxes, disparity windows and which instances get a fine pass."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from branchrange.config import ConfigError, RoiConfig
+from branchrange.geometry import StereoGeometry
+from branchrange.roi import (
+    DISPARITY_STEP,
+    coarse_scale,
+    disparity_window,
+    instance_boxes,
+    plan_regions,
+    refine_labels,
+    scaled_geometry,
+)
+
+
+def test_instance_boxes_equal_each_ids_own_extent():
+    rng = np.random.default_rng(0)
+    labels = np.zeros((90, 160), np.int32)
+    for instance in (3, 7, 65535):
+        y, x = rng.integers(0, 80), rng.integers(0, 150)
+        labels[y:y + rng.integers(1, 10), x:x + rng.integers(1, 10)] = instance
+    boxes = instance_boxes(labels, [3, 7, 65535, 42])
+    assert 42 not in boxes
+    for instance, box in boxes.items():
+        ys, xs = np.nonzero(labels == instance)
+        assert box == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+
+
+def test_disparity_window_covers_the_instance_in_whole_steps():
+    coarse = np.full(200, 20.0)
+    coarse[:100] = 24.0
+    d_min, d_range = disparity_window(coarse, scale=2, margin_px=8, max_disp=128)
+    assert d_min <= 40 - 8 and d_min + d_range >= 48 + 8 and d_range % DISPARITY_STEP == 0
+    assert d_range <= 32  # narrow: the point of the fine pass
+    # a few background pixels at the silhouette do not widen it (2nd–98th percentile)
+    assert disparity_window(np.concatenate([coarse, [1.0]]), 2, 8, 128) == (d_min, d_range)
+    # no evidence: the whole range; near the top of the range: clipped inside it
+    assert disparity_window(np.array([30.0]), 2, 8, 128) == (0, 128)
+    low, span = disparity_window(np.full(50, 62.0), 2, 8, 128)
+    assert low + span <= 128 and low <= 124 - 8
+
+
+def test_plan_keeps_the_nearest_instances_and_always_the_trunk():
+    labels = np.zeros((40, 80), np.int32)
+    coarse_disp = np.zeros((20, 40), np.float32)
+    labels[0:40, 0:8] = 65535  # the trunk, far
+    coarse_disp[:, 0:4] = 5.0
+    for k, x in enumerate(range(10, 80, 10), start=1):
+        labels[10:30, x:x + 4] = k
+        coarse_disp[5:15, x // 2:x // 2 + 2] = 10.0 + k  # branch k: nearer with k
+    ids = [65535, *range(1, 8)]
+    regions = plan_regions(labels, labels[::2, ::2], coarse_disp, ids, 2, RoiConfig(max_regions=3, box_margin_px=2),
+                           128, keep_id=65535)
+    assert [r.instance_id for r in regions] == [65535, 6, 7]
+    trunk = regions[0]
+    assert trunk.box == (0, 0, 10, 40)  # grown by 2 px, clipped to the frame
+
+
+def test_refined_labels_follow_the_fine_disparity_inside_the_window():
+    coarse = np.zeros((10, 20), np.int32)
+    coarse[3:6, 5:8] = 1
+    fine = np.zeros((20, 40), np.float32)
+    fine[5:13, 9:17] = 40.0   # the branch at full resolution, slightly wider than its coarse cells
+    fine[0:20, 0:9] = 10.0    # background, outside the window
+    from branchrange.roi import Region
+
+    labels = refine_labels(coarse, (20, 40), fine, [Region(1, (0, 0, 40, 20), 32, 16)])
+    assert np.array_equal(labels == 1, fine == 40.0)
+
+
+def test_coarse_scale_and_geometry():
+    assert coarse_scale(1280, 640) == 2 and coarse_scale(1920, 640) == 3 and coarse_scale(800, 640) == 1
+    g = scaled_geometry(StereoGeometry(640.0, 0.063, 639.5, 359.5), 2)
+    assert (g.focal_px, g.baseline_m, g.cx, g.cy) == (320.0, 0.063, 319.5, 179.5)
+
+
+def test_roi_settings_are_checked():
+    with pytest.raises(ConfigError, match="roi.max_regions"):
+        RoiConfig(max_regions=0)
