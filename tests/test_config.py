@@ -73,6 +73,10 @@ def test_deploy_examples_load_with_the_values_they_document():
     assert (onboard.mavlink.url, onboard.mavlink.baud) == ("/dev/ttyTHS1", 921600)
     assert onboard.stereo.backend == "emcstereo" and onboard.stereo.weights.endswith(".pth")
     assert onboard.mavlink.target_as_obstacle is False and onboard.api.enabled is True
+    assert onboard.stereo.mode == "roi" and onboard.stereo.max_disp == 128
+    cpu = load_config(DEPLOY / "onboard_cpu.toml")  # a companion computer without a GPU
+    assert (cpu.stereo.backend, cpu.stereo.mode, cpu.stereo.device, cpu.roi.coarse_width) == ("sgbm", "roi", "cpu", 640)
+    assert cpu.camera == onboard.camera and cpu.log == onboard.log
     serve = load_config(DEPLOY / "serve.toml")
     assert serve.api.host == "0.0.0.0" and serve.mavlink.enabled is False and serve.api.retry_after_s == 2
 
