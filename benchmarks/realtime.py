@@ -146,12 +146,11 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     weights = args.weights or ""
     if backend == "emcstereo" and not weights:
         weights = str(random_weights(args))
+    sink = UdpSink()
     cfg = Config(camera=CameraConfig(source=f"replay:{sequence}"),
                  stereo=StereoConfig(backend=backend, weights=weights, max_disp=args.max_disp, mode=stereo_mode),
                  log=LogConfig(status_interval_s=3600.0),
-                 mavlink=MavlinkConfig(url="", max_result_age_s=args.max_result_age_s))
-    sink = UdpSink()
-    cfg = dataclasses.replace(cfg, mavlink=dataclasses.replace(cfg.mavlink, url=f"udpout:127.0.0.1:{sink.port}"))
+                 mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sink.port}", max_result_age_s=args.max_result_age_s))
 
     def open_source() -> Any:
         source = ReplaySource(sequence, pace="recorded")
