@@ -22,7 +22,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from branchrange.cylinder_section import cross_section, radius_from_silhouette
@@ -38,7 +37,7 @@ from branchrange.geometry import (
     project,
     valid_disparity,
 )
-from branchrange.masks import BranchMasks, erode
+from branchrange.masks import BranchMasks, MaskCrop, MaskError, as_crop, erode
 from branchrange.settings_check import check_settings
 from branchrange.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
 
@@ -65,6 +64,8 @@ class CutPointConfig:
     - `min_inlier_band_m`: the inlier band's floor.
     - `min_range_m`, `max_range_m`: the working range; cut points outside it are dropped.
     - `surface_correction`: move the line from the visible surface onto the axis (cross-sections).
+    - `max_instances`: most branch instances a frame may hold; more → `MaskError` (a bad mask,
+      refused fast rather than holding the estimator for minutes).
     """
 
     cut_offset_m: float = 0.05
@@ -77,6 +78,7 @@ class CutPointConfig:
     min_range_m: float = 0.2
     max_range_m: float = 10.0
     surface_correction: bool = True
+    max_instances: int = 256
 
     def __post_init__(self) -> None:
         checks = {
@@ -89,6 +91,7 @@ class CutPointConfig:
             "min_inlier_band_m": (self.min_inlier_band_m > 0, "> 0 m"),
             "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
             "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
+            "max_instances": (self.max_instances >= 1, "≥ 1 instance"),
         }
         check_settings("cutpoints", self, checks, CutPointConfigError)
 
@@ -282,18 +285,20 @@ def _axis_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis
     return Line3D(ends[0], (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])), fit
 
 
-def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
-                 max_disparity: float | None = None, cut_by: np.ndarray | None = None) -> CylinderFit | str:
-    """Fit a (possibly tapered) cylinder to one boolean `H×W` mask and the disparity (px).
+def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
+                 max_disparity: float | None = None, cut_by: np.ndarray | MaskCrop | None = None) -> CylinderFit | str:
+    """Fit a (possibly tapered) cylinder to one boolean `H×W` mask (or its `MaskCrop`: the work
+    then follows the mask's size, not the image's) and the `H×W` disparity (px).
 
     Elongated silhouettes: centreline from the mask, disparity along it by a robust linear fit
     (see `fit_linear_robust`); seen end-on: a robust 3D line through the points. Either line runs
     along the visible surface and is then pushed back onto the axis. Returns the fit, or the
     reason why the evidence does not support one.
     """
-    core = erode(mask, config.erode_px)
-    eroded_px = config.erode_px if np.count_nonzero(core) < np.count_nonzero(mask) else 0
-    rows, cols = np.nonzero(core)
+    crop = as_crop(mask)
+    core = erode(crop.mask, config.erode_px)  # the crop's background margin erodes as the image would
+    eroded_px = config.erode_px if np.count_nonzero(core) < np.count_nonzero(crop.mask) else 0
+    rows, cols = crop.with_mask(core).pixels()
     if rows.size < config.min_points:
         return f"mask has {rows.size} pixels after erosion, fewer than {config.min_points}"
     d = disparity[rows, cols]
@@ -305,7 +310,7 @@ def fit_cylinder(mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeomet
                 f"(need {config.min_points} and {config.min_valid_fraction:.0%})")
     rows, cols, d = rows[valid].astype(np.float64), cols[valid].astype(np.float64), d[valid].astype(np.float64)
     points = backproject(cols, rows, d, geometry)
-    silhouette = image_axis(mask, cut_by)
+    silhouette = image_axis(crop, cut_by)
     profile = width_profile(silhouette)
     d_median = float(np.median(d))
     z_median = geometry.fb / d_median
@@ -390,9 +395,9 @@ class TrunkModel:
         return crossing
 
 
-def fit_trunk(trunk: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
+def fit_trunk(trunk: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
               max_disparity: float | None = None) -> TrunkModel | None:
-    """A `TrunkModel` from the boolean `H×W` trunk mask and the disparity (px); None when the
+    """A `TrunkModel` from the boolean `H×W` trunk mask (or its `MaskCrop`) and the disparity (px); None when the
     trunk's depth is too thin to fit or it is not elongated (no axis to speak of)."""
     try:
         cylinder = fit_cylinder(trunk, disparity, geometry, config, max_disparity)
@@ -415,22 +420,18 @@ def _confidence(cylinder: CylinderFit, stereo_conf: float, config: CutPointConfi
     return float(np.clip(valid_score * fit_score * stereo_conf * evidence_score, 0.0, 1.0))
 
 
-def _trunk_side_in_image(silhouette: ImageAxis, trunk: np.ndarray, slice_px: float) -> bool | None:
+def _trunk_side_in_image(silhouette: ImageAxis, trunk: MaskCrop, slice_px: float) -> bool | None:
     """Whether the low end of the silhouette is the one nearer the trunk mask in the image; None
     when both ends are about equally near (a branch lying across the trunk's silhouette)."""
-    distance_to_trunk = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
-    h, w = trunk.shape
-    ends = []
-    for low in (True, False):
-        u, v = silhouette.end_centre(low, slice_px)
-        ends.append(distance_to_trunk[int(np.clip(round(v), 0, h - 1)), int(np.clip(round(u), 0, w - 1))])
+    u, v = np.array([silhouette.end_centre(low, slice_px) for low in (True, False)]).T
+    ends = trunk.distances_at(np.array([round(x) for x in v]), np.array([round(x) for x in u]))
     if abs(ends[0] - ends[1]) <= 0.1 * silhouette.length_px:
         return None
     return bool(ends[0] < ends[1])
 
 
 def _low_end_is_base(cylinder: CylinderFit, ends: tuple[np.ndarray, np.ndarray], geometry: StereoGeometry,
-                     trunk: np.ndarray | None, trunk_model: TrunkModel | None, slice_px: float) -> bool:
+                     trunk: MaskCrop | None, trunk_model: TrunkModel | None, slice_px: float) -> bool:
     """Which of the two lifted silhouette ends (low, high) is the base, in order of evidence:
     1. the end nearer the trunk's surface in 3D (when the trunk was fitted and one end is clearly
        nearer: 5 cm, or half the other's distance);
@@ -451,7 +452,7 @@ def _low_end_is_base(cylinder: CylinderFit, ends: tuple[np.ndarray, np.ndarray],
     return bool(radius_low >= radius_high)
 
 
-def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: np.ndarray | None,
+def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: MaskCrop | None,
           trunk_model: TrunkModel | None) -> tuple[np.ndarray, np.ndarray]:
     """(base, tip) of a branch on its axis (3,) metres each.
 
@@ -479,17 +480,17 @@ def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: np.ndarray | N
 
 def estimate_branch(
     mask_id: int,
-    mask: np.ndarray,
+    mask: np.ndarray | MaskCrop,
     disparity: np.ndarray,
     geometry: StereoGeometry,
     config: CutPointConfig,
     *,
     confidence: np.ndarray | None = None,
-    trunk: np.ndarray | None = None,
+    trunk: np.ndarray | MaskCrop | None = None,
     trunk_model: TrunkModel | None = None,
     max_disparity: float | None = None,
 ) -> BranchEstimate | DroppedBranch:
-    """Cut point of one branch from its boolean `H×W` mask and the `H×W` disparity (px).
+    """Cut point of one branch from its boolean `H×W` mask (or `MaskCrop`) and the `H×W` disparity (px).
 
     `confidence` (`H×W` in [0, 1]) is the stereo backend's per-pixel confidence (1 when None),
     `trunk` the boolean trunk mask when known and `trunk_model` its fitted cylinder (the base is
@@ -497,14 +498,14 @@ def estimate_branch(
     evidence does not support a cut point.
     """
     try:
-        return _estimate_branch(mask_id, mask, disparity, geometry, config, confidence, trunk, trunk_model,
-                                max_disparity)
+        return _estimate_branch(mask_id, as_crop(mask), disparity, geometry, config, confidence,
+                                None if trunk is None else as_crop(trunk), trunk_model, max_disparity)
     except GeometryError as exc:  # e.g. the axis runs behind the camera: the depth is inconsistent
         return DroppedBranch(mask_id, f"no consistent branch axis: {exc}")
 
 
-def _estimate_branch(mask_id: int, mask: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
-                     config: CutPointConfig, confidence: np.ndarray | None, trunk: np.ndarray | None,
+def _estimate_branch(mask_id: int, mask: MaskCrop, disparity: np.ndarray, geometry: StereoGeometry,
+                     config: CutPointConfig, confidence: np.ndarray | None, trunk: MaskCrop | None,
                      trunk_model: TrunkModel | None, max_disparity: float | None) -> BranchEstimate | DroppedBranch:
     """`estimate_branch` without the guard against degenerate geometry."""
     cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
@@ -548,15 +549,24 @@ def estimate_cut_points(
     """Cut points of every branch instance in `masks` from the `H×W` disparity (px).
 
     Shapes must agree (the caller validates); `confidence` is the stereo confidence `H×W` in [0, 1].
+    Each instance is read from its bounding box (`BranchMasks.crop`), so the cost follows the
+    branches' pixels, not the frame's: a full-resolution disparity that is empty outside a few
+    regions costs what the regions cost. More than `config.max_instances` branch instances raise
+    `MaskError` (a ValueError) before any geometry runs.
     """
     disparity = np.asarray(disparity, dtype=np.float32)
     if disparity.shape != masks.shape:
         raise ValueError(f"disparity is {disparity.shape} but the mask is {masks.shape} (H, W)")
-    trunk = masks.trunk()
+    branch_ids = masks.branch_ids()
+    if len(branch_ids) > config.max_instances:
+        raise MaskError(f"{masks.source}: the mask holds {len(branch_ids)} branch instances, more than "
+                        f"cutpoints.max_instances = {config.max_instances}; a frame of branches has tens, "
+                        "not thousands (is it a label image of another kind?)")
+    trunk = masks.trunk_crop()
     trunk_model = None if trunk is None else fit_trunk(trunk, disparity, geometry, config, max_disparity)
     result = CutPointResult()
-    for mask_id in masks.branch_ids():
-        outcome = estimate_branch(mask_id, masks.branch(mask_id), disparity, geometry, config,
+    for mask_id in branch_ids:
+        outcome = estimate_branch(mask_id, masks.crop(mask_id), disparity, geometry, config,
                                   confidence=confidence, trunk=trunk, trunk_model=trunk_model,
                                   max_disparity=max_disparity)
         if isinstance(outcome, DroppedBranch):

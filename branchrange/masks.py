@@ -7,6 +7,7 @@ its 8-connected components, each one branch; a binary mask knows no trunk.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Literal
 
@@ -27,12 +28,151 @@ class MaskError(ValueError):
 
 
 @dataclass(frozen=True)
+class MaskCrop:
+    """A boolean instance mask held as its bounding window (plus a margin) in a larger image.
+
+    `mask` is the `h×w` boolean window whose pixel (0, 0) is the image's pixel (row `top`, column
+    `left`); `image_shape` is the image's (H, W). Why: every per-instance step reads only the
+    window, so its cost follows the instance's size, not the frame's.
+    """
+
+    mask: np.ndarray
+    top: int
+    left: int
+    image_shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, mask: np.ndarray, margin: int = 2) -> "MaskCrop":
+        """The crop of a whole boolean `H×W` mask: its bounding box grown by `margin` px (clipped)."""
+        mask = np.asarray(mask, dtype=bool)
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        if rows.size == 0:
+            return cls(np.zeros((0, 0), dtype=bool), 0, 0, mask.shape)
+        box = _grown((int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1), margin, mask.shape)
+        return cls(mask[box[0]:box[1], box[2]:box[3]], box[0], box[2], mask.shape)
+
+    def pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, cols) `(N,)` int64 image coordinates of the mask's pixels, in row-major order."""
+        rows, cols = np.nonzero(self.mask)
+        return rows + self.top, cols + self.left
+
+    def window(self, top: int, left: int, height: int, width: int) -> np.ndarray:
+        """The mask over another `height×width` window of the image at (`top`, `left`); False outside."""
+        out = np.zeros((height, width), dtype=bool)
+        r0, c0 = max(top, self.top), max(left, self.left)
+        r1 = min(top + height, self.top + self.mask.shape[0])
+        c1 = min(left + width, self.left + self.mask.shape[1])
+        if r0 < r1 and c0 < c1:
+            out[r0 - top:r1 - top, c0 - left:c1 - left] = self.mask[r0 - self.top:r1 - self.top,
+                                                                    c0 - self.left:c1 - self.left]
+        return out
+
+    def with_mask(self, mask: np.ndarray) -> "MaskCrop":
+        """The same window holding another boolean mask of its shape (e.g. the eroded one)."""
+        return MaskCrop(mask, self.top, self.left, self.image_shape)
+
+    def touches_image_border(self) -> bool:
+        """Whether the mask reaches the image's first or last row or column (the image cuts it)."""
+        h, w = self.mask.shape
+        height, width = self.image_shape
+        return bool((self.top == 0 and self.mask[0].any()) or (self.top + h == height and self.mask[-1].any())
+                    or (self.left == 0 and self.mask[:, 0].any()) or (self.left + w == width and self.mask[:, -1].any()))
+
+    def full(self) -> np.ndarray:
+        """The boolean `H×W` mask of the whole image."""
+        return self.window(0, 0, *self.image_shape)
+
+    def distances_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Distance (px) from image pixels (`rows`, `cols` `(N,)`, clipped into the image) to the
+        nearest mask pixel: OpenCV's `DIST_L2` 5×5 chamfer distance, as over the whole image.
+
+        Computed over the window spanning the mask and the pixels only: a shortest chamfer path
+        steps monotonically toward its end, so it never leaves the bounding box of its two ends.
+        """
+        height, width = self.image_shape
+        rows = np.clip(np.asarray(rows, dtype=np.int64), 0, height - 1)
+        cols = np.clip(np.asarray(cols, dtype=np.int64), 0, width - 1)
+        r0 = min(self.top, int(rows.min()))
+        c0 = min(self.left, int(cols.min()))
+        r1 = max(self.top + self.mask.shape[0], int(rows.max()) + 1)
+        c1 = max(self.left + self.mask.shape[1], int(cols.max()) + 1)
+        outside = ~self.window(r0, c0, r1 - r0, c1 - c0)
+        distance = cv2.distanceTransform(outside.astype(np.uint8), cv2.DIST_L2, 5)
+        return distance[rows - r0, cols - c0]
+
+
+def as_crop(mask: np.ndarray | MaskCrop) -> MaskCrop:
+    """`mask` as a `MaskCrop`: unchanged when it is one, else the crop of the boolean `H×W` mask."""
+    return mask if isinstance(mask, MaskCrop) else MaskCrop.of(mask)
+
+
+def _grown(box: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """A (row0, row1, col0, col1) half-open box grown by `margin` px on every side, clipped to `shape`."""
+    return (max(box[0] - margin, 0), min(box[1] + margin, shape[0]),
+            max(box[2] - margin, 0), min(box[3] + margin, shape[1]))
+
+
+@dataclass(frozen=True)
+class InstanceIndex:
+    """Every non-zero id of a label image with its pixel count and bounding box, from one pass.
+
+    `ids` ascending `(K,)`; `counts` `(K,)` pixels; `boxes` `(K, 4)` half-open (row0, row1, col0, col1).
+    """
+
+    ids: np.ndarray
+    counts: np.ndarray
+    boxes: np.ndarray
+
+    @classmethod
+    def of(cls, labels: np.ndarray) -> "InstanceIndex":
+        """Index of an integer `H×W` label image in O(pixels).
+
+        The non-zero pixels in row-major order split into runs of one id within one row; a run's
+        first and last pixels are its leftmost and rightmost, so per-id extents need only a
+        reduction over the runs (far fewer than pixels).
+        """
+        height, width = labels.shape
+        flat = np.ascontiguousarray(labels).ravel()
+        where = np.flatnonzero(flat)
+        if where.size == 0:
+            empty = np.zeros(0, dtype=np.int64)
+            return cls(empty, empty, np.zeros((0, 4), dtype=np.int64))
+        values = flat[where]
+        rows = where // width
+        cols = where - rows * width
+        breaks = np.flatnonzero((values[1:] != values[:-1]) | (rows[1:] != rows[:-1])) + 1
+        starts = np.concatenate(([0], breaks))
+        ends = np.concatenate((breaks, [where.size])) - 1
+        ids, run_of = np.unique(values[starts], return_inverse=True)
+        counts = np.zeros(ids.size, dtype=np.int64)
+        np.add.at(counts, run_of, ends - starts + 1)
+        boxes = np.empty((ids.size, 4), dtype=np.int64)
+        boxes[:, 0], boxes[:, 1] = height, -1
+        boxes[:, 2], boxes[:, 3] = width, -1
+        np.minimum.at(boxes[:, 0], run_of, rows[starts])
+        np.maximum.at(boxes[:, 1], run_of, rows[starts])
+        np.minimum.at(boxes[:, 2], run_of, cols[starts])
+        np.maximum.at(boxes[:, 3], run_of, cols[ends])
+        boxes[:, 1] += 1
+        boxes[:, 3] += 1
+        return cls(ids.astype(np.int64), counts, boxes)
+
+    def box(self, instance_id: int) -> tuple[int, int, int, int] | None:
+        """Half-open (row0, row1, col0, col1) of one id, or None when no pixel carries it."""
+        at = int(np.searchsorted(self.ids, instance_id))
+        if at >= self.ids.size or self.ids[at] != instance_id:
+            return None
+        return tuple(int(v) for v in self.boxes[at])  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
 class BranchMasks:
     """Branch instances of one frame.
 
     `labels` is an `H×W` `int32` image (0 background, `trunk_id` the trunk when not None, values
     in `ignored_ids` neither branch nor trunk, any other value one branch); `source` says where the
-    instances came from (e.g. a file name, "geometric").
+    instances came from (e.g. a file name, "geometric"). The ids, sizes and bounding boxes are
+    indexed once, on first use (`index`): treat `labels` as read-only after that.
     """
 
     labels: np.ndarray
@@ -45,21 +185,37 @@ class BranchMasks:
         """(H, W) of the mask in pixels."""
         return self.labels.shape  # type: ignore[return-value]
 
+    @cached_property
+    def index(self) -> InstanceIndex:
+        """Ids, pixel counts and bounding boxes of every instance (one pass over the labels)."""
+        return InstanceIndex.of(self.labels)
+
     def branch_ids(self) -> list[int]:
         """Ids of the branch instances present, ascending (background and trunk excluded)."""
-        ids = np.unique(self.labels)
-        return [int(i) for i in ids if i != 0 and i != self.trunk_id and i not in self.ignored_ids]
+        skip = set(self.ignored_ids) | ({self.trunk_id} if self.trunk_id is not None else set())
+        return [int(i) for i in self.index.ids if int(i) not in skip]
+
+    def crop(self, instance_id: int, margin: int = 2) -> MaskCrop | None:
+        """One instance as a `MaskCrop`: its bounding box grown by `margin` px; None when absent."""
+        box = self.index.box(instance_id)
+        if box is None:
+            return None
+        r0, r1, c0, c1 = _grown(box, margin, self.shape)
+        return MaskCrop(self.labels[r0:r1, c0:c1] == instance_id, r0, c0, self.shape)
 
     def branch(self, branch_id: int) -> np.ndarray:
         """Boolean `H×W` mask of one branch instance."""
-        return self.labels == branch_id
+        crop = self.crop(branch_id, margin=0)
+        return crop.full() if crop is not None else np.zeros(self.shape, dtype=bool)
+
+    def trunk_crop(self, margin: int = 2) -> MaskCrop | None:
+        """The trunk as a `MaskCrop`, or None when no trunk id is set or no pixel carries it."""
+        return None if self.trunk_id is None else self.crop(self.trunk_id, margin)
 
     def trunk(self) -> np.ndarray | None:
         """Boolean `H×W` trunk mask, or None when no trunk id is set or no pixel carries it."""
-        if self.trunk_id is None:
-            return None
-        trunk = self.labels == self.trunk_id
-        return trunk if trunk.any() else None
+        crop = self.trunk_crop(margin=0)
+        return None if crop is None else crop.full()
 
 
 def split_binary(mask: np.ndarray, min_area_px: int = 1) -> np.ndarray:
@@ -68,20 +224,18 @@ def split_binary(mask: np.ndarray, min_area_px: int = 1) -> np.ndarray:
     Components smaller than `min_area_px` pixels are dropped (label 0): speckle is not a branch.
     """
     binary = (np.asarray(mask) != 0).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
-    keep = np.zeros(count, dtype=np.int32)
-    next_id = 1
-    for label in range(1, count):
-        if stats[label, cv2.CC_STAT_AREA] >= min_area_px:
-            keep[label] = next_id
-            next_id += 1
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    kept = stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    kept[0] = False  # the background
+    keep = np.where(kept, np.cumsum(kept), 0).astype(np.int32)
     return keep[labels]
 
 
-def _looks_binary(values: np.ndarray, trunk_id: int | None) -> bool:
+def _looks_binary(array: np.ndarray, trunk_id: int | None) -> bool:
     """A mask whose only non-zero value is 255 (or True) and is not the trunk id reads as binary."""
-    nonzero = values[values != 0]
-    return len(nonzero) == 1 and int(nonzero[0]) == 255 and trunk_id != 255
+    if trunk_id == 255 or not array.size or int(array.max()) != 255:
+        return False
+    return np.count_nonzero(array == 255) == np.count_nonzero(array)
 
 
 def masks_from_array(
@@ -117,7 +271,7 @@ def masks_from_array(
     if array.size and array.max() > np.iinfo(np.int32).max:
         raise MaskError(f"{source}: mask id {int(array.max())} is out of range")
     if kind == "auto":
-        kind = "binary" if _looks_binary(np.unique(array), trunk_id) else "instance"
+        kind = "binary" if _looks_binary(array, trunk_id) else "instance"
     if kind == "binary":
         return BranchMasks(split_binary(array), None, source)
     if kind != "instance":

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from branchrange.masks import MaskCrop, as_crop
+
 #: Slice length (px) along the axis over which the silhouette width is measured.
 SLICE_PX = 2.0
 
@@ -48,43 +50,51 @@ class ImageAxis:
         return self.point(s_end, n_mid)
 
 
-def touches_image_border(mask: np.ndarray) -> bool:
+def touches_image_border(mask: np.ndarray | MaskCrop) -> bool:
     """Whether a boolean `H×W` mask reaches the first or last row or column (the image cuts it)."""
-    return bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+    return as_crop(mask).touches_image_border()
 
 
-def _edge_direction(mask: np.ndarray, cut_by: np.ndarray | None) -> np.ndarray:
-    """Unit (u, v) direction along which a boolean `H×W` mask's own edges run: the least
-    eigenvector of the structure tensor of its gradient. The image border and the edges within
-    2 px of `cut_by` (boolean `H×W`, e.g. the trunk) are cuts, not edges, and do not count.
+def _edge_direction(mask: MaskCrop, cut_by: MaskCrop | None) -> np.ndarray:
+    """Unit (u, v) direction along which a mask's own edges run: the least eigenvector of the
+    structure tensor of its gradient. The image border and the edges within 2 px of `cut_by`
+    (e.g. the trunk) are cuts, not edges, and do not count.
 
     Why: where the image border and the trunk cut a short silhouette obliquely, the pixels'
     principal axis leans toward the cuts' diagonal, while the silhouette's sides still run along
-    the branch.
+    the branch. Computed on the crop (its ≥ 1 px background margin holds every non-zero gradient;
+    the sums are of small integers, so exactly those of the whole image).
     """
-    image = mask.astype(np.float32)
+    image = mask.mask.astype(np.float32)
     gu = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
     gv = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
     if cut_by is not None:
-        near_cut = cv2.dilate(cut_by.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        h, w = image.shape
+        around = cut_by.window(mask.top - 2, mask.left - 2, h + 4, w + 4)
+        near_cut = cv2.dilate(around.astype(np.uint8), np.ones((5, 5), np.uint8))[2:-2, 2:-2].astype(bool)
         gu[near_cut], gv[near_cut] = 0.0, 0.0
     tensor = np.array([[np.sum(gu * gu), np.sum(gu * gv)], [np.sum(gu * gv), np.sum(gv * gv)]], dtype=np.float64)
     _, vectors = np.linalg.eigh(tensor)
     return vectors[:, 0]
 
 
-def image_axis(mask: np.ndarray, cut_by: np.ndarray | None = None) -> ImageAxis:
-    """`ImageAxis` of a boolean `H×W` mask (non-empty); extent from the 0.2/99.8 % quantiles.
+def image_axis(mask: np.ndarray | MaskCrop, cut_by: np.ndarray | MaskCrop | None = None) -> ImageAxis:
+    """`ImageAxis` of a non-empty boolean `H×W` mask or `MaskCrop` (with ≥ 1 px of background
+    around it inside the image, as `BranchMasks.crop` gives); extent from the 0.2/99.8 % quantiles.
 
     Direction: the pixels' principal axis, or, for a silhouette the image border cuts, the
     direction of its own edges (`_edge_direction`; `cut_by`: where else the silhouette is cut).
     """
-    v, u = np.nonzero(mask)
+    crop = as_crop(mask)
+    v, u = crop.pixels()
     pixels = np.stack([u, v], axis=1).astype(np.float64)
     centre = pixels.mean(axis=0)
     centred = pixels - centre
     _, vectors = np.linalg.eigh(centred.T @ centred)
-    direction = _edge_direction(mask, cut_by) if touches_image_border(mask) else vectors[:, -1]
+    if touches_image_border(crop):
+        direction = _edge_direction(crop, None if cut_by is None else as_crop(cut_by))
+    else:
+        direction = vectors[:, -1]
     normal = np.array([-direction[1], direction[0]])
     s, n = centred @ direction, centred @ normal
     s_lo, s_hi = np.quantile(s, [0.002, 0.998])
