@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from branchrange.geometry import GeometryError, Line3D, StereoGeometry, pixel_ray
+from branchrange.geometry import GeometryError, Line3D, StereoGeometry, pixel_ray, pixel_rays
 
 #: Rays cast across the silhouette per station to integrate the visible surface's disparity.
 SECTION_SAMPLES = 65
@@ -89,7 +89,7 @@ def cross_section(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: f
     reach = max(half_width_px - margin_px, 0.0)
     offsets = np.linspace(-reach, reach, SECTION_SAMPLES) if reach > 0 else np.zeros(1)
     pixels = centre_px[None, :] + offsets[:, None] * normal_px[None, :]
-    rays = np.stack([pixel_ray(u, v, geometry) for u, v in pixels])
+    rays = pixel_rays(pixels, geometry)
     across, lengths = _across_axis(rays, direction)
     c = across @ bisector
     t_across = c - np.sqrt(np.clip(sin_beta ** 2 - (1.0 - c * c), 0.0, None))

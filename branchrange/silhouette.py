@@ -132,13 +132,26 @@ def _area_along(axis: ImageAxis, count: int) -> np.ndarray:
 
     Each pixel is spread over its footprint (4×4 sub-samples) rather than counted at its centre:
     at a slant, pixel centres fall into slices in a periodic pattern that would alias the widths.
+    A sample's slice is monotone in its shift along the axis, so a pixel whose extreme sub-samples
+    share a slice puts all 16 there; only the pixels a slice boundary crosses are sampled one by one.
     """
     offsets = (np.arange(4) + 0.5) / 4 - 0.5
     du, dv = np.meshgrid(offsets, offsets)
-    shift = (du.ravel() * axis.direction[0] + dv.ravel() * axis.direction[1])[None, :]
-    bins = np.floor((axis.s[:, None] + shift - axis.s_lo) / SLICE_PX).astype(np.int64).ravel()
-    inside = (bins >= 0) & (bins < count)
-    return np.bincount(bins[inside], minlength=count) / 16.0
+    shifts = du.ravel() * axis.direction[0] + dv.ravel() * axis.direction[1]
+
+    def sub_sample_slices(s: np.ndarray, shift: float) -> np.ndarray:
+        return np.floor((s + shift - axis.s_lo) / SLICE_PX).astype(np.int64)
+
+    def histogram(bins: np.ndarray) -> np.ndarray:
+        return np.bincount(bins[(bins >= 0) & (bins < count)], minlength=count)
+
+    first, last = sub_sample_slices(axis.s, shifts.min()), sub_sample_slices(axis.s, shifts.max())
+    whole = first == last
+    area = 16 * histogram(first[whole])
+    crossed = axis.s[~whole]
+    for shift in shifts:
+        area += histogram(sub_sample_slices(crossed, shift))
+    return area / 16.0
 
 
 def _extent_along(axis: ImageAxis, count: int) -> tuple[np.ndarray, np.ndarray]:
