@@ -24,7 +24,7 @@ from typing import Literal
 
 import numpy as np
 
-from branchrange.cylinder_section import cross_section, radius_from_silhouette
+from branchrange.cylinder_section import cross_section_from_rays, radius_from_silhouette, section_rays
 from branchrange.geometry import (
     GeometryError,
     Line3D,
@@ -274,12 +274,14 @@ def _axis_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis
         return "fitted disparity along the branch reaches zero (the branch would be at infinity)"
     centres = [profile.centre(silhouette, float(st)) for st in stations]
     ends = backproject(np.array([c[0] for c in centres]), np.array([c[1] for c in centres]), disparities, geometry)
+    if margin_px is not None:
+        rays = [section_rays(centre, silhouette.normal, 0.5 * profile.at(float(st)), margin_px, geometry)
+                for centre, st in zip(centres, stations)]
     for _ in range(0 if margin_px is None else 3):
         if np.linalg.norm(ends[1] - ends[0]) < 1e-6:
             break
-        ends = np.stack([cross_section(centre, silhouette.normal, 0.5 * profile.at(float(st)), margin_px,
-                                       float(disparity), ends[1] - ends[0], geometry).axis_point_m
-                         for centre, st, disparity in zip(centres, stations, disparities)])
+        ends = np.stack([cross_section_from_rays(station, float(disparity), ends[1] - ends[0], geometry).axis_point_m
+                         for station, disparity in zip(rays, disparities)])
     if np.linalg.norm(ends[1] - ends[0]) < 1e-6:
         return "branch too short to give an axis direction"
     return Line3D(ends[0], (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])), fit

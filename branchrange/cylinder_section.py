@@ -46,12 +46,16 @@ def _across_axis(rays: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, n
     return across / lengths[:, None], lengths
 
 
-def _tangents(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, direction: np.ndarray,
-              geometry: StereoGeometry) -> tuple[np.ndarray, float]:
-    """The unit bisector `(3,)` of the silhouette edges' rays seen along `direction`, and sin β."""
+def _edge_rays(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float,
+               geometry: StereoGeometry) -> np.ndarray:
+    """The unit viewing rays `(2, 3)` through the silhouette's two edges at one station."""
     if half_width_px <= 0:
         raise GeometryError(f"cross-section needs a silhouette of positive width, got half width {half_width_px} px")
-    edges = np.stack([pixel_ray(*(centre_px + side * half_width_px * normal_px), geometry) for side in (-1.0, 1.0)])
+    return pixel_rays(centre_px[None, :] + np.array([[-1.0], [1.0]]) * half_width_px * normal_px[None, :], geometry)
+
+
+def _tangents(edges: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, float]:
+    """The unit bisector `(3,)` of the edge rays `(2, 3)` seen along `direction`, and sin β."""
     (tangent_a, tangent_b), _ = _across_axis(edges, direction)
     bisector = tangent_a + tangent_b
     sin_beta = 0.5 * float(np.linalg.norm(tangent_a - tangent_b))
@@ -64,9 +68,34 @@ def radius_from_silhouette(centre_px: np.ndarray, normal_px: np.ndarray, half_wi
                            axis: Line3D, geometry: StereoGeometry) -> float:
     """Radius (m) of a cylinder with a known `axis` (metres) whose silhouette at one station is
     `centre_px ± half_width_px · normal_px` (px): `r = D·sin β`, D the camera's distance from the axis."""
-    _, sin_beta = _tangents(np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64),
-                            half_width_px, axis.direction, geometry)
+    edges = _edge_rays(np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64),
+                       half_width_px, geometry)
+    _, sin_beta = _tangents(edges, axis.direction)
     return float(np.linalg.norm(axis.point - (axis.point @ axis.direction) * axis.direction)) * sin_beta
+
+
+@dataclass(frozen=True)
+class SectionRays:
+    """The viewing rays of one station of a silhouette, unit `(·, 3)`: through its two edges
+    (`edges` `(2, 3)`), through the pixels the disparity was read from (`samples` `(M, 3)`) and
+    through its centre (`centre` `(3,)`). They do not depend on the axis direction, so the passes
+    that refine the direction reuse them (`section_rays`, then `cross_section_from_rays`)."""
+
+    edges: np.ndarray
+    samples: np.ndarray
+    centre: np.ndarray
+
+
+def section_rays(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, margin_px: float,
+                 geometry: StereoGeometry) -> SectionRays:
+    """`SectionRays` of the station `centre_px ± half_width_px · normal_px` (px), the samples
+    spread over the part more than `margin_px` inside the edges (`SECTION_SAMPLES` of them)."""
+    centre_px, normal_px = np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64)
+    edges = _edge_rays(centre_px, normal_px, half_width_px, geometry)
+    reach = max(half_width_px - margin_px, 0.0)
+    offsets = np.linspace(-reach, reach, SECTION_SAMPLES) if reach > 0 else np.zeros(1)
+    samples = pixel_rays(centre_px[None, :] + offsets[:, None] * normal_px[None, :], geometry)
+    return SectionRays(edges, samples, pixel_ray(*centre_px, geometry))
 
 
 def cross_section(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, margin_px: float,
@@ -80,22 +109,26 @@ def cross_section(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: f
     cross-section is taken across it). Raises `GeometryError` when the silhouette has no width or
     the axis points at the camera.
     """
-    centre_px, normal_px = np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64)
+    if not mean_disparity_px > 0:
+        raise GeometryError(f"cross-section needs a positive disparity, got {mean_disparity_px} px")
+    return cross_section_from_rays(section_rays(centre_px, normal_px, half_width_px, margin_px, geometry),
+                                   mean_disparity_px, direction, geometry)
+
+
+def cross_section_from_rays(rays: SectionRays, mean_disparity_px: float, direction: np.ndarray,
+                            geometry: StereoGeometry) -> CrossSection:
+    """`cross_section` from a station's `SectionRays` (see there)."""
     direction = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
     if not mean_disparity_px > 0:
         raise GeometryError(f"cross-section needs a positive disparity, got {mean_disparity_px} px")
-    bisector, sin_beta = _tangents(centre_px, normal_px, half_width_px, direction, geometry)
+    bisector, sin_beta = _tangents(rays.edges, direction)
     # rays through the (eroded) silhouette, cast at the circle of centre `bisector`, radius sin β (D = 1)
-    reach = max(half_width_px - margin_px, 0.0)
-    offsets = np.linspace(-reach, reach, SECTION_SAMPLES) if reach > 0 else np.zeros(1)
-    pixels = centre_px[None, :] + offsets[:, None] * normal_px[None, :]
-    rays = pixel_rays(pixels, geometry)
-    across, lengths = _across_axis(rays, direction)
+    across, lengths = _across_axis(rays.samples, direction)
     c = across @ bisector
     t_across = c - np.sqrt(np.clip(sin_beta ** 2 - (1.0 - c * c), 0.0, None))
-    depth_at_unit_distance = t_across / lengths * rays[:, 2]
+    depth_at_unit_distance = t_across / lengths * rays.samples[:, 2]
     if np.any(depth_at_unit_distance <= 0):
         raise GeometryError("the cylinder's visible surface reaches behind the camera")
     distance = geometry.fb * float(np.mean(1.0 / depth_at_unit_distance)) / mean_disparity_px
     axis = Line3D(distance * bisector, direction)
-    return CrossSection(axis.closest_to_ray(pixel_ray(*centre_px, geometry)), distance * sin_beta)
+    return CrossSection(axis.closest_to_ray(rays.centre), distance * sin_beta)
