@@ -118,6 +118,8 @@ class CutpointsConfig:
     'thickest' (`branchrange.cutpoints.select_target`); branches below
     `target_min_confidence` are never the target, below `min_confidence` not reported at all.
     `tracking` keeps branch ids stable across frames (the daemon and replay want it).
+    `max_instances`: a mask with more branch instances is refused (`MaskError`, HTTP 422) before
+    any geometry runs — a frame of branches holds tens, and each instance costs time.
     """
 
     cut_offset_m: float = 0.05
@@ -125,6 +127,7 @@ class CutpointsConfig:
     target_policy: str = "nearest_confident"
     target_min_confidence: float = 0.3
     tracking: bool = True
+    max_instances: int = 256
 
     def __post_init__(self) -> None:
         _require(self.cut_offset_m >= 0, "cutpoints.cut_offset_m", self.cut_offset_m, "metres >= 0")
@@ -135,6 +138,7 @@ class CutpointsConfig:
                  self.target_policy, "one of " + ", ".join(repr(p) for p in TARGET_POLICIES))
         _require(0.0 <= self.target_min_confidence <= 1.0, "cutpoints.target_min_confidence",
                  self.target_min_confidence, "a number in [0, 1]")
+        _require(self.max_instances >= 1, "cutpoints.max_instances", self.max_instances, "an integer >= 1")
 
 
 @dataclass(frozen=True)
@@ -304,5 +308,6 @@ def pipeline_config(cfg: Config) -> Any:
         backend=s.backend, weights=s.weights or None, max_disp=s.max_disp, device=s.device,
         precision=s.precision, target_policy=c.target_policy,
         target_min_confidence=c.target_min_confidence, tracking=c.tracking,
-        cutpoints=CutPointConfig(cut_offset_m=c.cut_offset_m, min_confidence=c.min_confidence),
+        cutpoints=CutPointConfig(cut_offset_m=c.cut_offset_m, min_confidence=c.min_confidence,
+                                 max_instances=c.max_instances),
         mode=s.mode, roi=cfg.roi)
