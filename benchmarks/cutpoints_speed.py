@@ -16,7 +16,9 @@ The baseline is the package at `--baseline` (a git revision, default 930314a: be
 exported with `git archive` into a temporary folder and run in a subprocess with that folder first
 on `PYTHONPATH`; the current tree runs in an identical subprocess. Baseline and current alternate,
 `--repeats` timed runs each after one warm-up, and the table shows wall-clock medians and minima
-(ms per frame), the speed-up (median over median) and the largest cut-point difference (m)
+(ms per frame) with the process's CPU time (median), the speed-up (median over median, of the wall
+clock and of the CPU time: on a loaded machine the CPU time is the steadier) and the largest
+cut-point difference (m)
 between the two on the same frame. Prints the CPU (`lscpu` model name, AVX2 / AVX-512) and the
 load average: the machine may be shared, so read the same-run ratios, not the absolute times.
 
@@ -150,6 +152,7 @@ def summarise(current: list[dict], baseline: list[dict]) -> dict:
             row["old_cpu_ms"] = statistics.median(old_cpu)
             row["old_extrapolated"] = scale != 1.0
             row["speedup"] = row["old_ms"]["median"] / row["new_ms"]["median"]
+            row["speedup_cpu"] = row["old_cpu_ms"] / row["new_cpu_ms"]
             a, b = current[0][case]["cut_points"], baseline[0][case]["cut_points"]
             if not case.startswith("ids_65000"):
                 row["same_branches"] = sorted(a) == sorted(b)
@@ -164,15 +167,15 @@ def print_table(rows: dict, cpu: dict, baseline: str) -> None:
     print(f"CPU: {cpu['model']} ({cpu['cores']} cores, AVX2 {'yes' if cpu['avx2'] else 'no'}, "
           f"AVX-512 {'yes' if cpu['avx512'] else 'no'}); load average {cpu['load_average_1min']} at the start")
     print(f"baseline: branchrange at {baseline}; ms per frame: wall clock median (min) | CPU median\n")
-    print(f"{'case':<18}{'branches':>9}{'baseline ms':>30}{'current ms':>26}{'speed-up':>10}{'max Δ cut m':>13}  note")
+    print(f"{'case':<17}{'branches':>9}{'baseline ms':>30}{'current ms':>24}{'speed-up':>14}{'max Δ cut m':>13}  note")
     for case, row in rows.items():
         old = (f"{row['old_ms']['median']:.1f} ({row['old_ms']['min']:.1f}) | {row['old_cpu_ms']:.1f}"
                + ("*" if row.get("old_extrapolated") else "") if "old_ms" in row else "—")
         new = f"{row['new_ms']['median']:.1f} ({row['new_ms']['min']:.1f}) | {row['new_cpu_ms']:.1f}"
-        speedup = f"{row['speedup']:.1f}×" if "speedup" in row else "—"
+        speedup = f"{row['speedup']:.1f}× | {row['speedup_cpu']:.1f}×" if "speedup" in row else "—"
         diff = f"{row['max_cut_point_diff_m']:.1e}" if "max_cut_point_diff_m" in row else "—"
-        note = row["new_error"][:70] if row["new_error"] else ("cap lifted" if case == "ids_65000" else "")
-        print(f"{case:<18}{row['branches']:>9}{old:>30}{new:>26}{speedup:>10}{diff:>13}  {note}")
+        note = row["new_error"][:100] if row["new_error"] else ("cap lifted" if case == "ids_65000" else "")
+        print(f"{case:<17}{row['branches']:>9}{old:>30}{new:>24}{speedup:>14}{diff:>13}  {note}")
     print(f"\n* extrapolated: the baseline ran {BASELINE_ID_SHARE:.0%} of the ids in the same frame, time ×"
           f"{1 / BASELINE_ID_SHARE:.0f}")
 
