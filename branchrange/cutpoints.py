@@ -36,6 +36,7 @@ from branchrange.geometry import (
     pixel_ray,
     project,
     valid_disparity,
+    vector_norm,
 )
 from branchrange.masks import BranchMasks, MaskCrop, MaskError, as_crop, erode
 from branchrange.settings_check import check_settings
@@ -177,21 +178,21 @@ def _pixels_per_metre_across(point: np.ndarray, direction: np.ndarray, geometry:
     axis. Off the optical axis this is up to 1/cos θ more than f/Z — 20 % at 35°.
     """
     across = np.cross(direction, point)
-    norm = np.linalg.norm(across)
+    norm = vector_norm(across)
     eps = 1e-3 * max(float(point[2]), 1e-3)
     p0 = project(point, geometry)[0]
     along_px = project(point + eps * direction, geometry)[0] - p0
-    if norm < 1e-9 or np.linalg.norm(along_px) < 1e-9:  # axis along the line of sight
+    if norm < 1e-9 or vector_norm(along_px) < 1e-9:  # axis along the line of sight
         return geometry.focal_px / float(point[2])
     across_px = (project(point + eps * across / norm, geometry)[0] - p0) / eps
-    image_normal = np.array([-along_px[1], along_px[0]]) / np.linalg.norm(along_px)
+    image_normal = np.array([-along_px[1], along_px[0]]) / vector_norm(along_px)
     return abs(float(across_px @ image_normal))
 
 
 def _away_from_camera(point: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """Unit vector (3,) perpendicular to `direction` pointing from the camera past `point`."""
     away = point - (point @ direction) * direction
-    norm = np.linalg.norm(away)
+    norm = vector_norm(away)
     return away / norm if norm > 1e-9 else np.zeros(3)
 
 
@@ -278,13 +279,13 @@ def _axis_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis
         rays = [section_rays(centre, silhouette.normal, 0.5 * profile.at(float(st)), margin_px, geometry)
                 for centre, st in zip(centres, stations)]
     for _ in range(0 if margin_px is None else 3):
-        if np.linalg.norm(ends[1] - ends[0]) < 1e-6:
+        if vector_norm(ends[1] - ends[0]) < 1e-6:
             break
         ends = np.stack([cross_section_from_rays(station, float(disparity), ends[1] - ends[0], geometry).axis_point_m
                          for station, disparity in zip(rays, disparities)])
-    if np.linalg.norm(ends[1] - ends[0]) < 1e-6:
+    if vector_norm(ends[1] - ends[0]) < 1e-6:
         return "branch too short to give an axis direction"
-    return Line3D(ends[0], (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])), fit
+    return Line3D(ends[0], (ends[1] - ends[0]) / vector_norm(ends[1] - ends[0])), fit
 
 
 def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
@@ -347,7 +348,7 @@ def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: S
             t_lo, t_hi = np.quantile(t, [0.1, 0.9])
             a = _onto_axis(line.at(t_lo), line.direction, silhouette, profile, geometry, eroded_px)
             b = _onto_axis(line.at(t_hi), line.direction, silhouette, profile, geometry, eroded_px)
-            line = Line3D(a, (b - a) / np.linalg.norm(b - a)) if np.linalg.norm(b - a) > 1e-3 else Line3D(a, line.direction)
+            line = Line3D(a, (b - a) / vector_norm(b - a)) if vector_norm(b - a) > 1e-3 else Line3D(a, line.direction)
     return CylinderFit(line, silhouette, profile, valid_fraction, points, (rows.astype(np.int64), cols.astype(np.int64)),
                        inliers, float(residual_m), float(min(1.0, residual_ratio)))
 
@@ -363,7 +364,7 @@ class TrunkModel:
         """Distance (m) of `point` (3,) from the trunk's surface (0 on the bark, < 0 inside)."""
         axis = self.cylinder.axis
         foot = axis.at(axis.parameters(point[None])[0])
-        return float(np.linalg.norm(point - foot)) - self.cylinder.radius_at(foot, self.geometry)
+        return vector_norm(point - foot) - self.cylinder.radius_at(foot, self.geometry)
 
     def exit_point(self, branch_axis: Line3D, toward_tip: np.ndarray) -> np.ndarray | None:
         """Where the branch axis leaves the trunk surface on its way to the tip (3,), metres.
@@ -475,7 +476,7 @@ def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: MaskCrop | Non
         else (high, low)
     if trunk_model is not None:
         exit_m = trunk_model.exit_point(line, tip - base)
-        if exit_m is not None and np.linalg.norm(exit_m - base) < 0.5 * np.linalg.norm(tip - base) + 0.1:
+        if exit_m is not None and vector_norm(exit_m - base) < 0.5 * vector_norm(tip - base) + 0.1:
             base = exit_m
     return base, tip
 
@@ -517,7 +518,7 @@ def _estimate_branch(mask_id: int, mask: MaskCrop, disparity: np.ndarray, geomet
     line = cylinder.axis
     axis = line.direction if line.direction @ (tip_m - base_m) >= 0 else -line.direction
     cut_m = base_m + config.cut_offset_m * axis
-    distance = float(np.linalg.norm(cut_m))
+    distance = vector_norm(cut_m)
     if not config.min_range_m <= distance <= config.max_range_m:
         return DroppedBranch(mask_id, f"cut point at {distance:.2f} m is outside the working range "
                                       f"{config.min_range_m}–{config.max_range_m} m")

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from branchrange.geometry import GeometryError, Line3D, StereoGeometry, pixel_ray, pixel_rays
+from branchrange.geometry import GeometryError, Line3D, StereoGeometry, pixel_ray, pixel_rays, vector_norm
 
 #: Rays cast across the silhouette per station to integrate the visible surface's disparity.
 SECTION_SAMPLES = 65
@@ -58,10 +58,10 @@ def _tangents(edges: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, flo
     """The unit bisector `(3,)` of the edge rays `(2, 3)` seen along `direction`, and sin β."""
     (tangent_a, tangent_b), _ = _across_axis(edges, direction)
     bisector = tangent_a + tangent_b
-    sin_beta = 0.5 * float(np.linalg.norm(tangent_a - tangent_b))
-    if np.linalg.norm(bisector) < 1e-9 or sin_beta < 1e-9:
+    sin_beta = 0.5 * vector_norm(tangent_a - tangent_b)
+    if vector_norm(bisector) < 1e-9 or sin_beta < 1e-9:
         raise GeometryError("the silhouette's edges do not bound a cylinder (zero or opposite tangent directions)")
-    return bisector / np.linalg.norm(bisector), sin_beta
+    return bisector / vector_norm(bisector), sin_beta
 
 
 def radius_from_silhouette(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float,
@@ -71,7 +71,7 @@ def radius_from_silhouette(centre_px: np.ndarray, normal_px: np.ndarray, half_wi
     edges = _edge_rays(np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64),
                        half_width_px, geometry)
     _, sin_beta = _tangents(edges, axis.direction)
-    return float(np.linalg.norm(axis.point - (axis.point @ axis.direction) * axis.direction)) * sin_beta
+    return vector_norm(axis.point - (axis.point @ axis.direction) * axis.direction) * sin_beta
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,7 @@ def cross_section(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: f
 def cross_section_from_rays(rays: SectionRays, mean_disparity_px: float, direction: np.ndarray,
                             geometry: StereoGeometry) -> CrossSection:
     """`cross_section` from a station's `SectionRays` (see there)."""
-    direction = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+    direction = np.asarray(direction, dtype=np.float64) / vector_norm(direction)
     if not mean_disparity_px > 0:
         raise GeometryError(f"cross-section needs a positive disparity, got {mean_disparity_px} px")
     bisector, sin_beta = _tangents(rays.edges, direction)
