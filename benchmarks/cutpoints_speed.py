@@ -167,7 +167,7 @@ def print_table(rows: dict, cpu: dict, baseline: str) -> None:
     print(f"CPU: {cpu['model']} ({cpu['cores']} cores, AVX2 {'yes' if cpu['avx2'] else 'no'}, "
           f"AVX-512 {'yes' if cpu['avx512'] else 'no'}); load average {cpu['load_average_1min']} at the start")
     print(f"baseline: branchrange at {baseline}; ms per frame: wall clock median (min) | CPU median\n")
-    print(f"{'case':<17}{'branches':>9}{'baseline ms':>30}{'current ms':>24}{'speed-up':>14}{'max Δ cut m':>13}  note")
+    print(f"{'case':<17}{'branches':>9}{'baseline ms':>34}{'current ms':>28}{'speed-up':>14}{'max Δ cut m':>13}  note")
     for case, row in rows.items():
         old = (f"{row['old_ms']['median']:.1f} ({row['old_ms']['min']:.1f}) | {row['old_cpu_ms']:.1f}"
                + ("*" if row.get("old_extrapolated") else "") if "old_ms" in row else "—")
@@ -175,7 +175,7 @@ def print_table(rows: dict, cpu: dict, baseline: str) -> None:
         speedup = f"{row['speedup']:.1f}× | {row['speedup_cpu']:.1f}×" if "speedup" in row else "—"
         diff = f"{row['max_cut_point_diff_m']:.1e}" if "max_cut_point_diff_m" in row else "—"
         note = row["new_error"][:100] if row["new_error"] else ("cap lifted" if case == "ids_65000" else "")
-        print(f"{case:<17}{row['branches']:>9}{old:>30}{new:>24}{speedup:>14}{diff:>13}  {note}")
+        print(f"{case:<17}{row['branches']:>9}{old:>34}{new:>28}{speedup:>14}{diff:>13}  {note}")
     print(f"\n* extrapolated: the baseline ran {BASELINE_ID_SHARE:.0%} of the ids in the same frame, time ×"
           f"{1 / BASELINE_ID_SHARE:.0f}")
 
