@@ -38,7 +38,7 @@ from branchrange.geometry import (
     valid_disparity,
     vector_norm,
 )
-from branchrange.masks import BranchMasks, MaskCrop, MaskError, as_crop, erode
+from branchrange.masks import BranchMasks, MaskCrop, as_crop, check_instance_count, erode
 from branchrange.settings_check import check_settings
 from branchrange.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
 
@@ -560,15 +560,11 @@ def estimate_cut_points(
     disparity = np.asarray(disparity, dtype=np.float32)
     if disparity.shape != masks.shape:
         raise ValueError(f"disparity is {disparity.shape} but the mask is {masks.shape} (H, W)")
-    branch_ids = masks.branch_ids()
-    if len(branch_ids) > config.max_instances:
-        raise MaskError(f"{masks.source}: the mask holds {len(branch_ids)} branch instances, more than "
-                        f"cutpoints.max_instances = {config.max_instances}; a frame of branches has tens, "
-                        "not thousands (is it a label image of another kind?)")
+    check_instance_count(masks, config.max_instances)
     trunk = masks.trunk_crop()
     trunk_model = None if trunk is None else fit_trunk(trunk, disparity, geometry, config, max_disparity)
     result = CutPointResult()
-    for mask_id in branch_ids:
+    for mask_id in masks.branch_ids():
         outcome = estimate_branch(mask_id, masks.crop(mask_id), disparity, geometry, config,
                                   confidence=confidence, trunk=trunk, trunk_model=trunk_model,
                                   max_disparity=max_disparity)

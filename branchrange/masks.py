@@ -218,6 +218,17 @@ class BranchMasks:
         return None if crop is None else crop.full()
 
 
+def check_instance_count(masks: BranchMasks, max_instances: int) -> None:
+    """Raise `MaskError` naming the count and the cap when `masks` holds more than `max_instances`
+    branch instances (`cutpoints.max_instances`): O(pixels) once, so a caller can refuse such a
+    mask before any other work (`estimate_cut_points` checks it first thing)."""
+    count = len(masks.branch_ids())
+    if count > max_instances:
+        raise MaskError(f"{masks.source}: the mask holds {count} branch instances, more than "
+                        f"cutpoints.max_instances = {max_instances}; a frame of branches has tens, "
+                        "not thousands (is it a label image of another kind?)")
+
+
 def split_binary(mask: np.ndarray, min_area_px: int = 1) -> np.ndarray:
     """Instance labels (`int32` `H×W`, 1..K) of the 8-connected components of a binary `H×W` mask.
 
