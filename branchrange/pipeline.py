@@ -25,7 +25,16 @@ from branchrange.cutpoints import (
     select_target,
 )
 from branchrange.geometry import StereoGeometry, valid_disparity
-from branchrange.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID, BranchMasks, MaskKind, masks_from_array, read_mask, validate_masks
+from branchrange.masks import (
+    DEFAULT_IGNORED_IDS,
+    DEFAULT_TRUNK_ID,
+    BranchMasks,
+    MaskKind,
+    check_instance_count,
+    masks_from_array,
+    read_mask,
+    validate_masks,
+)
 from branchrange.config import RoiConfig
 from branchrange.roi import CoarseToFine, Region
 from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
@@ -237,6 +246,7 @@ class Pipeline:
             masks = mask
         else:
             masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind, ignored_ids=cfg.ignored_ids)
+        check_instance_count(masks, cfg.cutpoints.max_instances)  # before any other work on such a mask
         if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
             validate_masks(masks, shape)
             masks = replace(masks, labels=_rectify_labels(self.rectifier, masks.labels))

@@ -84,27 +84,11 @@ def scaled_geometry(geometry: StereoGeometry, scale: int) -> StereoGeometry:
 
 
 def instance_ids(masks: BranchMasks) -> list[int]:
-    """The ids that get a fine pass: the branches, then the trunk (drawn first, so branches win overlaps)."""
+    """The ids that get a fine pass: the trunk first (so branches win where boxes overlap), then the branches."""
     ids = masks.branch_ids()
-    if masks.trunk_id is not None and np.any(masks.labels == masks.trunk_id):
+    if masks.trunk_id is not None and masks.index.box(masks.trunk_id) is not None:
         ids = [masks.trunk_id, *ids]
     return ids
-
-
-def instance_boxes(labels: np.ndarray, ids: list[int]) -> dict[int, tuple[int, int, int, int]]:
-    """Bounding box (x0, y0, x1, y1, exclusive ends) of each id in an `H×W` label image, in one pass."""
-    ys, xs = np.nonzero(np.isin(labels, ids))
-    values = labels[ys, xs]
-    boxes = {}
-    order = np.argsort(values, kind="stable")
-    values, xs, ys = values[order], xs[order], ys[order]
-    starts = np.searchsorted(values, ids, side="left")
-    ends = np.searchsorted(values, ids, side="right")
-    for instance, start, end in zip(ids, starts, ends):
-        if end > start:
-            boxes[instance] = (int(xs[start:end].min()), int(ys[start:end].min()),
-                               int(xs[start:end].max()) + 1, int(ys[start:end].max()) + 1)
-    return boxes
 
 
 def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int, max_disp: int) -> tuple[int, int]:
@@ -124,26 +108,23 @@ def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int,
     return d_min, min(d_range, max_disp)
 
 
-def plan_regions(labels_full: np.ndarray, labels_coarse: np.ndarray, coarse_disparity: np.ndarray,
-                 ids: list[int], scale: int, config: RoiConfig, max_disp: int,
-                 keep_id: int | None = None) -> list[Region]:
-    """A `Region` per instance id: its full-resolution box grown by the margin, its disparity window
-    from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse labels. When more than
-    `max_regions` instances are present, the nearest ones (largest median coarse disparity) are kept,
-    and `keep_id` (the trunk) always."""
-    height, width = labels_full.shape
-    boxes = instance_boxes(labels_full, ids)
+def plan_regions(instances: BranchMasks, labels_coarse: np.ndarray, coarse_disparity: np.ndarray,
+                 scale: int, config: RoiConfig, max_disp: int) -> list[Region]:
+    """A `Region` per branch and trunk of `instances` (full resolution): its box grown by the margin,
+    its disparity window from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse
+    labels. When more than `max_regions` instances are present, the nearest ones (largest median
+    coarse disparity) are kept, and the trunk always."""
+    height, width = instances.shape
     regions, nearness = [], []
     m = config.box_margin_px
-    for instance in ids:
-        if instance not in boxes:
-            continue
+    for instance in instance_ids(instances):
+        row0, row1, col0, col1 = instances.index.box(instance)  # type: ignore[misc]  # ids come from the index
         values = coarse_disparity[(labels_coarse == instance) & (coarse_disparity > 0)]
         d_min, d_range = disparity_window(values, scale, config.window_margin_px, max_disp)
-        x0, y0, x1, y1 = boxes[instance]
-        box = (max(0, x0 - m), max(0, y0 - m), min(width, x1 + m), min(height, y1 + m))
+        box = (max(0, col0 - m), max(0, row0 - m), min(width, col1 + m), min(height, row1 + m))
         regions.append(Region(int(instance), box, d_min, d_range))
-        nearness.append(math.inf if instance == keep_id else float(np.median(values)) if values.size else 0.0)
+        nearest = float(np.median(values)) if values.size else 0.0
+        nearness.append(math.inf if instance == instances.trunk_id else nearest)
     if len(regions) > config.max_regions:
         order = sorted(range(len(regions)), key=lambda i: -nearness[i])[:config.max_regions]
         regions = [regions[i] for i in sorted(order)]
@@ -222,8 +203,7 @@ class CoarseToFine:
             coarse_labels = masks.labels[scale // 2::scale, scale // 2::scale][:small[1], :small[0]]
             labels_full = masks.labels
         t = lap_ms(timing, "segment", t)
-        regions = plan_regions(labels_full, coarse_labels, coarse.disparity, instance_ids(instances), scale,
-                               self.config, self.max_disp, keep_id=instances.trunk_id)
+        regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
         for region in regions:

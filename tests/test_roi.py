@@ -6,28 +6,15 @@ import pytest
 
 from branchrange.config import ConfigError, RoiConfig
 from branchrange.geometry import StereoGeometry
+from branchrange.masks import BranchMasks
 from branchrange.roi import (
     DISPARITY_STEP,
     coarse_scale,
     disparity_window,
-    instance_boxes,
     plan_regions,
     refine_labels,
     scaled_geometry,
 )
-
-
-def test_instance_boxes_equal_each_ids_own_extent():
-    rng = np.random.default_rng(0)
-    labels = np.zeros((90, 160), np.int32)
-    for instance in (3, 7, 65535):
-        y, x = rng.integers(0, 80), rng.integers(0, 150)
-        labels[y:y + rng.integers(1, 10), x:x + rng.integers(1, 10)] = instance
-    boxes = instance_boxes(labels, [3, 7, 65535, 42])
-    assert 42 not in boxes
-    for instance, box in boxes.items():
-        ys, xs = np.nonzero(labels == instance)
-        assert box == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
 
 
 def test_disparity_window_covers_the_instance_in_whole_steps():
@@ -52,9 +39,8 @@ def test_plan_keeps_the_nearest_instances_and_always_the_trunk():
     for k, x in enumerate(range(10, 80, 10), start=1):
         labels[10:30, x:x + 4] = k
         coarse_disp[5:15, x // 2:x // 2 + 2] = 10.0 + k  # branch k: nearer with k
-    ids = [65535, *range(1, 8)]
-    regions = plan_regions(labels, labels[::2, ::2], coarse_disp, ids, 2, RoiConfig(max_regions=3, box_margin_px=2),
-                           128, keep_id=65535)
+    regions = plan_regions(BranchMasks(labels, 65535), labels[::2, ::2], coarse_disp, 2,
+                           RoiConfig(max_regions=3, box_margin_px=2), 128)
     assert [r.instance_id for r in regions] == [65535, 6, 7]
     trunk = regions[0]
     assert trunk.box == (0, 0, 10, 40)  # grown by 2 px, clipped to the frame
