@@ -44,6 +44,15 @@ class StereoBackend(Protocol):
         """Disparity and confidence of the left image of a rectified RGB uint8 `H×W×3` pair."""
         ...
 
+    def compute_roi(
+        self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int
+    ) -> StereoResult:
+        """Disparity of the box `roi = (x0, y0, x1, y1)` (x1, y1 exclusive) of the FULL left frame, searched
+        over absolute disparities `[d_min, d_min + d_range)`: maps of the box's shape, absolute px,
+        0 invalid, `max_disparity = d_min + d_range`. The backend crops (and edge-replicates) itself.
+        A bad box raises StereoInputError; a range the backend cannot search, BackendConfigError."""
+        ...
+
 
 def stage_timings_ms(start: float, marks: list[tuple[str, float]]) -> dict[str, float]:
     """Milliseconds per stage from perf_counter marks [(stage, end time)], plus `total` from `start`."""

@@ -19,6 +19,7 @@ from stereo.backends.base import (
     stage_timings_ms,
     validate_pair,
 )
+from stereo.backends.roi import crop_replicate, validate_window
 from stereo.model import EMCStereo
 from stereo.padding import compute_padding, pad_image, unpad
 
@@ -94,6 +95,39 @@ class EMCStereoBackend:
     def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
         """Disparity (float32 px, dense; non-finite outputs become 0) and confidence in [0, 1] of a rectified pair."""
         validate_pair(left, right)
+        disparity, confidence, timing = self._run(left, right, self.max_disparity)
+        return StereoResult(disparity, confidence, timing, self.name, self.max_disparity)
+
+    def compute_roi(
+        self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int
+    ) -> StereoResult:
+        """Disparity of the left-image box `roi = (x0, y0, x1, y1)` searched over `[d_min, d_min + d_range)`.
+
+        The network sees the left box extended `d_range` columns to the left (so the box's pixels
+        have their whole search range inside the input) and the right image's same rows and columns
+        shifted left by `d_min` (so its disparity 0 is absolute `d_min`); out-of-frame columns
+        replicate the border. It searches `d_range` disparities (a multiple of 4, ≤ the model's
+        range); `d_min` is added back and the extension dropped. Returns `(y1 − y0)×(x1 − x0)` maps,
+        absolute disparity in px (0 where the network marks a pixel invalid: confidence 0, e.g. a
+        non-finite output), `max_disparity = d_min + d_range`.
+        """
+        (x0, y0, x1, y1), d_min, d_range = validate_window(left, right, roi, d_min, d_range)
+        if d_range % DISPARITY_MULTIPLE or d_range > self.model.max_disp:
+            raise BackendConfigError(
+                f"emcstereo d_range must be a multiple of {DISPARITY_MULTIPLE} in (0, {self.model.max_disp}] "
+                f"(the model's trained range), got {d_range}"
+            )
+        rows = (y0, y1)
+        left_crop = crop_replicate(left, rows, (x0 - d_range, x1))
+        right_crop = crop_replicate(right, rows, (x0 - d_range - d_min, x1 - d_min))
+        disparity, confidence, timing = self._run(left_crop, right_crop, d_range)
+        valid = confidence > 0
+        disparity = np.ascontiguousarray(np.where(valid, disparity + np.float32(d_min), np.float32(0.0))[:, d_range:])
+        confidence = np.ascontiguousarray(confidence[:, d_range:])
+        return StereoResult(disparity, confidence, timing, self.name, d_min + d_range)
+
+    def _run(self, left: np.ndarray, right: np.ndarray, max_disp: int) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+        """The network on one validated pair: (disparity, confidence) float32 `H×W` and stage timings in ms."""
         height, width = left.shape[:2]
         padding = compute_padding(height, width)
         start = self._now()
@@ -101,11 +135,10 @@ class EMCStereoBackend:
             images = pad_image(normalize_images(np.stack([left, right]), self.device), padding)
             prepared = self._now()
             with self._autocast():
-                disparity, confidence = self.model.infer(images[:1], images[1:], max_disp=self.max_disparity)
+                disparity, confidence = self.model.infer(images[:1], images[1:], max_disp=max_disp)
             inferred = self._now()
             disparity = unpad(disparity[0].float(), padding).cpu().numpy()
             confidence = unpad(confidence[0].float(), padding).cpu().numpy()
         disparity, confidence = sanitize_dense_output(disparity, confidence)
         end = self._now()
-        timing = stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)])
-        return StereoResult(disparity, confidence, timing, self.name, self.max_disparity)
+        return disparity, confidence, stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)])

@@ -67,6 +67,16 @@ class OnnxBackend:
         return StereoResult(disparity, confidence, timing, self.name, self.max_disparity)
 
 
+    def compute_roi(
+        self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int
+    ) -> StereoResult:
+        """Not supported: the exported graph has one input size and one disparity range (its metadata)."""
+        raise BackendConfigError(
+            f"the onnx backend cannot compute a window (roi {roi!r}, d_min {d_min!r}, d_range {d_range!r}): its graph "
+            f"was exported for one {self.height}×{self.width} input and range {self.max_disparity}; "
+            "use the sgbm or emcstereo backend for windowed disparity"
+        )
+
 def make_onnx_backend(weights: str | os.PathLike[str] | None, max_disp: int, device: str, precision: str) -> OnnxBackend:
     """`make_backend("onnx", …)`: `weights` is the exported .onnx file, whose range `max_disp` must match; CPU fp32."""
     if weights is None:
