@@ -65,7 +65,11 @@ class SGBMBackend:
         speckle_window: int = 50,
         speckle_range: int = 2,
         lr_tolerance: float = 2.0,
+        pad_left: bool = True,
+        lr_check: bool = True,
     ) -> None:
+        """`pad_left` and `lr_check` switch off those steps (for speed, or to measure what they buy:
+        benchmarks/sgbm_stage.py); without the check, confidence is 1 wherever the disparity is valid."""
         if not isinstance(max_disp, int) or max_disp <= 0 or max_disp % SGBM_DISPARITY_STEP:
             raise BackendConfigError(f"sgbm max_disp must be a positive multiple of {SGBM_DISPARITY_STEP}, got {max_disp!r}")
         if block_size < 1 or block_size % 2 == 0:
@@ -74,6 +78,7 @@ class SGBMBackend:
             raise BackendConfigError(f"sgbm lr_tolerance must be positive, got {lr_tolerance}")
         self.max_disparity = max_disp
         self.lr_tolerance = float(lr_tolerance)
+        self.pad_left, self.lr_check = pad_left, lr_check
         self._settings = (block_size, uniqueness_ratio, speckle_window, speckle_range)
         self._matchers: dict[tuple[int, int], cv2.StereoSGBM] = {}
 
@@ -112,19 +117,24 @@ class SGBMBackend:
         start = time.perf_counter()
         rows = (max(y0 - context, 0), min(y1 + context, height))
         first = x0 - d_min - num_disparities - context
+        if not self.pad_left:
+            first = max(first, 0)
         main_width = min(x1 + context, width) - first
         grey_left, grey_right = (
-            crop_replicate(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), rows, (first, x1 + num_disparities + context))
+            cv2.cvtColor(crop_replicate(image, rows, (first, x1 + num_disparities + context)), cv2.COLOR_RGB2GRAY)
             for image in (left, right)
         )
         prepared = time.perf_counter()
         raw = self._matcher(d_min, num_disparities).compute(grey_left[:, :main_width], grey_right[:, :main_width])
+        disparity = window_disparity(raw, d_min, d_range)
         matched = time.perf_counter()
-        disp_right = self._right_disparity_half_resolution(grey_left, grey_right, d_min, d_range)
-        checked = time.perf_counter()
-        disparity, confidence = left_right_check(
-            window_disparity(raw, d_min, d_range), disp_right[:, :main_width], self.lr_tolerance
-        )
+        if self.lr_check:
+            disp_right = self._right_disparity_half_resolution(grey_left, grey_right, d_min, d_range)
+            checked = time.perf_counter()
+            disparity, confidence = left_right_check(disparity, disp_right[:, :main_width], self.lr_tolerance)
+        else:
+            checked = time.perf_counter()
+            confidence = (disparity > 0).astype(np.float32)
         box = (slice(y0 - rows[0], y1 - rows[0]), slice(x0 - first, x1 - first))
         disparity, confidence = np.ascontiguousarray(disparity[box]), np.ascontiguousarray(confidence[box])
         end = time.perf_counter()
