@@ -26,6 +26,7 @@ from stereo.padding import compute_padding, pad_image, unpad
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 DISPARITY_MULTIPLE = 4
+NETWORK_RANGE_STEP = 16  # compute_roi's search ranges: what the hourglass accepts at any size
 _AUTOCAST_DTYPES = {"fp16": torch.float16, "bf16": torch.bfloat16}
 
 
@@ -103,27 +104,30 @@ class EMCStereoBackend:
     ) -> StereoResult:
         """Disparity of the left-image box `roi = (x0, y0, x1, y1)` searched over `[d_min, d_min + d_range)`.
 
-        The network sees the left box extended `d_range` columns to the left (so the box's pixels
-        have their whole search range inside the input) and the right image's same rows and columns
-        shifted left by `d_min` (so its disparity 0 is absolute `d_min`); out-of-frame columns
-        replicate the border. It searches `d_range` disparities (a multiple of 4, ≤ the model's
-        range); `d_min` is added back and the extension dropped. Returns `(y1 − y0)×(x1 − x0)` maps,
-        absolute disparity in px (0 where the network marks a pixel invalid: confidence 0, e.g. a
-        non-finite output), `max_disparity = d_min + d_range`.
+        The network searches S = 16·⌈d_range/16⌉ disparities (its hourglass halves the ¼-resolution
+        disparity axis twice, so other multiples of 4 fail inside it; S ≤ the model's range). It sees
+        the left box extended S columns to the left (so the box's pixels have their whole search
+        inside the input) and the right image's same rows and columns shifted left by `d_min` (so
+        its disparity 0 is absolute `d_min`); out-of-frame columns replicate the border. `d_min` is
+        added back, estimates at or beyond `d_min + d_range` are invalid (outside the window asked
+        for), and the extension is dropped. Returns `(y1 − y0)×(x1 − x0)` maps, absolute px, 0 (and
+        confidence 0) where invalid, `max_disparity = d_min + d_range`.
         """
         (x0, y0, x1, y1), d_min, d_range = validate_window(left, right, roi, d_min, d_range)
-        if d_range % DISPARITY_MULTIPLE or d_range > self.model.max_disp:
+        search = -(-d_range // NETWORK_RANGE_STEP) * NETWORK_RANGE_STEP
+        if search > self.model.max_disp:
             raise BackendConfigError(
-                f"emcstereo d_range must be a multiple of {DISPARITY_MULTIPLE} in (0, {self.model.max_disp}] "
-                f"(the model's trained range), got {d_range}"
+                f"emcstereo d_range {d_range} needs a {search}-disparity search (steps of {NETWORK_RANGE_STEP}), "
+                f"beyond the model's trained range (0, {self.model.max_disp}]"
             )
         rows = (y0, y1)
-        left_crop = crop_replicate(left, rows, (x0 - d_range, x1))
-        right_crop = crop_replicate(right, rows, (x0 - d_range - d_min, x1 - d_min))
-        disparity, confidence, timing = self._run(left_crop, right_crop, d_range)
-        valid = confidence > 0
-        disparity = np.ascontiguousarray(np.where(valid, disparity + np.float32(d_min), np.float32(0.0))[:, d_range:])
-        confidence = np.ascontiguousarray(confidence[:, d_range:])
+        left_crop = crop_replicate(left, rows, (x0 - search, x1))
+        right_crop = crop_replicate(right, rows, (x0 - search - d_min, x1 - d_min))
+        disparity, confidence, timing = self._run(left_crop, right_crop, search)
+        disparity, confidence = disparity[:, search:], confidence[:, search:]
+        valid = (confidence > 0) & (disparity < d_range)
+        disparity = np.where(valid, disparity + np.float32(d_min), np.float32(0.0))
+        confidence = np.where(valid, confidence, np.float32(0.0))
         return StereoResult(disparity, confidence, timing, self.name, d_min + d_range)
 
     def _run(self, left: np.ndarray, right: np.ndarray, max_disp: int) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
