@@ -18,13 +18,13 @@ table in benchmarks/RESULTS.md). Each step, what it costs and what it buys on th
   (the truth may lie outside), so it is invalid — a narrow `compute_roi` window whose range misses
   the surface then reports "nothing here" instead of clamping to its edge.
 - a left-right check against a right-referenced map from the mirrored pair matched at HALF
-  resolution (~⅛ of the full pass's work, ~15 % of the stage), tolerance `lr_tolerance` = 2 px:
+  resolution (~⅛ of the full pass's work, 13–16 % of the stage), tolerance `lr_tolerance` = 2 px:
   it rejects occlusions and mismatches, which are off by many pixels (Tsukuba EPE 0.31 → 0.26 at
-  density 0.98 → 0.95; SceneFlow 2.44 → 1.33 at 0.81 → 0.76). The old backend ran the mirrored
+  density 0.98 → 0.95; SceneFlow 2.50 → 1.33 at 0.82 → 0.76). The old backend ran the mirrored
   pass at full resolution (2× the matching time) for Tsukuba 0.25 / SceneFlow 1.43.
   OpenCV's internal `disp12MaxDiff` is no substitute: in 3-way mode it changes nothing (identical
   output for −1, 1 and 2). A visibility (ordering) check from the left map alone cost ~10 ms at
-  HD720 for SceneFlow 2.5 → 2.3 only, a 3×3-median agreement filter bought < 0.01 px: left out.
+  HD720 for SceneFlow 2.5 → 2.3 only, a 3×3-median agreement filter ≤ 0.06 px: both left out.
 
 Confidence (float32 `H×W` in [0, 1], 0 where invalid) is the left-right agreement
 exp(−½ (Δ / (½ lr_tolerance))²), Δ = |d_left − d_right| px: 1 for perfect agreement, 0.61 at 1 px,
