@@ -71,7 +71,7 @@ class StereoConfig:
     max_disp: int = 192
     device: str = "cpu"
     precision: str = "fp32"
-    mode: str = "full"
+    mode: str = "roi"
 
     def __post_init__(self) -> None:
         _require(self.mode in ("roi", "full"), "stereo.mode", self.mode,

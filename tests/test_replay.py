@@ -77,7 +77,7 @@ def test_replay_writes_one_schema_valid_result_per_frame_from_the_recorded_masks
         assert result["frame"] == {"index": i, "timestamp_ns": 1_000_000_000 + i * PERIOD_NS,
                                    "width": WIDTH, "height": HEIGHT}
         assert result["masks"]["source"] == "array" and result["masks"]["trunk"] is True  # ground truth, not the segmenter
-        assert result["stereo"]["backend"] == "sgbm" and result["stereo"]["max_disparity"] == 64
+        assert result["stereo"]["backend"] == "sgbm-roi" and result["stereo"]["max_disparity"] == 64
     # a still camera: the target keeps its track id and its mask instance throughout
     targets = {(b["id"], b["mask_id"]) for r in lines for b in r["branches"] if b["id"] == r["target_id"]}
     assert len(targets) == 1
