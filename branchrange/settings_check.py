@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from camera.calibration import MAX_IMAGE_SIDE_PX
+from camera.calibration import MAX_IMAGE_SIDE_PX, require_image_size
 
 
 def check_settings(section: str, settings: object, checks: dict[str, tuple[bool, str]],
@@ -87,12 +87,16 @@ def check_image_size(width: Any, height: Any, name: str = "image size",
                     f"{accepted.high:g} {accepted.unit}") from None
 
 
-def check_camera_ranges(calibration: Any, name: str) -> None:
-    """Refuse a calibration (`camera.StereoCalibration`) whose focal lengths, baseline or image size
-    are outside `PHYSICAL_RANGES`; `name` (the file as the user knows it) leads the message."""
+def check_calibration(calibration: Any, size: tuple[int, int], name: str) -> None:
+    """Refuse a calibration (`camera.StereoCalibration`) made for another image size than `size`
+    (w, h) px, or whose focal lengths, baseline or image size are outside `PHYSICAL_RANGES`.
+
+    Called where a calibration enters (an upload, `estimate --calib`), before a `Rectifier` sizes
+    its maps by it; `name` (the file as the user knows it) leads the message.
+    """
+    require_image_size(calibration, size)
     for key in ("K1", "K2"):
         matrix = getattr(calibration, key)
         check_physical("focal_px", matrix[0, 0], f"{name}: {key} fx")
         check_physical("focal_px", matrix[1, 1], f"{name}: {key} fy")
     check_physical("baseline_m", calibration.baseline_m, f"{name}: baseline |T|")
-    check_image_size(*calibration.image_size, name=f"{name}: image_width×image_height")
