@@ -65,14 +65,13 @@ def run(args: argparse.Namespace) -> int:
     """Render, run, print, write."""
     from branchrange.overlay import write_overlay
     from branchrange.pipeline import Pipeline, PipelineConfig
-    from branchrange.settings_check import check_image_size
     from stereo.commands.synth import parse_size
     from stereo.io import write_rgb
     from stereo.synth import SynthCamera, render_scene
 
     try:
         backend = chosen_backend(args)
-        width, height = check_image_size(*parse_size(args.size), name="--size")
+        width, height = parse_size(args.size)
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"branchrange demo: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
