@@ -197,6 +197,10 @@ def test_cli_and_config_refuse_the_same_ranges(tmp_path, capsys):
     assert "--baseline-m = 1e+300: expected a baseline in metres from 0.001 to 10 m" in capsys.readouterr().err
     assert branchrange_main([*base, "--focal-px", "1e9", "--baseline-m", "0.1"]) == 2
     assert "--focal-px = 1000000000.0: expected a focal length in pixels" in capsys.readouterr().err
+    crash = tmp_path / "rig.json"  # the upload that aborted the server made the CLI exit 134 (SIGABRT) too
+    crash.write_text('{"K1": ' + MATRIX % '"rows": 3, "dt": "2d", "data": [1, 2, 3, 4, 5, 6, 7, 8, 9]' + ", " + JSON_REST + "}")
+    assert branchrange_main([*base, "--calib", str(crash)]) == 2
+    assert "rig.json: K1: is a matrix without cols (expected an !!opencv-matrix" in capsys.readouterr().err
     with pytest.raises(ConfigError, match=r"mavlink\.max_distance_m = 1e\+300: expected a distance in metres from 0 to 655 m"):
         config_from_dict({"mavlink": {"max_distance_m": 1e300}})
     with pytest.raises(ConfigError, match=r"cutpoints\.cut_offset_m = 1e\+300: expected an offset"):
