@@ -233,6 +233,9 @@ def test_busy_service_answers_503_before_reading_the_body(server):
     slow.join(timeout=120)
     assert head.startswith("HTTP/1.1 503") and "retry-after: 2" in head.lower(), head
     assert '"detail":"all 1 inference slots are busy; retry in 2 s"' in head
+    lines, body = head.split("\r\n\r\n", 1)
+    headers = [tuple(line.split(": ", 1)) for line in lines.split("\r\n")[1:]]
+    check_response(spec, "POST", "/estimate", httpx.Response(503, headers=headers, content=body.encode()))
     assert answers and answers[0].status_code == 200, answers
     assert_alive(url)
 
@@ -251,6 +254,13 @@ def test_whitespace_token_does_not_let_serve_bind_a_public_address(tmp_path, env
         proc.kill()
     assert proc.returncode == 2, output
     assert "api.token is whitespace only (or BRANCHRANGE_API_TOKEN)" in output and "Uvicorn running" not in output
+
+
+def test_a_token_with_stray_spaces_is_refused_without_echoing_it():
+    # the bearer check strips what the client sends, so " s3cret" could never match: refused at load
+    with pytest.raises(ConfigError, match="api.token has leading or trailing whitespace") as error:
+        config_from_dict({"api": {"token": " s3cret"}})
+    assert "s3cret" not in str(error.value)
 
 
 # ------------------------------------------------------------------ item 11: /docs offline
