@@ -121,22 +121,22 @@ async def stereo_request(
 ) -> StereoRequest:
     """The decoded pair and its `CameraSpec`; 4xx with a message for anything unusable."""
     settings = request.app.state.settings
+    if calibration is not None and (focal_px is not None or baseline_m is not None):
+        raise _unprocessable("give either a calibration file or focal_px + baseline_m, not both")
+    if calibration is None and (focal_px is None or baseline_m is None):
+        raise _unprocessable("missing camera: upload a calibration file (with resolution for ZED files), "
+                             "or give focal_px and baseline_m of the rectified pair")
+    if calibration is None:  # checked before any image is decoded
+        camera = CameraSpec(focal_px=_camera_value("focal_px", focal_px, "focal_px"),
+                            baseline_m=_camera_value("baseline_m", baseline_m, "baseline_m"))
     left_img = await _decoded(left, "left", settings)
     right_img = await _decoded(right, "right", settings)
     if left_img.shape != right_img.shape:
         raise _unprocessable(f"left is {left_img.shape[1]}×{left_img.shape[0]} px but right is "
                              f"{right_img.shape[1]}×{right_img.shape[0]} px; a stereo pair must match")
-    if calibration is not None and (focal_px is not None or baseline_m is not None):
-        raise _unprocessable("give either a calibration file or focal_px + baseline_m, not both")
     if calibration is not None:
         size = (left_img.shape[1], left_img.shape[0])
         camera = CameraSpec(calibration=await _load_calibration(calibration, resolution, size, settings.max_upload_bytes))
-    elif focal_px is not None and baseline_m is not None:
-        camera = CameraSpec(focal_px=_camera_value("focal_px", focal_px, "focal_px"),
-                            baseline_m=_camera_value("baseline_m", baseline_m, "baseline_m"))
-    else:
-        raise _unprocessable("missing camera: upload a calibration file (with resolution for ZED files), "
-                             "or give focal_px and baseline_m of the rectified pair")
     return StereoRequest(left_img, right_img, camera, backend, max_disp)
 
 
