@@ -6,9 +6,12 @@ import time
 from typing import Any, Protocol
 
 from fastapi import FastAPI, Request, Response
+from fastapi.exceptions import RequestValidationError
 
+from api.docs import add_offline_docs
+from api.errors import validation_error_answer
 from api.estimator import Estimator
-from api.limits import BodySizeLimit, InferenceSlots
+from api.limits import BodySizeLimit, InferenceSlots, ShedWhenBusy
 from api.metrics import Metrics
 from api.routers import estimate, status
 from branchrange.config import ApiConfig
@@ -37,13 +40,18 @@ def create_app(settings: ApiConfig, estimator: Estimator | None, state: LiveStat
                metrics: Metrics | None = None) -> FastAPI:
     """The FastAPI app. `estimator` None leaves out the POST routes (a daemon that only reports);
     `state` (the daemon) enables `/latest` and the camera/link parts of `/health`."""
-    app = FastAPI(title="BranchRange", version=status.package_version(), description=DESCRIPTION)
+    app = FastAPI(title="BranchRange", version=status.package_version(), description=DESCRIPTION,
+                  docs_url=None, redoc_url=None)  # served from local assets: see add_offline_docs
     app.state.settings = settings
     app.state.estimator = estimator
     app.state.live = state
     app.state.metrics = metrics or Metrics()
     app.state.slots = InferenceSlots(settings.max_concurrency, settings.retry_after_s)
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)  # inside the metrics: 413s are counted
+    app.add_exception_handler(RequestValidationError, validation_error_answer)
+    # both inside the metrics middleware, so their 413s and 503s are counted
+    app.add_middleware(ShedWhenBusy, slots=app.state.slots,
+                       paths=frozenset(route.path for route in estimate.router.routes))
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
 
     @app.middleware("http")
     async def record_metrics(request: Request, call_next: Any) -> Response:
@@ -57,4 +65,5 @@ def create_app(settings: ApiConfig, estimator: Estimator | None, state: LiveStat
     if estimator is not None:
         app.include_router(estimate.router)
     app.include_router(status.router)
+    add_offline_docs(app)
     return app

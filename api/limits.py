@@ -18,6 +18,8 @@ from fastapi import HTTPException, UploadFile, status
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from branchrange.settings_check import RangeError, check_image_size
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"
 #: JPEG start-of-frame markers (baseline, progressive, lossless …) that carry the image size.
@@ -41,15 +43,46 @@ class InferenceSlots:
         """How many slots are taken now."""
         return self.capacity - self._semaphore._value  # noqa: SLF001 - asyncio exposes no public count
 
+    @property
+    def busy(self) -> bool:
+        """Whether every slot is taken (a new inference would be refused)."""
+        return self._semaphore.locked()
+
+    def busy_answer(self) -> tuple[str, dict[str, str]]:
+        """The 503's message and headers (`Retry-After`)."""
+        return (f"all {self.capacity} inference slots are busy; retry in {self.retry_after_s} s",
+                {"Retry-After": str(self.retry_after_s)})
+
     @asynccontextmanager
     async def slot(self) -> AsyncIterator[None]:
         """Hold a slot for the body of the `async with`, or raise 503 without queueing."""
-        if self._semaphore.locked():
-            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
-                                f"all {self.capacity} inference slots are busy; retry in {self.retry_after_s} s",
-                                headers={"Retry-After": str(self.retry_after_s)})
+        if self.busy:
+            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, *self.busy_answer())
         async with self._semaphore:
             yield
+
+
+class ShedWhenBusy:
+    """ASGI middleware: 503 + Retry-After for an inference route while every slot is busy, before
+    its body is read (an upload of megabytes would otherwise be received, spooled and decoded only
+    to be refused). A request admitted here can still get the 503 of `InferenceSlots.slot` when
+    the last slot was taken while it uploaded; holding the slot from here on instead would let a
+    slow upload block inference for everyone.
+    """
+
+    def __init__(self, app: ASGIApp, slots: InferenceSlots, paths: frozenset[str]) -> None:
+        self.app = app
+        self.slots = slots
+        self.paths = paths
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and scope["path"] in self.paths and self.slots.busy:
+            detail, headers = self.slots.busy_answer()
+            response = JSONResponse({"detail": detail}, status.HTTP_503_SERVICE_UNAVAILABLE,
+                                    headers={**headers, "Connection": "close"})
+            await response(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
 
 
 def _body_too_large(size: int | str, limit: int) -> str:
@@ -120,6 +153,10 @@ def image_dimensions(data: bytes, field: str) -> tuple[int, int]:
 
 def _check_pixels(data: bytes, field: str, max_pixels: int) -> None:
     width, height = image_dimensions(data, field)
+    try:
+        check_image_size(width, height, f"{field} image size")
+    except RangeError as exc:
+        raise _unprocessable(str(exc)) from None
     if width * height > max_pixels:
         raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
                             f"{field}: {width}×{height} = {width * height} pixels exceeds the limit of {max_pixels} (api.max_pixels)")

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from branchrange.settings_check import check_physical
+
 
 class ConfigError(ValueError):
     """A configuration file or value that cannot be used; the message names the key at fault."""
@@ -130,7 +132,7 @@ class CutpointsConfig:
     max_instances: int = 256
 
     def __post_init__(self) -> None:
-        _require(self.cut_offset_m >= 0, "cutpoints.cut_offset_m", self.cut_offset_m, "metres >= 0")
+        check_physical("cut_offset_m", self.cut_offset_m, "cutpoints.cut_offset_m", ConfigError)
         _require(0.0 <= self.min_confidence <= 1.0, "cutpoints.min_confidence", self.min_confidence, "a number in [0, 1]")
         from branchrange.cutpoints import TARGET_POLICIES
 
@@ -174,9 +176,10 @@ class MavlinkConfig:
         _require(1 <= self.system_id <= 255, "mavlink.system_id", self.system_id, "an integer in [1, 255]")
         _require(1 <= self.component_id <= 255, "mavlink.component_id", self.component_id, "an integer in [1, 255]")
         _require(self.max_result_age_s > 0, "mavlink.max_result_age_s", self.max_result_age_s, "seconds > 0")
+        for key in ("min_distance_m", "max_distance_m"):  # the depth band reported to the autopilot
+            check_physical("distance_m", getattr(self, key), f"mavlink.{key}", ConfigError)
         _require(self.send_rate_hz >= 2.0, "mavlink.send_rate_hz", self.send_rate_hz, "at least 2 Hz (autopilots call a sensor stale after 0.5 s)")
         _require(0 <= self.min_distance_m < self.max_distance_m, "mavlink.min_distance_m", self.min_distance_m, f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})")
-        _require(self.max_distance_m * 100 + 1 < 65535, "mavlink.max_distance_m", self.max_distance_m, "below 655 m (DISTANCE_SENSOR carries uint16 centimetres)")
         _require(0 <= self.sensor_id <= 255, "mavlink.sensor_id", self.sensor_id, "an integer in [0, 255]")
         _require(self.reconnect_interval_s > 0, "mavlink.reconnect_interval_s", self.reconnect_interval_s, "seconds > 0")
 
@@ -200,6 +203,12 @@ class ApiConfig:
     retry_after_s: int = 1
 
     def __post_init__(self) -> None:
+        # never echoed: a token with stray spaces is still a secret. Whitespace-only would count as
+        # "a token set" and let the service bind a public address while no request could match it.
+        if self.token and self.token.strip() != self.token:
+            kind = "is whitespace only" if not self.token.strip() else "has leading or trailing whitespace"
+            raise ConfigError(f"api.token {kind} (or BRANCHRANGE_API_TOKEN): expected a token without "
+                              "surrounding spaces, or empty for no authentication (loopback only)")
         _require(0 <= self.port <= 65535, "api.port", self.port, "a TCP port in [0, 65535]")
         _require(self.max_upload_mb > 0, "api.max_upload_mb", self.max_upload_mb, "megabytes > 0")
         _require(self.max_pixels > 0, "api.max_pixels", self.max_pixels, "a positive pixel count (width × height)")

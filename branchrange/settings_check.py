@@ -1,5 +1,19 @@
-"""Range checks of frozen settings dataclasses, one message format for every branchrange section."""
+"""Checks of settings where they enter: range checks of frozen settings dataclasses, and the one
+table of physical ranges (baseline, focal length, image size, depth) that the API request, the
+CLI options (`estimate`, `demo`) and the TOML configuration all validate against.
+
+Why ranges and not only "> 0": the cut-point maths multiplies and divides by these values
+(`Z = f·B / d`), so 1e300 overflows and 1e-320 divides by (almost) zero; a value outside what a
+stereo camera on a drone can be is refused with the value and the accepted range, once, at the
+entry, so nothing downstream has to guard against it.
+"""
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from camera.calibration import MAX_IMAGE_SIDE_PX, require_image_size
 
 
 def check_settings(section: str, settings: object, checks: dict[str, tuple[bool, str]],
@@ -12,3 +26,77 @@ def check_settings(section: str, settings: object, checks: dict[str, tuple[bool,
     for key, (ok, expected) in checks.items():
         if not ok:
             raise error(f"{section}.{key} = {getattr(settings, key)!r}: expected {expected}")
+
+
+class RangeError(ValueError):
+    """A physical setting outside its accepted range; the message names it, its value and the range."""
+
+
+@dataclass(frozen=True)
+class PhysicalRange:
+    """Closed interval [low, high] of a physical quantity in `unit`, with what it is (for messages)."""
+
+    low: float
+    high: float
+    unit: str
+    what: str
+
+    def describe(self) -> str:
+        """E.g. 'a baseline in metres from 0.001 to 10 m'."""
+        return f"{self.what} from {self.low:g} to {self.high:g} {self.unit}"
+
+
+#: The accepted ranges: 1 mm – 10 m baselines (a phone to a wide survey rig), 1 – 100,000 px
+#: focal lengths, image sides up to `camera.MAX_IMAGE_SIDE_PX`, distances up to 655 m (what
+#: MAVLink's DISTANCE_SENSOR can carry in uint16 centimetres) and cut offsets up to 2 m.
+PHYSICAL_RANGES: dict[str, PhysicalRange] = {
+    "baseline_m": PhysicalRange(0.001, 10.0, "m", "a baseline in metres"),
+    "focal_px": PhysicalRange(1.0, 100_000.0, "px", "a focal length in pixels"),
+    "image_side_px": PhysicalRange(1, MAX_IMAGE_SIDE_PX, "px", "an image width or height in pixels"),
+    "distance_m": PhysicalRange(0.0, 655.0, "m", "a distance in metres"),
+    "cut_offset_m": PhysicalRange(0.0, 2.0, "m", "an offset along the branch in metres"),
+}
+
+
+def check_physical(quantity: str, value: Any, name: str | None = None,
+                   error: type[ValueError] = RangeError) -> float:
+    """`value` as a float when it is a finite number within `PHYSICAL_RANGES[quantity]`.
+
+    Otherwise raises `error` naming `name` (the key, option or field the user wrote; default the
+    quantity), the value and the accepted range: `--baseline-m = 1e+300: expected a baseline in
+    metres from 0.001 to 10 m`.
+    """
+    accepted = PHYSICAL_RANGES[quantity]
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if not (math.isfinite(number) and accepted.low <= number <= accepted.high):
+        raise error(f"{name or quantity} = {value!r}: expected {accepted.describe()}")
+    return number
+
+
+def check_image_size(width: Any, height: Any, name: str = "image size",
+                     error: type[ValueError] = RangeError) -> tuple[int, int]:
+    """(width, height) in pixels, each within the image-side range; else `error` naming `name`."""
+    accepted = PHYSICAL_RANGES["image_side_px"]
+    try:
+        return tuple(int(check_physical("image_side_px", value, name, error)) for value in (width, height))  # type: ignore[return-value]
+    except ValueError:
+        raise error(f"{name} = {width}×{height}: expected each side from {accepted.low:g} to "
+                    f"{accepted.high:g} {accepted.unit}") from None
+
+
+def check_calibration(calibration: Any, size: tuple[int, int], name: str) -> None:
+    """Refuse a calibration (`camera.StereoCalibration`) made for another image size than `size`
+    (w, h) px, or whose focal lengths, baseline or image size are outside `PHYSICAL_RANGES`.
+
+    Called where a calibration enters (an upload, `estimate --calib`), before a `Rectifier` sizes
+    its maps by it; `name` (the file as the user knows it) leads the message.
+    """
+    require_image_size(calibration, size)
+    for key in ("K1", "K2"):
+        matrix = getattr(calibration, key)
+        check_physical("focal_px", matrix[0, 0], f"{name}: {key} fx")
+        check_physical("focal_px", matrix[1, 1], f"{name}: {key} fy")
+    check_physical("baseline_m", calibration.baseline_m, f"{name}: baseline |T|")

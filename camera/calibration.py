@@ -16,6 +16,11 @@ import numpy as np
 #: Accepted lengths of an OpenCV distortion vector.
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
+#: Largest accepted image width or height in pixels. Rectification maps cost ~10 bytes a pixel
+#: per view, so an 8192×8192 calibration already needs 1.3 GB; stereo cameras this project
+#: supports are at most 2208 px wide (ZED 2K).
+MAX_IMAGE_SIDE_PX = 8192
+
 
 class CalibrationError(ValueError):
     """A calibration file or value is unusable; the message names the file, the key and what was expected."""
@@ -79,9 +84,9 @@ class StereoCalibration:
         except (TypeError, ValueError):
             raise CalibrationError(self.source, "image_size", f"is {self.image_size!r}",
                                    "(width, height) in pixels") from None
-        if width <= 0 or height <= 0:
+        if not (0 < width <= MAX_IMAGE_SIDE_PX and 0 < height <= MAX_IMAGE_SIDE_PX):
             raise CalibrationError(self.source, "image_size", f"is {self.image_size}",
-                                   "a positive (width, height) in pixels")
+                                   f"a positive (width, height) in pixels, each at most {MAX_IMAGE_SIDE_PX}")
         object.__setattr__(self, "image_size", (width, height))
         for key in ("K1", "K2"):
             k = getattr(self, key)
@@ -116,6 +121,19 @@ class StereoCalibration:
                 and all(np.array_equal(getattr(self, k), getattr(other, k)) for k in ("K1", "D1", "K2", "D2", "R", "T")))
 
     __hash__ = None  # type: ignore[assignment]
+
+
+def require_image_size(calibration: StereoCalibration, size: tuple[int, int]) -> None:
+    """Raise FrameSizeError unless the calibration was made for images of `size` = (width, height) px.
+
+    Called before a `Rectifier` is built: its maps are sized by the calibration, so a file that
+    claims 8000×8000 px for 320×256 images would otherwise allocate gigabytes first.
+    """
+    if tuple(calibration.image_size) != tuple(size):
+        width, height = calibration.image_size
+        raise FrameSizeError(calibration.source, "image size", f"is {width}×{height} px",
+                             f"{size[0]}×{size[1]} px, the size of the images; use the calibration "
+                             "of this resolution (e.g. --resolution)")
 
 
 def camera_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

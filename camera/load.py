@@ -1,7 +1,9 @@
 """`load_calibration`: open any supported calibration file, recognised by its content, not its name."""
 from __future__ import annotations
 
+import dataclasses
 import json
+import tempfile
 from pathlib import Path
 
 from camera.calibration import CalibrationError, StereoCalibration, read_calibration_text
@@ -11,9 +13,17 @@ from camera.opencv_file import from_opencv_file
 from camera.zed_conf import from_zed_conf
 
 
+#: File suffix of each format, for uploads written to a temporary file (the content decides).
+_SUFFIXES = {"zed": ".conf", "depthai": ".json", "kitti": ".txt"}
+
+
 def detect_format(path: str | Path) -> str:
     """Which calibration format a file holds: "zed", "opencv", "depthai" or "kitti"."""
-    text = read_calibration_text(path)
+    return _format_of_text(read_calibration_text(path), path)
+
+
+def _format_of_text(text: str, path: str | Path) -> str:
+    """`detect_format` on a file's text; `path` names the file in the error."""
     head = text.lstrip()
     if head.startswith("{"):
         try:
@@ -59,3 +69,35 @@ def load_calibration(path: str | Path, resolution: str | None = None, *, size: t
     if fmt == "kitti":
         return from_kitti(path, kitti_left, kitti_right)
     return from_opencv_file(path, size)
+
+
+def _upload_suffix(data: bytes) -> str:
+    """The suffix a calibration of this content is saved under: by format, and for OpenCV by syntax."""
+    text = data.decode("utf-8-sig", errors="replace").lstrip()
+    try:
+        fmt = _format_of_text(text, "<upload>")
+    except CalibrationError:
+        return ".txt"
+    if fmt == "opencv":
+        return ".json" if text.startswith("{") else ".xml" if text.startswith("<") else ".yaml"
+    return _SUFFIXES[fmt]
+
+
+def load_calibration_bytes(data: bytes, name: str, resolution: str | None = None, *,
+                           size: tuple[int, int] | None = None) -> StereoCalibration:
+    """`load_calibration` of a file's bytes (an upload), with errors naming it `name`.
+
+    The bytes go to a private temporary folder under a fixed name whose suffix the content
+    chooses, never under a name the sender chose (`..`, a NUL byte or 300 characters would make
+    the write itself fail, or escape the folder).
+    """
+    with tempfile.TemporaryDirectory(prefix="calibration-") as folder:
+        path = Path(folder) / f"calibration{_upload_suffix(data)}"
+        path.write_bytes(data)
+        try:
+            return dataclasses.replace(load_calibration(path, resolution, size=size), source=name)
+        except CalibrationError as error:
+            raise CalibrationError(name, error.key, error.problem.replace(str(path), name),
+                                   error.expected) from None
+        except ValueError as error:
+            raise ValueError(str(error).replace(str(path), name)) from None

@@ -35,19 +35,71 @@ def _open(path: Path) -> cv2.FileStorage:
     return storage
 
 
-def _node_values(node: cv2.FileNode) -> list[float]:
-    """All numbers below a node, in order (matrices, sequences and nested sequences)."""
-    if node.isSeq():
-        values: list[float] = []
-        for i in range(node.size()):
-            values.extend(_node_values(node.at(i)))
-        return values
-    if node.isReal() or node.isInt():
-        return [node.real()]
-    matrix = node.mat()
-    if matrix is None:
-        return []
-    return [float(v) for v in np.asarray(matrix, dtype=np.float64).reshape(-1)]
+#: Most numbers one calibration array holds (3×3 matrices, 14 distortion coefficients); a larger
+#: matrix or list is refused before anything is allocated for it.
+MAX_ARRAY_NUMBERS = 64
+#: OpenCV's single-channel element types, as an `!!opencv-matrix` `dt` names them.
+_MATRIX_TYPES = frozenset("ucwsifdh")
+_MATRIX_FIELDS = ("rows", "cols", "dt", "data")
+_MATRIX_EXPECTED = f"an !!opencv-matrix with rows, cols, a one-letter dt and rows × cols ≤ {MAX_ARRAY_NUMBERS} data values"
+
+
+def _number(node: cv2.FileNode, path: Path, key: str) -> float:
+    """A number node's value; CalibrationError for anything else (text, map, nested list)."""
+    if not (node.isInt() or node.isReal()):
+        raise CalibrationError(path, key, "is not a matrix or a list of numbers", "numbers")
+    return node.real()
+
+
+def _sequence_values(node: cv2.FileNode, path: Path, key: str) -> list[float]:
+    """The numbers of a list or a list of rows (`[[1, 2, 3], [4, 5, 6]]`), at most `MAX_ARRAY_NUMBERS`."""
+    values: list[float] = []
+    for i in range(node.size()):
+        item = node.at(i)
+        row = [item.at(j) for j in range(min(item.size(), MAX_ARRAY_NUMBERS + 1))] if item.isSeq() else [item]
+        values.extend(_number(value, path, key) for value in row)
+        if len(values) > MAX_ARRAY_NUMBERS:
+            raise CalibrationError(path, key, f"holds more than {MAX_ARRAY_NUMBERS} numbers", "a calibration matrix or vector")
+    return values
+
+
+def _matrix_values(node: cv2.FileNode, path: Path, key: str) -> list[float]:
+    """The numbers of an `!!opencv-matrix` map, read field by field.
+
+    OpenCV's own reader (`FileNode.mat()`) trusts rows, cols, dt and the data length: when they
+    disagree (no `cols`, a multi-channel `dt`, too few values) it can corrupt the heap and abort
+    the whole process, so it is never called; every field is checked here first.
+    """
+    fields = {name: node.getNode(name) for name in _MATRIX_FIELDS}
+    if all(field.empty() for field in fields.values()):
+        raise CalibrationError(path, key, "is not a matrix or a list of numbers", "numbers")
+    missing = [name for name, field in fields.items() if field.empty()]
+    if missing:
+        raise CalibrationError(path, key, f"is a matrix without {', '.join(missing)}", _MATRIX_EXPECTED)
+    shape = []
+    for name in ("rows", "cols"):
+        field = fields[name]
+        if not field.isInt() or not 1 <= field.real() <= MAX_ARRAY_NUMBERS:
+            raise CalibrationError(path, key, f"has {name} = {_text(field)}", _MATRIX_EXPECTED)
+        shape.append(int(field.real()))
+    rows, cols = shape
+    dt = fields["dt"].string() if fields["dt"].isString() else _text(fields["dt"])
+    if dt not in _MATRIX_TYPES:
+        raise CalibrationError(path, key, f"has dt = {dt!r} (multi-channel or unknown)", _MATRIX_EXPECTED)
+    data = fields["data"]
+    count = data.size() if data.isSeq() else 0
+    if rows * cols > MAX_ARRAY_NUMBERS or count != rows * cols:
+        raise CalibrationError(path, key, f"has rows × cols = {rows}×{cols} but {count} data values", _MATRIX_EXPECTED)
+    return [_number(data.at(i), path, key) for i in range(count)]
+
+
+def _text(node: cv2.FileNode) -> str:
+    """A scalar node as the file wrote it, for messages ('x', 3, 2.5); '<list>'/'<map>' otherwise."""
+    if node.isString():
+        return repr(node.string())
+    if node.isInt() or node.isReal():
+        return f"{node.real():g}"
+    return "<list>" if node.isSeq() else "<map>"
 
 
 def _read_array(storage: cv2.FileStorage, path: Path, key: str, size: int | None) -> np.ndarray:
@@ -59,12 +111,15 @@ def _read_array(storage: cv2.FileStorage, path: Path, key: str, size: int | None
         raise CalibrationError(path, key, "key is missing", f"a {'3×3 matrix' if size == 9 else 'number list'}")
     expected = f"{size} numbers" if size else "numbers"
     try:
-        numbers = [] if node.isString() else _node_values(node)
-    except cv2.error:  # a map or string that is not an !!opencv-matrix
-        numbers = []
+        if node.isMap():
+            numbers = _matrix_values(node, path, name)
+        elif node.isSeq():
+            numbers = _sequence_values(node, path, name)
+        else:
+            numbers = [_number(node, path, name)]
+    except CalibrationError as error:
+        raise CalibrationError(path, name, error.problem, expected if error.expected == "numbers" else error.expected) from None
     values = np.array(numbers, dtype=np.float64)
-    if values.size == 0 and not node.isSeq():
-        raise CalibrationError(path, name, "is not a matrix or a list of numbers", expected)
     if values.size == 0 or (size is not None and values.size != size):
         raise CalibrationError(path, name, f"holds {values.size} numbers", expected)
     return values
@@ -76,8 +131,8 @@ def _read_int(storage: cv2.FileStorage, path: Path, key: str, default: int | Non
         if default is None:
             raise CalibrationError(path, key, "key is missing", "the image size in pixels (image_width, image_height)")
         return default
-    if not (node.isInt() or node.isReal()):
-        raise CalibrationError(path, key, "is not a number", "an integer")
+    if not (node.isInt() or node.isReal()) or not np.isfinite(node.real()):
+        raise CalibrationError(path, key, f"is {_text(node)}, not a finite number", "an integer")
     return int(round(node.real()))
 
 

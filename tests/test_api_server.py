@@ -17,6 +17,7 @@ from branchrange.cli import main as branchrange_main
 from branchrange.commands.serve import check_bind, ServeError
 from branchrange.config import ApiConfig
 from branchrange.pipeline import Pipeline, PipelineConfig
+from openapi_check import check_response
 
 TOKEN = "s3cret-token"
 UPLOAD_LIMIT_MB = 1.0
@@ -157,3 +158,43 @@ def test_serve_fails_at_start_when_the_stereo_backend_cannot_be_built(tmp_path, 
     config.write_text(f'[stereo]\nbackend = "emcstereo"\nweights = "{tmp_path / "missing.pth"}"\n')
     assert branchrange_main(["serve", "--config", str(config), "--port", "0"]) == 2
     assert "missing.pth: no such checkpoint file" in capsys.readouterr().err
+
+
+def test_every_route_answers_as_the_served_openapi_document_says(server, live):
+    """Issue 15 item 8: success and error answers of every route validated against /openapi.json."""
+    scene = bar_scene()
+    pair = {"left": ("l.png", scene.png("left"), "image/png"), "right": ("r.png", scene.png("right"), "image/png")}
+    fb = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
+    pipeline = Pipeline(PipelineConfig(max_disp=64), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
+    live.result = None  # before the daemon's first frame: /latest is 404
+    calls = [  # (method, path, keyword arguments of httpx, expected status)
+        ("GET", "/health", {}, 200), ("GET", "/version", {}, 200),
+        ("GET", "/metrics", {"headers": auth()}, 200), ("GET", "/metrics", {}, 401),
+        ("GET", "/latest", {}, 401), ("GET", "/latest", {"headers": auth()}, 404),
+        ("POST", "/estimate", {"files": pair, "data": fb, "headers": auth()}, 200),
+        ("POST", "/estimate", {"files": pair, "data": fb}, 401),
+        ("POST", "/estimate", {"files": pair, "data": {**fb, "max_disp": "abc"}, "headers": auth()}, 422),
+        ("POST", "/estimate", {"files": {"left": pair["left"]}, "data": fb, "headers": auth()}, 422),
+        ("POST", "/estimate", {"files": pair, "data": {**fb, "baseline_m": "1e300"}, "headers": auth()}, 422),
+        ("POST", "/estimate", {"files": {**pair, "left": ("l.png", b"GIF89a", "image/gif")}, "data": fb, "headers": auth()}, 415),
+        ("POST", "/estimate", {"content": b"x" * 2_000_000, "headers": {**auth(), "Content-Type": "multipart/form-data; boundary=b"}}, 413),
+        ("POST", "/estimate", {"content": b"--nope", "headers": {**auth(), "Content-Type": "multipart/form-data"}}, 400),
+        ("POST", "/disparity", {"files": pair, "data": fb, "headers": auth()}, 200),
+        ("POST", "/disparity", {"files": pair, "data": {**fb, "format": "npy"}, "headers": auth()}, 200),
+        ("POST", "/disparity", {"files": pair, "data": {**fb, "format": "tiff"}, "headers": auth()}, 422),
+    ]
+    with httpx.Client(base_url=server, timeout=30) as c:
+        spec = c.get("/openapi.json").json()
+        for method, path, kwargs, expected in calls:
+            r = c.request(method, path, **kwargs)
+            assert r.status_code == expected, (method, path, expected, r.text[:300])
+            check_response(spec, method, path, r)
+            if r.status_code >= 400:
+                assert isinstance(r.json()["detail"], str) and r.json()["detail"], r.text  # one ErrorBody shape
+        live.result = pipeline.process(scene.left, scene.right, scene.mask, index=3, timestamp_ns=1)
+        try:
+            check_response(spec, "GET", "/latest", c.get("/latest", headers=auth()))
+        finally:
+            live.result = None
+        assert c.get("/health").status_code == 200
+    assert "HTTPValidationError" not in spec["components"]["schemas"]  # FastAPI's list shape is never sent

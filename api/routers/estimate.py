@@ -20,10 +20,19 @@ from api.auth import require_token
 from api.estimator import CameraSpec
 from api.limits import decode_image, decode_mask, read_upload
 from api.schemas import ErrorBody, EstimateResult
+from branchrange.settings_check import PHYSICAL_RANGES, RangeError, check_calibration, check_physical
 
 router = APIRouter(dependencies=[Depends(require_token)])
 
-ERRORS = {code: {"model": ErrorBody} for code in (401, 413, 415, 422, 503)}
+ERRORS: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorBody, "description": "a body that is not multipart/form-data (no boundary, malformed parts)"},
+    401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
+    413: {"model": ErrorBody, "description": "body above api.max_upload_mb or an image above api.max_pixels"},
+    415: {"model": ErrorBody, "description": "an image that is not PNG or JPEG"},
+    422: {"model": ErrorBody, "description": "a field missing or out of range, an unreadable file or calibration"},
+    503: {"model": ErrorBody, "description": "every inference slot is busy (answered before the body is read)",
+          "headers": {"Retry-After": {"description": "seconds to wait (api.retry_after_s)", "schema": {"type": "integer"}}}},
+}
 Backend = Literal["sgbm", "emcstereo"]
 
 
@@ -42,22 +51,49 @@ class StereoRequest:
     max_disp: int | None
 
 
+#: Longest client file name repeated in messages (the name is never used for a path).
+MAX_NAME_CHARS = 64
+
+
+def display_name(filename: str | None, default: str = "calibration") -> str:
+    """The client's file name for messages only: its last path part, printable characters, at most
+    `MAX_NAME_CHARS` (a NUL, `..` or 300 characters stay harmless)."""
+    last = (filename or "").replace("\\", "/").rsplit("/", 1)[-1]
+    name = "".join(ch for ch in last if ch.isprintable())
+    if name in ("", ".", ".."):
+        return default
+    return name if len(name) <= MAX_NAME_CHARS else name[:MAX_NAME_CHARS - 1] + "…"
+
+
+def _checked_calibration(data: bytes, name: str, resolution: str | None, size: tuple[int, int]) -> Any:
+    """The upload as a `camera.StereoCalibration`, checked against the images' size and the
+    physical ranges before the pipeline builds rectification maps from it."""
+    from camera.load import load_calibration_bytes
+
+    calibration = load_calibration_bytes(data, name, resolution, size=size)
+    check_calibration(calibration, size, name)
+    return calibration
+
+
 async def _load_calibration(upload: UploadFile, resolution: str | None, size: tuple[int, int], max_bytes: int) -> Any:
     """A `camera.StereoCalibration` from an uploaded file of any format `camera` reads; 422 when it cannot be read."""
-    from camera import load_calibration
-
     data = await read_upload(upload, "calibration", max_bytes)
-    name = Path(upload.filename or "calibration").name or "calibration"
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / name
-        path.write_bytes(data)
-        try:
-            return await run_in_threadpool(load_calibration, path, resolution, size=size)
-        except ValueError as exc:
-            raise _unprocessable(f"calibration: {str(exc).replace(str(path), name)}") from None
-        except Exception as exc:  # noqa: BLE001 - an uploaded file is untrusted: a parser crash on it is bad input too
-            raise _unprocessable(f"calibration: {name}: not a readable calibration file "
-                                 f"({type(exc).__name__} in its parser)") from None
+    name = display_name(upload.filename)
+    try:
+        return await run_in_threadpool(_checked_calibration, data, name, resolution, size)
+    except ValueError as exc:
+        raise _unprocessable(f"calibration: {exc}") from None
+    except Exception as exc:  # noqa: BLE001 - an uploaded file is untrusted: a parser crash on it is bad input too
+        raise _unprocessable(f"calibration: {name}: not a readable calibration file "
+                             f"({type(exc).__name__} in its parser)") from None
+
+
+def _camera_value(quantity: str, value: float, field: str) -> float:
+    """A focal length or baseline field checked against its physical range (422 naming it)."""
+    try:
+        return check_physical(quantity, value, field)
+    except RangeError as exc:
+        raise _unprocessable(str(exc)) from None
 
 
 async def _decoded(upload: UploadFile, field: str, settings: Any) -> np.ndarray:
@@ -74,30 +110,33 @@ async def stereo_request(
         description="ZED .conf, OpenCV YAML/JSON/XML, depthai JSON or KITTI calib; the pair is raw and gets "
                     "rectified (instead of focal_px + baseline_m)")] = None,
     resolution: Annotated[str | None, Form(description="ZED .conf files: 2K, FHD, HD or VGA")] = None,
-    focal_px: Annotated[float | None, Form(gt=0, allow_inf_nan=False, description=(
-        "rectified pair: focal length, pixels at the uploaded size (with baseline_m)"))] = None,
-    baseline_m: Annotated[float | None, Form(gt=0, allow_inf_nan=False, description=(
-        "rectified pair: baseline, metres (with focal_px)"))] = None,
+    focal_px: Annotated[float | None, Form(allow_inf_nan=False, description=(
+        "rectified pair: focal length, pixels at the uploaded size (with baseline_m); "
+        f"{PHYSICAL_RANGES['focal_px'].describe()}"))] = None,
+    baseline_m: Annotated[float | None, Form(allow_inf_nan=False, description=(
+        "rectified pair: baseline, metres (with focal_px); "
+        f"{PHYSICAL_RANGES['baseline_m'].describe()}"))] = None,
     backend: Annotated[Backend | None, Form(description="stereo backend; the server's default when left out")] = None,
     max_disp: Annotated[int | None, Form(gt=0, le=512, description="disparity search range, pixels")] = None,
 ) -> StereoRequest:
     """The decoded pair and its `CameraSpec`; 4xx with a message for anything unusable."""
     settings = request.app.state.settings
+    if calibration is not None and (focal_px is not None or baseline_m is not None):
+        raise _unprocessable("give either a calibration file or focal_px + baseline_m, not both")
+    if calibration is None and (focal_px is None or baseline_m is None):
+        raise _unprocessable("missing camera: upload a calibration file (with resolution for ZED files), "
+                             "or give focal_px and baseline_m of the rectified pair")
+    if calibration is None:  # checked before any image is decoded
+        camera = CameraSpec(focal_px=_camera_value("focal_px", focal_px, "focal_px"),
+                            baseline_m=_camera_value("baseline_m", baseline_m, "baseline_m"))
     left_img = await _decoded(left, "left", settings)
     right_img = await _decoded(right, "right", settings)
     if left_img.shape != right_img.shape:
         raise _unprocessable(f"left is {left_img.shape[1]}×{left_img.shape[0]} px but right is "
                              f"{right_img.shape[1]}×{right_img.shape[0]} px; a stereo pair must match")
-    if calibration is not None and (focal_px is not None or baseline_m is not None):
-        raise _unprocessable("give either a calibration file or focal_px + baseline_m, not both")
     if calibration is not None:
         size = (left_img.shape[1], left_img.shape[0])
         camera = CameraSpec(calibration=await _load_calibration(calibration, resolution, size, settings.max_upload_bytes))
-    elif focal_px is not None and baseline_m is not None:
-        camera = CameraSpec(focal_px=focal_px, baseline_m=baseline_m)
-    else:
-        raise _unprocessable("missing camera: upload a calibration file (with resolution for ZED files), "
-                             "or give focal_px and baseline_m of the rectified pair")
     return StereoRequest(left_img, right_img, camera, backend, max_disp)
 
 

@@ -47,8 +47,14 @@ def get_version() -> dict:
     return {"name": "branchrange", "version": package_version(), "schema": SCHEMA_ID, "api": API_VERSION}
 
 
+#: The 401 of /metrics is JSON like every error, though the route's own answer is text: written out,
+#: since FastAPI would document a `model` under the route's media type (text/plain).
+METRICS_401 = {"description": "missing or wrong bearer token",
+               "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}}}
+
+
 @router.get("/metrics", response_class=PlainTextResponse, dependencies=[Depends(require_token)],
-            responses={401: {"model": ErrorBody}}, summary="Prometheus metrics (text format 0.0.4)")
+            responses={401: METRICS_401}, summary="Prometheus metrics (text format 0.0.4)")
 def get_metrics(request: Request) -> PlainTextResponse:
     """Requests, latencies, frames and errors in the Prometheus text format."""
     return PlainTextResponse(request.app.state.metrics.render(), media_type="text/plain; version=0.0.4")

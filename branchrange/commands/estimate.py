@@ -69,17 +69,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _pipeline(args: argparse.Namespace, size: tuple[int, int]):
     """The pipeline the arguments describe (raises ValueError subclasses on bad camera input)."""
     from branchrange.pipeline import Pipeline, PipelineConfig
+    from branchrange.settings_check import check_calibration, check_image_size, check_physical
 
     config = PipelineConfig(backend=chosen_backend(args), weights=str(args.weights) if args.weights else None,
                             max_disp=args.max_disp, trunk_id=args.trunk_id, tracking=False)
+    check_image_size(*size, name=f"{args.left}: image size")
     if args.calib is not None:
         from camera import load_calibration
 
         calibration = load_calibration(args.calib, args.resolution, size=size)
+        check_calibration(calibration, size, str(args.calib))  # before the rectification maps are built
         return Pipeline(config, calibration=calibration, rectified=args.rectified)
     if args.baseline_m is None:
         raise ValueError("--focal-px needs --baseline-m (metres)")
-    return Pipeline(config, focal_px=args.focal_px, baseline_m=args.baseline_m,
+    return Pipeline(config, focal_px=check_physical("focal_px", args.focal_px, "--focal-px"),
+                    baseline_m=check_physical("baseline_m", args.baseline_m, "--baseline-m"),
                     principal_point=tuple(args.principal_point) if args.principal_point else None)
 
 
