@@ -251,6 +251,11 @@ class _BagFrames:
             return int(image.shape[1]), int(image.shape[0])
         raise SourceUnavailable(f"{self.path}: the left topic {topic} has no messages")
 
+    def recorded_fps(self) -> float:
+        """(left messages − 1) / the bag's duration, seconds; 1e9 / DEFAULT_PERIOD_NS for a single message."""
+        count, duration_ns = self._by_topic[self.topics.left].msgcount, self._reader.duration
+        return (count - 1) * 1e9 / duration_ns if count > 1 and duration_ns > 0 else 1e9 / DEFAULT_PERIOD_NS
+
     def calibration(self) -> StereoCalibration | None:
         """The calibration of the first left and right CameraInfo messages (None when not asked to read them)."""
         if not self.use_camera_info:
@@ -289,6 +294,11 @@ class RosbagSource(ReplaySource):
 
     def _open_frames(self, fps: float | None) -> _BagFrames:
         return _BagFrames(self.path, self.topics, int(round(self.tolerance_ms * 1e6)), self.use_camera_info)
+
+    @property
+    def recorded_fps(self) -> float:
+        """Left images per second over the bag's span (for an overlay video's rate; 30 when the bag says nothing)."""
+        return self._frames.recorded_fps()
 
     @property
     def unpaired(self) -> dict[str, int]:
