@@ -163,6 +163,13 @@ class FoxgloveSink:
         """The WebSocket server's port (the one picked when asked for port 0); None without a server."""
         return None if self._server is None else int(self._server.port())
 
+    def describe(self) -> str:
+        """Where the frames go, for logs: the MCAP file and/or the WebSocket address."""
+        parts = [] if self.targets.mcap is None else [f"MCAP {self.targets.mcap}"]
+        if self.port is not None:
+            parts.append(f"live ws://{self.targets.host}:{self.port}")
+        return ", ".join(parts)
+
     def set_vehicle_pose(self, position_ned_m: Sequence[float], attitude_wxyz: Sequence[float]) -> None:
         """The vehicle's position (local NED, metres) and attitude (unit quaternion w, x, y, z, body FRD → NED)
         for the next frames' local_ned → body_frd transform."""

@@ -69,8 +69,8 @@ def run(args: argparse.Namespace) -> int:
         if sink is not None:
             sink.close()
     print(f"results: {args.out} ({summary.frames} lines)")
-    if targets is not None and targets.mcap is not None:
-        print(f"foxglove: {targets.mcap} (open it in Foxglove with deploy/foxglove_layout.json)")
+    if sink is not None:
+        print(f"foxglove: {sink.describe()} (open it in Foxglove with deploy/foxglove_layout.json)")
     if args.summary:
         path = summary_path(args.out)
         path.write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
