@@ -170,7 +170,7 @@ class _BagFrames:
         self.unpaired = {"left": 0, "right": 0}
         self.use_camera_info = use_camera_info
         self._stamps: list[int] = []
-        self._pairs: Iterator[StereoFrame] = iter(())
+        self._pairs: Iterator[tuple[Any, Any, int]] = iter(())
         self.seek(0)
 
     def _check_topic(self, role: str, topic: str, types: tuple[str, ...]) -> None:
@@ -198,8 +198,9 @@ class _BagFrames:
         for connection, _, raw in self._reader.messages(connections=connections):
             yield connection.topic, self._reader.deserialize(raw, connection.msgtype)
 
-    def _paired(self) -> Iterator[StereoFrame]:
-        """Left/right images matched by stamp: the older head of a queue whose partner cannot come any more
+    def _paired(self) -> Iterator[tuple[Any, Any, int]]:
+        """(left, right, pair index) messages matched by stamp (decoded by `read`, so a corrupt image does not end
+        this generator): the older head of a queue whose partner cannot come any more
         (the other stream is already past it by more than the tolerance) is dropped and counted."""
         queues: dict[str, deque[Any]] = {"left": deque(), "right": deque()}
         roles = {self.topics.left: "left", self.topics.right: "right"}
@@ -211,7 +212,9 @@ class _BagFrames:
                 gap = stamp_ns(left) - stamp_ns(right)
                 if abs(gap) <= self.tolerance_ns:
                     queues["left"].popleft(), queues["right"].popleft()
-                    yield self._frame(left, right, index)
+                    if index == len(self._stamps):
+                        self._stamps.append(stamp_ns(left))
+                    yield left, right, index
                     index += 1
                 else:
                     older = "left" if gap < 0 else "right"
@@ -224,12 +227,9 @@ class _BagFrames:
                         self.unpaired["left"], self.unpaired["right"], self.tolerance_ns / 1e6)
 
     def _frame(self, left: Any, right: Any, index: int) -> StereoFrame:
-        stamp = stamp_ns(left)
-        if index == len(self._stamps):
-            self._stamps.append(stamp)
         left_type, right_type = self._by_topic[self.topics.left].msgtype, self._by_topic[self.topics.right].msgtype
         return StereoFrame(image_from_message(left, left_type, self.topics.left),
-                           image_from_message(right, right_type, self.topics.right), stamp, index)
+                           image_from_message(right, right_type, self.topics.right), stamp_ns(left), index)
 
     def seek(self, position: int) -> None:
         """Read from the bag's start again and skip `position` pairs (a bag has no pair index)."""
@@ -240,8 +240,9 @@ class _BagFrames:
                 break
 
     def read(self) -> StereoFrame | None:
-        """The next pair, None at the end of the bag."""
-        return next(self._pairs, None)
+        """The next pair, None at the end of the bag; CorruptFrameError for a pair that does not decode."""
+        pair = next(self._pairs, None)
+        return None if pair is None else self._frame(*pair)
 
     def frame_size(self) -> tuple[int, int]:
         """(width, height) of the left images: of the first left message."""

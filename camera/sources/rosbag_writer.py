@@ -38,7 +38,7 @@ def _header(types: Any, stamp_ns: int, frame_id: str) -> Any:
     return types["std_msgs/msg/Header"](stamp=time, frame_id=frame_id)
 
 
-def _image_message(types: Any, rgb: np.ndarray, stamp_ns: int, frame_id: str, encoding: str) -> Any:
+def image_message(types: Any, rgb: np.ndarray, stamp_ns: int, frame_id: str, encoding: str) -> Any:
     """A `sensor_msgs/Image` (raw encodings) or `CompressedImage` (jpeg, png) holding the RGB `uint8 H×W×3` image."""
     header = _header(types, stamp_ns, frame_id)
     if encoding in COMPRESSED_FORMATS:
@@ -54,7 +54,8 @@ def _image_message(types: Any, rgb: np.ndarray, stamp_ns: int, frame_id: str, en
                              step=step, data=np.ascontiguousarray(pixels).ravel())
 
 
-def _camera_info(types: Any, projection: np.ndarray, size: tuple[int, int], stamp_ns: int, frame_id: str) -> Any:
+def camera_info_message(types: Any, projection: np.ndarray, size: tuple[int, int], stamp_ns: int,
+                        frame_id: str) -> Any:
     """A rectified `sensor_msgs/CameraInfo`: K from P's first three columns, no distortion, R identity."""
     roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return types[CAMERA_INFO_TYPE](
@@ -94,11 +95,11 @@ def write_bag(frames: Iterable[StereoFrame], calibration: StereoCalibration, out
             left, right = rectifier.rectify(frame.left, frame.right)
             stamp = int(frame.timestamp_ns)
             messages = (
-                (topics.left, _image_message(types, left, stamp, FRAME_IDS["left"], encoding), image_type),
-                (topics.right, _image_message(types, right, stamp, FRAME_IDS["right"], encoding), image_type),
-                (topics.left_info, _camera_info(types, rectifier.P1, rectifier.size, stamp, FRAME_IDS["left"]),
+                (topics.left, image_message(types, left, stamp, FRAME_IDS["left"], encoding), image_type),
+                (topics.right, image_message(types, right, stamp, FRAME_IDS["right"], encoding), image_type),
+                (topics.left_info, camera_info_message(types, rectifier.P1, rectifier.size, stamp, FRAME_IDS["left"]),
                  CAMERA_INFO_TYPE),
-                (topics.right_info, _camera_info(types, rectifier.P2, rectifier.size, stamp, FRAME_IDS["right"]),
+                (topics.right_info, camera_info_message(types, rectifier.P2, rectifier.size, stamp, FRAME_IDS["right"]),
                  CAMERA_INFO_TYPE))
             for topic, message, msgtype in messages:
                 writer.write(connections[topic], stamp, store.serialize_cdr(message, msgtype))
