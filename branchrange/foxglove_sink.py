@@ -161,7 +161,7 @@ class FoxgloveSink:
     @property
     def port(self) -> int | None:
         """The WebSocket server's port (the one picked when asked for port 0); None without a server."""
-        return None if self._server is None else int(self._server.port())
+        return None if self._server is None else int(self._server.port)
 
     def describe(self) -> str:
         """Where the frames go, for logs: the MCAP file and/or the WebSocket address."""
