@@ -195,3 +195,30 @@ def test_deploy_layout_is_the_generated_one_and_uses_only_the_sinks_topics():
     text = json.dumps(layout())
     used = set(re.findall(r"/branchrange/[a-z_]+", text))
     assert used == set(TOPICS.values()) - {TOPICS["tf"]}  # transforms feed the 3D panel without a setting
+
+
+def test_daemon_reads_a_bag_and_sends_what_it_publishes_to_foxglove(runs, tmp_path):
+    config = tmp_path / "onboard.toml"
+    results = tmp_path / "results.jsonl"
+    config.write_text(f'[mavlink]\nenabled = false\n[stereo]\nmax_disp = 64\n[log]\nresults_jsonl = "{results}"\n')
+    status = branchrange_main(["daemon", "--config", str(config), "--source", f"rosbag:{runs['root'] / 'bag_mcap'}",
+                               "--foxglove", str(tmp_path / "live.mcap")])
+    assert status == 0
+    published = read_lines(results)
+    with (tmp_path / "live.mcap").open("rb") as f:
+        messages = [(channel.topic, message) for _, channel, message in make_reader(f).iter_messages()]
+    logged = [json.loads(m.data) for t, m in messages if t == TOPICS["result"]]
+    assert published and logged == published  # every published result, and only those
+    assert len([t for t, _ in messages if t == TOPICS["tf"]]) == len(published)  # body_frd → camera from the mount
+    assert len([t for t, _ in messages if t == TOPICS["overlay"]]) == len(published)
+    by_index = {r["frame"]["index"]: r for r in runs["recording"]}
+    for result in published:  # the daemon saw the bag's frames: same cut points as the replay of that frame
+        replayed = by_index[result["frame"]["index"]]
+        assert sorted(b["cut_point_m"] for b in result["branches"]) == sorted(b["cut_point_m"] for b in replayed["branches"])
+
+
+def test_daemon_refuses_a_bad_foxglove_target(tmp_path, capsys):
+    config = tmp_path / "onboard.toml"
+    config.write_text('[mavlink]\nenabled = false\n')
+    assert branchrange_main(["daemon", "--config", str(config), "--foxglove", "ws://localhost"]) == 2
+    assert "expected ws://HOST:PORT" in capsys.readouterr().err
