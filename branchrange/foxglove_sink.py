@@ -9,11 +9,11 @@ Each call logs, at the frame's capture time (`frame.timestamp_ns`):
 | /branchrange/overlay | CompressedImage (JPEG) | rectified left view with masks, cut points and target ring |
 | /branchrange/disparity | CompressedImage (JPEG) | disparity, turbo colours, scale 0…max_disparity |
 | /branchrange/camera_info | CameraCalibration | rectified left camera (lets the image panels project the 3D entities) |
-| /branchrange/cut_points | SceneUpdate | per branch: sphere at the cut point, axis line, label (id, distance, confidence) |
+| /branchrange/cut_points | SceneUpdate | per branch: sphere at the cut point, axis, label (id, distance, confidence) |
 | /branchrange/target | PoseInFrame | the target cut point, x axis along the branch (absent frames: no target) |
 | /branchrange/timing | JSON {stage: ms} | per-stage timing, one series per stage in a Plot panel |
 | /branchrange/result | JSON | the whole `branchrange/v1` result |
-| /branchrange/tf | FrameTransforms | body_frd → camera from the mount; local_ned → body_frd when the vehicle pose is known |
+| /branchrange/tf | FrameTransforms | body_frd → camera (the mount); local_ned → body_frd once the vehicle pose is known |
 
 3D entities are in the `camera` frame (rectified left camera, OpenCV axes, metres). The
 transforms on /branchrange/tf place that frame on the vehicle and, once `set_vehicle_pose` gives
@@ -183,7 +183,8 @@ class FoxgloveSink:
         if artifacts is not None:
             self._log_images(result, artifacts, stamp, stamp_ns)
         camera, frame = result["camera"], result["frame"]
-        f, cx, cy = camera["focal_px"], camera.get("cx", (frame["width"] - 1) / 2), camera.get("cy", (frame["height"] - 1) / 2)
+        f = camera["focal_px"]
+        cx, cy = camera.get("cx", (frame["width"] - 1) / 2), camera.get("cy", (frame["height"] - 1) / 2)
         self._camera_info.log(fg.CameraCalibration(
             timestamp=stamp, frame_id=CAMERA_FRAME, width=frame["width"], height=frame["height"],
             distortion_model="plumb_bob", D=[0.0] * 5, K=[f, 0, cx, 0, f, cy, 0, 0, 1], R=[1, 0, 0, 0, 1, 0, 0, 0, 1],

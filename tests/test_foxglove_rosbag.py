@@ -86,7 +86,8 @@ def test_bags_give_the_recordings_cut_points(runs):
     assert any(r["target_id"] is not None for r in recording)
     assert without_timing(runs["mcap_bag"]) == without_timing(recording)
     assert without_timing(runs["sqlite_bag"]) == without_timing(recording)
-    assert [r["frame"]["timestamp_ns"] for r in runs["mcap_bag"]] == [1_000_000_000 + i * PERIOD_NS for i in range(FRAMES)]
+    stamps = [r["frame"]["timestamp_ns"] for r in runs["mcap_bag"]]
+    assert stamps == [1_000_000_000 + i * PERIOD_NS for i in range(FRAMES)]
     assert runs["summary"].unpaired == {"left": 0, "right": 0}
 
 
@@ -118,7 +119,8 @@ def test_foxglove_mcap_holds_every_channel_with_one_message_per_frame(runs):
     expected[TOPICS["target"]] = with_target
     assert {t: n for t, n in counts.items() if n} == {t: n for t, n in expected.items() if n}
     assert schemas[TOPICS["overlay"]] == "foxglove.CompressedImage"
-    assert schemas[TOPICS["cut_points"]] == "foxglove.SceneUpdate" and schemas[TOPICS["target"]] == "foxglove.PoseInFrame"
+    assert schemas[TOPICS["cut_points"]] == "foxglove.SceneUpdate"
+    assert schemas[TOPICS["target"]] == "foxglove.PoseInFrame"
     logged = [json.loads(m.data) for t, m in messages if t == TOPICS["result"]]
     assert logged == results  # the whole branchrange/v1 results, at their capture times
     assert [m.log_time for t, m in messages if t == TOPICS["result"]] == [r["frame"]["timestamp_ns"] for r in results]
@@ -160,7 +162,8 @@ def test_live_server_streams_the_channels_to_a_websocket_client(runs):
         ws.send(json.dumps({"op": "subscribe", "subscriptions": [
             {"id": i, "channelId": channels[topic]["id"]} for i, topic in subscriptions.items()]}))
         received: dict[str, bytes] = {}
-        expected = set(TOPICS.values()) - {TOPICS["tf"]} - ({TOPICS["target"]} if result["target_id"] is None else set())
+        no_target = {TOPICS["target"]} if result["target_id"] is None else set()
+        expected = set(TOPICS.values()) - {TOPICS["tf"]} - no_target
         while not expected <= set(received) and time.monotonic() < deadline:
             sink(result, artifacts)  # the daemon keeps sending; the subscription takes effect within a frame or two
             try:
@@ -214,7 +217,8 @@ def test_daemon_reads_a_bag_and_sends_what_it_publishes_to_foxglove(runs, tmp_pa
     by_index = {r["frame"]["index"]: r for r in runs["recording"]}
     for result in published:  # the daemon saw the bag's frames: same cut points as the replay of that frame
         replayed = by_index[result["frame"]["index"]]
-        assert sorted(b["cut_point_m"] for b in result["branches"]) == sorted(b["cut_point_m"] for b in replayed["branches"])
+        cut_points = sorted(b["cut_point_m"] for b in result["branches"])
+        assert cut_points == sorted(b["cut_point_m"] for b in replayed["branches"])
 
 
 def test_daemon_refuses_a_bad_foxglove_target(tmp_path, capsys):

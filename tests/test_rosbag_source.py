@@ -11,7 +11,8 @@ from camera.calibration import CalibrationError, from_rectified
 from camera.opencv_file import write_opencv_file
 from camera.rectify import Rectifier
 from camera.sources import CorruptFrameError, SourceConfigError, SourceUnavailable, StereoFrame, open_source
-from camera.sources.rosbag import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE, BagTopics, RosbagSource, parse_rosbag_spec
+from camera.sources.rosbag import (CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE, BagTopics, RosbagSource,
+                                   parse_rosbag_spec)
 from camera.sources.rosbag_writer import camera_info_message, image_message, write_bag
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
@@ -139,7 +140,8 @@ def test_a_missing_topic_names_the_topics_the_bag_has(tmp_path):
 def test_topics_from_the_spec_override_the_zed_defaults(tmp_path):
     custom = BagTopics("/cam/l/image", "/cam/r/image", "/cam/l/info", "/cam/r/info")
     write_bag(frames(2), CALIBRATION, tmp_path / "bag", topics=custom)
-    spec = f"rosbag:{tmp_path / 'bag'}?left=/cam/l/image&right=/cam/r/image&left_info=/cam/l/info&right_info=/cam/r/info"
+    spec = (f"rosbag:{tmp_path / 'bag'}?left=/cam/l/image&right=/cam/r/image"
+            "&left_info=/cam/l/info&right_info=/cam/r/info")
     with open_source(spec, pace="fast") as source:
         assert len(list(source)) == 2
 
@@ -188,7 +190,8 @@ def test_without_camera_info_a_calibration_file_is_needed_and_used(tmp_path):
 
 @pytest.mark.parametrize("rest, expected", [
     ("", "expected rosbag:PATH"), ("bag?lft=/a", "option 'lft' is unknown"),
-    ("bag?tolerance_ms=abc", "tolerance_ms is 'abc'"), ("bag?left=camera/left", "expected a topic name starting with /"),
+    ("bag?tolerance_ms=abc", "tolerance_ms is 'abc'"),
+    ("bag?left=camera/left", "expected a topic name starting with /"),
 ])
 def test_bad_specs_say_what_is_accepted(rest, expected):
     with pytest.raises(SourceConfigError, match=expected):

@@ -1,4 +1,4 @@
-"""`branchrange bag-from-recording`: a recording (branchrange record) → a ROS 2 bag laid out as the ZED ROS 2 wrapper's."""
+"""`branchrange bag-from-recording`: a recording (branchrange record) → a ROS 2 bag laid out as the ZED wrapper's."""
 from __future__ import annotations
 
 import argparse

@@ -76,7 +76,8 @@ def write_bag(frames: Iterable[StereoFrame], calibration: StereoCalibration, out
     if storage not in STORAGES:
         raise BagWriteError(f"storage is {storage!r}; expected one of {', '.join(STORAGES)}")
     if encoding not in RAW_ENCODINGS and encoding not in COMPRESSED_FORMATS:
-        raise BagWriteError(f"encoding is {encoding!r}; expected one of {', '.join([*RAW_ENCODINGS, *COMPRESSED_FORMATS])}")
+        accepted = ", ".join([*RAW_ENCODINGS, *COMPRESSED_FORMATS])
+        raise BagWriteError(f"encoding is {encoding!r}; expected one of {accepted}")
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = store.types
     rectifier = Rectifier(calibration)
