@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,11 +122,18 @@ class FoxgloveSink:
     """Sends every frame's result (and images, when given) to Foxglove; see the module docstring.
 
     `targets`: an MCAP file and/or a WebSocket server. `mount` (a `branchrange.mavlink.CameraMount`)
-    places the camera on the vehicle; without it the tree stops at `camera`. Use as a context
-    manager or call `close()`: it finishes the MCAP file and stops the server.
+    places the camera on the vehicle; without it the tree stops at `camera`. `newest_only=True` (the
+    daemon) hands each frame to a thread of its own and returns at once, so encoding the images never
+    delays the next result; a frame arriving while that thread is busy replaces the waiting one
+    (`dropped` counts them). Otherwise (the replay) every frame is logged before the call returns.
+    Use as a context manager or call `close()`: it logs the waiting frame, finishes the MCAP file and
+    stops the server.
     """
 
-    def __init__(self, targets: FoxgloveTargets, *, mount: Any = None, server_name: str = "branchrange") -> None:
+    def __init__(self, targets: FoxgloveTargets, *, mount: Any = None, newest_only: bool = False,
+                 server_name: str = "branchrange") -> None:
+        from branchrange.daemon import _NewestSlot  # the daemon's own newest-wins mailbox
+
         import foxglove
         from foxglove import channels
 
@@ -147,6 +155,8 @@ class FoxgloveSink:
         self._writer = self._server = None
         self._vehicle: tuple[np.ndarray, np.ndarray] | None = None
         self.frames = 0
+        self._slot = _NewestSlot() if newest_only else None
+        self._worker: threading.Thread | None = None
         try:
             if targets.mcap is not None:
                 targets.mcap.parent.mkdir(parents=True, exist_ok=True)
@@ -157,6 +167,9 @@ class FoxgloveSink:
         except Exception as error:  # the SDK raises its own errors (file, bind); close what was opened
             self.close()
             raise FoxgloveTargetError(f"Foxglove output {targets}: {error}") from error
+        if self._slot is not None:
+            self._worker = threading.Thread(target=self._drain, name="foxglove", daemon=True)
+            self._worker.start()
 
     @property
     def port(self) -> int | None:
@@ -175,8 +188,31 @@ class FoxgloveSink:
         for the next frames' local_ned → body_frd transform."""
         self._vehicle = (np.asarray(position_ned_m, dtype=float), np.asarray(attitude_wxyz, dtype=float))
 
+    @property
+    def dropped(self) -> int:
+        """Frames replaced before the sink's thread got to them (`newest_only`; 0 otherwise)."""
+        return 0 if self._slot is None else self._slot.replaced
+
     def __call__(self, result: dict[str, Any], artifacts: Any = None) -> None:
-        """Log one frame: its result and, with `artifacts` (branchrange.pipeline.FrameArtifacts), its images."""
+        """One frame: its result and, with `artifacts` (branchrange.pipeline.FrameArtifacts), its images."""
+        if self._slot is not None:
+            self._slot.put((result, artifacts))
+        else:
+            self._log_frame(result, artifacts)
+
+    def _drain(self) -> None:
+        """The `newest_only` thread: log the newest frame handed over, until closed."""
+        assert self._slot is not None
+        while (item := self._slot.take()) is not None:
+            try:
+                self._log_frame(*item)
+            except Exception:  # a frame the sink cannot show must not end the thread
+                log.exception("frame %s not sent to Foxglove", item[0].get("frame", {}).get("index"))
+            finally:
+                self._slot.task_done()
+
+    def _log_frame(self, result: dict[str, Any], artifacts: Any) -> None:
+        """Log the frame's messages at its capture time (see the module docstring)."""
         fg = self._fg.messages
         stamp_ns = int(result["frame"]["timestamp_ns"])
         stamp = fg.Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
@@ -272,7 +308,11 @@ class FoxgloveSink:
         return transforms
 
     def close(self) -> None:
-        """Finish the MCAP file and stop the server; idempotent."""
+        """Log the waiting frame, finish the MCAP file and stop the server; idempotent."""
+        if self._slot is not None and self._worker is not None:
+            self._slot.close()
+            self._worker.join(timeout=10)
+            self._worker = None
         if self._writer is not None:
             self._writer.close()
             self._writer = None

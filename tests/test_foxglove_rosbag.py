@@ -7,6 +7,7 @@ import json
 import logging
 import re
 import struct
+import threading
 import time
 from pathlib import Path
 
@@ -147,6 +148,31 @@ def test_vehicle_pose_and_mount_give_the_transform_tree_and_no_images_without_ar
     assert LOCAL_FRAME.encode() in tf[1]  # once the vehicle pose is known, local_ned → body_frd joins the tree
 
 
+def test_newest_only_sink_returns_at_once_and_logs_the_newest_frames(runs, tmp_path):
+    result, artifacts = runs["seen"][-1]
+    frames = [dict(result, frame=dict(result["frame"], index=i)) for i in range(6)]
+    release, busy = threading.Event(), threading.Event()
+    with FoxgloveSink(FoxgloveTargets(mcap=tmp_path / "newest.mcap"), newest_only=True) as sink:
+        log_frame = sink._log_frame
+
+        def held(result, artifacts):  # the sink's thread stays on the first frame until released
+            busy.set()
+            release.wait(10)
+            log_frame(result, artifacts)
+
+        sink._log_frame = held
+        sink(frames[0], artifacts)
+        assert busy.wait(10)
+        for frame in frames[1:]:
+            sink(frame, artifacts)  # returns although the sink's thread is busy
+        release.set()
+    with (tmp_path / "newest.mcap").open("rb") as f:
+        logged = [json.loads(m.data)["frame"]["index"] for _, c, m in make_reader(f).iter_messages()
+                  if c.topic == TOPICS["result"]]
+    assert logged == [0, 5]  # the one in hand, then the newest: the waiting ones were replaced, not queued
+    assert sink.dropped == 4 and sink.frames == 2
+
+
 def test_live_server_streams_the_channels_to_a_websocket_client(runs):
     result, artifacts = runs["seen"][-1]
     with FoxgloveSink(FoxgloveTargets(port=0)) as sink, \
@@ -211,9 +237,11 @@ def test_daemon_reads_a_bag_and_sends_what_it_publishes_to_foxglove(runs, tmp_pa
     with (tmp_path / "live.mcap").open("rb") as f:
         messages = [(channel.topic, message) for _, channel, message in make_reader(f).iter_messages()]
     logged = [json.loads(m.data) for t, m in messages if t == TOPICS["result"]]
-    assert published and logged == published  # every published result, and only those
-    assert len([t for t, _ in messages if t == TOPICS["tf"]]) == len(published)  # body_frd → camera from the mount
-    assert len([t for t, _ in messages if t == TOPICS["overlay"]]) == len(published)
+    # the sink's own thread sends the newest published result (never one the daemon did not publish), the last included
+    assert published and logged and logged[-1] == published[-1]
+    assert [r["frame"]["index"] for r in logged] == [r["frame"]["index"] for r in published if r in logged]
+    assert len([t for t, _ in messages if t == TOPICS["tf"]]) == len(logged)  # body_frd → camera from the mount
+    assert len([t for t, _ in messages if t == TOPICS["overlay"]]) == len(logged)
     by_index = {r["frame"]["index"]: r for r in runs["recording"]}
     for result in published:  # the daemon saw the bag's frames: same cut points as the replay of that frame
         replayed = by_index[result["frame"]["index"]]

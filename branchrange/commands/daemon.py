@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         if cfg.mavlink.enabled:
             relay = MavlinkRelay(cfg.mavlink, mount)
         if targets is not None:
-            sink = FoxgloveSink(targets, mount=mount)
+            sink = FoxgloveSink(targets, mount=mount, newest_only=True)
     except (SourceError, SigningKeyError, ValueError) as exc:
         for opened in (first, relay, sink):
             if opened is not None:
@@ -105,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
         daemon.close()
         if sink is not None:
             sink.close()
+            logging.getLogger("branchrange.foxglove").info("Foxglove: %d frames sent, %d replaced by newer ones",
+                                                          sink.frames, sink.dropped)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if server is not None:
