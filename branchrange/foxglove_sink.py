@@ -161,12 +161,19 @@ class FoxgloveSink:
             if targets.mcap is not None:
                 targets.mcap.parent.mkdir(parents=True, exist_ok=True)
                 self._writer = foxglove.open_mcap(targets.mcap, allow_overwrite=True, context=ctx)
+        except Exception as error:  # OSError, or the SDK's own error
+            self.close()
+            raise FoxgloveTargetError(f"--foxglove {targets.mcap}: cannot write the MCAP file ({error}); expected "
+                                      "a .mcap path in a writable folder") from error
+        try:
             if targets.port is not None:
                 self._server = foxglove.start_server(name=server_name, host=targets.host, port=targets.port,
                                                      context=ctx)
-        except Exception as error:  # the SDK raises its own errors (file, bind); close what was opened
+        except Exception as error:  # the SDK's own error (address in use, unknown host)
             self.close()
-            raise FoxgloveTargetError(f"Foxglove output {targets}: {error}") from error
+            raise FoxgloveTargetError(f"--foxglove ws://{targets.host}:{targets.port}: cannot serve ({error}); "
+                                      "expected a free port on an address of this machine (0 picks a free port)") \
+                from error
         if self._slot is not None:
             self._worker = threading.Thread(target=self._drain, name="foxglove", daemon=True)
             self._worker.start()

@@ -214,6 +214,15 @@ def test_parse_targets_and_its_errors():
         FoxgloveSink(FoxgloveTargets())
 
 
+def test_an_unusable_foxglove_target_is_named(tmp_path):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(FoxgloveTargetError, match="cannot write the MCAP file"):
+        FoxgloveSink(FoxgloveTargets(mcap=tmp_path / "file" / "run.mcap"))
+    with FoxgloveSink(FoxgloveTargets(port=0)) as first, \
+            pytest.raises(FoxgloveTargetError, match=f"ws://127.0.0.1:{first.port}: cannot serve"):
+        FoxgloveSink(FoxgloveTargets(port=first.port))
+
+
 def test_replay_refuses_a_bad_foxglove_target(tmp_path, capsys):
     assert branchrange_main(["replay", str(tmp_path), "--out", str(tmp_path / "r.jsonl"), "--foxglove", "x.txt"]) == 2
     assert "expected an MCAP file (NAME.mcap) or a WebSocket address" in capsys.readouterr().err
