@@ -26,8 +26,8 @@ from branchrange.frame_results import pipeline_for, process_frame, result_line
 from branchrange.overlay import draw_overlay
 from branchrange.overlay_video import OverlayVideoWriter, check_video
 from camera.sources import CorruptFrameError, ReplaySource, open_source
-from camera.sources.rosbag import RosbagSource
 from camera.sources.recording_format import read_manifest
+from camera.sources.rosbag import RosbagSource
 
 log = logging.getLogger("branchrange.replay")
 #: Frame rate of the overlay video when the recording does not say (frames per second).
@@ -174,13 +174,14 @@ def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, 
     `cfg.camera.calibration` overrides the recording's calibration, as in the daemon. Raises
     `camera.sources.SourceError` when the recording cannot be opened or has no calibration.
     """
-    source = open_source(source_spec(recording), calibration=cfg.camera.calibration or None, pace="fast")
+    spec = source_spec(recording)
+    source = open_source(spec, calibration=cfg.camera.calibration or None, pace="fast")
     summary = ReplaySummary(str(recording))
     writer = None
     try:
         pipeline = pipeline_for(cfg, source.calibration)
         if video is not None:
-            fps = source.recorded_fps if isinstance(source, RosbagSource) else recorded_fps(recording)
+            fps = source.recorded_fps if isinstance(source, RosbagSource) else recorded_fps(spec.partition(":")[2])
             writer = OverlayVideoWriter(video, fps)
         out = Path(out_jsonl)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -60,7 +60,8 @@ def runs(tmp_path_factory):
 
     replay_recording(recording, CFG, root / "rec.jsonl", progress=False)
     status = branchrange_main(["replay", str(root / "bag_mcap"), "--out", str(root / "mcap.jsonl"), "--summary",
-                               "--config", str(config), "--foxglove", str(root / "viz" / "run.mcap")])
+                               "--config", str(config), "--foxglove", str(root / "viz" / "run.mcap"),
+                               "--overlay-video", str(root / "bag_overlay.mp4")])
     seen = []
 
     def failing(result, artifacts):
@@ -95,6 +96,10 @@ def test_bags_give_the_recordings_cut_points(runs):
 def test_the_replay_summary_counts_unpaired_images_for_a_bag(runs):
     summary = json.loads((runs["root"] / "mcap.summary.json").read_text())
     assert summary["frames"]["processed"] == FRAMES and summary["frames"]["unpaired"] == {"left": 0, "right": 0}
+    assert summary["video"]["path"].endswith("bag_overlay.mp4")  # checked to read back frame for frame
+    video = cv2.VideoCapture(summary["video"]["path"])
+    assert video.get(cv2.CAP_PROP_FPS) == pytest.approx(1e9 / PERIOD_NS, rel=0.01)  # the bag's rate
+    video.release()
 
 
 def test_a_failing_observer_is_logged_and_the_others_get_every_frame(runs):
