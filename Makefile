@@ -11,7 +11,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml deploy/constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -c deploy/constraints.txt -e ".[dev,onnx]"
+	$(PY) -m pip install --quiet -c deploy/constraints.txt -e ".[dev,onnx,ros]"
 	touch $(STAMP)
 
 demo: $(STAMP)

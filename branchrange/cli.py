@@ -15,6 +15,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.daemon",
     "branchrange.commands.replay",
     "branchrange.commands.record",
+    "branchrange.commands.bag_from_recording",
     "branchrange.commands.estimate",
     "branchrange.commands.demo",
     "branchrange.commands.evaluate_cuts",

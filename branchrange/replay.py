@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import statistics
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,10 +27,14 @@ from branchrange.overlay import draw_overlay
 from branchrange.overlay_video import OverlayVideoWriter, check_video
 from camera.sources import CorruptFrameError, ReplaySource, open_source
 from camera.sources.recording_format import read_manifest
+from camera.sources.rosbag import RosbagSource
 
 log = logging.getLogger("branchrange.replay")
 #: Frame rate of the overlay video when the recording does not say (frames per second).
 FALLBACK_VIDEO_FPS = 10.0
+#: Called once per processed frame with its result and the pipeline's `FrameArtifacts` (the daemon's
+#: observer contract; branchrange.foxglove_sink.FoxgloveSink is one).
+Observer = Callable[[dict[str, Any], Any], None]
 
 
 def _stats(values: list[float], digits: int) -> dict[str, float | int]:
@@ -59,6 +64,7 @@ class ReplaySummary:
     wall_s: float = 0.0
     video: str | None = None
     video_codec: str | None = None
+    unpaired: dict[str, int] | None = None
     _tracks: set[int] = field(default_factory=set, init=False, repr=False)
     _target_tracks: set[int] = field(default_factory=set, init=False, repr=False)
     _distances: list[float] = field(default_factory=list, init=False, repr=False)
@@ -88,7 +94,8 @@ class ReplaySummary:
         return {
             "recording": self.recording,
             "frames": {"processed": self.frames, "corrupt": self.corrupt, "rejected": self.rejected,
-                       "with_branches": self.frames_with_branches, "with_target": self.frames_with_target},
+                       "with_branches": self.frames_with_branches, "with_target": self.frames_with_target,
+                       **({} if self.unpaired is None else {"unpaired": self.unpaired})},
             "branches": {"detections": self.detections, "tracks": len(self._tracks),
                          "target_tracks": len(self._target_tracks),
                          "per_frame": round(self.detections / self.frames, 3) if self.frames else 0.0},
@@ -112,9 +119,22 @@ class ReplaySummary:
                          f"std {t['std']:.3f} m")
         stages = ", ".join(f"{stage} {s['mean']:.1f}" for stage, s in d["timing_ms"].items() if s["count"])
         lines.append(f"mean timing per frame (ms): {stages}")
+        if self.unpaired and any(self.unpaired.values()):
+            lines.append(f"unpaired images skipped: {self.unpaired['left']} left, {self.unpaired['right']} right")
         if d["video"]:
             lines.append(f"overlay video: {d['video']['path']} ({d['video']['codec']})")
         return "\n".join(lines)
+
+
+def source_spec(recording: str | Path) -> str:
+    """The `open_source` spec of what `branchrange replay` is given: a `rosbag:…`/`replay:…` spec as it is, a
+    ROS 2 bag (a directory with metadata.yaml, a .mcap or .db3 file) as `rosbag:PATH`, else `replay:PATH`."""
+    text = str(recording)
+    if text.startswith(("rosbag:", "replay:")):
+        return text
+    path = Path(text)
+    is_bag = (path / "metadata.yaml").is_file() or path.suffix in (".mcap", ".db3")
+    return f"{'rosbag' if is_bag else 'replay'}:{text}"
 
 
 def recorded_fps(recording: str | Path) -> float:
@@ -135,21 +155,34 @@ def _overlay_frame(pipeline: Any, result: dict[str, Any]) -> np.ndarray:
     return draw_overlay(pipeline.last.left, result, pipeline.last.masks)
 
 
+def _notify(observers: Sequence[Observer], result: dict[str, Any], artifacts: Any) -> None:
+    """Give the frame to every observer; one that fails is logged and the replay goes on, as in the daemon."""
+    for observer in observers:
+        try:
+            observer(result, artifacts)
+        except Exception:  # an observer (a viewer, a sink) must never stop the replay
+            log.exception("frame %d: observer %r failed", result["frame"]["index"], observer)
+
+
 def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, *, video: str | Path | None = None,
-                     progress: bool = True) -> ReplaySummary:
-    """Process every frame of `recording` with the pipeline `cfg` describes; write one JSON line per frame
+                     progress: bool = True, observers: Sequence[Observer] = ()) -> ReplaySummary:
+    """Process every frame of `recording` (a recording directory, a side-by-side video, a ROS 2 bag or a
+    `rosbag:` spec, see `source_spec`) with the pipeline `cfg` describes; write one JSON line per frame
     to `out_jsonl` and, when `video` is given, an overlay video (checked to read back frame for frame).
+    Each result also goes to `observers` with the pipeline's `FrameArtifacts` (e.g. a FoxgloveSink).
 
     `cfg.camera.calibration` overrides the recording's calibration, as in the daemon. Raises
     `camera.sources.SourceError` when the recording cannot be opened or has no calibration.
     """
-    source = open_source(f"replay:{recording}", calibration=cfg.camera.calibration or None, pace="fast")
+    spec = source_spec(recording)
+    source = open_source(spec, calibration=cfg.camera.calibration or None, pace="fast")
     summary = ReplaySummary(str(recording))
     writer = None
     try:
         pipeline = pipeline_for(cfg, source.calibration)
         if video is not None:
-            writer = OverlayVideoWriter(video, recorded_fps(recording))
+            fps = source.recorded_fps if isinstance(source, RosbagSource) else recorded_fps(spec.partition(":")[2])
+            writer = OverlayVideoWriter(video, fps)
         out = Path(out_jsonl)
         out.parent.mkdir(parents=True, exist_ok=True)
         total = source.frame_count if isinstance(source, ReplaySource) else None
@@ -177,7 +210,10 @@ def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, 
                 summary.add(result)
                 if writer is not None:
                     writer.write(_overlay_frame(pipeline, result))
+                _notify(observers, result, pipeline.last)
         summary.wall_s = time.perf_counter() - start
+        if isinstance(source, RosbagSource):
+            summary.unpaired = source.unpaired
     finally:
         source.close()
         if writer is not None:

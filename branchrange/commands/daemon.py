@@ -17,9 +17,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `daemon` to the `branchrange` command."""
     p = subparsers.add_parser("daemon", help="run onboard: camera → cut points → MAVLink", description=__doc__)
     p.add_argument("--config", required=True, help="TOML configuration (see deploy/onboard.toml)")
-    p.add_argument("--source", help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH)")
+    p.add_argument("--source", help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH, "
+                                    "rosbag:PATH)")
     p.add_argument("--mavlink", help="MAVLink connection string, overrides mavlink.url")
     p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
+    p.add_argument("--foxglove", action="append", default=[], metavar="ws://HOST:PORT|FILE.mcap",
+                   help="also send every frame to Foxglove: serve a live WebSocket and/or write an MCAP file "
+                        "(repeat for both); open with deploy/foxglove_layout.json")
     p.set_defaults(func=run)
 
 
@@ -42,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from api.metrics import Metrics
     from branchrange.config import ConfigError, load_config
     from branchrange.daemon import Daemon
+    from branchrange.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
     from branchrange.frame_results import pipeline_for
     from branchrange.mavlink import CameraMount, MavlinkRelay
     from branchrange.mavlink.connection import SigningKeyError
@@ -55,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
             api=dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, "")))
         if cfg.api.enabled:
             check_bind(cfg.api.host, cfg.api.token)
-    except (ConfigError, ServeError) as exc:
+        targets = parse_targets(args.foxglove) if args.foxglove else None
+    except (ConfigError, ServeError, FoxgloveTargetError) as exc:
         print(f"branchrange daemon: {exc}", file=sys.stderr)
         return 2
     logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -64,27 +70,31 @@ def run(args: argparse.Namespace) -> int:
     def open_camera() -> Any:
         return open_source(cfg.camera.source, calibration=calibration, pace="recorded")
 
-    first = None
+    first = sink = relay = None
+    mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
     try:
         first = open_camera()
         pipeline = pipeline_for(cfg, first.calibration)
-        relay = None
         if cfg.mavlink.enabled:
-            relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m))
+            relay = MavlinkRelay(cfg.mavlink, mount)
+        if targets is not None:
+            sink = FoxgloveSink(targets, mount=mount, newest_only=True)
     except (SourceError, SigningKeyError, ValueError) as exc:
-        if first is not None:
-            first.close()
+        for opened in (first, relay, sink):
+            if opened is not None:
+                opened.close()
         print(f"branchrange daemon: {exc}", file=sys.stderr)
         return 1
     api = f"http://{cfg.api.host}:{cfg.api.port}" if cfg.api.enabled else "off"
     logging.getLogger("branchrange.daemon").info(
-        "starting: mode=%s backend=%s max_disp=%d source=%s mavlink=%s api=%s results=%s", cfg.stereo.mode,
-        cfg.stereo.backend, cfg.stereo.max_disp, cfg.camera.source, cfg.mavlink.url if relay else "off", api,
-        cfg.log.results_jsonl or "off")
+        "starting: mode=%s backend=%s max_disp=%d source=%s mavlink=%s api=%s results=%s foxglove=%s",
+        cfg.stereo.mode, cfg.stereo.backend, cfg.stereo.max_disp, cfg.camera.source,
+        cfg.mavlink.url if relay else "off", api, cfg.log.results_jsonl or "off", sink.describe() if sink else "off")
     sources = iter([first])  # the first source is the one already opened; reopening opens new ones
     metrics = Metrics()
     daemon = Daemon(cfg, open_source=lambda: next(sources, None) or open_camera(), pipeline=pipeline,
-                    relay=relay, results_path=cfg.log.results_jsonl or None, metrics=metrics)
+                    relay=relay, results_path=cfg.log.results_jsonl or None, metrics=metrics,
+                    observers=[sink] if sink is not None else [])
     previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in (signal.SIGTERM, signal.SIGINT)}
     server = thread = None
     if cfg.api.enabled:
@@ -93,6 +103,10 @@ def run(args: argparse.Namespace) -> int:
         frames = daemon.run(max_frames=args.max_frames)
     finally:
         daemon.close()
+        if sink is not None:
+            sink.close()
+            logging.getLogger("branchrange.foxglove").info("Foxglove: %d frames sent, %d replaced by newer ones",
+                                                          sink.frames, sink.dropped)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if server is not None:

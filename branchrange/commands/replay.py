@@ -13,7 +13,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `replay` to the `branchrange` command."""
     p = subparsers.add_parser("replay", help="turn a recording into results, a summary and an overlay video",
                               description=__doc__)
-    p.add_argument("recording", help="a recording directory (branchrange record) or a side-by-side video file")
+    p.add_argument("recording", help="a recording directory (branchrange record), a side-by-side video file, a ROS 2 "
+                                     "bag (directory, .mcap or .db3) or a rosbag:PATH?left=TOPIC&… spec")
     p.add_argument("--out", required=True, help="results, one branchrange/v1 JSON line per frame")
     p.add_argument("--overlay-video", help="write an overlay video here (.mp4 with mp4v; .avi with MJPG when "
                                            "this OpenCV cannot write mp4v)")
@@ -24,6 +25,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=("sgbm", "emcstereo"), help="stereo backend (overrides stereo.backend)")
     p.add_argument("--weights", help="EMCStereo weights (overrides stereo.weights)")
     p.add_argument("--max-disp", type=int, help="largest disparity searched, px (overrides stereo.max_disp)")
+    p.add_argument("--foxglove", action="append", default=[], metavar="FILE.mcap|ws://HOST:PORT",
+                   help="also send every frame to Foxglove: write an MCAP file and/or serve a live WebSocket "
+                        "(repeat for both); open with deploy/foxglove_layout.json")
     p.set_defaults(func=run)
 
 
@@ -37,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
     """Load the config with the command line's overrides, replay, print and write the summary."""
     from branchrange.config import ConfigError, load_config
     from branchrange.overlay_video import VideoWriteError
-    from branchrange.replay import replay_recording
+    from branchrange.foxglove_sink import FoxgloveTargetError, FoxgloveSink, parse_targets
+    from branchrange.replay import replay_recording, source_spec
     from camera.sources import SourceError
 
     try:
@@ -46,17 +51,26 @@ def run(args: argparse.Namespace) -> int:
             cfg.stereo, backend=args.backend or cfg.stereo.backend, weights=args.weights or cfg.stereo.weights,
             max_disp=cfg.stereo.max_disp if args.max_disp is None else args.max_disp)
         cfg = dataclasses.replace(cfg, stereo=stereo,
-                                  camera=dataclasses.replace(cfg.camera, source=f"replay:{args.recording}"))
-    except ConfigError as exc:
+                                  camera=dataclasses.replace(cfg.camera, source=source_spec(args.recording)))
+        targets = parse_targets(args.foxglove) if args.foxglove else None
+    except (ConfigError, FoxgloveTargetError) as exc:
         print(f"branchrange replay: {exc}", file=sys.stderr)
         return 2
     logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    sink = None
     try:
-        summary = replay_recording(args.recording, cfg, args.out, video=args.overlay_video)
+        sink = FoxgloveSink(targets) if targets else None
+        summary = replay_recording(args.recording, cfg, args.out, video=args.overlay_video,
+                                   observers=[sink] if sink else [])
     except (SourceError, VideoWriteError, ValueError) as exc:
         print(f"branchrange replay: {exc}", file=sys.stderr)
         return 1
+    finally:
+        if sink is not None:
+            sink.close()
     print(f"results: {args.out} ({summary.frames} lines)")
+    if sink is not None:
+        print(f"foxglove: {sink.describe()} (open it in Foxglove with deploy/foxglove_layout.json)")
     if args.summary:
         path = summary_path(args.out)
         path.write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")

@@ -1,7 +1,8 @@
 """Frame sources: live cameras (ZED over UVC, OAK over depthai), replay of recordings, and wrappers.
 
 Every source is an iterator of `StereoFrame` with `close()`, `calibration` and `is_lost` (see
-camera.sources.frame). `OakSource`/`OakConfig` import depthai on first use only.
+camera.sources.frame). `OakSource`/`OakConfig` import depthai on first use only, `RosbagSource`/`BagTopics`
+(ROS 2 bags) import rosbags on first use only.
 """
 from __future__ import annotations
 
@@ -18,8 +19,8 @@ from camera.sources.spec import open_source
 from camera.sources.zed_uvc import ZED_MODES, ZedUvcSource
 
 __all__ = [
-    "Backoff", "CorruptFrameError", "FaultInjectingSource", "FaultPlan", "LatestFrameSource", "OakConfig",
-    "OakSource", "Recorder", "RecordingFormatError", "ReplaySource", "SourceBase", "SourceConfigError",
+    "Backoff", "BagTopics", "CorruptFrameError", "FaultInjectingSource", "FaultPlan", "LatestFrameSource", "OakConfig",
+    "OakSource", "Recorder", "RecordingFormatError", "ReplaySource", "RosbagSource", "SourceBase", "SourceConfigError",
     "SourceDisconnected", "SourceError", "SourceUnavailable", "StereoFrame", "StereoSource", "ZED_MODES",
     "ZedUvcSource", "open_source", "record",
 ]
@@ -30,4 +31,8 @@ def __getattr__(name: str) -> Any:
         from camera.sources import oak
 
         return getattr(oak, name)
+    if name in ("RosbagSource", "BagTopics"):
+        from camera.sources import rosbag
+
+        return getattr(rosbag, name)
     raise AttributeError(f"module 'camera.sources' has no attribute {name!r}")

@@ -9,6 +9,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 
@@ -154,12 +155,7 @@ class ReplaySource(SourceBase):
         if start < 0:
             raise SourceConfigError(f"start is {start}; expected a frame position ≥ 0")
         self.path = Path(path)
-        if self.path.is_dir():
-            self._frames: _DirectoryFrames | _VideoFrames = _DirectoryFrames(self.path)
-        elif self.path.is_file():
-            self._frames = _VideoFrames(self.path, fps)
-        else:
-            raise SourceUnavailable(f"{self.path}: no such recording directory or video file")
+        self._frames = self._open_frames(fps)
         if self._frames.count is not None and start >= self._frames.count:
             raise SourceConfigError(f"start is {start}; {self.path} has {self._frames.count} frames")
         self.calibration = calibration if calibration is not None else self._frames.calibration()
@@ -175,6 +171,15 @@ class ReplaySource(SourceBase):
         self._last_index = -1
         self._wall_start: int | None = None
         self._stream_start: int | None = None
+
+    def _open_frames(self, fps: float | None) -> Any:
+        """The frame reader of `self.path` (read, seek, count, period_ns, frame_size, calibration, close);
+        a subclass replaying another container (camera.sources.rosbag) returns its own."""
+        if self.path.is_dir():
+            return _DirectoryFrames(self.path)
+        if self.path.is_file():
+            return _VideoFrames(self.path, fps)
+        raise SourceUnavailable(f"{self.path}: no such recording directory or video file")
 
     @property
     def frame_size(self) -> tuple[int, int]:

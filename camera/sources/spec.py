@@ -2,7 +2,8 @@
 
 Specs: `zed:0`, `zed:0:HD720`, `zed:/dev/video0`, `zed:/dev/video0:VGA` (device index or path, then
 an optional mode), `oak`, `oak:640x400`, `oak:1280x800@60` (output size and fps), `replay:PATH`
-(a recording directory or a side-by-side video file).
+(a recording directory or a side-by-side video file), `rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag,
+see camera.sources.rosbag).
 """
 from __future__ import annotations
 
@@ -68,16 +69,30 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
     elif kind == "replay":
         if not rest:
             raise SourceConfigError(f"source spec {spec!r}: expected replay:PATH")
-        source = ReplaySource(rest, pace=pace, loop=loop, start=start)
-        if calibration is not None:
-            try:
-                source.calibration = _loaded(calibration, source.frame_size)
-            except (CalibrationError, SourceError):
-                source.close()
-                raise
+        source = _calibrated(ReplaySource(rest, pace=pace, loop=loop, start=start), calibration)
+    elif kind == "rosbag":
+        from camera.sources.rosbag import RosbagSource, parse_rosbag_spec  # rosbags is imported only for bags
+
+        path, topics, tolerance_ms = parse_rosbag_spec(rest)
+        source = _calibrated(RosbagSource(path, topics=topics, tolerance_ms=tolerance_ms,
+                                          use_camera_info=calibration is None, pace=pace, loop=loop, start=start),
+                             calibration)
     else:
-        raise SourceConfigError(f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]] or replay:PATH")
+        raise SourceConfigError(f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]], replay:PATH "
+                                "or rosbag:PATH")
     return LatestFrameSource(source) if latest else source
+
+
+def _calibrated(source: ReplaySource, calibration: StereoCalibration | str | Path | None) -> ReplaySource:
+    """The replay `source` with `calibration` (an object, or a file read for the source's frame size) in place
+    of its own when given; the source is closed when the calibration cannot be used."""
+    if calibration is not None:
+        try:
+            source.calibration = _loaded(calibration, source.frame_size)
+        except (CalibrationError, SourceError):
+            source.close()
+            raise
+    return source
 
 
 def _loaded(calibration: StereoCalibration | str | Path | None, size: tuple[int, int]) -> StereoCalibration | None:
