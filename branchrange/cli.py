@@ -18,6 +18,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.estimate",
     "branchrange.commands.demo",
     "branchrange.commands.evaluate_cuts",
+    "branchrange.commands.synth_flight",
 )
 
 

@@ -115,7 +115,9 @@ class FlightRenderer:
                           b.radius_at(b.cut_offset_m)) for b in self.scene.branches]
 
     def world_pose(self, time_s: float) -> Pose:
-        """(R_world_cam, t_world_cam) of the left camera at `time_s` (s after frame 0)."""
+        """(R_world_cam, t_world_cam) of the left camera at `time_s` (s after frame 0; frame 0 is the world)."""
+        if time_s == 0.0:
+            return np.eye(3), np.zeros(3)
         rotation, position = self.path.pose(time_s)
         origin_rotation, origin_position = self.origin
         return origin_rotation.T @ rotation, origin_rotation.T @ (position - origin_position)
