@@ -104,7 +104,12 @@ class FlightOptions:
         _check(_finite(self.shutter) and 0 < self.shutter <= 1.0, "shutter", self.shutter,
                "a fraction of the frame interval in (0, 1]")
         _check(isinstance(self.seed, int) and self.seed >= 0, "seed", self.seed, "an integer ≥ 0")
-        self.synth_options()  # validates supersample, noise_std, cut_offset_m and threads
+        _check(self.supersample in (1, 2, 3, 4), "supersample", self.supersample, "1, 2, 3 or 4 rays per pixel side")
+        _check(_finite(self.noise_std) and 0 <= self.noise_std <= 20, "noise_std", self.noise_std,
+               "a sensor noise in [0, 20] grey levels")
+        _check(_finite(self.cut_offset_m) and 0 <= self.cut_offset_m <= 0.15, "cut_offset_m", self.cut_offset_m,
+               "an offset in [0, 0.15] m from the branch base")
+        _check(self.threads in (1, 2, 3), "threads", self.threads, "1, 2 or 3")
 
     def synth_options(self) -> SynthOptions:
         """The scene generator's options for this flight (bare tree or sparse leaves, no view gain jitter change)."""
