@@ -1,4 +1,4 @@
-"""Synthetic flight sequences: per-frame truth against the renderer, the approach, flight.json, the recording, the command."""
+"""Synthetic flight sequences: per-frame truth vs the renderer, the approach, flight.json, the recording, the command."""
 from __future__ import annotations
 
 import json
@@ -211,7 +211,8 @@ def test_branchrange_replay_reads_the_recording(wobbly_recording: Path, tmp_path
         ["replay", str(wobbly_recording), "--out", str(tmp_path / "results.jsonl")])
     assert args.func(args) == 0
     lines = [json.loads(line) for line in (tmp_path / "results.jsonl").read_text().splitlines()]
-    assert [line["frame"]["timestamp_ns"] for line in lines] == [p.timestamp_ns for p in FlightTruth.load(wobbly_recording).poses]
+    truth = FlightTruth.load(wobbly_recording)
+    assert [line["frame"]["timestamp_ns"] for line in lines] == [pose.timestamp_ns for pose in truth.poses]
     assert sum(bool(line["branches"]) for line in lines) >= 5
 
 

@@ -30,7 +30,8 @@ import numpy as np
 from stereo.synth.camera import RayGrid, SynthCamera
 from stereo.synth.flight_path import ApproachPath, FlightOptions
 from stereo.synth.motion_blur import blur_along_motion, image_motion
-from stereo.synth.render import RenderedViews, auto_gain, develop, rasterise, render_views, scene_batches, with_visibility
+from stereo.synth.render import (RenderedViews, auto_gain, develop, rasterise, render_views, scene_batches,
+                                  with_visibility)
 from stereo.synth.scene import SceneDescription, build_scene
 from stereo.synth.truth import BranchTruth
 from stereo.synth.viewpoint import scene_in_camera
@@ -101,7 +102,7 @@ class FlightRenderer:
         self.path = ApproachPath(np.asarray(target.cut_point_m), self.down, options,
                                  np.random.default_rng([options.seed, 1]))
         self.origin: Pose = self.path.pose(0.0)
-        preview = self.view(*self.origin, camera=self.check_camera, colour=True)
+        preview = self.view(*self.origin, camera=self.check_camera)
         self.base_gain = auto_gain(preview.views.left, self.scene.exposure_target)
 
     def __len__(self) -> int:
@@ -122,19 +123,11 @@ class FlightRenderer:
         origin_rotation, origin_position = self.origin
         return origin_rotation.T @ rotation, origin_rotation.T @ (position - origin_position)
 
-    def view(self, rotation: np.ndarray, position: np.ndarray, *, camera: SynthCamera | None = None,
-             colour: bool = True) -> FlightView:
-        """Render the tree from a left camera at `position` `(3,)` m, `rotation` `(3, 3)`, in the scene frame.
-
-        `colour=False` casts only the pixel-centre truth (ids, depth; the views are then None).
-        """
+    def view(self, rotation: np.ndarray, position: np.ndarray, camera: SynthCamera | None = None) -> FlightView:
+        """Render the tree from a left camera at `position` `(3,)` m, `rotation` `(3, 3)`, in the scene frame."""
         camera = camera or self.camera
         scene = scene_in_camera(self.scene, rotation, position, camera)
-        if colour:
-            views = render_views(scene, camera, self.options.supersample, self.options.threads)
-        else:
-            depth, ids, _ = rasterise(scene_batches(scene, camera), RayGrid.for_view(camera, "left", 1), None, None)
-            views = RenderedViews(None, None, depth, ids, None)
+        views = render_views(scene, camera, self.options.supersample, self.options.threads)
         return FlightView(views, tuple(with_visibility(scene.branches, views.ids)))
 
     def render(self, index: int) -> FlightFrame:
@@ -178,6 +171,8 @@ class FlightRenderer:
         return seen_at_end[0] if seen_at_end else by_thickness[0].id
 
     def _cut_seen(self, branch_id: int, rotation: np.ndarray, position: np.ndarray) -> bool:
-        """Whether a check-size render from this pose shows branch `branch_id`'s cut point."""
-        view = self.view(rotation, position, camera=self.check_camera, colour=False)
-        return next(b.cut_visible for b in view.branches if b.id == branch_id)
+        """Whether a check-size truth pass (ids only, no shading) from this pose shows branch `branch_id`'s cut point."""
+        scene = scene_in_camera(self.scene, rotation, position, self.check_camera)
+        _, ids, _ = rasterise(scene_batches(scene, self.check_camera), RayGrid.for_view(self.check_camera, "left", 1),
+                              None, None)
+        return next(b.cut_visible for b in with_visibility(scene.branches, ids) if b.id == branch_id)
