@@ -22,28 +22,13 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from realtime import cpu_name  # benchmarks/ is the script's directory, so on sys.path
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.flight import FlightRenderer
 from stereo.synth.flight_path import FlightOptions
 
 #: The per-frame budget of the issue: an HD720 frame within a second on 2 cores.
 BUDGET_S = 1.0
-
-
-def cpu_description() -> str:
-    """The CPU's model name and vector extensions (from /proc/cpuinfo), and its core count."""
-    model, flags = "unknown CPU", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name":
-                model = value.strip()
-            elif key.strip() == "flags":
-                flags = set(value.split())
-    except OSError:
-        pass
-    vectors = ", ".join(name for name in ("avx2", "avx512f") if name in flags) or "no AVX2"
-    return f"{model} ({vectors}), {os.cpu_count()} logical CPUs"
 
 
 def timed(call: Callable[[], object]) -> tuple[float, float]:
@@ -72,12 +57,13 @@ def measure(width: int, height: int, seeds: list[int], repeats: int) -> list[dic
             for _ in range(repeats):
                 for name, runs in calls.items():
                     samples.setdefault(name, []).extend(timed(run) for run in runs)
-        baseline = statistics.median(wall for wall, _ in samples["render_scene 1 ray/px (baseline)"])
+        base_wall, base_cpu = (statistics.median(t[k] for t in samples["render_scene 1 ray/px (baseline)"])
+                               for k in (0, 1))
         for name, times in samples.items():
-            wall = statistics.median(t[0] for t in times)
-            rows.append({"foliage": foliage, "what": name, "wall_s": wall, "cpu_s": statistics.median(t[1] for t in times),
-                         "max_wall_s": max(t[0] for t in times), "ratio_to_baseline": wall / baseline,
-                         "samples": len(times)})
+            wall, cpu = (statistics.median(t[k] for t in times) for k in (0, 1))
+            rows.append({"foliage": foliage, "what": name, "wall_s": wall, "cpu_s": cpu,
+                         "max_wall_s": max(t[0] for t in times), "wall_ratio_to_baseline": wall / base_wall,
+                         "cpu_ratio_to_baseline": cpu / base_cpu, "samples": len(times)})
     return rows
 
 
@@ -93,12 +79,14 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
     rows = measure(width, height, list(range(args.seeds)), args.repeats)
     load_after = os.getloadavg()
-    cpu = cpu_description()
+    cpu = f"{cpu_name()}, {os.cpu_count()} logical CPUs"
     print(f"{args.size}, {cpu}; load average {load_before[0]:.1f} before, {load_after[0]:.1f} after")
-    print(f"{'foliage':<8} {'what':<36} {'wall s':>7} {'max s':>7} {'CPU s':>7} {'× baseline':>10}")
+    print(f"{'foliage':<8} {'what':<36} {'wall s':>7} {'max s':>7} {'CPU s':>7} {'wall ×':>7} {'CPU ×':>7}")
     for row in rows:
         print(f"{'sparse' if row['foliage'] else 'bare':<8} {row['what']:<36} {row['wall_s']:>7.2f} "
-              f"{row['max_wall_s']:>7.2f} {row['cpu_s']:>7.2f} {row['ratio_to_baseline']:>10.2f}")
+              f"{row['max_wall_s']:>7.2f} {row['cpu_s']:>7.2f} {row['wall_ratio_to_baseline']:>7.2f} "
+              f"{row['cpu_ratio_to_baseline']:>7.2f}")
+    print("× = median over the median of `render_scene 1 ray/px` (same seeds, same run)")
     frames = [row["wall_s"] for row in rows if str(row["what"]).startswith("flight")]
     print(f"slowest median flight frame {max(frames):.2f} s (budget {BUDGET_S:.1f} s per HD720 frame on 2 cores)")
     if args.json:
