@@ -11,11 +11,11 @@ import pytest
 from branchrange.flight import FLIGHT_NAME, FlightCutPoint, FlightFormatError, FlightPose, FlightTruth
 from camera.sources import ReplaySource
 from stereo.cli import build_parser
-from stereo.synth import SynthOptions, render_scene
+from stereo.synth import LEAF_ID, SynthOptions, render_scene
 from stereo.synth.flight import FlightRenderer
 from stereo.synth.flight_path import FlightOptions
-from stereo.synth.motion_blur import blur_along_motion, image_motion
 from stereo.synth.camera import SynthCamera
+from stereo.synth.motion_blur import blur_along_motion, image_motion
 from stereo.synth.render import auto_gain, develop, render_views
 from stereo.synth.viewpoint import scene_in_camera
 
@@ -319,3 +319,11 @@ def test_progress_lines_when_stderr_is_not_a_terminal(tmp_path: Path, capsys: py
     assert len(progress) == 10 and progress[-1].startswith("synth-flight: 20/20 frames")
     assert "wrote 20 frames" in captured.out
     assert len(FlightTruth.load(tmp_path / "rec").poses) == 20
+
+
+def test_foliage_switches_the_leaves_on():
+    def leaves(foliage: bool) -> int:
+        scene = FlightRenderer(FlightOptions(frames=2, width=64, height=36, seed=3, foliage=foliage)).scene
+        return sum(leaf.instance_id == LEAF_ID for leaf in scene.leaves)
+
+    assert leaves(False) == 0 and leaves(True) > 50
