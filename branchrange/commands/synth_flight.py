@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     poses: list[FlightPose] = []
     try:
         recorder = Recorder(args.out, calibration=calibration, overwrite=args.overwrite,
-                            source_spec=f"branchrange synth-flight seed {options.seed}")
+                            source_spec=f"branchrange synth-flight seed {options.seed}, target {renderer.target_id}")
     except FileExistsError as error:
         print(f"branchrange synth-flight: {error} (or pass --overwrite)", file=sys.stderr)
         return 2
