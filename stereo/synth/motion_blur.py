@@ -32,18 +32,19 @@ def image_motion(depth_m: np.ndarray, camera: SynthCamera, view: str, now: tuple
     centre_now, centre_before = t_now + r_now @ offset, t_before + r_before @ offset
     rotate = r_before.T @ r_now
     shift = r_before.T @ (centre_now - centre_before)
-    v, u = np.mgrid[0:camera.height, 0:camera.width]
-    rays = np.stack([(u - camera.cx) / camera.focal_px, (v - camera.cy) / camera.focal_px,
-                     np.ones(u.shape)], axis=-1)
-    inverse_depth = np.where(np.isfinite(depth_m) & (depth_m > 0), 1.0 / depth_m, 0.0)
-    # X_before / Z_now: the sky (1/Z = 0) moves by the rotation alone
-    seen = rays @ rotate.T + inverse_depth[..., None] * shift
-    ahead = seen[..., 2] > 1e-6
-    z = np.where(ahead, seen[..., 2], 1.0)
-    flow = np.stack([camera.focal_px * seen[..., 0] / z + camera.cx - u,
-                     camera.focal_px * seen[..., 1] / z + camera.cy - v], axis=-1)
+    x = ((np.arange(camera.width) - camera.cx) / camera.focal_px).astype(np.float32)[None, :]
+    y = ((np.arange(camera.height) - camera.cy) / camera.focal_px).astype(np.float32)[:, None]
+    with np.errstate(divide="ignore"):
+        inverse_depth = np.where(np.isfinite(depth_m) & (depth_m > 0), 1.0 / depth_m, 0.0).astype(np.float32)
+    # X_before / Z_now for the ray (x, y, 1): the sky (1/Z = 0) moves by the rotation alone
+    seen = [np.float32(row[0]) * x + np.float32(row[1]) * y + np.float32(row[2]) + np.float32(move) * inverse_depth
+            for row, move in zip(rotate, shift)]
+    ahead = seen[2] > 1e-6
+    z = np.where(ahead, seen[2], np.float32(1.0))
+    f = np.float32(camera.focal_px)
+    flow = np.stack([f * seen[0] / z - f * x, f * seen[1] / z - f * y], axis=-1)
     flow[~ahead] = 0.0
-    return flow.astype(np.float32)
+    return flow
 
 
 def blur_along_motion(image: np.ndarray, motion: np.ndarray, shutter: float) -> np.ndarray:
