@@ -19,6 +19,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.estimate",
     "branchrange.commands.demo",
     "branchrange.commands.evaluate_cuts",
+    "branchrange.commands.synth_flight",
 )
 
 

@@ -96,10 +96,14 @@ def _box_filter(colour: np.ndarray, samples: int) -> np.ndarray:
     return colour.reshape(hs // samples, samples, ws // samples, samples, 3).mean(axis=(1, 3))
 
 
-def _finish(images: list[np.ndarray], target: float, options: SynthOptions, rng: np.random.Generator) -> list[np.ndarray]:
-    """Auto-expose both views with one gain (from the left), add per-view gain jitter and noise → uint8."""
-    luma = float((images[0].reshape(-1, 3).mean(axis=0) * _LUMA).sum())
-    gain = float(np.clip(target / max(luma, 1e-3), 0.5, 3.0))
+def auto_gain(image: np.ndarray, target: float) -> float:
+    """The exposure gain (0.5–3) that brings the mean luma of linear `image` (`H×W×3`) to `target` (about 0.4)."""
+    luma = float((image.reshape(-1, 3).mean(axis=0) * _LUMA).sum())
+    return float(np.clip(target / max(luma, 1e-3), 0.5, 3.0))
+
+
+def develop(images: Sequence[np.ndarray], gain: float, options: SynthOptions, rng: np.random.Generator) -> list[np.ndarray]:
+    """Linear colour views (float32 `H×W×3`) → uint8 with one `gain`, per-view gain jitter and sensor noise."""
     out = []
     for image in images:
         view_gain = 1.0 + rng.uniform(-options.view_gain_jitter, options.view_gain_jitter, 3) / 2
@@ -110,16 +114,63 @@ def _finish(images: list[np.ndarray], target: float, options: SynthOptions, rng:
     return out
 
 
-def _with_visibility(branches: Sequence[BranchTruth], ids: np.ndarray) -> list[BranchTruth]:
-    """Branch truth completed with pixel counts and whether the mask shows each cut point."""
+def with_visibility(branches: Sequence[BranchTruth], ids: np.ndarray) -> list[BranchTruth]:
+    """Branch truth completed with pixel counts and whether the mask shows each cut point.
+
+    A cut point is visible when it lies in front of the camera, its `cut_pixel` rounds to a pixel
+    of the image and the mask `ids` (uint16 `H×W`) holds its branch's id there.
+    """
     counts = np.bincount(ids.ravel(), minlength=int(max((b.id for b in branches), default=0)) + 1)
     height, width = ids.shape
     done = []
     for branch in branches:
-        x, y = (int(round(c)) for c in branch.cut_pixel)
-        visible = 0 <= x < width and 0 <= y < height and int(ids[y, x]) == branch.id
+        x, y = (int(round(c)) if np.isfinite(c) else -1 for c in branch.cut_pixel)
+        visible = (branch.cut_point_m[2] > 0 and 0 <= x < width and 0 <= y < height
+                   and int(ids[y, x]) == branch.id)
         done.append(dataclasses.replace(branch, cut_visible=visible, mask_pixels=int(counts[branch.id])))
     return done
+
+
+@dataclass(frozen=True)
+class RenderedViews:
+    """Both views of a scene before exposure, with the left view's exact truth.
+
+    - `left`, `right`: box-filtered linear colour, float32 `H×W×3` (about [0, 1]).
+    - `depth`: left depth Z, float64 `H×W` m (inf on sky), from the ray through each pixel centre.
+    - `ids`: left instance ids, uint16 `H×W` (see `stereo.synth.truth`).
+    - `right_depth`: right depth, float64 `H×W` m: the pixel-centre ray's at `supersample` 1, else the
+      nearest of each pixel's samples (what motion blur needs, not truth).
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    depth: np.ndarray
+    ids: np.ndarray
+    right_depth: np.ndarray
+
+
+def render_views(scene: SceneDescription, camera: SynthCamera, supersample: int, threads: int) -> RenderedViews:
+    """Ray-cast both views of `scene` (given in the left camera frame) with `supersample²` rays per pixel.
+
+    At `supersample` 1 the left colour pass's rays are the pixel centres, so its depth and ids are
+    the truth; otherwise a third pass casts the pixel centres. The passes share nothing mutable, and
+    numpy and OpenCV release the GIL in their loops, so they run in `threads` threads.
+    """
+    batches = scene_batches(scene, camera)
+
+    def colour_view(view: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Depth and ids at the samples, box-filtered linear colour (float32 `H×W×3`) of one view."""
+        depth, ids, colour = rasterise(batches, RayGrid.for_view(camera, view, supersample), scene.lighting, scene.sky)
+        return depth, ids, _box_filter(colour, supersample)
+
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        truth = (pool.submit(rasterise, batches, RayGrid.for_view(camera, "left", 1), None, None)
+                 if supersample > 1 else None)
+        (left_depth, left_ids, left), (right_depth, _, right) = pool.map(colour_view, ("left", "right"))
+        depth, ids, _ = truth.result() if truth is not None else (left_depth, left_ids, None)
+    if supersample > 1:
+        right_depth = right_depth.reshape(camera.height, supersample, camera.width, supersample).min(axis=(1, 3))
+    return RenderedViews(left, right, depth, ids, right_depth)
 
 
 def render_scene(seed: int, camera: SynthCamera | None = None, **options: object) -> SyntheticScene:
@@ -132,20 +183,9 @@ def render_scene(seed: int, camera: SynthCamera | None = None, **options: object
     camera = camera if camera is not None else SynthCamera.zed_mini(1280, 720)
     rng = np.random.default_rng(seed)
     scene = build_scene(rng, camera, opts)
-    batches = scene_batches(scene, camera)
-
-    def colour_view(view: str) -> np.ndarray:
-        """Box-filtered linear colour (float32 `H×W×3`) of the 'left' or 'right' view."""
-        _, _, colour = rasterise(batches, RayGrid.for_view(camera, view, opts.supersample), scene.lighting, scene.sky)
-        return _box_filter(colour, opts.supersample)
-
-    # the three passes share nothing mutable; numpy and OpenCV release the GIL in their loops
-    with ThreadPoolExecutor(max_workers=opts.threads) as pool:
-        truth = pool.submit(rasterise, batches, RayGrid.for_view(camera, "left", 1), None, None)
-        views = list(pool.map(colour_view, ("left", "right")))
-        depth, ids, _ = truth.result()
-    left, right = _finish(views, scene.exposure_target, opts, rng)
-    depth_m = depth.astype(np.float32)
-    return SyntheticScene(left, right, camera.disparity_from_depth(depth), depth_m, ids,
-                          _with_visibility(scene.branches, ids), camera, int(seed), scene.pose, scene.foliage,
+    views = render_views(scene, camera, opts.supersample, opts.threads)
+    left, right = develop([views.left, views.right], auto_gain(views.left, scene.exposure_target), opts, rng)
+    depth_m = views.depth.astype(np.float32)
+    return SyntheticScene(left, right, camera.disparity_from_depth(views.depth), depth_m, views.ids,
+                          with_visibility(scene.branches, views.ids), camera, int(seed), scene.pose, scene.foliage,
                           scene.leaf_shape, opts.cut_offset_m)
