@@ -28,7 +28,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm import tqdm
 
-from stereo.checkpoints import atomic_torch_save
+from stereo.checkpoints import CheckpointError, atomic_torch_save
 from stereo.datasets.transforms import AsymmetricColorJitter, Augmented, TrainTransform
 from stereo.evaluation import autocast_context, evaluate
 from stereo.training.checkpoint import (
@@ -130,8 +130,11 @@ class Trainer:
     def resume(self, path: Path) -> None:
         """Continue from a training checkpoint written by this trainer (same config)."""
         payload = load_training_checkpoint(Path(path))
-        self.progress = restore_training_state(payload, model=self.model, optimizer=self.optimizer,
-                                               scheduler=self.scheduler, scaler=self.scaler, ema=self.ema)
+        try:
+            self.progress = restore_training_state(payload, model=self.model, optimizer=self.optimizer,
+                                                   scheduler=self.scheduler, scaler=self.scaler, ema=self.ema)
+        except CheckpointError as exc:
+            raise CheckpointError(f"{path}: {exc}") from exc
 
     def save_last(self) -> None:
         """Write `last.pth` with the full state (main process only)."""
