@@ -113,3 +113,14 @@ def test_train_resume_from_a_damaged_file_is_one_error_line_and_exit_2(tmp_path,
     err = capsys.readouterr().err
     assert err.startswith("emcstereo train: error: ") and "last.pth" in err and "Traceback" not in err
     assert err.count("\n") == 1
+
+
+def test_model_settings_in_a_training_recipe_are_checked_as_config_errors():
+    from stereo.training.config import ConfigError, build_config
+
+    config = build_config({"model": {"hourglass_wiring": "psmnet", "align_corners": False}})
+    assert (config.model.hourglass_wiring, config.model.align_corners) == ("psmnet", False)
+    with pytest.raises(ConfigError, match=r"\[model\] hourglass_wiring must be one of psmnet, openstereo"):
+        build_config({"model": {"hourglass_wiring": "pre3"}})
+    with pytest.raises(ConfigError, match=r"\[model\] max_disp must be a positive multiple of 4 up to 1024"):
+        build_config({"model": {"max_disp": 10**12}})
