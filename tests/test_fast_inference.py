@@ -77,7 +77,7 @@ def test_fast_path_equals_plain_eager_forward_on_a_real_pair(full_model, real_pa
     assert float(plain_disp.std()) > 1.0  # a varied disparity map, not a constant
 
 
-@pytest.mark.parametrize(("wiring", "align_corners"), [("psmnet", False), ("openstereo", True), ("psmnet", True)])
+@pytest.mark.parametrize(("wiring", "align_corners"), [("psmnet", False), ("openstereo", True)])
 def test_fast_path_without_attention_modules_equals_plain_forward(real_pair, wiring, align_corners):
     """Both hourglass wirings and both upsampling conventions: the fast path follows the model's settings."""
     torch.manual_seed(3)
