@@ -4,7 +4,7 @@ On a terminal tqdm redraws one line with carriage returns. Written to a file, a 
 every redraw becomes a separate log line (ten a second). `progress_bar` keeps tqdm's bar on a
 terminal; elsewhere it prints one plain line (no carriage return, no padding) at most every
 `PLAIN_INTERVAL_S` seconds, plus the first and the last state. Used by `record`, `replay`,
-`emcstereo synth` and training.
+`emcstereo synth`, training, evaluation and weight downloads.
 """
 from __future__ import annotations
 
