@@ -3,6 +3,9 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# Optional package index for torch alone, e.g. the CPU-only builds:
+#   make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu
+TORCH_INDEX ?=
 
 .PHONY: demo test setup clean
 
@@ -11,6 +14,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml deploy/constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
+	$(if $(TORCH_INDEX),$(PY) -m pip install --quiet -c deploy/constraints.txt --index-url $(TORCH_INDEX) torch)
 	$(PY) -m pip install --quiet -c deploy/constraints.txt -e ".[dev,onnx,ros]"
 	touch $(STAMP)
 

@@ -3,10 +3,20 @@
 Both build their pipeline with `pipeline_for` and run every frame through `process_frame`, so
 replaying a recording after a flight gives the results the daemon computed in the air (the
 timing aside), and both write the same log lines.
+
+A results log starts each run with a header line (`run_header_line`): `{"schema":
+"branchrange/run-header/v1", "version", "config_sha256", "started_utc", "source", "kind"}`, so
+runs appended to one file stay apart. `read_results` gives back the frame results of a log and
+skips the headers; `read_runs` groups them by run.
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
+from collections.abc import Iterator
+from datetime import datetime, timezone
+from pathlib import Path
 from typing import Any
 
 from branchrange.config import Config, pipeline_config
@@ -42,3 +52,53 @@ def process_frame(pipeline: Any, frame: StereoFrame) -> dict[str, Any]:
 def result_line(result: dict[str, Any]) -> str:
     """The result as one compact JSON line, newline included: the results log format."""
     return json.dumps(result, separators=(",", ":")) + "\n"
+
+
+RUN_HEADER_SCHEMA = "branchrange/run-header/v1"
+
+
+def config_sha256(cfg: Config) -> str:
+    """SHA-256 (hex) of the effective configuration, every key sorted: equal hashes, equal settings."""
+    text = json.dumps(dataclasses.asdict(cfg), sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def run_header(kind: str, cfg: Config, source: str) -> dict[str, Any]:
+    """The header of one run: what wrote it (`kind`, e.g. "replay" or "daemon"), the package
+    version, the configuration's hash, the UTC start time (ISO 8601, ms) and the source spec."""
+    from stereo.cli import package_version
+
+    started = datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return {"schema": RUN_HEADER_SCHEMA, "version": package_version(), "config_sha256": config_sha256(cfg),
+            "started_utc": started, "source": source, "kind": kind}
+
+
+def run_header_line(kind: str, cfg: Config, source: str) -> str:
+    """`run_header(...)` as one JSON line, newline included: the first line a run writes to its log."""
+    return result_line(run_header(kind, cfg, source))
+
+
+def is_run_header(record: Any) -> bool:
+    """Whether a parsed log line is a run header (not a frame result)."""
+    return isinstance(record, dict) and record.get("schema") == RUN_HEADER_SCHEMA
+
+
+def read_runs(path: str | Path) -> list[tuple[dict[str, Any] | None, list[dict[str, Any]]]]:
+    """The runs of a results log: (header, frame results) each; results before any header (logs
+    written before headers existed) come as a run whose header is None. Blank lines are skipped."""
+    runs: list[tuple[dict[str, Any] | None, list[dict[str, Any]]]] = []
+    with open(path, encoding="utf-8") as stream:
+        for record in (json.loads(line) for line in stream if line.strip()):
+            if is_run_header(record):
+                runs.append((record, []))
+            else:
+                if not runs:
+                    runs.append((None, []))
+                runs[-1][1].append(record)
+    return runs
+
+
+def read_results(path: str | Path) -> Iterator[dict[str, Any]]:
+    """Every frame result of a results log, in order, run headers skipped."""
+    for _, results in read_runs(path):
+        yield from results

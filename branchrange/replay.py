@@ -17,21 +17,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
-from tqdm import tqdm
 
 from branchrange.config import Config
-from branchrange.frame_results import pipeline_for, process_frame, result_line
+from branchrange.frame_results import pipeline_for, process_frame, result_line, run_header_line
 from branchrange.overlay import draw_overlay
 from branchrange.overlay_video import OverlayVideoWriter, check_video
 from camera.sources import CorruptFrameError, ReplaySource, open_source
-from camera.sources.recording_format import read_manifest
 from camera.sources.rosbag import RosbagSource
+from stereo.progress import progress_bar
 
 log = logging.getLogger("branchrange.replay")
-#: Frame rate of the overlay video when the recording does not say (frames per second).
-FALLBACK_VIDEO_FPS = 10.0
 #: Called once per processed frame with its result and the pipeline's `FrameArtifacts` (the daemon's
 #: observer contract; branchrange.foxglove_sink.FoxgloveSink is one).
 Observer = Callable[[dict[str, Any], Any], None]
@@ -137,18 +133,6 @@ def source_spec(recording: str | Path) -> str:
     return f"{'rosbag' if is_bag else 'replay'}:{text}"
 
 
-def recorded_fps(recording: str | Path) -> float:
-    """The recording's frame rate (the manifest's, or the video's), else `FALLBACK_VIDEO_FPS`."""
-    path = Path(recording)
-    if path.is_dir():
-        fps = read_manifest(path).get("fps")
-    else:
-        capture = cv2.VideoCapture(str(path))
-        fps = capture.get(cv2.CAP_PROP_FPS) if capture.isOpened() else None
-        capture.release()
-    return float(fps) if fps and fps > 0 else FALLBACK_VIDEO_FPS
-
-
 def _overlay_frame(pipeline: Any, result: dict[str, Any]) -> np.ndarray:
     """The overlay (RGB `uint8 H×W×3`) of the frame the pipeline just processed into `result`: its
     rectified left view, the masks it used (recorded or segmented) and the cut points."""
@@ -165,30 +149,34 @@ def _notify(observers: Sequence[Observer], result: dict[str, Any], artifacts: An
 
 
 def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, *, video: str | Path | None = None,
-                     progress: bool = True, observers: Sequence[Observer] = ()) -> ReplaySummary:
-    """Process every frame of `recording` (a recording directory, a side-by-side video, a ROS 2 bag or a
-    `rosbag:` spec, see `source_spec`) with the pipeline `cfg` describes; write one JSON line per frame
-    to `out_jsonl` and, when `video` is given, an overlay video (checked to read back frame for frame).
-    Each result also goes to `observers` with the pipeline's `FrameArtifacts` (e.g. a FoxgloveSink).
+                     progress: bool = True, observers: Sequence[Observer] = (),
+                     fps: float | None = None) -> ReplaySummary:
+    """Process every frame of `recording` (a recording directory, a folder of pairs, a side-by-side video,
+    a ROS 2 bag or a `rosbag:` spec, see `source_spec`) with the pipeline `cfg` describes; write a run
+    header and one JSON line per frame to `out_jsonl` and, when `video` is given, an overlay video at the
+    recording's frame rate (checked to read back frame for frame). Each result also goes to `observers`
+    with the pipeline's `FrameArtifacts` (e.g. a FoxgloveSink).
 
+    `fps` sets a folder of pairs' frame rate (default 15) or overrides a video's.
     `cfg.camera.calibration` overrides the recording's calibration, as in the daemon. Raises
     `camera.sources.SourceError` when the recording cannot be opened or has no calibration.
     """
     spec = source_spec(recording)
-    source = open_source(spec, calibration=cfg.camera.calibration or None, pace="fast")
+    source = open_source(spec, calibration=cfg.camera.calibration or None, pace="fast", fps=fps)
     summary = ReplaySummary(str(recording))
     writer = None
     try:
         pipeline = pipeline_for(cfg, source.calibration)
         if video is not None:
-            fps = source.recorded_fps if isinstance(source, RosbagSource) else recorded_fps(spec.partition(":")[2])
-            writer = OverlayVideoWriter(video, fps)
+            rate = source.recorded_fps if isinstance(source, RosbagSource) else source.fps
+            writer = OverlayVideoWriter(video, rate)
         out = Path(out_jsonl)
         out.parent.mkdir(parents=True, exist_ok=True)
         total = source.frame_count if isinstance(source, ReplaySource) else None
         start = time.perf_counter()
         with out.open("w", encoding="utf-8") as results, \
-                tqdm(total=total, unit="frame", desc="replay", disable=not progress) as bar:
+                progress_bar(total=total, unit="frame", desc="replay", disable=not progress) as bar:
+            results.write(run_header_line("replay", cfg, spec))
             while True:
                 try:
                     frame = next(source)

@@ -6,14 +6,25 @@
   `module.` prefix, under `state_dict`), loaded into the no-attention variant.
 - **ours**: `{"format": FORMAT, "config": ModelConfig, "model": state_dict}` with this package's names.
 
-Every load is strict: each tensor is consumed, none is missing, every shape matches.
+Every load is strict: each tensor is consumed, none is missing, every shape matches. Every
+floating-point tensor is checked before it reaches the model: NaN or ±Inf, or a magnitude above
+`MAX_ABS_WEIGHT` (what a flipped exponent bit produces), is refused with a `CheckpointError` naming
+the tensor; float64 (or float16/bfloat16) tensors are cast to float32 with a warning that names them.
+
+Wiring settings follow the source (`ModelConfig`): PSMNet checkpoints run with PSMNet's code
+(`hourglass_wiring="psmnet"`, `align_corners=False`), the authors' with OpenStereo's
+(`"openstereo"`, `True`), ours with what they store; ours written before these settings existed
+carry `LEGACY_SETTINGS`, what this package ran then. `load_model(…, hourglass_wiring=…,
+align_corners=…)` overrides either.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import pickle
 import re
 import tempfile
+import warnings
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -25,6 +36,17 @@ import torch
 from .model import EMCStereo, ModelConfig
 
 FORMAT = "branchrange.emcstereo/1"
+
+#: Largest |value| a trained EMCStereo tensor plausibly holds (BN running variances stay far below);
+#: a flipped float32 exponent bit gives 1e19 … 3e38.
+MAX_ABS_WEIGHT = 1e6
+#: Wiring of each checkpoint source; "ours" stores its own.
+SOURCE_SETTINGS: dict[str, dict[str, Any]] = {
+    "authors": {"hourglass_wiring": "openstereo", "align_corners": True},
+    "psmnet": {"hourglass_wiring": "psmnet", "align_corners": False},
+}
+#: What our checkpoints without these keys were run with (pre1 skip, align_corners=True).
+LEGACY_SETTINGS: dict[str, Any] = {"hourglass_wiring": "psmnet", "align_corners": True}
 
 #: Our top-level module names ↔ the authors' prefixes.
 _AUTHORS_PREFIXES = (
@@ -60,10 +82,20 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be loaded; the message names the file and what was found."""
 
 
-def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> EMCStereo:
-    """Build the right EMCStereo variant from a checkpoint in any supported layout, in eval mode."""
+def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu", *,
+               hourglass_wiring: str | None = None, align_corners: bool | None = None) -> EMCStereo:
+    """Build the right EMCStereo variant from a checkpoint in any supported layout, in eval mode.
+
+    `hourglass_wiring` / `align_corners` override what the checkpoint's source implies (module docstring).
+    """
     path = Path(path)
     state, config, layout = read_checkpoint(path)
+    overrides = {k: v for k, v in (("hourglass_wiring", hourglass_wiring), ("align_corners", align_corners))
+                 if v is not None}
+    try:
+        config = dataclasses.replace(config, **overrides)
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: {exc}") from exc
     model = EMCStereo(**config.to_dict())
     load_state_strict(model, state, source=f"{path} ({layout} layout)")
     return model.to(device).eval()
@@ -71,17 +103,42 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu")
 
 def read_checkpoint(path: Path) -> tuple[dict[str, torch.Tensor], ModelConfig, str]:
     """Return (state_dict in our names, variant config, layout name) of a checkpoint file."""
-    raw = _torch_load(path)
+    raw = torch_load_checked(path)
     layout, state = _find_state_dict(raw, path)
     if layout == "psmnet":
         state = psmnet_to_ours(state)
     elif layout == "authors":
         state = authors_to_ours(state)
-    config = _config_from(raw, state) if layout == "ours" else variant_from_keys(state)
+    state = checked_tensors(state, path)
+    config = _config_from(raw, state, path) if layout == "ours" else variant_from_keys(state, SOURCE_SETTINGS[layout])
     return state, config, layout
 
 
-def _torch_load(path: Path) -> Any:
+def checked_tensors(state: Mapping[str, torch.Tensor], path: Path) -> dict[str, torch.Tensor]:
+    """`state` with every floating tensor finite, of plausible magnitude and float32 (module docstring)."""
+    checked, widened = {}, []
+    for key, value in state.items():
+        if value.is_floating_point():
+            if not bool(torch.isfinite(value).all()):
+                bad = int((~torch.isfinite(value)).sum())
+                raise CheckpointError(f"{path}: tensor {key} holds {bad} NaN/Inf value(s) of {value.numel()}; "
+                                      "the file is corrupt or the training diverged")
+            largest = float(value.abs().max()) if value.numel() else 0.0
+            if largest > MAX_ABS_WEIGHT:
+                raise CheckpointError(f"{path}: tensor {key} holds |value| {largest:.3g}, above the plausible "
+                                      f"{MAX_ABS_WEIGHT:.0e} (a corrupt file, e.g. a flipped bit)")
+            if value.dtype != torch.float32:
+                widened.append(f"{key} ({str(value.dtype).removeprefix('torch.')})")
+                value = value.float()
+        checked[key] = value
+    if widened:
+        warnings.warn(f"{path}: {len(widened)} tensor(s) cast to float32, e.g. {', '.join(widened[:3])}",
+                      stacklevel=3)
+    return checked
+
+
+def torch_load_checked(path: Path) -> Any:
+    """`torch.load` (weights only, CPU) with every failure as a `CheckpointError` naming the file."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
@@ -145,20 +202,31 @@ def _strip_module(key: str) -> str:
     return key[len("module."):] if key.startswith("module.") else key
 
 
-def _config_from(raw: Mapping[str, Any], state: Mapping[str, torch.Tensor]) -> ModelConfig:
+def _config_from(raw: Mapping[str, Any], state: Mapping[str, torch.Tensor], path: Path) -> ModelConfig:
     stored = raw.get("config")
-    return ModelConfig(**stored) if isinstance(stored, Mapping) else variant_from_keys(state)
+    if stored is None:
+        return variant_from_keys(state, LEGACY_SETTINGS)
+    if not isinstance(stored, Mapping):
+        raise CheckpointError(f"{path}: `config` is a {type(stored).__name__}, expected a dict of model settings")
+    try:
+        return ModelConfig.from_mapping(stored, LEGACY_SETTINGS)
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: bad `config`: {exc}") from exc
 
 
-def variant_from_keys(state: Mapping[str, torch.Tensor]) -> ModelConfig:
-    """Which modules a state_dict (our names) holds, and its disparity range."""
+def variant_from_keys(state: Mapping[str, torch.Tensor], settings: Mapping[str, Any] = {}) -> ModelConfig:
+    """Which modules a state_dict (our names) holds, and its disparity range; `settings` adds the wiring."""
     regression = state.get("regression.weight")
-    return ModelConfig(
-        ema=any(k.startswith("backbone.ema.") for k in state),
-        msf=any(k.startswith("backbone.msf.") for k in state),
-        coord=any(k.startswith("backbone.coord_att.") for k in state),
-        max_disp=int(regression.numel()) if regression is not None else 192,
-    )
+    try:
+        return ModelConfig(
+            ema=any(k.startswith("backbone.ema.") for k in state),
+            msf=any(k.startswith("backbone.msf.") for k in state),
+            coord=any(k.startswith("backbone.coord_att.") for k in state),
+            max_disp=int(regression.numel()) if regression is not None else 192,
+            **settings,
+        )
+    except ValueError as exc:
+        raise CheckpointError(f"the checkpoint's tensors describe no buildable model: {exc}") from exc
 
 
 def authors_to_ours(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import sys
 from collections.abc import Sequence
 
@@ -22,9 +23,18 @@ COMMAND_MODULES: tuple[str, ...] = (
 )
 
 
+def package_version() -> str:
+    """The installed `branchrange` distribution's version (both commands ship in it)."""
+    try:
+        return importlib.metadata.version("branchrange")
+    except importlib.metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        return "0+unknown"
+
+
 def build_parser(prog: str, description: str, modules: Sequence[str]) -> argparse.ArgumentParser:
-    """A parser whose subcommands are registered by the given modules."""
+    """A parser with `--version` whose subcommands are registered by the given modules."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("--version", action="version", version=f"{prog} {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in modules:
         importlib.import_module(name).register(sub)

@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from stereo.datasets.transforms import to_network_input
 from stereo.io import colorize_disparity, write_rgb
 from stereo.metrics import MetricAverager, valid_mask
 from stereo.padding import compute_padding, pad_image, unpad
+from stereo.progress import progress_bar
 
 #: The columns of the paper's table, in its order, and how the text report names them.
 PAPER_COLUMNS = {"epe": "EPE", "d1_all": "D1-all", "bad_1": "Bad-1", "bad_3": "Bad-3", "rmse": "RMSE",
@@ -118,7 +118,7 @@ def evaluate(
     averager = MetricAverager(max_disp=max_disp)
     result = EvaluationResult(mean={})
     count = len(dataset) if limit <= 0 else min(limit, len(dataset))
-    for index in tqdm(range(count), desc="evaluate", disable=not progress, leave=False):
+    for index in progress_bar(iterable=range(count), desc="evaluate", disable=not progress, leave=False):
         raw = dataset[index]
         sample = to_network_input(raw)
         pred = predict_disparity(

@@ -41,7 +41,8 @@ def authors_checkpoint(tmp_path, reference_docs) -> tuple[Path, dict[str, torch.
 def test_authors_release_layout_loads_every_tensor(authors_checkpoint):
     path, state = authors_checkpoint
     model = load_model(path)
-    assert model.config.to_dict() == {"ema": True, "msf": True, "coord": True, "max_disp": 192}
+    assert model.config.to_dict() == {"ema": True, "msf": True, "coord": True, "max_disp": 192,
+                                      "hourglass_wiring": "openstereo", "align_corners": True}
     ours = model.state_dict()
     torch.testing.assert_close(ours["backbone.ema.conv3x3.weight"], state["Backbone.ema.conv3x3.weight"])
     torch.testing.assert_close(ours["aggregation.classif3.1.weight"], state["CostProcessor.aggregator.classif3.1.weight"])
@@ -65,6 +66,8 @@ def test_psmnet_checkpoint_loads_into_no_attention_variant(tmp_path, reference_d
     model = load_model(path)
     ours = model.state_dict()
     assert sum(p.numel() for p in model.parameters()) == 5_225_152
+    # PSMNet's code: the third hourglass takes pre1; its F.upsample leaves align_corners=False.
+    assert (model.config.hourglass_wiring, model.config.align_corners) == ("psmnet", False)
     # PSMNet's shortcut convs have no bias and its regression is 0..191: the added tensors keep its output.
     assert float(ours["backbone.layer2.0.downsample.0.bias"].abs().sum()) == 0.0
     assert float(ours["backbone.layer3.0.downsample.0.bias"].abs().sum()) == 0.0

@@ -84,7 +84,8 @@ def test_emcstereo_train_under_torchrun_shards_the_data_and_reports_once(job):
     assert len(reports) == 1 and reports[0].startswith("finished: 1 steps, 1 epochs"), job["stdout"]
     checkpoint = torch.load(out / "last.pth", weights_only=True)
     assert checkpoint["progress"]["step"] == 1, "2 pairs / 2 processes / batch 1 = 1 step per epoch"
-    assert checkpoint["config"] == {"ema": True, "msf": True, "coord": False, "max_disp": 16}
+    assert checkpoint["config"] == {"ema": True, "msf": True, "coord": False, "max_disp": 16,
+                                    "hourglass_wiring": "openstereo", "align_corners": True}
     assert len(checkpoint["progress"]["history"]) == 1 and (out / "metrics.csv").is_file()
     best = torch.load(out / "best.pth", weights_only=True)
     assert best["epoch"] == 1 and best["val_metrics"]["epe"] == checkpoint["progress"]["history"][0]["val_epe"]

@@ -77,9 +77,12 @@ def test_fast_path_equals_plain_eager_forward_on_a_real_pair(full_model, real_pa
     assert float(plain_disp.std()) > 1.0  # a varied disparity map, not a constant
 
 
-def test_fast_path_without_attention_modules_equals_plain_forward(real_pair):
+@pytest.mark.parametrize(("wiring", "align_corners"), [("psmnet", False), ("openstereo", True)])
+def test_fast_path_without_attention_modules_equals_plain_forward(real_pair, wiring, align_corners):
+    """Both hourglass wirings and both upsampling conventions: the fast path follows the model's settings."""
     torch.manual_seed(3)
-    model = randomise_batchnorm_statistics(EMCStereo(ema=False, msf=False, coord=False), seed=3).eval()
+    model = EMCStereo(ema=False, msf=False, coord=False, hourglass_wiring=wiring, align_corners=align_corners)
+    model = sharpen_costs(randomise_batchnorm_statistics(model, seed=3)).eval()
     with torch.inference_mode():
         reference, _ = model.infer(*real_pair, max_disp=64, fast=False)
         fast, _ = model.infer(*real_pair, max_disp=64)
@@ -151,14 +154,16 @@ def test_fold_batchnorms_replaces_each_following_batchnorm_and_keeps_the_rest():
         torch.testing.assert_close(folded(x), block.eval()(x), atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.parametrize("align_corners", [True, False])
 @pytest.mark.parametrize(("disparities", "rows_per_chunk"), [(192, 32), (192, 7), (64, 5), (100, 64)])
-def test_chunked_soft_argmin_equals_full_volume_regression(disparities, rows_per_chunk):
+def test_chunked_soft_argmin_equals_full_volume_regression(disparities, rows_per_chunk, align_corners):
     torch.manual_seed(0)
     cost = torch.randn(2, 1, 48, 9, 11) * 4
     regression = DisparityRegression(192)
-    expected_disp, expected_conf = regression.with_confidence(upsample_cost(cost, disparities, 36, 44, 47 / 191))
-    disp, conf = upsampled_soft_argmin(cost, regression.weight.reshape(-1)[:disparities], 36, 44, 47 / 191,
-                                       rows_per_chunk=rows_per_chunk)
+    expected_disp, expected_conf = regression.with_confidence(
+        upsample_cost(cost, disparities, 36, 44, 192, align_corners))
+    disp, conf = upsampled_soft_argmin(cost, regression.weight.reshape(-1)[:disparities], 36, 44, 192,
+                                       align_corners, rows_per_chunk=rows_per_chunk)
     torch.testing.assert_close(disp, expected_disp, atol=1e-3, rtol=0)
     torch.testing.assert_close(conf, expected_conf, atol=1e-4, rtol=0)
 
@@ -166,14 +171,14 @@ def test_chunked_soft_argmin_equals_full_volume_regression(disparities, rows_per
 def test_confidence_window_at_the_top_of_the_range_counts_each_disparity_once():
     cost = torch.full((1, 1, 48, 4, 4), -50.0)
     cost[:, :, -1] = 50.0  # all mass on the last disparity
-    disp, conf = upsampled_soft_argmin(cost, torch.arange(192.0), 16, 16, 47 / 191)
+    disp, conf = upsampled_soft_argmin(cost, torch.arange(192.0), 16, 16, 192)
     torch.testing.assert_close(disp, torch.full_like(disp, 191.0), atol=1e-3, rtol=0)
     torch.testing.assert_close(conf, torch.ones_like(conf), atol=1e-5, rtol=0)
 
 
 def test_chunked_soft_argmin_refuses_an_empty_chunk():
     with pytest.raises(ValueError, match="rows_per_chunk"):
-        upsampled_soft_argmin(torch.zeros(1, 1, 48, 4, 4), torch.arange(192.0), 16, 16, 47 / 191, rows_per_chunk=0)
+        upsampled_soft_argmin(torch.zeros(1, 1, 48, 4, 4), torch.arange(192.0), 16, 16, 192, rows_per_chunk=0)
 
 
 def test_fast_inference_refuses_soft_argmin_weights_other_than_the_disparities():

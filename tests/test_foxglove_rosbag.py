@@ -20,6 +20,7 @@ from websockets.sync.client import connect
 from branchrange.cli import main as branchrange_main
 from branchrange.config import Config, StereoConfig
 from branchrange.foxglove_layout import layout, layout_text
+from branchrange.frame_results import read_results
 from branchrange.foxglove_sink import (BODY_FRAME, CAMERA_FRAME, LOCAL_FRAME, TOPICS, FoxgloveSink, FoxgloveTargetError,
                                        FoxgloveTargets, parse_targets)
 from branchrange.mavlink import CameraMount
@@ -41,7 +42,7 @@ def without_timing(results: list[dict]) -> list[dict]:
 
 
 def read_lines(path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines()]
+    return list(read_results(path))  # frame results; the run header is skipped
 
 
 @pytest.fixture(scope="module")

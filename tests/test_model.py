@@ -94,11 +94,24 @@ def test_cost_volume_passes_gradients_to_both_features():
     torch.testing.assert_close(right.grad, expected_right)
 
 
-def test_upsampling_equals_trilinear_align_corners_over_full_range():
+@pytest.mark.parametrize("align_corners", [True, False])
+def test_upsampling_equals_trilinear_over_full_range(align_corners):
     torch.manual_seed(0)
     cost = torch.randn(2, 1, 48, 8, 10)
-    expected = F.interpolate(cost, size=(192, 32, 40), mode="trilinear", align_corners=True)[:, 0]
-    torch.testing.assert_close(upsample_cost(cost, 192, 32, 40, 47 / 191), expected, atol=1e-4, rtol=1e-4)
+    expected = F.interpolate(cost, size=(192, 32, 40), mode="trilinear", align_corners=align_corners)[:, 0]
+    got = upsample_cost(cost, 192, 32, 40, 192, align_corners)
+    torch.testing.assert_close(got, expected, atol=1e-4, rtol=1e-4)
+
+
+def test_align_corners_is_a_model_setting_that_changes_the_disparity():
+    """PSMNet's False and the authors' True give different maps from the same weights."""
+    torch.manual_seed(0)
+    cost = torch.randn(1, 1, 48, 8, 10) * 5
+    authors = EMCStereo(ema=False, msf=False, coord=False)
+    psmnet = EMCStereo(ema=False, msf=False, coord=False, align_corners=False)
+    assert authors.config.align_corners and not psmnet.config.align_corners
+    gap = (authors._upsample(cost, 192, 32, 40) - psmnet._upsample(cost, 192, 32, 40)).abs().max()
+    assert float(gap) > 0.1
 
 
 @pytest.fixture(scope="module")

@@ -70,5 +70,6 @@ def test_export_command_reports_a_bad_checkpoint_without_a_traceback(tmp_path, c
     bad.write_text("junk\n")
     status = emcstereo_main(["export", "--onnx", str(tmp_path / "x.onnx"), "--weights", str(bad)])
     assert status == 2
-    assert "bad.pt: not a readable torch checkpoint" in capsys.readouterr().out
+    err = capsys.readouterr().err
+    assert err.startswith("emcstereo export: error: ") and "bad.pt: not a readable torch checkpoint" in err
     assert not (tmp_path / "x.onnx").exists()

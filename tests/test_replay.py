@@ -16,7 +16,7 @@ from branchrange.cli import main as branchrange_main
 from branchrange.commands.replay import summary_path
 from branchrange.config import Config, StereoConfig
 from branchrange.daemon import Daemon
-from branchrange.frame_results import pipeline_for
+from branchrange.frame_results import pipeline_for, read_results
 from branchrange.overlay_video import DEFAULT_CODECS, OverlayVideoWriter, VideoCodec, VideoWriteError, check_video
 from branchrange.pipeline import SCHEMA_PATH
 from camera.sources import Recorder, ReplaySource, StereoFrame
@@ -48,7 +48,7 @@ def replayed(recording, config_file, tmp_path_factory):
     results, video = out / "results.jsonl", out / "overlay.mp4"
     status = branchrange_main(["replay", str(recording), "--out", str(results), "--overlay-video", str(video),
                                "--summary", "--config", str(config_file)])
-    lines = [json.loads(line) for line in results.read_text().splitlines()]
+    lines = list(read_results(results))
     return status, lines, json.loads(summary_path(results).read_text()), video
 
 
@@ -161,7 +161,7 @@ def test_replay_skips_a_corrupt_frame_and_counts_it(recording, tmp_path):
     from branchrange.replay import replay_recording
 
     summary = replay_recording(broken, cfg, tmp_path / "r.jsonl", progress=False)
-    lines = [json.loads(line) for line in (tmp_path / "r.jsonl").read_text().splitlines()]
+    lines = list(read_results(tmp_path / "r.jsonl"))
     assert [r["frame"]["index"] for r in lines] == [0, 2, 3]
     assert summary.corrupt == 1 and summary.frames == 3 and summary.to_dict()["frames"]["with_target"] == 3
 
@@ -171,7 +171,7 @@ def test_replay_of_a_recording_without_calibration_says_so(tmp_path, capsys):
     with Recorder(tmp_path / "rec") as recorder:
         recorder.write(frame)
     status = branchrange_main(["replay", str(tmp_path / "rec"), "--out", str(tmp_path / "r.jsonl")])
-    assert status == 1
+    assert status == 2  # bad input: nothing was processed
     assert "no calibration; set camera.calibration" in capsys.readouterr().err
 
 
@@ -185,7 +185,7 @@ def test_replay_results_equal_the_daemons_on_the_same_recording(recording, repla
         daemon.run()
     finally:
         daemon.close()
-    daemon_lines = [json.loads(line) for line in (tmp_path / "daemon.jsonl").read_text().splitlines()]
+    daemon_lines = list(read_results(tmp_path / "daemon.jsonl"))
     assert len(daemon_lines) >= FRAMES - 1  # a heavily loaded machine may make the daemon drop one
     by_index = {r["frame"]["index"]: r for r in replay_lines}
     for result in daemon_lines:

@@ -116,7 +116,8 @@ def test_rng_state_round_trips_through_a_weights_only_checkpoint(tmp_path):
 
 #: The headline recipe, key by key (paper Table "Training configuration", reference facts §4, §5, §7).
 HEADLINE = {
-    "model": {"ema": True, "msf": True, "coord": True, "max_disp": 192},
+    "model": {"ema": True, "msf": True, "coord": True, "max_disp": 192, "hourglass_wiring": "openstereo",
+              "align_corners": True},
     "data": {"dataset": "virtualtree", "split": "files", "train_split": "virtualtree_train.txt",
              "val_split": "virtualtree_val.txt", "val_fraction": 0.1, "split_seed": 0, "group_pattern": "",
              "crop": [256, 512], "color_jitter": True, "num_workers": 8},

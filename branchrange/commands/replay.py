@@ -8,14 +8,18 @@ import logging
 import sys
 from pathlib import Path
 
+from branchrange.commands.exit_codes import BAD_INPUT, DONE, EPILOG, STOPPED_ON_ERROR
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `replay` to the `branchrange` command."""
     p = subparsers.add_parser("replay", help="turn a recording into results, a summary and an overlay video",
-                              description=__doc__)
-    p.add_argument("recording", help="a recording directory (branchrange record), a side-by-side video file, a ROS 2 "
-                                     "bag (directory, .mcap or .db3) or a rosbag:PATH?left=TOPIC&… spec")
-    p.add_argument("--out", required=True, help="results, one branchrange/v1 JSON line per frame")
+                              description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("recording", help="a recording directory (branchrange record), a folder of pairs (left/ + right/ "
+                                     "[+ mask/]), a side-by-side video file, a ROS 2 bag (directory, .mcap or .db3) "
+                                     "or a rosbag:PATH?left=TOPIC&… spec")
+    p.add_argument("--fps", type=float, help="frame rate of a folder of pairs (default 15) or a video's override")
+    p.add_argument("--out", required=True, help="results: a run header line, then one branchrange/v1 JSON line per frame")
     p.add_argument("--overlay-video", help="write an overlay video here (.mp4 with mp4v; .avi with MJPG when "
                                            "this OpenCV cannot write mp4v)")
     p.add_argument("--summary", action="store_true",
@@ -55,20 +59,30 @@ def run(args: argparse.Namespace) -> int:
         targets = parse_targets(args.foxglove) if args.foxglove else None
     except (ConfigError, FoxgloveTargetError) as exc:
         print(f"branchrange replay: {exc}", file=sys.stderr)
-        return 2
+        return BAD_INPUT
+    if args.fps is not None and not args.fps > 0:
+        print(f"branchrange replay: --fps is {args.fps}; expected a positive frame rate", file=sys.stderr)
+        return BAD_INPUT
     logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     sink = None
     try:
         sink = FoxgloveSink(targets) if targets else None
         summary = replay_recording(args.recording, cfg, args.out, video=args.overlay_video,
-                                   observers=[sink] if sink else [])
-    except (SourceError, VideoWriteError, ValueError) as exc:
+                                   observers=[sink] if sink else [], fps=args.fps)
+    except (SourceError, ValueError) as exc:  # recording missing / truncated / unreadable, or settings it cannot use
         print(f"branchrange replay: {exc}", file=sys.stderr)
-        return 1
+        return BAD_INPUT
+    except VideoWriteError as exc:
+        print(f"branchrange replay: {exc}", file=sys.stderr)
+        return STOPPED_ON_ERROR
     finally:
         if sink is not None:
             sink.close()
-    print(f"results: {args.out} ({summary.frames} lines)")
+    if summary.frames == 0 and summary.corrupt and not summary.rejected:
+        print(f"branchrange replay: none of the {summary.corrupt} frames of {args.recording} could be read; "
+              "expected a readable recording (see the warnings above)", file=sys.stderr)
+        return BAD_INPUT
+    print(f"results: {args.out} (a run header and {summary.frames} result lines)")
     if sink is not None:
         print(f"foxglove: {sink.describe()} (open it in Foxglove with deploy/foxglove_layout.json)")
     if args.summary:
@@ -78,4 +92,4 @@ def run(args: argparse.Namespace) -> int:
         print(f"summary: {path}")
     elif summary.video:
         print(f"overlay video: {summary.video} ({summary.video_codec})")
-    return 0 if summary.frames else 1
+    return DONE if summary.frames else STOPPED_ON_ERROR

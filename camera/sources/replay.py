@@ -1,9 +1,15 @@
-"""Replay of recorded stereo sequences: a recording directory or a side-by-side video file.
+"""Replay of recorded stereo sequences: a recording directory, a plain folder of pairs, or a side-by-side video.
+
+A folder of pairs is `DIR/left/*` and `DIR/right/*` image files (PNG, JPEG, BMP, TIFF) paired in
+name order (digit runs compared as numbers, so `2.png` comes before `10.png`), with an optional
+`DIR/mask/*` (one per pair, same order) and an optional `DIR/calibration.yaml`; it has no
+timestamps, so frame i is stamped i / fps (default `PAIR_FOLDER_FPS`).
 
 This is also the file-based camera the tests and the daemon's tests use in place of hardware.
 """
 from __future__ import annotations
 
+import re
 import statistics
 import threading
 import time
@@ -17,11 +23,15 @@ from camera.calibration import StereoCalibration
 from camera.load import load_calibration
 from camera.sources.frame import SourceBase, SourceConfigError, SourceUnavailable, StereoFrame
 from camera.sources.image_files import read_mask, read_rgb, split_side_by_side
-from camera.sources.recording_format import mask_name, read_manifest, read_timestamps
+from camera.sources.recording_format import (CALIBRATION_NAME, MANIFEST_NAME, TIMESTAMPS_NAME, RecordingFormatError,
+                                             mask_name, read_manifest, read_timestamps)
 
 #: Pacing modes: "recorded" waits so frames come at the recorded rate, "fast" returns them at once.
 PACES = ("recorded", "fast")
 DEFAULT_PERIOD_NS = 33_333_333
+#: Frame rate given to a folder of pairs (which has no timestamps) unless `fps` says otherwise.
+PAIR_FOLDER_FPS = 15.0
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 class _DirectoryFrames:
@@ -69,6 +79,75 @@ class _DirectoryFrames:
 
     def close(self) -> None:
         """Nothing stays open between reads."""
+
+
+def _natural_key(name: str) -> list[int | str]:
+    """Sort key comparing digit runs as numbers: frame_2 < frame_10."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def _images_in(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
+                  key=lambda p: _natural_key(p.name))
+
+
+class _PairFolderFrames:
+    """Frames of a plain folder of pairs (`left/`, `right/`, optional `mask/`), stamped i / fps."""
+
+    def __init__(self, directory: Path, fps: float | None) -> None:
+        rate = PAIR_FOLDER_FPS if fps is None else fps
+        if not rate > 0:
+            raise SourceConfigError(f"fps is {fps}; expected a positive frame rate for a folder of pairs")
+        self.directory = directory
+        self.lefts, self.rights = _images_in(directory / "left"), _images_in(directory / "right")
+        if not self.lefts or len(self.lefts) != len(self.rights):
+            raise RecordingFormatError(
+                f"{directory}: left/ holds {len(self.lefts)} images and right/ {len(self.rights)}; expected the same "
+                f"number (at least one) of {'/'.join(IMAGE_SUFFIXES)} files, paired in name order")
+        self.masks = _images_in(directory / "mask") if (directory / "mask").is_dir() else []
+        if self.masks and len(self.masks) != len(self.lefts):
+            raise RecordingFormatError(f"{directory}: mask/ holds {len(self.masks)} images for {len(self.lefts)} pairs; "
+                                       "expected one mask per pair (or no mask/ folder)")
+        self.period_ns = int(round(1e9 / rate))
+        self.count = len(self.lefts)
+        self._position = 0
+
+    def seek(self, position: int) -> None:
+        """Make `position` (0-based, in name order) the next pair read."""
+        self._position = position
+
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of one view, from the first left image."""
+        first = read_rgb(self.lefts[0])
+        return int(first.shape[1]), int(first.shape[0])
+
+    def read(self) -> StereoFrame | None:
+        """The next pair (index = position, timestamp = position / fps), None after the last."""
+        if self._position >= self.count:
+            return None
+        position = self._position
+        self._position += 1
+        mask = read_mask(self.masks[position]) if self.masks else None
+        return StereoFrame(read_rgb(self.lefts[position]), read_rgb(self.rights[position]),
+                           position * self.period_ns, position, mask)
+
+    def calibration(self) -> StereoCalibration | None:
+        """`DIR/calibration.yaml` when present, else None (pass one to ReplaySource or `--calibration`)."""
+        path = self.directory / CALIBRATION_NAME
+        return load_calibration(path) if path.is_file() else None
+
+    def close(self) -> None:
+        """Nothing stays open between reads."""
+
+
+def _directory_frames(directory: Path, fps: float | None) -> _DirectoryFrames | _PairFolderFrames:
+    """A recording (it has a manifest or timestamps) or else a folder of pairs (it has left/ and right/)."""
+    if (directory / MANIFEST_NAME).is_file() or (directory / TIMESTAMPS_NAME).is_file():
+        return _DirectoryFrames(directory)  # a damaged recording is reported as one, never read as plain pairs
+    if (directory / "left").is_dir() and (directory / "right").is_dir():
+        return _PairFolderFrames(directory, fps)
+    raise RecordingFormatError(f"{directory}: neither a recording ({MANIFEST_NAME} missing) nor a folder of pairs "
+                               "(left/ and right/ image folders); expected one of the two")
 
 
 class _VideoFrames:
@@ -137,14 +216,15 @@ class _VideoFrames:
 
 
 class ReplaySource(SourceBase):
-    """Replays a recording directory (`branchrange record` layout) or a side-by-side video file.
+    """Replays a recording directory (`branchrange record` layout), a folder of pairs or a side-by-side video file.
 
     `pace="recorded"` waits so frames come at the recorded rate, `"fast"` as fast as they decode.
     `loop=True` starts again at `start` after the last frame; indices then keep growing (recorded
     index + pass × frame count) and timestamps keep increasing by the sequence's duration.
     `start` is the position (0-based) of the first frame replayed. `calibration` overrides the
     recording's own copy (a video has none: pass one, or leave it None). `fps` overrides a video's
-    frame rate. A frame whose image cannot be decoded raises CorruptFrameError; the next call goes on.
+    frame rate and sets a folder of pairs' (default 15). A frame whose image cannot be decoded
+    raises CorruptFrameError; the next call goes on.
     """
 
     def __init__(self, path: str | Path, *, pace: str = "recorded", loop: bool = False, start: int = 0,
@@ -176,7 +256,7 @@ class ReplaySource(SourceBase):
         """The frame reader of `self.path` (read, seek, count, period_ns, frame_size, calibration, close);
         a subclass replaying another container (camera.sources.rosbag) returns its own."""
         if self.path.is_dir():
-            return _DirectoryFrames(self.path)
+            return _directory_frames(self.path, fps)
         if self.path.is_file():
             return _VideoFrames(self.path, fps)
         raise SourceUnavailable(f"{self.path}: no such recording directory or video file")
@@ -185,6 +265,11 @@ class ReplaySource(SourceBase):
     def frame_size(self) -> tuple[int, int]:
         """(width, height) of each view in pixels, known before the first frame is read."""
         return self._frames.frame_size()
+
+    @property
+    def fps(self) -> float:
+        """Frames per second: the recording's median rate, the video's, or the one given to a folder of pairs."""
+        return 1e9 / self._frames.period_ns
 
     @property
     def frame_count(self) -> int | None:

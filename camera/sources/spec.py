@@ -2,7 +2,7 @@
 
 Specs: `zed:0`, `zed:0:HD720`, `zed:/dev/video0`, `zed:/dev/video0:VGA` (device index or path, then
 an optional mode), `oak`, `oak:640x400`, `oak:1280x800@60` (output size and fps), `replay:PATH`
-(a recording directory or a side-by-side video file), `rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag,
+(a recording directory, a folder of pairs `left/` + `right/`, or a side-by-side video file), `rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag,
 see camera.sources.rosbag).
 """
 from __future__ import annotations
@@ -43,14 +43,14 @@ def parse_zed_spec(rest: str) -> tuple[int | str, str]:
 
 
 def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None = None, latest: bool = False,
-                pace: str = "recorded", loop: bool = False, start: int = 0) -> SourceBase:
+                pace: str = "recorded", loop: bool = False, start: int = 0, fps: float | None = None) -> SourceBase:
     """Open the source a spec names (see the module docstring).
 
     `calibration`: a StereoCalibration or a calibration file overriding what the source knows; a
     file is read for the source's frame size (a ZED conf at the ZED mode's or the recording's
     resolution, a depthai JSON scaled to the OAK output or recording size). `latest=True` wraps the source in
     LatestFrameSource (a slow consumer then always gets the newest frame). `pace`, `loop`, `start`
-    apply to replays.
+    apply to replays, `fps` to `replay:` (a folder of pairs' frame rate, or a video's override).
     """
     kind, _, rest = spec.strip().partition(":")
     kind = kind.lower()
@@ -69,7 +69,7 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
     elif kind == "replay":
         if not rest:
             raise SourceConfigError(f"source spec {spec!r}: expected replay:PATH")
-        source = _calibrated(ReplaySource(rest, pace=pace, loop=loop, start=start), calibration)
+        source = _calibrated(ReplaySource(rest, pace=pace, loop=loop, start=start, fps=fps), calibration)
     elif kind == "rosbag":
         from camera.sources.rosbag import RosbagSource, parse_rosbag_spec  # rosbags is imported only for bags
 

@@ -10,6 +10,7 @@ from torch.utils.data import Dataset
 
 from stereo.checkpoints import CheckpointError
 from stereo.datasets import DatasetError
+from stereo.export import ExportError
 from stereo.io import StereoIOError
 from stereo.training.config import ConfigError, ExperimentConfig, load_config
 from stereo.training.distributed import context_from_env, shutdown
@@ -19,7 +20,7 @@ from stereo.training.trainer import TrainResult
 
 
 #: Errors caused by what the user gave (config, data, weights); the commands print them without a traceback.
-INPUT_ERRORS = (ConfigError, DatasetError, CheckpointError, StereoIOError)
+INPUT_ERRORS = (ConfigError, DatasetError, CheckpointError, StereoIOError, ExportError)
 
 
 def run_reporting_input_errors(command: str, body: Callable[[], int]) -> int:

@@ -5,8 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from tqdm import tqdm
-
+from stereo.progress import progress_bar
 from stereo.weights import REGISTRY, WeightsError, fetch_weights, get_weights_info, sha256_of
 
 
@@ -22,7 +21,7 @@ def _list(args: argparse.Namespace) -> int:
 def _fetch(args: argparse.Namespace) -> int:
     try:
         info = get_weights_info(args.name)
-        with tqdm(unit="B", unit_scale=True, desc=info.filename, disable=args.quiet) as bar:
+        with progress_bar(unit="B", unit_scale=True, desc=info.filename, disable=args.quiet) as bar:
             def progress(done: int, total: int | None) -> None:
                 bar.total = total
                 bar.update(done - bar.n)

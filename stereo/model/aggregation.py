@@ -46,12 +46,18 @@ def _classifier() -> nn.Sequential:
 class StackedHourglass(nn.Module):
     """Regularises a (B, 64, D/4, h, w) volume into 1-channel costs (B, 1, D/4, h, w).
 
-    `forward(volume, heads=3)` returns the first `heads` costs c1, c2 += c1, c3 += c2; at inference
-    only the third is needed, but it depends on all three hourglasses and on c1 and c2.
+    `forward(volume)` returns the three costs c1, c2 += c1, c3 += c2; at inference only the
+    third is needed, but it depends on all three hourglasses and on c1 and c2. `wiring` chooses
+    the third hourglass's skip input (see `ModelConfig.hourglass_wiring`).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, wiring: str = "openstereo") -> None:
         super().__init__()
+        if wiring not in ("psmnet", "openstereo"):
+            raise ValueError(f"hourglass wiring must be 'psmnet' or 'openstereo', got {wiring!r}")
+        #: "psmnet": the third hourglass takes `pre1` as its skip (PSMNet's code); "openstereo":
+        #: it takes `pre2`, the second hourglass's own (OpenStereo's PSMNet, the authors' base).
+        self.wiring = wiring
         self.dres0 = nn.Sequential(conv_bn_relu(64, 32, 3, 1, 1, dims=3), conv_bn_relu(32, 32, 3, 1, 1, dims=3))
         self.dres1 = nn.Sequential(conv_bn_relu(32, 32, 3, 1, 1, dims=3), conv_bn(32, 32, 3, 1, 1, dims=3))
         self.dres2 = Hourglass(32)
@@ -79,12 +85,13 @@ class StackedHourglass(nn.Module):
         out = out + cost0
         cost = self.classif1(out)
         yield cost
-        out, _, post = self.dres3(out, pre1, post)
+        out, pre2, post = self.dres3(out, pre1, post)
+        skip = pre1 if self.wiring == "psmnet" else pre2
+        del pre1, pre2
         out = out + cost0
         cost = self.classif2(out) + cost
         yield cost
-        # PSMNet's original wiring: the third hourglass takes pre1 (not pre2) as its skip.
-        out, _, _ = self.dres4(out, pre1, post)
+        out, _, _ = self.dres4(out, skip, post)
         out = out + cost0
-        del cost0, pre1, post
+        del cost0, skip, post
         yield self.classif3(out) + cost

@@ -1,13 +1,16 @@
 """EMCStereo: the four stages (features, cost volume, aggregation, regression) put together."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import warnings
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from typing import Any
 
 import torch
 from torch import nn
 
 from .aggregation import StackedHourglass
-from .backbone import FeatureBackbone
+from .backbone import SPP_POOLS, FeatureBackbone
 from .cost_volume import concat_cost_volume
 from .fast_inference import FastInference
 from .regression import DisparityRegression, upsample_cost
@@ -16,19 +19,54 @@ from .regression import DisparityRegression, upsample_cost
 MIN_SIZE = 256
 #: H and W must be multiples of this (two stride-2 3D stages below ¼ resolution).
 SIZE_MULTIPLE = 32
+#: The largest disparity range a model may be built with: 5× the authors' 192, far above any camera
+#: here, and small enough that a corrupt checkpoint cannot ask for a multi-gigabyte cost volume.
+MAX_DISP_LIMIT = 1024
+#: Which skip the third hourglass gets: PSMNet's code feeds it `pre1`, OpenStereo's PSMNet cost
+#: processor (on which the authors' EMCStereo is built) feeds it `pre2`.
+HOURGLASS_WIRINGS = ("psmnet", "openstereo")
 
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """What identifies an EMCStereo variant; stored in our checkpoints."""
+    """What identifies an EMCStereo variant and how its layers are wired; stored in our checkpoints.
+
+    The defaults are the authors' EMCStereo: all three modules, 192 disparities, the third
+    hourglass fed `pre2` (`hourglass_wiring="openstereo"`) and `align_corners=True` in the
+    disparity upsampling. PSMNet's own code is `hourglass_wiring="psmnet"` (`pre1`) and, on
+    PyTorch ≥ 0.4.1, `align_corners=False` (its `F.upsample` call leaves the default).
+    """
 
     ema: bool = True
     msf: bool = True
     coord: bool = True
     max_disp: int = 192
+    hourglass_wiring: str = "openstereo"
+    align_corners: bool = True
 
-    def to_dict(self) -> dict[str, bool | int]:
+    def __post_init__(self) -> None:
+        for name in ("ema", "msf", "coord", "align_corners"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        max_disp = self.max_disp
+        if isinstance(max_disp, bool) or not isinstance(max_disp, int) or not 0 < max_disp <= MAX_DISP_LIMIT \
+                or max_disp % 4:
+            raise ValueError(f"max_disp must be a positive multiple of 4 up to {MAX_DISP_LIMIT}, got {max_disp!r}")
+        if self.hourglass_wiring not in HOURGLASS_WIRINGS:
+            raise ValueError(f"hourglass_wiring must be one of {', '.join(HOURGLASS_WIRINGS)}, "
+                             f"got {self.hourglass_wiring!r}")
+
+    def to_dict(self) -> dict[str, bool | int | str]:
         return asdict(self)
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], defaults: Mapping[str, Any] = {}) -> ModelConfig:
+        """Build from a stored dict, `defaults` filling absent keys; ValueError names an unknown key or bad value."""
+        known = [f.name for f in fields(cls)]
+        unknown = sorted(str(k) for k in values if k not in known)
+        if unknown:
+            raise ValueError(f"unknown model setting(s) {', '.join(map(repr, unknown))}; known: {', '.join(known)}")
+        return cls(**{**defaults, **values})
 
 
 class EMCStereo(nn.Module):
@@ -36,16 +74,16 @@ class EMCStereo(nn.Module):
 
     `forward(left, right)`: ImageNet-normalised (B, 3, H, W) tensors, H and W multiples of 32 and
     ≥ 256. Training mode returns the three deeply supervised disparities [(B, H, W)] × 3; eval
-    mode returns only the third, (B, H, W), in pixels of the input.
+    mode returns only the third, (B, H, W), in pixels of the input. `hourglass_wiring` and
+    `align_corners` are described in `ModelConfig`; a checkpoint must run with the ones it was trained with.
     """
 
-    def __init__(self, ema: bool = True, msf: bool = True, coord: bool = True, max_disp: int = 192) -> None:
+    def __init__(self, ema: bool = True, msf: bool = True, coord: bool = True, max_disp: int = 192,
+                 hourglass_wiring: str = "openstereo", align_corners: bool = True) -> None:
         super().__init__()
-        if max_disp <= 0 or max_disp % 4:
-            raise ValueError(f"max_disp must be a positive multiple of 4, got {max_disp}")
-        self.config = ModelConfig(ema, msf, coord, max_disp)
+        self.config = ModelConfig(ema, msf, coord, max_disp, hourglass_wiring, align_corners)
         self.backbone = FeatureBackbone(ema=ema, msf=msf, coord=coord)
-        self.aggregation = StackedHourglass()
+        self.aggregation = StackedHourglass(hourglass_wiring)
         self.regression = DisparityRegression(max_disp)
 
     @property
@@ -98,14 +136,39 @@ class EMCStereo(nn.Module):
 
     def _costs(self, left: torch.Tensor, right: torch.Tensor, disparities: int) -> list[torch.Tensor]:
         check_input_size(left, right)
-        features = self.backbone(torch.cat([left, right], dim=0))
-        ref, tgt = features.chunk(2, dim=0)
+        if self.training and per_view_batchnorm_possible(left):
+            # One view at a time, as PSMNet and the authors do: each BatchNorm normalises (and
+            # updates its running statistics) with one view's batch statistics, twice per step.
+            ref, tgt = self.backbone(left), self.backbone(right)
+        else:  # eval (running statistics: one batched pass is the same, and faster) or the fallback
+            ref, tgt = self.backbone(torch.cat([left, right], dim=0)).chunk(2, dim=0)
         volume = concat_cost_volume(ref, tgt, disparities // 4)
         return self.aggregation(volume)
 
     def _upsample(self, cost: torch.Tensor, disparities: int, height: int, width: int) -> torch.Tensor:
-        depth_step = (self.max_disp // 4 - 1) / (self.max_disp - 1)
-        return upsample_cost(cost, disparities, height, width, depth_step)
+        return upsample_cost(cost, disparities, height, width, self.max_disp, self.config.align_corners)
+
+
+def per_view_batchnorm_possible(view: torch.Tensor) -> bool:
+    """Whether a training batch of one view (B, 3, H, W) leaves BatchNorm more than one value per channel.
+
+    The coarsest SPP branch pools ¼-resolution features 64×64: at batch 1 with H and W < 512 that
+    is a single value, which BatchNorm refuses in training (the reference code fails there). Then
+    both views go through together, as one batch of 2, and a warning says so once per process.
+    """
+    batch, _, height, width = view.shape
+    pool = SPP_POOLS[0]
+    if batch * (height // 4 // pool) * (width // 4 // pool) > 1:
+        return True
+    if not _FALLBACK_WARNED:
+        _FALLBACK_WARNED.append(True)
+        warnings.warn(f"training batch 1 at {height}×{width}: BatchNorm statistics span both views (per-view "
+                      "needs a batch ≥ 2 or a crop ≥ 512 on one side)", stacklevel=3)
+    return False
+
+
+#: Set once the per-view fallback has been reported (one warning per process, not per step).
+_FALLBACK_WARNED: list[bool] = []
 
 
 def check_input_size(left: torch.Tensor, right: torch.Tensor) -> None:

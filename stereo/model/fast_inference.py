@@ -39,6 +39,7 @@ class FastInference(nn.Module):
         if not torch.equal(values, torch.arange(values.numel(), dtype=values.dtype, device=values.device)):
             raise ValueError("the soft-argmin weights (regression.weight) must be 0, 1, …, max_disp−1")
         self.max_disp = model.max_disp
+        self.align_corners = model.config.align_corners  # the wiring travels inside the aggregation copy
         self.rows_per_chunk = rows_per_chunk
         self.backbone = fuse_convolutions(fold_batchnorms(model.backbone), use_onednn)
         self.aggregation = fuse_convolutions(fold_batchnorms(model.aggregation), use_onednn)
@@ -60,6 +61,5 @@ class FastInference(nn.Module):
         # Only the last cost is needed: consume the generator keeping one at a time, so c1 and
         # c2 are freed as soon as the next one exists (a list would hold all three).
         cost = deque(costs, maxlen=1).pop()
-        depth_step = (self.max_disp // 4 - 1) / (self.max_disp - 1)
-        return upsampled_soft_argmin(cost, self.disparity_values[:disparities], height, width,
-                                     depth_step, rows_per_chunk=self.rows_per_chunk)
+        return upsampled_soft_argmin(cost, self.disparity_values[:disparities], height, width, self.max_disp,
+                                     self.align_corners, rows_per_chunk=self.rows_per_chunk)

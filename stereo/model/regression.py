@@ -6,28 +6,41 @@ import torch.nn.functional as F
 from torch import nn
 
 
-def upsample_cost(cost: torch.Tensor, disparities: int, height: int, width: int,
-                  depth_step: float) -> torch.Tensor:
-    """Trilinear (align_corners) upsampling of (B, 1, Dl, h, w) to (B, disparities, H, W).
+def upsample_cost(cost: torch.Tensor, disparities: int, height: int, width: int, max_disp: int,
+                  align_corners: bool = True) -> torch.Tensor:
+    """Trilinear upsampling of (B, 1, Dl, h, w) to (B, disparities, H, W), as the model was trained.
 
-    Output disparity index d samples the low-resolution slice at `d · depth_step`, clamped to the
-    slices present. With `depth_step = (Dl_full − 1)/(D_full − 1)` this is exactly PSMNet's
-    `interpolate(…, [D, H, W], mode='trilinear', align_corners=True)` for the full range, and a
-    shorter range (range-limited inference) keeps the same disparity scale the model was trained with.
+    With `disparities == max_disp` this is exactly `interpolate(…, [D, H, W], mode='trilinear',
+    align_corners=align_corners)`: `True` is the authors' (OpenStereo) call, `False` what PSMNet's
+    call does on PyTorch ≥ 0.4.1. A shorter range (range-limited inference) keeps the full range's
+    disparity scale (`depth_positions`), so output index d still means d pixels.
     """
-    return F.interpolate(upsample_depth(cost, disparities, depth_step), size=(height, width),
-                         mode="bilinear", align_corners=True)
+    deep = upsample_depth(cost, disparities, max_disp, align_corners)
+    return F.interpolate(deep, size=(height, width), mode="bilinear", align_corners=align_corners)
 
 
-def upsample_depth(cost: torch.Tensor, disparities: int, depth_step: float) -> torch.Tensor:
+def depth_positions(disparities: int, max_disp: int, align_corners: bool,
+                    device: torch.device | None = None) -> torch.Tensor:
+    """Where output disparity d = 0…disparities−1 samples the ¼-resolution depth axis (float64 slices).
+
+    The scale is the full range's (`max_disp` → `max_disp // 4` slices), as `F.interpolate` maps
+    it: `d · (Dl − 1)/(D − 1)` with `align_corners`, else `(d + ½) · Dl/D − ½` clamped at 0.
+    """
+    index = torch.arange(disparities, device=device, dtype=torch.float64)
+    low = max_disp // 4
+    if align_corners:
+        return index * ((low - 1) / (max_disp - 1))
+    return ((index + 0.5) * (low / max_disp) - 0.5).clamp(min=0.0)
+
+
+def upsample_depth(cost: torch.Tensor, disparities: int, max_disp: int, align_corners: bool) -> torch.Tensor:
     """Linear interpolation along depth only: (B, 1, Dl, h, w) → (B, disparities, h, w).
 
-    Index d samples the low-resolution slice at `d · depth_step`, clamped to the slices present.
+    Index d samples the low-resolution slice at `depth_positions(…)[d]`, clamped to the slices present.
     """
     low = cost[:, 0]                                        # (B, Dl, h, w)
-    lower, upper, frac = _linear_taps(
-        torch.arange(disparities, device=cost.device, dtype=torch.float64) * depth_step, low.shape[1]
-    )
+    lower, upper, frac = _linear_taps(depth_positions(disparities, max_disp, align_corners, cost.device),
+                                      low.shape[1])
     frac = frac.to(low.dtype)[None, :, None, None]
     return low[:, lower] * (1 - frac) + low[:, upper] * frac   # (B, D, h, w)
 
@@ -40,18 +53,22 @@ def _linear_taps(pos: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tens
     return lower, upper, pos - lower
 
 
-def _align_corners_taps(out_size: int, in_size: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`_linear_taps` of bilinear `align_corners=True` resizing from `in_size` to `out_size` samples.
+def _resize_taps(out_size: int, in_size: int, align_corners: bool,
+                 device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`_linear_taps` of bilinear resizing from `in_size` to `out_size` samples.
 
     Positions are computed in float32 as PyTorch's own `interpolate` does, so both round alike.
     """
-    scale = (in_size - 1) / (out_size - 1) if out_size > 1 else 0.0
-    scale_f32 = torch.tensor(scale, dtype=torch.float32, device=device)
-    return _linear_taps(torch.arange(out_size, device=device, dtype=torch.float32) * scale_f32, in_size)
+    index = torch.arange(out_size, device=device, dtype=torch.float32)
+    if align_corners:
+        scale = (in_size - 1) / (out_size - 1) if out_size > 1 else 0.0
+        return _linear_taps(index * torch.tensor(scale, dtype=torch.float32, device=device), in_size)
+    scale = torch.tensor(in_size / out_size, dtype=torch.float32, device=device)
+    return _linear_taps(((index + 0.5) * scale - 0.5).clamp(min=0.0), in_size)
 
 
 def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int, width: int,
-                          depth_step: float, radius: float = 2.0,
+                          max_disp: int, align_corners: bool = True, radius: float = 2.0,
                           rows_per_chunk: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
     """`DisparityRegression.with_confidence(upsample_cost(…))` without the full-resolution volume.
 
@@ -61,15 +78,15 @@ def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int,
     can be produced `rows_per_chunk` at a time, exactly: only a (B, D, rows_per_chunk, width)
     block ever exists (the full volume is D·H·W floats, 368 MB at 384×1248 and 1.6 GB at
     1088×1920). Rows are interpolated here at low width; the width is left to `F.interpolate`
-    (full width, so the same align-corners weights as the reference path).
+    (full width, so the same weights as the reference path).
     """
     if rows_per_chunk <= 0:
         raise ValueError(f"rows_per_chunk must be positive, got {rows_per_chunk}")
     values = values.float()
     depth = values.numel()
-    deep = upsample_depth(cost.float(), depth, depth_step)                 # (B, D, h, w)
+    deep = upsample_depth(cost.float(), depth, max_disp, align_corners)       # (B, D, h, w)
     batch = deep.shape[0]
-    row_lo, row_hi, row_frac = _align_corners_taps(height, deep.shape[2], cost.device)
+    row_lo, row_hi, row_frac = _resize_taps(height, deep.shape[2], align_corners, cost.device)
     window = torch.arange(int(2 * radius) + 1, device=cost.device)
     disparity, confidence = [], []
     for top in range(0, height, rows_per_chunk):
@@ -77,7 +94,8 @@ def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int,
         count = rows.stop - rows.start
         low_rows = torch.lerp(deep[:, :, row_lo[rows]], deep[:, :, row_hi[rows]],
                               row_frac[rows][None, None, :, None].expand(batch, depth, -1, deep.shape[3]))
-        prob = torch.softmax(F.interpolate(low_rows, size=(count, width), mode="bilinear", align_corners=True), dim=1)
+        prob = torch.softmax(F.interpolate(low_rows, size=(count, width), mode="bilinear",
+                                           align_corners=align_corners), dim=1)
         estimate = torch.matmul(values, prob.reshape(batch, depth, count * width)).reshape(batch, count, width)
         disparity.append(estimate)
         # Confidence: the probability within ±radius of the estimate, i.e. of the integer

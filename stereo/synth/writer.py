@@ -25,9 +25,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from stereo.io import write_exr_depth, write_rgb
+from stereo.progress import progress_bar
 from stereo.synth.camera import SynthCamera
 from stereo.synth.options import SynthOptions
 from stereo.synth.render import SyntheticScene, render_scene
@@ -173,7 +173,8 @@ def write_dataset(out_dir: str | Path, scenes: int, seed: int, width: int, heigh
     for folder in (LEFT_DIR, RIGHT_DIR, DEPTH_DIR, MASK_DIR, BRANCH_DIR):
         (root / folder).mkdir(parents=True, exist_ok=True)
     jobs = [(root, index, seed, camera, options, exr_pixel_type) for index in range(scenes)]
-    for _ in tqdm(_run_jobs(jobs, workers), total=scenes, desc="synth scenes", unit="scene", disable=not progress):
+    for _ in progress_bar(iterable=_run_jobs(jobs, workers), total=scenes, desc="synth scenes", unit="scene",
+                          disable=not progress):
         pass
     splits = split_indices(scenes, seed)
     for name, indices in splits.items():

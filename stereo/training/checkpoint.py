@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from stereo.checkpoints import FORMAT, CheckpointError, atomic_torch_save
+from stereo.checkpoints import FORMAT, CheckpointError, atomic_torch_save, torch_load_checked
 from stereo.training.ema import ModelEMA, unwrap
 
 
@@ -88,7 +88,9 @@ def load_training_checkpoint(path: Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such training checkpoint")
-    payload = torch.load(path, map_location="cpu", weights_only=True)
+    payload = torch_load_checked(path)
+    if not isinstance(payload, dict):
+        raise CheckpointError(f"{path}: not a training checkpoint (a {type(payload).__name__}, not a dict)")
     missing = [k for k in ("model", "optimizer", "scheduler", "scaler", "rng", "progress") if k not in payload]
     if missing:
         raise CheckpointError(
@@ -107,14 +109,25 @@ def restore_training_state(
     scaler: torch.amp.GradScaler,
     ema: ModelEMA | None,
 ) -> dict[str, Any]:
-    """Load a training checkpoint into the live objects and return its `progress` counters."""
-    unwrap(model).load_state_dict(payload["model"], strict=True)
-    optimizer.load_state_dict(payload["optimizer"])
-    scheduler.load_state_dict(payload["scheduler"])
-    scaler.load_state_dict(payload["scaler"])
-    if ema is not None:
-        if payload.get("ema") is None:
-            raise CheckpointError("the checkpoint was written without EMA weights but this run has EMA on")
-        ema.load_state_dict(payload["ema"])
-    restore_rng_state(payload["rng"])
+    """Load a training checkpoint into the live objects and return its `progress` counters.
+
+    A payload that does not fit this run (other variant, other optimiser groups, damaged entries)
+    raises `CheckpointError` saying which part failed, never a bare traceback.
+    """
+    if ema is not None and payload.get("ema") is None:
+        raise CheckpointError("the checkpoint was written without EMA weights but this run has EMA on")
+    steps = [
+        ("model", lambda: unwrap(model).load_state_dict(payload["model"], strict=True)),
+        ("optimizer", lambda: optimizer.load_state_dict(payload["optimizer"])),
+        ("scheduler", lambda: scheduler.load_state_dict(payload["scheduler"])),
+        ("scaler", lambda: scaler.load_state_dict(payload["scaler"])),
+        ("ema", lambda: ema is None or ema.load_state_dict(payload["ema"])),
+        ("rng", lambda: restore_rng_state(payload["rng"])),
+    ]
+    for part, load in steps:
+        try:
+            load()
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise CheckpointError(f"the checkpoint's `{part}` does not fit this run: {first}") from exc
     return dict(payload["progress"])

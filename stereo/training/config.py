@@ -145,7 +145,10 @@ def _section(cls: type, values: dict[str, Any], name: str) -> Any:
     unknown = sorted(set(values) - known)
     if unknown:
         raise ConfigError(f"unknown key(s) {', '.join(f'{name}.{k}' for k in unknown)}; valid keys: {', '.join(sorted(known))}")
-    return cls(**{k: _coerce(v, hints[k], f"{name}.{k}") for k, v in values.items()})
+    try:
+        return cls(**{k: _coerce(v, hints[k], f"{name}.{k}") for k, v in values.items()})
+    except ValueError as exc:  # a section's own range checks (e.g. ModelConfig's)
+        raise ConfigError(f"[{name}] {exc}") from exc
 
 
 def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -21,10 +21,13 @@ from stereo.training.config import ConfigError
 def warm_start(weights: str | Path, expected: ModelConfig | None = None) -> EMCStereo:
     """EMCStereo with the weights of `weights` (any supported layout), in train mode.
 
-    When `expected` is given, the checkpoint's variant (modules, max_disp) must match it.
+    When `expected` is given, the checkpoint's variant (modules, max_disp) must match it; its
+    wiring settings (`hourglass_wiring`, `align_corners`) stay the checkpoint's, the ones its
+    weights were trained with.
     """
     model = stereo.load_model(weights)
-    if expected is not None and model.config != expected:
+    structure = ("ema", "msf", "coord", "max_disp")
+    if expected is not None and any(getattr(model.config, k) != getattr(expected, k) for k in structure):
         raise ConfigError(
             f"{weights}: holds the variant {model.config.to_dict()} but [model] asks for {expected.to_dict()}; "
             "set [model] to the checkpoint's variant"

@@ -28,9 +28,10 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm import tqdm
 
-from stereo.checkpoints import atomic_torch_save
+from stereo.checkpoints import CheckpointError, atomic_torch_save
 from stereo.datasets.transforms import AsymmetricColorJitter, Augmented, TrainTransform
 from stereo.evaluation import autocast_context, evaluate
+from stereo.progress import progress_bar
 from stereo.training.checkpoint import (
     load_training_checkpoint,
     model_payload,
@@ -130,8 +131,11 @@ class Trainer:
     def resume(self, path: Path) -> None:
         """Continue from a training checkpoint written by this trainer (same config)."""
         payload = load_training_checkpoint(Path(path))
-        self.progress = restore_training_state(payload, model=self.model, optimizer=self.optimizer,
-                                               scheduler=self.scheduler, scaler=self.scaler, ema=self.ema)
+        try:
+            self.progress = restore_training_state(payload, model=self.model, optimizer=self.optimizer,
+                                                   scheduler=self.scheduler, scaler=self.scaler, ema=self.ema)
+        except CheckpointError as exc:
+            raise CheckpointError(f"{path}: {exc}") from exc
 
     def save_last(self) -> None:
         """Write `last.pth` with the full state (main process only)."""
@@ -187,8 +191,8 @@ class Trainer:
         train = self.config.train
         self.net.train()
         keep_frozen_in_eval(self.model, self.frozen)
-        bar = tqdm(total=self.micro_batches_per_epoch, initial=self.progress["batch_in_epoch"],
-                   desc=f"epoch {epoch + 1}/{train.epochs}", disable=not self.show_progress, leave=False)
+        bar = progress_bar(total=self.micro_batches_per_epoch, initial=self.progress["batch_in_epoch"],
+                           desc=f"epoch {epoch + 1}/{train.epochs}", disable=not self.show_progress, leave=False)
         started = time.perf_counter()
         try:
             for batch in self._epoch_loader(epoch):
@@ -260,7 +264,7 @@ class Trainer:
         train = self.config.train
         lr = self.optimizer.param_groups[0]["lr"]
         if loss is not None and train.log_every > 0 and step % train.log_every == 0:
-            bar.set_postfix(loss=f"{loss:.4f}", lr=f"{lr:.2e}")
+            bar.set_postfix(loss=f"{loss:.4f}", lr=f"{lr:.2e}", refresh=False)  # shown at the next redraw
             self.log.scalar("train/loss", loss, step)
             self.log.scalar("train/lr", lr, step)
         if train.checkpoint_every > 0 and step % train.checkpoint_every == 0:
