@@ -81,9 +81,8 @@ class StereoConfig:
         _require(self.backend in ("sgbm", "emcstereo"), "stereo.backend", self.backend, "'sgbm' or 'emcstereo'")
         _require(self.backend != "emcstereo" or bool(self.weights.strip()), "stereo.weights", self.weights,
                  "a checkpoint path when stereo.backend = 'emcstereo'")
-        _require(self.max_disp > 0 and self.max_disp % 4 == 0, "stereo.max_disp", self.max_disp, "a positive multiple of 4 (pixels)")
-        _require(self.backend != "sgbm" or self.max_disp % 16 == 0, "stereo.max_disp", self.max_disp,
-                 "a multiple of 16 with stereo.backend = 'sgbm' (OpenCV's StereoSGBM)")
+        _require(self.max_disp > 0 and self.max_disp % 16 == 0, "stereo.max_disp", self.max_disp,
+                 "a positive multiple of 16 (pixels; SGBM's step, and EMCStereo's cost volume at 1/4 resolution is halved twice)")
         _require(self.precision in ("fp32", "fp16"), "stereo.precision", self.precision, "'fp32' or 'fp16'")
 
 

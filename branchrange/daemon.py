@@ -1,6 +1,8 @@
 """The onboard daemon: camera source → pipeline → MAVLink relay + JSONL results log (+ API state).
 
-Three threads, so no stage waits for a slower one and every stage works on the newest input:
+Three threads, so no stage waits for a slower one and every stage works on the newest input.
+The JSONL results log starts each run with a run header line (`frame_results.run_header`), so a
+restart is visible in the log. Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
   dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
   clock — the capture time every age and latency is measured from;
@@ -34,7 +36,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from branchrange.config import Config
-from branchrange.frame_results import result_line
+from branchrange.frame_results import result_line, run_header_line
 from branchrange.mavlink import MavlinkRelay
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 
@@ -122,6 +124,8 @@ class Daemon:
         if results_path:
             Path(results_path).parent.mkdir(parents=True, exist_ok=True)
             self._results = open(results_path, "a", encoding="utf-8", buffering=1)  # one flushed line per frame
+            # a restart appends to the same log: each run starts with its header, never silently at frame 0 again
+            self._results.write(run_header_line("daemon", cfg, cfg.camera.source))
         self._stop = threading.Event()
         self._latest: dict[str, Any] | None = None
         self._slot = _NewestSlot()

@@ -44,15 +44,15 @@ def export_onnx(model: EMCStereo, path: str | os.PathLike[str], height: int, wid
     """Write `model`'s inference graph for padded `height × width` inputs to an ONNX file; returns its path.
 
     `height` and `width` must be multiples of 32 and ≥ 256 (pad images as `stereo.padding` does);
-    `max_disp` (default the model's) a multiple of 4 within the model's range.
+    `max_disp` (default the model's) a multiple of 16 within the model's range.
     """
     try:
         import onnx
     except ImportError as exc:
         raise ExportError("ONNX export needs the 'onnx' package (pip install 'branchrange[onnx]')") from exc
     disparities = model.max_disp if max_disp is None else max_disp
-    if disparities <= 0 or disparities % 4 or disparities > model.max_disp:
-        raise ExportError(f"max_disp must be a multiple of 4 in (0, {model.max_disp}], got {max_disp}")
+    if disparities <= 0 or disparities % 16 or disparities > model.max_disp:
+        raise ExportError(f"max_disp must be a multiple of 16 in (0, {model.max_disp}], got {max_disp}")
     example = torch.zeros(1, 3, height, width)
     try:
         check_input_size(example, example)

@@ -314,7 +314,7 @@ def test_emcstereo_loads_weights_through_make_backend(tmp_path: Path) -> None:
         ({"precision": "fp16"}, "needs a CUDA device"),
         ({"precision": "bf16"}, "needs a CUDA device"),
         ({"precision": "int8"}, "not one of"),
-        ({"max_disp": 50}, "multiple of 4"),
+        ({"max_disp": 50}, "multiple of 16"),
         ({"max_disp": 196}, r"\(0, 192\]"),
         ({"device": "tpu"}, "not a torch device|not supported"),
     ],

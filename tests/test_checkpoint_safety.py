@@ -27,7 +27,7 @@ VARIANT = {"ema": False, "msf": False, "coord": False, "max_disp": 16}
 
 @pytest.mark.parametrize(("config", "message"), [
     ({**VARIANT, "dropout": 0.1}, r"unknown model setting\(s\) 'dropout'"),
-    ({**VARIANT, "max_disp": "lots"}, r"max_disp must be a positive multiple of 4 up to 1024, got 'lots'"),
+    ({**VARIANT, "max_disp": "lots"}, r"max_disp must be a positive multiple of 16 up to 1024, got 'lots'"),
     ({**VARIANT, "max_disp": 10**12}, r"max_disp must be .* got 1000000000000"),
     ({**VARIANT, "ema": "yes"}, r"ema must be true or false, got 'yes'"),
     ({**VARIANT, "hourglass_wiring": "pre3"}, r"hourglass_wiring must be one of psmnet, openstereo"),
@@ -122,5 +122,5 @@ def test_model_settings_in_a_training_recipe_are_checked_as_config_errors():
     assert (config.model.hourglass_wiring, config.model.align_corners) == ("psmnet", False)
     with pytest.raises(ConfigError, match=r"\[model\] hourglass_wiring must be one of psmnet, openstereo"):
         build_config({"model": {"hourglass_wiring": "pre3"}})
-    with pytest.raises(ConfigError, match=r"\[model\] max_disp must be a positive multiple of 4 up to 1024"):
+    with pytest.raises(ConfigError, match=r"\[model\] max_disp must be a positive multiple of 16 up to 1024"):
         build_config({"model": {"max_disp": 10**12}})

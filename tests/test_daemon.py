@@ -19,7 +19,7 @@ from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
 from branchrange.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig, pipeline_config
 from branchrange.daemon import Daemon
-from branchrange.frame_results import pipeline_for
+from branchrange.frame_results import pipeline_for, read_results, read_runs
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from branchrange.pipeline import Pipeline
 from camera.calibration import from_rectified
@@ -104,7 +104,7 @@ def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_rec
         assert branchrange_main(["daemon", "--config", str(config), "--max-frames", str(TREE_FRAMES)]) == 0
     finally:
         listener.finish()
-    lines = [json.loads(line) for line in results.read_text().splitlines()]
+    lines = list(read_results(results))
     assert len(lines) >= TREE_FRAMES - 1 and all(r["masks"]["source"] == "array" for r in lines)
     targets = [next(b for b in r["branches"] if b["id"] == r["target_id"]) for r in lines]
     truth = truth_of(tree_scene(), targets[0]["mask_id"])
@@ -197,8 +197,8 @@ def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):
                             stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60
-        while (not results.exists() or not results.read_text()) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        while (not results.exists() or results.read_text().count("\n") < 2) and time.monotonic() < deadline:
+            time.sleep(0.05)  # the run header, then a first result
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=20)
     finally:
@@ -206,8 +206,24 @@ def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):
             proc.kill()
     assert proc.returncode == 0, err
     assert "stopped after" in err
-    lines = results.read_text().splitlines()
-    assert 1 <= len(lines) < FRAMES and all(json.loads(line)["schema"] == "branchrange/v1" for line in lines)
+    ((header, lines),) = read_runs(results)
+    assert header["kind"] == "daemon" and header["source"] == f"replay:{recording}"
+    assert 1 <= len(lines) < FRAMES and all(line["schema"] == "branchrange/v1" for line in lines)
+
+
+def test_each_daemon_run_starts_its_log_with_a_run_header(recording, tmp_path):
+    """A restart appends to the same log behind a new header, instead of silently starting again at frame 0."""
+    results = tmp_path / "results.jsonl"
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    for _ in range(2):
+        daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="fast"), pipeline=pipeline,
+                        results_path=results)
+        daemon.run(max_frames=2)
+        daemon.close()
+    runs = read_runs(results)
+    assert [len(frames) for _, frames in runs] == [2, 2]
+    assert all(header["kind"] == "daemon" and header["schema"] == "branchrange/run-header/v1" for header, _ in runs)
 
 
 def _wait_for(condition, seconds: float) -> bool:
@@ -253,10 +269,10 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
     state = relay.link_state()
     assert state["reconnects"] >= 1 and state["send_errors"] >= 1
     distances = [d.msg.current_distance for d in of_type(after, "DISTANCE_SENSOR") if d.msg.current_distance <= 1000]
-    logged = {round(b["distance_m"] * 100) for line in (tmp_path / "results.jsonl").read_text().splitlines()
-              for r in [json.loads(line)] for b in r["branches"] if b["id"] == r["target_id"]}
+    logged = {round(b["distance_m"] * 100) for r in read_results(tmp_path / "results.jsonl")
+              for b in r["branches"] if b["id"] == r["target_id"]}
     assert distances and set(distances) <= logged  # fresh results resumed, not a replay of old ones
-    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == daemon.frames  # one line per frame
+    assert len(list(read_results(tmp_path / "results.jsonl"))) == daemon.frames  # one line per frame
 
 
 def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, caplog):
@@ -316,7 +332,7 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
     finally:
         poller.join(timeout=10)
         peer.close()
-    logged = [json.loads(line) for line in results.read_text().splitlines()]
+    logged = list(read_results(results))
     assert seen, "the daemon's API never answered /latest"
     assert seen["latest"] in logged  # /latest is a logged result, key for key
     health = seen["health"]

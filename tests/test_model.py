@@ -165,3 +165,13 @@ def test_inference_range_must_be_multiple_of_four_within_model_range(small_pair)
 def test_eight_variants_have_distinct_key_sets():
     key_sets = {frozenset(EMCStereo(*v).state_dict()) for v in itertools.product((False, True), repeat=3)}
     assert len(key_sets) == 8
+
+
+def test_a_disparity_range_the_hourglasses_cannot_halve_twice_is_refused_up_front():
+    """max_disp 20 (a multiple of 4, not of 16) used to crash deep inside the hourglass; now it is a clear ValueError."""
+    with pytest.raises(ValueError, match="multiple of 16"):
+        EMCStereo(max_disp=20)
+    model = EMCStereo(max_disp=32).eval()
+    image = torch.zeros(1, 3, 256, 256)
+    with pytest.raises(ValueError, match="multiple of 16"):
+        model.infer(image, image, max_disp=20)

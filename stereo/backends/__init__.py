@@ -27,7 +27,7 @@ def make_backend(
     `sgbm`: CPU only, no weights, fp32; `max_disp` a multiple of 16. `emcstereo`: loads `weights`
     with `stereo.checkpoints.load_model` (any supported layout); without weights it builds a
     randomly initialised full model and warns (UntrainedModelWarning). `max_disp` is the inference
-    search range (multiple of 4, at most the model's trained range); fp16/bf16 need CUDA.
+    search range (multiple of 16, at most the model's trained range); fp16/bf16 need CUDA.
     """
     if name == "sgbm":
         for option, value, default in (("weights", weights, None), ("device", device, "cpu"), ("precision", precision, "fp32")):

@@ -25,7 +25,7 @@ from stereo.padding import compute_padding, pad_image, unpad
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-DISPARITY_MULTIPLE = 4
+DISPARITY_MULTIPLE = 16
 NETWORK_RANGE_STEP = 16  # compute_roi's search ranges: what the hourglass accepts at any size
 _AUTOCAST_DTYPES = {"fp16": torch.float16, "bf16": torch.bfloat16}
 

@@ -22,6 +22,8 @@ SIZE_MULTIPLE = 32
 #: The largest disparity range a model may be built with: 5× the authors' 192, far above any camera
 #: here, and small enough that a corrupt checkpoint cannot ask for a multi-gigabyte cost volume.
 MAX_DISP_LIMIT = 1024
+#: max_disp must be a multiple of this: the cost volume is at 1/4 resolution and each hourglass halves it twice.
+DISPARITY_STEP = 16
 #: Which skip the third hourglass gets: PSMNet's code feeds it `pre1`, OpenStereo's PSMNet cost
 #: processor (on which the authors' EMCStereo is built) feeds it `pre2`.
 HOURGLASS_WIRINGS = ("psmnet", "openstereo")
@@ -50,8 +52,8 @@ class ModelConfig:
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         max_disp = self.max_disp
         if isinstance(max_disp, bool) or not isinstance(max_disp, int) or not 0 < max_disp <= MAX_DISP_LIMIT \
-                or max_disp % 4:
-            raise ValueError(f"max_disp must be a positive multiple of 4 up to {MAX_DISP_LIMIT}, got {max_disp!r}")
+                or max_disp % DISPARITY_STEP:
+            raise ValueError(f"max_disp must be a positive multiple of {DISPARITY_STEP} up to {MAX_DISP_LIMIT}, got {max_disp!r}")
         if self.hourglass_wiring not in HOURGLASS_WIRINGS:
             raise ValueError(f"hourglass_wiring must be one of {', '.join(HOURGLASS_WIRINGS)}, "
                              f"got {self.hourglass_wiring!r}")
@@ -101,7 +103,7 @@ class EMCStereo(nn.Module):
               *, fast: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """Disparity and soft-argmin confidence, both (B, H, W), over a search range ≤ max_disp.
 
-        A smaller `max_disp` (a multiple of 4) for a known working range shrinks the cost volume
+        A smaller `max_disp` (a multiple of 16) for a known working range shrinks the cost volume
         and the 3D work in proportion; the disparity scale stays the one the model was trained with.
         `fast` (the default) runs `FastInference`, an inference-only copy with BatchNorm folded,
         channels-last layouts and a row-chunked soft-argmin: the eval-mode result (running BN
@@ -109,8 +111,8 @@ class EMCStereo(nn.Module):
         rounding. `fast=False` runs this module's own layers, the reference for parity.
         """
         disparities = self.max_disp if max_disp is None else max_disp
-        if disparities <= 0 or disparities % 4 or disparities > self.max_disp:
-            raise ValueError(f"inference max_disp must be a multiple of 4 in (0, {self.max_disp}], got {max_disp}")
+        if disparities <= 0 or disparities % DISPARITY_STEP or disparities > self.max_disp:
+            raise ValueError(f"inference max_disp must be a multiple of {DISPARITY_STEP} in (0, {self.max_disp}], got {max_disp}")
         if fast:
             check_input_size(left, right)
             with torch.inference_mode():

@@ -29,7 +29,7 @@ class FastInference(nn.Module):
     """Eval-mode EMCStereo (running BN statistics) for inference only; built from a model, never trained.
 
     `forward(left, right, disparities) -> (disparity, confidence)`, both (B, H, W) float32;
-    inputs as for `EMCStereo.forward`, `disparities` a multiple of 4 ≤ the model's `max_disp`.
+    inputs as for `EMCStereo.forward`, `disparities` a multiple of 16 ≤ the model's `max_disp`.
     `use_onednn=False` keeps PyTorch's public convolution calls (what runs on CUDA anyway).
     """
 

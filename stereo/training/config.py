@@ -226,8 +226,8 @@ def validate(config: ExperimentConfig) -> None:
          "train.epochs, train.batch_size and train.accumulate must be positive"),
         (len(optim.betas) == 2, f"optim.betas {list(optim.betas)}: expected two values"),
         (optim.lr > 0, f"optim.lr {optim.lr}: expected a positive learning rate"),
-        (config.model.max_disp > 0 and config.model.max_disp % 4 == 0,
-         f"model.max_disp {config.model.max_disp}: expected a positive multiple of 4"),
+        (config.model.max_disp > 0 and config.model.max_disp % 16 == 0,
+         f"model.max_disp {config.model.max_disp}: expected a positive multiple of 16 (the cost volume is at 1/4 resolution and the hourglasses halve it twice)"),
     ]
     for ok, message in checks:
         if not ok:
