@@ -7,17 +7,21 @@ of disparities. So, per frame:
    SGBM over `max_disp / s` disparities: the whole scene, cheaply;
 2. **instances** — the given mask (full resolution; its ids are looked up at coarse resolution), or
    the segmenter run on the coarse disparity;
-3. **regions** — per instance (branches and trunk; the trunk fixes each branch's base), its
-   full-resolution box (+ `box_margin_px`) and its disparity window: the 2nd–98th percentile of its
-   coarse disparities × s, ± `window_margin_px`. An instance without coarse evidence (thinner than
-   a coarse pixel) is searched over the whole range in its box;
+3. **regions** — per branch, its full-resolution box (+ `box_margin_px`) and its disparity window:
+   the 2nd–98th percentile of its coarse disparities × s, ± `window_margin_px`. A branch without
+   coarse evidence (thinner than a coarse pixel) is searched over the whole range in its box;
 4. **fine pass** — the backend's `compute_roi` on each box over its window (SGBM with a
    `minDisparity` offset; EMCStereo on the left box and the right box shifted by the window start);
-5. **composition** — the boxes' disparities in one full-resolution map, zero elsewhere; a pixel of
-   instance k takes the value of k's box (boxes overlap where branches meet the trunk).
-A segmenter's coarse labels are brought to full resolution (nearest) and kept where the fine
-disparity lies in the instance's window, so silhouettes (and diameters) are full-resolution ones.
-Cut points then come from full-resolution disparity only.
+5. **composition** — the boxes' disparities in one full-resolution map, zero elsewhere; a box writes
+   its own branch's pixels and the background around it (boxes overlap where branches meet).
+The trunk is not matched again: it is thick, and its only use is the cylinder that fixes where each
+branch leaves it, so it keeps the coarse disparity (× s), on every s-th pixel of its full-resolution
+mask — a quarter of its pixels at s = 2, which also quarters the trunk fit's work. It was the largest
+region by far (a whole frame's height near the tree).
+A segmenter's coarse labels are brought to full resolution (nearest); a branch's are kept where the
+fine disparity lies in its window, so silhouettes (and diameters) are full-resolution ones.
+Cut points then come from full-resolution disparity only (the base, where it meets the trunk,
+from the trunk's coarse cylinder).
 """
 from __future__ import annotations
 
@@ -83,14 +87,6 @@ def scaled_geometry(geometry: StereoGeometry, scale: int) -> StereoGeometry:
                           (geometry.cx + 0.5) / scale - 0.5, (geometry.cy + 0.5) / scale - 0.5)
 
 
-def instance_ids(masks: BranchMasks) -> list[int]:
-    """The ids that get a fine pass: the trunk first (so branches win where boxes overlap), then the branches."""
-    ids = masks.branch_ids()
-    if masks.trunk_id is not None and masks.index.box(masks.trunk_id) is not None:
-        ids = [masks.trunk_id, *ids]
-    return ids
-
-
 def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int, max_disp: int) -> tuple[int, int]:
     """(d_min, d_range) at full resolution from an instance's valid coarse disparities (px at coarse scale).
 
@@ -110,36 +106,35 @@ def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int,
 
 def plan_regions(instances: BranchMasks, labels_coarse: np.ndarray, coarse_disparity: np.ndarray,
                  scale: int, config: RoiConfig, max_disp: int) -> list[Region]:
-    """A `Region` per branch and trunk of `instances` (full resolution): its box grown by the margin,
-    its disparity window from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse
-    labels. When more than `max_regions` instances are present, the nearest ones (largest median
-    coarse disparity) are kept, and the trunk always."""
+    """A `Region` per branch of `instances` (full resolution): its box grown by the margin, its
+    disparity window from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse
+    labels. When more than `max_regions` branches are present, the nearest ones (largest median
+    coarse disparity) are kept."""
     height, width = instances.shape
     regions, nearness = [], []
     m = config.box_margin_px
-    for instance in instance_ids(instances):
+    for instance in instances.branch_ids():
         row0, row1, col0, col1 = instances.index.box(instance)  # type: ignore[misc]  # ids come from the index
         values = coarse_disparity[(labels_coarse == instance) & (coarse_disparity > 0)]
         d_min, d_range = disparity_window(values, scale, config.window_margin_px, max_disp)
         box = (max(0, col0 - m), max(0, row0 - m), min(width, col1 + m), min(height, row1 + m))
         regions.append(Region(int(instance), box, d_min, d_range))
-        nearest = float(np.median(values)) if values.size else 0.0
-        nearness.append(math.inf if instance == instances.trunk_id else nearest)
+        nearness.append(float(np.median(values)) if values.size else 0.0)
     if len(regions) > config.max_regions:
         order = sorted(range(len(regions)), key=lambda i: -nearness[i])[:config.max_regions]
         regions = [regions[i] for i in sorted(order)]
     return regions
 
 
-def refine_labels(coarse_labels: np.ndarray, shape: tuple[int, int], disparity: np.ndarray,
-                  regions: list[Region]) -> np.ndarray:
-    """Full-resolution labels (`int32 H×W`) from coarse ones: nearest up-sampling, each instance grown
-    by one coarse pixel into the background, kept where the fine disparity lies in its window."""
-    height, width = shape
-    labels = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
-    scale = max(1, round(width / coarse_labels.shape[1]))
+def refine_labels(labels: np.ndarray, scale: int, disparity: np.ndarray, regions: list[Region],
+                  trunk_id: int | None) -> np.ndarray:
+    """Full-resolution labels (`int32 H×W`) from up-sampled coarse ones (`labels`, nearest): each
+    branch grown by one coarse pixel into the background and kept where the fine disparity lies in
+    its window; the trunk as it is (it has no fine pass)."""
     kernel = np.ones((2 * scale + 1, 2 * scale + 1), np.uint8)
     refined = np.zeros_like(labels)
+    if trunk_id is not None:
+        refined[labels == trunk_id] = trunk_id
     for region in regions:
         x0, y0, x1, y1 = region.box
         box_labels = labels[y0:y1, x0:x1]
@@ -149,6 +144,21 @@ def refine_labels(coarse_labels: np.ndarray, shape: tuple[int, int], disparity: 
         inside = grown & (d >= region.d_min) & (d < region.d_min + region.d_range) & (d > 0)
         refined[y0:y1, x0:x1][inside] = region.instance_id
     return refined
+
+
+def trunk_from_coarse(disparity: np.ndarray, confidence: np.ndarray, labels: np.ndarray, trunk_id: int | None,
+                      coarse: Any, scale: int) -> None:
+    """Write the trunk's coarse disparity (× `scale`, full-resolution px) and confidence into the full-
+    resolution maps, in place, on every `scale`-th pixel (rows and columns) of its full-resolution mask."""
+    if trunk_id is None:
+        return
+    offset = scale // 2
+    rows = min(coarse.disparity.shape[0], len(range(offset, labels.shape[0], scale)))
+    cols = min(coarse.disparity.shape[1], len(range(offset, labels.shape[1], scale)))
+    grid = (slice(offset, offset + rows * scale, scale), slice(offset, offset + cols * scale, scale))
+    trunk = labels[grid] == trunk_id
+    disparity[grid][trunk] = coarse.disparity[:rows, :cols][trunk] * scale
+    confidence[grid][trunk] = coarse.confidence[:rows, :cols][trunk]
 
 
 class CoarseToFine:
@@ -206,16 +216,18 @@ class CoarseToFine:
         regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
+        trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
         for region in regions:
             result = self.fine.compute_roi(left, right, region.box, region.d_min, region.d_range)
             x0, y0, x1, y1 = region.box
-            own = (labels_full[y0:y1, x0:x1] == region.instance_id) | (disparity[y0:y1, x0:x1] == 0)
-            take = own & (result.disparity > 0)
+            box_labels = labels_full[y0:y1, x0:x1]
+            take = ((box_labels == region.instance_id) | (box_labels == 0)) & (result.disparity > 0)
             disparity[y0:y1, x0:x1][take] = result.disparity[take]
             confidence[y0:y1, x0:x1][take] = result.confidence[take]
         t = lap_ms(timing, "roi_stereo", t)
         if masks is None:
-            instances = replace(instances, labels=refine_labels(coarse_labels, (height, width), disparity, regions))
+            instances = replace(instances, labels=refine_labels(labels_full, scale, disparity, regions,
+                                                                instances.trunk_id))
             lap_ms(timing, "refine", t)
         return CoarseToFineResult(disparity, confidence, instances, regions, timing)
 

@@ -48,8 +48,8 @@ def test_roi_result_names_its_regions_and_matches_less_than_the_frame(results):
     result = results["roi"]
     regions = result["roi"]["regions"]
     scene = tree_scene()
-    instances = {int(i) for i in np.unique(scene.instance_mask)} - {0, 65533, 65534}
-    assert {r["id"] for r in regions} == instances  # every branch and the trunk, nothing else
+    branches = {int(i) for i in np.unique(scene.instance_mask)} - {0, 65533, 65534, 65535}
+    assert {r["id"] for r in regions} == branches  # every branch; the trunk keeps its coarse disparity
     for region in regions:
         x0, y0, x1, y1 = region["box"]
         ys, xs = np.nonzero(scene.instance_mask == region["id"])
@@ -71,8 +71,8 @@ def test_roi_mode_with_the_builtin_segmenter_gives_full_resolution_silhouettes()
     masks = pipeline.last.masks
     assert masks is not None and masks.labels.shape == (270, 480) and result["masks"]["source"] != "none"
     disparity = pipeline.last.disparity
-    labelled = masks.labels > 0
-    assert labelled.any() and np.all(disparity[labelled] > 0)  # every instance pixel has a fine disparity
+    branch = (masks.labels > 0) & (masks.labels != masks.trunk_id)
+    assert branch.any() and np.all(disparity[branch] > 0)  # every branch pixel has a fine disparity
     assert result["roi"]["regions"]
 
 

@@ -31,7 +31,7 @@ def test_disparity_window_covers_the_instance_in_whole_steps():
     assert low + span <= 128 and low <= 124 - 8
 
 
-def test_plan_keeps_the_nearest_instances_and_always_the_trunk():
+def test_plan_gives_each_branch_a_region_and_keeps_the_nearest():
     labels = np.zeros((40, 80), np.int32)
     coarse_disp = np.zeros((20, 40), np.float32)
     labels[0:40, 0:8] = 65535  # the trunk, far
@@ -41,9 +41,8 @@ def test_plan_keeps_the_nearest_instances_and_always_the_trunk():
         coarse_disp[5:15, x // 2:x // 2 + 2] = 10.0 + k  # branch k: nearer with k
     regions = plan_regions(BranchMasks(labels, 65535), labels[::2, ::2], coarse_disp, 2,
                            RoiConfig(max_regions=3, box_margin_px=2), 128)
-    assert [r.instance_id for r in regions] == [65535, 6, 7]
-    trunk = regions[0]
-    assert trunk.box == (0, 0, 10, 40)  # grown by 2 px, clipped to the frame
+    assert [r.instance_id for r in regions] == [5, 6, 7]  # the trunk keeps its coarse disparity
+    assert regions[-1].box == (68, 8, 76, 32)  # branch 7 at x 70..73, y 10..29, grown by 2 px
 
 
 def test_refined_labels_follow_the_fine_disparity_inside_the_window():
@@ -54,8 +53,27 @@ def test_refined_labels_follow_the_fine_disparity_inside_the_window():
     fine[0:20, 0:9] = 10.0    # background, outside the window
     from branchrange.roi import Region
 
-    labels = refine_labels(coarse, (20, 40), fine, [Region(1, (0, 0, 40, 20), 32, 16)])
+    coarse[0:2, 0:2] = 9  # the trunk: kept as up-sampled, it has no fine pass
+    upsampled = np.kron(coarse, np.ones((2, 2), np.int32))
+    labels = refine_labels(upsampled, 2, fine, [Region(1, (0, 0, 40, 20), 32, 16)], trunk_id=9)
     assert np.array_equal(labels == 1, fine == 40.0)
+    assert np.array_equal(labels == 9, upsampled == 9)
+
+
+def test_the_trunk_takes_the_coarse_disparity_on_every_scale_th_pixel():
+    from types import SimpleNamespace
+
+    from branchrange.roi import trunk_from_coarse
+
+    labels = np.zeros((8, 12), np.int32)
+    labels[:, 2:6] = 65535
+    coarse = SimpleNamespace(disparity=np.full((4, 6), 7.0, np.float32), confidence=np.full((4, 6), 0.5, np.float32))
+    disparity, confidence = np.zeros((8, 12), np.float32), np.zeros((8, 12), np.float32)
+    trunk_from_coarse(disparity, confidence, labels, 65535, coarse, 2)
+    expected = np.zeros((8, 12), bool)
+    expected[1::2, 3:6:2] = True  # the trunk's pixels on the stride-2 grid (offset 1)
+    assert np.array_equal(disparity > 0, expected) and np.all(disparity[expected] == 14.0)
+    assert np.all(confidence[expected] == 0.5)
 
 
 def test_coarse_scale_and_geometry():
