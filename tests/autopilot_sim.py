@@ -1,0 +1,175 @@
+"""A loopback autopilot for the tests: real MAVLink 2 over UDP on 127.0.0.1, flying a trajectory in real time.
+
+`AutopilotSim` listens on `udpin:127.0.0.1:<free port>` (the relay connects with `udpout:`), and
+from its own thread, at the wall-clock times they are due:
+- sends HEARTBEAT every `heartbeat_period_s` as an ArduPilot copter (type QUADROTOR, autopilot
+  ARDUPILOTMEGA, custom_mode 4 = GUIDED or 5 = LOITER, armed or not) — or as a GCS when told to;
+- answers COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL with COMMAND_ACK and from then on streams that
+  message (ATTITUDE, LOCAL_POSITION_NED) at the requested rate, stamped with its own time_boot_ms
+  (it "booted" `boot_age_s` before the test started, so the relay must align clocks);
+- records every message it receives with its arrival time (`time.monotonic()`).
+With `signing_key` it signs what it sends and rejects what is not signed with that key.
+The trajectory maps seconds since the simulator started to a `SimPose` (body FRD in local NED).
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from branchrange.mavlink.connection import mavutil_v2
+from branchrange.mavlink.frames import rotation_from_rpy, rotation_log
+from mavlink_peer import Received
+
+ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
+MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
+MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_INVALID = 3, 8
+ATTITUDE_ID, LOCAL_POSITION_NED_ID = 30, 32
+
+
+@dataclass(frozen=True)
+class SimPose:
+    """Body FRD in local NED: `rotation` (3×3 R_ned_body), `position_m` (3,)."""
+
+    rotation: np.ndarray
+    position_m: np.ndarray
+
+    def ned_to_body(self, point_ned_m: np.ndarray) -> np.ndarray:
+        """Body FRD metres of a NED point (3,)."""
+        return self.rotation.T @ (np.asarray(point_ned_m, dtype=np.float64) - self.position_m)
+
+
+Trajectory = Callable[[float], SimPose]
+
+
+def approach_flight(speed_m_s: float, start_ned_m=(0.0, 0.0, -2.0), heading_deg: float = 20.0,
+                    sway_m: float = 0.05, yaw_swing_deg: float = 6.0, tilt_deg: float = 3.0) -> Trajectory:
+    """A copter closing on a branch: straight at `speed_m_s` along `heading_deg`, swaying sideways
+    (amplitude `sway_m`, 0.5 Hz), yawing ±`yaw_swing_deg` (0.3 Hz) and rolling/pitching ±`tilt_deg`."""
+    start = np.asarray(start_ned_m, dtype=np.float64)
+    h = math.radians(heading_deg)
+    forward = np.array([math.cos(h), math.sin(h), 0.0])
+    right = np.array([-math.sin(h), math.cos(h), 0.0])
+
+    def pose(t: float) -> SimPose:
+        position = start + forward * speed_m_s * t + right * sway_m * math.sin(2 * math.pi * 0.5 * t)
+        roll = tilt_deg * math.sin(2 * math.pi * 0.5 * t)
+        pitch = -tilt_deg * 0.5 * math.cos(2 * math.pi * 0.4 * t)
+        yaw = heading_deg + yaw_swing_deg * math.sin(2 * math.pi * 0.3 * t)
+        return SimPose(rotation_from_rpy(roll, pitch, yaw), position)
+
+    return pose
+
+
+def _rates(trajectory: Trajectory, t: float, dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """NED velocity (3,) m/s and body angular rates (3,) rad/s by central differences."""
+    a, b = trajectory(t - dt), trajectory(t + dt)
+    velocity = (b.position_m - a.position_m) / (2 * dt)
+    body_rates = rotation_log(a.rotation.T @ b.rotation) / (2 * dt)
+    return velocity, body_rates
+
+
+class AutopilotSim:
+    """See the module docstring. Use as a context manager; `port` is where it listens."""
+
+    def __init__(self, trajectory: Trajectory, *, heartbeat_period_s: float = 1.0, mode: int = ARDUCOPTER_GUIDED,
+                 armed: bool = True, mav_type: int = MAV_TYPE_QUADROTOR, autopilot: int = MAV_AUTOPILOT_ARDUPILOTMEGA,
+                 signing_key: bytes | None = None, answer_interval_requests: bool = True, boot_age_s: float = 100.0):
+        self.trajectory = trajectory
+        self.heartbeat_period_s = heartbeat_period_s
+        self.mode, self.armed, self.mav_type, self.autopilot = mode, armed, mav_type, autopilot
+        self.answer_interval_requests = answer_interval_requests
+        self.heartbeats_on = True
+        self.heartbeats_sent = 0
+        self.received: list[Received] = []
+        self.rates_hz: dict[int, float] = {}
+        self.mavlink = mavutil_v2().mavlink  # the dialect module: message ids and enums
+        self.conn = mavutil_v2().mavlink_connection("udpin:127.0.0.1:0", source_system=1, source_component=1)
+        if signing_key is not None:
+            self.conn.setup_signing(signing_key, sign_outgoing=True, allow_unsigned_callback=None, link_id=0)
+        self.start = time.monotonic()
+        self.boot = self.start - boot_age_s  # the autopilot's time_boot_ms counts from here
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="autopilot-sim", daemon=True)
+        self._thread.start()
+
+    @property
+    def port(self) -> int:
+        return self.conn.port.getsockname()[1]
+
+    def pose_at(self, t_monotonic: float) -> SimPose:
+        """The true pose at a `time.monotonic()` instant."""
+        return self.trajectory(t_monotonic - self.start)
+
+    def of_type(self, name: str) -> list[Received]:
+        with self._lock:
+            return [r for r in self.received if r.type == name]
+
+    def _time_boot_ms(self, now: float) -> int:
+        return int((now - self.boot) * 1000)
+
+    def _heartbeat(self) -> None:
+        m = self.mavlink
+        base_mode = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (m.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        self.conn.mav.heartbeat_send(self.mav_type, self.autopilot, base_mode, self.mode, 4 if self.armed else 3)
+        self.heartbeats_sent += 1
+
+    def _stream(self, message_id: int, now: float) -> None:
+        pose = self.trajectory(now - self.start)
+        velocity, rates = _rates(self.trajectory, now - self.start)
+        boot_ms = self._time_boot_ms(now)
+        if message_id == ATTITUDE_ID:
+            r = pose.rotation  # Z-Y-X Euler angles of R_ned_body
+            roll, pitch, yaw = math.atan2(r[2, 1], r[2, 2]), -math.asin(r[2, 0]), math.atan2(r[1, 0], r[0, 0])
+            self.conn.mav.attitude_send(boot_ms, roll, pitch, yaw, *(float(w) for w in rates))
+        else:
+            self.conn.mav.local_position_ned_send(boot_ms, *(float(v) for v in pose.position_m), *(float(v) for v in velocity))
+
+    def _handle(self, msg, now: float) -> None:
+        with self._lock:
+            self.received.append(Received(msg, now))
+        if msg.get_type() == "COMMAND_LONG" and msg.command == self.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            if not self.answer_interval_requests:
+                return
+            result = self.mavlink.MAV_RESULT_ACCEPTED
+            if int(msg.param1) in (ATTITUDE_ID, LOCAL_POSITION_NED_ID) and msg.param2 > 0:
+                self.rates_hz[int(msg.param1)] = 1e6 / msg.param2
+            else:
+                result = self.mavlink.MAV_RESULT_UNSUPPORTED
+            self.conn.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+
+    def _run(self) -> None:
+        next_beat = time.monotonic()
+        next_stream: dict[int, float] = {}
+        while not self._stop.is_set():
+            now = time.monotonic()
+            while (msg := self.conn.recv_msg()) is not None:
+                if msg.get_type() != "BAD_DATA":
+                    self._handle(msg, now)
+            if not self.conn.clients:  # nobody has talked to us yet: nowhere to send
+                time.sleep(0.002)
+                continue
+            if self.heartbeats_on and now >= next_beat:
+                self._heartbeat()
+                next_beat = now + self.heartbeat_period_s
+            for message_id, rate in list(self.rates_hz.items()):
+                if now >= next_stream.get(message_id, 0.0):
+                    self._stream(message_id, now)
+                    next_stream[message_id] = max(next_stream.get(message_id, now) + 1.0 / rate, now)
+            time.sleep(0.001)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.conn.close()
+
+    def __enter__(self) -> "AutopilotSim":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
