@@ -217,6 +217,7 @@ class Daemon:
                              "capture_to_publish_ms": round(1000 * age, 3)}
         if self.relay is not None:
             self.relay.publish(result, captured_at=item.captured_at)
+            result["targets"] = self.relay.targets()  # fused in local NED (with vehicle state), for the log and /latest
         self._check_age(age)
         if self._results is not None:
             self._results.write(result_line(result))
