@@ -103,3 +103,41 @@ def test_an_unsigned_peer_is_not_connected_to_a_signed_relay_but_a_signed_one_is
         signed = relay.link_state()
     assert unsigned["connected"] is False and unsigned["signature_failures"] >= 3
     assert signed["signature_failures"] == 0 and signed["signing"] is True
+
+
+class RelayLive:
+    """The daemon as the API sees it, reduced to its relay (the part /health and /metrics report)."""
+
+    def __init__(self, relay: MavlinkRelay):
+        self.relay = relay
+
+    def latest_result(self):
+        return None
+
+    def health(self):
+        return {"camera": {"source": "zed:/dev/zedmini:HD720", "lost": False}, "mavlink": self.relay.link_state()}
+
+
+def test_health_hides_source_and_url_without_the_token_and_metrics_report_the_link():
+    from fastapi.testclient import TestClient
+
+    from api import create_app
+    from branchrange.config import ApiConfig
+
+    with AutopilotSim(HOVER, heartbeat_period_s=0.1) as sim, relay_to(sim.port) as relay:
+        assert wait_for(lambda: relay.link_state()["connected"], 2.0)
+        with TestClient(create_app(ApiConfig(token="t0ken"), None, state=RelayLive(relay))) as client:
+            anonymous = client.get("/health").json()
+            wrong = client.get("/health", headers={"Authorization": "Bearer nope"}).json()
+            crew = client.get("/health", headers={"Authorization": "Bearer t0ken"}).json()
+            metrics = client.get("/metrics", headers={"Authorization": "Bearer t0ken"}).text
+        url = f"udpout:127.0.0.1:{sim.port}"
+    for body in (anonymous, wrong):
+        assert "source" not in body["camera"] and "url" not in body["mavlink"]
+        assert body["status"] == "ok" and body["mavlink"]["connected"] is True and body["mavlink"]["peer"]["system_id"] == 1
+    assert crew["camera"]["source"] == "zed:/dev/zedmini:HD720" and crew["mavlink"]["url"] == url
+    lines = dict(line.rsplit(" ", 1) for line in metrics.splitlines() if line.startswith("branchrange_mavlink_"))
+    assert lines['branchrange_mavlink_connected{system_id="1",component_id="1"}'] == "1"
+    assert float(lines["branchrange_mavlink_heartbeat_age_seconds"]) < 0.5
+    assert int(lines["branchrange_mavlink_messages_received_total"]) >= 1
+    assert int(lines["branchrange_mavlink_signature_failures_total"]) == 0
