@@ -222,16 +222,18 @@ class TrackingConfig:
     (metres, camera frame) has a standard deviation of `lateral_sigma_at_1m_m`·r across the line of
     sight and `depth_sigma_at_1m_m`·r² along it (stereo depth error grows with the square of the
     range); `process_noise_m2_per_s` lets a track follow a branch that sways or a slowly drifting
-    local position. A cut point joins the nearest track within `gate_m`. A track unseen for
-    `stale_after_s` is no longer sent (occlusions shorter than that are bridged by the filter) and
-    is forgotten after `forget_after_s`.
+    local position. A cut point joins the nearest track within `gate_m`. A track whose newest
+    cut point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than
+    that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count from the
+    capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU
+    companion) by a frame or two: 1.5 s.
     """
 
     gate_m: float = 0.15
     lateral_sigma_at_1m_m: float = 0.004
     depth_sigma_at_1m_m: float = 0.01
     process_noise_m2_per_s: float = 1e-5
-    stale_after_s: float = 1.0
+    stale_after_s: float = 1.5
     forget_after_s: float = 5.0
 
     def __post_init__(self) -> None:

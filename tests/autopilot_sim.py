@@ -10,6 +10,11 @@ from its own thread, at the wall-clock times they are due:
 - records every message it receives with its arrival time (`time.monotonic()`).
 With `signing_key` it signs what it sends and rejects what is not signed with that key.
 The trajectory maps seconds since the simulator started to a `SimPose` (body FRD in local NED).
+
+`fly_frames` plays the daemon's side: frames captured at a rate, each published to a relay a fixed
+latency after capture with its capture time, holding the true cut points seen from the true camera
+pose at capture plus the noise the tracker's measurement model assumes. The tests and
+`benchmarks/pose_compensation.py` both use it.
 """
 from __future__ import annotations
 
@@ -21,8 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from branchrange.config import TrackingConfig
 from branchrange.mavlink.connection import mavutil_v2
-from branchrange.mavlink.frames import rotation_from_rpy, rotation_log
+from branchrange.mavlink.frames import CameraMount, rotation_from_rpy, rotation_log
 from mavlink_peer import Received
 
 ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
@@ -173,3 +179,59 @@ class AutopilotSim:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def camera_point(pose: SimPose, point_ned_m: np.ndarray, mount: CameraMount) -> np.ndarray:
+    """Where the camera on `mount` sees a NED point (camera frame, metres, (3,))."""
+    return mount.camera_to_body.T @ (pose.ned_to_body(point_ned_m) - mount.translation_m)
+
+
+def noisy(point_cam_m: np.ndarray, rng: np.random.Generator, tracking: TrackingConfig) -> np.ndarray:
+    """A cut point with the noise `tracking` assumes: depth σ = depth_sigma_at_1m_m·r², lateral σ = lateral_sigma_at_1m_m·r."""
+    r = float(np.linalg.norm(point_cam_m))
+    u = point_cam_m / r
+    lateral = rng.normal(0.0, tracking.lateral_sigma_at_1m_m * r, 3)
+    lateral -= u * (lateral @ u)
+    return point_cam_m + lateral + u * rng.normal(0.0, tracking.depth_sigma_at_1m_m * r * r)
+
+
+@dataclass(frozen=True)
+class Published:
+    """One frame handed to the relay: capture and publish times (monotonic s), the target's camera point (3,)."""
+
+    captured_at: float
+    published_at: float
+    target_cam_m: np.ndarray
+
+
+def fly_frames(sim: AutopilotSim, relay, mount: CameraMount, branches_ned: list[np.ndarray], frames: int,
+               fps: float, latency_s: float, rng: np.random.Generator, tracking: TrackingConfig) -> list[Published]:
+    """Capture `frames` frames at `fps` and publish each `latency_s` after capture (branch 0 is the target)."""
+    t0 = time.monotonic() + 0.01
+    published = []
+    for k in range(frames):
+        captured = t0 + k / fps
+        time.sleep(max(0.0, captured + latency_s - time.monotonic()))
+        pose = sim.pose_at(captured)
+        cams = [noisy(camera_point(pose, p, mount), rng, tracking) for p in branches_ned]
+        result = {"branches": [{"id": i, "cut_point_m": [float(v) for v in c], "confidence": 0.8}
+                               for i, c in enumerate(cams)], "target_id": 0}
+        relay.publish(result, captured_at=captured)
+        published.append(Published(captured, time.monotonic(), cams[0]))
+    return published
+
+
+def body_target_errors(sim: AutopilotSim, published: list[Published], mount: CameraMount, target_ned: np.ndarray,
+                       skip_frames: int) -> tuple[list[float], list[float]]:
+    """Per DEBUG_VECT the sim received after `skip_frames` publications: the error (m) of the sent target and
+    of the uncompensated one (the newest result through the mount alone) against the truth in the body
+    frame at the moment it arrived."""
+    compensated, uncompensated = [], []
+    for r in sim.of_type("DEBUG_VECT"):
+        newest = [p for p in published if p.published_at <= r.at]
+        if len(newest) <= skip_frames or math.isnan(r.msg.x):
+            continue
+        truth = sim.pose_at(r.at).ned_to_body(target_ned)
+        compensated.append(float(np.linalg.norm(np.array([r.msg.x, r.msg.y, r.msg.z]) - truth)))
+        uncompensated.append(float(np.linalg.norm(mount.to_body(newest[-1].target_cam_m) - truth)))
+    return compensated, uncompensated

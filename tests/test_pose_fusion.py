@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from autopilot_sim import ARDUCOPTER_LOITER, AutopilotSim, SimPose, approach_flight
+from autopilot_sim import ARDUCOPTER_LOITER, AutopilotSim, approach_flight, body_target_errors, fly_frames, noisy
 from branchrange.config import MavlinkConfig, TrackingConfig
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from branchrange.mavlink.approach import ApproachPlanner
@@ -33,20 +33,6 @@ HEADING = math.radians(20.0)
 CUT_NED = START + 1.6 * np.array([math.cos(HEADING), math.sin(HEADING), 0.0]) + np.array([0.0, 0.0, 0.1])
 #: a second branch, 30 cm to the right of the first
 OTHER_NED = CUT_NED + 0.3 * np.array([-math.sin(HEADING), math.cos(HEADING), 0.0])
-
-
-def camera_point(pose: SimPose, point_ned: np.ndarray) -> np.ndarray:
-    """Where the camera sees a NED point (camera frame, metres)."""
-    return MOUNT.camera_to_body.T @ (pose.ned_to_body(point_ned) - MOUNT.translation_m)
-
-
-def noisy(point_cam: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A cut point with the noise the tracker's measurement model assumes (depth σ ∝ r², lateral ∝ r)."""
-    r = float(np.linalg.norm(point_cam))
-    u = point_cam / r
-    lateral = rng.normal(0.0, TRACKING.lateral_sigma_at_1m_m * r, 3)
-    lateral -= u * (lateral @ u)
-    return point_cam + lateral + u * rng.normal(0.0, TRACKING.depth_sigma_at_1m_m * r * r)
 
 
 def attitude_msg(t_boot: float, pose: Pose, rates=(0.0, 0.0, 0.0)):
@@ -108,7 +94,7 @@ def measure(track_set: WorldTracks, rng, t: float, points_ned, target_branch=0):
     zs = []
     for i, p in enumerate(points_ned):
         cam = cam_to_ned.T @ (p - camera_ned)
-        z_cam = noisy(cam, rng)
+        z_cam = noisy(cam, rng, TRACKING)
         zs.append(Measurement(i, cam_to_ned @ z_cam + camera_ned, measurement_covariance(z_cam, cam_to_ned, TRACKING), 0.8))
     return track_set.update(zs, t, target_branch)
 
@@ -196,22 +182,8 @@ def test_approach_setpoint_stands_off_limits_its_step_and_speed():
 # ---- end to end: the simulator flies, the test plays the daemon ------------------------------------
 
 
-def fly(sim: AutopilotSim, relay: MavlinkRelay, frames: int, rng: np.random.Generator,
-        latency_s: float = LATENCY_S, branches=(CUT_NED, OTHER_NED)) -> list[tuple[float, float, np.ndarray]]:
-    """Capture `frames` frames at FPS, publish each `latency_s` after capture; returns
-    (capture time, publish time, target's measured camera point) per frame."""
-    t0 = time.monotonic() + 0.01
-    published = []
-    for k in range(frames):
-        captured = t0 + k / FPS
-        time.sleep(max(0.0, captured + latency_s - time.monotonic()))
-        pose = sim.pose_at(captured)
-        cams = [noisy(camera_point(pose, p), rng) for p in branches]
-        result = {"branches": [{"id": i, "cut_point_m": [float(v) for v in c], "confidence": 0.8}
-                               for i, c in enumerate(cams)], "target_id": 0}
-        relay.publish(result, captured_at=captured)
-        published.append((captured, time.monotonic(), cams[0]))
-    return published
+def fly(sim: AutopilotSim, relay: MavlinkRelay, frames: int, rng: np.random.Generator, latency_s: float = LATENCY_S):
+    return fly_frames(sim, relay, MOUNT, [CUT_NED, OTHER_NED], frames, FPS, latency_s, rng, TRACKING)
 
 
 def wait_for_state(relay: MavlinkRelay, seconds: float = 3.0) -> None:
@@ -246,14 +218,7 @@ def test_fused_target_and_latency_compensated_body_target_match_the_truth():
     assert np.linalg.norm(np.array(other["ned_m"]) - OTHER_NED) < 0.02
 
     # every DEBUG_VECT from the 6th frame on, against the truth in the body frame of its arrival
-    compensated, uncompensated = [], []
-    for r in sim.of_type("DEBUG_VECT"):
-        newest = [p for p in published if p[1] <= r.at]
-        if len(newest) < 6 or math.isnan(r.msg.x):
-            continue
-        truth = sim.pose_at(r.at).ned_to_body(CUT_NED)
-        compensated.append(np.linalg.norm(np.array([r.msg.x, r.msg.y, r.msg.z]) - truth))
-        uncompensated.append(np.linalg.norm(MOUNT.to_body(newest[-1][2]) - truth))  # the camera-frame value
+    compensated, uncompensated = body_target_errors(sim, published, MOUNT, CUT_NED, skip_frames=5)
     assert len(compensated) >= 5
     print(f"body-frame target error: compensated median {1000 * np.median(compensated):.1f} mm "
           f"(max {1000 * max(compensated):.1f}), uncompensated median {1000 * np.median(uncompensated):.1f} mm")
@@ -271,7 +236,7 @@ def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so()
     assert state["connected"] is True and state["mode"] == "camera" and state["vehicle_state"]["available"] is False
     assert targets == {"frame": "camera", "target_track_id": None, "tracks": []}
     sent = [r for r in sim.of_type("DEBUG_VECT") if not math.isnan(r.msg.x)]
-    np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1][2]), atol=1e-5)
+    np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5)
 
 
 def setpoints_between(sim: AutopilotSim, start: float, end: float):
