@@ -281,3 +281,19 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     stale_at = last_frame - 0.1 + tracking.stale_after_s
     assert setpoints_between(sim, stale_at + 0.02, end) == []  # stale target: they stop at once
     assert state["setpoints_sent"] == len(sim.of_type("SET_POSITION_TARGET_LOCAL_NED"))
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"tracking": {"forget_after_s": 0.5}}, r"tracking\.forget_after_s = 0\.5: expected seconds >= tracking\.stale_after_s \(1\.5\)"),
+    ({"tracking": {"gate_m": 0}}, r"tracking\.gate_m = 0\.0: expected metres > 0"),
+    ({"tracking": {"gate": 0.1}}, r"tracking\.gate: unknown option; \[tracking\] takes "),
+    ({"mavlink": {"state_rate_hz": 500}}, r"mavlink\.state_rate_hz = 500\.0: expected a rate in \[1, 100\] Hz"),
+    ({"mavlink": {"obstacle_min_confidence": 1.5}}, r"mavlink\.obstacle_min_confidence = 1\.5: expected a number in \[0, 1\]"),
+    ({"mavlink": {"setpoint_max_speed_m_s": 9}}, r"mavlink\.setpoint_max_speed_m_s = 9\.0: expected a speed in \(0, 5\] m/s"),
+    ({"mavlink": {"heartbeat_timeout_s": 0}}, r"mavlink\.heartbeat_timeout_s = 0\.0: expected seconds > 0"),
+])
+def test_pose_and_tracking_settings_name_the_key_and_the_range(data, message):
+    from branchrange.config import ConfigError, config_from_dict
+
+    with pytest.raises(ConfigError, match=message):
+        config_from_dict(data)
