@@ -6,6 +6,7 @@ holding the true cut point seen from the true camera pose at capture plus stereo
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -226,7 +227,8 @@ def test_fused_target_and_latency_compensated_body_target_match_the_truth():
     assert np.median(uncompensated) > 5 * np.median(compensated)
 
 
-def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so():
+def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so(caplog):
+    caplog.set_level(logging.INFO, logger="branchrange.mavlink")
     rng = np.random.default_rng(2)
     with AutopilotSim(approach_flight(0.5), heartbeat_period_s=0.2, answer_interval_requests=False) as sim, \
             relay_for(sim) as relay:
@@ -235,6 +237,7 @@ def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so()
         state, targets = relay.link_state(), relay.targets()
     assert state["connected"] is True and state["mode"] == "camera" and state["vehicle_state"]["available"] is False
     assert targets == {"frame": "camera", "target_track_id": None, "tracks": []}
+    assert any("no vehicle state" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
     sent = [r for r in sim.of_type("DEBUG_VECT") if not math.isnan(r.msg.x)]
     np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5)
 

@@ -53,6 +53,10 @@ class ApproachPlanner:
         self.cfg = cfg
         self._last: tuple[np.ndarray, float] | None = None  # previous setpoint (3,) NED and its time
 
+    def reset(self) -> None:
+        """Forget the previous setpoint: the next one is limited by `setpoint_max_step_m` only."""
+        self._last = None
+
     def _target_ready(self, target: Track | None) -> bool:
         return (target is not None and target.observations >= self.cfg.setpoint_min_observations
                 and target.confidence >= self.cfg.setpoint_min_confidence)
@@ -61,7 +65,7 @@ class ApproachPlanner:
                  now: float) -> tuple[np.ndarray, float] | None:
         """(setpoint (3,) NED m, yaw rad) for this send, or None (and the rate limit restarts)."""
         if not (self.cfg.setpoint_enabled and pose is not None and follows_setpoints(peer) and self._target_ready(target)):
-            self._last = None
+            self.reset()
             return None
         to_target = target.position_m - pose.position_m
         horizontal = np.array([to_target[0], to_target[1], 0.0])

@@ -25,6 +25,7 @@ says which mode is in use. `targets()` gives the fused tracks for /latest and th
 """
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -39,6 +40,7 @@ from branchrange.mavlink.frames import CameraMount
 from branchrange.mavlink.vehicle_state import VehicleState
 from branchrange.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
 
+log = logging.getLogger("branchrange.mavlink")
 HEARTBEAT_PERIOD_S = 1.0
 #: How often the link thread reads incoming messages when nothing else is due: a state message's
 #: receive time is its arrival time within this, which the clock offset's minimum filter absorbs.
@@ -79,7 +81,7 @@ class MavlinkRelay:
         self._tracks = WorldTracks(tracking)
         self._approach = ApproachPlanner(cfg)
         self._latest_fused = False
-        self._mode = "camera"
+        self._mode: str | None = None  # "world" or "camera" from the first send on
         self._last_state_request = -math.inf
         self._link = MavlinkLink(cfg.url, baud=cfg.baud, source_system=cfg.system_id,
                                  source_component=cfg.component_id, signing_key=key,
@@ -143,7 +145,7 @@ class MavlinkRelay:
             vehicle = self._vehicle.state(now)
             tracks = len(self._tracks.fresh(now))
         state.update(frames_sent=self.frames_sent, no_target_frames=self.no_target_frames,
-                     camera_lost=self._camera_lost, mode=self._mode, vehicle_state=vehicle,
+                     camera_lost=self._camera_lost, mode=self._mode or "camera", vehicle_state=vehicle,
                      tracks=tracks, setpoints_sent=self.setpoints_sent,
                      message_interval_acks=self.interval_acks, unfused_results=self.unfused_results)
         return state
@@ -227,17 +229,28 @@ class MavlinkRelay:
             pose = self._vehicle.pose_at(now)
             fresh_unfused = latest is not None and not fused and now - latest[1] <= self._cfg.max_result_age_s
             if pose is not None and not fresh_unfused:
-                self._mode = "world"
+                self._set_mode("world")
                 target = self._tracks.target(now)
                 points = [messages.BodyPoint(t.track_id, pose.ned_to_body(t.position_m), t.confidence)
                           for t in self._tracks.fresh(now)]
                 body_target = next((p for p in points if target is not None and p.id == target.track_id), None)
                 peer = self._link.peer if self._link.connected else None
                 return messages.FrameTargets(body_target, points), self._approach.setpoint(target, pose, peer, now)
-            self._mode = "camera"
-            self._approach.setpoint(None, None, None, now)  # no setpoint without a pose; restarts its rate limit
+            self._set_mode("camera")
+            self._approach.reset()  # no setpoint without a pose
         fresh = latest is not None and now - latest[1] <= self._cfg.max_result_age_s
         return messages.targets_from_result(latest[0] if fresh else None, self._mount), None
+
+    def _set_mode(self, mode: str) -> None:
+        """Switch between "world" and "camera" sending, and say so in the log."""
+        if mode == self._mode:
+            return
+        self._mode = mode
+        if mode == "world":
+            log.info("vehicle state from the autopilot: targets fused in local NED, sent in the body frame of each send")
+        else:
+            log.warning("no vehicle state from the autopilot: targets go out in the body frame of their capture, "
+                        "without latency compensation")
 
     def _send_frame(self, latest: tuple[Mapping[str, Any], float] | None, fused: bool, now: float) -> None:
         """Send this moment's targets (world tracks, else the newest fresh result, else "no target")."""
