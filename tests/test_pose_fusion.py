@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from autopilot_sim import ARDUCOPTER_LOITER, AutopilotSim, approach_flight, body_target_errors, fly_frames, noisy
+from autopilot_sim import (ARDUCOPTER_LOITER, AutopilotSim, approach_flight, body_target_errors, camera_point,
+                           flight_from_camera_poses, fly_frames, noisy)
 from branchrange.config import MavlinkConfig, TrackingConfig
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from branchrange.mavlink.approach import ApproachPlanner
 from branchrange.mavlink.connection import PeerHeartbeat
-from branchrange.mavlink.frames import rotation_log
+from branchrange.mavlink.frames import rotation_exp, rotation_log
 from branchrange.mavlink.messages import BodyPoint, FrameTargets, obstacles
 from branchrange.mavlink.vehicle_state import ClockOffset, Pose, VehicleState
 from branchrange.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
@@ -29,11 +30,31 @@ TRACKING = TrackingConfig()
 LATENCY_S = 0.3
 FPS = 15.0
 START = np.array([0.0, 0.0, -2.0])
-HEADING = math.radians(20.0)
-#: the branch to cut, 1.6 m ahead of the start along the heading, 10 cm below the flight level
-CUT_NED = START + 1.6 * np.array([math.cos(HEADING), math.sin(HEADING), 0.0]) + np.array([0.0, 0.0, 0.1])
-#: a second branch, 30 cm to the right of the first
-OTHER_NED = CUT_NED + 0.3 * np.array([-math.sin(HEADING), math.cos(HEADING), 0.0])
+HEADING_DEG = 20.0
+
+
+def camera_flight(speed_m_s: float, seconds: float = 4.0) -> dict:
+    """A flight in the `flight.json` form of `branchrange synth-flight` (issue 12): per-frame camera poses
+    `R_world_cam`, `t_world_cam` in the frame-0 camera frame (OpenCV axes) and world cut points. The camera
+    moves forward at `speed_m_s`, sways 5 cm sideways and 2 cm up and down, and turns by a few degrees."""
+    poses = []
+    for k in range(int(seconds * FPS) + 1):
+        t = k / FPS
+        turn = np.radians([2.0 * math.sin(2 * math.pi * 0.4 * t), 5.0 * math.sin(2 * math.pi * 0.3 * t),
+                           3.0 * math.sin(2 * math.pi * 0.5 * t)])  # about camera x (pitch), y (yaw), z (roll)
+        poses.append({"index": k, "timestamp_ns": int(t * 1e9), "R_world_cam": rotation_exp(turn),
+                      "t_world_cam": np.array([0.05 * math.sin(2 * math.pi * 0.5 * t), 0.02 * math.sin(2 * math.pi * 0.7 * t),
+                                               speed_m_s * t])})
+    return {"poses": poses, "cut_points": [{"id": 1, "world_m": np.array([0.05, 0.12, 1.7]), "radius_m": 0.01},
+                                           {"id": 2, "world_m": np.array([0.35, 0.10, 1.75]), "radius_m": 0.008}]}
+
+
+FLIGHT = camera_flight(0.5)
+FLIGHT_TRAJECTORY, WORLD_TO_NED = flight_from_camera_poses(
+    [p["timestamp_ns"] / 1e9 for p in FLIGHT["poses"]], [p["R_world_cam"] for p in FLIGHT["poses"]],
+    [p["t_world_cam"] for p in FLIGHT["poses"]], MOUNT, START, HEADING_DEG)
+#: the branch to cut and a second one 30 cm to its right, in the autopilot's local NED frame
+CUT_NED, OTHER_NED = (WORLD_TO_NED(c["world_m"]) for c in FLIGHT["cut_points"])
 
 
 def attitude_msg(t_boot: float, pose: Pose, rates=(0.0, 0.0, 0.0)):
@@ -83,6 +104,17 @@ def test_pose_is_interpolated_between_samples_and_extrapolated_with_the_reported
         assert angle < 0.1
     assert state.pose_at(offset - 1.0) is None  # before the history
     assert state.pose_at(1.18 + offset + 0.002 + 0.25) is None  # beyond max_extrapolation_s
+
+
+def test_a_flight_json_camera_flight_is_flown_with_the_camera_where_the_poses_put_it():
+    for pose in FLIGHT["poses"][::7]:
+        body = FLIGHT_TRAJECTORY(pose["timestamp_ns"] / 1e9)
+        for cut in FLIGHT["cut_points"]:  # the camera sees each cut point where the pose says it is
+            expected_cam = pose["R_world_cam"].T @ (cut["world_m"] - pose["t_world_cam"])
+            np.testing.assert_allclose(camera_point(body, WORLD_TO_NED(cut["world_m"]), MOUNT), expected_cam, atol=1e-9)
+    first = FLIGHT_TRAJECTORY(0.0)
+    np.testing.assert_allclose(first.position_m, START, atol=1e-12)
+    np.testing.assert_allclose(first.rotation[:, 0], [math.cos(math.radians(HEADING_DEG)), math.sin(math.radians(HEADING_DEG)), 0.0], atol=1e-12)
 
 
 # ---- NED tracks (no network) -----------------------------------------------------------------------
@@ -201,7 +233,7 @@ def relay_for(sim: AutopilotSim, **overrides) -> MavlinkRelay:
 
 def test_fused_target_and_latency_compensated_body_target_match_the_truth():
     rng = np.random.default_rng(7)
-    with AutopilotSim(approach_flight(0.5), heartbeat_period_s=0.2) as sim, relay_for(sim) as relay:
+    with AutopilotSim(FLIGHT_TRAJECTORY, heartbeat_period_s=0.2) as sim, relay_for(sim) as relay:
         wait_for_state(relay)
         published = fly(sim, relay, 12, rng)
         time.sleep(0.15)
@@ -251,7 +283,8 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     tracking = TrackingConfig(stale_after_s=0.4, forget_after_s=2.0)
     with AutopilotSim(approach_flight(0.3), heartbeat_period_s=0.05) as sim:
         cfg = MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0,
-                            setpoint_enabled=True, setpoint_min_observations=5, setpoint_standoff_m=0.6)
+                            setpoint_enabled=True, setpoint_min_observations=5, setpoint_standoff_m=0.6,
+                            setpoint_max_step_m=2.0)
         with MavlinkRelay(cfg, MOUNT, tracking=tracking) as relay:
             wait_for_state(relay)
             fly(sim, relay, 8, rng, latency_s=0.1)
@@ -276,7 +309,7 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     standoff = np.array([sp.msg.x, sp.msg.y, sp.msg.z])
     horizontal = (CUT_NED - standoff)[:2]
     assert np.linalg.norm(horizontal) == pytest.approx(0.6, abs=0.03) and sp.msg.z == pytest.approx(CUT_NED[2], abs=0.02)
-    assert np.linalg.norm(standoff - truth.position_m) <= 1.0 + 1e-3
+    assert np.linalg.norm(standoff - truth.position_m) <= 2.0 + 1e-3
     margin = 0.05 + 0.1 + 0.02  # one heartbeat period + one send period + delivery
     assert setpoints_between(sim, guided_until + margin, loiter_until) == []
     assert setpoints_between(sim, loiter_until + margin, disarmed_until) == []
