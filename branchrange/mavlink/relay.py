@@ -42,9 +42,11 @@ from branchrange.mavlink.world_tracks import Measurement, WorldTracks, measureme
 
 log = logging.getLogger("branchrange.mavlink")
 HEARTBEAT_PERIOD_S = 1.0
-#: How often the link thread reads incoming messages when nothing else is due: a state message's
-#: receive time is its arrival time within this, which the clock offset's minimum filter absorbs.
+#: How often the link thread reads incoming messages while an autopilot is connected: a state
+#: message's receive time is its arrival time within this, which the clock offset's minimum filters.
 POLL_PERIOD_S = 0.01
+#: ... and while none is (only its first HEARTBEAT is awaited; saves the CPU a 100 Hz loop costs).
+IDLE_POLL_PERIOD_S = 0.05
 #: MAVLink ids of the streams requested from the autopilot.
 ATTITUDE_ID, LOCAL_POSITION_NED_ID = 30, 32
 #: Ask for the streams again when no state message arrived for this long (s).
@@ -180,7 +182,8 @@ class MavlinkRelay:
         frame_period = 1.0 / self._cfg.send_rate_hz
         while True:
             with self._cond:
-                timeout = min(next_heartbeat, next_frame, self._clock() + POLL_PERIOD_S) - self._clock()
+                poll_period = POLL_PERIOD_S if self._link.connected else IDLE_POLL_PERIOD_S
+                timeout = min(next_heartbeat, next_frame, self._clock() + poll_period) - self._clock()
                 if not (self._stopped or self._new_result or self._lost_changed) and timeout > 0:
                     self._cond.wait(timeout)
                 if self._stopped:
