@@ -269,7 +269,28 @@ def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so(c
         state, targets = relay.link_state(), relay.targets()
     assert state["connected"] is True and state["mode"] == "camera" and state["vehicle_state"]["available"] is False
     assert targets == {"frame": "camera", "target_track_id": None, "tracks": []}
-    assert any("no vehicle state" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
+    assert any("no vehicle state" in r.getMessage() for r in caplog.records)
+    sent = [r for r in sim.of_type("DEBUG_VECT") if not math.isnan(r.msg.x)]
+    np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5)
+
+
+def test_when_the_pose_stops_the_relay_falls_back_to_the_camera_frame_and_warns(caplog):
+    caplog.set_level(logging.INFO, logger="branchrange.mavlink")
+    rng = np.random.default_rng(4)
+    with AutopilotSim(approach_flight(0.5), heartbeat_period_s=0.2) as sim, relay_for(sim) as relay:
+        wait_for_state(relay)
+        fly(sim, relay, 3, rng, latency_s=0.05)
+        world = relay.link_state()["mode"]
+        sim.answer_interval_requests = False
+        sim.rates_hz.clear()  # the autopilot stops streaming (and ignores new requests)
+        time.sleep(MavlinkConfig().pose_timeout_s + 0.3)
+        published = fly(sim, relay, 2, rng, latency_s=0.05)
+        time.sleep(0.05)
+        state = relay.link_state()
+    assert world == "world" and state["mode"] == "camera" and state["vehicle_state"]["available"] is False
+    assert state["connected"] is True  # the link is fine; only the pose is missing
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("no vehicle state" in w for w in warnings)
     sent = [r for r in sim.of_type("DEBUG_VECT") if not math.isnan(r.msg.x)]
     np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5)
 

@@ -248,12 +248,13 @@ class MavlinkRelay:
         """Switch between "world" and "camera" sending, and say so in the log."""
         if mode == self._mode:
             return
-        self._mode = mode
+        previous, self._mode = self._mode, mode
         if mode == "world":
             log.info("vehicle state from the autopilot: targets fused in local NED, sent in the body frame of each send")
-        else:
-            log.warning("no vehicle state from the autopilot: targets go out in the body frame of their capture, "
-                        "without latency compensation")
+        else:  # a warning when the pose was lost, news at start-up (the autopilot may not have answered yet)
+            (log.warning if previous == "world" else log.info)(
+                "no vehicle state from the autopilot: targets go out in the body frame of their capture, "
+                "without latency compensation")
 
     def _send_frame(self, latest: tuple[Mapping[str, Any], float] | None, fused: bool, now: float) -> None:
         """Send this moment's targets (world tracks, else the newest fresh result, else "no target")."""
