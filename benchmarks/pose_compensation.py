@@ -16,7 +16,16 @@ on is compared with the true cut point in the body frame *at the moment it arriv
 Numbers are millimetres (median, p95 over sends; `--repeats` flights per cell pooled), and the
 ratio uncompensated / compensated of the medians.
 
+`--flight DIR` runs the whole chain instead: the daemon (`branchrange.daemon.Daemon`, sgbm, the
+recording's truth masks) replays a `branchrange synth-flight` recording at its frame rate while the
+simulator flies the poses of its `flight.json` (hovering at the first pose until the first frame
+is released); reported: the fused target track against the true cut point (local NED), the
+single-frame target cut points against the truth (camera frame at capture), and the body-frame
+target at arrival, compensated and not.
+
     .venv/bin/python benchmarks/pose_compensation.py --json out/pose_compensation.json
+    .venv/bin/python -m branchrange.cli synth-flight --out /tmp/flight --frames 20 --fps 8 --resolution 640x360 --start-m 2.0 --end-m 1.0 --seed 1
+    .venv/bin/python benchmarks/pose_compensation.py --flight /tmp/flight --json out/pose_flight.json
 """
 from __future__ import annotations
 
@@ -33,7 +42,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 
-from autopilot_sim import AutopilotSim, approach_flight, body_target_errors, fly_frames  # noqa: E402
+from autopilot_sim import (AutopilotSim, approach_flight, body_target_errors, flight_from_camera_poses,  # noqa: E402
+                           fly_frames)
 from branchrange.config import MavlinkConfig, TrackingConfig  # noqa: E402
 from branchrange.mavlink import CameraMount, MavlinkRelay  # noqa: E402
 from realtime import cpu_name  # noqa: E402
@@ -69,6 +79,94 @@ def one_flight(speed: float, latency: float, frames: int, seed: int) -> tuple[li
         return body_target_errors(sim, published, MOUNT, cut, SKIP_FRAMES)
 
 
+class AlignedReplay:
+    """A replay source that starts the simulator's flight clock when it releases the first frame."""
+
+    def __init__(self, source: Any, sim: AutopilotSim):
+        self.source, self.sim, self.calibration = source, sim, source.calibration
+        self._first_ns: int | None = None
+
+    @property
+    def is_lost(self) -> bool:
+        return self.source.is_lost
+
+    def __iter__(self) -> "AlignedReplay":
+        return self
+
+    def __next__(self) -> Any:
+        frame = next(self.source)
+        if self._first_ns is None:
+            self._first_ns = frame.timestamp_ns
+            self.sim.start = time.monotonic()  # flight time 0 = the first pose, released now
+        return frame
+
+    def close(self) -> None:
+        self.source.close()
+
+
+def daemon_flight(directory: Path, max_disp: int) -> dict[str, Any]:
+    """The daemon replays `directory` while the simulator flies its flight.json; errors in metres."""
+    from branchrange.config import CameraConfig, Config, LogConfig, StereoConfig
+    from branchrange.daemon import Daemon
+    from branchrange.flight import FlightTruth
+    from branchrange.frame_results import pipeline_for
+    from camera.sources import ReplaySource
+
+    truth = FlightTruth.load(directory)
+    trajectory, world_to_ned = flight_from_camera_poses(
+        [p.timestamp_ns / 1e9 for p in truth.poses], [p.R_world_cam for p in truth.poses],
+        [p.t_world_cam for p in truth.poses], MOUNT, tuple(START), HEADING_DEG)
+    cuts_ned = {c.id: world_to_ned(c.world_m) for c in truth.cut_points}
+    published: list[tuple[float, dict[str, Any]]] = []
+    with AutopilotSim(trajectory, heartbeat_period_s=0.2) as sim:
+        sim.start = time.monotonic() + 3600.0  # hover at the first pose until the first frame
+        cfg = Config(camera=CameraConfig(source=f"replay:{directory}", mount_rpy_deg=(0.0, -10.0, 0.0),
+                                         mount_xyz_m=(0.12, 0.0, 0.04)),
+                     stereo=StereoConfig(max_disp=max_disp), log=LogConfig(status_interval_s=3600.0),
+                     mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0))
+        replay = ReplaySource(directory, pace="recorded")
+        pipeline = pipeline_for(cfg, replay.calibration)
+        relay = MavlinkRelay(cfg.mavlink, MOUNT, tracking=cfg.tracking)
+        deadline = time.monotonic() + 5.0
+        while not relay.link_state()["vehicle_state"]["available"] and time.monotonic() < deadline:
+            time.sleep(0.02)
+        daemon = Daemon(cfg, open_source=lambda: AlignedReplay(replay, sim), pipeline=pipeline, relay=relay,
+                        observers=[lambda result, _: published.append((time.monotonic(), result))])
+        try:
+            daemon.run()
+            time.sleep(0.2)
+            targets = relay.targets()
+        finally:
+            daemon.close()
+        single, compensated, uncompensated = [], [], []
+        for _, result in published:
+            branch = next((b for b in result["branches"] if b["id"] == result["target_id"]), None)
+            if branch is None or branch.get("mask_id") not in cuts_ned:
+                continue
+            position = next(i for i, p in enumerate(truth.poses) if p.index == result["frame"]["index"])
+            single.append(float(np.linalg.norm(np.asarray(branch["cut_point_m"])
+                                               - truth.cut_points_in_camera(position)[branch["mask_id"]])))
+        for r in sim.of_type("DEBUG_VECT"):
+            newest = [res for at, res in published if at <= r.at]
+            target = next((b for b in newest[-1]["branches"] if b["id"] == newest[-1]["target_id"]), None) if newest else None
+            if len(newest) <= SKIP_FRAMES or target is None or target.get("mask_id") not in cuts_ned or math.isnan(r.msg.x):
+                continue
+            body_truth = sim.pose_at(r.at).ned_to_body(cuts_ned[target["mask_id"]])
+            compensated.append(float(np.linalg.norm(np.array([r.msg.x, r.msg.y, r.msg.z]) - body_truth)))
+            uncompensated.append(float(np.linalg.norm(MOUNT.to_body(target["cut_point_m"]) - body_truth)))
+    track = next((t for t in targets["tracks"] if t["id"] == targets["target_track_id"]), None)
+    fused = None
+    if track is not None:
+        nearest = min(cuts_ned, key=lambda i: float(np.linalg.norm(np.asarray(track["ned_m"]) - cuts_ned[i])))
+        fused = {"cut_id": nearest, "error_mm": round(1000 * float(np.linalg.norm(np.asarray(track["ned_m"]) - cuts_ned[nearest])), 2),
+                 "observations": track["observations"], "sigma_mm": round(1000 * track["sigma_m"], 2)}
+    latencies = [res["latency"]["capture_to_publish_ms"] for _, res in published if "latency" in res]
+    return {"flight": str(directory), "frames_published": len(published), "fused_target": fused,
+            "latency_ms_median": round(float(np.median(latencies)), 1) if latencies else None,
+            "single_frame_target": summary(single), "compensated": summary(compensated),
+            "uncompensated": summary(uncompensated), "sends": len(compensated)}
+
+
 def summary(errors: list[float]) -> dict[str, float | None]:
     """Median and p95 in millimetres (None when nothing was sent)."""
     if not errors:
@@ -83,7 +181,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=20, help="frames per flight (15 fps)")
     parser.add_argument("--repeats", type=int, default=3, help="flights per cell, pooled")
     parser.add_argument("--json", type=Path, help="write the report here")
+    parser.add_argument("--flight", type=Path, help="a `branchrange synth-flight` recording: run the daemon on it instead")
+    parser.add_argument("--max-disp", type=int, default=64, help="sgbm disparities with --flight")
     args = parser.parse_args(argv)
+    if args.flight:
+        report = {"cpu": cpu_name(), **daemon_flight(args.flight, args.max_disp)}
+        print(json.dumps(report, indent=2))
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=2))
+        return 0
     speeds = [float(v) for v in args.speeds.split(",")]
     latencies = [float(v) for v in args.latencies.split(",")]
     cells = []
