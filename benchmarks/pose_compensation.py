@@ -17,7 +17,7 @@ Numbers are millimetres (median, p95 over sends; `--repeats` flights per cell po
 ratio uncompensated / compensated of the medians.
 
 `--flight DIR` runs the whole chain instead: the daemon (`branchrange.daemon.Daemon`, sgbm, the
-recording's truth masks) replays a `branchrange synth-flight` recording at its frame rate while the
+recording's truth masks, `--stereo-mode` roi) replays a `branchrange synth-flight` recording at its frame rate while the
 simulator flies the poses of its `flight.json` (hovering at the first pose until the first frame
 is released); reported: the fused target track against the true cut point (local NED), the
 single-frame target cut points against the truth (camera frame at capture), and the body-frame
@@ -79,32 +79,22 @@ def one_flight(speed: float, latency: float, frames: int, seed: int) -> tuple[li
         return body_target_errors(sim, published, MOUNT, cut, SKIP_FRAMES)
 
 
-class AlignedReplay:
-    """A replay source that starts the simulator's flight clock when it releases the first frame."""
+def flight_clock(sim: AutopilotSim):
+    """A replay clock (monotonic ns) that starts the simulator's flight when the replay first reads it,
+    which is when it releases the first frame (`ReplaySource` paces the rest from there)."""
+    started = False
 
-    def __init__(self, source: Any, sim: AutopilotSim):
-        self.source, self.sim, self.calibration = source, sim, source.calibration
-        self._first_ns: int | None = None
+    def clock() -> int:
+        nonlocal started
+        now = time.monotonic_ns()
+        if not started:
+            sim.start, started = now / 1e9, True  # flight time 0 = the first pose, released now
+        return now
 
-    @property
-    def is_lost(self) -> bool:
-        return self.source.is_lost
-
-    def __iter__(self) -> "AlignedReplay":
-        return self
-
-    def __next__(self) -> Any:
-        frame = next(self.source)
-        if self._first_ns is None:
-            self._first_ns = frame.timestamp_ns
-            self.sim.start = time.monotonic()  # flight time 0 = the first pose, released now
-        return frame
-
-    def close(self) -> None:
-        self.source.close()
+    return clock
 
 
-def daemon_flight(directory: Path, max_disp: int) -> dict[str, Any]:
+def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str, Any]:
     """The daemon replays `directory` while the simulator flies its flight.json; errors in metres."""
     from branchrange.config import CameraConfig, Config, LogConfig, StereoConfig
     from branchrange.daemon import Daemon
@@ -122,15 +112,15 @@ def daemon_flight(directory: Path, max_disp: int) -> dict[str, Any]:
         sim.start = time.monotonic() + 3600.0  # hover at the first pose until the first frame
         cfg = Config(camera=CameraConfig(source=f"replay:{directory}", mount_rpy_deg=(0.0, -10.0, 0.0),
                                          mount_xyz_m=(0.12, 0.0, 0.04)),
-                     stereo=StereoConfig(max_disp=max_disp), log=LogConfig(status_interval_s=3600.0),
+                     stereo=StereoConfig(max_disp=max_disp, mode=stereo_mode), log=LogConfig(status_interval_s=3600.0),
                      mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0))
-        replay = ReplaySource(directory, pace="recorded")
+        replay = ReplaySource(directory, pace="recorded", clock=flight_clock(sim))
         pipeline = pipeline_for(cfg, replay.calibration)
         relay = MavlinkRelay(cfg.mavlink, MOUNT, tracking=cfg.tracking)
         deadline = time.monotonic() + 5.0
         while not relay.link_state()["vehicle_state"]["available"] and time.monotonic() < deadline:
             time.sleep(0.02)
-        daemon = Daemon(cfg, open_source=lambda: AlignedReplay(replay, sim), pipeline=pipeline, relay=relay,
+        daemon = Daemon(cfg, open_source=lambda: replay, pipeline=pipeline, relay=relay,
                         observers=[lambda result, _: published.append((time.monotonic(), result))])
         try:
             daemon.run()
@@ -183,9 +173,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument("--flight", type=Path, help="a `branchrange synth-flight` recording: run the daemon on it instead")
     parser.add_argument("--max-disp", type=int, default=64, help="sgbm disparities with --flight")
+    parser.add_argument("--stereo-mode", default="roi", help="stereo.mode with --flight: 'roi' (onboard default) or 'full'")
     args = parser.parse_args(argv)
     if args.flight:
-        report = {"cpu": cpu_name(), **daemon_flight(args.flight, args.max_disp)}
+        report = {"cpu": cpu_name(), **daemon_flight(args.flight, args.max_disp, args.stereo_mode)}
         print(json.dumps(report, indent=2))
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
