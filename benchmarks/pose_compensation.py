@@ -103,9 +103,7 @@ def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str,
     from camera.sources import ReplaySource
 
     truth = FlightTruth.load(directory)
-    trajectory, world_to_ned = flight_from_camera_poses(
-        [p.timestamp_ns / 1e9 for p in truth.poses], [p.R_world_cam for p in truth.poses],
-        [p.t_world_cam for p in truth.poses], MOUNT, tuple(START), HEADING_DEG)
+    trajectory, world_to_ned = flight_from_camera_poses(truth.poses, MOUNT, tuple(START), HEADING_DEG)
     cuts_ned = {c.id: world_to_ned(c.world_m) for c in truth.cut_points}
     published: list[tuple[float, dict[str, Any]]] = []
     with AutopilotSim(trajectory, heartbeat_period_s=0.2) as sim:

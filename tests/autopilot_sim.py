@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from branchrange.config import TrackingConfig
+from branchrange.flight import FlightPose
 from branchrange.mavlink.connection import mavutil_v2
 from branchrange.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
 from mavlink_peer import Received
@@ -71,27 +72,27 @@ def approach_flight(speed_m_s: float, start_ned_m=(0.0, 0.0, -2.0), heading_deg:
     return pose
 
 
-def flight_from_camera_poses(times_s: list[float], rotations_world_cam: list[np.ndarray],
-                             translations_world_cam: list[np.ndarray], mount: CameraMount,
-                             start_ned_m=(0.0, 0.0, -2.0), heading_deg: float = 0.0):
-    """A flight given as camera poses (the `flight.json` of `branchrange synth-flight`: world = the
-    camera frame of the first pose, `X_world = R_world_cam · X_cam + t_world_cam`) flown by a vehicle
-    carrying the camera on `mount`, whose body is level at `start_ned_m` facing `heading_deg` at the
-    first pose. Returns (trajectory, world_to_ned): the body pose between poses is interpolated
-    (position linearly, attitude along the shortest rotation) and held beyond the ends."""
+def flight_from_camera_poses(poses: list[FlightPose], mount: CameraMount, start_ned_m=(0.0, 0.0, -2.0),
+                             heading_deg: float = 0.0):
+    """A camera flight (`FlightTruth.poses` of a `flight.json`, as `branchrange synth-flight` writes it:
+    world = the camera frame of the first pose, `X_world = R_world_cam · X_cam + t_world_cam`) flown
+    by a vehicle carrying the camera on `mount`, whose body is level at `start_ned_m` facing
+    `heading_deg` at the first pose. Returns (trajectory, world_to_ned); the trajectory's time is
+    seconds since the first pose, the body pose between poses is interpolated (position linearly,
+    attitude along the shortest rotation) and held beyond the ends."""
     r_ned_body0 = rotation_from_rpy(0.0, 0.0, heading_deg)
-    r_ned_world = r_ned_body0 @ mount.camera_to_body @ np.asarray(rotations_world_cam[0]).T
+    r_ned_world = r_ned_body0 @ mount.camera_to_body @ poses[0].R_world_cam.T
     origin = np.asarray(start_ned_m, dtype=np.float64) + r_ned_body0 @ mount.translation_m
-    origin = origin - r_ned_world @ np.asarray(translations_world_cam[0], dtype=np.float64)
+    origin = origin - r_ned_world @ poses[0].t_world_cam
 
     def world_to_ned(point_world_m) -> np.ndarray:
         return r_ned_world @ np.asarray(point_world_m, dtype=np.float64) + origin
 
     bodies = []
-    for r_wc, t_wc in zip(rotations_world_cam, translations_world_cam):
-        r_ned_body = r_ned_world @ np.asarray(r_wc) @ mount.camera_to_body.T
-        bodies.append(SimPose(r_ned_body, world_to_ned(t_wc) - r_ned_body @ mount.translation_m))
-    times = np.asarray(times_s, dtype=np.float64) - times_s[0]
+    for pose in poses:
+        r_ned_body = r_ned_world @ pose.R_world_cam @ mount.camera_to_body.T
+        bodies.append(SimPose(r_ned_body, world_to_ned(pose.t_world_cam) - r_ned_body @ mount.translation_m))
+    times = np.array([(pose.timestamp_ns - poses[0].timestamp_ns) / 1e9 for pose in poses])
 
     def pose(t: float) -> SimPose:
         i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))

@@ -17,6 +17,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from autopilot_sim import (ARDUCOPTER_LOITER, AutopilotSim, approach_flight, body_target_errors, camera_point,
                            flight_from_camera_poses, fly_frames, noisy)
 from branchrange.config import MavlinkConfig, TrackingConfig
+from branchrange.flight import FlightCutPoint, FlightPose, FlightTruth
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from branchrange.mavlink.approach import ApproachPlanner
 from branchrange.mavlink.connection import PeerHeartbeat
@@ -33,28 +34,25 @@ START = np.array([0.0, 0.0, -2.0])
 HEADING_DEG = 20.0
 
 
-def camera_flight(speed_m_s: float, seconds: float = 4.0) -> dict:
-    """A flight in the `flight.json` form of `branchrange synth-flight` (issue 12): per-frame camera poses
-    `R_world_cam`, `t_world_cam` in the frame-0 camera frame (OpenCV axes) and world cut points. The camera
-    moves forward at `speed_m_s`, sways 5 cm sideways and 2 cm up and down, and turns by a few degrees."""
+def camera_flight(speed_m_s: float, seconds: float = 4.0) -> FlightTruth:
+    """A flight as `branchrange synth-flight` describes one (`flight.json`): camera poses in the frame-0
+    camera frame (OpenCV axes) and world cut points. The camera moves forward at `speed_m_s`, sways
+    5 cm sideways and 2 cm up and down, and turns by a few degrees."""
     poses = []
     for k in range(int(seconds * FPS) + 1):
         t = k / FPS
         turn = np.radians([2.0 * math.sin(2 * math.pi * 0.4 * t), 5.0 * math.sin(2 * math.pi * 0.3 * t),
                            3.0 * math.sin(2 * math.pi * 0.5 * t)])  # about camera x (pitch), y (yaw), z (roll)
-        poses.append({"index": k, "timestamp_ns": int(t * 1e9), "R_world_cam": rotation_exp(turn),
-                      "t_world_cam": np.array([0.05 * math.sin(2 * math.pi * 0.5 * t), 0.02 * math.sin(2 * math.pi * 0.7 * t),
-                                               speed_m_s * t])})
-    return {"poses": poses, "cut_points": [{"id": 1, "world_m": np.array([0.05, 0.12, 1.7]), "radius_m": 0.01},
-                                           {"id": 2, "world_m": np.array([0.35, 0.10, 1.75]), "radius_m": 0.008}]}
+        shift = np.array([0.05 * math.sin(2 * math.pi * 0.5 * t), 0.02 * math.sin(2 * math.pi * 0.7 * t), speed_m_s * t])
+        poses.append(FlightPose(k, 1_000_000_000 + round(t * 1e9), rotation_exp(turn), shift))
+    return FlightTruth(poses, [FlightCutPoint(1, np.array([0.05, 0.12, 1.7]), 0.01),
+                               FlightCutPoint(2, np.array([0.35, 0.10, 1.75]), 0.008)])
 
 
 FLIGHT = camera_flight(0.5)
-FLIGHT_TRAJECTORY, WORLD_TO_NED = flight_from_camera_poses(
-    [p["timestamp_ns"] / 1e9 for p in FLIGHT["poses"]], [p["R_world_cam"] for p in FLIGHT["poses"]],
-    [p["t_world_cam"] for p in FLIGHT["poses"]], MOUNT, START, HEADING_DEG)
+FLIGHT_TRAJECTORY, WORLD_TO_NED = flight_from_camera_poses(FLIGHT.poses, MOUNT, START, HEADING_DEG)
 #: the branch to cut and a second one 30 cm to its right, in the autopilot's local NED frame
-CUT_NED, OTHER_NED = (WORLD_TO_NED(c["world_m"]) for c in FLIGHT["cut_points"])
+CUT_NED, OTHER_NED = (WORLD_TO_NED(c.world_m) for c in FLIGHT.cut_points)
 
 
 def attitude_msg(t_boot: float, pose: Pose, rates=(0.0, 0.0, 0.0)):
@@ -106,13 +104,16 @@ def test_pose_is_interpolated_between_samples_and_extrapolated_with_the_reported
     assert state.pose_at(1.18 + offset + 0.002 + 0.25) is None  # beyond max_extrapolation_s
 
 
-def test_a_flight_json_camera_flight_is_flown_with_the_camera_where_the_poses_put_it():
-    for pose in FLIGHT["poses"][::7]:
-        body = FLIGHT_TRAJECTORY(pose["timestamp_ns"] / 1e9)
-        for cut in FLIGHT["cut_points"]:  # the camera sees each cut point where the pose says it is
-            expected_cam = pose["R_world_cam"].T @ (cut["world_m"] - pose["t_world_cam"])
-            np.testing.assert_allclose(camera_point(body, WORLD_TO_NED(cut["world_m"]), MOUNT), expected_cam, atol=1e-9)
-    first = FLIGHT_TRAJECTORY(0.0)
+def test_a_flight_json_is_flown_with_the_camera_where_its_poses_put_it(tmp_path):
+    FLIGHT.write(tmp_path)
+    loaded = FlightTruth.load(tmp_path)  # the file `branchrange synth-flight` writes
+    trajectory, world_to_ned = flight_from_camera_poses(loaded.poses, MOUNT, START, HEADING_DEG)
+    for position in range(0, len(loaded.poses), 7):
+        body = trajectory((loaded.poses[position].timestamp_ns - loaded.poses[0].timestamp_ns) / 1e9)
+        for cut_id, expected_cam in loaded.cut_points_in_camera(position).items():
+            cut = next(c for c in loaded.cut_points if c.id == cut_id)
+            np.testing.assert_allclose(camera_point(body, world_to_ned(cut.world_m), MOUNT), expected_cam, atol=1e-9)
+    first = trajectory(0.0)
     np.testing.assert_allclose(first.position_m, START, atol=1e-12)
     np.testing.assert_allclose(first.rotation[:, 0], [math.cos(math.radians(HEADING_DEG)), math.sin(math.radians(HEADING_DEG)), 0.0], atol=1e-12)
 
