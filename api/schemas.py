@@ -114,6 +114,27 @@ class RoiInfo(ResultPart):
     regions: list[RoiRegion]
 
 
+class WorldTrack(ResultPart):
+    """A cut point fused across frames in the autopilot's local NED frame."""
+
+    id: int = Field(ge=0, description="track id (OBSTACLE_DISTANCE_3D obstacle_id)")
+    branch_id: int = Field(ge=0, description="the branch id it was last matched to")
+    ned_m: Vector3 = Field(min_length=3, max_length=3, description="fused position, local NED metres")
+    sigma_m: float = Field(ge=0, description="1-σ radius (square root of the covariance's largest eigenvalue), metres")
+    covariance_m2: list[Vector3] = Field(min_length=3, max_length=3, description="3×3 covariance, m²")
+    age_s: float = Field(ge=0, description="seconds since its newest observation was captured")
+    observations: int = Field(ge=1)
+    confidence: float = Field(ge=0, le=1, description="mean confidence of its observations")
+
+
+class WorldTargets(ResultPart):
+    """Onboard daemon with a MAVLink relay: the fused tracks after this frame."""
+
+    frame: str = Field(description="'local_ned' while vehicle state is in use, 'camera' without it")
+    target_track_id: int | None = Field(description="the target's track, null when none is fresh")
+    tracks: list[WorldTrack]
+
+
 class EstimateResult(ResultPart):
     """One frame's cut points (`branchrange/v1`)."""
 
@@ -129,6 +150,7 @@ class EstimateResult(ResultPart):
     reason: str | None = Field(None, description="why there are no branches or no target, when so")
     latency: Latency | None = Field(None, description="onboard daemon only: how old the result was at each stage")
     roi: RoiInfo | None = Field(None, description="stereo mode 'roi' only: the regions matched at full resolution")
+    targets: WorldTargets | None = Field(None, description="onboard daemon with MAVLink: cut points fused in local NED")
 
 
 class Health(BaseModel):

@@ -1,6 +1,6 @@
 """BranchRange's one configuration file: TOML sections validated into frozen dataclasses.
 
-Sections: `[camera]`, `[stereo]`, `[roi]`, `[cutpoints]`, `[mavlink]`, `[api]`, `[log]`. Every option has a
+Sections: `[camera]`, `[stereo]`, `[roi]`, `[cutpoints]`, `[mavlink]`, `[tracking]`, `[api]`, `[log]`. Every option has a
 default, so an empty file is a valid configuration; an unknown key, a value of the wrong type or
 out of range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
 Examples live in `deploy/onboard.toml` and `deploy/serve.toml`.
@@ -153,6 +153,17 @@ class MavlinkConfig:
     obstacle, so the drone would stop short of the branch it must cut). Results older than
     `max_result_age_s` are reported as "no target"; messages go out at least `send_rate_hz` times
     a second even without new results (ArduPilot and PX4 call a proximity sensor stale at 0.5 s).
+
+    Vehicle state and link health (`branchrange.mavlink.vehicle_state`): the autopilot is asked for
+    ATTITUDE and LOCAL_POSITION_NED at `state_rate_hz` (MAV_CMD_SET_MESSAGE_INTERVAL) unless
+    `request_vehicle_state` is off; the link counts as connected only while the autopilot's
+    HEARTBEAT arrives, lost after `heartbeat_timeout_s`; a pose older than `pose_timeout_s` is not
+    used (targets then go out in the camera frame of their capture, as without vehicle state).
+    `obstacle_min_confidence`: cut points below it are not sent as obstacles (README says why 0.3).
+    The approach setpoint (SET_POSITION_TARGET_LOCAL_NED, `branchrange.mavlink.approach`) is off
+    unless `setpoint_enabled`: `setpoint_standoff_m` before the cut point, at most
+    `setpoint_max_step_m` from the vehicle, moving at most `setpoint_max_speed_m_s`, only for a
+    fresh target track with `setpoint_min_observations` and confidence ≥ `setpoint_min_confidence`.
     """
 
     enabled: bool = True
@@ -168,6 +179,17 @@ class MavlinkConfig:
     max_distance_m: float = 10.0
     sensor_id: int = 0
     reconnect_interval_s: float = 1.0
+    request_vehicle_state: bool = True
+    state_rate_hz: float = 30.0
+    heartbeat_timeout_s: float = 3.0
+    pose_timeout_s: float = 0.5
+    obstacle_min_confidence: float = 0.3
+    setpoint_enabled: bool = False
+    setpoint_standoff_m: float = 0.6
+    setpoint_max_step_m: float = 1.0
+    setpoint_max_speed_m_s: float = 0.5
+    setpoint_min_observations: int = 5
+    setpoint_min_confidence: float = 0.5
 
     def __post_init__(self) -> None:
         _require(bool(self.url.strip()), "mavlink.url", self.url, "a pymavlink connection string such as 'udpout:127.0.0.1:14550' or '/dev/ttyTHS1'")
@@ -181,6 +203,47 @@ class MavlinkConfig:
         _require(0 <= self.min_distance_m < self.max_distance_m, "mavlink.min_distance_m", self.min_distance_m, f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})")
         _require(0 <= self.sensor_id <= 255, "mavlink.sensor_id", self.sensor_id, "an integer in [0, 255]")
         _require(self.reconnect_interval_s > 0, "mavlink.reconnect_interval_s", self.reconnect_interval_s, "seconds > 0")
+        _require(1.0 <= self.state_rate_hz <= 100.0, "mavlink.state_rate_hz", self.state_rate_hz, "a rate in [1, 100] Hz")
+        _require(self.heartbeat_timeout_s > 0, "mavlink.heartbeat_timeout_s", self.heartbeat_timeout_s, "seconds > 0 (MAVLink's usual is 3)")
+        _require(0 < self.pose_timeout_s <= 5.0, "mavlink.pose_timeout_s", self.pose_timeout_s, "seconds in (0, 5]")
+        _require(0.0 <= self.obstacle_min_confidence <= 1.0, "mavlink.obstacle_min_confidence", self.obstacle_min_confidence, "a number in [0, 1]")
+        _require(self.setpoint_standoff_m >= 0, "mavlink.setpoint_standoff_m", self.setpoint_standoff_m, "metres >= 0")
+        _require(self.setpoint_max_step_m > 0, "mavlink.setpoint_max_step_m", self.setpoint_max_step_m, "metres > 0")
+        _require(0 < self.setpoint_max_speed_m_s <= 5.0, "mavlink.setpoint_max_speed_m_s", self.setpoint_max_speed_m_s, "a speed in (0, 5] m/s")
+        _require(self.setpoint_min_observations >= 1, "mavlink.setpoint_min_observations", self.setpoint_min_observations, "an integer >= 1")
+        _require(0.0 <= self.setpoint_min_confidence <= 1.0, "mavlink.setpoint_min_confidence", self.setpoint_min_confidence, "a number in [0, 1]")
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """World-frame target tracks (`branchrange.mavlink.world_tracks`), used when vehicle state arrives.
+
+    Each track is a Kalman filter on a static point in local NED. A cut point measured at range r
+    (metres, camera frame) has a standard deviation of `lateral_sigma_at_1m_m`·r across the line of
+    sight and `depth_sigma_at_1m_m`·r² along it (stereo depth error grows with the square of the
+    range); `process_noise_m2_per_s` lets a track follow a branch that sways or a slowly drifting
+    local position. A cut point joins the nearest track within `gate_m`. A track whose newest
+    cut point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than
+    that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count from the
+    capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU
+    companion) by a frame or two: 1.5 s.
+    """
+
+    gate_m: float = 0.15
+    lateral_sigma_at_1m_m: float = 0.004
+    depth_sigma_at_1m_m: float = 0.01
+    process_noise_m2_per_s: float = 1e-5
+    stale_after_s: float = 1.5
+    forget_after_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _require(self.gate_m > 0, "tracking.gate_m", self.gate_m, "metres > 0")
+        _require(self.lateral_sigma_at_1m_m > 0, "tracking.lateral_sigma_at_1m_m", self.lateral_sigma_at_1m_m, "metres > 0")
+        _require(self.depth_sigma_at_1m_m > 0, "tracking.depth_sigma_at_1m_m", self.depth_sigma_at_1m_m, "metres > 0")
+        _require(self.process_noise_m2_per_s >= 0, "tracking.process_noise_m2_per_s", self.process_noise_m2_per_s, "m²/s >= 0")
+        _require(self.stale_after_s > 0, "tracking.stale_after_s", self.stale_after_s, "seconds > 0")
+        _require(self.forget_after_s >= self.stale_after_s, "tracking.forget_after_s", self.forget_after_s,
+                 f"seconds >= tracking.stale_after_s ({self.stale_after_s})")
 
 
 @dataclass(frozen=True)
@@ -242,6 +305,7 @@ class Config:
     roi: RoiConfig = field(default_factory=RoiConfig)
     cutpoints: CutpointsConfig = field(default_factory=CutpointsConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
     log: LogConfig = field(default_factory=LogConfig)
 

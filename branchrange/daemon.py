@@ -217,6 +217,7 @@ class Daemon:
                              "capture_to_publish_ms": round(1000 * age, 3)}
         if self.relay is not None:
             self.relay.publish(result, captured_at=item.captured_at)
+            result["targets"] = self.relay.targets()  # fused in local NED (with vehicle state), for the log and /latest
         self._check_age(age)
         if self._results is not None:
             self._results.write(result_line(result))
@@ -273,10 +274,12 @@ class Daemon:
             fps = (self.frames - frames_then) / max(now - since, 1e-9)
             latency = 1000 * sum(self._latencies) / len(self._latencies) if self._latencies else 0.0
             self._latencies.clear()
-        link = "off" if self.relay is None else ("up" if self.relay.link_state()["connected"] else "down")
-        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d skipped=%d corrupt=%d late=%d camera=%s link=%s",
-                 self.frames, fps, latency, self.dropped, self.skipped, self.corrupt, self.late,
-                 "lost" if self.camera_lost else "ok", link)
+        state = None if self.relay is None else self.relay.link_state()
+        link = "off" if state is None else ("up" if state["connected"] else "down")
+        pose = "off" if state is None else state["mode"]  # world: fused in local NED; camera: no vehicle state
+        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d skipped=%d corrupt=%d late=%d camera=%s link=%s "
+                 "pose=%s", self.frames, fps, latency, self.dropped, self.skipped, self.corrupt, self.late,
+                 "lost" if self.camera_lost else "ok", link, pose)
 
     def _done(self, max_frames: int | None) -> bool:
         return self._stop.is_set() or (max_frames is not None and self.frames >= max_frames)

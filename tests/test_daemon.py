@@ -17,13 +17,14 @@ import pytest
 
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
-from branchrange.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig, pipeline_config
+from branchrange.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig, TrackingConfig, pipeline_config
 from branchrange.daemon import Daemon
 from branchrange.frame_results import pipeline_for, read_results, read_runs
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from branchrange.pipeline import Pipeline
 from camera.calibration import from_rectified
 from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
+from autopilot_sim import AutopilotSim, approach_flight
 from mavlink_peer import LoopbackPeer, of_type
 from synth_recording import tree_scene, truth_of, write_tree_recording
 
@@ -121,10 +122,13 @@ def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_rec
     vects = [v.msg for v in of_type(peer.received, "DEBUG_VECT") if not math.isnan(v.msg.x)]
     assert vects and all(v.name == "CUT" and math.dist((v.x, v.y, v.z), true_frd) < 0.05 for v in vects)
 
-    # every set with a target: the other branches as body-FRD obstacles, all stamped alike, within 50 ms
-    def obstacles_of(result):  # the non-target cut points in body FRD, by branch id
+    # every set with a target: the other confident branches as body-FRD obstacles, all stamped alike, within 50 ms
+    def obstacles_of(result):  # confident non-target cut points in body FRD by branch id, not the target seen twice
+        target = next((b["cut_point_m"] for b in result["branches"] if b["id"] == result["target_id"]), None)
         return {b["id"]: (b["cut_point_m"][2], b["cut_point_m"][0], b["cut_point_m"][1])
-                for b in result["branches"] if b["id"] != result["target_id"]}
+                for b in result["branches"] if b["id"] != result["target_id"]
+                and b["confidence"] >= MavlinkConfig().obstacle_min_confidence
+                and (target is None or math.dist(b["cut_point_m"], target) >= TrackingConfig().gate_m)}
 
     sets = list(_frame_sets(peer.received).values())
     complete = [s for s in sets if s[-1].type == "DEBUG_VECT"]  # sent last; the listener may stop mid-set
@@ -185,7 +189,8 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     # a status line every log.status_interval_s (0.5 s over a run of several seconds), one at the end
     status_lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("status ")]
     assert len(status_lines) >= 4, status_lines
-    assert any("camera=lost" in line for line in status_lines) and "link=up" in status_lines[-1]
+    assert any("camera=lost" in line for line in status_lines)
+    assert "link=down" in status_lines[-1]  # the loopback peer never sends a HEARTBEAT: no flight controller
     last = dict(field.split("=") for field in status_lines[-1].split()[1:])
     assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
 
@@ -255,7 +260,7 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
         assert _has_target_distance(peer.collect(15.0, until=_has_target_distance)), "no distance before the outage"
         peer.close()  # the flight controller goes away
         frames_at_loss = daemon.frames
-        assert _wait_for(lambda: not relay.link_state()["connected"], 5.0), "the relay did not notice the dead link"
+        assert _wait_for(lambda: not relay.link_state()["transport_open"], 5.0), "the relay did not notice the dead link"
         assert _wait_for(lambda: daemon.frames >= frames_at_loss + 3, 10.0), "the daemon stopped processing"
         frames_at_return = daemon.frames
         peer = LoopbackPeer(url=f"tcpin:127.0.0.1:{port}")  # and comes back on the same port
@@ -305,7 +310,7 @@ def _free_port() -> int:
 
 
 def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, tmp_path):
-    peer = LoopbackPeer()
+    peer = AutopilotSim(approach_flight(0.0), heartbeat_period_s=0.2)  # a flight controller: the link is up only with one
     port = _free_port()
     results = tmp_path / "results.jsonl"
     config = onboard_config(tmp_path, recording, f"udpout:127.0.0.1:{peer.port}", results,
@@ -339,6 +344,8 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
     assert health["status"] == "ok" and health["camera"]["lost"] is False and health["camera"]["frames"] >= 1
     assert health["model"]["backend"] == "sgbm" and health["model"]["loaded"] is True
     assert health["mavlink"]["connected"] is True and health["mavlink"]["url"].startswith("udpout:")
+    assert health["mavlink"]["peer"]["autopilot"] == 3 and "vehicle_state" in health["mavlink"]
+    assert all(line["targets"]["frame"] in ("local_ned", "camera") for line in logged)  # the fused tracks, per frame
     frames = [line for line in seen["metrics"].splitlines() if line.startswith("branchrange_frame_duration_seconds_count")]
     assert frames and frames[0].startswith('branchrange_frame_duration_seconds_count{source="daemon"}')
     assert float(frames[0].rsplit(" ", 1)[1]) >= 1

@@ -91,9 +91,9 @@ def test_relay_keeps_working_after_the_tcp_peer_goes_away_and_comes_back():
         assert of_type(peer.collect(1.0, until=lambda r: bool(of_type(r, "DISTANCE_SENSOR"))), "DISTANCE_SENSOR")
         peer.close()  # the flight controller goes away
         deadline = time.monotonic() + 3.0
-        while relay.link_state()["connected"] and time.monotonic() < deadline:
+        while relay.link_state()["transport_open"] and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert relay.link_state()["connected"] is False
+        assert relay.link_state()["transport_open"] is False and relay.link_state()["connected"] is False
         relay.publish(RESULT)  # the pipeline goes on; nothing raises
         peer = LoopbackPeer(url=f"tcpin:127.0.0.1:{port}")  # and comes back on the same port
         try:

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         first = open_camera()
         pipeline = pipeline_for(cfg, first.calibration)
         if cfg.mavlink.enabled:
-            relay = MavlinkRelay(cfg.mavlink, mount)
+            relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking)
         if targets is not None:
             sink = FoxgloveSink(targets, mount=mount, newest_only=True)
     except (SourceError, SigningKeyError, ValueError) as exc:

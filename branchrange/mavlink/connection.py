@@ -11,12 +11,21 @@ process also speak MAVLink 2 afterwards, which is what a MAVLink 2 system wants.
 marks the link down, and the next `send`/`poll` after `reconnect_interval_s` opens a fresh
 connection (TCP peers that went away and came back, serial adapters unplugged and replugged).
 It is not thread-safe: one thread owns it (the relay's).
+
+An open socket says nothing about the flight controller (a UDP socket opens with nobody
+listening), so the link is *connected* only while HEARTBEATs of an autopilot arrive: the first
+HEARTBEAT whose `autopilot` is not MAV_AUTOPILOT_INVALID and whose type is not a GCS or an
+onboard computer names the peer (system and component id), and the link is lost
+`heartbeat_timeout_s` after its newest one. With signing on, pymavlink drops unsigned and
+wrong-key messages before they are decoded, so they never count as the peer; they are counted as
+signature failures.
 """
 from __future__ import annotations
 
 import os
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -75,17 +84,56 @@ def open_connection(url: str, *, baud: int = 115200, source_system: int = 1,
     return conn
 
 
+#: HEARTBEAT types that are never the flight controller (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER).
+NOT_AUTOPILOT_TYPES = frozenset({6, 18})
+MAV_AUTOPILOT_INVALID = 8
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+
+
+@dataclass(frozen=True)
+class PeerHeartbeat:
+    """The autopilot's newest HEARTBEAT: who sent it, its mode, and when it arrived (our clock, s)."""
+
+    system_id: int
+    component_id: int
+    mav_type: int
+    autopilot: int
+    base_mode: int
+    custom_mode: int
+    at: float
+
+    @property
+    def armed(self) -> bool:
+        """Whether the autopilot reports its motors armed."""
+        return bool(self.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON view for /health."""
+        return {"system_id": self.system_id, "component_id": self.component_id, "type": self.mav_type,
+                "autopilot": self.autopilot, "custom_mode": self.custom_mode, "armed": self.armed}
+
+
+def autopilot_heartbeat(msg: Any, at: float) -> PeerHeartbeat | None:
+    """A `PeerHeartbeat` when `msg` is a flight controller's HEARTBEAT, else None."""
+    if msg.get_type() != "HEARTBEAT" or msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in NOT_AUTOPILOT_TYPES:
+        return None
+    return PeerHeartbeat(msg.get_srcSystem(), msg.get_srcComponent(), msg.type, msg.autopilot,
+                         msg.base_mode, msg.custom_mode, at)
+
+
 class MavlinkLink:
     """A connection that reopens itself: `send` and `poll` report failure, never raise."""
 
     def __init__(self, url: str, *, baud: int = 115200, source_system: int = 1,
                  source_component: int = 191, signing_key: bytes | None = None,
-                 reconnect_interval_s: float = 1.0, clock: Callable[[], float] = time.monotonic):
+                 reconnect_interval_s: float = 1.0, heartbeat_timeout_s: float = 3.0,
+                 clock: Callable[[], float] = time.monotonic):
         self.url = url
         self._open_args = dict(baud=baud, source_system=source_system,
                                source_component=source_component, signing_key=signing_key)
         self._signing = signing_key is not None
         self._reconnect_interval_s = reconnect_interval_s
+        self._heartbeat_timeout_s = heartbeat_timeout_s
         self._clock = clock
         self._conn: Any = None
         self._next_attempt = 0.0
@@ -94,13 +142,24 @@ class MavlinkLink:
         self.sent = 0
         self.send_errors = 0
         self.received = 0
-        self._peer_heartbeat_at: float | None = None
+        self.signature_failures = 0
+        self.peer: PeerHeartbeat | None = None
         self._ensure_open()
 
     @property
-    def connected(self) -> bool:
-        """Whether a connection is open (for UDP: the socket; the peer may still be absent)."""
+    def transport_open(self) -> bool:
+        """Whether the socket/port is open (for UDP this says nothing about a peer)."""
         return self._conn is not None
+
+    @property
+    def connected(self) -> bool:
+        """Whether the autopilot's HEARTBEAT arrived within `heartbeat_timeout_s`."""
+        return self.peer is not None and self._clock() - self.peer.at <= self._heartbeat_timeout_s
+
+    def from_peer(self, msg: Any) -> bool:
+        """Whether `msg` was sent by the connected autopilot (its system and component id)."""
+        return (self.connected and msg.get_srcSystem() == self.peer.system_id
+                and msg.get_srcComponent() == self.peer.component_id)
 
     def _ensure_open(self) -> bool:
         """Open the connection if it is closed and the reconnect interval has passed."""
@@ -146,7 +205,7 @@ class MavlinkLink:
         return True
 
     def poll(self, max_messages: int = 200) -> list[Any]:
-        """Read what the peer has sent (non-blocking), noting its heartbeats; [] when down."""
+        """Read what arrived (non-blocking), noting the autopilot's heartbeats; [] when down."""
         if not self._ensure_open():
             return []
         received = []
@@ -156,21 +215,32 @@ class MavlinkLink:
                 if msg is None:
                     break
                 if msg.get_type() == "BAD_DATA":
+                    self.signature_failures += "signature" in str(getattr(msg, "reason", "")).lower()
                     continue
                 received.append(msg)
-                if msg.get_type() == "HEARTBEAT":
-                    self._peer_heartbeat_at = self._clock()
+                self._note_heartbeat(msg)
         except Exception as exc:  # noqa: BLE001 - a read error means the link is gone
             self._drop(exc)
         self.received += len(received)
         return received
 
+    def _note_heartbeat(self, msg: Any) -> None:
+        """Take an autopilot HEARTBEAT from the current peer, or from a new one once the old is lost."""
+        beat = autopilot_heartbeat(msg, self._clock())
+        if beat is None:
+            return
+        same = self.peer is not None and (beat.system_id, beat.component_id) == (self.peer.system_id, self.peer.component_id)
+        if same or not self.connected:
+            self.peer = beat
+
     def state(self) -> dict[str, Any]:
         """Link facts for /health and the status line (plain JSON types)."""
-        age = None if self._peer_heartbeat_at is None else round(self._clock() - self._peer_heartbeat_at, 3)
-        return {"url": self.url, "connected": self.connected, "signing": self._signing,
+        age = None if self.peer is None else round(self._clock() - self.peer.at, 3)
+        return {"url": self.url, "connected": self.connected, "transport_open": self.transport_open,
+                "signing": self._signing, "peer": None if self.peer is None else self.peer.to_dict(),
                 "reconnects": max(0, self._opens - 1), "sent": self.sent,
                 "send_errors": self.send_errors, "received": self.received,
+                "signature_failures": self.signature_failures,
                 "peer_heartbeat_age_s": age, "last_error": self.last_error}
 
     def close(self) -> None:

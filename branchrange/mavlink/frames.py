@@ -85,3 +85,27 @@ class CameraMount:
             if float(axis @ np.asarray(standard)) >= math.cos(math.radians(tolerance_deg)):
                 return value
         return MAV_SENSOR_ROTATION_CUSTOM
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """3×3 cross-product matrix `[v]×` of a vector (3,)."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def rotation_exp(rotvec: np.ndarray) -> np.ndarray:
+    """3×3 rotation of a rotation vector (3,), radians about its direction (Rodrigues)."""
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-12:
+        return np.eye(3) + skew(rotvec)
+    k = skew(np.asarray(rotvec, dtype=np.float64) / angle)
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+def rotation_log(rotation: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,), radians, of a 3×3 rotation with angle below π (inverse of `rotation_exp`)."""
+    cos_angle = min(1.0, max(-1.0, (float(np.trace(rotation)) - 1.0) / 2.0))
+    angle = math.acos(cos_angle)
+    w = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
+    if angle < 1e-9:
+        return w / 2.0
+    return w * (angle / (2.0 * math.sin(angle)))

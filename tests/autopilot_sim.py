@@ -1,0 +1,270 @@
+"""A loopback autopilot for the tests: real MAVLink 2 over UDP on 127.0.0.1, flying a trajectory in real time.
+
+`AutopilotSim` listens on `udpin:127.0.0.1:<free port>` (the relay connects with `udpout:`), and
+from its own thread, at the wall-clock times they are due:
+- sends HEARTBEAT every `heartbeat_period_s` as an ArduPilot copter (type QUADROTOR, autopilot
+  ARDUPILOTMEGA, custom_mode 4 = GUIDED or 5 = LOITER, armed or not) — or as a GCS when told to;
+- answers COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL with COMMAND_ACK and from then on streams that
+  message (ATTITUDE, LOCAL_POSITION_NED) at the requested rate, stamped with its own time_boot_ms
+  (it "booted" `boot_age_s` before the test started, so the relay must align clocks);
+- records every message it receives with its arrival time (`time.monotonic()`).
+With `signing_key` it signs what it sends and rejects what is not signed with that key.
+The trajectory maps seconds since the simulator started to a `SimPose` (body FRD in local NED).
+
+`fly_frames` plays the daemon's side: frames captured at a rate, each published to a relay a fixed
+latency after capture with its capture time, holding the true cut points seen from the true camera
+pose at capture plus the noise the tracker's measurement model assumes. The tests and
+`benchmarks/pose_compensation.py` both use it.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from branchrange.config import TrackingConfig
+from branchrange.flight import FlightPose
+from branchrange.mavlink.connection import mavutil_v2
+from branchrange.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
+from mavlink_peer import Received
+
+ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
+MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
+MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_INVALID = 3, 8
+ATTITUDE_ID, LOCAL_POSITION_NED_ID = 30, 32
+
+
+@dataclass(frozen=True)
+class SimPose:
+    """Body FRD in local NED: `rotation` (3×3 R_ned_body), `position_m` (3,)."""
+
+    rotation: np.ndarray
+    position_m: np.ndarray
+
+    def ned_to_body(self, point_ned_m: np.ndarray) -> np.ndarray:
+        """Body FRD metres of a NED point (3,)."""
+        return self.rotation.T @ (np.asarray(point_ned_m, dtype=np.float64) - self.position_m)
+
+
+Trajectory = Callable[[float], SimPose]
+
+
+def approach_flight(speed_m_s: float, start_ned_m=(0.0, 0.0, -2.0), heading_deg: float = 20.0,
+                    sway_m: float = 0.05, yaw_swing_deg: float = 6.0, tilt_deg: float = 3.0) -> Trajectory:
+    """A copter closing on a branch: straight at `speed_m_s` along `heading_deg`, swaying sideways
+    (amplitude `sway_m`, 0.5 Hz), yawing ±`yaw_swing_deg` (0.3 Hz) and rolling/pitching ±`tilt_deg`."""
+    start = np.asarray(start_ned_m, dtype=np.float64)
+    h = math.radians(heading_deg)
+    forward = np.array([math.cos(h), math.sin(h), 0.0])
+    right = np.array([-math.sin(h), math.cos(h), 0.0])
+
+    def pose(t: float) -> SimPose:
+        position = start + forward * speed_m_s * t + right * sway_m * math.sin(2 * math.pi * 0.5 * t)
+        roll = tilt_deg * math.sin(2 * math.pi * 0.5 * t)
+        pitch = -tilt_deg * 0.5 * math.cos(2 * math.pi * 0.4 * t)
+        yaw = heading_deg + yaw_swing_deg * math.sin(2 * math.pi * 0.3 * t)
+        return SimPose(rotation_from_rpy(roll, pitch, yaw), position)
+
+    return pose
+
+
+def flight_from_camera_poses(poses: list[FlightPose], mount: CameraMount, start_ned_m=(0.0, 0.0, -2.0),
+                             heading_deg: float = 0.0):
+    """A camera flight (`FlightTruth.poses` of a `flight.json`, as `branchrange synth-flight` writes it:
+    world = the camera frame of the first pose, `X_world = R_world_cam · X_cam + t_world_cam`) flown
+    by a vehicle carrying the camera on `mount`, whose body is level at `start_ned_m` facing
+    `heading_deg` at the first pose. Returns (trajectory, world_to_ned); the trajectory's time is
+    seconds since the first pose, the body pose between poses is interpolated (position linearly,
+    attitude along the shortest rotation) and held beyond the ends."""
+    r_ned_body0 = rotation_from_rpy(0.0, 0.0, heading_deg)
+    r_ned_world = r_ned_body0 @ mount.camera_to_body @ poses[0].R_world_cam.T
+    origin = np.asarray(start_ned_m, dtype=np.float64) + r_ned_body0 @ mount.translation_m
+    origin = origin - r_ned_world @ poses[0].t_world_cam
+
+    def world_to_ned(point_world_m) -> np.ndarray:
+        return r_ned_world @ np.asarray(point_world_m, dtype=np.float64) + origin
+
+    bodies = []
+    for pose in poses:
+        r_ned_body = r_ned_world @ pose.R_world_cam @ mount.camera_to_body.T
+        bodies.append(SimPose(r_ned_body, world_to_ned(pose.t_world_cam) - r_ned_body @ mount.translation_m))
+    times = np.array([(pose.timestamp_ns - poses[0].timestamp_ns) / 1e9 for pose in poses])
+
+    def pose(t: float) -> SimPose:
+        i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
+        s = float(np.clip((t - times[i]) / (times[i + 1] - times[i]), 0.0, 1.0))
+        a, b = bodies[i], bodies[i + 1]
+        rotation = a.rotation @ rotation_exp(s * rotation_log(a.rotation.T @ b.rotation))
+        return SimPose(rotation, a.position_m + s * (b.position_m - a.position_m))
+
+    return pose, world_to_ned
+
+
+def _rates(trajectory: Trajectory, t: float, dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """NED velocity (3,) m/s and body angular rates (3,) rad/s by central differences."""
+    a, b = trajectory(t - dt), trajectory(t + dt)
+    velocity = (b.position_m - a.position_m) / (2 * dt)
+    body_rates = rotation_log(a.rotation.T @ b.rotation) / (2 * dt)
+    return velocity, body_rates
+
+
+class AutopilotSim:
+    """See the module docstring. Use as a context manager; `port` is where it listens."""
+
+    def __init__(self, trajectory: Trajectory, *, heartbeat_period_s: float = 1.0, mode: int = ARDUCOPTER_GUIDED,
+                 armed: bool = True, mav_type: int = MAV_TYPE_QUADROTOR, autopilot: int = MAV_AUTOPILOT_ARDUPILOTMEGA,
+                 signing_key: bytes | None = None, answer_interval_requests: bool = True, boot_age_s: float = 100.0):
+        self.trajectory = trajectory
+        self.heartbeat_period_s = heartbeat_period_s
+        self.mode, self.armed, self.mav_type, self.autopilot = mode, armed, mav_type, autopilot
+        self.answer_interval_requests = answer_interval_requests
+        self.heartbeats_on = True
+        self.heartbeats_sent = 0
+        self.received: list[Received] = []
+        self.rates_hz: dict[int, float] = {}
+        self.mavlink = mavutil_v2().mavlink  # the dialect module: message ids and enums
+        self.conn = mavutil_v2().mavlink_connection("udpin:127.0.0.1:0", source_system=1, source_component=1)
+        if signing_key is not None:
+            self.conn.setup_signing(signing_key, sign_outgoing=True, allow_unsigned_callback=None, link_id=0)
+        self.start = time.monotonic()
+        self.boot = self.start - boot_age_s  # the autopilot's time_boot_ms counts from here
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="autopilot-sim", daemon=True)
+        self._thread.start()
+
+    @property
+    def port(self) -> int:
+        return self.conn.port.getsockname()[1]
+
+    def pose_at(self, t_monotonic: float) -> SimPose:
+        """The true pose at a `time.monotonic()` instant."""
+        return self.trajectory(t_monotonic - self.start)
+
+    def of_type(self, name: str) -> list[Received]:
+        with self._lock:
+            return [r for r in self.received if r.type == name]
+
+    def _time_boot_ms(self, now: float) -> int:
+        return int((now - self.boot) * 1000)
+
+    def _heartbeat(self) -> None:
+        m = self.mavlink
+        base_mode = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (m.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        self.conn.mav.heartbeat_send(self.mav_type, self.autopilot, base_mode, self.mode, 4 if self.armed else 3)
+        self.heartbeats_sent += 1
+
+    def _stream(self, message_id: int, now: float) -> None:
+        pose = self.trajectory(now - self.start)
+        velocity, rates = _rates(self.trajectory, now - self.start)
+        boot_ms = self._time_boot_ms(now)
+        if message_id == ATTITUDE_ID:
+            r = pose.rotation  # Z-Y-X Euler angles of R_ned_body
+            roll, pitch, yaw = math.atan2(r[2, 1], r[2, 2]), -math.asin(r[2, 0]), math.atan2(r[1, 0], r[0, 0])
+            self.conn.mav.attitude_send(boot_ms, roll, pitch, yaw, *(float(w) for w in rates))
+        else:
+            self.conn.mav.local_position_ned_send(boot_ms, *(float(v) for v in pose.position_m), *(float(v) for v in velocity))
+
+    def _handle(self, msg, now: float) -> None:
+        with self._lock:
+            self.received.append(Received(msg, now))
+        if msg.get_type() == "COMMAND_LONG" and msg.command == self.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            if not self.answer_interval_requests:
+                return
+            result = self.mavlink.MAV_RESULT_ACCEPTED
+            if int(msg.param1) in (ATTITUDE_ID, LOCAL_POSITION_NED_ID) and msg.param2 > 0:
+                self.rates_hz[int(msg.param1)] = 1e6 / msg.param2
+            else:
+                result = self.mavlink.MAV_RESULT_UNSUPPORTED
+            self.conn.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+
+    def _run(self) -> None:
+        next_beat = time.monotonic()
+        next_stream: dict[int, float] = {}
+        while not self._stop.is_set():
+            now = time.monotonic()
+            while (msg := self.conn.recv_msg()) is not None:
+                if msg.get_type() != "BAD_DATA":
+                    self._handle(msg, now)
+            if not self.conn.clients:  # nobody has talked to us yet: nowhere to send
+                time.sleep(0.002)
+                continue
+            if self.heartbeats_on and now >= next_beat:
+                self._heartbeat()
+                next_beat = now + self.heartbeat_period_s
+            for message_id, rate in list(self.rates_hz.items()):
+                if now >= next_stream.get(message_id, 0.0):
+                    self._stream(message_id, now)
+                    next_stream[message_id] = max(next_stream.get(message_id, now) + 1.0 / rate, now)
+            time.sleep(0.001)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.conn.close()
+
+    def __enter__(self) -> "AutopilotSim":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def camera_point(pose: SimPose, point_ned_m: np.ndarray, mount: CameraMount) -> np.ndarray:
+    """Where the camera on `mount` sees a NED point (camera frame, metres, (3,))."""
+    return mount.camera_to_body.T @ (pose.ned_to_body(point_ned_m) - mount.translation_m)
+
+
+def noisy(point_cam_m: np.ndarray, rng: np.random.Generator, tracking: TrackingConfig) -> np.ndarray:
+    """A cut point with the noise `tracking` assumes: depth σ = depth_sigma_at_1m_m·r², lateral σ = lateral_sigma_at_1m_m·r."""
+    r = float(np.linalg.norm(point_cam_m))
+    u = point_cam_m / r
+    lateral = rng.normal(0.0, tracking.lateral_sigma_at_1m_m * r, 3)
+    lateral -= u * (lateral @ u)
+    return point_cam_m + lateral + u * rng.normal(0.0, tracking.depth_sigma_at_1m_m * r * r)
+
+
+@dataclass(frozen=True)
+class Published:
+    """One frame handed to the relay: capture and publish times (monotonic s), the target's camera point (3,)."""
+
+    captured_at: float
+    published_at: float
+    target_cam_m: np.ndarray
+
+
+def fly_frames(sim: AutopilotSim, relay, mount: CameraMount, branches_ned: list[np.ndarray], frames: int,
+               fps: float, latency_s: float, rng: np.random.Generator, tracking: TrackingConfig) -> list[Published]:
+    """Capture `frames` frames at `fps` and publish each `latency_s` after capture (branch 0 is the target)."""
+    t0 = time.monotonic() + 0.01
+    published = []
+    for k in range(frames):
+        captured = t0 + k / fps
+        time.sleep(max(0.0, captured + latency_s - time.monotonic()))
+        pose = sim.pose_at(captured)
+        cams = [noisy(camera_point(pose, p, mount), rng, tracking) for p in branches_ned]
+        result = {"branches": [{"id": i, "cut_point_m": [float(v) for v in c], "confidence": 0.8}
+                               for i, c in enumerate(cams)], "target_id": 0}
+        relay.publish(result, captured_at=captured)
+        published.append(Published(captured, time.monotonic(), cams[0]))
+    return published
+
+
+def body_target_errors(sim: AutopilotSim, published: list[Published], mount: CameraMount, target_ned: np.ndarray,
+                       skip_frames: int) -> tuple[list[float], list[float]]:
+    """Per DEBUG_VECT the sim received after `skip_frames` publications: the error (m) of the sent target and
+    of the uncompensated one (the newest result through the mount alone) against the truth in the body
+    frame at the moment it arrived."""
+    compensated, uncompensated = [], []
+    for r in sim.of_type("DEBUG_VECT"):
+        newest = [p for p in published if p.published_at <= r.at]
+        if len(newest) <= skip_frames or math.isnan(r.msg.x):
+            continue
+        truth = sim.pose_at(r.at).ned_to_body(target_ned)
+        compensated.append(float(np.linalg.norm(np.array([r.msg.x, r.msg.y, r.msg.z]) - truth)))
+        uncompensated.append(float(np.linalg.norm(mount.to_body(newest[-1].target_cam_m) - truth)))
+    return compensated, uncompensated
