@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from branchrange.flight import FLIGHT_NAME, FlightCutPoint, FlightFormatError, FlightPose, FlightTruth
+from branchrange.frame_results import read_results
 from camera.sources import ReplaySource
 from stereo.cli import build_parser
 from stereo.synth import LEAF_ID, SynthOptions, render_scene
@@ -210,7 +211,7 @@ def test_branchrange_replay_reads_the_recording(wobbly_recording: Path, tmp_path
     args = build_parser("branchrange", "test", ["branchrange.commands.replay"]).parse_args(
         ["replay", str(wobbly_recording), "--out", str(tmp_path / "results.jsonl")])
     assert args.func(args) == 0
-    lines = [json.loads(line) for line in (tmp_path / "results.jsonl").read_text().splitlines()]
+    lines = list(read_results(tmp_path / "results.jsonl"))  # the run header skipped
     truth = FlightTruth.load(wobbly_recording)
     assert [line["frame"]["timestamp_ns"] for line in lines] == [pose.timestamp_ns for pose in truth.poses]
     assert sum(bool(line["branches"]) for line in lines) >= 5
