@@ -37,7 +37,9 @@ from branchrange.masks import (
 )
 from branchrange.config import RoiConfig
 from branchrange.roi import CoarseToFine, Region
-from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
+from branchrange.segmentation.choose import check_segmenter_name, make_segmenter
+from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
+from branchrange.segmenter import GeometricSegmenterConfig, Segmenter
 from branchrange.timing import lap_ms
 from branchrange.tracking import BranchTracker, TrackerConfig
 
@@ -73,6 +75,7 @@ class PipelineConfig:
       the whole frame at low resolution and each branch at full resolution in its own box and
       disparity window — several times faster at HD720, the onboard default.
     - `roi`: the coarse-to-fine settings.
+    - `segmenter_name`: 'geometric' or 'onnx:FILE'; `segmenter` / `onnx_segmenter` their settings.
     """
 
     backend: str = "sgbm"
@@ -88,6 +91,8 @@ class PipelineConfig:
     tracking: bool = True
     cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
     segmenter: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
+    segmenter_name: str = "geometric"
+    onnx_segmenter: OnnxSegmenterConfig = field(default_factory=OnnxSegmenterConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     mode: str = "full"
     roi: RoiConfig = field(default_factory=RoiConfig)
@@ -105,6 +110,7 @@ class PipelineConfig:
             raise PipelineConfigError(f"trunk_id = {self.trunk_id!r}: expected an id in 1..65535 (0 is background)")
         if self.max_disp <= 0:
             raise PipelineConfigError(f"max_disp = {self.max_disp!r}: expected a positive number of pixels")
+        check_segmenter_name(self.segmenter_name)
 
 
 def _check_image(image: Any, which: str) -> np.ndarray:
@@ -198,7 +204,8 @@ class Pipeline:
         self.focal_px, self.baseline_m = float(focal_px), float(baseline_m)
         self.principal_point = principal_point
         self._backend = backend
-        self.segmenter: Segmenter = segmenter or GeometricSegmenter(self.config.segmenter)
+        cfg = self.config
+        self.segmenter: Segmenter = segmenter or make_segmenter(cfg.segmenter_name, cfg.segmenter, cfg.onnx_segmenter)
         self.tracker = BranchTracker(self.config.tracker)
         self.last: FrameArtifacts | None = None
         self._coarse_to_fine: CoarseToFine | None = None

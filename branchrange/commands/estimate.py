@@ -2,7 +2,8 @@
 
 The camera is either a calibration file (ZED conf, OpenCV YAML/XML, depthai JSON, KITTI; raw
 pairs are rectified unless --rectified) or the focal length and baseline of an already rectified
-pair. Without --mask the built-in geometric segmenter proposes the branches.
+pair. Without --mask a segmenter proposes the branches: the built-in geometric one, or your own
+ONNX model with --segmenter onnx:FILE.
 """
 from __future__ import annotations
 
@@ -45,6 +46,33 @@ def chosen_backend(args: argparse.Namespace) -> str:
     return "emcstereo" if args.weights is not None else "sgbm"
 
 
+def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: bool) -> None:
+    """--segmenter NAME and the class ids of an onnx model, shared by `estimate` and `demo`.
+
+    `optional_value`: a bare `--segmenter` means 'geometric' and leaving it out means no segmenter
+    (demo: the truth mask); otherwise it defaults to 'geometric'.
+    """
+    names = "'geometric' or 'onnx:FILE' (YOLOv8-seg or per-pixel-logits ONNX model)"
+    if optional_value:
+        parser.add_argument("--segmenter", nargs="?", const="geometric", metavar="NAME",
+                            help=f"find branches with a segmenter, not the truth mask: {names}; bare = geometric")
+    else:
+        parser.add_argument("--segmenter", default="geometric", metavar="NAME",
+                            help=f"segmenter used without --mask: {names} (default geometric)")
+    parser.add_argument("--branch-classes", type=int, nargs="+", default=[0], metavar="ID",
+                        help="class ids an onnx model uses for branches (default 0)")
+    parser.add_argument("--trunk-classes", type=int, nargs="*", default=[], metavar="ID",
+                        help="class ids an onnx model uses for the trunk (default none)")
+
+
+def segmenter_settings(args: argparse.Namespace) -> dict:
+    """`PipelineConfig` keyword arguments for the segmenter options (ValueError on bad ones)."""
+    from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
+
+    onnx = OnnxSegmenterConfig(branch_classes=tuple(args.branch_classes), trunk_classes=tuple(args.trunk_classes))
+    return {"segmenter_name": args.segmenter or "geometric", "onnx_segmenter": onnx}
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `estimate` to the `branchrange` command."""
     p = subparsers.add_parser("estimate", help="cut points of one stereo pair", description=__doc__)
@@ -60,6 +88,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--rectified", action="store_true", help="the images are already rectified: do not rectify")
     p.add_argument("--mask", type=Path, help="instance-id PNG (8/16-bit) or binary mask; default: segmenter")
     p.add_argument("--trunk-id", type=int, default=65535, help="trunk id in the instance mask (default 65535)")
+    add_segmenter_arguments(p, optional_value=False)
     add_stereo_arguments(p, None)
     p.add_argument("--json", type=Path, help="write the result JSON here (default: print it)")
     p.add_argument("--overlay", type=Path, help="write the overlay image here (PNG)")
@@ -72,7 +101,8 @@ def _pipeline(args: argparse.Namespace, size: tuple[int, int]):
     from branchrange.settings_check import check_calibration, check_image_size, check_physical
 
     config = PipelineConfig(backend=chosen_backend(args), weights=str(args.weights) if args.weights else None,
-                            max_disp=args.max_disp, trunk_id=args.trunk_id, tracking=False)
+                            max_disp=args.max_disp, trunk_id=args.trunk_id, tracking=False,
+                            **segmenter_settings(args))
     check_image_size(*size, name=f"{args.left}: image size")
     if args.calib is not None:
         from camera import load_calibration

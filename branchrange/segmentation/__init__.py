@@ -1,0 +1,1 @@
+"""Segmenters beyond the built-in geometric one, and `make_segmenter`, which picks one by name."""
