@@ -42,10 +42,11 @@ class Estimator(Protocol):
 
 class PipelineEstimator:
     """`Estimator` over `branchrange.pipeline.Pipeline`: one pipeline per request (each request is
-    its own camera; no tracking across requests), stereo backends built once and reused."""
+    its own camera; no tracking across requests), stereo backends built once and reused; every
+    pair's rectification is checked (`pair_check` in the result, 422 when refused)."""
 
     def __init__(self, config: PipelineConfig | None = None):
-        self.config = replace(config or PipelineConfig(), tracking=False)
+        self.config = replace(config or PipelineConfig(), tracking=False, check_pair=True)
         self._backends: dict[tuple[str, int], Any] = {}
         self._segmenters: dict[str, Any] = {}  # by name: an onnx model is loaded once, not per request
         self._lock = threading.Lock()  # backends are shared; one inference at a time uses them
