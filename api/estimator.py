@@ -31,7 +31,7 @@ class Estimator(Protocol):
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
                  backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
         """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`;
-        `segmenter` 'geometric' asks for the built-in segmenter instead of the server's configured one."""
+        `segmenter` 'structure' / 'geometric' asks for a built-in segmenter instead of the server's configured one."""
         ...
 
     def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
@@ -77,7 +77,7 @@ class PipelineEstimator:
         return self._backends[key]
 
     def segmenter(self, name: str | None = None) -> Any:
-        """The segmenter `name` ('geometric'; default: the configured one), built on first use and kept."""
+        """The segmenter `name` ('structure', 'geometric'; default: the configured one), built on first use and kept."""
         from branchrange.segmentation.choose import make_segmenter
 
         name = name or self.config.segmenter_name

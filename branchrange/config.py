@@ -237,12 +237,12 @@ class LogConfig:
 class SegmenterSection:
     """Which segmenter finds branches when no mask is given (`branchrange.segmentation.choose`).
 
-    `model`: 'geometric' (built in) or 'onnx:FILE' (your ONNX model, YOLOv8-seg or per-pixel
-    logits); `branch_classes` / `trunk_classes`: the model's class ids for branch and trunk;
+    `model`: 'structure' (built in, 3D structure), 'geometric' (the older built-in one) or
+    'onnx:FILE' (your ONNX model, YOLOv8-seg or per-pixel logits); `branch_classes` / `trunk_classes`: the model's class ids for branch and trunk;
     `score_threshold`: detections scoring lower are dropped.
     """
 
-    model: str = "geometric"
+    model: str = "structure"
     branch_classes: tuple[int, ...] = (0,)
     trunk_classes: tuple[int, ...] = ()
     score_threshold: float = 0.25

@@ -76,7 +76,7 @@ class PipelineConfig:
       the whole frame at low resolution and each branch at full resolution in its own box and
       disparity window — several times faster at HD720, the onboard default.
     - `roi`: the coarse-to-fine settings.
-    - `segmenter_name`: 'geometric' or 'onnx:FILE'; `segmenter` / `onnx_segmenter` their settings.
+    - `segmenter_name`: 'structure' (default), 'geometric' or 'onnx:FILE'; `segmenter` / `onnx_segmenter` their settings.
     - `check_pair`: measure the rectified pair's row misalignment (`branchrange.pair_check`, ~25 ms)
       on every frame: result field `pair_check`, and a refusal above the hard limit.
     """
@@ -94,7 +94,7 @@ class PipelineConfig:
     tracking: bool = True
     cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
     segmenter: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
-    segmenter_name: str = "geometric"
+    segmenter_name: str = "structure"
     onnx_segmenter: OnnxSegmenterConfig = field(default_factory=OnnxSegmenterConfig)
     check_pair: bool = False
     tracker: TrackerConfig = field(default_factory=TrackerConfig)

@@ -146,7 +146,7 @@ def test_pipeline_uses_the_named_onnx_segmenter(models):
 
 
 def test_bad_names_models_and_settings_are_clear_errors(models, tmp_path):
-    with pytest.raises(OnnxSegmenterError, match="'onnx:': expected 'geometric' or 'onnx:FILE'"):
+    with pytest.raises(OnnxSegmenterError, match="'onnx:': expected 'geometric', 'structure' or 'onnx:FILE'"):
         make_segmenter("onnx:")
     with pytest.raises(OnnxSegmenterError, match="no such model file"):
         make_segmenter(f"onnx:{tmp_path / 'missing.onnx'}")
@@ -169,7 +169,7 @@ def test_config_section_reaches_the_pipeline(models, tmp_path):
     config = pipeline_config(load_config(path))
     assert config.segmenter_name.endswith("yolo.onnx") and config.onnx_segmenter.trunk_classes == (1,)
     path.write_text('[segmenter]\nmodel = "maskrcnn"\n')
-    with pytest.raises(ConfigError, match="'maskrcnn': expected 'geometric' or 'onnx:FILE'"):
+    with pytest.raises(ConfigError, match="'maskrcnn': expected 'geometric', 'structure' or 'onnx:FILE'"):
         load_config(path)
     path.write_text('[segmenter]\nbranch_classes = 3\n')
     with pytest.raises(ConfigError, match="segmenter.branch_classes"):

@@ -162,9 +162,9 @@ async def post_estimate(
     mask: Annotated[UploadFile | None, File(description=(
         "instance-id PNG (0 = background, 8 or 16 bit) or binary mask, the left image's size; "
         "the server's segmenter runs when left out"))] = None,
-    segmenter: Annotated[Literal["configured", "geometric"], Form(description=(
+    segmenter: Annotated[Literal["configured", "structure", "geometric"], Form(description=(
         "without a mask: 'configured' = the server's [segmenter] model (e.g. its onnx:FILE), "
-        "'geometric' = the built-in one"))] = "configured",
+        "'structure' or 'geometric' = a built-in one"))] = "configured",
 ) -> dict:
     """Stereo pair (+ optional mask) and camera → the `branchrange/v1` result."""
     settings = request.app.state.settings

@@ -2,8 +2,8 @@
 
 The camera is either a calibration file (ZED conf, OpenCV YAML/XML, depthai JSON, KITTI; raw
 pairs are rectified unless --rectified) or the focal length and baseline of an already rectified
-pair. Without --mask a segmenter proposes the branches: the built-in geometric one, or your own
-ONNX model with --segmenter onnx:FILE.
+pair. Without --mask a segmenter proposes the branches: the built-in 'structure' one (or the older
+'geometric'), or your own ONNX model with --segmenter onnx:FILE.
 """
 from __future__ import annotations
 
@@ -50,15 +50,15 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
     """--segmenter NAME and the class ids of an onnx model, shared by `estimate` and `demo`.
 
     `optional_value`: a bare `--segmenter` means 'geometric' and leaving it out means no segmenter
-    (demo: the truth mask); otherwise it defaults to 'geometric'.
+    (demo: the truth mask); otherwise it defaults to 'structure'.
     """
-    names = "'geometric' or 'onnx:FILE' (YOLOv8-seg or per-pixel-logits ONNX model)"
+    names = "'structure', 'geometric' or 'onnx:FILE' (YOLOv8-seg or per-pixel-logits ONNX model)"
     if optional_value:
-        parser.add_argument("--segmenter", nargs="?", const="geometric", metavar="NAME",
-                            help=f"find branches with a segmenter, not the truth mask: {names}; bare = geometric")
+        parser.add_argument("--segmenter", nargs="?", const="structure", metavar="NAME",
+                            help=f"find branches with a segmenter, not the truth mask: {names}; bare = structure")
     else:
-        parser.add_argument("--segmenter", default="geometric", metavar="NAME",
-                            help=f"segmenter used without --mask: {names} (default geometric)")
+        parser.add_argument("--segmenter", default="structure", metavar="NAME",
+                            help=f"segmenter used without --mask: {names} (default structure)")
     parser.add_argument("--branch-classes", type=int, nargs="+", default=[0], metavar="ID",
                         help="class ids an onnx model uses for branches (default 0)")
     parser.add_argument("--trunk-classes", type=int, nargs="*", default=[], metavar="ID",
@@ -70,7 +70,7 @@ def segmenter_settings(args: argparse.Namespace) -> dict:
     from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
 
     onnx = OnnxSegmenterConfig(branch_classes=tuple(args.branch_classes), trunk_classes=tuple(args.trunk_classes))
-    return {"segmenter_name": args.segmenter or "geometric", "onnx_segmenter": onnx}
+    return {"segmenter_name": args.segmenter or "structure", "onnx_segmenter": onnx}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -1,1 +1,1 @@
-"""Segmenters beyond the built-in geometric one, and `make_segmenter`, which picks one by name."""
+"""Segmenters beyond the first geometric one (3D structure, ONNX models) and `make_segmenter`, which picks one by name."""
