@@ -91,7 +91,7 @@ def test_the_ground_plane_is_not_a_branch_and_not_the_trunk(tree):
 
 
 def test_a_loose_stem_away_from_the_trunk_is_dropped_unless_asked(tree):
-    loose = Cylinder(np.array([0.2, 0.25, 1.45]), unit([1, 0.1, 0]), 0.2, 0.012)  # 30 cm from any stem
+    loose = Cylinder(np.array([0.2, 0.25, 1.45]), unit([1, 0.1, 0]), 0.2, 0.012)  # 55 cm from the trunk
     scene = ray_cast(320, 240, GEOMETRY, {1: [BRANCH_A], 3: [loose], 100: [TRUNK]})
     image = picture(scene.labels)
     kept = StructureSegmenter().segment(image, scene.disparity, GEOMETRY)

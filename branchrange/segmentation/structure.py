@@ -20,9 +20,8 @@ Steps (one frame, `H×W` disparity in px and the rectified left image):
    consistent along it (a robust line in (position, disparity) holds ≥ `min_depth_consistency`
    of its pixels — sgbm noise streaks and grass blades do not);
 6. the trunk: the thick component with the largest area among the near-vertical, elongated ones;
-   when there is one, only pieces joined to it through a chain of pieces (links shorter than
-   `max_trunk_gap_m`) are kept: the branch graph grown from the trunk (loose pieces are twigs,
-   leaves, background or noise).
+   when there is one, only pieces with an end within `max_trunk_gap_m` of it are kept (a pruner
+   cuts branches at the trunk; loose pieces are twigs, leaves, background or noise).
 
 Where it fails: curved branches become several straight pieces (extra cut points); stems along
 the viewing direction are not elongated in the image; a branch lying in the ground plane is
@@ -241,24 +240,14 @@ class StructureSegmenter:
 
     def _attached(self, pieces: list[tuple[np.ndarray, np.ndarray]], trunk: np.ndarray, depth: np.ndarray,
                   geometry: StereoGeometry) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The pieces joined to the trunk through a chain of pieces, each link shorter than
-        `max_trunk_gap_m` (the branch graph grown from the trunk): what a pruner cuts grows from
-        the trunk or from a branch on it; loose pieces are twigs, leaves, background or noise."""
-        anchor = trunk.copy()
-        kept: list[tuple[np.ndarray, np.ndarray]] = []
-        waiting = list(pieces)
-        while waiting:
-            to_anchor = cv2.distanceTransform((~anchor).astype(np.uint8), cv2.DIST_L2, 3)
-            near = [float(to_anchor[pv, pu].min()) * float(np.median(depth[pv, pu])) / geometry.focal_px
-                    <= self.config.max_trunk_gap_m for pu, pv in waiting]
-            if not any(near):
-                break
-            for (pu, pv), joined in zip(waiting, near):
-                if joined:
-                    anchor[pv, pu] = True
-                    kept.append((pu, pv))
-            waiting = [piece for piece, joined in zip(waiting, near) if not joined]
-        return kept
+        """The pieces with an end within `max_trunk_gap_m` of the trunk: what a pruner cuts grows
+        from the trunk; loose pieces are twigs, leaves, background or noise. (Chaining pieces
+        through each other, the branch graph, found 3 % more branches on the synthetic set but
+        raised the false cut points from 2.8 to 3.8 per frame with sgbm.)"""
+        to_trunk = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3)
+        return [(pu, pv) for pu, pv in pieces
+                if float(to_trunk[pv, pu].min()) * float(np.median(depth[pv, pu])) / geometry.focal_px
+                <= self.config.max_trunk_gap_m]
 
     def _trunk(self, thick: np.ndarray) -> np.ndarray | None:
         """The largest thick component whose principal axis is within the tilt limit of vertical."""
