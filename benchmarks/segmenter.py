@@ -108,7 +108,7 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
             for name in [*segmenters, "truth"]:
                 key = f"{stereo}/{name}"
                 pipeline = Pipeline(PipelineConfig(tracking=False), focal_px=f, baseline_m=b, principal_point=(cx, cy),
-                                    backend=object(), segmenter=built.get(name))
+                                    segmenter=built.get(name))  # process_disparity: no backend is built
                 mask = scene["mask"] if name == "truth" else None
                 result = pipeline.process_disparity(scene["left"], disparity, confidence, mask=mask, backend=stereo)
                 target = next((x for x in result["branches"] if x["id"] == result["target_id"]), None)
@@ -178,7 +178,7 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
             out[f"{folder.name}/{name}"] = {
                 "cut_points": len(hits), "on_branch": on_branch, "on_not_branch": len(labelled) - on_branch,
                 "unlabelled": len(hits) - len(labelled),
-                "precision": on_branch / len(labelled) if labelled else float("nan"),
+                "precision": on_branch / len(labelled) if labelled else None,
                 "ms_segmenter": result["timing_ms"]["masks"]}
             if overlays is not None:
                 masks = pipeline.last.masks
@@ -201,7 +201,7 @@ def print_tables(synthetic: dict, real: dict) -> None:
         print(f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} {'precision':>9} {'ms':>6}")
         for key, r in real.items():
             print(f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_not_branch']:>7} {r['unlabelled']:>6} "
-                  f"{r['precision']:>9.2f} {r['ms_segmenter']:>6.0f}")
+                  f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}")
 
 
 def main(argv: list[str] | None = None) -> int:
