@@ -29,8 +29,9 @@ class Estimator(Protocol):
     """What the API calls: one stereo pair in, a result or a disparity out (blocking; run off-loop)."""
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None) -> dict:
-        """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`."""
+                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
+        """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`;
+        `segmenter` 'structure' / 'geometric' asks for a built-in segmenter instead of the server's configured one."""
         ...
 
     def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
@@ -41,11 +42,13 @@ class Estimator(Protocol):
 
 class PipelineEstimator:
     """`Estimator` over `branchrange.pipeline.Pipeline`: one pipeline per request (each request is
-    its own camera; no tracking across requests), stereo backends built once and reused."""
+    its own camera; no tracking across requests), stereo backends built once and reused; every
+    pair's rectification is checked (`pair_check` in the result, 422 when refused)."""
 
     def __init__(self, config: PipelineConfig | None = None):
-        self.config = replace(config or PipelineConfig(), tracking=False)
+        self.config = replace(config or PipelineConfig(), tracking=False, check_pair=True)
         self._backends: dict[tuple[str, int], Any] = {}
+        self._segmenters: dict[str, Any] = {}  # by name: an onnx model is loaded once, not per request
         self._lock = threading.Lock()  # backends are shared; one inference at a time uses them
 
     @property
@@ -73,15 +76,26 @@ class PipelineEstimator:
                                                device=cfg.device, precision=cfg.precision)
         return self._backends[key]
 
-    def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None) -> Pipeline:
+    def segmenter(self, name: str | None = None) -> Any:
+        """The segmenter `name` ('structure', 'geometric'; default: the configured one), built on first use and kept."""
+        from branchrange.segmentation.choose import make_segmenter
+
+        name = name or self.config.segmenter_name
+        if name not in self._segmenters:
+            self._segmenters[name] = make_segmenter(name, self.config.segmenter, self.config.onnx_segmenter)
+        return self._segmenters[name]
+
+    def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None,
+                  segmenter: str | None = None) -> Pipeline:
         return Pipeline(self._settings(backend, max_disp), calibration=camera.calibration, focal_px=camera.focal_px,
-                        baseline_m=camera.baseline_m, backend=self.backend(backend, max_disp))
+                        baseline_m=camera.baseline_m, backend=self.backend(backend, max_disp),
+                        segmenter=self.segmenter(segmenter))
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None) -> dict:
+                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
         """See `Estimator.estimate`; input errors are the pipeline's ValueErrors."""
         with self._lock:
-            return self._pipeline(camera, backend, max_disp).process(left, right, mask)
+            return self._pipeline(camera, backend, max_disp, segmenter).process(left, right, mask)
 
     def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
                   backend: str | None = None, max_disp: int | None = None) -> np.ndarray:

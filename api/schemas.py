@@ -67,6 +67,15 @@ class MasksInfo(ResultPart):
     trunk: bool | None = Field(None, description="whether a trunk was known")
 
 
+class PairCheckInfo(ResultPart):
+    """How far apart the rows of the (rectified) pair are, from feature matches (`branchrange.pair_check`)."""
+
+    median_dy_px: float | None = Field(description="median |y_left − y_right| of the matches, px; null when unknown")
+    matches: int = Field(ge=0, description="feature matches the estimate rests on")
+    status: str = Field(description="'ok' (≤ 1 px), 'warning' (> 1 px: rectify or calibrate) or 'unknown'")
+    message: str = Field(description="the verdict and how to fix a misaligned pair")
+
+
 class DroppedInstance(ResultPart):
     """A mask instance that gave no cut point."""
 
@@ -151,6 +160,7 @@ class EstimateResult(ResultPart):
     latency: Latency | None = Field(None, description="onboard daemon only: how old the result was at each stage")
     roi: RoiInfo | None = Field(None, description="stereo mode 'roi' only: the regions matched at full resolution")
     targets: WorldTargets | None = Field(None, description="onboard daemon with MAVLink: cut points fused in local NED")
+    pair_check: PairCheckInfo | None = Field(None, description="rectification check of the pair (above 8 px: 422)")
 
 
 class Health(BaseModel):

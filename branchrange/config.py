@@ -297,6 +297,37 @@ class LogConfig:
 
 
 @dataclass(frozen=True)
+class SegmenterSection:
+    """Which segmenter finds branches when no mask is given (`branchrange.segmentation.choose`).
+
+    `model`: 'structure' (built in, 3D structure), 'geometric' (the older built-in one) or
+    'onnx:FILE' (your ONNX model, YOLOv8-seg or per-pixel logits); `branch_classes` / `trunk_classes`: the model's class ids for branch and trunk;
+    `score_threshold`: detections scoring lower are dropped.
+    """
+
+    model: str = "structure"
+    branch_classes: tuple[int, ...] = (0,)
+    trunk_classes: tuple[int, ...] = ()
+    score_threshold: float = 0.25
+
+    def __post_init__(self) -> None:
+        from branchrange.segmentation.choose import check_segmenter_name
+
+        try:
+            check_segmenter_name(self.model)
+            self.onnx_settings()
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+    def onnx_settings(self) -> Any:
+        """The `OnnxSegmenterConfig` these options describe."""
+        from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
+
+        return OnnxSegmenterConfig(branch_classes=self.branch_classes, trunk_classes=self.trunk_classes,
+                                   score_threshold=self.score_threshold)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration, one dataclass per TOML section."""
 
@@ -308,6 +339,7 @@ class Config:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
     log: LogConfig = field(default_factory=LogConfig)
+    segmenter: SegmenterSection = field(default_factory=SegmenterSection)
 
 
 def _coerce(key: str, value: Any, annotation: Any) -> Any:
@@ -325,6 +357,10 @@ def _coerce(key: str, value: Any, annotation: Any) -> Any:
     if annotation is str:
         _require(isinstance(value, str), key, value, "a string")
         return value
+    if typing.get_origin(annotation) is tuple and typing.get_args(annotation)[1:] == (Ellipsis,):
+        item = typing.get_args(annotation)[0]
+        _require(isinstance(value, list), key, value, "a list")
+        return tuple(_coerce(f"{key}[{i}]", v, item) for i, v in enumerate(value))
     if typing.get_origin(annotation) is tuple:
         items = typing.get_args(annotation)
         ok = isinstance(value, list) and len(value) == len(items)
@@ -371,7 +407,7 @@ def load_config(path: str | Path | None) -> Config:
 
 
 def pipeline_config(cfg: Config) -> Any:
-    """The `branchrange.pipeline.PipelineConfig` that `[stereo]` and `[cutpoints]` describe."""
+    """The `branchrange.pipeline.PipelineConfig` that `[stereo]`, `[cutpoints]` and `[segmenter]` describe."""
     from branchrange.cutpoints import CutPointConfig
     from branchrange.pipeline import PipelineConfig
 
@@ -382,4 +418,5 @@ def pipeline_config(cfg: Config) -> Any:
         target_min_confidence=c.target_min_confidence, tracking=c.tracking,
         cutpoints=CutPointConfig(cut_offset_m=c.cut_offset_m, min_confidence=c.min_confidence,
                                  max_instances=c.max_instances),
-        mode=s.mode, roi=cfg.roi)
+        mode=s.mode, roi=cfg.roi,
+        segmenter_name=cfg.segmenter.model, onnx_segmenter=cfg.segmenter.onnx_settings())

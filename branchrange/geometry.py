@@ -67,6 +67,21 @@ def valid_disparity(disparity: np.ndarray, max_disparity: float | None = None) -
     return valid
 
 
+def offset_disparity(disparity: np.ndarray, doffs_px: float) -> np.ndarray:
+    """`d + doffs` where `disparity` (`H×W` px) is valid, 0 elsewhere: the disparity `Z = f·B/d` holds for.
+
+    Middlebury 2014 pairs are rectified with the right principal point `doffs` px right of the
+    left one, so depth is `Z = f·B/(d + doffs)`. Shifting the measured disparity once, at the
+    pipeline's entry, keeps every later stage (segmenter, the disparity-space line fits of the cut
+    points, cross-sections) exact without a second formula: a 3D line is a line in (u, v, d + doffs).
+    """
+    disparity = np.asarray(disparity, dtype=np.float32)
+    if not np.isfinite(doffs_px):
+        raise GeometryError(f"doffs = {doffs_px!r} must be a finite number of pixels")
+    valid = valid_disparity(disparity)
+    return np.where(valid, disparity + np.float32(doffs_px), 0.0).astype(np.float32)
+
+
 def disparity_to_depth(disparity: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
     """Depth `Z = f·B/d` in metres (`float32`, same shape as `disparity` in px); inf where invalid."""
     disparity = np.asarray(disparity, dtype=np.float32)

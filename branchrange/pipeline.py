@@ -24,7 +24,7 @@ from branchrange.cutpoints import (
     estimate_cut_points,
     select_target,
 )
-from branchrange.geometry import StereoGeometry, valid_disparity
+from branchrange.geometry import StereoGeometry, offset_disparity, valid_disparity
 from branchrange.masks import (
     DEFAULT_IGNORED_IDS,
     DEFAULT_TRUNK_ID,
@@ -37,7 +37,10 @@ from branchrange.masks import (
 )
 from branchrange.config import RoiConfig
 from branchrange.roi import CoarseToFine, Region
-from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
+from branchrange.pair_check import PairCheck, check_rectification
+from branchrange.segmentation.choose import check_segmenter_name, make_segmenter
+from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
+from branchrange.segmenter import GeometricSegmenterConfig, Segmenter
 from branchrange.timing import lap_ms
 from branchrange.tracking import BranchTracker, TrackerConfig
 
@@ -73,6 +76,9 @@ class PipelineConfig:
       the whole frame at low resolution and each branch at full resolution in its own box and
       disparity window — several times faster at HD720, the onboard default.
     - `roi`: the coarse-to-fine settings.
+    - `segmenter_name`: 'structure' (default), 'geometric' or 'onnx:FILE'; `segmenter` / `onnx_segmenter` their settings.
+    - `check_pair`: measure the rectified pair's row misalignment (`branchrange.pair_check`, ~25 ms)
+      on every frame: result field `pair_check`, and a refusal above the hard limit.
     """
 
     backend: str = "sgbm"
@@ -88,6 +94,9 @@ class PipelineConfig:
     tracking: bool = True
     cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
     segmenter: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
+    segmenter_name: str = "structure"
+    onnx_segmenter: OnnxSegmenterConfig = field(default_factory=OnnxSegmenterConfig)
+    check_pair: bool = False
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     mode: str = "full"
     roi: RoiConfig = field(default_factory=RoiConfig)
@@ -105,6 +114,7 @@ class PipelineConfig:
             raise PipelineConfigError(f"trunk_id = {self.trunk_id!r}: expected an id in 1..65535 (0 is background)")
         if self.max_disp <= 0:
             raise PipelineConfigError(f"max_disp = {self.max_disp!r}: expected a positive number of pixels")
+        check_segmenter_name(self.segmenter_name)
 
 
 def _check_image(image: Any, which: str) -> np.ndarray:
@@ -151,6 +161,7 @@ class StereoStage:
     timing_ms: dict[str, float]
     compute_ms: float
     regions: tuple[Region, ...] | None = None
+    pair_check: PairCheck | None = None
 
 
 class Pipeline:
@@ -158,7 +169,9 @@ class Pipeline:
 
     Camera: either `calibration` (a `camera.StereoCalibration`; raw pairs are rectified unless
     `rectified=True` or the calibration says so) or `focal_px` + `baseline_m` (+ `principal_point`,
-    default the image centre) of an already rectified pair. `backend` and `segmenter` may be
+    default the image centre) of an already rectified pair. `doffs_px`: the pair's disparity offset
+    (Z = f·B/(d + doffs)); a rectified calibration's default is its right minus left principal
+    column (Middlebury 2014 `calib.txt`). `backend` and `segmenter` may be
     passed in ready-made (tests, a learned segmenter); otherwise they are built from `config`,
     the backend lazily on the first frame.
     """
@@ -174,6 +187,7 @@ class Pipeline:
         rectified: bool = False,
         backend: Any = None,
         segmenter: Segmenter | None = None,
+        doffs_px: float | None = None,
     ) -> None:
         self.config = config or PipelineConfig()
         self.rectifier = None
@@ -185,6 +199,8 @@ class Pipeline:
             if rectified or calibration.is_rectified:
                 focal_px, baseline_m = float(calibration.K1[0, 0]), float(calibration.baseline_m)
                 principal_point = (float(calibration.K1[0, 2]), float(calibration.K1[1, 2]))
+                if doffs_px is None:  # a rectified calibration's right principal point may sit doffs px right
+                    doffs_px = float(calibration.K2[0, 2] - calibration.K1[0, 2])
             else:
                 from camera import Rectifier
 
@@ -196,9 +212,12 @@ class Pipeline:
         # validated now (GeometryError names the value) rather than at the first frame
         StereoGeometry(float(focal_px), float(baseline_m), 0.0, 0.0)
         self.focal_px, self.baseline_m = float(focal_px), float(baseline_m)
+        self.doffs_px = 0.0 if doffs_px is None else float(doffs_px)
+        offset_disparity(np.zeros(1), self.doffs_px)  # a non-finite doffs fails here, not at the first frame
         self.principal_point = principal_point
         self._backend = backend
-        self.segmenter: Segmenter = segmenter or GeometricSegmenter(self.config.segmenter)
+        cfg = self.config
+        self.segmenter: Segmenter = segmenter or make_segmenter(cfg.segmenter_name, cfg.segmenter, cfg.onnx_segmenter)
         self.tracker = BranchTracker(self.config.tracker)
         self.last: FrameArtifacts | None = None
         self._coarse_to_fine: CoarseToFine | None = None
@@ -280,6 +299,9 @@ class Pipeline:
         masks = self._masks(mask, left.shape[:2])
         if self.rectifier is not None:
             left, right = self.rectifier.rectify(left, right)
+        pair_check = check_rectification(left, right) if self.config.check_pair else None
+        if pair_check is not None:
+            pair_check.raise_if_refused()
         t = lap_ms(timing, "rectify", start)
         if self.config.mode == "roi":
             fine = self.coarse_to_fine.compute(left, right, masks, geometry)
@@ -293,7 +315,7 @@ class Pipeline:
             backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
         lap_ms(timing, "stereo", t)
         return StereoStage(left, disparity, confidence, masks, geometry, int(index), int(timestamp_ns),
-                           backend, max_disparity, timing, (time.perf_counter() - start) * 1000.0, regions)
+                           backend, max_disparity, timing, (time.perf_counter() - start) * 1000.0, regions, pair_check)
 
     def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
                           mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
@@ -333,6 +355,8 @@ class Pipeline:
         valid = valid_disparity(stage.disparity, max_disparity)
         # non-finite values are no evidence: keep them out of every later stage
         disparity = np.where(valid, stage.disparity, 0.0).astype(np.float32)
+        if self.doffs_px:  # from here on, Z = f·B/d (Middlebury's doffs folded into d)
+            disparity = offset_disparity(disparity, self.doffs_px)
         confidence = np.where(valid, np.nan_to_num(stage.confidence, nan=0.0), 0.0).astype(np.float32)
         reason = None
         cut = CutPointResult()
@@ -379,6 +403,8 @@ class Pipeline:
             result["reason"] = reason
         if stage.regions is not None:
             result["roi"] = {"regions": [region.to_dict() for region in stage.regions]}
+        if stage.pair_check is not None:
+            result["pair_check"] = stage.pair_check.to_dict()
         return result
 
 

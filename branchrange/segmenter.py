@@ -95,7 +95,7 @@ class GeometricSegmenterConfig:
         check_settings("segmenter", self, checks, SegmenterConfigError)
 
 
-def _depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
+def depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
     """Boolean `H×W`: pixels whose depth differs from a 4-neighbour's by more than `ratio` (relative)."""
     edges = np.zeros(depth.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
@@ -114,15 +114,28 @@ def _depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
     return edges
 
 
-def _elongation(component: np.ndarray) -> tuple[float, float]:
+def elongation(component: np.ndarray) -> tuple[float, float]:
     """(length px, mean width px) of a boolean `H×W` region from its pixels' principal axis."""
     v, u = np.nonzero(component)
+    return pixel_elongation(u, v)
+
+
+def pixel_elongation(u: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+    """(length px, mean width px) of the pixels (u, v) `(N,)` along their principal axis."""
     pixels = np.stack([u, v], axis=1).astype(np.float64)
     centred = pixels - pixels.mean(axis=0)
     _, vectors = np.linalg.eigh(centred.T @ centred)
     s = centred @ vectors[:, -1]
     length = float(np.ptp(s)) + 1.0
     return length, len(pixels) / length
+
+
+def leaf_pixels(left: np.ndarray, excess_green: float) -> np.ndarray:
+    """Boolean `H×W`: pixels of `left` (RGB) whose excess-green index 2G − R − B exceeds the threshold (< 0: none)."""
+    if excess_green < 0:
+        return np.zeros(left.shape[:2], dtype=bool)
+    rgb = left.astype(np.int16)
+    return (2 * rgb[..., 1] - rgb[..., 0] - rgb[..., 2]) > excess_green
 
 
 class GeometricSegmenter:
@@ -143,15 +156,8 @@ class GeometricSegmenter:
         depth = disparity_to_depth(disparity, geometry)
         depth[~valid] = np.inf
         foreground = valid & (depth >= cfg.min_range_m) & (depth <= cfg.max_range_m)
-        foreground &= ~_depth_edges(np.where(foreground, depth, np.inf), cfg.depth_edge_ratio)
+        foreground &= ~depth_edges(np.where(foreground, depth, np.inf), cfg.depth_edge_ratio)
         return foreground, depth
-
-    def _leaves(self, left: np.ndarray) -> np.ndarray:
-        """Boolean `H×W`: pixels whose colour says leaf (excess-green index above the threshold)."""
-        if self.config.excess_green < 0:
-            return np.zeros(left.shape[:2], dtype=bool)
-        rgb = left.astype(np.int16)
-        return (2 * rgb[..., 1] - rgb[..., 0] - rgb[..., 2]) > self.config.excess_green
 
     def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
                 confidence: np.ndarray | None = None) -> BranchMasks:
@@ -161,7 +167,7 @@ class GeometricSegmenter:
         if left.shape[:2] != disparity.shape:
             raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
         foreground, depth = self._foreground(left, disparity, geometry, confidence)
-        leaves = self._leaves(left)
+        leaves = leaf_pixels(left, cfg.excess_green)
         labels = np.zeros(disparity.shape, dtype=np.int32)
         count, regions = cv2.connectedComponents(foreground.astype(np.uint8), connectivity=8)
         trunk_candidates: list[tuple[float, np.ndarray]] = []
@@ -173,7 +179,7 @@ class GeometricSegmenter:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
             thick = cv2.morphologyEx(region.astype(np.uint8), cv2.MORPH_OPEN, disk).astype(bool)
             if thick.any():
-                length, width = _elongation(thick)
+                length, width = elongation(thick)
                 if length >= cfg.min_elongation * width / 2:
                     trunk_candidates.append((float(thick.sum()), thick))
             grown = cv2.dilate(thick.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))
@@ -183,7 +189,7 @@ class GeometricSegmenter:
                 piece = thin_labels == thin_id
                 if piece.sum() < 20:
                     continue
-                length_px, width_px = _elongation(piece)
+                length_px, width_px = elongation(piece)
                 length_m = length_px * float(np.median(depth[piece])) / geometry.focal_px
                 if length_m >= cfg.min_branch_length_m and length_px >= cfg.min_elongation * width_px:
                     labels[piece] = next_id

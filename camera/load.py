@@ -9,16 +9,17 @@ from pathlib import Path
 from camera.calibration import CalibrationError, StereoCalibration, read_calibration_text
 from camera.depthai_json import calibration_from_depthai_dict
 from camera.kitti import from_kitti
+from camera.middlebury import from_middlebury_calib
 from camera.opencv_file import from_opencv_file
 from camera.zed_conf import from_zed_conf
 
 
 #: File suffix of each format, for uploads written to a temporary file (the content decides).
-_SUFFIXES = {"zed": ".conf", "depthai": ".json", "kitti": ".txt"}
+_SUFFIXES = {"zed": ".conf", "depthai": ".json", "kitti": ".txt", "middlebury": ".txt"}
 
 
 def detect_format(path: str | Path) -> str:
-    """Which calibration format a file holds: "zed", "opencv", "depthai" or "kitti"."""
+    """Which calibration format a file holds: "zed", "opencv", "depthai", "kitti" or "middlebury"."""
     return _format_of_text(read_calibration_text(path), path)
 
 
@@ -42,9 +43,11 @@ def _format_of_text(text: str, path: str | Path) -> str:
         return "kitti"
     if {"K1", "M1"} & lines:
         return "opencv"
+    if {"CAM0", "CAM1", "BASELINE"} <= lines:
+        return "middlebury"
     raise CalibrationError(path, "<file>", "is in no known calibration format",
                            "a ZED SN*.conf, an OpenCV YAML/JSON/XML with K1 D1 K2 D2 R T, "
-                           "a depthai calibration JSON or a KITTI calib_cam_to_cam.txt")
+                           "a depthai calibration JSON, a KITTI calib_cam_to_cam.txt or a Middlebury calib.txt")
 
 
 def load_calibration(path: str | Path, resolution: str | None = None, *, size: tuple[int, int] | None = None,
@@ -68,6 +71,8 @@ def load_calibration(path: str | Path, resolution: str | None = None, *, size: t
         return calibration_from_depthai_dict(data, str(path), left_socket, right_socket, size)
     if fmt == "kitti":
         return from_kitti(path, kitti_left, kitti_right)
+    if fmt == "middlebury":
+        return from_middlebury_calib(path)
     return from_opencv_file(path, size)
 
 

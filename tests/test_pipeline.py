@@ -88,7 +88,7 @@ def test_ground_truth_disparity_and_masks_give_sub_centimetre_cut_points(scene, 
 
 
 def test_built_in_segmenter_finds_branches_without_a_mask(scene, validator):
-    result = pipeline_for(scene).process_disparity(scene.left, scene.disparity)
+    result = pipeline_for(scene, segmenter_name="geometric").process_disparity(scene.left, scene.disparity)
     validator.validate(result)
     assert result["masks"]["source"] == "geometric"
     found = [b for b in visible_truth(scene)

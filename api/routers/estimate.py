@@ -162,6 +162,9 @@ async def post_estimate(
     mask: Annotated[UploadFile | None, File(description=(
         "instance-id PNG (0 = background, 8 or 16 bit) or binary mask, the left image's size; "
         "the server's segmenter runs when left out"))] = None,
+    segmenter: Annotated[Literal["configured", "structure", "geometric"], Form(description=(
+        "without a mask: 'configured' = the server's [segmenter] model (e.g. its onnx:FILE), "
+        "'structure' or 'geometric' = a built-in one"))] = "configured",
 ) -> dict:
     """Stereo pair (+ optional mask) and camera → the `branchrange/v1` result."""
     settings = request.app.state.settings
@@ -173,7 +176,8 @@ async def post_estimate(
             raise _unprocessable(f"mask is {mask_arr.shape[1]}×{mask_arr.shape[0]} px but the images are "
                                  f"{pair.left.shape[1]}×{pair.left.shape[0]} px; it must match the left image")
     return await _infer(request, request.app.state.estimator.estimate, pair.left, pair.right, mask_arr, pair.camera,
-                        backend=pair.backend, max_disp=pair.max_disp)
+                        backend=pair.backend, max_disp=pair.max_disp,
+                        segmenter=None if segmenter == "configured" else segmenter)
 
 
 def _encode_kitti_png(disparity: np.ndarray) -> bytes:

@@ -1,7 +1,7 @@
 """`branchrange demo`: render a synthetic branch scene, run the whole pipeline, compare with the truth.
 
 The scene comes from the generator (`stereo.synth`, exact ground truth); its instance mask stands
-in for a mask file unless --segmenter asks for the built-in one. Prints every truth branch's cut
+in for a mask file unless --segmenter [NAME] asks for a segmenter. Prints every truth branch's cut
 point next to the estimate and writes the overlay, the result JSON and the pair to --out.
 Without --weights the stereo backend is sgbm (said so on the first line); with weights, EMCStereo.
 """
@@ -15,7 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from branchrange.commands.estimate import EXIT_BAD_INPUT, add_stereo_arguments, branch_table, chosen_backend
+from branchrange.commands.estimate import (
+    EXIT_BAD_INPUT,
+    add_segmenter_arguments,
+    add_stereo_arguments,
+    branch_table,
+    chosen_backend,
+    segmenter_settings,
+)
 
 DEMO_SEED = 6
 
@@ -27,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
     p.add_argument("--seed", type=int, default=DEMO_SEED, help=f"scene seed (default {DEMO_SEED})")
     p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT of the rendered pair (default 640x360)")
-    p.add_argument("--segmenter", action="store_true", help="find branches with the built-in segmenter, not the truth mask")
+    add_segmenter_arguments(p, optional_value=True)
     add_stereo_arguments(p, None)
     p.set_defaults(func=run)
 
@@ -65,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     """Render, run, print, write."""
     from branchrange.overlay import write_overlay
     from branchrange.pipeline import Pipeline, PipelineConfig
+    from branchrange.segmentation.choose import make_segmenter
     from stereo.commands.synth import parse_size
     from stereo.io import write_rgb
     from stereo.synth import SynthCamera, render_scene
@@ -72,6 +80,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         backend = chosen_backend(args)
         width, height = parse_size(args.size)
+        config = PipelineConfig(backend=backend, weights=str(args.weights) if args.weights else None,
+                                max_disp=args.max_disp, tracking=False, **segmenter_settings(args))
+        segmenter = make_segmenter(config.segmenter_name, config.segmenter, config.onnx_segmenter)  # before rendering
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"branchrange demo: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -83,10 +94,8 @@ def run(args: argparse.Namespace) -> int:
     scene = render_scene(args.seed, SynthCamera.zed_mini(width, height))
     print(f"rendered scene {args.seed} ({width}×{height}, {scene.pose} view, {scene.foliage} foliage, "
           f"f = {scene.camera.focal_px:g} px, B = {scene.camera.baseline_m} m) in {time.perf_counter() - start:.1f} s")
-    config = PipelineConfig(backend=backend, weights=str(args.weights) if args.weights else None,
-                            max_disp=args.max_disp, tracking=False)
     pipeline = Pipeline(config, focal_px=scene.camera.focal_px, baseline_m=scene.camera.baseline_m,
-                        principal_point=(scene.camera.cx, scene.camera.cy))
+                        principal_point=(scene.camera.cx, scene.camera.cy), segmenter=segmenter)
     try:
         result = pipeline.process(scene.left, scene.right, mask=None if args.segmenter else scene.instance_mask)
     except (ValueError, OSError) as exc:
@@ -94,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     timing = result["timing_ms"]
     print(f"pipeline: {timing['total']:.0f} ms (stereo {timing['stereo']:.0f} ms, masks {timing['masks']:.0f} ms, "
-          f"cut points {timing['cutpoints']:.0f} ms); masks from {'the segmenter' if args.segmenter else 'the truth mask'}")
+          f"cut points {timing['cutpoints']:.0f} ms); masks from "
+          f"{'the ' + pipeline.segmenter.name + ' segmenter' if args.segmenter else 'the truth mask'}")
     print()
     print(branch_table(result))
     print()

@@ -2,7 +2,8 @@
 
 The camera is either a calibration file (ZED conf, OpenCV YAML/XML, depthai JSON, KITTI; raw
 pairs are rectified unless --rectified) or the focal length and baseline of an already rectified
-pair. Without --mask the built-in geometric segmenter proposes the branches.
+pair. Without --mask a segmenter proposes the branches: the built-in 'structure' one (or the older
+'geometric'), or your own ONNX model with --segmenter onnx:FILE.
 """
 from __future__ import annotations
 
@@ -45,6 +46,33 @@ def chosen_backend(args: argparse.Namespace) -> str:
     return "emcstereo" if args.weights is not None else "sgbm"
 
 
+def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: bool) -> None:
+    """--segmenter NAME and the class ids of an onnx model, shared by `estimate` and `demo`.
+
+    `optional_value`: a bare `--segmenter` means 'geometric' and leaving it out means no segmenter
+    (demo: the truth mask); otherwise it defaults to 'structure'.
+    """
+    names = "'structure', 'geometric' or 'onnx:FILE' (YOLOv8-seg or per-pixel-logits ONNX model)"
+    if optional_value:
+        parser.add_argument("--segmenter", nargs="?", const="structure", metavar="NAME",
+                            help=f"find branches with a segmenter, not the truth mask: {names}; bare = structure")
+    else:
+        parser.add_argument("--segmenter", default="structure", metavar="NAME",
+                            help=f"segmenter used without --mask: {names} (default structure)")
+    parser.add_argument("--branch-classes", type=int, nargs="+", default=[0], metavar="ID",
+                        help="class ids an onnx model uses for branches (default 0)")
+    parser.add_argument("--trunk-classes", type=int, nargs="*", default=[], metavar="ID",
+                        help="class ids an onnx model uses for the trunk (default none)")
+
+
+def segmenter_settings(args: argparse.Namespace) -> dict:
+    """`PipelineConfig` keyword arguments for the segmenter options (ValueError on bad ones)."""
+    from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
+
+    onnx = OnnxSegmenterConfig(branch_classes=tuple(args.branch_classes), trunk_classes=tuple(args.trunk_classes))
+    return {"segmenter_name": args.segmenter or "structure", "onnx_segmenter": onnx}
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `estimate` to the `branchrange` command."""
     p = subparsers.add_parser("estimate", help="cut points of one stereo pair", description=__doc__)
@@ -56,10 +84,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--baseline-m", type=float, help="baseline in metres (with --focal-px)")
     p.add_argument("--principal-point", type=float, nargs=2, metavar=("CX", "CY"),
                    help="rectified principal point in px (with --focal-px; default the image centre)")
+    p.add_argument("--doffs", type=float, metavar="PX",
+                   help="disparity offset of the rectified pair (Middlebury 2014 doffs): Z = f·B/(d + doffs); "
+                        "with --focal-px (a Middlebury calib.txt given to --calib carries its own)")
     p.add_argument("--resolution", help="resolution section of a ZED calibration file (2K, FHD, HD, VGA)")
     p.add_argument("--rectified", action="store_true", help="the images are already rectified: do not rectify")
     p.add_argument("--mask", type=Path, help="instance-id PNG (8/16-bit) or binary mask; default: segmenter")
     p.add_argument("--trunk-id", type=int, default=65535, help="trunk id in the instance mask (default 65535)")
+    add_segmenter_arguments(p, optional_value=False)
     add_stereo_arguments(p, None)
     p.add_argument("--json", type=Path, help="write the result JSON here (default: print it)")
     p.add_argument("--overlay", type=Path, help="write the overlay image here (PNG)")
@@ -72,18 +104,22 @@ def _pipeline(args: argparse.Namespace, size: tuple[int, int]):
     from branchrange.settings_check import check_calibration, check_image_size, check_physical
 
     config = PipelineConfig(backend=chosen_backend(args), weights=str(args.weights) if args.weights else None,
-                            max_disp=args.max_disp, trunk_id=args.trunk_id, tracking=False)
+                            max_disp=args.max_disp, trunk_id=args.trunk_id, tracking=False, check_pair=True,
+                            **segmenter_settings(args))
     check_image_size(*size, name=f"{args.left}: image size")
     if args.calib is not None:
         from camera import load_calibration
 
+        if args.doffs is not None:
+            raise ValueError("--doffs goes with --focal-px; with --calib the calibration sets it "
+                             "(a Middlebury calib.txt's doffs, otherwise 0)")
         calibration = load_calibration(args.calib, args.resolution, size=size)
         check_calibration(calibration, size, str(args.calib))  # before the rectification maps are built
         return Pipeline(config, calibration=calibration, rectified=args.rectified)
     if args.baseline_m is None:
         raise ValueError("--focal-px needs --baseline-m (metres)")
     return Pipeline(config, focal_px=check_physical("focal_px", args.focal_px, "--focal-px"),
-                    baseline_m=check_physical("baseline_m", args.baseline_m, "--baseline-m"),
+                    baseline_m=check_physical("baseline_m", args.baseline_m, "--baseline-m"), doffs_px=args.doffs,
                     principal_point=tuple(args.principal_point) if args.principal_point else None)
 
 
@@ -96,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
         left, right = read_rgb(args.left), read_rgb(args.right)
         pipeline = _pipeline(args, (left.shape[1], left.shape[0]))
         result = pipeline.process(left, right, mask=args.mask)
+        if result["pair_check"]["status"] == "warning":
+            print(f"branchrange estimate: warning: {result['pair_check']['message']}", file=sys.stderr)
         if args.mask is not None and result["masks"]["instances"] == 0:
             raise ValueError(f"{args.mask}: the mask holds no branch instance (expected ids other than 0 "
                              f"and the trunk id {args.trunk_id})")

@@ -61,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     estimator = PipelineEstimator(pipeline_config(cfg))
     try:
         estimator.backend()  # a missing checkpoint or an unusable max_disp fails now, not on every request
+        estimator.segmenter()  # so does an unreadable [segmenter] model
     except ValueError as exc:
         print(f"branchrange serve: {exc}", file=sys.stderr)
         return 2

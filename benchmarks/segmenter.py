@@ -1,0 +1,230 @@
+"""Segmenters without truth masks: cut-point recall, false cut points, speed, reliability; real trees.
+
+Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, never used for
+training here; default options: ground, background trees and far foliage rows, foliage drawn
+bare/sparse/dense per scene) at 640×360 (ZED Mini). Per stereo source (sgbm, truth disparity)
+and segmenter (each name given, plus 'truth' = the scene's instance mask), every frame goes
+through `Pipeline.process_disparity`; cut points are matched to the truth as in
+`branchrange.evaluate_cuts` (recall within 5 cm, median 3D error of the matches, false cut
+points per frame = estimates with no truth cut point within 5 cm). Time per frame is the
+segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s cut
+points by confidence bin: the share within 5 cm of a truth cut point.
+
+Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
+with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
+calibration exists: precision = cut points inside a branch polygon / cut points inside any
+polygon; overlays (polygons, instances, cut points) are written to --overlays.
+
+    python benchmarks/segmenter.py [--scenes 30] [--segmenters geometric] [--json out.json]
+                                   [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from branchrange.evaluate_cuts import RECALL_RADIUS_M, CutScores
+from branchrange.pipeline import Pipeline, PipelineConfig
+from branchrange.segmentation.choose import make_segmenter
+
+ROOT = Path(__file__).resolve().parents[1]
+TREES = ROOT.parent / "shared" / "data" / "trees"
+FIRST_SEED = 50_000
+SIZE = (640, 360)
+#: nominal rectified camera for the real pairs (no calibration exists; see their README)
+REAL_FOCAL_PX, REAL_BASELINE_M = 700.0, 0.06
+#: sgbm disparity range per real scene, from the ranges in ../shared/data/trees/README.md
+REAL_MAX_DISP = {"forest_1s": 64, "Jadeplant_Q": 160}
+BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0001)
+
+
+def cpu_name() -> str:
+    """`lscpu` model name and whether AVX2 / AVX-512 are present."""
+    try:
+        text = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown CPU"
+    model = re.search(r"Model name:\s*(.+)", text)
+    flags = re.search(r"Flags:\s*(.+)", text)
+    flag_set = set(flags.group(1).split()) if flags else set()
+    return (f"{model.group(1).strip() if model else 'unknown'}; AVX2 {'yes' if 'avx2' in flag_set else 'no'}, "
+            f"AVX-512 {'yes' if 'avx512f' in flag_set else 'no'}; {len(__import__('os').sched_getaffinity(0))} cores")
+
+
+def load_scene(seed: int, cache: Path | None) -> dict:
+    """A rendered scene, its sgbm disparity/confidence and truth, from the cache when present."""
+    path = cache / f"scene_{seed}.npz" if cache is not None else None
+    if path is not None and path.is_file():
+        data = np.load(path, allow_pickle=False)
+        scene = {k: data[k] for k in data.files}
+        scene["truth"] = json.loads(str(scene["truth"]))
+        return scene
+    from stereo.backends import make_backend
+    from stereo.synth import SynthCamera, render_scene
+
+    rendered = render_scene(seed, SynthCamera.zed_mini(*SIZE))
+    stereo = make_backend("sgbm", max_disp=192).compute(rendered.left, rendered.right)
+    cam = rendered.camera
+    truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
+    scene = {"left": rendered.left, "disparity": rendered.disparity, "mask": rendered.instance_mask,
+             "sgbm": stereo.disparity, "sgbm_conf": stereo.confidence,
+             "camera": np.array([cam.focal_px, cam.baseline_m, cam.cx, cam.cy]), "truth": json.dumps(truth)}
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, **scene)
+    scene["truth"] = truth
+    return scene
+
+
+def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]:
+    """(bin label, cut points, share correct) per confidence bin of (confidence, within 5 cm) pairs."""
+    rows = []
+    for lo, hi in zip(BINS[:-1], BINS[1:]):
+        inside = [ok for c, ok in pairs if lo <= c < hi]
+        rows.append((f"{lo:.1f}–{min(hi, 1.0):.1f}", len(inside), float(np.mean(inside)) if inside else float("nan")))
+    return rows
+
+
+def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dict:
+    """Scores per 'stereo/segmenter' over `scenes` held-out scenes."""
+    built = {name: make_segmenter(name) for name in segmenters}
+    scores: dict[str, CutScores] = {}
+    confidences: dict[str, list[tuple[float, bool]]] = {}
+    times: dict[str, list[float]] = {}
+    for i in range(scenes):
+        scene = load_scene(FIRST_SEED + i, cache)
+        f, b, cx, cy = (float(v) for v in scene["camera"])
+        for stereo in ("sgbm", "truth"):
+            disparity = scene["sgbm"] if stereo == "sgbm" else scene["disparity"]
+            confidence = scene["sgbm_conf"] if stereo == "sgbm" else None
+            for name in [*segmenters, "truth"]:
+                key = f"{stereo}/{name}"
+                pipeline = Pipeline(PipelineConfig(tracking=False), focal_px=f, baseline_m=b, principal_point=(cx, cy),
+                                    segmenter=built.get(name))  # process_disparity: no backend is built
+                mask = scene["mask"] if name == "truth" else None
+                result = pipeline.process_disparity(scene["left"], disparity, confidence, mask=mask, backend=stereo)
+                target = next((x for x in result["branches"] if x["id"] == result["target_id"]), None)
+                scores.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], result["branches"], target)
+                times.setdefault(key, []).append(result["timing_ms"]["masks"])
+                points = [np.asarray(t["cut_point_m"]) for t in scene["truth"]]
+                for est in result["branches"]:
+                    ok = any(np.linalg.norm(np.asarray(est["cut_point_m"]) - p) <= RECALL_RADIUS_M for p in points)
+                    confidences.setdefault(key, []).append((est["confidence"], ok))
+        print(f"  scene {i + 1}/{scenes}", end="\r", file=sys.stderr)
+    out = {}
+    for key, s in scores.items():
+        out[key] = {"recall": s.recall, "median_error_cm": 100 * s.error_quantile(0.5), "false_per_frame": s.false_per_frame,
+                    "ms_per_frame": float(np.median(times[key])), "frames": s.frames,
+                    "reliability": reliability(confidences[key])}
+    return out
+
+
+def polygon_hits(annotations: dict, pixel: tuple[float, float]) -> str:
+    """'branch', 'not_branch' or 'unlabelled' for a left-image pixel (x, y)."""
+    for region in annotations["regions"]:
+        contour = np.asarray(region["polygon"], dtype=np.float32).reshape(-1, 1, 2)
+        if cv2.pointPolygonTest(contour, (float(pixel[0]), float(pixel[1])), False) >= 0:
+            return region["label"]
+    return "unlabelled"
+
+
+def draw_overlay(path: Path, left: np.ndarray, annotations: dict, labels: np.ndarray | None, branches: list[dict]) -> None:
+    """Left image with instances tinted, polygons (green branch, red not-branch) and cut points."""
+    image = cv2.cvtColor(left, cv2.COLOR_RGB2BGR).astype(np.float32)
+    if labels is not None:
+        rng = np.random.default_rng(1)
+        for value in np.unique(labels):
+            if value == 0:
+                continue
+            colour = (255, 255, 0) if value >= 65533 else rng.integers(60, 255, 3)
+            image[labels == value] = 0.5 * image[labels == value] + 0.5 * np.asarray(colour, np.float32)
+    image = image.astype(np.uint8)
+    for region in annotations["regions"]:
+        colour = (0, 200, 0) if region["label"] == "branch" else (0, 0, 220)
+        cv2.polylines(image, [np.round(np.asarray(region["polygon"])).astype(np.int32)], True, colour, 1)
+    marks = {"branch": (0, 255, 0), "not_branch": (0, 0, 255), "unlabelled": (0, 255, 255)}
+    for b in branches:
+        x, y = b["pixel"]
+        cv2.circle(image, (int(round(x)), int(round(y))), 6, marks[polygon_hits(annotations, (x, y))], 2)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), image)
+
+
+def run_real(segmenters: list[str], overlays: Path | None) -> dict:
+    """Cut-point precision on the hand-labelled real pairs, per segmenter."""
+    from stereo.io import read_rgb
+
+    out: dict[str, dict] = {}
+    if not TREES.is_dir():
+        return out
+    for folder in sorted(p for p in TREES.iterdir() if (p / "annotations.json").is_file()):
+        annotations = json.loads((folder / "annotations.json").read_text())
+        left, right = read_rgb(folder / "left.png"), read_rgb(folder / "right.png")
+        for name in segmenters:
+            config = PipelineConfig(tracking=False, max_disp=REAL_MAX_DISP.get(folder.name, 192))
+            pipeline = Pipeline(config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=make_segmenter(name))
+            result = pipeline.process(left, right)
+            hits = [polygon_hits(annotations, b["pixel"]) for b in result["branches"]]
+            labelled = [h for h in hits if h != "unlabelled"]
+            on_branch = sum(h == "branch" for h in hits)
+            out[f"{folder.name}/{name}"] = {
+                "cut_points": len(hits), "on_branch": on_branch, "on_not_branch": len(labelled) - on_branch,
+                "unlabelled": len(hits) - len(labelled),
+                "precision": on_branch / len(labelled) if labelled else None,
+                "ms_segmenter": result["timing_ms"]["masks"]}
+            if overlays is not None:
+                masks = pipeline.last.masks
+                draw_overlay(overlays / f"{folder.name}_{name}.png", left, annotations,
+                             masks.labels if masks is not None else None, result["branches"])
+    return out
+
+
+def print_tables(synthetic: dict, real: dict) -> None:
+    print(f"{'stereo/segmenter':<22} {'recall≤5cm':>10} {'median err':>10} {'false/frame':>11} {'ms/frame':>9}")
+    for key, r in synthetic.items():
+        print(f"{key:<22} {r['recall']:>10.1%} {r['median_error_cm']:>8.2f}cm {r['false_per_frame']:>11.2f} "
+              f"{r['ms_per_frame']:>9.1f}")
+    print("\nreliability (confidence bin: cut points, share within 5 cm)")
+    for key, r in synthetic.items():
+        cells = "  ".join(f"{label}: {n:>3} {share:>5.0%}" if n else f"{label}: {n:>3}   -  "
+                          for label, n, share in r["reliability"])
+        print(f"{key:<22} {cells}")
+    if real:
+        print(f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} {'precision':>9} {'ms':>6}")
+        for key, r in real.items():
+            print(f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_not_branch']:>7} {r['unlabelled']:>6} "
+                  f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", type=int, default=30, help="held-out synthetic scenes (default 30)")
+    parser.add_argument("--segmenters", nargs="+", default=["geometric"], help="segmenter names (default geometric)")
+    parser.add_argument("--cache", type=Path, help="folder caching rendered scenes and their sgbm disparity")
+    parser.add_argument("--overlays", type=Path, help="write real-pair overlays here")
+    parser.add_argument("--skip-real", action="store_true", help="leave out the real pairs")
+    parser.add_argument("--json", type=Path, help="write all numbers here")
+    args = parser.parse_args(argv)
+    print(f"CPU: {cpu_name()} (shared machine: absolute times are noisy)")
+    start = time.perf_counter()
+    synthetic = run_synthetic(args.segmenters, args.scenes, args.cache)
+    real = {} if args.skip_real else run_real(args.segmenters, args.overlays)
+    print_tables(synthetic, real)
+    print(f"\n{args.scenes} scenes at {SIZE[0]}×{SIZE[1]}, seeds {FIRST_SEED}–{FIRST_SEED + args.scenes - 1}; "
+          f"{time.perf_counter() - start:.0f} s")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"cpu": cpu_name(), "synthetic": synthetic, "real": real}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
