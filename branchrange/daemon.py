@@ -6,7 +6,9 @@ restart is visible in the log. Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
   dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
   clock — the capture time every age and latency is measured from;
-- **stereo** (the `run()` thread): rectification and disparity (`Pipeline.stereo_stage`; in
+- **stereo** (the `run()` thread): on the first frame of each opened camera, a check that the
+  rectified rows are aligned (`branchrange.pair_check`: a warning with the fix when not); then
+  rectification and disparity (`Pipeline.stereo_stage`; in
   `stereo.mode = "roi"` the coarse pass, the segmenter and the full-resolution regions); it is
   also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
   or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
@@ -38,6 +40,7 @@ from typing import IO, Any
 from branchrange.config import Config
 from branchrange.frame_results import result_line, run_header_line
 from branchrange.mavlink import MavlinkRelay
+from branchrange.pair_check import check_rectification
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 
 log = logging.getLogger("branchrange.daemon")
@@ -142,6 +145,7 @@ class Daemon:
         self._latencies: list[float] = []
         self._warmup: list[tuple[float, float, float]] = []  # (capture → publish, stereo, geometry) s
         self._speed_reported = False
+        self._pair_checked = False
         self._speed_warned = False
 
     @property
@@ -189,8 +193,23 @@ class Daemon:
         else:  # a bug, not bad input: keep flying, but leave the traceback in the log
             log.error("frame %d failed: %r", index, error, exc_info=error)
 
+    def _check_pair(self, frame: Any) -> None:
+        """Once per opened camera: are its (rectified) rows aligned? A misaligned pair gives confident
+        nonsense, so say so in the log, with how to fix it (`branchrange.pair_check`)."""
+        self._pair_checked = True
+        left, right = frame.left, frame.right
+        rectifier = getattr(self.pipeline, "rectifier", None)
+        try:
+            if rectifier is not None:
+                left, right = rectifier.rectify(left, right)
+            check_rectification(left, right).log(log)
+        except ValueError as error:  # a frame the pipeline will reject anyway, with its own message
+            log.debug("pair check skipped: %s", error)
+
     def _stereo(self, frame: Any, captured_at: float) -> None:
         """The stereo half of one frame, handed to the geometry worker."""
+        if not self._pair_checked:
+            self._check_pair(frame)
         started = time.monotonic()
         try:
             stage = self.pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
@@ -363,6 +382,7 @@ class Daemon:
             source.close()
             self._dropped_by_closed_sources += source.dropped
         self.reopens += 1
+        self._pair_checked = False  # a camera plugged in again may be another one
         self._slot.wait_idle()  # the tracker is the worker's until then
         self.pipeline.reset()
         return self._try_open()

@@ -13,6 +13,7 @@ import time
 from collections import defaultdict
 
 import httpx
+import numpy as np
 import pytest
 
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
@@ -421,3 +422,21 @@ def test_a_vanished_recording_marks_the_camera_lost(tmp_path, caplog):
     assert daemon.run() == 0
     assert daemon.corrupt == 8 and daemon.camera_lost
     assert any("unreadable frames in a row" in r.getMessage() for r in caplog.records)
+
+
+def test_a_misaligned_camera_is_reported_once_in_the_log(tmp_path, caplog):
+    """Rows 3 px apart (a knocked camera, a wrong calibration): the daemon says so and how to fix it."""
+    caplog.set_level(logging.DEBUG, logger="branchrange.daemon")
+    scene = tree_scene()
+    shifted = np.roll(scene.right, 3, axis=0)
+    out = tmp_path / "misaligned"
+    cam = scene.camera
+    with Recorder(out, calibration=from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height))) as rec:
+        for i in range(3):
+            rec.write(StereoFrame(scene.left, shifted, i * 100_000_000, i))
+    cfg = Config(camera=CameraConfig(source=f"replay:{out}"), stereo=StereoConfig(max_disp=64))
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(out, pace="fast"),
+                    pipeline=pipeline_for(cfg, ReplaySource(out).calibration))
+    daemon.run()
+    checks = [r for r in caplog.records if r.getMessage().startswith("pair check:")]
+    assert len(checks) == 1 and checks[0].levelno == logging.WARNING and "rectif" in checks[0].getMessage()
