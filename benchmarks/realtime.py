@@ -25,6 +25,8 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
 - `target_recall`: processed frames with a target / processed frames whose truth has a visible cut point;
 - `false_target_rate`: targets farther than 10 cm from every true cut point / targets published;
 - `stage_ms.<stage>.p50`: per-stage compute time (the result's `timing_ms`);
+- `handover_ms.{capture_to_stereo_ms,capture_to_geometry_ms,capture_to_publish_ms}.p50`: when the
+  frame reached each thread (the result's `latency`): the waits between the stages;
 - `ratio_to_baseline.{fresh_rate,latency_p50}`: against `full-sgbm` with the same segmenter.
 Also `cpu` (model and vector extensions), `threads`, `sequence`, `max_result_age_s`.
 
@@ -229,6 +231,8 @@ def summarise(published: list[dict[str, Any]], daemon: Any, truth: Any, max_age_
         "target_recall": round(hits / with_truth, 4) if with_truth else None,
         "false_target_rate": round(false_targets / targets, 4) if targets else None,
         "stage_ms": {stage: {"p50": percentile(values, 50)} for stage, values in sorted(stages.items())},
+        "handover_ms": {key: {"p50": percentile([r["latency"][key] for r in published], 50)}
+                        for key in ("capture_to_stereo_ms", "capture_to_geometry_ms", "capture_to_publish_ms")},
         "wall_s": round(wall_s, 2),
     }
 
@@ -260,6 +264,10 @@ def print_table(report: dict[str, Any]) -> None:
     print("\nper-stage p50 (ms):")
     for name, row in report["modes"].items():
         print(f"  {name:24} " + "  ".join(f"{stage} {fmt(v['p50'], 1, 1)}" for stage, v in row["stage_ms"].items()))
+    print("\nframe arrival → each hand-over, p50 (ms):")
+    for name, row in report["modes"].items():
+        print(f"  {name:24} " + "  ".join(f"{key.removesuffix('_ms')} {fmt(v['p50'], 1, 1)}"
+                                         for key, v in row["handover_ms"].items()))
 
 
 def main(argv: list[str] | None = None) -> int:
