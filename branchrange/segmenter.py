@@ -31,7 +31,7 @@ Where it fails (by construction):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -55,6 +55,21 @@ class Segmenter(Protocol):
                 confidence: np.ndarray | None = None) -> BranchMasks:
         """Instances for `left` (`uint8 H×W×3` RGB) and `disparity` (`float32 H×W` px)."""
         ...
+
+
+def shared_checks(cfg: Any) -> dict[str, tuple[bool, str]]:
+    """The range checks of the settings every built-in segmenter has (working range, branch shape,
+    depth edges, confidence floor, trunk id), for `check_settings`."""
+    return {
+        "min_range_m": (cfg.min_range_m >= 0, "≥ 0 m"),
+        "max_range_m": (cfg.max_range_m > cfg.min_range_m, f"> min_range_m ({cfg.min_range_m} m)"),
+        "max_branch_diameter_m": (cfg.max_branch_diameter_m > 0, "> 0 m"),
+        "min_branch_length_m": (cfg.min_branch_length_m > 0, "> 0 m"),
+        "min_elongation": (cfg.min_elongation >= 1, "≥ 1 (length / width)"),
+        "depth_edge_ratio": (cfg.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
+        "min_confidence": (0 <= cfg.min_confidence <= 1, "a confidence in [0, 1]"),
+        "trunk_id": (0 < cfg.trunk_id <= 65535, "an id in 1..65535"),
+    }
 
 
 @dataclass(frozen=True)
@@ -82,17 +97,7 @@ class GeometricSegmenterConfig:
     trunk_id: int = DEFAULT_TRUNK_ID
 
     def __post_init__(self) -> None:
-        checks = {
-            "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
-            "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
-            "max_branch_diameter_m": (self.max_branch_diameter_m > 0, "> 0 m"),
-            "min_branch_length_m": (self.min_branch_length_m > 0, "> 0 m"),
-            "min_elongation": (self.min_elongation >= 1, "≥ 1 (length / width)"),
-            "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
-            "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
-            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
-        }
-        check_settings("segmenter", self, checks, SegmenterConfigError)
+        check_settings("segmenter", self, shared_checks(self), SegmenterConfigError)
 
 
 def depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 
 from branchrange.geometry import GeometryError, StereoGeometry, disparity_to_depth, fit_linear_robust, valid_disparity
 from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.segmenter import SegmenterConfigError, depth_edges, leaf_pixels, pixel_elongation
+from branchrange.segmenter import SegmenterConfigError, depth_edges, leaf_pixels, pixel_elongation, shared_checks
 from branchrange.settings_check import check_settings
 
 
@@ -64,13 +64,7 @@ class StructureSegmenterConfig:
 
     def __post_init__(self) -> None:
         checks = {
-            "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
-            "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
-            "max_branch_diameter_m": (self.max_branch_diameter_m > 0, "> 0 m"),
-            "min_branch_length_m": (self.min_branch_length_m > 0, "> 0 m"),
-            "min_elongation": (self.min_elongation >= 1, "≥ 1 (length / width)"),
-            "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
-            "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
+            **shared_checks(self),
             "plane_min_share": (0 < self.plane_min_share <= 1, "a share in (0, 1]"),
             "plane_tolerance_m": (self.plane_tolerance_m > 0, "> 0 m"),
             "plane_min_extent_m": (self.plane_min_extent_m > 0, "> 0 m"),
@@ -79,7 +73,6 @@ class StructureSegmenterConfig:
             "min_piece_px": (self.min_piece_px >= 2, "≥ 2 pixels"),
             "max_trunk_gap_m": (self.max_trunk_gap_m >= 0, "≥ 0 m (0 = keep pieces away from the trunk)"),
             "ridge_strength": (self.ridge_strength >= 0, "≥ 0 grey levels (0 = no image ridge test)"),
-            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
         }
         check_settings("segmenter", self, checks, SegmenterConfigError)
 
