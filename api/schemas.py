@@ -115,6 +115,7 @@ class RoiRegion(ResultPart):
     box: list[int] = Field(min_length=4, max_length=4, description="[x0, y0, x1, y1] pixels, exclusive ends")
     d_min: int = Field(ge=0, description="smallest disparity searched, pixels")
     d_range: int = Field(ge=1, description="disparities searched from d_min, pixels")
+    backend: str | None = Field(None, description="the backend that matched it (SGBM beyond roi.network_regions)")
 
 
 class RoiInfo(ResultPart):

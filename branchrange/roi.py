@@ -53,6 +53,7 @@ class Region:
     box: tuple[int, int, int, int]
     d_min: int
     d_range: int
+    backend: str = ""  # the backend that matched it (set when it was matched)
 
     @property
     def pixels(self) -> int:
@@ -61,7 +62,8 @@ class Region:
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form of the result's `roi.regions` entries."""
-        return {"id": self.instance_id, "box": list(self.box), "d_min": self.d_min, "d_range": self.d_range}
+        return {"id": self.instance_id, "box": list(self.box), "d_min": self.d_min, "d_range": self.d_range,
+                "backend": self.backend}
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,14 +179,24 @@ class CoarseToFine:
         self.fine = fine_backend
         self.segmenter = segmenter
         self.max_disp = int(max_disp)
-        self._coarse: dict[int, Any] = {}  # coarse SGBM backends by coarse max_disp
+        self._coarse: dict[int, Any] = {}  # SGBM backends by max_disp (coarse pass, regions beyond network_regions)
 
-    def _coarse_backend(self, max_disp: int) -> Any:
+    def _sgbm(self, max_disp: int) -> Any:
+        """An SGBM backend for `max_disp` (coarse pass, or regions beyond `network_regions`), built once."""
         if max_disp not in self._coarse:
             from stereo.backends import make_backend
 
             self._coarse[max_disp] = make_backend("sgbm", max_disp=max_disp)
         return self._coarse[max_disp]
+
+    def _matchers(self, regions: list[Region]) -> list[Any]:
+        """The backend for each region: the fine backend for all when it is SGBM or `network_regions`
+        is 0, else for the nearest `network_regions` (largest window centre) and SGBM for the rest."""
+        limit = self.config.network_regions
+        if self.fine.name == "sgbm" or limit == 0 or len(regions) <= limit:
+            return [self.fine] * len(regions)
+        nearest = sorted(range(len(regions)), key=lambda i: -(regions[i].d_min + regions[i].d_range / 2))[:limit]
+        return [self.fine if i in nearest else self._sgbm(self.max_disp) for i in range(len(regions))]
 
     def compute(self, left: np.ndarray, right: np.ndarray, masks: BranchMasks | None,
                 geometry: StereoGeometry) -> CoarseToFineResult:
@@ -200,7 +212,7 @@ class CoarseToFine:
             right_small = cv2.resize(right, small, interpolation=cv2.INTER_AREA)
         else:
             left_small, right_small = left, right
-        coarse = self._coarse_backend(coarse_max).compute(left_small, right_small)
+        coarse = self._sgbm(coarse_max).compute(left_small, right_small)
         t = lap_ms(timing, "coarse_stereo", t)
         if masks is None:
             found = self.segmenter.segment(left_small, coarse.disparity, scaled_geometry(geometry, scale),
@@ -217,8 +229,10 @@ class CoarseToFine:
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
         trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
+        regions = [replace(region, backend=backend.name) for region, backend in zip(regions, self._matchers(regions))]
         for region in regions:
-            result = self.fine.compute_roi(left, right, region.box, region.d_min, region.d_range)
+            backend = self.fine if region.backend == self.fine.name else self._sgbm(self.max_disp)
+            result = backend.compute_roi(left, right, region.box, region.d_min, region.d_range)
             x0, y0, x1, y1 = region.box
             box_labels = labels_full[y0:y1, x0:x1]
             take = ((box_labels == region.instance_id) | (box_labels == 0)) & (result.disparity > 0)

@@ -89,3 +89,25 @@ def test_a_backend_without_windowed_matching_is_refused_in_roi_mode():
                         backend=WholeFrameOnly())
     with pytest.raises(ValueError, match="cannot match regions of interest; use mode = 'full'"):
         pipeline.process(scene.left, scene.right, mask=scene.instance_mask)
+
+
+def test_a_network_matches_only_the_nearest_regions_and_sgbm_the_rest():
+    """roi.network_regions = 1: EMCStereo (random weights: only which backend ran is checked) gets the region
+    with the nearest window, SGBM every other one, so a CPU companion pays for one network region a frame."""
+    import torch
+
+    from stereo import EMCStereo
+    from stereo.backends.emcstereo import EMCStereoBackend
+
+    torch.manual_seed(0)
+    scene = tree_scene()
+    cam = scene.camera
+    pipeline = Pipeline(PipelineConfig(max_disp=64, mode="roi", roi=RoiConfig(coarse_width=240, network_regions=1),
+                                       tracking=False),
+                        focal_px=cam.focal_px, baseline_m=cam.baseline_m, principal_point=(cam.cx, cam.cy),
+                        backend=EMCStereoBackend(EMCStereo(max_disp=64).eval()))
+    regions = pipeline.process(scene.left, scene.right, mask=scene.instance_mask)["roi"]["regions"]
+    by_network = [r for r in regions if r["backend"] == "emcstereo"]
+    assert len(by_network) == 1 and {r["backend"] for r in regions} == {"emcstereo", "sgbm"}
+    centre = [r["d_min"] + r["d_range"] / 2 for r in regions]
+    assert by_network[0]["d_min"] + by_network[0]["d_range"] / 2 == max(centre)
