@@ -40,6 +40,7 @@ from typing import IO, Any
 from branchrange.config import Config
 from branchrange.frame_results import result_line, run_header_line
 from branchrange.mavlink import MavlinkRelay
+from branchrange.newest_slot import NewestSlot
 from branchrange.pair_check import check_rectification
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 
@@ -65,52 +66,6 @@ class _StereoOutput:
     stereo_done_at: float
 
 
-class _NewestSlot:
-    """A one-item mailbox between two threads: `put` replaces what the taker did not get to (counted).
-
-    The taker calls `take()`, works on the item, then `task_done()`; `wait_idle()` waits until the
-    mailbox is empty and the taker is not working on anything.
-    """
-
-    def __init__(self) -> None:
-        self._condition = threading.Condition()
-        self._item: Any = None
-        self._busy = False
-        self._closed = False
-        self.replaced = 0
-
-    def put(self, item: Any) -> None:
-        with self._condition:
-            if self._item is not None:
-                self.replaced += 1
-            self._item = item
-            self._condition.notify_all()
-
-    def take(self) -> Any:
-        """The item, waiting for one; None once closed and empty."""
-        with self._condition:
-            self._condition.wait_for(lambda: self._item is not None or self._closed)
-            item, self._item = self._item, None
-            self._busy = item is not None
-            self._condition.notify_all()
-            return item
-
-    def task_done(self) -> None:
-        with self._condition:
-            self._busy = False
-            self._condition.notify_all()
-
-    def wait_idle(self) -> None:
-        """Block until the mailbox is empty and the taker has finished its item."""
-        with self._condition:
-            self._condition.wait_for(lambda: (self._item is None and not self._busy) or self._closed)
-
-    def close(self) -> None:
-        with self._condition:
-            self._closed = True
-            self._condition.notify_all()
-
-
 class Daemon:
     """Runs the onboard loop; also the `LiveStatus` the API reads (`latest_result`, `health`)."""
 
@@ -131,7 +86,7 @@ class Daemon:
             self._results.write(run_header_line("daemon", cfg, cfg.camera.source))
         self._stop = threading.Event()
         self._latest: dict[str, Any] | None = None
-        self._slot = _NewestSlot()
+        self._slot = NewestSlot()
         self._counts_lock = threading.Lock()
         self.camera_lost = False
         self.frames = 0
@@ -306,7 +261,7 @@ class Daemon:
     def run(self, max_frames: int | None = None) -> int:
         """Process frames until the source ends, `max_frames` are done or `stop()`; returns frames done."""
         worker = threading.Thread(target=self._geometry_worker, name="geometry-send", daemon=True)
-        self._slot = _NewestSlot()
+        self._slot = NewestSlot()
         worker.start()
         timeout = self.cfg.camera.stall_timeout_s
         source = self._try_open()

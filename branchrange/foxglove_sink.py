@@ -27,7 +27,7 @@ import json
 import logging
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,7 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 
+from branchrange.newest_slot import NewestSlot
 from branchrange.pipeline import SCHEMA_PATH
 
 log = logging.getLogger("branchrange.foxglove")
@@ -132,8 +133,6 @@ class FoxgloveSink:
 
     def __init__(self, targets: FoxgloveTargets, *, mount: Any = None, newest_only: bool = False,
                  server_name: str = "branchrange") -> None:
-        from branchrange.daemon import _NewestSlot  # the daemon's own newest-wins mailbox
-
         import foxglove
         from foxglove import channels
 
@@ -154,8 +153,9 @@ class FoxgloveSink:
         self._result = foxglove.Channel(TOPICS["result"], schema=result_schema, context=ctx)
         self._writer = self._server = None
         self._vehicle: tuple[np.ndarray, np.ndarray] | None = None
+        self._pose_now: Callable[[], tuple[Sequence[float], Sequence[float]] | None] | None = None
         self.frames = 0
-        self._slot = _NewestSlot() if newest_only else None
+        self._slot = NewestSlot() if newest_only else None
         self._worker: threading.Thread | None = None
         try:
             if targets.mcap is not None:
@@ -200,8 +200,16 @@ class FoxgloveSink:
         """Frames replaced before the sink's thread got to them (`newest_only`; 0 otherwise)."""
         return 0 if self._slot is None else self._slot.replaced
 
+    def follow_vehicle(self, pose_now: Callable[[], tuple[Sequence[float], Sequence[float]] | None]) -> None:
+        """Ask `pose_now()` — (position local NED m, attitude w, x, y, z) or None, e.g. the MAVLink relay's
+        `vehicle_pose` — before each frame, so the scene carries local_ned → body_frd while the vehicle's
+        state is known (the daemon does this)."""
+        self._pose_now = pose_now
+
     def __call__(self, result: dict[str, Any], artifacts: Any = None) -> None:
         """One frame: its result and, with `artifacts` (branchrange.pipeline.FrameArtifacts), its images."""
+        if self._pose_now is not None and (pose := self._pose_now()) is not None:
+            self.set_vehicle_pose(*pose)
         if self._slot is not None:
             self._slot.put((result, artifacts))
         else:

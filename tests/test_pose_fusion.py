@@ -355,3 +355,25 @@ def test_pose_and_tracking_settings_name_the_key_and_the_range(data, message):
 
     with pytest.raises(ConfigError, match=message):
         config_from_dict(data)
+
+
+def test_foxglove_follows_the_vehicle_pose_the_relay_receives(tmp_path):
+    """The daemon's Foxglove sink asks the relay for the vehicle's pose: local_ned → body_frd joins the scene."""
+    from mcap.reader import make_reader
+
+    from branchrange.foxglove_sink import FoxgloveSink, FoxgloveTargets
+
+    result = {"schema": "branchrange/v1", "frame": {"index": 0, "timestamp_ns": 1, "width": 64, "height": 48},
+              "camera": {"focal_px": 50.0, "baseline_m": 0.06, "cx": 31.5, "cy": 23.5}, "branches": [],
+              "target_id": None, "timing_ms": {"total": 1.0}}
+    with AutopilotSim(approach_flight(0.3), heartbeat_period_s=0.2) as sim, relay_for(sim) as relay:
+        wait_for_state(relay)
+        position, attitude = relay.vehicle_pose()
+        truth = sim.pose_at(time.monotonic())
+        with FoxgloveSink(FoxgloveTargets(mcap=tmp_path / "vehicle.mcap"), mount=MOUNT) as sink:
+            sink.follow_vehicle(relay.vehicle_pose)
+            sink(result, None)
+    assert np.linalg.norm(np.subtract(position, truth.position_m)) < 0.05 and abs(np.linalg.norm(attitude) - 1) < 1e-6
+    with (tmp_path / "vehicle.mcap").open("rb") as f:
+        tf = [m.data for _, channel, m in make_reader(f).iter_messages() if channel.topic.endswith("/tf")]
+    assert len(tf) == 1 and b"local_ned" in tf[0]

@@ -79,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
             relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking)
         if targets is not None:
             sink = FoxgloveSink(targets, mount=mount, newest_only=True)
+            if relay is not None:
+                sink.follow_vehicle(relay.vehicle_pose)  # the scene in local NED too, while the autopilot streams its pose
     except (SourceError, SigningKeyError, ValueError) as exc:
         for opened in (first, relay, sink):
             if opened is not None:

@@ -36,7 +36,7 @@ from branchrange.config import MavlinkConfig, TrackingConfig
 from branchrange.mavlink import messages
 from branchrange.mavlink.approach import ApproachPlanner
 from branchrange.mavlink.connection import MavlinkLink, load_signing_key
-from branchrange.mavlink.frames import CameraMount
+from branchrange.mavlink.frames import CameraMount, quaternion_wxyz
 from branchrange.mavlink.vehicle_state import VehicleState
 from branchrange.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
 
@@ -117,6 +117,15 @@ class MavlinkRelay:
                 for b in result.get("branches", [])]
             self._tracks.update(measurements, captured_at, result.get("target_id"))
             return True
+
+    def vehicle_pose(self) -> tuple[tuple[float, float, float], tuple[float, float, float, float]] | None:
+        """The vehicle's pose now, for viewers: (position local NED m, attitude quaternion w, x, y, z of
+        body FRD → NED), or None without vehicle state."""
+        pose = self._vehicle.pose_at(self._clock())
+        if pose is None:
+            return None
+        return (float(pose.position_m[0]), float(pose.position_m[1]), float(pose.position_m[2])), \
+            quaternion_wxyz(pose.rotation)
 
     def targets(self) -> dict[str, Any]:
         """The fused tracks for /latest and the results log: local NED metres, 1-σ radius, age, count.
