@@ -548,8 +548,13 @@ def estimate_cut_points(
     *,
     confidence: np.ndarray | None = None,
     max_disparity: float | None = None,
+    trunk_model: TrunkModel | None | Literal["fit"] = "fit",
 ) -> CutPointResult:
     """Cut points of every branch instance in `masks` from the `H×W` disparity (px).
+
+    `trunk_model`: "fit" fits the trunk's cylinder from its mask here; a `TrunkModel` fitted
+    elsewhere (the roi mode fits it on the coarse pass, in metres like any other) or None is used
+    as it is.
 
     Shapes must agree (the caller validates); `confidence` is the stereo confidence `H×W` in [0, 1].
     Each instance is read from its bounding box (`BranchMasks.crop`), so the cost follows the
@@ -562,7 +567,8 @@ def estimate_cut_points(
         raise ValueError(f"disparity is {disparity.shape} but the mask is {masks.shape} (H, W)")
     check_instance_count(masks, config.max_instances)
     trunk = masks.trunk_crop()
-    trunk_model = None if trunk is None else fit_trunk(trunk, disparity, geometry, config, max_disparity)
+    if trunk_model == "fit":
+        trunk_model = None if trunk is None else fit_trunk(trunk, disparity, geometry, config, max_disparity)
     result = CutPointResult()
     for mask_id in masks.branch_ids():
         outcome = estimate_branch(mask_id, masks.crop(mask_id), disparity, geometry, config,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -21,6 +21,7 @@ from branchrange.cutpoints import (
     TARGET_POLICIES,
     CutPointConfig,
     CutPointResult,
+    TrunkModel,
     estimate_cut_points,
     select_target,
 )
@@ -36,7 +37,7 @@ from branchrange.masks import (
     validate_masks,
 )
 from branchrange.config import RoiConfig
-from branchrange.roi import CoarseToFine, Region
+from branchrange.roi import CoarseToFine, CoarseTrunk, Region
 from branchrange.pair_check import PairCheck, check_rectification
 from branchrange.segmentation.choose import check_segmenter_name, make_segmenter
 from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
@@ -146,7 +147,9 @@ class StereoStage:
     `left`: rectified `uint8 H×W×3`; `disparity`: `float32 H×W` px (0 invalid); `confidence`: `H×W`
     in [0, 1]; `masks`: the frame's instances, or None when the segmenter is to find them;
     `timing_ms`: the stages so far (ms); `compute_ms`: this half's compute time (ms); `regions`: the
-    fine passes of `mode = "roi"` (None in whole-frame mode).
+    fine passes of `mode = "roi"` (None in whole-frame mode); `pair_check`: the rectification check
+    when asked for; `coarse_trunk`: the trunk as the roi mode's coarse pass saw it (its cylinder is
+    fitted from it in the geometry half).
     """
 
     left: np.ndarray
@@ -162,6 +165,7 @@ class StereoStage:
     compute_ms: float
     regions: tuple[Region, ...] | None = None
     pair_check: PairCheck | None = None
+    coarse_trunk: CoarseTrunk | None = None
 
 
 class Pipeline:
@@ -307,15 +311,17 @@ class Pipeline:
             fine = self.coarse_to_fine.compute(left, right, masks, geometry)
             timing.update(fine.timing_ms)
             disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
+            coarse_trunk = fine.trunk
             backend, max_disparity = f"{self.backend.name}-roi", self.config.max_disp
         else:
-            regions = None
+            regions, coarse_trunk = None, None
             stereo = self.backend.compute(left, right)
             disparity, confidence = stereo.disparity, stereo.confidence
             backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
         lap_ms(timing, "stereo", t)
         return StereoStage(left, disparity, confidence, masks, geometry, int(index), int(timestamp_ns),
-                           backend, max_disparity, timing, (time.perf_counter() - start) * 1000.0, regions, pair_check)
+                           backend, max_disparity, timing, (time.perf_counter() - start) * 1000.0, regions, pair_check,
+                           coarse_trunk=coarse_trunk)
 
     def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
                           mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
@@ -370,8 +376,12 @@ class Pipeline:
             reason = (f"the mask ({masks.source}) holds no branch instance" if masks.source != self.segmenter.name
                       else f"the {masks.source} segmenter found no branch")
         else:
+            trunk_model: TrunkModel | None | Literal["fit"] = "fit"  # whole-frame mode: from the mask
+            if stage.regions is not None:  # roi mode: the trunk's cylinder from the coarse pass
+                trunk_model = None if stage.coarse_trunk is None else stage.coarse_trunk.fit(self.config.cutpoints)
+                t = lap_ms(timing, "trunk", t)
             cut = estimate_cut_points(masks, disparity, geometry, self.config.cutpoints,
-                                      confidence=confidence, max_disparity=max_disparity)
+                                      confidence=confidence, max_disparity=max_disparity, trunk_model=trunk_model)
             if not cut.branches:
                 reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
                     f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5])

@@ -15,9 +15,9 @@ of disparities. So, per frame:
 5. **composition** — the boxes' disparities in one full-resolution map, zero elsewhere; a box writes
    its own branch's pixels and the background around it (boxes overlap where branches meet).
 The trunk is not matched again: it is thick, and its only use is the cylinder that fixes where each
-branch leaves it, so it keeps the coarse disparity (× s), on every s-th pixel of its full-resolution
-mask — a quarter of its pixels at s = 2, which also quarters the trunk fit's work. It was the largest
-region by far (a whole frame's height near the tree).
+branch leaves it, so that cylinder is fitted on the coarse pass (`CoarseTrunk`, in the geometry
+half) and the full-resolution map carries the trunk's coarse disparity (× s) on every s-th pixel of
+its mask, for viewers. It was the largest region by far (a whole frame's height near the tree).
 A segmenter's coarse labels are brought to full resolution (nearest); a branch's are kept where the
 fine disparity lies in its window, so silhouettes (and diameters) are full-resolution ones.
 Cut points then come from full-resolution disparity only (the base, where it meets the trunk,
@@ -34,8 +34,9 @@ import cv2
 import numpy as np
 
 from branchrange.config import RoiConfig
+from branchrange.cutpoints import CutPointConfig, TrunkModel, fit_trunk
 from branchrange.geometry import StereoGeometry
-from branchrange.masks import BranchMasks
+from branchrange.masks import BranchMasks, MaskCrop
 from branchrange.timing import lap_ms
 
 #: SGBM searches disparities in steps of this many pixels.
@@ -67,14 +68,32 @@ class Region:
 
 
 @dataclass(frozen=True, eq=False)
+class CoarseTrunk:
+    """The trunk as the coarse pass saw it: its mask (`crop`), the coarse disparity (`float32 h×w` px)
+    and camera. Its cylinder (`fit`, in metres like a full-resolution fit) fixes where each branch
+    leaves it; from the coarse pass it costs a quarter, and the trunk is thick enough not to need more.
+    The geometry half fits it, so the stereo half (the slower one) does not carry it."""
+
+    crop: MaskCrop
+    disparity: np.ndarray
+    geometry: StereoGeometry
+    max_disparity: int
+
+    def fit(self, config: CutPointConfig) -> TrunkModel | None:
+        return fit_trunk(self.crop, self.disparity, self.geometry, config, self.max_disparity)
+
+
+@dataclass(frozen=True, eq=False)
 class CoarseToFineResult:
     """Full-resolution `disparity` (`float32 H×W` px, 0 outside the regions), `confidence` (`H×W`),
-    the instances used (`masks`), the `regions` matched and the stage times in ms."""
+    the instances used (`masks`), the `regions` matched, the trunk as the coarse pass saw it (None
+    without a trunk) and the stage times in ms."""
 
     disparity: np.ndarray
     confidence: np.ndarray
     masks: BranchMasks | None
     regions: list[Region]
+    trunk: CoarseTrunk | None
     timing_ms: dict[str, float]
 
 
@@ -225,6 +244,9 @@ class CoarseToFine:
             coarse_labels = masks.labels[scale // 2::scale, scale // 2::scale][:small[1], :small[0]]
             labels_full = masks.labels
         t = lap_ms(timing, "segment", t)
+        trunk_crop = BranchMasks(coarse_labels, instances.trunk_id).trunk_crop() if instances.trunk_id is not None else None
+        trunk = None if trunk_crop is None else \
+            CoarseTrunk(trunk_crop, coarse.disparity, scaled_geometry(geometry, scale), coarse_max)
         regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
@@ -243,5 +265,5 @@ class CoarseToFine:
             instances = replace(instances, labels=refine_labels(labels_full, scale, disparity, regions,
                                                                 instances.trunk_id))
             lap_ms(timing, "refine", t)
-        return CoarseToFineResult(disparity, confidence, instances, regions, timing)
+        return CoarseToFineResult(disparity, confidence, instances, regions, trunk, timing)
 

@@ -111,3 +111,22 @@ def test_a_network_matches_only_the_nearest_regions_and_sgbm_the_rest():
     assert len(by_network) == 1 and {r["backend"] for r in regions} == {"emcstereo", "sgbm"}
     centre = [r["d_min"] + r["d_range"] / 2 for r in regions]
     assert by_network[0]["d_min"] + by_network[0]["d_range"] / 2 == max(centre)
+
+
+def test_the_trunk_cylinder_comes_from_the_coarse_pass_in_metres():
+    """The roi mode fits the trunk on the coarse pass; its axis agrees with the whole-frame fit within 1 cm."""
+    from branchrange.cutpoints import CutPointConfig, fit_trunk
+    from branchrange.masks import masks_from_array
+
+    scene = tree_scene()
+    pipeline = _pipeline("roi")
+    stage = pipeline.stereo_stage(scene.left, scene.right, scene.instance_mask)
+    assert stage.coarse_trunk is not None and stage.coarse_trunk.disparity.shape == (135, 240)
+    coarse = stage.coarse_trunk.fit(CutPointConfig())
+    cam = scene.camera
+    full = fit_trunk(masks_from_array(scene.instance_mask).trunk_crop(), scene.disparity,
+                     pipeline.geometry_for(cam.width, cam.height), CutPointConfig())
+    assert coarse is not None and full is not None
+    near = full.cylinder.axis.at(0.0)  # a point on the true-disparity axis: its distance from the coarse axis
+    foot = coarse.cylinder.axis.at(coarse.cylinder.axis.parameters(near[None])[0])
+    assert np.linalg.norm(near - foot) < 0.01
