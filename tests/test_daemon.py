@@ -1,7 +1,6 @@
 """The onboard daemon on replayed recordings: end to end to a loopback MAVLink peer, faults, shutdown."""
 from __future__ import annotations
 
-import json
 import logging
 import math
 import signal

@@ -11,7 +11,6 @@ from stereo_training_fixtures import planar_scene, write_virtualtree_layout
 from stereo.datasets import (
     DatasetError,
     Eth3dDataset,
-    KittiDataset,
     MiddleburyDataset,
     RectifiedPairsDataset,
     SceneFlowDataset,

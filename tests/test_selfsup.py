@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 from stereo_training_fixtures import TinyStereoNet, one_thread, planar_scene  # noqa: F401 (autouse fixture)
 
