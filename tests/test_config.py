@@ -109,4 +109,4 @@ def test_deploy_files_agree_on_paths_names_and_devices():
     pins = dict(line.split("==") for line in (DEPLOY / "constraints.txt").read_text().splitlines()
                 if "==" in line and not line.startswith("#"))
     assert f'TORCH_SPEC="torch=={pins["torch"].split("+")[0]}"' in docker
-    assert "pip install -c /tmp/constraints-jetson.txt ." in docker
+    assert "pip install -c /tmp/constraints-jetson.txt \".[ros]\"" in docker  # rosbag: and --foxglove on the drone too
