@@ -79,6 +79,7 @@ def test_deploy_examples_load_with_the_values_they_document():
     assert cpu.camera == onboard.camera and cpu.log == onboard.log
     serve = load_config(DEPLOY / "serve.toml")
     assert serve.api.host == "0.0.0.0" and serve.mavlink.enabled is False and serve.api.retry_after_s == 2
+    assert serve.stereo.mode == "full"  # accuracy over latency off the vehicle
 
 
 def test_deploy_files_agree_on_paths_names_and_devices():
