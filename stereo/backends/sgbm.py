@@ -67,9 +67,14 @@ class SGBMBackend:
         lr_tolerance: float = 2.0,
         pad_left: bool = True,
         lr_check: bool = True,
+        roi_lr_check: bool = False,
     ) -> None:
         """`pad_left` and `lr_check` switch off those steps (for speed, or to measure what they buy:
-        benchmarks/sgbm_stage.py); without the check, confidence is 1 wherever the disparity is valid."""
+        benchmarks/sgbm_stage.py); without the check, confidence is 1 wherever the disparity is valid.
+        `roi_lr_check`: run the check in `compute_roi` too. Off by default: a region's narrow window
+        (with window-edge rejection) already refuses most mismatches, and the half-resolution check
+        deletes branches thinner than ~2 px, the very thing a region is matched for (50 synthetic
+        640×360 scenes, roi mode with truth masks: cut points within 5 cm 70.2 % with it, 73.7 % without)."""
         if not isinstance(max_disp, int) or max_disp <= 0 or max_disp % SGBM_DISPARITY_STEP:
             raise BackendConfigError(f"sgbm max_disp must be a positive multiple of {SGBM_DISPARITY_STEP}, got {max_disp!r}")
         if block_size < 1 or block_size % 2 == 0:
@@ -78,7 +83,7 @@ class SGBMBackend:
             raise BackendConfigError(f"sgbm lr_tolerance must be positive, got {lr_tolerance}")
         self.max_disparity = max_disp
         self.lr_tolerance = float(lr_tolerance)
-        self.pad_left, self.lr_check = pad_left, lr_check
+        self.pad_left, self.lr_check, self.roi_lr_check = pad_left, lr_check, roi_lr_check
         self._settings = (block_size, uniqueness_ratio, speckle_window, speckle_range)
         self._matchers: dict[tuple[int, int], cv2.StereoSGBM] = {}
 
@@ -86,7 +91,7 @@ class SGBMBackend:
         """Disparity (float32 px in (0, max_disp), 0 invalid) and LR-agreement confidence of a rectified RGB uint8 pair."""
         validate_pair(left, right)
         height, width = left.shape[:2]
-        return self._window(left, right, (0, 0, width, height), 0, self.max_disparity, context=0)
+        return self._window(left, right, (0, 0, width, height), 0, self.max_disparity, context=0, check=self.lr_check)
 
     def compute_roi(
         self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int
@@ -99,10 +104,12 @@ class SGBMBackend:
         `max_disparity = d_min + d_range`.
         """
         roi, d_min, d_range = validate_window(left, right, roi, d_min, d_range)
-        return self._window(left, right, roi, d_min, d_range, context=ROI_CONTEXT_PX)
+        return self._window(left, right, roi, d_min, d_range, context=ROI_CONTEXT_PX,
+                            check=self.lr_check and self.roi_lr_check)
 
     def _window(
-        self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int, context: int
+        self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int, context: int,
+        check: bool,
     ) -> StereoResult:
         """Match the box `roi` over `[d_min, d_min + d_range)` on a crop of the frames.
 
@@ -128,7 +135,7 @@ class SGBMBackend:
         raw = self._matcher(d_min, num_disparities).compute(grey_left[:, :main_width], grey_right[:, :main_width])
         disparity = window_disparity(raw, d_min, d_range)
         matched = time.perf_counter()
-        if self.lr_check:
+        if check:
             disp_right = self._right_disparity_half_resolution(grey_left, grey_right, d_min, d_range)
             checked = time.perf_counter()
             disparity, confidence = left_right_check(disparity, disp_right[:, :main_width], self.lr_tolerance)
