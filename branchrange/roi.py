@@ -198,27 +198,22 @@ class CoarseToFine:
         self.fine = fine_backend
         self.segmenter = segmenter
         self.max_disp = int(max_disp)
-        self._sgbm_backends: dict[tuple[int, bool], Any] = {}  # SGBM backends by (max_disp, checked regions)
+        self._sgbm_backends: dict[int, Any] = {}  # SGBM backends by max_disp (coarse pass, regions beyond network_regions)
 
-    def _sgbm(self, max_disp: int, checked_regions: bool = False) -> Any:
-        """An SGBM backend for `max_disp`, built once: the coarse pass, or regions (with the left-right
-        check in them when `checked_regions`)."""
-        key = (max_disp, checked_regions)
-        if key not in self._sgbm_backends:
-            from stereo.backends.sgbm import SGBMBackend
+    def _sgbm(self, max_disp: int) -> Any:
+        """An SGBM backend for `max_disp` (coarse pass, or regions beyond `network_regions`), built once."""
+        if max_disp not in self._sgbm_backends:
+            from stereo.backends import make_backend
 
-            self._sgbm_backends[key] = SGBMBackend(max_disp, roi_lr_check=checked_regions)
-        return self._sgbm_backends[key]
+            self._sgbm_backends[max_disp] = make_backend("sgbm", max_disp=max_disp)
+        return self._sgbm_backends[max_disp]
 
-    def _matchers(self, regions: list[Region], segmented: bool) -> list[Any]:
-        """The backend for each region. SGBM regions skip the left-right check when the instances
-        are given (the window refuses mismatches; the half-resolution check deletes thin branches) and
-        keep it when the segmenter's labels are refined by which fine pixels are valid (`segmented`:
-        unchecked mismatches would join the silhouettes). A network backend matches the nearest
-        `network_regions` (largest window centre; 0: all), SGBM the rest."""
-        sgbm = self._sgbm(self.max_disp, checked_regions=segmented)
+    def _matchers(self, regions: list[Region]) -> list[Any]:
+        """The backend for each region: the fine backend for all when it is SGBM, else for the nearest
+        `network_regions` (largest window centre; 0: all) and SGBM for the rest."""
         if self.fine.name == "sgbm":
-            return [sgbm] * len(regions)
+            return [self.fine] * len(regions)
+        sgbm = self._sgbm(self.max_disp)
         limit = self.config.network_regions
         nearest = sorted(range(len(regions)), key=lambda i: -(regions[i].d_min + regions[i].d_range / 2))
         chosen = set(nearest if limit == 0 else nearest[:limit])
@@ -258,7 +253,7 @@ class CoarseToFine:
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
         trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
-        matchers = self._matchers(regions, segmented=masks is None)
+        matchers = self._matchers(regions)
         regions = [replace(region, backend=backend.name) for region, backend in zip(regions, matchers)]
         for region, backend in zip(regions, matchers):
             result = backend.compute_roi(left, right, region.box, region.d_min, region.d_range)

@@ -23,8 +23,8 @@ def scene() -> SyntheticScene:
 
 @pytest.fixture(scope="module")
 def sgbm() -> SGBMBackend:
-    """With the left-right check in regions too, so a region is post-processed exactly as the whole frame."""
-    return SGBMBackend(max_disp=SGBM_RANGE, roi_lr_check=True)
+    """The default: the left-right check in regions too, so a region is post-processed exactly as the whole frame."""
+    return SGBMBackend(max_disp=SGBM_RANGE)
 
 
 def window_around_truth(scene: SyntheticScene, roi: tuple[int, int, int, int]) -> tuple[int, int]:
@@ -179,13 +179,13 @@ def test_onnx_backend_refuses_windowed_disparity(scene: SyntheticScene) -> None:
         backend.compute_roi(scene.left, scene.right, EMC_ROI, 0, 16)
 
 
-def test_regions_skip_the_left_right_check_by_default_and_only_gain_pixels(scene: SyntheticScene) -> None:
-    """The default region (no check: its window refuses mismatches) keeps every pixel the checked one keeps,
-    with the same disparity, and more (thin structure the half-resolution check deletes)."""
+def test_regions_without_the_left_right_check_only_gain_pixels(scene: SyntheticScene) -> None:
+    """A region without the check (`roi_lr_check=False`) keeps every pixel the checked one keeps, with the
+    same disparity, and more (thin structure the half-resolution check deletes); its confidence is 1 or 0."""
     roi = (60, 40, 180, 120)
     d_min, d_range = window_around_truth(scene, roi)
-    checked = SGBMBackend(max_disp=SGBM_RANGE, roi_lr_check=True).compute_roi(scene.left, scene.right, roi, d_min, d_range)
-    default = SGBMBackend(max_disp=SGBM_RANGE).compute_roi(scene.left, scene.right, roi, d_min, d_range)
+    checked = SGBMBackend(max_disp=SGBM_RANGE).compute_roi(scene.left, scene.right, roi, d_min, d_range)
+    default = SGBMBackend(max_disp=SGBM_RANGE, roi_lr_check=False).compute_roi(scene.left, scene.right, roi, d_min, d_range)
     kept = checked.disparity > 0
     assert np.all(default.disparity[kept] == checked.disparity[kept])
     assert (default.disparity > 0).sum() > kept.sum()
