@@ -72,6 +72,21 @@ def shared_checks(cfg: Any) -> dict[str, tuple[bool, str]]:
     }
 
 
+def working_foreground(disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None,
+                       cfg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(foreground `H×W` bool, depth `H×W` m, inf where invalid) of a built-in segmenter's settings `cfg`:
+    valid, at least `min_confidence`, within [`min_range_m`, `max_range_m`], not on a depth edge
+    (`depth_edge_ratio`) — what both built-in segmenters start from."""
+    valid = valid_disparity(disparity)
+    if confidence is not None:
+        valid &= np.nan_to_num(confidence, nan=0.0) >= cfg.min_confidence
+    depth = disparity_to_depth(disparity, geometry)
+    depth[~valid] = np.inf
+    foreground = valid & (depth >= cfg.min_range_m) & (depth <= cfg.max_range_m)
+    foreground &= ~depth_edges(np.where(foreground, depth, np.inf), cfg.depth_edge_ratio)
+    return foreground, depth
+
+
 @dataclass(frozen=True)
 class GeometricSegmenterConfig:
     """Settings of `GeometricSegmenter` (metres unless named otherwise).
@@ -151,19 +166,6 @@ class GeometricSegmenter:
     def __init__(self, config: GeometricSegmenterConfig = GeometricSegmenterConfig()) -> None:
         self.config = config
 
-    def _foreground(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
-                    confidence: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """(foreground mask, depth in m) — valid, confident, in range, not a depth edge."""
-        cfg = self.config
-        valid = valid_disparity(disparity)
-        if confidence is not None:
-            valid &= np.nan_to_num(confidence, nan=0.0) >= cfg.min_confidence
-        depth = disparity_to_depth(disparity, geometry)
-        depth[~valid] = np.inf
-        foreground = valid & (depth >= cfg.min_range_m) & (depth <= cfg.max_range_m)
-        foreground &= ~depth_edges(np.where(foreground, depth, np.inf), cfg.depth_edge_ratio)
-        return foreground, depth
-
     def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
                 confidence: np.ndarray | None = None) -> BranchMasks:
         """Branch instances (1..K) and the trunk (`trunk_id`) for one rectified frame."""
@@ -171,7 +173,7 @@ class GeometricSegmenter:
         disparity = np.asarray(disparity, dtype=np.float32)
         if left.shape[:2] != disparity.shape:
             raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
-        foreground, depth = self._foreground(left, disparity, geometry, confidence)
+        foreground, depth = working_foreground(disparity, geometry, confidence, self.config)
         leaves = leaf_pixels(left, cfg.excess_green)
         labels = np.zeros(disparity.shape, dtype=np.int32)
         count, regions = cv2.connectedComponents(foreground.astype(np.uint8), connectivity=8)

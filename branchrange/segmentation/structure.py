@@ -34,9 +34,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from branchrange.geometry import GeometryError, StereoGeometry, disparity_to_depth, fit_linear_robust, valid_disparity
+from branchrange.geometry import GeometryError, StereoGeometry, fit_linear_robust
 from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.segmenter import SegmenterConfigError, depth_edges, leaf_pixels, pixel_elongation, shared_checks
+from branchrange.segmenter import (
+    SegmenterConfigError,
+    leaf_pixels,
+    pixel_elongation,
+    shared_checks,
+    working_foreground,
+)
 from branchrange.settings_check import check_settings
 
 
@@ -161,19 +167,6 @@ class StructureSegmenter:
     def __init__(self, config: StructureSegmenterConfig = StructureSegmenterConfig()) -> None:
         self.config = config
 
-    def _foreground(self, disparity: np.ndarray, geometry: StereoGeometry,
-                    confidence: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """(foreground `H×W` bool, depth `H×W` m): valid, confident, in the band, not a depth edge."""
-        cfg = self.config
-        valid = valid_disparity(disparity)
-        if confidence is not None:
-            valid &= np.nan_to_num(confidence, nan=0.0) >= cfg.min_confidence
-        depth = disparity_to_depth(disparity, geometry)
-        depth[~valid] = np.inf
-        foreground = valid & (depth >= cfg.min_range_m) & (depth <= cfg.max_range_m)
-        foreground &= ~depth_edges(np.where(foreground, depth, np.inf), cfg.depth_edge_ratio)
-        return foreground, depth
-
     def _dominant_plane(self, foreground: np.ndarray, depth: np.ndarray, geometry: StereoGeometry,
                         rng: np.random.Generator) -> np.ndarray:
         """Boolean `H×W`: the inliers of a dominant, solid plane (ground, litter, a hedge); none when there is none."""
@@ -266,7 +259,7 @@ class StructureSegmenter:
         if left.shape[:2] != disparity.shape:
             raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
         rng = np.random.default_rng(0)
-        foreground, depth = self._foreground(disparity, geometry, confidence)
+        foreground, depth = working_foreground(disparity, geometry, confidence, self.config)
         plane = self._dominant_plane(foreground, depth, geometry, rng)
         # only the plane's solid part leaves the foreground, so a stem just in front of the ground
         # keeps its pixels (rejecting pieces that lie mostly on the plane cost more stems than noise)
