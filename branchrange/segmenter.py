@@ -31,7 +31,7 @@ Where it fails (by construction):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -57,23 +57,8 @@ class Segmenter(Protocol):
         ...
 
 
-def shared_checks(cfg: Any) -> dict[str, tuple[bool, str]]:
-    """The range checks of the settings every built-in segmenter has (working range, branch shape,
-    depth edges, confidence floor, trunk id), for `check_settings`."""
-    return {
-        "min_range_m": (cfg.min_range_m >= 0, "≥ 0 m"),
-        "max_range_m": (cfg.max_range_m > cfg.min_range_m, f"> min_range_m ({cfg.min_range_m} m)"),
-        "max_branch_diameter_m": (cfg.max_branch_diameter_m > 0, "> 0 m"),
-        "min_branch_length_m": (cfg.min_branch_length_m > 0, "> 0 m"),
-        "min_elongation": (cfg.min_elongation >= 1, "≥ 1 (length / width)"),
-        "depth_edge_ratio": (cfg.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
-        "min_confidence": (0 <= cfg.min_confidence <= 1, "a confidence in [0, 1]"),
-        "trunk_id": (0 < cfg.trunk_id <= 65535, "an id in 1..65535"),
-    }
-
-
 def working_foreground(disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None,
-                       cfg: Any) -> tuple[np.ndarray, np.ndarray]:
+                       cfg: BuiltinSegmenterConfig) -> tuple[np.ndarray, np.ndarray]:
     """(foreground `H×W` bool, depth `H×W` m, inf where invalid) of a built-in segmenter's settings `cfg`:
     valid, at least `min_confidence`, within [`min_range_m`, `max_range_m`], not on a depth edge
     (`depth_edge_ratio`) — what both built-in segmenters start from."""
@@ -88,8 +73,9 @@ def working_foreground(disparity: np.ndarray, geometry: StereoGeometry, confiden
 
 
 @dataclass(frozen=True)
-class GeometricSegmenterConfig:
-    """Settings of `GeometricSegmenter` (metres unless named otherwise).
+class BuiltinSegmenterConfig:
+    """The settings both built-in segmenters share (metres unless named otherwise); each segmenter's
+    config extends it, and may change its defaults.
 
     - `min_range_m`, `max_range_m`: the working range; nearer or farther pixels are background.
     - `max_branch_diameter_m`: thicker structure is trunk or foliage.
@@ -112,7 +98,25 @@ class GeometricSegmenterConfig:
     trunk_id: int = DEFAULT_TRUNK_ID
 
     def __post_init__(self) -> None:
-        check_settings("segmenter", self, shared_checks(self), SegmenterConfigError)
+        check_settings("segmenter", self, self.checks(), SegmenterConfigError)
+
+    def checks(self) -> dict[str, tuple[bool, str]]:
+        """Range checks for `check_settings`: field → (passed, expectation); subclasses add theirs."""
+        return {
+            "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
+            "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
+            "max_branch_diameter_m": (self.max_branch_diameter_m > 0, "> 0 m"),
+            "min_branch_length_m": (self.min_branch_length_m > 0, "> 0 m"),
+            "min_elongation": (self.min_elongation >= 1, "≥ 1 (length / width)"),
+            "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
+            "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
+            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
+        }
+
+
+@dataclass(frozen=True)
+class GeometricSegmenterConfig(BuiltinSegmenterConfig):
+    """Settings of `GeometricSegmenter`: the shared ones (`BuiltinSegmenterConfig`) at their defaults."""
 
 
 def depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:

@@ -35,29 +35,21 @@ import cv2
 import numpy as np
 
 from branchrange.geometry import GeometryError, StereoGeometry, fit_linear_robust
-from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks
+from branchrange.masks import BranchMasks
 from branchrange.segmenter import (
-    SegmenterConfigError,
+    BuiltinSegmenterConfig,
     leaf_pixels,
     pixel_elongation,
-    shared_checks,
     working_foreground,
 )
-from branchrange.settings_check import check_settings
 
 
 @dataclass(frozen=True)
-class StructureSegmenterConfig:
+class StructureSegmenterConfig(BuiltinSegmenterConfig):
     """Settings of `StructureSegmenter` (metres unless named otherwise); see the module docstring."""
 
-    min_range_m: float = 0.3
     max_range_m: float = 4.0
-    max_branch_diameter_m: float = 0.08
     min_branch_length_m: float = 0.2
-    min_elongation: float = 4.0
-    depth_edge_ratio: float = 0.06
-    min_confidence: float = 0.05
-    excess_green: float = 60.0
     plane_min_share: float = 0.1
     plane_tolerance_m: float = 0.03
     plane_min_extent_m: float = 0.8
@@ -66,11 +58,11 @@ class StructureSegmenterConfig:
     min_piece_px: int = 20
     max_trunk_gap_m: float = 0.1
     ridge_strength: float = 8.0
-    trunk_id: int = DEFAULT_TRUNK_ID
 
-    def __post_init__(self) -> None:
-        checks = {
-            **shared_checks(self),
+    def checks(self) -> dict[str, tuple[bool, str]]:
+        """The shared checks and those of the structure steps."""
+        return {
+            **super().checks(),
             "plane_min_share": (0 < self.plane_min_share <= 1, "a share in (0, 1]"),
             "plane_tolerance_m": (self.plane_tolerance_m > 0, "> 0 m"),
             "plane_min_extent_m": (self.plane_min_extent_m > 0, "> 0 m"),
@@ -80,7 +72,6 @@ class StructureSegmenterConfig:
             "max_trunk_gap_m": (self.max_trunk_gap_m >= 0, "≥ 0 m (0 = keep pieces away from the trunk)"),
             "ridge_strength": (self.ridge_strength >= 0, "≥ 0 grey levels (0 = no image ridge test)"),
         }
-        check_settings("segmenter", self, checks, SegmenterConfigError)
 
 
 def _plane_inliers(points: np.ndarray, tolerance: np.ndarray, rng: np.random.Generator,
