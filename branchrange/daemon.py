@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from branchrange.config import Config
-from branchrange.frame_results import result_line, run_header_line
+from branchrange.frame_results import result_line, run_header_line, stereo_stage
 from branchrange.mavlink import MavlinkRelay
 from branchrange.newest_slot import NewestSlot
 from branchrange.pair_check import check_rectification
@@ -167,7 +167,7 @@ class Daemon:
             self._check_pair(frame)
         started = time.monotonic()
         try:
-            stage = self.pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
+            stage = stereo_stage(self.pipeline, frame)
         except Exception as error:  # noqa: BLE001 — one bad frame must not stop the vehicle's sensor
             self._reject(frame.index, error)
             return

@@ -1,7 +1,8 @@
 """One source frame → its `branchrange/v1` result and JSONL line, shared by the daemon and the offline replay.
 
-Both build their pipeline with `pipeline_for` and run every frame through `process_frame`, so
-replaying a recording after a flight gives the results the daemon computed in the air (the
+Both build their pipeline with `pipeline_for` and hand every frame to it through `stereo_stage`
+(the daemon then runs `geometry_stage` on its own thread; the replay runs both in `process_frame`),
+so replaying a recording after a flight gives the results the daemon computed in the air (the
 timing aside), and both write the same log lines.
 
 A results log starts each run with a header line (`run_header_line`): `{"schema":
@@ -40,13 +41,22 @@ def pipeline_for(cfg: Config, calibration: Any) -> Any:
     return pipeline
 
 
-def process_frame(pipeline: Any, frame: StereoFrame) -> dict[str, Any]:
-    """The frame's result: its pair, its mask when the recording carries one, its index and capture time.
+def stereo_stage(pipeline: Any, frame: StereoFrame) -> Any:
+    """The stereo half of the frame (`Pipeline.stereo_stage`): its pair, its mask when the recording
+    carries one, its index and capture time. The daemon's stereo thread calls it, then
+    `pipeline.geometry_stage` on its geometry thread.
 
     Raises `ValueError` (the pipeline's input or geometry errors) when the pipeline rejects the frame.
     """
-    return pipeline.process(frame.left, frame.right, mask=frame.mask, index=frame.index,
-                            timestamp_ns=frame.timestamp_ns)
+    return pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
+
+
+def process_frame(pipeline: Any, frame: StereoFrame) -> dict[str, Any]:
+    """The frame's result: both halves in a row, exactly as the daemon runs them on two threads.
+
+    Raises `ValueError` (the pipeline's input or geometry errors) when the pipeline rejects the frame.
+    """
+    return pipeline.geometry_stage(stereo_stage(pipeline, frame))
 
 
 def result_line(result: dict[str, Any]) -> str:
