@@ -222,7 +222,7 @@ def test_each_daemon_run_starts_its_log_with_a_run_header(recording, tmp_path):
     cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
     pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
     for _ in range(2):
-        daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="fast"), pipeline=pipeline,
+        daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"), pipeline=pipeline,
                         results_path=results)
         daemon.run(max_frames=2)
         daemon.close()
@@ -439,3 +439,19 @@ def test_a_misaligned_camera_is_reported_once_in_the_log(tmp_path, caplog):
     daemon.run()
     checks = [r for r in caplog.records if r.getMessage().startswith("pair check:")]
     assert len(checks) == 1 and checks[0].levelno == logging.WARNING and "rectif" in checks[0].getMessage()
+
+
+def test_a_failing_observer_is_logged_and_never_stops_the_daemon(recording, caplog):
+    caplog.set_level(logging.WARNING, logger="branchrange.daemon")
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
+    seen = []
+
+    def broken(result, artifacts):
+        raise RuntimeError("viewer gone")
+
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"),
+                    pipeline=pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))),
+                    observers=[broken, lambda result, artifacts: seen.append(result["frame"]["index"])])
+    assert daemon.run(max_frames=3) == 3
+    assert len(seen) == 3 and daemon.rejected == 0
+    assert sum("viewer gone" in r.getMessage() for r in caplog.records) == 3
