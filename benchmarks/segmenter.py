@@ -93,6 +93,22 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]
     return rows
 
 
+def share_correct_above(pairs: list[tuple[float, bool]], threshold: float) -> tuple[int, float]:
+    """(cut points with confidence ≥ `threshold`, share of them within 5 cm) of (confidence, within 5 cm) pairs."""
+    kept = [ok for c, ok in pairs if c >= threshold]
+    return len(kept), float(np.mean(kept)) if kept else float("nan")
+
+
+def lowest_reliable_threshold(pairs: list[tuple[float, bool]], share: float = 0.9) -> float | None:
+    """The lowest confidence (steps of 0.05) above which at least `share` of the cut points are correct
+    — the table's answer for a default `min_confidence`; None when no threshold reaches it."""
+    for threshold in np.arange(0.05, 1.0, 0.05):
+        count, correct = share_correct_above(pairs, float(threshold))
+        if count and correct >= share:
+            return round(float(threshold), 2)
+    return None
+
+
 def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dict:
     """Scores per 'stereo/segmenter' over `scenes` held-out scenes."""
     built = {name: make_segmenter(name) for name in segmenters}
@@ -123,7 +139,9 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
     for key, s in scores.items():
         out[key] = {"recall": s.recall, "median_error_cm": 100 * s.error_quantile(0.5), "false_per_frame": s.false_per_frame,
                     "ms_per_frame": float(np.median(times[key])), "frames": s.frames,
-                    "reliability": reliability(confidences[key])}
+                    "reliability": reliability(confidences[key]),
+                    "at_0.8": share_correct_above(confidences[key], 0.8),
+                    "min_confidence_for_90pct": lowest_reliable_threshold(confidences[key])}
     return out
 
 
@@ -196,7 +214,9 @@ def print_tables(synthetic: dict, real: dict) -> None:
     for key, r in synthetic.items():
         cells = "  ".join(f"{label}: {n:>3} {share:>5.0%}" if n else f"{label}: {n:>3}   -  "
                           for label, n, share in r["reliability"])
-        print(f"{key:<22} {cells}")
+        count, share = r["at_0.8"]
+        print(f"{key:<22} {cells}   ≥0.8: {count} cut points, {share:.0%} correct; "
+              f"≥90 % correct from confidence {r['min_confidence_for_90pct']}")
     if real:
         print(f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} {'precision':>9} {'ms':>6}")
         for key, r in real.items():

@@ -20,6 +20,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.demo",
     "branchrange.commands.evaluate_cuts",
     "branchrange.commands.synth_flight",
+    "branchrange.commands.train_segmenter",
 )
 
 

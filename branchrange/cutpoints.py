@@ -492,24 +492,27 @@ def estimate_branch(
     trunk: np.ndarray | MaskCrop | None = None,
     trunk_model: TrunkModel | None = None,
     max_disparity: float | None = None,
+    segment_score: float = 1.0,
 ) -> BranchEstimate | DroppedBranch:
     """Cut point of one branch from its boolean `H×W` mask (or `MaskCrop`) and the `H×W` disparity (px).
 
     `confidence` (`H×W` in [0, 1]) is the stereo backend's per-pixel confidence (1 when None),
     `trunk` the boolean trunk mask when known and `trunk_model` its fitted cylinder (the base is
-    then where the axis pierces the bark). Returns a `DroppedBranch` with the reason when the
-    evidence does not support a cut point.
+    then where the axis pierces the bark). `segment_score` (0..1) is the segmenter's belief that
+    the instance is a branch; it scales the cut point's confidence. Returns a `DroppedBranch` with
+    the reason when the evidence does not support a cut point.
     """
     try:
         return _estimate_branch(mask_id, as_crop(mask), disparity, geometry, config, confidence,
-                                None if trunk is None else as_crop(trunk), trunk_model, max_disparity)
+                                None if trunk is None else as_crop(trunk), trunk_model, max_disparity, segment_score)
     except GeometryError as exc:  # e.g. the axis runs behind the camera: the depth is inconsistent
         return DroppedBranch(mask_id, f"no consistent branch axis: {exc}")
 
 
 def _estimate_branch(mask_id: int, mask: MaskCrop, disparity: np.ndarray, geometry: StereoGeometry,
                      config: CutPointConfig, confidence: np.ndarray | None, trunk: MaskCrop | None,
-                     trunk_model: TrunkModel | None, max_disparity: float | None) -> BranchEstimate | DroppedBranch:
+                     trunk_model: TrunkModel | None, max_disparity: float | None,
+                     segment_score: float = 1.0) -> BranchEstimate | DroppedBranch:
     """`estimate_branch` without the guard against degenerate geometry."""
     cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
     if isinstance(cylinder, str):
@@ -529,7 +532,7 @@ def _estimate_branch(mask_id: int, mask: MaskCrop, disparity: np.ndarray, geomet
     rows, cols = cylinder.pixels
     inliers = cylinder.inliers
     stereo_conf = float(np.mean(confidence[rows, cols][inliers])) if confidence is not None else 1.0
-    score = _confidence(cylinder, stereo_conf if np.isfinite(stereo_conf) else 0.0, config)
+    score = segment_score * _confidence(cylinder, stereo_conf if np.isfinite(stereo_conf) else 0.0, config)
     if score < config.min_confidence:
         return DroppedBranch(mask_id, f"confidence {score:.2f} below {config.min_confidence}")
     return BranchEstimate(
@@ -573,7 +576,7 @@ def estimate_cut_points(
     for mask_id in masks.branch_ids():
         outcome = estimate_branch(mask_id, masks.crop(mask_id), disparity, geometry, config,
                                   confidence=confidence, trunk=trunk, trunk_model=trunk_model,
-                                  max_disparity=max_disparity)
+                                  max_disparity=max_disparity, segment_score=masks.scores.get(mask_id, 1.0))
         if isinstance(outcome, DroppedBranch):
             result.dropped.append(outcome)
         else:

@@ -6,7 +6,7 @@ its 8-connected components, each one branch; a binary mask knows no trunk.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
@@ -171,14 +171,17 @@ class BranchMasks:
 
     `labels` is an `H×W` `int32` image (0 background, `trunk_id` the trunk when not None, values
     in `ignored_ids` neither branch nor trunk, any other value one branch); `source` says where the
-    instances came from (e.g. a file name, "geometric"). The ids, sizes and bounding boxes are
-    indexed once, on first use (`index`): treat `labels` as read-only after that.
+    instances came from (e.g. a file name, "geometric"); `scores` maps a branch id to the
+    segmenter's belief (0..1) that it is a branch (absent = 1: a mask file is taken as true). The
+    ids, sizes and bounding boxes are indexed once, on first use (`index`): treat `labels` as
+    read-only after that.
     """
 
     labels: np.ndarray
     trunk_id: int | None = None
     source: str = "array"
     ignored_ids: tuple[int, ...] = ()
+    scores: dict[int, float] = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -240,7 +240,7 @@ class CoarseToFine:
                                            coarse.confidence)
             coarse_labels = found.labels
             labels_full = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
-            instances = BranchMasks(labels_full, found.trunk_id, found.source, found.ignored_ids)
+            instances = replace(found, labels=labels_full)
         else:
             instances = masks
             coarse_labels = masks.labels[scale // 2::scale, scale // 2::scale][:small[1], :small[0]]

@@ -1,27 +1,31 @@
-"""`make_segmenter`: the segmenter a name asks for — 'structure', 'geometric' or 'onnx:FILE' (your own model)."""
+"""`make_segmenter`: the segmenter a name asks for — 'learned', 'structure', 'geometric' or 'onnx:FILE' (your own model)."""
 from __future__ import annotations
 
 from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
+from branchrange.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
 from branchrange.segmentation.structure import StructureSegmenter
 
 #: The names `make_segmenter` accepts, for help texts and error messages.
-SEGMENTER_NAMES = "'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model)"
+SEGMENTER_NAMES = "'learned', 'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model)"
 
 
 def check_segmenter_name(name: str) -> str:
     """`name` itself when it has an accepted form (the file is checked when the model is loaded)."""
-    if name in ("geometric", "structure") or (name.startswith("onnx:") and len(name) > len("onnx:")):
+    if name in ("learned", "geometric", "structure") or (name.startswith("onnx:") and len(name) > len("onnx:")):
         return name
     raise OnnxSegmenterError(f"segmenter {name!r}: expected {SEGMENTER_NAMES}")
 
 
 def make_segmenter(name: str, geometric: GeometricSegmenterConfig = GeometricSegmenterConfig(),
-                   onnx: OnnxSegmenterConfig = OnnxSegmenterConfig()) -> Segmenter:
+                   onnx: OnnxSegmenterConfig = OnnxSegmenterConfig(),
+                   learned: LearnedSegmenterConfig = LearnedSegmenterConfig()) -> Segmenter:
     """The segmenter `name` names, built with its settings; `OnnxSegmenterError` for a bad name or model."""
     check_segmenter_name(name)
     if name == "geometric":
         return GeometricSegmenter(geometric)
+    if name == "learned":
+        return LearnedSegmenter(learned)
     if name == "structure":
         return StructureSegmenter()
     return OnnxSegmenter(name[len("onnx:"):], onnx)

@@ -97,24 +97,30 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(x, -50.0, 50.0)))
 
 
+def onnx_session(path: Path, threads: int) -> "onnxruntime.InferenceSession":  # noqa: F821 - optional import
+    """An onnxruntime CPU session of the model file `path` with `threads` intra-op threads;
+    `OnnxSegmenterError` naming the file when it is missing or unreadable, or onnxruntime is absent."""
+    if not path.is_file():
+        raise OnnxSegmenterError(f"onnx:{path}: no such model file (expected an .onnx file)")
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise OnnxSegmenterError("onnx segmenters need onnxruntime: pip install 'branchrange[onnx]'") from None
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable model
+        raise OnnxSegmenterError(f"onnx:{path}: not a model onnxruntime can load ({exc})") from None
+
+
 class OnnxSegmenter:
     """`Segmenter` over an ONNX model (YOLOv8-seg or per-pixel logits), onnxruntime on CPU."""
 
     def __init__(self, path: str | Path, config: OnnxSegmenterConfig = OnnxSegmenterConfig()) -> None:
         path = Path(path)
-        if not path.is_file():
-            raise OnnxSegmenterError(f"onnx:{path}: no such model file (expected an .onnx file)")
-        try:
-            import onnxruntime as ort
-        except ImportError:
-            raise OnnxSegmenterError("onnx segmenters need onnxruntime: pip install 'branchrange[onnx]'") from None
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = config.threads
-        options.inter_op_num_threads = 1
-        try:
-            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-        except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable model
-            raise OnnxSegmenterError(f"onnx:{path}: not a model onnxruntime can load ({exc})") from None
+        self.session = onnx_session(path, config.threads)
         self.config = config
         self.name = f"onnx:{path.name}"
         inputs = self.session.get_inputs()

@@ -14,15 +14,16 @@ _PANEL_W, _PANEL_H, _MARGIN = 480, 320, 50
 _COLOURS = {"train_loss": (31, 119, 180), "val_epe": (214, 39, 40)}
 
 
-def _panel(title: str, xs: Sequence[float], ys: Sequence[float], colour: tuple[int, int, int]) -> np.ndarray:
-    """One RGB plot panel: axes, min/max labels, the polyline and its points."""
+def plot_panel(title: str, xs: Sequence[float], ys: Sequence[float], colour: tuple[int, int, int],
+               x_label: str = "epoch") -> np.ndarray:
+    """One RGB plot panel: axes, min/max labels, the polyline and its points (`None`/non-finite `ys` skipped)."""
     canvas = np.full((_PANEL_H, _PANEL_W, 3), 255, dtype=np.uint8)
     points = [(x, y) for x, y in zip(xs, ys) if y is not None and math.isfinite(y)]
     x0, y0, x1, y1 = _MARGIN, _PANEL_H - _MARGIN, _PANEL_W - 20, 30
     cv2.line(canvas, (x0, y0), (x1, y0), (0, 0, 0), 1)
     cv2.line(canvas, (x0, y0), (x0, y1), (0, 0, 0), 1)
     cv2.putText(canvas, title, (x0, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(canvas, "epoch", (x1 - 50, y0 + 35), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(canvas, x_label, (x1 - 50, y0 + 35), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     if not points:
         cv2.putText(canvas, "no data", (x0 + 20, (y0 + y1) // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
         return canvas
@@ -49,8 +50,8 @@ def training_curve_image(history: Sequence[dict]) -> np.ndarray:
     """RGB `uint8` image with the training loss panel beside the validation EPE panel."""
     epochs = [row["epoch"] for row in history]
     panels = [
-        _panel("train loss", epochs, [row.get("train_loss") for row in history], _COLOURS["train_loss"]),
-        _panel("val EPE (px)", epochs, [row.get("val_epe") for row in history], _COLOURS["val_epe"]),
+        plot_panel("train loss", epochs, [row.get("train_loss") for row in history], _COLOURS["train_loss"]),
+        plot_panel("val EPE (px)", epochs, [row.get("val_epe") for row in history], _COLOURS["val_epe"]),
     ]
     return np.concatenate(panels, axis=1)
 

@@ -1,0 +1,91 @@
+"""`BranchNet`: a small U-Net that labels each pixel background, trunk or branch from image + disparity.
+
+Input: 5 channels at the frame's size — RGB, disparity divided by its 95th percentile (so the
+network sees the scene's relative depth whatever the camera's focal length and baseline), and
+the disparity's validity. The encoder starts at half resolution (strided stem) and goes to 1/16,
+where a dilated convolution gives the context that tells a trunk from a branch; a light head at
+full resolution sees the input again, so branches 1–2 px wide keep their pixels.
+Output: logits `(B, 3, H, W)` for `CLASSES`; H and W must be multiples of `STRIDE` (pad first).
+
+Why this size: about 0.2 M parameters (under 1 MB of float32 weights) and one forward pass at
+640×360 within the segmenter's time budget on two CPU cores, trainable on CPU in an hour.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+CLASSES = ("background", "trunk", "branch")
+IN_CHANNELS = 5
+#: total downsampling of the encoder: inputs must be multiples of this
+STRIDE = 16
+_RGB_MEAN, _RGB_STD = 0.45, 0.25
+
+
+def disparity_scale(disparity: np.ndarray) -> float:
+    """95th percentile (px) of a frame's valid disparity, 1 when none is valid: what `network_input` divides by."""
+    valid = np.isfinite(disparity) & (disparity > 0)
+    return float(np.percentile(disparity[valid], 95)) if valid.any() else 1.0
+
+
+def network_input(left: np.ndarray, disparity: np.ndarray, scale: float | None = None) -> np.ndarray:
+    """`float32 (5, H, W)` input of a rectified left image `uint8 H×W×3` and its disparity `H×W` px.
+
+    Disparity is divided by `scale` (default: `disparity_scale` of this disparity; training crops
+    pass their whole frame's) and clipped to [0, 2]: a scale-free relative inverse depth. Invalid
+    disparity (0, negative, non-finite) is 0 with validity 0.
+    """
+    disparity = np.asarray(disparity, dtype=np.float32)
+    valid = np.isfinite(disparity) & (disparity > 0)
+    scale = disparity_scale(disparity) if scale is None else scale
+    relative = np.where(valid, np.clip(disparity / max(scale, 1e-3), 0.0, 2.0), 0.0)
+    rgb = (left.astype(np.float32) / 255.0 - _RGB_MEAN) / _RGB_STD
+    return np.concatenate([rgb.transpose(2, 0, 1), relative[None], valid[None].astype(np.float32)]).astype(np.float32)
+
+
+def _conv(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
+    """3×3 convolution, batch norm, ReLU."""
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, padding=dilation, dilation=dilation, bias=False),
+                         nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+
+
+class BranchNet(nn.Module):
+    """Per-pixel background / trunk / branch logits (see the module docstring); `width` scales the channels."""
+
+    def __init__(self, width: int = 16) -> None:
+        super().__init__()
+        w = width
+        self.width = width
+        self.stem = nn.Sequential(_conv(IN_CHANNELS, w, 2), _conv(w, w))                 # 1/2
+        self.down2 = nn.Sequential(_conv(w, 2 * w, 2), _conv(2 * w, 2 * w))                # 1/4
+        self.down3 = nn.Sequential(_conv(2 * w, 3 * w, 2), _conv(3 * w, 3 * w))            # 1/8
+        self.down4 = nn.Sequential(_conv(3 * w, 4 * w, 2), _conv(4 * w, 4 * w, dilation=2))  # 1/16
+        self.up3 = _conv(7 * w, 3 * w)
+        self.up2 = _conv(5 * w, 2 * w)
+        self.up1 = _conv(3 * w, w)
+        self.head = nn.Sequential(_conv(w + IN_CHANNELS, w // 2), nn.Conv2d(w // 2, len(CLASSES), 1))
+
+    @staticmethod
+    def _up_cat(coarse: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        """`coarse` upsampled ×2 to `skip`'s size, concatenated with it on the channel axis."""
+        return torch.cat([F.interpolate(coarse, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits `(B, 3, H, W)` of an input `(B, 5, H, W)` with H, W multiples of `STRIDE`."""
+        f1 = self.stem(x)
+        f2 = self.down2(f1)
+        f3 = self.down3(f2)
+        f4 = self.down4(f3)
+        d3 = self.up3(self._up_cat(f4, f3))
+        d2 = self.up2(self._up_cat(d3, f2))
+        d1 = self.up1(self._up_cat(d2, f1))
+        return self.head(self._up_cat(d1, x))
+
+
+def padded_to_stride(array: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+    """`(C, H', W')` edge-padded at the bottom/right to multiples of `STRIDE`, and the original (H, W)."""
+    _, h, w = array.shape
+    pad_h, pad_w = (-h) % STRIDE, (-w) % STRIDE
+    return np.pad(array, ((0, 0), (0, pad_h), (0, pad_w)), mode="edge"), (h, w)

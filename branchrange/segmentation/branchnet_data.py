@@ -1,0 +1,59 @@
+"""Training data for `BranchNet`: synthetic scenes rendered here, their SGBM disparity and per-pixel classes.
+
+A sample is one `stereo.synth.render_scene` frame (its seed decides everything) at the rendering size:
+- `left` `uint8 H×W×3` RGB, `disparity` `float16 H×W` px from the project's SGBM stage (what the
+  network sees at run time, with its holes and fattened edges — not the exact disparity);
+- `classes` `uint8 H×W`: `BACKGROUND`, `TRUNK`, `BRANCH`, or `IGNORE` for twigs (woody like a branch
+  but never a pruning target: neither answer is penalised);
+- `instances` `uint16 H×W`: the renderer's instance mask (branches 1..K, twigs/leaves/trunk ids).
+
+Samples are cached as compressed `.npz` files so training, its resumption and the benchmark's
+held-out scenes never render the same seed twice. Training seeds start at 1; the segmenter
+benchmark's held-out seeds start at 50,000 (`TRAIN_SEED_LIMIT` keeps them apart).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+BACKGROUND, TRUNK, BRANCH, IGNORE = 0, 1, 2, 255
+#: renderer ids (`stereo.synth`): trunk, twigs, leaves; 1..K are branches, 0 everything else
+TRUNK_ID, TWIG_ID, LEAF_ID = 65535, 65534, 65533
+#: training seeds stay below this; held-out benchmark scenes start here
+TRAIN_SEED_LIMIT = 50_000
+
+
+def classes_from_instances(instances: np.ndarray) -> np.ndarray:
+    """`uint8 H×W` class map of a renderer instance mask `uint16 H×W` (see the module docstring)."""
+    classes = np.full(instances.shape, BACKGROUND, dtype=np.uint8)
+    classes[(instances > 0) & (instances < LEAF_ID)] = BRANCH
+    classes[instances == TRUNK_ID] = TRUNK
+    classes[instances == TWIG_ID] = IGNORE
+    return classes
+
+
+def render_sample(seed: int, size: tuple[int, int] = (640, 360), max_disp: int = 128) -> dict[str, np.ndarray]:
+    """One training sample (see the module docstring) of scene `seed` at `size` (width, height) px."""
+    from stereo.backends import make_backend
+    from stereo.synth import SynthCamera, render_scene
+
+    scene = render_scene(seed, SynthCamera.zed_mini(*size), leaf_shape="auto", threads=1)
+    stereo = make_backend("sgbm", max_disp=max_disp).compute(scene.left, scene.right)
+    return {"left": scene.left, "disparity": stereo.disparity.astype(np.float16),
+            "classes": classes_from_instances(scene.instance_mask), "instances": scene.instance_mask}
+
+
+def cached_sample(folder: Path, seed: int, size: tuple[int, int] = (640, 360)) -> dict[str, np.ndarray]:
+    """The sample of `seed` from `folder`, rendered and stored there first when absent."""
+    path = folder / f"sample_{seed:06d}.npz"
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    sample = render_sample(seed, size)
+    folder.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")  # two renderers of one seed never share a file
+    np.savez_compressed(partial, **sample)
+    partial.replace(path)  # atomic: a killed render never leaves a half-written sample
+    return sample

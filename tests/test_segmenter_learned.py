@@ -1,0 +1,144 @@
+"""The learned segmenter: the shipped BranchNet on held-out synthetic scenes, its checksum, training and export."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from branchrange.commands.train_segmenter import training_config
+from branchrange.cutpoints import estimate_cut_points
+from branchrange.geometry import StereoGeometry
+from branchrange.masks import BranchMasks
+from branchrange.pipeline import Pipeline, PipelineConfig
+from branchrange.segmentation.branchnet import BranchNet, network_input
+from branchrange.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK, classes_from_instances
+from branchrange.segmentation.choose import make_segmenter
+from branchrange.segmentation.learned import SHIPPED_MODEL, LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.segmentation.onnx_model import OnnxSegmenterError
+
+pytest.importorskip("onnxruntime", reason="the learned segmenter runs on onnxruntime")
+#: torch's TorchScript exporter builds the ONNX file in the training test; its deprecation notice is not ours
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+HELD_OUT_SEED = 50_007  # benchmark seeds start at 50,000; training never uses them
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from stereo.backends import make_backend
+    from stereo.synth import SynthCamera, render_scene
+
+    rendered = render_scene(HELD_OUT_SEED, SynthCamera.zed_mini(640, 360))
+    stereo = make_backend("sgbm", max_disp=128).compute(rendered.left, rendered.right)
+    return rendered, stereo
+
+
+def test_classes_from_instances_maps_renderer_ids():
+    instances = np.array([[0, 1, 7, 65533, 65534, 65535]], dtype=np.uint16)
+    assert classes_from_instances(instances).tolist() == [[0, BRANCH, BRANCH, 0, IGNORE, TRUNK]]
+
+
+def test_network_input_is_scale_free_in_disparity():
+    left = np.full((32, 48, 3), 128, np.uint8)
+    disparity = np.linspace(1, 40, 32 * 48, dtype=np.float32).reshape(32, 48)
+    disparity[0, :5] = 0
+    a, b = network_input(left, disparity), network_input(left, 3.0 * disparity)
+    assert a.shape == (5, 32, 48)
+    np.testing.assert_allclose(a, b, atol=1e-5)  # another focal length or baseline: the same input
+    assert a[4, 0, :5].tolist() == [0] * 5 and a[3, 0, :5].tolist() == [0] * 5
+
+
+def test_shipped_model_finds_trunk_and_branches_of_a_held_out_scene(scene):
+    rendered, stereo = scene
+    geometry = StereoGeometry(rendered.camera.focal_px, rendered.camera.baseline_m, rendered.camera.cx,
+                              rendered.camera.cy)
+    masks = LearnedSegmenter().segment(rendered.left, stereo.disparity, geometry, stereo.confidence)
+    truth = classes_from_instances(rendered.instance_mask)
+    trunk = masks.trunk()
+    assert trunk is not None
+    true_trunk = truth == TRUNK
+    assert (trunk & true_trunk).sum() / (trunk | true_trunk).sum() > 0.5
+    found_branch = np.isin(masks.labels, masks.branch_ids())
+    # most of what it calls branch is branch (or a twig), and it covers a fair share of the branches
+    assert (found_branch & np.isin(truth, (BRANCH, IGNORE))).sum() / found_branch.sum() > 0.5
+    assert (found_branch & (truth == BRANCH)).sum() / (truth == BRANCH).sum() > 0.3
+    assert set(masks.scores) == set(masks.branch_ids()) and all(0.5 <= s <= 1 for s in masks.scores.values())
+
+
+def test_pipeline_with_learned_segmenter_gives_a_cut_point_near_the_truth(scene):
+    rendered, stereo = scene
+    cam = rendered.camera
+    pipeline = Pipeline(PipelineConfig(tracking=False), focal_px=cam.focal_px, baseline_m=cam.baseline_m,
+                        principal_point=(cam.cx, cam.cy), segmenter=make_segmenter("learned"))
+    result = pipeline.process_disparity(rendered.left, stereo.disparity, stereo.confidence, backend="sgbm")
+    truth = [np.asarray(b.cut_point_m) for b in rendered.branches if b.cut_visible]
+    errors = [min(np.linalg.norm(np.asarray(b["cut_point_m"]) - t) for t in truth) for b in result["branches"]]
+    assert errors and min(errors) < 0.05
+
+
+def test_segment_score_scales_the_cut_point_confidence(scene):
+    rendered, stereo = scene
+    cam = rendered.camera
+    geometry = StereoGeometry(cam.focal_px, cam.baseline_m, cam.cx, cam.cy)
+    labels = rendered.instance_mask.astype(np.int32)
+    plain = estimate_cut_points(BranchMasks(labels, 65535), rendered.disparity, geometry)
+    ids = [b.mask_id for b in plain.branches]
+    scored = estimate_cut_points(BranchMasks(labels, 65535, scores={i: 0.5 for i in ids}), rendered.disparity,
+                                 geometry)
+    assert ids
+    for a, b in zip(plain.branches, scored.branches):
+        assert b.confidence == pytest.approx(0.5 * a.confidence)
+        np.testing.assert_array_equal(a.cut_point_m, b.cut_point_m)
+
+
+def test_a_damaged_model_file_is_refused_naming_both_hashes(tmp_path):
+    copy = tmp_path / "branchnet.onnx"
+    shutil.copy(SHIPPED_MODEL, copy)
+    shutil.copy(SHIPPED_MODEL.with_suffix(".json"), tmp_path / "branchnet.json")
+    LearnedSegmenter(LearnedSegmenterConfig(model=str(copy)))  # intact: loads
+    data = bytearray(copy.read_bytes())
+    data[-10] ^= 0xFF
+    copy.write_bytes(bytes(data))
+    recorded = json.loads((tmp_path / "branchnet.json").read_text())["onnx_sha256"]
+    with pytest.raises(OnnxSegmenterError, match=recorded):
+        LearnedSegmenter(LearnedSegmenterConfig(model=str(copy)))
+    with pytest.raises(OnnxSegmenterError, match="no model file"):
+        LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "absent.onnx")))
+
+
+def test_shipped_metadata_records_a_reproducible_training_run():
+    meta = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())
+    config = training_config(SHIPPED_MODEL.with_suffix(".json"), [])
+    assert config.seed == meta["config"]["seed"] and config.train_seeds[1] <= config.val_seeds[0]
+    assert SHIPPED_MODEL.stat().st_size < 5 * 2**20
+    assert meta["final"]["iou_branch"] > 0.3 and meta["final"]["iou_trunk"] > 0.6
+    assert sum(p.numel() for p in BranchNet(meta["width"]).parameters()) < 1_000_000
+
+
+def test_training_config_errors_name_the_key(tmp_path):
+    with pytest.raises(ValueError, match="KEY one of"):
+        training_config(None, ["stepz=3"])
+    with pytest.raises(ValueError, match="overlap"):
+        training_config(None, ["train_seeds=[1, 100]", "val_seeds=[50, 60]"])
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(ValueError, match="'config'"):
+        training_config(tmp_path / "bad.json", [])
+
+
+def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
+    from branchrange.segmentation.branchnet_training import train_branchnet
+
+    config = training_config(None, ["train_seeds=[1, 3]", "val_seeds=[3, 4]", "steps=2", "batch=2", "crop=64",
+                                    "val_every=1", "width=4", "threads=1"])
+    lines: list[str] = []
+    meta = train_branchnet(config, tmp_path / "run", tmp_path / "data", log=lines.append)
+    assert len(lines) == 2 and "iou_branch" in lines[0]
+    assert sorted(p.name for p in (tmp_path / "data").iterdir()) == [f"sample_{s:06d}.npz" for s in (1, 2, 3)]
+    for name in ("branchnet.onnx", "branchnet.json", "metrics.csv", "training_curve.png", "branchnet.pt"):
+        assert (tmp_path / "run" / name).is_file()
+    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "run" / "branchnet.onnx")))
+    left = np.zeros((50, 70, 3), np.uint8)
+    masks = segmenter.segment(left, np.full((50, 70), 5.0, np.float32), StereoGeometry.centred(100.0, 0.1, 70, 50))
+    assert masks.labels.shape == (50, 70)
+    assert meta["config"]["steps"] == 2
