@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
 from branchrange.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
-from branchrange.segmentation.structure import StructureSegmenter
+from branchrange.segmentation.structure import StructureSegmenter, StructureSegmenterConfig
 
 #: The names `make_segmenter` accepts, for help texts and error messages.
 SEGMENTER_NAMES = "'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model)"
@@ -17,11 +17,12 @@ def check_segmenter_name(name: str) -> str:
 
 
 def make_segmenter(name: str, geometric: GeometricSegmenterConfig = GeometricSegmenterConfig(),
-                   onnx: OnnxSegmenterConfig = OnnxSegmenterConfig()) -> Segmenter:
+                   onnx: OnnxSegmenterConfig = OnnxSegmenterConfig(),
+                   structure: StructureSegmenterConfig = StructureSegmenterConfig()) -> Segmenter:
     """The segmenter `name` names, built with its settings; `OnnxSegmenterError` for a bad name or model."""
     check_segmenter_name(name)
     if name == "geometric":
         return GeometricSegmenter(geometric)
     if name == "structure":
-        return StructureSegmenter()
+        return StructureSegmenter(structure)
     return OnnxSegmenter(name[len("onnx:"):], onnx)
