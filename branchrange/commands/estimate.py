@@ -114,16 +114,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _pipeline(args: argparse.Namespace, size: tuple[int, int]):
-    """The pipeline the arguments describe (raises ValueError subclasses on bad camera input)."""
+def _settings(args: argparse.Namespace) -> Any:
+    """The `PipelineConfig` of the options: one pair, untracked, its rectification checked
+    (`ConfigError` naming the key of a bad option)."""
     from branchrange.config import MaskConfig
     from branchrange.cutpoints import CutPointConfig
-    from branchrange.pipeline import Pipeline, PipelineConfig
+    from branchrange.pipeline import PipelineConfig
+
+    return PipelineConfig(stereo=whole_frame_stereo(args), cutpoints=CutPointConfig(tracking=False),
+                          masks=MaskConfig(trunk_id=args.trunk_id), segmenter=segmenter_settings(args),
+                          check_pair=True)
+
+
+def _pipeline(args: argparse.Namespace, config: Any, size: tuple[int, int]) -> Any:
+    """The pipeline the arguments describe (raises ValueError subclasses on bad camera input)."""
+    from branchrange.pipeline import Pipeline
     from branchrange.settings_check import check_calibration, check_image_size, check_physical
 
-    config = PipelineConfig(stereo=whole_frame_stereo(args), cutpoints=CutPointConfig(tracking=False),
-                            masks=MaskConfig(trunk_id=args.trunk_id), segmenter=segmenter_settings(args),
-                            check_pair=True)
     check_image_size(*size, name=f"{args.left}: image size")
     if args.calib is not None:
         from camera import load_calibration
@@ -147,8 +154,9 @@ def run(args: argparse.Namespace) -> int:
     from stereo.io import read_rgb
 
     try:
+        config = _settings(args)  # bad options fail before any image is read
         left, right = read_rgb(args.left), read_rgb(args.right)
-        pipeline = _pipeline(args, (left.shape[1], left.shape[0]))
+        pipeline = _pipeline(args, config, (left.shape[1], left.shape[0]))
         result = pipeline.process(left, right, mask=args.mask)
         if result["pair_check"]["status"] == "warning":
             print(f"branchrange estimate: warning: {result['pair_check']['message']}", file=sys.stderr)
