@@ -88,9 +88,9 @@ class PipelineEstimator:
 
     def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None,
                   segmenter: str | None = None) -> Pipeline:
+        stereo = self.backend(backend, max_disp)  # first: its message says why a backend cannot serve
         return Pipeline(self._settings(backend, max_disp), calibration=camera.calibration, focal_px=camera.focal_px,
-                        baseline_m=camera.baseline_m, backend=self.backend(backend, max_disp),
-                        segmenter=self.segmenter(segmenter))
+                        baseline_m=camera.baseline_m, backend=stereo, segmenter=self.segmenter(segmenter))
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
                  backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
