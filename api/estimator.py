@@ -13,6 +13,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from branchrange.pipeline import Pipeline, PipelineConfig
+from stereo.backends import WEIGHTED_BACKENDS, make_backend
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,8 @@ class PipelineEstimator:
     pair's rectification is checked (`pair_check` in the result, 422 when refused)."""
 
     def __init__(self, config: PipelineConfig | None = None):
-        self.config = replace(config or PipelineConfig(), tracking=False, check_pair=True)
+        config = config or PipelineConfig()
+        self.config = replace(config, cutpoints=replace(config.cutpoints, tracking=False), check_pair=True)
         self._backends: dict[tuple[str, int], Any] = {}
         self._segmenters: dict[str, Any] = {}  # by name: an onnx model is loaded once, not per request
         self._lock = threading.Lock()  # backends are shared; one inference at a time uses them
@@ -54,42 +56,41 @@ class PipelineEstimator:
     @property
     def backend_name(self) -> str:
         """The default backend's name, for /health."""
-        return self.config.backend
+        return self.config.stereo.backend
 
     def _settings(self, backend: str | None, max_disp: int | None) -> PipelineConfig:
         """The configuration with a request's backend and max_disp in place of the defaults."""
-        return replace(self.config, backend=backend or self.config.backend, max_disp=max_disp or self.config.max_disp)
+        stereo = self.config.stereo
+        return replace(self.config, stereo=replace(stereo, backend=backend or stereo.backend,
+                                                   max_disp=max_disp or stereo.max_disp))
 
     def backend(self, backend: str | None = None, max_disp: int | None = None) -> Any:
         """The stereo backend for these options (default: the configured one), built on first use and
         kept. ValueError when it cannot be built; `branchrange serve` builds the default one at start,
         so a bad [stereo] section fails before the service listens."""
-        cfg = self._settings(backend, max_disp)
-        if cfg.backend == "emcstereo" and not cfg.weights:
-            raise ValueError("backend 'emcstereo' has no weights on this server (stereo.weights); "
+        name = backend or self.config.stereo.backend
+        if name in WEIGHTED_BACKENDS and not self.config.stereo.weights:
+            raise ValueError(f"backend {name!r} has no weights on this server (stereo.weights); "
                              "an untrained network would give meaningless cut points")
+        cfg = self._settings(backend, max_disp).stereo
         key = (cfg.backend, cfg.max_disp)
         if key not in self._backends:
-            from stereo.backends import make_backend
-
-            self._backends[key] = make_backend(cfg.backend, weights=cfg.weights, max_disp=cfg.max_disp,
+            self._backends[key] = make_backend(cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp,
                                                device=cfg.device, precision=cfg.precision)
         return self._backends[key]
 
     def segmenter(self, name: str | None = None) -> Any:
         """The segmenter `name` ('structure', 'geometric'; default: the configured one), built on first use and kept."""
-        from branchrange.segmentation.choose import make_segmenter
-
-        name = name or self.config.segmenter_name
+        name = name or self.config.segmenter.model
         if name not in self._segmenters:
-            self._segmenters[name] = make_segmenter(name, self.config.segmenter, self.config.onnx_segmenter)
+            self._segmenters[name] = self.config.segmenter.build(name)
         return self._segmenters[name]
 
     def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None,
                   segmenter: str | None = None) -> Pipeline:
+        stereo = self.backend(backend, max_disp)  # first: its message says why a backend cannot serve
         return Pipeline(self._settings(backend, max_disp), calibration=camera.calibration, focal_px=camera.focal_px,
-                        baseline_m=camera.baseline_m, backend=self.backend(backend, max_disp),
-                        segmenter=self.segmenter(segmenter))
+                        baseline_m=camera.baseline_m, backend=stereo, segmenter=self.segmenter(segmenter))
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
                  backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
 from branchrange.evaluate_cuts import RECALL_RADIUS_M, read_frame, scene_indices  # noqa: E402
-from branchrange.pipeline import Pipeline, PipelineConfig  # noqa: E402
+from branchrange.pipeline import Pipeline, untracked_whole_frame  # noqa: E402
 
 THRESHOLDS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 
@@ -38,7 +38,7 @@ def cut_point_errors(root: Path, limit: int | None, max_disp: int) -> dict[str, 
     samples: dict[str, list[tuple[float, float]]] = {"gt": [], "segmenter": []}
     for index in scene_indices(root)[:limit]:
         frame = read_frame(root, index)
-        pipeline = Pipeline(PipelineConfig(tracking=False, max_disp=max_disp), focal_px=frame.focal_px,
+        pipeline = Pipeline(untracked_whole_frame(max_disp), focal_px=frame.focal_px,
                             baseline_m=frame.baseline_m, principal_point=frame.principal_point)
         stereo = backend.compute(frame.left, frame.right)
         truth = [np.asarray(b["cut_point_m"], dtype=np.float64) for b in frame.branches]

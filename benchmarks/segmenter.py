@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from branchrange.evaluate_cuts import RECALL_RADIUS_M, CutScores
-from branchrange.pipeline import Pipeline, PipelineConfig
+from branchrange.pipeline import Pipeline, untracked_whole_frame
 from branchrange.segmentation.choose import make_segmenter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -123,7 +123,7 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
             confidence = scene["sgbm_conf"] if stereo == "sgbm" else None
             for name in [*segmenters, "truth"]:
                 key = f"{stereo}/{name}"
-                pipeline = Pipeline(PipelineConfig(tracking=False), focal_px=f, baseline_m=b, principal_point=(cx, cy),
+                pipeline = Pipeline(untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy),
                                     segmenter=built.get(name))  # process_disparity: no backend is built
                 mask = scene["mask"] if name == "truth" else None
                 result = pipeline.process_disparity(scene["left"], disparity, confidence, mask=mask, backend=stereo)
@@ -187,7 +187,7 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
         annotations = json.loads((folder / "annotations.json").read_text())
         left, right = read_rgb(folder / "left.png"), read_rgb(folder / "right.png")
         for name in segmenters:
-            config = PipelineConfig(tracking=False, max_disp=REAL_MAX_DISP.get(folder.name, 192))
+            config = untracked_whole_frame(REAL_MAX_DISP.get(folder.name, 192))
             pipeline = Pipeline(config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=make_segmenter(name))
             result = pipeline.process(left, right)
             hits = [polygon_hits(annotations, b["pixel"]) for b in result["branches"]]

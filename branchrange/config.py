@@ -1,12 +1,29 @@
-"""BranchRange's one configuration file: TOML sections validated into frozen dataclasses.
+"""BranchRange's one configuration file: each TOML section is the settings dataclass its code uses.
 
-Sections: `[camera]`, `[stereo]`, `[roi]`, `[cutpoints]`, `[mavlink]`, `[tracking]`, `[api]`, `[log]`. Every option has a
-default, so an empty file is a valid configuration; an unknown key, a value of the wrong type or
-out of range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
-Examples live in `deploy/onboard.toml` and `deploy/serve.toml`.
+| section | dataclass | used by |
+|---|---|---|
+| `[camera]` | `CameraConfig` | the daemon's frame source, its mount and watchdog |
+| `[stereo]` | `StereoConfig` | `Pipeline.backend` (`stereo.backends.make_backend`), roi or full mode |
+| `[roi]` | `RoiConfig` | `branchrange.roi.CoarseToFine` |
+| `[cutpoints]` | `branchrange.cutpoints.CutPointConfig` | cut-point estimation, target choice, tracking on/off |
+| `[branch_tracking]` | `branchrange.tracking.TrackerConfig` | the per-frame branch ids (`BranchTracker`) |
+| `[masks]` | `MaskConfig` | how mask files and arrays are read |
+| `[segmenter]` | `SegmenterConfig` (+ `[segmenter.structure]`, `[segmenter.geometric]`) | `SegmenterConfig.build` |
+| `[mavlink]` | `MavlinkConfig` | `branchrange.mavlink.MavlinkRelay` |
+| `[tracking]` | `TrackingConfig` | world-frame target tracks (`branchrange.mavlink.world_tracks`) |
+| `[api]` | `ApiConfig` | the HTTP service |
+| `[log]` | `LogConfig` | the results log and status reports |
 
-To add an option: add a typed field with a default to its section's dataclass, and a range check
-in `__post_init__` if it has one. The loader reads the field list, so nothing else changes.
+The pipeline's sections reach it together as `pipeline_config(cfg)`, which hands over the section
+objects themselves. Every option has a default, so an empty file is a valid configuration. Every
+option can be set in the file and on the command line (`--set section.key=value`, a TOML value;
+`--set segmenter.structure.max_range_m=3`); an unknown key, a value of the wrong type or out of
+range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
+Examples live in `deploy/*.toml`.
+
+To add an option: add a typed field with a default to its section's dataclass, and its range to
+that class's `checks()` (`branchrange.settings_check.Settings`). The loader reads the field list,
+so nothing else changes; a field whose type is itself a settings dataclass is a sub-table.
 """
 from __future__ import annotations
 
@@ -14,28 +31,44 @@ import dataclasses
 import math
 import tomllib
 import typing
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from branchrange.settings_check import check_physical
+from branchrange.cutpoints import CutPointConfig
+from branchrange.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID
+from branchrange.segmentation.choose import SEGMENTER_NAMES, check_segmenter_name, make_segmenter
+from branchrange.segmentation.learned import LearnedSegmenterConfig
+from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
+from branchrange.segmentation.structure import StructureSegmenterConfig
+from branchrange.segmenter import GeometricSegmenterConfig, Segmenter
+from branchrange.settings_check import Checks, Settings, SettingsError, in_physical_range
+from branchrange.tracking import TrackerConfig
+from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, PRECISIONS, WEIGHTED_BACKENDS, is_valid_max_disp
 
 
-class ConfigError(ValueError):
+class ConfigError(SettingsError):
     """A configuration file or value that cannot be used; the message names the key at fault."""
+
+
+#: `stereo.mode`: 'full' matches the whole frame at full resolution; 'roi' coarse-to-fine (`branchrange.roi`).
+STEREO_MODES: tuple[str, ...] = ("full", "roi")
+#: `masks.kind`: how a mask file or array is read (`branchrange.masks.masks_from_array`).
+MASK_KINDS: tuple[str, ...] = ("auto", "instance", "binary")
+
+
+def _one_of(choices: Iterable[str]) -> str:
+    """'a', 'b' or 'c' — the accepted values of a setting, for messages."""
+    quoted = [repr(c) for c in choices]
+    return ", ".join(quoted[:-1]) + f" or {quoted[-1]}" if len(quoted) > 1 else quoted[0]
 
 
 Vector3 = tuple[float, float, float]
 
 
-def _require(condition: bool, key: str, value: Any, expected: str) -> None:
-    """Raise `ConfigError` naming `key` when `condition` is false."""
-    if not condition:
-        raise ConfigError(f"{key} = {value!r}: expected {expected}")
-
-
 @dataclass(frozen=True)
-class CameraConfig:
+class CameraConfig(Settings):
     """Where frames come from and how the camera sits on the vehicle.
 
     `source` is a `camera.sources.open_source` spec; a ZED's mode is part of it
@@ -47,26 +80,39 @@ class CameraConfig:
     `stall_timeout_s`: no frame for this long means the camera is lost (watchdog).
     """
 
+    section = "camera"
+    error = ConfigError
+
     source: str = "zed:0"
     calibration: str = ""
     mount_rpy_deg: Vector3 = (0.0, 0.0, 0.0)
     mount_xyz_m: Vector3 = (0.0, 0.0, 0.0)
     stall_timeout_s: float = 2.0
 
-    def __post_init__(self) -> None:
-        _require(bool(self.source.strip()), "camera.source", self.source, "a source spec such as 'zed:0', 'oak' or 'replay:PATH'")
-        _require(self.stall_timeout_s > 0, "camera.stall_timeout_s", self.stall_timeout_s, "seconds > 0")
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "source": (bool(self.source.strip()), "a source spec such as 'zed:0', 'oak' or 'replay:PATH'"),
+            "stall_timeout_s": (self.stall_timeout_s > 0, "seconds > 0"),
+        }
 
 
 @dataclass(frozen=True)
-class StereoConfig:
-    """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments).
+class StereoConfig(Settings):
+    """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments), and how.
 
-    `emcstereo` needs `weights`: a network without them gives meaningless disparities, which the
-    daemon would send to the flight controller as cut points. `mode`: 'roi' matches the frame at low
-    resolution and each branch at full resolution in its box and disparity window (`[roi]`,
-    `branchrange.roi`) — the real-time onboard default; 'full' matches the whole frame.
+    `backend`: one of `stereo.backends.BACKEND_NAMES`. `emcstereo` and `onnx` need `weights` (a
+    checkpoint; the exported .onnx file): a network without them gives meaningless disparities,
+    which the daemon would send to the flight controller as cut points. `max_disp`: the disparity
+    search range in px at full resolution (`stereo.backends.check_max_disp`'s rule). `precision`:
+    one of `stereo.backends.PRECISIONS` (fp16/bf16 need a CUDA `device` and emcstereo). `mode`:
+    'roi' matches the frame at low resolution and each branch at full resolution in its box and
+    disparity window (`[roi]`, `branchrange.roi`) — the real-time onboard default; 'full' matches
+    the whole frame.
     """
+
+    section = "stereo"
+    error = ConfigError
 
     backend: str = "sgbm"
     weights: str = ""
@@ -75,19 +121,26 @@ class StereoConfig:
     precision: str = "fp32"
     mode: str = "roi"
 
-    def __post_init__(self) -> None:
-        _require(self.mode in ("roi", "full"), "stereo.mode", self.mode,
-                 "'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)")
-        _require(self.backend in ("sgbm", "emcstereo"), "stereo.backend", self.backend, "'sgbm' or 'emcstereo'")
-        _require(self.backend != "emcstereo" or bool(self.weights.strip()), "stereo.weights", self.weights,
-                 "a checkpoint path when stereo.backend = 'emcstereo'")
-        _require(self.max_disp > 0 and self.max_disp % 16 == 0, "stereo.max_disp", self.max_disp,
-                 "a positive multiple of 16 (pixels; SGBM's step, and EMCStereo's cost volume at 1/4 resolution is halved twice)")
-        _require(self.precision in ("fp32", "fp16"), "stereo.precision", self.precision, "'fp32' or 'fp16'")
+    def checks(self) -> Checks:
+        """The backend, its weights, search range and precision, and the mode."""
+        return {
+            "mode": (self.mode in STEREO_MODES,
+                     "'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)"),
+            "backend": (self.backend in BACKEND_NAMES, _one_of(BACKEND_NAMES)),
+            "weights": (self.backend not in WEIGHTED_BACKENDS or bool(self.weights.strip()),
+                        f"a checkpoint path when stereo.backend = {self.backend!r}"),
+            "max_disp": (is_valid_max_disp(self.max_disp), MAX_DISP_EXPECTED),
+            "precision": (self.precision in PRECISIONS, _one_of(PRECISIONS)),
+        }
+
+    @property
+    def weights_path(self) -> str | None:
+        """`weights` as `make_backend` takes it (None when empty)."""
+        return self.weights or None
 
 
 @dataclass(frozen=True)
-class RoiConfig:
+class RoiConfig(Settings):
     """The coarse-to-fine settings of `stereo.mode = "roi"` (`branchrange.roi`; px at full resolution).
 
     - `coarse_width`: width of the coarse pass in px (frames narrower than 1.5× this are matched
@@ -102,53 +155,28 @@ class RoiConfig:
       costs about 0.4 s at 200×200 px on 2 CPU cores); 0: every region by the network.
     """
 
+    section = "roi"
+    error = ConfigError
+
     coarse_width: int = 640
     box_margin_px: int = 16
     window_margin_px: int = 8
     max_regions: int = 12
     network_regions: int = 1
 
-    def __post_init__(self) -> None:
-        _require(self.coarse_width >= 64, "roi.coarse_width", self.coarse_width, "at least 64 px")
-        _require(0 <= self.box_margin_px <= 256, "roi.box_margin_px", self.box_margin_px, "0..256 px")
-        _require(0 <= self.window_margin_px <= 64, "roi.window_margin_px", self.window_margin_px, "0..64 px")
-        _require(1 <= self.max_regions <= 256, "roi.max_regions", self.max_regions, "1..256")
-        _require(0 <= self.network_regions <= 256, "roi.network_regions", self.network_regions, "0..256 (0: all)")
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "coarse_width": (self.coarse_width >= 64, "at least 64 px"),
+            "box_margin_px": (0 <= self.box_margin_px <= 256, "0..256 px"),
+            "window_margin_px": (0 <= self.window_margin_px <= 64, "0..64 px"),
+            "max_regions": (1 <= self.max_regions <= 256, "1..256"),
+            "network_regions": (0 <= self.network_regions <= 256, "0..256 (0: all)"),
+        }
 
 
 @dataclass(frozen=True)
-class CutpointsConfig:
-    """Where on a branch the cut goes and which branch is the target (`branchrange.pipeline`).
-
-    `target_policy`: 'nearest_confident' (distance / confidence), 'nearest', 'most_confident' or
-    'thickest' (`branchrange.cutpoints.select_target`); branches below
-    `target_min_confidence` are never the target, below `min_confidence` not reported at all.
-    `tracking` keeps branch ids stable across frames (the daemon and replay want it).
-    `max_instances`: a mask with more branch instances is refused (`MaskError`, HTTP 422) before
-    any geometry runs — a frame of branches holds tens, and each instance costs time.
-    """
-
-    cut_offset_m: float = 0.05
-    min_confidence: float = 0.0
-    target_policy: str = "nearest_confident"
-    target_min_confidence: float = 0.3
-    tracking: bool = True
-    max_instances: int = 256
-
-    def __post_init__(self) -> None:
-        check_physical("cut_offset_m", self.cut_offset_m, "cutpoints.cut_offset_m", ConfigError)
-        _require(0.0 <= self.min_confidence <= 1.0, "cutpoints.min_confidence", self.min_confidence, "a number in [0, 1]")
-        from branchrange.cutpoints import TARGET_POLICIES
-
-        _require(self.target_policy in TARGET_POLICIES, "cutpoints.target_policy",
-                 self.target_policy, "one of " + ", ".join(repr(p) for p in TARGET_POLICIES))
-        _require(0.0 <= self.target_min_confidence <= 1.0, "cutpoints.target_min_confidence",
-                 self.target_min_confidence, "a number in [0, 1]")
-        _require(self.max_instances >= 1, "cutpoints.max_instances", self.max_instances, "an integer >= 1")
-
-
-@dataclass(frozen=True)
-class MavlinkConfig:
+class MavlinkConfig(Settings):
     """The link to the flight controller and what is sent over it (see `branchrange.mavlink`).
 
     `url` is a pymavlink connection string: `udpout:HOST:PORT`, `udpin:HOST:PORT`,
@@ -170,6 +198,9 @@ class MavlinkConfig:
     `setpoint_max_step_m` from the vehicle, moving at most `setpoint_max_speed_m_s`, only for a
     fresh target track with `setpoint_min_observations` and confidence ≥ `setpoint_min_confidence`.
     """
+
+    section = "mavlink"
+    error = ConfigError
 
     enabled: bool = True
     url: str = "udpout:127.0.0.1:14550"
@@ -196,31 +227,36 @@ class MavlinkConfig:
     setpoint_min_observations: int = 5
     setpoint_min_confidence: float = 0.5
 
-    def __post_init__(self) -> None:
-        _require(bool(self.url.strip()), "mavlink.url", self.url, "a pymavlink connection string such as 'udpout:127.0.0.1:14550' or '/dev/ttyTHS1'")
-        _require(self.baud > 0, "mavlink.baud", self.baud, "a positive baud rate")
-        _require(1 <= self.system_id <= 255, "mavlink.system_id", self.system_id, "an integer in [1, 255]")
-        _require(1 <= self.component_id <= 255, "mavlink.component_id", self.component_id, "an integer in [1, 255]")
-        _require(self.max_result_age_s > 0, "mavlink.max_result_age_s", self.max_result_age_s, "seconds > 0")
-        for key in ("min_distance_m", "max_distance_m"):  # the depth band reported to the autopilot
-            check_physical("distance_m", getattr(self, key), f"mavlink.{key}", ConfigError)
-        _require(self.send_rate_hz >= 2.0, "mavlink.send_rate_hz", self.send_rate_hz, "at least 2 Hz (autopilots call a sensor stale after 0.5 s)")
-        _require(0 <= self.min_distance_m < self.max_distance_m, "mavlink.min_distance_m", self.min_distance_m, f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})")
-        _require(0 <= self.sensor_id <= 255, "mavlink.sensor_id", self.sensor_id, "an integer in [0, 255]")
-        _require(self.reconnect_interval_s > 0, "mavlink.reconnect_interval_s", self.reconnect_interval_s, "seconds > 0")
-        _require(1.0 <= self.state_rate_hz <= 100.0, "mavlink.state_rate_hz", self.state_rate_hz, "a rate in [1, 100] Hz")
-        _require(self.heartbeat_timeout_s > 0, "mavlink.heartbeat_timeout_s", self.heartbeat_timeout_s, "seconds > 0 (MAVLink's usual is 3)")
-        _require(0 < self.pose_timeout_s <= 5.0, "mavlink.pose_timeout_s", self.pose_timeout_s, "seconds in (0, 5]")
-        _require(0.0 <= self.obstacle_min_confidence <= 1.0, "mavlink.obstacle_min_confidence", self.obstacle_min_confidence, "a number in [0, 1]")
-        _require(self.setpoint_standoff_m >= 0, "mavlink.setpoint_standoff_m", self.setpoint_standoff_m, "metres >= 0")
-        _require(self.setpoint_max_step_m > 0, "mavlink.setpoint_max_step_m", self.setpoint_max_step_m, "metres > 0")
-        _require(0 < self.setpoint_max_speed_m_s <= 5.0, "mavlink.setpoint_max_speed_m_s", self.setpoint_max_speed_m_s, "a speed in (0, 5] m/s")
-        _require(self.setpoint_min_observations >= 1, "mavlink.setpoint_min_observations", self.setpoint_min_observations, "an integer >= 1")
-        _require(0.0 <= self.setpoint_min_confidence <= 1.0, "mavlink.setpoint_min_confidence", self.setpoint_min_confidence, "a number in [0, 1]")
+    def checks(self) -> Checks:
+        """The range of every setting; the reported depth band within the physical distance range."""
+        near_ok, _ = in_physical_range("distance_m", self.min_distance_m)
+        far_ok, distances = in_physical_range("distance_m", self.max_distance_m)
+        return {
+            "url": (bool(self.url.strip()), "a pymavlink connection string such as 'udpout:127.0.0.1:14550' or '/dev/ttyTHS1'"),
+            "baud": (self.baud > 0, "a positive baud rate"),
+            "system_id": (1 <= self.system_id <= 255, "an integer in [1, 255]"),
+            "component_id": (1 <= self.component_id <= 255, "an integer in [1, 255]"),
+            "max_result_age_s": (self.max_result_age_s > 0, "seconds > 0"),
+            "send_rate_hz": (self.send_rate_hz >= 2.0, "at least 2 Hz (autopilots call a sensor stale after 0.5 s)"),
+            "max_distance_m": (far_ok, distances),
+            "min_distance_m": (near_ok and self.min_distance_m < self.max_distance_m,
+                               f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})"),
+            "sensor_id": (0 <= self.sensor_id <= 255, "an integer in [0, 255]"),
+            "reconnect_interval_s": (self.reconnect_interval_s > 0, "seconds > 0"),
+            "state_rate_hz": (1.0 <= self.state_rate_hz <= 100.0, "a rate in [1, 100] Hz"),
+            "heartbeat_timeout_s": (self.heartbeat_timeout_s > 0, "seconds > 0 (MAVLink's usual is 3)"),
+            "pose_timeout_s": (0 < self.pose_timeout_s <= 5.0, "seconds in (0, 5]"),
+            "obstacle_min_confidence": (0.0 <= self.obstacle_min_confidence <= 1.0, "a number in [0, 1]"),
+            "setpoint_standoff_m": (self.setpoint_standoff_m >= 0, "metres >= 0"),
+            "setpoint_max_step_m": (self.setpoint_max_step_m > 0, "metres > 0"),
+            "setpoint_max_speed_m_s": (0 < self.setpoint_max_speed_m_s <= 5.0, "a speed in (0, 5] m/s"),
+            "setpoint_min_observations": (self.setpoint_min_observations >= 1, "an integer >= 1"),
+            "setpoint_min_confidence": (0.0 <= self.setpoint_min_confidence <= 1.0, "a number in [0, 1]"),
+        }
 
 
 @dataclass(frozen=True)
-class TrackingConfig:
+class TrackingConfig(Settings):
     """World-frame target tracks (`branchrange.mavlink.world_tracks`), used when vehicle state arrives.
 
     Each track is a Kalman filter on a static point in local NED. A cut point measured at range r
@@ -234,6 +270,9 @@ class TrackingConfig:
     companion) by a frame or two: 1.5 s.
     """
 
+    section = "tracking"
+    error = ConfigError
+
     gate_m: float = 0.15
     lateral_sigma_at_1m_m: float = 0.004
     depth_sigma_at_1m_m: float = 0.01
@@ -241,24 +280,29 @@ class TrackingConfig:
     stale_after_s: float = 1.5
     forget_after_s: float = 5.0
 
-    def __post_init__(self) -> None:
-        _require(self.gate_m > 0, "tracking.gate_m", self.gate_m, "metres > 0")
-        _require(self.lateral_sigma_at_1m_m > 0, "tracking.lateral_sigma_at_1m_m", self.lateral_sigma_at_1m_m, "metres > 0")
-        _require(self.depth_sigma_at_1m_m > 0, "tracking.depth_sigma_at_1m_m", self.depth_sigma_at_1m_m, "metres > 0")
-        _require(self.process_noise_m2_per_s >= 0, "tracking.process_noise_m2_per_s", self.process_noise_m2_per_s, "m²/s >= 0")
-        _require(self.stale_after_s > 0, "tracking.stale_after_s", self.stale_after_s, "seconds > 0")
-        _require(self.forget_after_s >= self.stale_after_s, "tracking.forget_after_s", self.forget_after_s,
-                 f"seconds >= tracking.stale_after_s ({self.stale_after_s})")
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "gate_m": (self.gate_m > 0, "metres > 0"),
+            "lateral_sigma_at_1m_m": (self.lateral_sigma_at_1m_m > 0, "metres > 0"),
+            "depth_sigma_at_1m_m": (self.depth_sigma_at_1m_m > 0, "metres > 0"),
+            "process_noise_m2_per_s": (self.process_noise_m2_per_s >= 0, "m²/s >= 0"),
+            "stale_after_s": (self.stale_after_s > 0, "seconds > 0"),
+            "forget_after_s": (self.forget_after_s >= self.stale_after_s, f"seconds >= tracking.stale_after_s ({self.stale_after_s})"),
+        }
 
 
 @dataclass(frozen=True)
-class ApiConfig:
+class ApiConfig(Settings):
     """The HTTP service: address, bearer token and resource limits.
 
     An empty `token` disables authentication, which `branchrange serve` allows on loopback only.
     `max_concurrency` inferences run at once; one more request gets 503 with `Retry-After:
     retry_after_s` instead of waiting in an unbounded queue.
     """
+
+    section = "api"
+    error = ConfigError
 
     enabled: bool = False
     host: str = "127.0.0.1"
@@ -276,11 +320,17 @@ class ApiConfig:
             kind = "is whitespace only" if not self.token.strip() else "has leading or trailing whitespace"
             raise ConfigError(f"api.token {kind} (or BRANCHRANGE_API_TOKEN): expected a token without "
                               "surrounding spaces, or empty for no authentication (loopback only)")
-        _require(0 <= self.port <= 65535, "api.port", self.port, "a TCP port in [0, 65535]")
-        _require(self.max_upload_mb > 0, "api.max_upload_mb", self.max_upload_mb, "megabytes > 0")
-        _require(self.max_pixels > 0, "api.max_pixels", self.max_pixels, "a positive pixel count (width × height)")
-        _require(self.max_concurrency >= 1, "api.max_concurrency", self.max_concurrency, "an integer >= 1")
-        _require(self.retry_after_s >= 1, "api.retry_after_s", self.retry_after_s, "whole seconds >= 1")
+        super().__post_init__()
+
+    def checks(self) -> Checks:
+        """The range of every setting but the token (checked without echoing it)."""
+        return {
+            "port": (0 <= self.port <= 65535, "a TCP port in [0, 65535]"),
+            "max_upload_mb": (self.max_upload_mb > 0, "megabytes > 0"),
+            "max_pixels": (self.max_pixels > 0, "a positive pixel count (width × height)"),
+            "max_concurrency": (self.max_concurrency >= 1, "an integer >= 1"),
+            "retry_after_s": (self.retry_after_s >= 1, "whole seconds >= 1"),
+        }
 
     @property
     def max_upload_bytes(self) -> int:
@@ -289,47 +339,81 @@ class ApiConfig:
 
 
 @dataclass(frozen=True)
-class LogConfig:
+class LogConfig(Settings):
     """Where per-frame results go and how often the daemon reports its status."""
+
+    section = "log"
+    error = ConfigError
 
     results_jsonl: str = ""
     level: str = "INFO"
     status_interval_s: float = 5.0
 
-    def __post_init__(self) -> None:
-        _require(self.level in ("DEBUG", "INFO", "WARNING", "ERROR"), "log.level", self.level, "DEBUG, INFO, WARNING or ERROR")
-        _require(self.status_interval_s > 0, "log.status_interval_s", self.status_interval_s, "seconds > 0")
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "level": (self.level in ("DEBUG", "INFO", "WARNING", "ERROR"), "DEBUG, INFO, WARNING or ERROR"),
+            "status_interval_s": (self.status_interval_s > 0, "seconds > 0"),
+        }
 
 
 @dataclass(frozen=True)
-class SegmenterSection:
-    """Which segmenter finds branches when no mask is given (`branchrange.segmentation.choose`).
+class MaskConfig(Settings):
+    """How instance masks (files, arrays, recordings' masks) are read (`branchrange.masks.masks_from_array`).
 
-    `model`: 'structure' (built in, 3D structure), 'geometric' (the older built-in one) or
-    'onnx:FILE' (your ONNX model, YOLOv8-seg or per-pixel logits); `branch_classes` / `trunk_classes`: the model's class ids for branch and trunk;
-    `score_threshold`: detections scoring lower are dropped.
+    `trunk_id`: the trunk's id in instance masks (1..65535); `ignored_ids`: ids that are neither
+    branch nor trunk (twigs, leaves); `kind`: 'auto' (binary when the mask holds only 0 and one
+    value), 'instance' or 'binary' (connected components are the instances).
     """
 
+    section = "masks"
+    error = ConfigError
+
+    trunk_id: int = DEFAULT_TRUNK_ID
+    ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS
+    kind: str = "auto"
+
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535 (0 is background)"),
+            "ignored_ids": (all(0 < i <= 65535 for i in self.ignored_ids), "ids in 1..65535"),
+            "kind": (self.kind in MASK_KINDS, _one_of(MASK_KINDS)),
+        }
+
+
+@dataclass(frozen=True)
+class SegmenterConfig(OnnxSegmenterConfig):
+    """Which segmenter finds branches when no mask is given, and the settings of each.
+
+    `model`: 'structure' (built in, 3D structure), 'geometric' (the older built-in one) or
+    'onnx:FILE' (your ONNX model, YOLOv8-seg or per-pixel logits). The model's settings are the
+    other `[segmenter]` keys (`OnnxSegmenterConfig`: `branch_classes` / `trunk_classes`, the
+    model's class ids for branch and trunk; `score_threshold`, …); the built-in segmenters' are
+    the sub-tables `[segmenter.structure]` (`StructureSegmenterConfig`) and `[segmenter.geometric]`
+    (`GeometricSegmenterConfig`).
+    """
+
+    section = "segmenter"
+    error = ConfigError
+
     model: str = "structure"
-    branch_classes: tuple[int, ...] = (0,)
-    trunk_classes: tuple[int, ...] = ()
-    score_threshold: float = 0.25
+    structure: StructureSegmenterConfig = field(default_factory=StructureSegmenterConfig)
+    geometric: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
+    learned: LearnedSegmenterConfig = field(default_factory=LearnedSegmenterConfig)
 
-    def __post_init__(self) -> None:
-        from branchrange.segmentation.choose import check_segmenter_name
-
+    def checks(self) -> Checks:
+        """The model's settings and the model's name (its file is checked when it is loaded)."""
         try:
-            check_segmenter_name(self.model)
-            self.onnx_settings()
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            named = bool(check_segmenter_name(self.model))
+        except ValueError:
+            named = False
+        return {**super().checks(), "model": (named, SEGMENTER_NAMES)}
 
-    def onnx_settings(self) -> Any:
-        """The `OnnxSegmenterConfig` these options describe."""
-        from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
-
-        return OnnxSegmenterConfig(branch_classes=self.branch_classes, trunk_classes=self.trunk_classes,
-                                   score_threshold=self.score_threshold)
+    def build(self, name: str | None = None) -> Segmenter:
+        """The segmenter `name` names ('structure', 'geometric', 'onnx:FILE'; default `model`) with
+        its settings from this section; `OnnxSegmenterError` for a model that cannot be loaded."""
+        return make_segmenter(name or self.model, self.geometric, self, self.structure, self.learned)
 
 
 @dataclass(frozen=True)
@@ -339,89 +423,136 @@ class Config:
     camera: CameraConfig = field(default_factory=CameraConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
     roi: RoiConfig = field(default_factory=RoiConfig)
-    cutpoints: CutpointsConfig = field(default_factory=CutpointsConfig)
+    cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
+    branch_tracking: TrackerConfig = field(default_factory=TrackerConfig)
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    segmenter: SegmenterConfig = field(default_factory=SegmenterConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
     log: LogConfig = field(default_factory=LogConfig)
-    segmenter: SegmenterSection = field(default_factory=SegmenterSection)
+
+
+#: A command-line override: the dotted key (`stereo.max_disp`, `segmenter.structure.max_range_m`) and its value.
+Override = tuple[str, Any]
+
+
+def _wrong_type(key: str, value: Any, expected: str) -> ConfigError:
+    return ConfigError(f"{key} = {value!r}: expected {expected}")
 
 
 def _coerce(key: str, value: Any, annotation: Any) -> Any:
-    """Check one TOML value against a field's type; ints are accepted where floats are expected."""
+    """Check one TOML value against a field's type; ints are accepted where floats are expected,
+    a table where the field is itself a settings dataclass."""
+    if isinstance(annotation, type) and dataclasses.is_dataclass(annotation):
+        return _table(annotation, key, value)
     if annotation is bool:
-        _require(isinstance(value, bool), key, value, "true or false")
+        if not isinstance(value, bool):
+            raise _wrong_type(key, value, "true or false")
         return value
     if annotation is int:
-        _require(isinstance(value, int) and not isinstance(value, bool), key, value, "an integer")
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise _wrong_type(key, value, "an integer")
         return value
     if annotation is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-        _require(ok, key, value, "a finite number")
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
+            raise _wrong_type(key, value, "a finite number")
         return float(value)
     if annotation is str:
-        _require(isinstance(value, str), key, value, "a string")
+        if not isinstance(value, str):
+            raise _wrong_type(key, value, "a string")
         return value
     if typing.get_origin(annotation) is tuple and typing.get_args(annotation)[1:] == (Ellipsis,):
+        if not isinstance(value, list):
+            raise _wrong_type(key, value, "a list")
         item = typing.get_args(annotation)[0]
-        _require(isinstance(value, list), key, value, "a list")
         return tuple(_coerce(f"{key}[{i}]", v, item) for i, v in enumerate(value))
     if typing.get_origin(annotation) is tuple:
         items = typing.get_args(annotation)
-        ok = isinstance(value, list) and len(value) == len(items)
-        _require(ok, key, value, f"a list of {len(items)} numbers")
+        if not (isinstance(value, list) and len(value) == len(items)):
+            raise _wrong_type(key, value, f"a list of {len(items)} numbers")
         return tuple(_coerce(f"{key}[{i}]", v, t) for i, (v, t) in enumerate(zip(value, items)))
     raise TypeError(f"config field {key} has an unsupported type {annotation!r}")
 
 
-def _section(cls: type, name: str, table: Any) -> Any:
-    """Build section dataclass `cls` from TOML table `table`, rejecting unknown keys."""
-    _require(isinstance(table, dict), name, table, f"a table [{name}]")
+def _table(cls: type, name: str, table: Any) -> Any:
+    """Settings dataclass `cls` from the TOML table `[name]`: unknown keys refused, every value
+    type-checked, then the class's own range checks; every error a `ConfigError` naming the key."""
+    if not isinstance(table, dict):
+        raise _wrong_type(name, table, f"a table [{name}]")
     hints = typing.get_type_hints(cls)
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(table) - known)
+    known = sorted(f.name for f in dataclasses.fields(cls))
+    unknown = sorted(set(table) - set(known))
     if unknown:
-        raise ConfigError(f"{name}.{unknown[0]}: unknown option; [{name}] takes {', '.join(sorted(known))}")
-    return cls(**{key: _coerce(f"{name}.{key}", value, hints[key]) for key, value in table.items()})
+        raise ConfigError(f"{name}.{unknown[0]}: unknown option; [{name}] takes {', '.join(known)}")
+    values = {key: _coerce(f"{name}.{key}", value, hints[key]) for key, value in table.items()}
+    try:
+        return cls(**values)
+    except ConfigError:
+        raise
+    except ValueError as exc:  # the range check of a section defined beside its code (CutPointConfigError, …)
+        raise ConfigError(str(exc)) from None
 
 
 def config_from_dict(data: dict[str, Any]) -> Config:
     """Validate a parsed TOML document into a `Config`; raises `ConfigError` naming the key."""
-    sections = {f.name: typing.get_type_hints(Config)[f.name] for f in dataclasses.fields(Config)}
+    sections = typing.get_type_hints(Config)
     unknown = sorted(set(data) - set(sections))
     if unknown:
         raise ConfigError(f"[{unknown[0]}]: unknown section; the file takes {', '.join(f'[{s}]' for s in sections)}")
-    return Config(**{name: _section(cls, name, data[name]) for name, cls in sections.items() if name in data})
+    return Config(**{name: _table(sections[name], name, table) for name, table in data.items()})
 
 
-def load_config(path: str | Path | None) -> Config:
-    """Read and validate a TOML configuration file; `None` gives the defaults."""
-    if path is None:
-        return Config()
-    path = Path(path)
+def parse_override(text: str) -> Override:
+    """`SECTION.KEY=VALUE` (`--set`) → (dotted key, value): the value in TOML syntax
+    (`128`, `true`, `[0, -10, 0]`, `"text"`), a bare word taken as a string (`--set stereo.backend=sgbm`)."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or "." not in key or not all(key.split(".")):
+        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set stereo.max_disp=128")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: configuration file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    try:
-        return config_from_dict(data)
-    except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return key, value
+
+
+def with_overrides(data: dict[str, Any], overrides: Iterable[Override]) -> dict[str, Any]:
+    """A copy of the TOML tree `data` with each (dotted key, value) set in it, later ones winning."""
+    tree: dict[str, Any] = {name: dict(table) if isinstance(table, dict) else table for name, table in data.items()}
+    for key, value in overrides:
+        *tables, last = key.split(".")
+        node = tree
+        for depth, name in enumerate(tables):
+            child = node.get(name, {})
+            if not isinstance(child, dict):
+                raise _wrong_type(".".join(tables[:depth + 1]), child, f"a table (--set {key}=…)")
+            node[name] = node = dict(child)
+        node[last] = value
+    return tree
+
+
+def load_config(path: str | Path | None, overrides: Iterable[Override] = ()) -> Config:
+    """Read and validate a TOML configuration file (`None`: the defaults), then the command line's
+    `overrides` ((dotted key, value), e.g. from `parse_override`; later ones win)."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+            config_from_dict(data)  # the file's own errors name the file
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: configuration file not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+    return config_from_dict(with_overrides(data, overrides))
 
 
 def pipeline_config(cfg: Config) -> Any:
-    """The `branchrange.pipeline.PipelineConfig` that `[stereo]`, `[cutpoints]` and `[segmenter]` describe."""
-    from branchrange.cutpoints import CutPointConfig
+    """The `branchrange.pipeline.PipelineConfig` of `cfg`: its pipeline sections themselves."""
     from branchrange.pipeline import PipelineConfig
 
-    s, c = cfg.stereo, cfg.cutpoints
-    return PipelineConfig(
-        backend=s.backend, weights=s.weights or None, max_disp=s.max_disp, device=s.device,
-        precision=s.precision, target_policy=c.target_policy,
-        target_min_confidence=c.target_min_confidence, tracking=c.tracking,
-        cutpoints=CutPointConfig(cut_offset_m=c.cut_offset_m, min_confidence=c.min_confidence,
-                                 max_instances=c.max_instances),
-        mode=s.mode, roi=cfg.roi,
-        segmenter_name=cfg.segmenter.model, onnx_segmenter=cfg.segmenter.onnx_settings())
+    return PipelineConfig(stereo=cfg.stereo, roi=cfg.roi, cutpoints=cfg.cutpoints, tracker=cfg.branch_tracking,
+                          masks=cfg.masks, segmenter=cfg.segmenter)

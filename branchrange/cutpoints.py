@@ -39,7 +39,7 @@ from branchrange.geometry import (
     vector_norm,
 )
 from branchrange.masks import BranchMasks, MaskCrop, as_crop, check_instance_count, erode
-from branchrange.settings_check import check_settings
+from branchrange.settings_check import Checks, Settings, in_physical_range
 from branchrange.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
 
 TargetPolicy = Literal["nearest_confident", "nearest", "most_confident", "thickest"]
@@ -53,8 +53,9 @@ class CutPointConfigError(ValueError):
 
 
 @dataclass(frozen=True)
-class CutPointConfig:
-    """Settings of the cut-point stage (lengths in metres, pixels of the disparity's resolution).
+class CutPointConfig(Settings):
+    """`[cutpoints]`: where on a branch the cut goes, which branches are kept and which is the
+    target (lengths in metres, pixels of the disparity's resolution).
 
     - `cut_offset_m`: distance of the cut from the base along the axis (just outside the collar).
     - `erode_px`: mask erosion before reading depth (silhouette pixels mix branch and background).
@@ -65,9 +66,16 @@ class CutPointConfig:
     - `min_inlier_band_m`: the inlier band's floor.
     - `min_range_m`, `max_range_m`: the working range; cut points outside it are dropped.
     - `surface_correction`: move the line from the visible surface onto the axis (cross-sections).
-    - `max_instances`: most branch instances a frame may hold; more → `MaskError` (a bad mask,
-      refused fast rather than holding the estimator for minutes).
+    - `max_instances`: most branch instances a frame may hold; more → `MaskError` (HTTP 422: a bad
+      mask, refused before any geometry runs rather than holding the estimator for minutes).
+    - `target_policy`: how `select_target` picks the target, one of `TARGET_POLICIES`;
+      `target_min_confidence`: a branch below it is never the target.
+    - `tracking`: keep branch ids stable across frames (`branchrange.tracking`, tuned in
+      `[branch_tracking]`; the daemon and replay want it, a single pair does not).
     """
+
+    section = "cutpoints"
+    error = CutPointConfigError
 
     cut_offset_m: float = 0.05
     erode_px: int = 1
@@ -80,21 +88,30 @@ class CutPointConfig:
     max_range_m: float = 10.0
     surface_correction: bool = True
     max_instances: int = 256
+    target_policy: str = DEFAULT_TARGET_POLICY
+    target_min_confidence: float = 0.3
+    tracking: bool = True
 
-    def __post_init__(self) -> None:
-        checks = {
-            "cut_offset_m": (self.cut_offset_m >= 0, "≥ 0 m"),
+    def checks(self) -> Checks:
+        """The range of every setting; the working range within the physical distance range."""
+        near_ok, distances = in_physical_range("distance_m", self.min_range_m)
+        far_ok, _ = in_physical_range("distance_m", self.max_range_m)
+        return {
+            "cut_offset_m": in_physical_range("cut_offset_m", self.cut_offset_m),
             "erode_px": (self.erode_px >= 0, "≥ 0 px"),
             "min_points": (self.min_points >= 3, "≥ 3 points"),
             "min_valid_fraction": (0 <= self.min_valid_fraction <= 1, "a fraction in [0, 1]"),
             "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
             "disparity_noise_px": (self.disparity_noise_px > 0, "> 0 px"),
             "min_inlier_band_m": (self.min_inlier_band_m > 0, "> 0 m"),
-            "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
-            "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
+            "min_range_m": (near_ok, distances),
+            "max_range_m": (far_ok and self.max_range_m > self.min_range_m,
+                            f"> min_range_m ({self.min_range_m} m), {distances}"),
             "max_instances": (self.max_instances >= 1, "≥ 1 instance"),
+            "target_policy": (self.target_policy in TARGET_POLICIES,
+                              "one of " + ", ".join(repr(p) for p in TARGET_POLICIES)),
+            "target_min_confidence": (0 <= self.target_min_confidence <= 1, "a confidence in [0, 1]"),
         }
-        check_settings("cutpoints", self, checks, CutPointConfigError)
 
 
 @dataclass

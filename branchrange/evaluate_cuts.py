@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from branchrange.pipeline import Pipeline, PipelineConfig
+from branchrange.pipeline import Pipeline, PipelineConfig, untracked_whole_frame
 
 RECALL_RADIUS_M = 0.05
 MATCH_GATE_M = 0.25
@@ -188,7 +188,7 @@ def evaluate_cuts(root: str | Path, stereo_modes: Sequence[str] = ("gt", "sgbm")
         if mode not in MASK_MODES:
             raise ValueError(f"mask mode {mode!r} is not one of {', '.join(MASK_MODES)}")
     indices = scene_indices(root, split)[:limit]
-    config = config or PipelineConfig(tracking=False, max_disp=max_disp)
+    config = config or untracked_whole_frame(max_disp)
     backends = {}
     for mode in stereo_modes:
         if mode != "gt":

@@ -25,17 +25,21 @@ from camera.sources import SourceError, StereoFrame
 
 
 def pipeline_for(cfg: Config, calibration: Any) -> Any:
-    """The `Pipeline` that `[stereo]` and `[cutpoints]` describe, for a source's calibration, with
-    its stereo backend already built: a missing checkpoint or a max_disp the backend cannot use
-    fails here, at start-up, rather than as a rejected frame on every frame.
+    """The `Pipeline` that the pipeline's sections of `cfg` describe, for a source's calibration,
+    with its stereo backend already built: a calibration outside the physical ranges, a missing
+    checkpoint or a max_disp the backend cannot use fails here, at start-up, rather than as a
+    rejected frame on every frame.
 
-    Raises `SourceError` naming `camera.source` when the source brought no calibration, and the
-    backend's `ValueError` (`BackendConfigError`, `CheckpointError`) when it cannot be built.
+    Raises `SourceError` naming `camera.source` when the source brought no calibration, `RangeError`
+    for a focal length or baseline out of range, and the backend's `ValueError`
+    (`BackendConfigError`, `CheckpointError`) when it cannot be built.
     """
     from branchrange.pipeline import Pipeline
+    from branchrange.settings_check import check_calibration
 
     if calibration is None:
         raise SourceError(f"{cfg.camera.source}: no calibration; set camera.calibration")
+    check_calibration(calibration, tuple(calibration.image_size), f"{cfg.camera.source}: calibration")
     pipeline = Pipeline(pipeline_config(cfg), calibration=calibration)
     _ = pipeline.backend  # the property builds it
     return pipeline

@@ -18,7 +18,6 @@ import numpy as np
 
 from branchrange.cutpoints import (
     DEFAULT_TARGET_POLICY,
-    TARGET_POLICIES,
     CutPointConfig,
     CutPointResult,
     TrunkModel,
@@ -27,21 +26,16 @@ from branchrange.cutpoints import (
 )
 from branchrange.geometry import StereoGeometry, offset_disparity, valid_disparity
 from branchrange.masks import (
-    DEFAULT_IGNORED_IDS,
-    DEFAULT_TRUNK_ID,
     BranchMasks,
-    MaskKind,
     check_instance_count,
     masks_from_array,
     read_mask,
     validate_masks,
 )
-from branchrange.config import RoiConfig
+from branchrange.config import MaskConfig, RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.roi import CoarseToFine, CoarseTrunk, Region
 from branchrange.pair_check import PairCheck, check_rectification
-from branchrange.segmentation.choose import check_segmenter_name, make_segmenter
-from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
-from branchrange.segmenter import GeometricSegmenterConfig, Segmenter
+from branchrange.segmenter import Segmenter
 from branchrange.timing import lap_ms
 from branchrange.tracking import BranchTracker, TrackerConfig
 
@@ -49,73 +43,45 @@ SCHEMA_ID = "branchrange/v1"
 SCHEMA_PATH = Path(__file__).with_name("schemas") / "result_v1.json"
 
 MaskInput = BranchMasks | np.ndarray | str | Path | None
-#: 'full': whole-frame stereo at full resolution; 'roi': coarse-to-fine (`branchrange.roi`).
-PIPELINE_MODES: tuple[str, ...] = ("full", "roi")
 
 
 class PipelineInputError(ValueError):
     """A frame, mask or camera description the pipeline cannot work with; the message says which."""
 
 
-class PipelineConfigError(ValueError):
-    """A pipeline setting out of its range; the message names the key."""
-
-
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Settings of the whole per-frame chain.
+    """Settings of the whole per-frame chain: the pipeline's TOML sections themselves
+    (`branchrange.config.pipeline_config` hands them over from a file), and `check_pair`.
 
-    - `backend`, `weights`, `max_disp`, `device`, `precision`: `stereo.backends.make_backend` arguments.
-    - `trunk_id`: the trunk's id in instance masks (None: no trunk id); `ignored_ids`: ids that
-      are neither branch nor trunk (twigs, leaves); `mask_kind`: how mask files/arrays are read
-      ('auto', 'instance', 'binary').
-    - `target_policy`: one of `TARGET_POLICIES` ('nearest_confident', 'nearest', 'most_confident',
-      'thickest'); `target_min_confidence`: a branch
-      below it is never the target.
-    - `tracking`: give branches stable ids across frames (else ids are per-frame mask order).
-    - `mode`: 'full' matches the whole frame at full resolution; 'roi' (`branchrange.roi`) matches
-      the whole frame at low resolution and each branch at full resolution in its own box and
-      disparity window — several times faster at HD720, the onboard default.
-    - `roi`: the coarse-to-fine settings.
-    - `segmenter_name`: 'structure' (default), 'geometric' or 'onnx:FILE'; `segmenter` / `onnx_segmenter` their settings.
+    - `stereo` (`[stereo]`): the backend (`stereo.backends.make_backend` arguments) and `mode`:
+      'full' matches the whole frame at full resolution, 'roi' (`branchrange.roi`) the whole frame
+      at low resolution and each branch at full resolution in its own box and disparity window —
+      several times faster at HD720. Whole-frame here, the library's default; the onboard config
+      file's default is roi.
+    - `roi` (`[roi]`): the coarse-to-fine settings.
+    - `cutpoints` (`[cutpoints]`): cut-point estimation, the target policy, tracking on or off.
+    - `tracker` (`[branch_tracking]`): how branch ids are kept across frames.
+    - `masks` (`[masks]`): how mask files and arrays are read.
+    - `segmenter` (`[segmenter]`): the segmenter used when no mask is given, and its settings.
     - `check_pair`: measure the rectified pair's row misalignment (`branchrange.pair_check`, ~25 ms)
       on every frame: result field `pair_check`, and a refusal above the hard limit.
     """
 
-    backend: str = "sgbm"
-    weights: str | None = None
-    max_disp: int = 192
-    device: str = "cpu"
-    precision: str = "fp32"
-    trunk_id: int | None = DEFAULT_TRUNK_ID
-    ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS
-    mask_kind: MaskKind = "auto"
-    target_policy: str = DEFAULT_TARGET_POLICY
-    target_min_confidence: float = 0.3
-    tracking: bool = True
-    cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
-    segmenter: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
-    segmenter_name: str = "structure"
-    onnx_segmenter: OnnxSegmenterConfig = field(default_factory=OnnxSegmenterConfig)
-    check_pair: bool = False
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    mode: str = "full"
+    stereo: StereoConfig = field(default_factory=lambda: StereoConfig(mode="full"))
     roi: RoiConfig = field(default_factory=RoiConfig)
+    cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    segmenter: SegmenterConfig = field(default_factory=SegmenterConfig)
+    check_pair: bool = False
 
-    def __post_init__(self) -> None:
-        if self.mode not in PIPELINE_MODES:
-            raise PipelineConfigError(f"mode = {self.mode!r}: expected one of {', '.join(PIPELINE_MODES)}")
-        if self.target_policy not in TARGET_POLICIES:
-            raise PipelineConfigError(f"target_policy = {self.target_policy!r}: expected one of {', '.join(TARGET_POLICIES)}")
-        if not 0 <= self.target_min_confidence <= 1:
-            raise PipelineConfigError(f"target_min_confidence = {self.target_min_confidence!r}: expected a number in [0, 1]")
-        if self.mask_kind not in ("auto", "instance", "binary"):
-            raise PipelineConfigError(f"mask_kind = {self.mask_kind!r}: expected 'auto', 'instance' or 'binary'")
-        if self.trunk_id is not None and not 0 < self.trunk_id <= 65535:
-            raise PipelineConfigError(f"trunk_id = {self.trunk_id!r}: expected an id in 1..65535 (0 is background)")
-        if self.max_disp <= 0:
-            raise PipelineConfigError(f"max_disp = {self.max_disp!r}: expected a positive number of pixels")
-        check_segmenter_name(self.segmenter_name)
+
+def untracked_whole_frame(max_disp: int = 192, target_policy: str = DEFAULT_TARGET_POLICY) -> PipelineConfig:
+    """The settings of evaluations and benchmarks, which score frames one by one: no tracking,
+    whole-frame sgbm stereo searching `max_disp` px, targets chosen by `target_policy`."""
+    return PipelineConfig(stereo=StereoConfig(mode="full", max_disp=max_disp),
+                          cutpoints=CutPointConfig(tracking=False, target_policy=target_policy))
 
 
 def _check_image(image: Any, which: str) -> np.ndarray:
@@ -220,8 +186,7 @@ class Pipeline:
         offset_disparity(np.zeros(1), self.doffs_px)  # a non-finite doffs fails here, not at the first frame
         self.principal_point = principal_point
         self._backend = backend
-        cfg = self.config
-        self.segmenter: Segmenter = segmenter or make_segmenter(cfg.segmenter_name, cfg.segmenter, cfg.onnx_segmenter)
+        self.segmenter: Segmenter = segmenter or self.config.segmenter.build()
         self.tracker = BranchTracker(self.config.tracker)
         self.last: FrameArtifacts | None = None
         self._coarse_to_fine: CoarseToFine | None = None
@@ -232,8 +197,8 @@ class Pipeline:
         if self._backend is None:
             from stereo.backends import make_backend
 
-            cfg = self.config
-            self._backend = make_backend(cfg.backend, weights=cfg.weights, max_disp=cfg.max_disp,
+            cfg = self.config.stereo
+            self._backend = make_backend(cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp,
                                          device=cfg.device, precision=cfg.precision)
         return self._backend
 
@@ -241,7 +206,7 @@ class Pipeline:
     def coarse_to_fine(self) -> CoarseToFine:
         """The coarse-to-fine matcher of `mode = "roi"` around the (fine) backend, built on first use."""
         if self._coarse_to_fine is None:
-            self._coarse_to_fine = CoarseToFine(self.config.roi, self.backend, self.segmenter, self.config.max_disp)
+            self._coarse_to_fine = CoarseToFine(self.config.roi, self.backend, self.segmenter, self.config.stereo.max_disp)
         return self._coarse_to_fine
 
     def geometry_for(self, width: int, height: int) -> StereoGeometry:
@@ -262,14 +227,14 @@ class Pipeline:
         """The frame's `BranchMasks` from a path, array or ready instance (None when not given)."""
         if mask is None:
             return None
-        cfg = self.config
+        cfg = self.config.masks
         if isinstance(mask, (str, Path)):
-            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind, ignored_ids=cfg.ignored_ids)
+            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cfg.kind, ignored_ids=cfg.ignored_ids)
         elif isinstance(mask, BranchMasks):
             masks = mask
         else:
-            masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.mask_kind, ignored_ids=cfg.ignored_ids)
-        check_instance_count(masks, cfg.cutpoints.max_instances)  # before any other work on such a mask
+            masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.kind, ignored_ids=cfg.ignored_ids)
+        check_instance_count(masks, self.config.cutpoints.max_instances)  # before any other work on such a mask
         if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
             validate_masks(masks, shape)
             masks = replace(masks, labels=_rectify_labels(self.rectifier, masks.labels))
@@ -307,12 +272,12 @@ class Pipeline:
         if pair_check is not None:
             pair_check.raise_if_refused()
         t = lap_ms(timing, "rectify", start)
-        if self.config.mode == "roi":
+        if self.config.stereo.mode == "roi":
             fine = self.coarse_to_fine.compute(left, right, masks, geometry)
             timing.update(fine.timing_ms)
             disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
             coarse_trunk = fine.trunk
-            backend, max_disparity = f"{self.backend.name}-roi", self.config.max_disp
+            backend, max_disparity = f"{self.backend.name}-roi", self.config.stereo.max_disp
         else:
             regions, coarse_trunk = None, None
             stereo = self.backend.compute(left, right)
@@ -386,12 +351,13 @@ class Pipeline:
                 reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
                     f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5])
         t = lap_ms(timing, "cutpoints", t)
-        if self.config.tracking:
+        if self.config.cutpoints.tracking:
             self.tracker.update(cut.branches)
         t = lap_ms(timing, "tracking", t)
-        target = select_target(cut.branches, self.config.target_policy, self.config.target_min_confidence)
+        target = select_target(cut.branches, self.config.cutpoints.target_policy,
+                               self.config.cutpoints.target_min_confidence)
         if target is None and cut.branches:
-            reason = f"no branch reaches the target confidence {self.config.target_min_confidence}"
+            reason = f"no branch reaches the target confidence {self.config.cutpoints.target_min_confidence}"
         timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
         result = {
             "schema": SCHEMA_ID,

@@ -38,7 +38,7 @@ import numpy as np
 
 from branchrange.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.settings_check import check_settings
+from branchrange.settings_check import Checks, Settings, in_physical_range
 
 
 class SegmenterConfigError(ValueError):
@@ -73,7 +73,7 @@ def working_foreground(disparity: np.ndarray, geometry: StereoGeometry, confiden
 
 
 @dataclass(frozen=True)
-class BuiltinSegmenterConfig:
+class BuiltinSegmenterConfig(Settings):
     """The settings both built-in segmenters share (metres unless named otherwise); each segmenter's
     config extends it, and may change its defaults.
 
@@ -97,14 +97,17 @@ class BuiltinSegmenterConfig:
     excess_green: float = 60.0
     trunk_id: int = DEFAULT_TRUNK_ID
 
-    def __post_init__(self) -> None:
-        check_settings("segmenter", self, self.checks(), SegmenterConfigError)
+    section = "segmenter"
+    error = SegmenterConfigError
 
-    def checks(self) -> dict[str, tuple[bool, str]]:
-        """Range checks for `check_settings`: field → (passed, expectation); subclasses add theirs."""
+    def checks(self) -> Checks:
+        """The shared settings' ranges (the working range within the physical distance range); subclasses add theirs."""
+        near_ok, distances = in_physical_range("distance_m", self.min_range_m)
+        far_ok, _ = in_physical_range("distance_m", self.max_range_m)
         return {
-            "min_range_m": (self.min_range_m >= 0, "≥ 0 m"),
-            "max_range_m": (self.max_range_m > self.min_range_m, f"> min_range_m ({self.min_range_m} m)"),
+            "min_range_m": (near_ok, distances),
+            "max_range_m": (far_ok and self.max_range_m > self.min_range_m,
+                            f"> min_range_m ({self.min_range_m} m), {distances}"),
             "max_branch_diameter_m": (self.max_branch_diameter_m > 0, "> 0 m"),
             "min_branch_length_m": (self.min_branch_length_m > 0, "> 0 m"),
             "min_elongation": (self.min_elongation >= 1, "≥ 1 (length / width)"),
@@ -116,7 +119,9 @@ class BuiltinSegmenterConfig:
 
 @dataclass(frozen=True)
 class GeometricSegmenterConfig(BuiltinSegmenterConfig):
-    """Settings of `GeometricSegmenter`: the shared ones (`BuiltinSegmenterConfig`) at their defaults."""
+    """`[segmenter.geometric]`, settings of `GeometricSegmenter`: the shared ones (`BuiltinSegmenterConfig`) at their defaults."""
+
+    section = "segmenter.geometric"
 
 
 def depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:

@@ -1,6 +1,11 @@
-"""Checks of settings where they enter: range checks of frozen settings dataclasses, and the one
-table of physical ranges (baseline, focal length, image size, depth) that the API request, the
-CLI options (`estimate`, `demo`) and the TOML configuration all validate against.
+"""Checks of settings where they enter: the one validator of the settings dataclasses (`Settings`),
+and the one table of physical ranges (baseline, focal length, image size, depth) that the API
+request, the CLI options (`estimate`, `demo`) and the TOML configuration all validate against.
+
+Every settings dataclass — one per TOML section (`branchrange.config`) — extends `Settings`:
+it names its `section` and lists its range checks in `checks()`; constructing it runs them, so
+a value from a file, from `--set`, from a command-line flag or from Python is checked by the same
+rule and refused with the same message: `cutpoints.min_points = 1: expected ≥ 3 points`.
 
 Why ranges and not only "> 0": the cut-point maths multiplies and divides by these values
 (`Z = f·B / d`), so 1e300 overflows and 1e-320 divides by (almost) zero; a value outside what a
@@ -11,21 +16,47 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 from camera.calibration import MAX_IMAGE_SIDE_PX, require_image_size
 
+#: A settings dataclass's range checks: field name → (passed, what is expected).
+Checks = dict[str, tuple[bool, str]]
 
-def check_settings(section: str, settings: object, checks: dict[str, tuple[bool, str]],
-                   error: type[ValueError]) -> None:
+
+class SettingsError(ValueError):
+    """A setting outside what it accepts; the message names `section.key`, the value and what is accepted."""
+
+
+def check_settings(section: str, settings: object, checks: Checks, error: type[ValueError]) -> None:
     """Raise `error` for the first failed check, naming `section.key`, its value and what was expected.
 
     `checks` maps a field name of `settings` to (passed, expectation), e.g.
-    `{"gate_m": (self.gate_m > 0, "> 0 m")}`; called from a dataclass's `__post_init__`.
+    `{"gate_m": (self.gate_m > 0, "> 0 m")}`.
     """
     for key, (ok, expected) in checks.items():
         if not ok:
             raise error(f"{section}.{key} = {getattr(settings, key)!r}: expected {expected}")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Base of the settings dataclasses: construction runs `checks()` (`check_settings`).
+
+    A subclass sets `section` (its TOML section, the prefix of its keys in messages), may set
+    `error` (the exception type its callers catch) and returns its range checks from `checks()`;
+    a subclass of a subclass extends them with `{**super().checks(), ...}`.
+    """
+
+    section: ClassVar[str] = ""
+    error: ClassVar[type[ValueError]] = SettingsError
+
+    def __post_init__(self) -> None:
+        check_settings(self.section, self, self.checks(), self.error)
+
+    def checks(self) -> Checks:
+        """Field name → (passed, what is expected); none here."""
+        return {}
 
 
 class RangeError(ValueError):
@@ -56,6 +87,15 @@ PHYSICAL_RANGES: dict[str, PhysicalRange] = {
     "distance_m": PhysicalRange(0.0, 655.0, "m", "a distance in metres"),
     "cut_offset_m": PhysicalRange(0.0, 2.0, "m", "an offset along the branch in metres"),
 }
+
+
+def in_physical_range(quantity: str, value: Any) -> tuple[bool, str]:
+    """(whether `value` is a finite number within `PHYSICAL_RANGES[quantity]`, the range described):
+    one entry of a `Settings.checks()` table."""
+    accepted = PHYSICAL_RANGES[quantity]
+    ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+          and accepted.low <= value <= accepted.high)
+    return ok, accepted.describe()
 
 
 def check_physical(quantity: str, value: Any, name: str | None = None,

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from branchrange.cutpoints import BranchEstimate
-from branchrange.settings_check import check_settings
+from branchrange.settings_check import Checks, Settings
 
 
 class TrackerConfigError(ValueError):
@@ -30,21 +30,26 @@ class TrackerConfigError(ValueError):
 
 
 @dataclass(frozen=True)
-class TrackerConfig:
-    """`gate_m`: largest cut-point displacement between frames (m); `max_missed`: frames a track
-    survives unseen; `max_axis_angle_deg`: largest change of axis direction that still matches."""
+class TrackerConfig(Settings):
+    """`[branch_tracking]`, the per-frame branch ids: `gate_m`: largest cut-point displacement
+    between frames (m); `max_missed`: frames a track survives unseen; `max_axis_angle_deg`:
+    largest change of axis direction that still matches. (`[tracking]` is the world-frame
+    target tracks of `branchrange.mavlink.world_tracks`; `cutpoints.tracking` turns this off.)"""
+
+    section = "branch_tracking"
+    error = TrackerConfigError
 
     gate_m: float = 0.10
     max_missed: int = 5
     max_axis_angle_deg: float = 35.0
 
-    def __post_init__(self) -> None:
-        checks = {
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
             "gate_m": (self.gate_m > 0, "> 0 m"),
             "max_missed": (self.max_missed >= 0, "≥ 0 frames"),
             "max_axis_angle_deg": (0 < self.max_axis_angle_deg <= 180, "an angle in (0, 180] degrees"),
         }
-        check_settings("tracking", self, checks, TrackerConfigError)
 
 
 @dataclass

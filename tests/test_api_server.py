@@ -15,7 +15,7 @@ from api.estimator import PipelineEstimator
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.serve import check_bind, ServeError
-from branchrange.config import ApiConfig
+from branchrange.config import ApiConfig, StereoConfig
 from branchrange.pipeline import Pipeline, PipelineConfig
 from openapi_check import check_response
 
@@ -91,7 +91,7 @@ def test_health_reports_model_camera_and_link_and_degrades_when_camera_lost(serv
 
 def test_latest_returns_the_daemons_newest_result_unchanged(server, live):
     scene = bar_scene()
-    pipeline = Pipeline(PipelineConfig(max_disp=64), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
+    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64)), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
     result = pipeline.process(scene.left, scene.right, scene.mask, index=7, timestamp_ns=5)
     with httpx.Client(base_url=server, timeout=10, headers=auth()) as c:
         assert c.get("/latest").status_code == 404
@@ -165,7 +165,7 @@ def test_every_route_answers_as_the_served_openapi_document_says(server, live):
     scene = bar_scene()
     pair = {"left": ("l.png", scene.png("left"), "image/png"), "right": ("r.png", scene.png("right"), "image/png")}
     fb = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
-    pipeline = Pipeline(PipelineConfig(max_disp=64), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
+    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64)), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
     live.result = None  # before the daemon's first frame: /latest is 404
     calls = [  # (method, path, keyword arguments of httpx, expected status)
         ("GET", "/health", {}, 200), ("GET", "/version", {}, 200),

@@ -37,7 +37,7 @@ def test_values_are_read_and_ints_are_accepted_for_floats(tmp_path):
     ({"mavlink": {"target_as_obstacle": 1}}, r"mavlink\.target_as_obstacle = 1: expected true or false"),
     ({"camera": {"mount_rpy_deg": [0, 0]}}, r"camera\.mount_rpy_deg = \[0, 0\]: expected a list of 3 numbers"),
     ({"camera": {"mount_xyz_m": [0, "x", 0]}}, r"camera\.mount_xyz_m\[1\] = 'x'"),
-    ({"stereo": {"backend": "raft"}}, r"stereo\.backend = 'raft': expected 'sgbm' or 'emcstereo'"),
+    ({"stereo": {"backend": "raft"}}, r"stereo\.backend = 'raft': expected 'sgbm', 'emcstereo' or 'onnx'"),
     ({"stereo": {"max_disp": 190}}, r"stereo\.max_disp = 190: expected a positive multiple of 16"),
     ({"stereo": {"max_disp": 100, "backend": "emcstereo", "weights": "w.pth"}}, r"stereo\.max_disp = 100: expected a positive multiple of 16"),
     ({"stereo": {"backend": "emcstereo"}}, r"stereo\.weights = '': expected a checkpoint path when stereo\.backend = 'emcstereo'"),

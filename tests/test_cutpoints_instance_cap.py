@@ -41,7 +41,7 @@ def test_up_to_the_cap_every_instance_is_estimated_or_dropped_with_a_reason():
 def test_the_cap_is_a_setting_checked_like_the_others():
     with pytest.raises(CutPointConfigError, match=r"cutpoints\.max_instances = 0"):
         CutPointConfig(max_instances=0)
-    with pytest.raises(ConfigError, match=r"cutpoints\.max_instances = 0: expected an integer >= 1"):
+    with pytest.raises(ConfigError, match=r"cutpoints\.max_instances = 0: expected ≥ 1 instance"):
         config_from_dict({"cutpoints": {"max_instances": 0}})
     cfg = config_from_dict({"cutpoints": {"max_instances": 32}})
     assert pipeline_config(cfg).cutpoints.max_instances == 32

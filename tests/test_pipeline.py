@@ -7,6 +7,8 @@ import jsonschema
 import numpy as np
 import pytest
 
+from branchrange.config import SegmenterConfig, StereoConfig
+from branchrange.cutpoints import CutPointConfig
 from branchrange.masks import MaskError, masks_from_array
 from branchrange.pipeline import SCHEMA_PATH, Pipeline, PipelineConfig, PipelineInputError
 from branchrange.segmenter import Segmenter
@@ -44,7 +46,7 @@ def errors_by_truth(result, scene):
 
 @pytest.fixture(scope="module")
 def sgbm_result(scene):
-    return pipeline_for(scene, max_disp=128).process(scene.left, scene.right, mask=scene.instance_mask,
+    return pipeline_for(scene, stereo=StereoConfig(mode="full", max_disp=128)).process(scene.left, scene.right, mask=scene.instance_mask,
                                                      index=7, timestamp_ns=123)
 
 
@@ -88,7 +90,7 @@ def test_ground_truth_disparity_and_masks_give_sub_centimetre_cut_points(scene, 
 
 
 def test_built_in_segmenter_finds_branches_without_a_mask(scene, validator):
-    result = pipeline_for(scene, segmenter_name="geometric").process_disparity(scene.left, scene.disparity)
+    result = pipeline_for(scene, segmenter=SegmenterConfig(model="geometric")).process_disparity(scene.left, scene.disparity)
     validator.validate(result)
     assert result["masks"]["source"] == "geometric"
     found = [b for b in visible_truth(scene)
@@ -111,10 +113,10 @@ class TruthSegmenter:
 def test_a_plugged_in_segmenter_replaces_the_built_in_one(scene):
     plugged = TruthSegmenter(scene.instance_mask)
     assert isinstance(plugged, Segmenter)
-    pipeline = Pipeline(PipelineConfig(tracking=False), focal_px=scene.camera.focal_px,
+    pipeline = Pipeline(PipelineConfig(cutpoints=CutPointConfig(tracking=False)), focal_px=scene.camera.focal_px,
                         baseline_m=scene.camera.baseline_m, segmenter=plugged)
     result = pipeline.process_disparity(scene.left, scene.disparity)
-    given = pipeline_for(scene, tracking=False).process_disparity(scene.left, scene.disparity, mask=scene.instance_mask)
+    given = pipeline_for(scene, cutpoints=CutPointConfig(tracking=False)).process_disparity(scene.left, scene.disparity, mask=scene.instance_mask)
     assert result["masks"]["source"] == "truth" and result["masks"]["trunk"] is True
     assert [b["cut_point_m"] for b in result["branches"]] == [b["cut_point_m"] for b in given["branches"]]
     assert len(result["branches"]) == len(visible_truth(scene))
@@ -137,7 +139,8 @@ def test_raw_calibration_path_rectifies_pair_and_mask(scene):
     k = np.array([[cam.focal_px, 0, cam.cx], [0, cam.focal_px, cam.cy], [0, 0, 1.0]])
     raw = StereoCalibration(k, np.zeros(5), k, np.zeros(5), np.eye(3), np.array([-cam.baseline_m, 0, 0]),
                             (cam.width, cam.height))
-    pipeline = Pipeline(PipelineConfig(max_disp=128, tracking=False), calibration=raw)
+    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="full", max_disp=128), cutpoints=CutPointConfig(tracking=False)),
+                        calibration=raw)
     assert pipeline.rectifier is not None
     result = pipeline.process(scene.left, scene.right, mask=scene.instance_mask)
     assert result["camera"]["focal_px"] == pytest.approx(cam.focal_px, rel=1e-6)

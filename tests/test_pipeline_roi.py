@@ -10,17 +10,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from branchrange.config import RoiConfig
+from branchrange.config import RoiConfig, SegmenterConfig, StereoConfig
+from branchrange.cutpoints import CutPointConfig
 from branchrange.pipeline import Pipeline, PipelineConfig
 from synth_recording import tree_scene, truth_of
 
+UNTRACKED = CutPointConfig(tracking=False)
 ROI = RoiConfig(coarse_width=240)  # 480×270 frames: a coarse pass at 240×135 (scale 2), as HD720 → 640×360
 
 
 def _pipeline(mode: str, segmenter_name: str = "structure") -> Pipeline:
     scene = tree_scene()
     cam = scene.camera
-    return Pipeline(PipelineConfig(max_disp=64, mode=mode, roi=ROI, tracking=False, segmenter_name=segmenter_name),
+    return Pipeline(PipelineConfig(stereo=StereoConfig(mode=mode, max_disp=64), roi=ROI, cutpoints=UNTRACKED,
+                                   segmenter=SegmenterConfig(model=segmenter_name)),
                     focal_px=cam.focal_px, baseline_m=cam.baseline_m, principal_point=(cam.cx, cam.cy))
 
 
@@ -85,7 +88,7 @@ def test_a_backend_without_windowed_matching_is_refused_in_roi_mode():
             raise AssertionError
 
     scene = tree_scene()
-    pipeline = Pipeline(PipelineConfig(max_disp=64, mode="roi", roi=ROI), focal_px=240.0, baseline_m=0.063,
+    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="roi", max_disp=64), roi=ROI), focal_px=240.0, baseline_m=0.063,
                         backend=WholeFrameOnly())
     with pytest.raises(ValueError, match="cannot match regions of interest; use mode = 'full'"):
         pipeline.process(scene.left, scene.right, mask=scene.instance_mask)
@@ -102,8 +105,8 @@ def test_a_network_matches_only_the_nearest_regions_and_sgbm_the_rest():
     torch.manual_seed(0)
     scene = tree_scene()
     cam = scene.camera
-    pipeline = Pipeline(PipelineConfig(max_disp=64, mode="roi", roi=RoiConfig(coarse_width=240, network_regions=1),
-                                       tracking=False),
+    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="roi", max_disp=64),
+                                       roi=RoiConfig(coarse_width=240, network_regions=1), cutpoints=UNTRACKED),
                         focal_px=cam.focal_px, baseline_m=cam.baseline_m, principal_point=(cam.cx, cam.cy),
                         backend=EMCStereoBackend(EMCStereo(max_disp=64).eval()))
     regions = pipeline.process(scene.left, scene.right, mask=scene.instance_mask)["roi"]["regions"]

@@ -79,5 +79,5 @@ def test_low_stereo_confidence_counts_as_no_depth(tree):
 def test_size_mismatch_and_bad_config_are_named():
     with pytest.raises(ValueError, match="differ in size"):
         GeometricSegmenter().segment(GREY, np.zeros((10, 10), np.float32), GEOMETRY)
-    with pytest.raises(SegmenterConfigError, match=r"segmenter\.max_range_m = 1\.0: expected > min_range_m"):
+    with pytest.raises(SegmenterConfigError, match=r"segmenter\.geometric\.max_range_m = 1\.0: expected > min_range_m"):
         GeometricSegmenterConfig(min_range_m=2.0, max_range_m=1.0)

@@ -9,6 +9,8 @@ import torch
 from torch import nn
 
 from branchrange.geometry import StereoGeometry
+from branchrange.config import SegmenterConfig, StereoConfig
+from branchrange.cutpoints import CutPointConfig
 from branchrange.masks import DEFAULT_TRUNK_ID
 from branchrange.pipeline import Pipeline, PipelineConfig
 from branchrange.segmentation.choose import make_segmenter
@@ -137,8 +139,8 @@ def test_logits_model_splits_branch_pixels_into_instances_and_finds_the_trunk(mo
 
 
 def test_pipeline_uses_the_named_onnx_segmenter(models):
-    config = PipelineConfig(segmenter_name=f"onnx:{models['yolo']}", tracking=False,
-                            onnx_segmenter=OnnxSegmenterConfig(branch_classes=(0,), trunk_classes=(1,)))
+    config = PipelineConfig(cutpoints=CutPointConfig(tracking=False),
+                            segmenter=SegmenterConfig(model=f"onnx:{models['yolo']}", branch_classes=(0,), trunk_classes=(1,)))
     pipeline = Pipeline(config, focal_px=100.0, baseline_m=0.1)
     disparity = np.full((64, 128), 10.0, np.float32)
     result = pipeline.process_disparity(_scene(), disparity)
@@ -146,7 +148,7 @@ def test_pipeline_uses_the_named_onnx_segmenter(models):
 
 
 def test_bad_names_models_and_settings_are_clear_errors(models, tmp_path):
-    with pytest.raises(OnnxSegmenterError, match="'onnx:': expected 'geometric', 'structure' or 'onnx:FILE'"):
+    with pytest.raises(OnnxSegmenterError, match="'onnx:': expected 'learned', 'geometric', 'structure' or 'onnx:FILE'"):
         make_segmenter("onnx:")
     with pytest.raises(OnnxSegmenterError, match="no such model file"):
         make_segmenter(f"onnx:{tmp_path / 'missing.onnx'}")
@@ -167,9 +169,9 @@ def test_config_section_reaches_the_pipeline(models, tmp_path):
     path = tmp_path / "c.toml"
     path.write_text(f'[segmenter]\nmodel = "onnx:{models["yolo"]}"\nbranch_classes = [0]\ntrunk_classes = [1]\n')
     config = pipeline_config(load_config(path))
-    assert config.segmenter_name.endswith("yolo.onnx") and config.onnx_segmenter.trunk_classes == (1,)
+    assert config.segmenter.model.endswith("yolo.onnx") and config.segmenter.trunk_classes == (1,)
     path.write_text('[segmenter]\nmodel = "maskrcnn"\n')
-    with pytest.raises(ConfigError, match="'maskrcnn': expected 'geometric', 'structure' or 'onnx:FILE'"):
+    with pytest.raises(ConfigError, match="'maskrcnn': expected 'learned', 'geometric', 'structure' or 'onnx:FILE'"):
         load_config(path)
     path.write_text('[segmenter]\nbranch_classes = 3\n')
     with pytest.raises(ConfigError, match="segmenter.branch_classes"):
@@ -184,8 +186,8 @@ def test_api_segmenter_field_picks_the_configured_model_or_the_geometric_one(mod
     from api.estimator import PipelineEstimator
     from branchrange.config import ApiConfig
 
-    config = PipelineConfig(segmenter_name=f"onnx:{models['yolo']}", max_disp=64,
-                            onnx_segmenter=OnnxSegmenterConfig(branch_classes=(0,), trunk_classes=(1,)))
+    config = PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64),
+                            segmenter=SegmenterConfig(model=f"onnx:{models['yolo']}", branch_classes=(0,), trunk_classes=(1,)))
     left = _scene()
     right = np.roll(left, -8, axis=1)  # a rectified pair 8 px of disparity apart
     png = [cv2.imencode(".png", image)[1].tobytes() for image in (left, right)]

@@ -108,7 +108,7 @@ def test_ridges_follow_the_image_not_the_disparity():
 
 
 def test_bad_settings_name_the_key():
-    with pytest.raises(SegmenterConfigError, match="segmenter.plane_min_share = 0"):
+    with pytest.raises(SegmenterConfigError, match="segmenter.structure.plane_min_share = 0"):
         StructureSegmenterConfig(plane_min_share=0)
     with pytest.raises(ValueError, match="differ in size"):
         StructureSegmenter().segment(np.zeros((10, 10, 3), np.uint8), np.zeros((5, 5), np.float32), GEOMETRY)

@@ -69,9 +69,9 @@ def test_reset_forgets_tracks_but_not_the_id_counter():
     assert ids(tracker.update([branch(0.0)])) == [2]
 
 
-@pytest.mark.parametrize("kwargs,message", [({"gate_m": 0}, "tracking.gate_m = 0: expected > 0 m"),
-                                            ({"max_missed": -1}, "tracking.max_missed = -1: expected ≥ 0 frames"),
-                                            ({"max_axis_angle_deg": 0}, "tracking.max_axis_angle_deg = 0: expected an angle")])
+@pytest.mark.parametrize("kwargs,message", [({"gate_m": 0}, "branch_tracking.gate_m = 0: expected > 0 m"),
+                                            ({"max_missed": -1}, "branch_tracking.max_missed = -1: expected ≥ 0 frames"),
+                                            ({"max_axis_angle_deg": 0}, "branch_tracking.max_axis_angle_deg = 0: expected an angle")])
 def test_config_errors_name_the_key_value_and_expectation(kwargs, message):
     with pytest.raises(TrackerConfigError, match=re.escape(message)):
         TrackerConfig(**kwargs)

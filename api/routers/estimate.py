@@ -21,6 +21,7 @@ from api.estimator import CameraSpec
 from api.limits import decode_image, decode_mask, read_upload
 from api.schemas import ErrorBody, EstimateResult
 from branchrange.settings_check import PHYSICAL_RANGES, RangeError, check_calibration, check_physical
+from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, BackendConfigError, check_max_disp
 
 router = APIRouter(dependencies=[Depends(require_token)])
 
@@ -33,7 +34,7 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     503: {"model": ErrorBody, "description": "every inference slot is busy (answered before the body is read)",
           "headers": {"Retry-After": {"description": "seconds to wait (api.retry_after_s)", "schema": {"type": "integer"}}}},
 }
-Backend = Literal["sgbm", "emcstereo"]
+Backend = Literal[BACKEND_NAMES]  # type: ignore[valid-type]  # the one list, stereo.backends
 
 
 def _unprocessable(message: str) -> HTTPException:
@@ -117,10 +118,15 @@ async def stereo_request(
         "rectified pair: baseline, metres (with focal_px); "
         f"{PHYSICAL_RANGES['baseline_m'].describe()}"))] = None,
     backend: Annotated[Backend | None, Form(description="stereo backend; the server's default when left out")] = None,
-    max_disp: Annotated[int | None, Form(gt=0, le=512, description="disparity search range, pixels")] = None,
+    max_disp: Annotated[int | None, Form(description=f"disparity search range: {MAX_DISP_EXPECTED}")] = None,
 ) -> StereoRequest:
     """The decoded pair and its `CameraSpec`; 4xx with a message for anything unusable."""
     settings = request.app.state.settings
+    if max_disp is not None:
+        try:
+            check_max_disp(max_disp)
+        except BackendConfigError as exc:
+            raise _unprocessable(str(exc)) from None
     if calibration is not None and (focal_px is not None or baseline_m is not None):
         raise _unprocessable("give either a calibration file or focal_px + baseline_m, not both")
     if calibration is None and (focal_px is None or baseline_m is None):

@@ -10,13 +10,14 @@ import sys
 import threading
 from typing import Any
 
+from branchrange.commands.config_args import add_config_arguments, config_from_args
 from branchrange.commands.serve import TOKEN_ENV, ServeError, check_bind
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `daemon` to the `branchrange` command."""
     p = subparsers.add_parser("daemon", help="run onboard: camera → cut points → MAVLink", description=__doc__)
-    p.add_argument("--config", required=True, help="TOML configuration (see deploy/onboard.toml)")
+    add_config_arguments(p, required=True, sections="every section; see deploy/onboard.toml")
     p.add_argument("--source", help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH, "
                                     "rosbag:PATH)")
     p.add_argument("--mavlink", help="MAVLink connection string, overrides mavlink.url")
@@ -44,7 +45,7 @@ def _start_api(cfg: Any, daemon: Any, metrics: Any) -> tuple[Any, threading.Thre
 def run(args: argparse.Namespace) -> int:
     """Build source, pipeline, relay and log from the config; run until the source ends or a signal."""
     from api.metrics import Metrics
-    from branchrange.config import ConfigError, load_config
+    from branchrange.config import ConfigError
     from branchrange.daemon import Daemon
     from branchrange.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
     from branchrange.frame_results import pipeline_for
@@ -53,11 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from camera.sources import SourceError, open_source
 
     try:
-        cfg = load_config(args.config)
-        cfg = dataclasses.replace(
-            cfg, camera=dataclasses.replace(cfg.camera, source=args.source or cfg.camera.source),
-            mavlink=dataclasses.replace(cfg.mavlink, url=args.mavlink or cfg.mavlink.url),
-            api=dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, "")))
+        cfg = config_from_args(args, {"camera.source": args.source, "mavlink.url": args.mavlink})
+        cfg = dataclasses.replace(cfg, api=dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, "")))
         if cfg.api.enabled:
             check_bind(cfg.api.host, cfg.api.token)
         targets = parse_targets(args.foxglove) if args.foxglove else None

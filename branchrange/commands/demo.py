@@ -20,8 +20,8 @@ from branchrange.commands.estimate import (
     add_segmenter_arguments,
     add_stereo_arguments,
     branch_table,
-    chosen_backend,
     segmenter_settings,
+    whole_frame_stereo,
 )
 
 DEMO_SEED = 6
@@ -70,26 +70,25 @@ def truth_table(result: dict, truth: list) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Render, run, print, write."""
+    from branchrange.cutpoints import CutPointConfig
     from branchrange.overlay import write_overlay
     from branchrange.pipeline import Pipeline, PipelineConfig
-    from branchrange.segmentation.choose import make_segmenter
     from stereo.commands.synth import parse_size
     from stereo.io import write_rgb
     from stereo.synth import SynthCamera, render_scene
 
     try:
-        backend = chosen_backend(args)
         width, height = parse_size(args.size)
-        config = PipelineConfig(backend=backend, weights=str(args.weights) if args.weights else None,
-                                max_disp=args.max_disp, tracking=False, **segmenter_settings(args))
-        segmenter = make_segmenter(config.segmenter_name, config.segmenter, config.onnx_segmenter)  # before rendering
+        config = PipelineConfig(stereo=whole_frame_stereo(args), cutpoints=CutPointConfig(tracking=False),
+                                segmenter=segmenter_settings(args))
+        segmenter = config.segmenter.build()  # before rendering
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"branchrange demo: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     if args.weights is None:
         print("no --weights given: using the classical sgbm stereo backend (pass --weights W for EMCStereo)")
     else:
-        print(f"stereo backend: {backend} with weights {args.weights}")
+        print(f"stereo backend: {config.stereo.backend} with weights {args.weights}")
     start = time.perf_counter()
     scene = render_scene(args.seed, SynthCamera.zed_mini(width, height))
     print(f"rendered scene {args.seed} ({width}×{height}, {scene.pose} view, {scene.foliage} foliage, "

@@ -11,6 +11,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 #: Exit status for input the command cannot use (bad file, size, calibration …).
 EXIT_BAD_INPUT = 2
@@ -31,19 +32,34 @@ def branch_table(result: dict) -> str:
 
 def add_stereo_arguments(parser: argparse.ArgumentParser, default_backend: str | None) -> None:
     """--backend/--weights/--max-disp, shared by the commands that run a stereo backend."""
-    parser.add_argument("--backend", choices=("sgbm", "emcstereo"), default=default_backend,
+    from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED
+
+    parser.add_argument("--backend", choices=BACKEND_NAMES, default=default_backend,
                         help="stereo backend (default: emcstereo with --weights, else sgbm)")
-    parser.add_argument("--weights", type=Path, help="EMCStereo checkpoint (any supported layout)")
-    parser.add_argument("--max-disp", type=int, default=192, help="disparity search range in px (default 192)")
+    parser.add_argument("--weights", type=Path,
+                        help="EMCStereo checkpoint (any supported layout), or the .onnx file of --backend onnx")
+    parser.add_argument("--max-disp", type=int, default=192,
+                        help=f"disparity search range (stereo.max_disp): {MAX_DISP_EXPECTED} (default 192)")
 
 
 def chosen_backend(args: argparse.Namespace) -> str:
     """The backend the user asked for, or emcstereo when weights were given and sgbm otherwise."""
+    from stereo.backends import WEIGHTED_BACKENDS
+
     if args.backend is not None:
-        if args.backend == "emcstereo" and args.weights is None:
-            raise ValueError("--backend emcstereo needs --weights: an untrained network gives meaningless depth")
+        if args.backend in WEIGHTED_BACKENDS and args.weights is None:
+            raise ValueError(f"--backend {args.backend} needs --weights: an untrained network gives meaningless depth")
         return args.backend
     return "emcstereo" if args.weights is not None else "sgbm"
+
+
+def whole_frame_stereo(args: argparse.Namespace) -> Any:
+    """The `[stereo]` settings of --backend/--weights/--max-disp for one pair: whole-frame matching
+    (ConfigError naming `stereo.max_disp` … for a value out of range)."""
+    from branchrange.config import StereoConfig
+
+    return StereoConfig(backend=chosen_backend(args), weights=str(args.weights or ""), max_disp=args.max_disp,
+                        mode="full")
 
 
 def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: bool) -> None:
@@ -65,12 +81,12 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
                         help="class ids an onnx model uses for the trunk (default none)")
 
 
-def segmenter_settings(args: argparse.Namespace) -> dict:
-    """`PipelineConfig` keyword arguments for the segmenter options (ValueError on bad ones)."""
-    from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
+def segmenter_settings(args: argparse.Namespace) -> Any:
+    """The `[segmenter]` settings of the segmenter options (ValueError on bad ones)."""
+    from branchrange.config import SegmenterConfig
 
-    onnx = OnnxSegmenterConfig(branch_classes=tuple(args.branch_classes), trunk_classes=tuple(args.trunk_classes))
-    return {"segmenter_name": args.segmenter or "structure", "onnx_segmenter": onnx}
+    return SegmenterConfig(model=args.segmenter or "structure", branch_classes=tuple(args.branch_classes),
+                           trunk_classes=tuple(args.trunk_classes))
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -98,14 +114,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _pipeline(args: argparse.Namespace, size: tuple[int, int]):
+def _settings(args: argparse.Namespace) -> Any:
+    """The `PipelineConfig` of the options: one pair, untracked, its rectification checked
+    (`ConfigError` naming the key of a bad option)."""
+    from branchrange.config import MaskConfig
+    from branchrange.cutpoints import CutPointConfig
+    from branchrange.pipeline import PipelineConfig
+
+    return PipelineConfig(stereo=whole_frame_stereo(args), cutpoints=CutPointConfig(tracking=False),
+                          masks=MaskConfig(trunk_id=args.trunk_id), segmenter=segmenter_settings(args),
+                          check_pair=True)
+
+
+def _pipeline(args: argparse.Namespace, config: Any, size: tuple[int, int]) -> Any:
     """The pipeline the arguments describe (raises ValueError subclasses on bad camera input)."""
-    from branchrange.pipeline import Pipeline, PipelineConfig
+    from branchrange.pipeline import Pipeline
     from branchrange.settings_check import check_calibration, check_image_size, check_physical
 
-    config = PipelineConfig(backend=chosen_backend(args), weights=str(args.weights) if args.weights else None,
-                            max_disp=args.max_disp, trunk_id=args.trunk_id, tracking=False, check_pair=True,
-                            **segmenter_settings(args))
     check_image_size(*size, name=f"{args.left}: image size")
     if args.calib is not None:
         from camera import load_calibration
@@ -129,8 +154,9 @@ def run(args: argparse.Namespace) -> int:
     from stereo.io import read_rgb
 
     try:
+        config = _settings(args)  # bad options fail before any image is read
         left, right = read_rgb(args.left), read_rgb(args.right)
-        pipeline = _pipeline(args, (left.shape[1], left.shape[0]))
+        pipeline = _pipeline(args, config, (left.shape[1], left.shape[0]))
         result = pipeline.process(left, right, mask=args.mask)
         if result["pair_check"]["status"] == "warning":
             print(f"branchrange estimate: warning: {result['pair_check']['message']}", file=sys.stderr)

@@ -35,17 +35,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and print the table."""
+    from branchrange.cutpoints import DEFAULT_TARGET_POLICY
     from branchrange.evaluate_cuts import evaluate_cuts, format_table, scores_as_dict
-    from branchrange.pipeline import PipelineConfig
+    from branchrange.pipeline import untracked_whole_frame
 
     stereo = args.stereo or (["gt", "sgbm"] + (["emcstereo"] if args.weights else []))
     try:
         scores = evaluate_cuts(args.dir, stereo, args.masks, weights=str(args.weights) if args.weights else None,
                                max_disp=args.max_disp, limit=args.limit, split=args.split,
                                min_confidence=args.min_confidence,
-                               config=PipelineConfig(tracking=False, max_disp=args.max_disp,
-                                                     **({"target_policy": args.target_policy}
-                                                        if args.target_policy else {})))
+                               config=untracked_whole_frame(args.max_disp, args.target_policy or DEFAULT_TARGET_POLICY))
     except (ValueError, OSError) as exc:
         print(f"branchrange evaluate-cuts: error: {exc}", file=sys.stderr)
         return 2

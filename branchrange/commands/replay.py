@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
 from pathlib import Path
 
+from branchrange.commands.config_args import add_config_arguments, config_from_args
 from branchrange.commands.exit_codes import BAD_INPUT, DONE, EPILOG, STOPPED_ON_ERROR
+from stereo.backends import BACKEND_NAMES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,9 +25,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                            "this OpenCV cannot write mp4v)")
     p.add_argument("--summary", action="store_true",
                    help="print a summary and write it as JSON next to --out (NAME.summary.json)")
-    p.add_argument("--config", help="TOML configuration as the daemon reads it ([camera] calibration, [stereo], "
-                                    "[cutpoints]); defaults otherwise")
-    p.add_argument("--backend", choices=("sgbm", "emcstereo"), help="stereo backend (overrides stereo.backend)")
+    add_config_arguments(p, required=False, sections="as the daemon reads it: [camera] calibration, [stereo], [roi], "
+                                                     "[cutpoints], [branch_tracking], [masks], [segmenter], [log]")
+    p.add_argument("--backend", choices=BACKEND_NAMES, help="stereo backend (overrides stereo.backend)")
     p.add_argument("--weights", help="EMCStereo weights (overrides stereo.weights)")
     p.add_argument("--max-disp", type=int, help="largest disparity searched, px (overrides stereo.max_disp)")
     p.add_argument("--foxglove", action="append", default=[], metavar="FILE.mcap|ws://HOST:PORT",
@@ -43,19 +44,15 @@ def summary_path(out: str | Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """Load the config with the command line's overrides, replay, print and write the summary."""
-    from branchrange.config import ConfigError, load_config
+    from branchrange.config import ConfigError
     from branchrange.overlay_video import VideoWriteError
     from branchrange.foxglove_sink import FoxgloveTargetError, FoxgloveSink, parse_targets
     from branchrange.replay import replay_recording, source_spec
     from camera.sources import SourceError
 
     try:
-        cfg = load_config(args.config)
-        stereo = dataclasses.replace(
-            cfg.stereo, backend=args.backend or cfg.stereo.backend, weights=args.weights or cfg.stereo.weights,
-            max_disp=cfg.stereo.max_disp if args.max_disp is None else args.max_disp)
-        cfg = dataclasses.replace(cfg, stereo=stereo,
-                                  camera=dataclasses.replace(cfg.camera, source=source_spec(args.recording)))
+        cfg = config_from_args(args, {"stereo.backend": args.backend, "stereo.weights": args.weights,
+                                      "stereo.max_disp": args.max_disp, "camera.source": source_spec(args.recording)})
         targets = parse_targets(args.foxglove) if args.foxglove else None
     except (ConfigError, FoxgloveTargetError) as exc:
         print(f"branchrange replay: {exc}", file=sys.stderr)

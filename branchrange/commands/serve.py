@@ -7,6 +7,8 @@ import ipaddress
 import os
 import sys
 
+from branchrange.commands.config_args import add_config_arguments, config_from_args
+
 #: Environment variable read (here, at the command line layer only) when the config has no token.
 TOKEN_ENV = "BRANCHRANGE_API_TOKEN"
 
@@ -35,7 +37,7 @@ def check_bind(host: str, token: str) -> None:
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `serve` to the `branchrange` command."""
     p = subparsers.add_parser("serve", help="run the HTTP service", description=__doc__)
-    p.add_argument("--config", help="TOML configuration ([api], [stereo], [cutpoints]); defaults otherwise")
+    add_config_arguments(p, required=False, sections="[api], [stereo], [roi], [cutpoints], [masks], [segmenter], [log]")
     p.add_argument("--host", help="address to bind (overrides api.host)")
     p.add_argument("--port", type=int, help="TCP port (overrides api.port)")
     p.set_defaults(func=run)
@@ -47,13 +49,11 @@ def run(args: argparse.Namespace) -> int:
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.config import ConfigError, load_config, pipeline_config
+    from branchrange.config import ConfigError, pipeline_config
 
     try:
-        cfg = load_config(args.config)
-        api = dataclasses.replace(cfg.api, host=args.host or cfg.api.host,
-                                  port=cfg.api.port if args.port is None else args.port,
-                                  token=cfg.api.token or os.environ.get(TOKEN_ENV, ""))
+        cfg = config_from_args(args, {"api.host": args.host, "api.port": args.port})
+        api = dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, ""))
         check_bind(api.host, api.token)
     except (ConfigError, ServeError) as exc:
         print(f"branchrange serve: {exc}", file=sys.stderr)

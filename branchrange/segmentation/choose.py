@@ -4,7 +4,7 @@ from __future__ import annotations
 from branchrange.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
 from branchrange.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
-from branchrange.segmentation.structure import StructureSegmenter
+from branchrange.segmentation.structure import StructureSegmenter, StructureSegmenterConfig
 
 #: The names `make_segmenter` accepts, for help texts and error messages.
 SEGMENTER_NAMES = "'learned', 'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model)"
@@ -19,6 +19,7 @@ def check_segmenter_name(name: str) -> str:
 
 def make_segmenter(name: str, geometric: GeometricSegmenterConfig = GeometricSegmenterConfig(),
                    onnx: OnnxSegmenterConfig = OnnxSegmenterConfig(),
+                   structure: StructureSegmenterConfig = StructureSegmenterConfig(),
                    learned: LearnedSegmenterConfig = LearnedSegmenterConfig()) -> Segmenter:
     """The segmenter `name` names, built with its settings; `OnnxSegmenterError` for a bad name or model."""
     check_segmenter_name(name)
@@ -27,5 +28,5 @@ def make_segmenter(name: str, geometric: GeometricSegmenterConfig = GeometricSeg
     if name == "learned":
         return LearnedSegmenter(learned)
     if name == "structure":
-        return StructureSegmenter()
+        return StructureSegmenter(structure)
     return OnnxSegmenter(name[len("onnx:"):], onnx)

@@ -32,7 +32,7 @@ from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks
 from branchrange.segmentation.branchnet import CLASSES, padded_to_stride, network_input
 from branchrange.segmentation.onnx_model import OnnxSegmenterError, onnx_session
 from branchrange.segmenter import depth_edges
-from branchrange.settings_check import check_settings
+from branchrange.settings_check import Checks, Settings
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
 SHIPPED_MODEL = Path(__file__).with_name("weights") / "branchnet.onnx"
@@ -40,7 +40,7 @@ _TRUNK, _BRANCH = CLASSES.index("trunk"), CLASSES.index("branch")
 
 
 @dataclass(frozen=True)
-class LearnedSegmenterConfig:
+class LearnedSegmenterConfig(Settings):
     """Settings of `LearnedSegmenter`.
 
     - `model`: an ONNX `BranchNet` file; empty = the shipped one.
@@ -51,6 +51,9 @@ class LearnedSegmenterConfig:
     - `trunk_id`: the id the trunk gets in the returned instances.
     """
 
+    section = "segmenter.learned"
+    error = OnnxSegmenterError
+
     model: str = ""
     branch_threshold: float = 0.5
     min_area_px: int = 12
@@ -58,14 +61,15 @@ class LearnedSegmenterConfig:
     threads: int = 2
     trunk_id: int = DEFAULT_TRUNK_ID
 
-    def __post_init__(self) -> None:
-        check_settings("segmenter", self, {
+    def checks(self) -> Checks:
+        """Range checks of the settings (`Settings`)."""
+        return {
             "branch_threshold": (0 < self.branch_threshold < 1, "a probability in (0, 1)"),
             "min_area_px": (self.min_area_px >= 1, "≥ 1 pixel"),
             "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
             "threads": (1 <= self.threads <= 64, "1..64 threads"),
             "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
-        }, OnnxSegmenterError)
+        }
 
 
 def verified_model(path: Path) -> Path:

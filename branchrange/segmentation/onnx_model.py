@@ -25,7 +25,7 @@ import numpy as np
 
 from branchrange.geometry import StereoGeometry
 from branchrange.masks import DEFAULT_TRUNK_ID, BranchMasks, split_binary
-from branchrange.settings_check import check_settings
+from branchrange.settings_check import Checks, Settings
 
 
 class OnnxSegmenterError(ValueError):
@@ -33,8 +33,8 @@ class OnnxSegmenterError(ValueError):
 
 
 @dataclass(frozen=True)
-class OnnxSegmenterConfig:
-    """Settings of `OnnxSegmenter`.
+class OnnxSegmenterConfig(Settings):
+    """Settings of `OnnxSegmenter` (the `[segmenter]` keys besides `model`).
 
     - `branch_classes`, `trunk_classes`: the model's class ids that are branch / trunk (others are
       ignored); at least one branch class.
@@ -56,9 +56,13 @@ class OnnxSegmenterConfig:
     threads: int = 2
     trunk_id: int = DEFAULT_TRUNK_ID
 
-    def __post_init__(self) -> None:
+    section = "segmenter"
+    error = OnnxSegmenterError
+
+    def checks(self) -> Checks:
+        """The range of every setting; a class id is branch or trunk, not both."""
         overlap = set(self.branch_classes) & set(self.trunk_classes)
-        checks = {
+        return {
             "branch_classes": (len(self.branch_classes) > 0 and min(self.branch_classes) >= 0,
                                "at least one class id ≥ 0"),
             "trunk_classes": (not overlap and all(c >= 0 for c in self.trunk_classes),
@@ -71,7 +75,6 @@ class OnnxSegmenterConfig:
             "threads": (self.threads >= 1, "≥ 1"),
             "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
         }
-        check_settings("segmenter", self, checks, OnnxSegmenterError)
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,9 @@ from branchrange.segmenter import (
 
 @dataclass(frozen=True)
 class StructureSegmenterConfig(BuiltinSegmenterConfig):
-    """Settings of `StructureSegmenter` (metres unless named otherwise); see the module docstring."""
+    """`[segmenter.structure]`, settings of `StructureSegmenter` (metres unless named otherwise); see the module docstring."""
+
+    section = "segmenter.structure"
 
     max_range_m: float = 4.0
     min_branch_length_m: float = 0.2

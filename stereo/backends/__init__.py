@@ -4,10 +4,23 @@ from __future__ import annotations
 import os
 import warnings
 
-from stereo.backends.base import BackendConfigError, StereoBackend, StereoInputError, StereoResult, validate_pair
+from stereo.backends.base import (
+    MAX_DISP_EXPECTED,
+    PRECISIONS,
+    BackendConfigError,
+    StereoBackend,
+    StereoInputError,
+    StereoResult,
+    check_max_disp,
+    is_valid_max_disp,
+    validate_pair,
+)
 from stereo.backends.sgbm import SGBMBackend
 
-BACKEND_NAMES = ("sgbm", "emcstereo", "onnx")
+#: Every backend `make_backend` builds: the one list the config, the command line and the API offer.
+BACKEND_NAMES: tuple[str, ...] = ("sgbm", "emcstereo", "onnx")
+#: The backends that need `weights` (a checkpoint; an exported .onnx file for onnx).
+WEIGHTED_BACKENDS: tuple[str, ...] = ("emcstereo", "onnx")
 
 
 class UntrainedModelWarning(UserWarning):
@@ -59,12 +72,17 @@ def make_backend(
 
 __all__ = [
     "BACKEND_NAMES",
+    "MAX_DISP_EXPECTED",
+    "PRECISIONS",
+    "WEIGHTED_BACKENDS",
     "BackendConfigError",
     "SGBMBackend",
     "StereoBackend",
     "StereoInputError",
     "StereoResult",
     "UntrainedModelWarning",
+    "check_max_disp",
+    "is_valid_max_disp",
     "make_backend",
     "validate_pair",
 ]

@@ -6,7 +6,15 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-PRECISIONS = ("fp32", "fp16", "bf16")
+#: The numeric precisions a backend may be asked for (fp16/bf16: CUDA autocast, emcstereo only).
+PRECISIONS: tuple[str, ...] = ("fp32", "fp16", "bf16")
+#: A disparity search range is a whole number of these (SGBM's step; EMCStereo's ¼-resolution cost
+#: volume is halved twice by its hourglass) …
+MAX_DISP_STEP = 16
+#: … and at most this many pixels (0.3 m at f = 2 400 px, B = 63 mm; each step costs matching time).
+MAX_DISP_LIMIT = 512
+#: What `max_disp` accepts, for messages.
+MAX_DISP_EXPECTED = f"a positive multiple of {MAX_DISP_STEP} up to {MAX_DISP_LIMIT} px"
 
 
 class StereoInputError(ValueError):
@@ -52,6 +60,19 @@ class StereoBackend(Protocol):
         0 invalid, `max_disparity = d_min + d_range`. The backend crops (and edge-replicates) itself.
         A bad box raises StereoInputError; a range the backend cannot search, BackendConfigError."""
         ...
+
+
+def is_valid_max_disp(value: object) -> bool:
+    """Whether `value` is a usable disparity search range: an int multiple of `MAX_DISP_STEP` in (0, `MAX_DISP_LIMIT`]."""
+    return (isinstance(value, int) and not isinstance(value, bool)
+            and 0 < value <= MAX_DISP_LIMIT and value % MAX_DISP_STEP == 0)
+
+
+def check_max_disp(value: object, name: str = "max_disp") -> int:
+    """`value` when `is_valid_max_disp`, else `BackendConfigError` naming `name`: the one max_disp rule."""
+    if not is_valid_max_disp(value):
+        raise BackendConfigError(f"{name} = {value!r}: expected {MAX_DISP_EXPECTED}")
+    return value  # type: ignore[return-value]
 
 
 def stage_timings_ms(start: float, marks: list[tuple[str, float]]) -> dict[str, float]:

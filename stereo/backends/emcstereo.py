@@ -12,9 +12,11 @@ import numpy as np
 import torch
 
 from stereo.backends.base import (
+    MAX_DISP_STEP,
     PRECISIONS,
     BackendConfigError,
     StereoResult,
+    is_valid_max_disp,
     sanitize_dense_output,
     stage_timings_ms,
     validate_pair,
@@ -25,7 +27,6 @@ from stereo.padding import compute_padding, pad_image, unpad
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-DISPARITY_MULTIPLE = 16
 NETWORK_RANGE_STEP = 16  # compute_roi's search ranges: what the hourglass accepts at any size
 _AUTOCAST_DTYPES = {"fp16": torch.float16, "bf16": torch.bfloat16}
 
@@ -65,9 +66,9 @@ class EMCStereoBackend:
         precision: str = "fp32",
     ) -> None:
         max_disp = model.max_disp if max_disp is None else max_disp
-        if not isinstance(max_disp, int) or max_disp <= 0 or max_disp % DISPARITY_MULTIPLE or max_disp > model.max_disp:
+        if not is_valid_max_disp(max_disp) or max_disp > model.max_disp:
             raise BackendConfigError(
-                f"emcstereo max_disp must be a multiple of {DISPARITY_MULTIPLE} in (0, {model.max_disp}] "
+                f"emcstereo max_disp must be a multiple of {MAX_DISP_STEP} in (0, {model.max_disp}] "
                 f"(the model's trained range), got {max_disp!r}"
             )
         if precision not in PRECISIONS:

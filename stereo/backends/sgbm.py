@@ -37,7 +37,7 @@ import time
 import cv2
 import numpy as np
 
-from stereo.backends.base import BackendConfigError, StereoResult, stage_timings_ms, validate_pair
+from stereo.backends.base import BackendConfigError, StereoResult, check_max_disp, stage_timings_ms, validate_pair
 from stereo.backends.roi import crop_replicate, validate_window
 
 SGBM_DISPARITY_STEP = 16
@@ -76,8 +76,7 @@ class SGBMBackend:
         truth masks: cut points within 5 cm 70.2 % with it, 73.7 % without), but its confidence is 1
         wherever valid, so the cut points' confidence loses its stereo term and near-equal branches
         trade the target from frame to frame: kept on until confidence has another source."""
-        if not isinstance(max_disp, int) or max_disp <= 0 or max_disp % SGBM_DISPARITY_STEP:
-            raise BackendConfigError(f"sgbm max_disp must be a positive multiple of {SGBM_DISPARITY_STEP}, got {max_disp!r}")
+        check_max_disp(max_disp, "sgbm max_disp")
         if block_size < 1 or block_size % 2 == 0:
             raise BackendConfigError(f"sgbm block_size must be odd and positive, got {block_size}")
         if lr_tolerance <= 0:
