@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from branchrange.frame_result import FrameResult
 from branchrange.pipeline import Pipeline, PipelineConfig
 
 
@@ -29,7 +30,7 @@ class Estimator(Protocol):
     """What the API calls: one stereo pair in, a result or a disparity out (blocking; run off-loop)."""
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
+                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> FrameResult:
         """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`;
         `segmenter` 'structure' / 'geometric' asks for a built-in segmenter instead of the server's configured one."""
         ...
@@ -92,7 +93,7 @@ class PipelineEstimator:
                         segmenter=self.segmenter(segmenter))
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
+                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> FrameResult:
         """See `Estimator.estimate`; input errors are the pipeline's ValueErrors."""
         with self._lock:
             return self._pipeline(camera, backend, max_disp, segmenter).process(left, right, mask)

@@ -119,23 +119,6 @@ class BranchEstimate:
     n_points: int
     id: int = -1
 
-    def to_dict(self) -> dict:
-        """The branch entry of a `branchrange/v1` result."""
-        return {
-            "id": int(self.id),
-            "mask_id": int(self.mask_id),
-            "cut_point_m": [round(float(v), 5) for v in self.cut_point_m],
-            "distance_m": round(float(self.distance_m), 5),
-            "pixel": [round(float(self.pixel[0]), 2), round(float(self.pixel[1]), 2)],
-            "diameter_m": round(float(self.diameter_m), 5),
-            "axis": [round(float(v), 5) for v in self.axis],
-            "base_m": [round(float(v), 5) for v in self.base_m],
-            "confidence": round(float(self.confidence), 4),
-            "valid_fraction": round(float(self.valid_fraction), 4),
-            "residual_m": round(float(self.residual_m), 5),
-            "points": int(self.n_points),
-        }
-
 
 @dataclass(frozen=True)
 class DroppedBranch:
@@ -143,10 +126,6 @@ class DroppedBranch:
 
     mask_id: int
     reason: str
-
-    def to_dict(self) -> dict:
-        """The `dropped` entry of a `branchrange/v1` result."""
-        return {"mask_id": int(self.mask_id), "reason": self.reason}
 
 
 @dataclass

@@ -18,7 +18,7 @@ Cost: ~10–25 ms at 640×360 on one core (ORB on ≤ 1000 features); images wid
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -49,10 +49,6 @@ class PairCheck:
     matches: int
     status: str
     message: str
-
-    def to_dict(self) -> dict:
-        """JSON-ready form (the `pair_check` field of a result)."""
-        return asdict(self)
 
     def raise_if_refused(self) -> None:
         """`PairRefusedError` when the pair must not be used for stereo."""

@@ -1,4 +1,4 @@
-"""The per-frame pipeline: stereo pair (+ optional mask) → cut points in the `branchrange/v1` schema.
+"""The per-frame pipeline: stereo pair (+ optional mask) → cut points, a `FrameResult` (`branchrange/v1`).
 
 Stages, each timed in `timing_ms`: rectify (when a raw calibration is given) → stereo backend →
 masks (given, or the segmenter) → cut points → tracking (stable ids) → target. One `Pipeline` is
@@ -25,6 +25,18 @@ from branchrange.cutpoints import (
     estimate_cut_points,
     select_target,
 )
+from branchrange.frame_result import (
+    Branch,
+    CameraInfo,
+    DroppedInstance,
+    Frame,
+    FrameResult,
+    MasksInfo,
+    PairCheckInfo,
+    RoiInfo,
+    RoiRegion,
+    StereoInfo,
+)
 from branchrange.geometry import StereoGeometry, offset_disparity, valid_disparity
 from branchrange.masks import (
     DEFAULT_IGNORED_IDS,
@@ -45,8 +57,6 @@ from branchrange.segmenter import GeometricSegmenterConfig, Segmenter
 from branchrange.timing import lap_ms
 from branchrange.tracking import BranchTracker, TrackerConfig
 
-SCHEMA_ID = "branchrange/v1"
-SCHEMA_PATH = Path(__file__).with_name("schemas") / "result_v1.json"
 
 MaskInput = BranchMasks | np.ndarray | str | Path | None
 #: 'full': whole-frame stereo at full resolution; 'roi': coarse-to-fine (`branchrange.roi`).
@@ -277,8 +287,8 @@ class Pipeline:
         return masks
 
     def process(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
-                index: int = 0, timestamp_ns: int = 0) -> dict:
-        """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → result dict.
+                index: int = 0, timestamp_ns: int = 0) -> FrameResult:
+        """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → its `FrameResult`.
 
         `mask`: an instance-id / binary mask (array, path or `BranchMasks`) in the left image's
         pixels, or None for the segmenter. The same as `geometry_stage(stereo_stage(...))`.
@@ -325,7 +335,7 @@ class Pipeline:
 
     def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
                           mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
-                          backend: str = "given") -> dict:
+                          backend: str = "given") -> FrameResult:
         """The stages after stereo on a rectified left image and its `float32 H×W` disparity (px).
 
         `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
@@ -350,7 +360,7 @@ class Pipeline:
                             (time.perf_counter() - start) * 1000.0)
         return self.geometry_stage(stage)
 
-    def geometry_stage(self, stage: StereoStage) -> dict:
+    def geometry_stage(self, stage: StereoStage) -> FrameResult:
         """The second half of a frame: masks (the segmenter when none) → cut points → tracking → target → result.
 
         `timing_ms.total` is the compute time of both halves (ms), not including any wait between them.
@@ -393,30 +403,20 @@ class Pipeline:
         if target is None and cut.branches:
             reason = f"no branch reaches the target confidence {self.config.target_min_confidence}"
         timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
-        result = {
-            "schema": SCHEMA_ID,
-            "frame": {"index": stage.index, "timestamp_ns": stage.timestamp_ns,
-                      "width": int(left.shape[1]), "height": int(left.shape[0])},
-            "camera": {"focal_px": geometry.focal_px, "baseline_m": geometry.baseline_m,
-                       "cx": geometry.cx, "cy": geometry.cy},
-            "stereo": {"backend": stage.backend, "max_disparity": int(max_disparity),
-                       "valid_fraction": round(float(valid.mean()), 4)},
-            "timing_ms": timing,
-            "masks": {"source": masks.source if masks is not None else "none",
-                      "instances": len(masks.branch_ids()) if masks is not None else 0,
-                      "trunk": masks is not None and masks.trunk() is not None},
-            "branches": [b.to_dict() for b in sorted(cut.branches, key=lambda b: b.id)],
-            "dropped": [d.to_dict() for d in cut.dropped],
-            "target_id": None if target is None else int(target.id),
-        }
-        if reason is not None:
-            result["reason"] = reason
-        if stage.regions is not None:
-            result["roi"] = {"regions": [region.to_dict() for region in stage.regions]}
-        if stage.pair_check is not None:
-            result["pair_check"] = stage.pair_check.to_dict()
-        return result
-
+        return FrameResult(
+            frame=Frame(stage.index, stage.timestamp_ns, int(left.shape[1]), int(left.shape[0])),
+            camera=CameraInfo(geometry.focal_px, geometry.baseline_m, geometry.cx, geometry.cy),
+            stereo=StereoInfo(stage.backend, int(max_disparity), round(float(valid.mean()), 4)),
+            timing_ms=timing,
+            masks=MasksInfo("none", 0, False) if masks is None else
+            MasksInfo(masks.source, len(masks.branch_ids()), masks.trunk() is not None),
+            branches=tuple(Branch.from_estimate(b) for b in sorted(cut.branches, key=lambda b: b.id)),
+            dropped=tuple(DroppedInstance.from_dropped(d) for d in cut.dropped),
+            target_id=None if target is None else int(target.id),
+            reason=reason,
+            roi=None if stage.regions is None else RoiInfo(tuple(RoiRegion.from_region(r) for r in stage.regions)),
+            pair_check=None if stage.pair_check is None else PairCheckInfo.from_check(stage.pair_check),
+        )
 
 def _rectify_labels(rectifier: Any, labels: np.ndarray) -> np.ndarray:
     """Instance labels drawn on the raw left image, moved to the rectified left image (nearest id)."""

@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, status
+from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from api.auth import require_token
@@ -154,7 +155,7 @@ async def _infer(request: Request, func: Any, *args: Any, **kwargs: Any) -> Any:
         return out
 
 
-@router.post("/estimate", response_model=EstimateResult, response_model_exclude_unset=True, responses=ERRORS,
+@router.post("/estimate", response_model=EstimateResult, responses=ERRORS,
              summary="Cut points of the branches in a stereo pair")
 async def post_estimate(
     request: Request,
@@ -165,7 +166,7 @@ async def post_estimate(
     segmenter: Annotated[Literal["configured", "structure", "geometric"], Form(description=(
         "without a mask: 'configured' = the server's [segmenter] model (e.g. its onnx:FILE), "
         "'structure' or 'geometric' = a built-in one"))] = "configured",
-) -> dict:
+) -> JSONResponse:
     """Stereo pair (+ optional mask) and camera → the `branchrange/v1` result."""
     settings = request.app.state.settings
     mask_arr = None
@@ -175,9 +176,10 @@ async def post_estimate(
         if mask_arr.shape != pair.left.shape[:2]:
             raise _unprocessable(f"mask is {mask_arr.shape[1]}×{mask_arr.shape[0]} px but the images are "
                                  f"{pair.left.shape[1]}×{pair.left.shape[0]} px; it must match the left image")
-    return await _infer(request, request.app.state.estimator.estimate, pair.left, pair.right, mask_arr, pair.camera,
-                        backend=pair.backend, max_disp=pair.max_disp,
-                        segmenter=None if segmenter == "configured" else segmenter)
+    result = await _infer(request, request.app.state.estimator.estimate, pair.left, pair.right, mask_arr, pair.camera,
+                          backend=pair.backend, max_disp=pair.max_disp,
+                          segmenter=None if segmenter == "configured" else segmenter)
+    return JSONResponse(result.to_json_dict())
 
 
 def _encode_kitti_png(disparity: np.ndarray) -> bytes:
