@@ -42,7 +42,7 @@ def without_timing(results: list[dict]) -> list[dict]:
 
 
 def read_lines(path) -> list[dict]:
-    return list(read_results(path))  # frame results; the run header is skipped
+    return [r.to_json_dict() for r in read_results(path)]  # frame results; the run header is skipped
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,7 @@ def test_a_failing_observer_is_logged_and_the_others_get_every_frame(runs):
                                                            for i, r in enumerate(runs["failures"])]
     assert len(runs["failures"]) == FRAMES and "a viewer that breaks" in str(runs["failures"][0].exc_info[1])
     seen = runs["seen"]
-    assert [r["frame"]["index"] for r, _ in seen] == list(range(FRAMES))
+    assert [r.frame.index for r, _ in seen] == list(range(FRAMES))
     result, artifacts = seen[-1]
     assert artifacts.left.shape == (HEIGHT, WIDTH, 3) and artifacts.disparity.shape == (HEIGHT, WIDTH)
 
