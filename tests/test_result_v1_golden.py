@@ -17,6 +17,7 @@ import cv2
 import pytest
 
 from branchrange.cli import main
+from branchrange.frame_results import read_results, result_line
 from stereo.io import write_rgb
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.writer import write_mask
@@ -77,6 +78,8 @@ def test_replay_writes_the_v1_lines_of_a_roi_run_as_before(tmp_path):
     config.write_text("[stereo]\nmax_disp = 64\n")
     out = tmp_path / "results.jsonl"
     assert main(["replay", str(recording), "--out", str(out), "--config", str(config)]) == 0
+    written = out.read_text(encoding="utf-8").splitlines(keepends=True)[1:]
+    assert [result_line(r) for r in read_results(out)] == written  # a log read back writes the same bytes
     text = _mask_varying(out.read_text(encoding="utf-8"))
     text = re.sub(r'"config_sha256":"[^"]*"', '"config_sha256":"H"', text)
     text = re.sub(r'"source":"replay:[^"]*"', '"source":"replay:REC"', text)
