@@ -100,12 +100,11 @@ class PipelineEstimator:
 
     def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
                   backend: str | None = None, max_disp: int | None = None) -> np.ndarray:
-        """See `Estimator.disparity`: rectified when the calibration is raw, then the backend."""
+        """See `Estimator.disparity`: rectified when the calibration is raw, then the backend (which
+        checks the pair, `stereo.backends.validate_pair`, as the route did)."""
         with self._lock:
             pipeline = self._pipeline(camera, backend, max_disp)
             pipeline.geometry_for(left.shape[1], left.shape[0])  # the calibration must fit the size
-            if left.shape != right.shape:
-                raise ValueError(f"left {left.shape} and right {right.shape} images differ in size")
             if pipeline.rectifier is not None:
                 left, right = pipeline.rectifier.rectify(left, right)
             return pipeline.backend.compute(left, right).disparity

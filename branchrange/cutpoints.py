@@ -41,6 +41,7 @@ from branchrange.geometry import (
 from branchrange.masks import BranchMasks, MaskCrop, as_crop, check_instance_count, erode
 from branchrange.settings_check import check_settings
 from branchrange.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
+from stereo.pinhole import depth_from_disparity
 
 TargetPolicy = Literal["nearest_confident", "nearest", "most_confident", "thickest"]
 TARGET_POLICIES: tuple[str, ...] = ("nearest_confident", "nearest", "most_confident", "thickest")
@@ -295,7 +296,7 @@ def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: S
     silhouette = image_axis(crop, cut_by)
     profile = width_profile(silhouette)
     d_median = float(np.median(d))
-    z_median = geometry.fb / d_median
+    z_median = depth_from_disparity(d_median, geometry.focal_px, geometry.baseline_m)
     radius_guess = 0.5 * profile.at(0.0) * z_median / geometry.focal_px
     if silhouette.length_px >= 2.0 * max(1.0, profile.at(0.0)):
         # the visible front spans about d·r/Z px of disparity across the width

@@ -44,6 +44,7 @@ from branchrange.mavlink import MavlinkRelay
 from branchrange.newest_slot import NewestSlot
 from branchrange.pair_check import check_rectification
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
+from stereo.backends.base import validate_pair
 
 log = logging.getLogger("branchrange.daemon")
 #: Stall timeouts without a frame after which the source is closed and opened again.
@@ -156,6 +157,7 @@ class Daemon:
         left, right = frame.left, frame.right
         rectifier = getattr(self.pipeline, "rectifier", None)
         try:
+            validate_pair(left, right)
             if rectifier is not None:
                 left, right = rectifier.rectify(left, right)
             check_rectification(left, right).log(log)

@@ -83,9 +83,10 @@ def vertical_offsets(left: np.ndarray, right: np.ndarray, features: int = 1000) 
 
 
 def check_rectification(left: np.ndarray, right: np.ndarray) -> PairCheck:
-    """How far apart the rows of a stereo pair are (see the module docstring for the thresholds)."""
-    if left.shape[:2] != right.shape[:2]:
-        raise ValueError(f"left {left.shape[:2]} and right {right.shape[:2]} images differ in size")
+    """How far apart the rows of a stereo pair are (see the module docstring for the thresholds).
+
+    The pair is one its caller validated (`stereo.backends.validate_pair`): RGB `uint8 H×W×3`, same size.
+    """
     dy = vertical_offsets(left, right)
     if dy.size:
         centre = float(np.median(dy))

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from branchrange.cutpoints import (
@@ -56,6 +55,7 @@ from branchrange.segmentation.onnx_model import OnnxSegmenterConfig
 from branchrange.segmenter import GeometricSegmenterConfig, Segmenter
 from branchrange.timing import lap_ms
 from branchrange.tracking import BranchTracker, TrackerConfig
+from stereo.backends.base import validate_image, validate_pair
 
 
 MaskInput = BranchMasks | np.ndarray | str | Path | None
@@ -126,17 +126,6 @@ class PipelineConfig:
         if self.max_disp <= 0:
             raise PipelineConfigError(f"max_disp = {self.max_disp!r}: expected a positive number of pixels")
         check_segmenter_name(self.segmenter_name)
-
-
-def _check_image(image: Any, which: str) -> np.ndarray:
-    """The image itself when it is a `uint8 H×W×3` array, else `PipelineInputError` naming it."""
-    if not isinstance(image, np.ndarray):
-        raise PipelineInputError(f"{which} image must be a numpy array, got {type(image).__name__}")
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise PipelineInputError(f"{which} image must be uint8 H×W×3 RGB, got {image.dtype} of shape {image.shape}")
-    if image.shape[0] < 2 or image.shape[1] < 2:
-        raise PipelineInputError(f"{which} image is empty: shape {image.shape}")
-    return image
 
 
 @dataclass(frozen=True)
@@ -282,7 +271,7 @@ class Pipeline:
         check_instance_count(masks, cfg.cutpoints.max_instances)  # before any other work on such a mask
         if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
             validate_masks(masks, shape)
-            masks = replace(masks, labels=_rectify_labels(self.rectifier, masks.labels))
+            masks = replace(masks, labels=self.rectifier.rectify_labels(masks.labels))
         validate_masks(masks, shape)
         return masks
 
@@ -305,10 +294,7 @@ class Pipeline:
         """
         start = time.perf_counter()
         timing: dict[str, float] = {}
-        left, right = _check_image(left, "left"), _check_image(right, "right")
-        if left.shape != right.shape:
-            raise PipelineInputError(f"left {left.shape[1]}×{left.shape[0]} and right {right.shape[1]}×{right.shape[0]} "
-                                     "images differ in size; a stereo pair must match pixel for pixel")
+        validate_pair(left, right, PipelineInputError)
         geometry = self.geometry_for(left.shape[1], left.shape[0])
         masks = self._masks(mask, left.shape[:2])
         if self.rectifier is not None:
@@ -341,7 +327,7 @@ class Pipeline:
         `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
         """
         start = time.perf_counter()
-        left = _check_image(left, "left")
+        left = validate_image(left, "left", PipelineInputError)
         disparity = np.asarray(disparity, dtype=np.float32)
         if disparity.shape != left.shape[:2]:
             raise PipelineInputError(f"disparity is {disparity.shape[1]}×{disparity.shape[0]} px but the left "
@@ -417,10 +403,3 @@ class Pipeline:
             roi=None if stage.regions is None else RoiInfo(tuple(RoiRegion.from_region(r) for r in stage.regions)),
             pair_check=None if stage.pair_check is None else PairCheckInfo.from_check(stage.pair_check),
         )
-
-def _rectify_labels(rectifier: Any, labels: np.ndarray) -> np.ndarray:
-    """Instance labels drawn on the raw left image, moved to the rectified left image (nearest id)."""
-    c = rectifier.calibration
-    map_x, map_y = cv2.initUndistortRectifyMap(c.K1, c.D1, rectifier.R1, rectifier.P1, c.image_size, cv2.CV_32FC1)
-    return cv2.remap(labels.astype(np.float32), map_x, map_y, cv2.INTER_NEAREST,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.int32)

@@ -22,6 +22,7 @@ from api.estimator import CameraSpec
 from api.limits import decode_image, decode_mask, read_upload
 from api.schemas import ErrorBody, EstimateResult
 from branchrange.settings_check import PHYSICAL_RANGES, RangeError, check_calibration, check_physical
+from stereo.backends.base import StereoInputError, validate_pair
 
 router = APIRouter(dependencies=[Depends(require_token)])
 
@@ -132,9 +133,10 @@ async def stereo_request(
                             baseline_m=_camera_value("baseline_m", baseline_m, "baseline_m"))
     left_img = await _decoded(left, "left", settings)
     right_img = await _decoded(right, "right", settings)
-    if left_img.shape != right_img.shape:
-        raise _unprocessable(f"left is {left_img.shape[1]}×{left_img.shape[0]} px but right is "
-                             f"{right_img.shape[1]}×{right_img.shape[0]} px; a stereo pair must match")
+    try:
+        validate_pair(left_img, right_img)  # the pair is checked here, once, for both routes
+    except StereoInputError as exc:
+        raise _unprocessable(str(exc)) from None
     if calibration is not None:
         size = (left_img.shape[1], left_img.shape[0])
         camera = CameraSpec(calibration=await _load_calibration(calibration, resolution, size, settings.max_upload_bytes))
