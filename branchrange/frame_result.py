@@ -4,7 +4,7 @@
 approach is `result.target` (worked out here only). Dicts appear only at the edges:
 `to_json_dict()` gives the `branchrange/v1` JSON object (JSONL logs, HTTP, `--json`) and
 `FrameResult.from_json_dict()` reads a logged line back (validated, `ResultFormatError` naming the key).
-The JSON schema (`branchrange/schemas/result_v1.json`, `branchrange.result_schema`) and the API's
+The JSON schema (`json_schema()`, packaged as `branchrange/schemas/result_v1.json`) and the API's
 response model are generated from these classes, so the format is written down once.
 
 Units: metres, pixels of the rectified left image, milliseconds; 3D vectors in the rectified left

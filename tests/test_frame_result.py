@@ -81,9 +81,10 @@ def test_optional_parts_are_left_out_until_given_and_nulls_stay_where_the_format
     (lambda r: r["frame"].update(width="wide"), "frame.width"),
     (lambda r: r.update(schema="branchrange/v0"), "schema"),
     (lambda r: r.update(extra=1), "extra"),
+    (lambda r: r.update(target_id=999), "result: Value error, target_id = 999: no branch has that id"),
 ])
 def test_a_line_that_is_not_a_v1_result_is_refused_naming_the_key(change, where):
     record = _golden_results()[0]
     change(record)
-    with pytest.raises(ResultFormatError, match=rf"not a branchrange/v1 result: {where}:"):
+    with pytest.raises(ResultFormatError, match=rf"not a branchrange/v1 result: {where}"):
         FrameResult.from_json_dict(record)

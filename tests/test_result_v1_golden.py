@@ -14,7 +14,6 @@ import re
 from pathlib import Path
 
 import cv2
-import pytest
 
 from branchrange.cli import main
 from branchrange.frame_results import read_results, result_line
