@@ -14,6 +14,7 @@ from api.estimator import Estimator
 from api.limits import BodySizeLimit, InferenceSlots, ShedWhenBusy
 from api.metrics import Metrics
 from api.routers import estimate, status
+from branchrange.frame_result import FrameResult
 from branchrange.config import ApiConfig
 
 DESCRIPTION = """Cut points of tree branches, in metres, from a stereo pair.
@@ -26,7 +27,7 @@ every route but `/health` and `/version` needs `Authorization: Bearer <token>`."
 class LiveStatus(Protocol):
     """What the onboard daemon exposes to the API (daemon mode)."""
 
-    def latest_result(self) -> dict[str, Any] | None:
+    def latest_result(self) -> FrameResult | None:
         """The newest frame's result, or None before the first one."""
         ...
 

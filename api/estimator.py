@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from branchrange.frame_result import FrameResult
 from branchrange.pipeline import Pipeline, PipelineConfig
 from stereo.backends import WEIGHTED_BACKENDS, make_backend
 
@@ -30,7 +31,7 @@ class Estimator(Protocol):
     """What the API calls: one stereo pair in, a result or a disparity out (blocking; run off-loop)."""
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
+                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> FrameResult:
         """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`;
         `segmenter` 'structure' / 'geometric' asks for a built-in segmenter instead of the server's configured one."""
         ...
@@ -93,19 +94,18 @@ class PipelineEstimator:
                         baseline_m=camera.baseline_m, backend=stereo, segmenter=self.segmenter(segmenter))
 
     def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> dict:
+                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> FrameResult:
         """See `Estimator.estimate`; input errors are the pipeline's ValueErrors."""
         with self._lock:
             return self._pipeline(camera, backend, max_disp, segmenter).process(left, right, mask)
 
     def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
                   backend: str | None = None, max_disp: int | None = None) -> np.ndarray:
-        """See `Estimator.disparity`: rectified when the calibration is raw, then the backend."""
+        """See `Estimator.disparity`: rectified when the calibration is raw, then the backend (which
+        checks the pair, `stereo.backends.validate_pair`, as the route did)."""
         with self._lock:
             pipeline = self._pipeline(camera, backend, max_disp)
             pipeline.geometry_for(left.shape[1], left.shape[0])  # the calibration must fit the size
-            if left.shape != right.shape:
-                raise ValueError(f"left {left.shape} and right {right.shape} images differ in size")
             if pipeline.rectifier is not None:
                 left, right = pipeline.rectifier.rectify(left, right)
             return pipeline.backend.compute(left, right).disparity

@@ -45,9 +45,9 @@ def cut_point_errors(root: Path, limit: int | None, max_disp: int) -> dict[str, 
         for masks in samples:
             result = pipeline.process_disparity(frame.left, stereo.disparity, stereo.confidence,
                                                 mask=frame.mask if masks == "gt" else None, backend="sgbm")
-            for b in result["branches"]:
-                error = min(float(np.linalg.norm(np.asarray(b["cut_point_m"]) - t)) for t in truth)
-                samples[masks].append((float(b["confidence"]), error))
+            for b in result.branches:
+                error = min(float(np.linalg.norm(np.asarray(b.cut_point_m) - t)) for t in truth)
+                samples[masks].append((b.confidence, error))
     return samples
 
 

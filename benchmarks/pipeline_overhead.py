@@ -57,9 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     for run in range(args.repeats + 1):
         start = time.perf_counter()
         result = pipeline.process(scene.left, scene.right, mask=scene.instance_mask, index=run)
-        json.dumps(result)
+        json.dumps(result.to_json_dict())
         wall = (time.perf_counter() - start) * 1e3
-        rows.append({"wall": wall, "network": backend.last_timing_ms["network"], **result["timing_ms"]})
+        rows.append({"wall": wall, "network": backend.last_timing_ms["network"], **result.timing_ms})
     rows = rows[1:]
     stages = sorted({key for row in rows for key in row})
     medians = {key: statistics.median(row.get(key, 0.0) for row in rows) for key in stages}

@@ -128,26 +128,26 @@ def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str,
             daemon.close()
         single, compensated, uncompensated = [], [], []
         for _, result in published:
-            branch = next((b for b in result["branches"] if b["id"] == result["target_id"]), None)
-            if branch is None or branch.get("mask_id") not in cuts_ned:
+            branch = result.target
+            if branch is None or branch.mask_id not in cuts_ned:
                 continue
-            position = next(i for i, p in enumerate(truth.poses) if p.index == result["frame"]["index"])
-            single.append(float(np.linalg.norm(np.asarray(branch["cut_point_m"])
-                                               - truth.cut_points_in_camera(position)[branch["mask_id"]])))
+            position = next(i for i, p in enumerate(truth.poses) if p.index == result.frame.index)
+            single.append(float(np.linalg.norm(np.asarray(branch.cut_point_m)
+                                               - truth.cut_points_in_camera(position)[branch.mask_id])))
         for r in sim.of_type("DEBUG_VECT"):
             newest = [res for at, res in published if at <= r.at]
-            target = next((b for b in newest[-1]["branches"] if b["id"] == newest[-1]["target_id"]), None) if newest else None
-            if len(newest) <= SKIP_FRAMES or target is None or target.get("mask_id") not in cuts_ned or math.isnan(r.msg.x):
+            target = newest[-1].target if newest else None
+            if len(newest) <= SKIP_FRAMES or target is None or target.mask_id not in cuts_ned or math.isnan(r.msg.x):
                 continue
-            body_truth = sim.pose_at(r.at).ned_to_body(cuts_ned[target["mask_id"]])
+            body_truth = sim.pose_at(r.at).ned_to_body(cuts_ned[target.mask_id])
             compensated.append(float(np.linalg.norm(np.array([r.msg.x, r.msg.y, r.msg.z]) - body_truth)))
-            uncompensated.append(float(np.linalg.norm(MOUNT.to_body(target["cut_point_m"]) - body_truth)))
-    track = next((t for t in targets["tracks"] if t["id"] == targets["target_track_id"]), None)
+            uncompensated.append(float(np.linalg.norm(MOUNT.to_body(target.cut_point_m) - body_truth)))
+    track = next((t for t in targets.tracks if t.id == targets.target_track_id), None)
     fused = None
     if track is not None:
-        nearest = min(cuts_ned, key=lambda i: float(np.linalg.norm(np.asarray(track["ned_m"]) - cuts_ned[i])))
-        fused = {"cut_id": nearest, "error_mm": round(1000 * float(np.linalg.norm(np.asarray(track["ned_m"]) - cuts_ned[nearest])), 2),
-                 "observations": track["observations"], "sigma_mm": round(1000 * track["sigma_m"], 2)}
+        nearest = min(cuts_ned, key=lambda i: float(np.linalg.norm(np.asarray(track.ned_m) - cuts_ned[i])))
+        fused = {"cut_id": nearest, "error_mm": round(1000 * float(np.linalg.norm(np.asarray(track.ned_m) - cuts_ned[nearest])), 2),
+                 "observations": track.observations, "sigma_mm": round(1000 * track.sigma_m, 2)}
     latencies = [res["latency"]["capture_to_publish_ms"] for _, res in published if "latency" in res]
     return {"flight": str(directory), "frames_published": len(published), "fused_target": fused,
             "latency_ms_median": round(float(np.median(latencies)), 1) if latencies else None,

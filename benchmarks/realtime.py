@@ -44,9 +44,12 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from branchrange.frame_result import FrameResult
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = ROOT / "out" / "bench" / "flight_hd720"
@@ -165,7 +168,7 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     pipeline.reset()
     probe.close()
     relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
-    published: list[dict[str, Any]] = []
+    published: list[FrameResult] = []
     daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay,
                     observers=[lambda result, _artifacts: published.append(result)])
     started = time.monotonic()
@@ -193,32 +196,32 @@ def random_weights(args: argparse.Namespace) -> Path:
     return path
 
 
-def summarise(published: list[dict[str, Any]], daemon: Any, truth: Any, max_age_s: float,
+def summarise(published: list[FrameResult], daemon: Any, truth: Any, max_age_s: float,
               wall_s: float) -> dict[str, Any]:
     """The docstring's metrics from the published results and the daemon's counters."""
-    ages = [r["latency"]["capture_to_publish_ms"] for r in published]
+    ages = [r.latency.capture_to_publish_ms for r in published if r.latency is not None]
     positions = {pose.index: i for i, pose in enumerate(truth.poses)}
     duration_s = (truth.poses[-1].timestamp_ns - truth.poses[0].timestamp_ns) / 1e9 + 1 / fps_of(truth)
     errors, false_targets, targets, with_truth, hits = [], 0, 0, 0, 0
     for result in published:
-        position = positions.get(result["frame"]["index"])
+        position = positions.get(result.frame.index)
         if position is None:
             continue
         pose = truth.poses[position]
         true_points = list(truth.cut_points_in_camera(position).values())
         visible = bool(pose.visible_cut_ids)
         with_truth += visible
-        target = next((b for b in result["branches"] if b["id"] == result["target_id"]), None)
+        target = result.target
         if target is None or not true_points:
             continue
         targets += 1
         hits += visible
-        error = min(float(np.linalg.norm(np.asarray(target["cut_point_m"]) - p)) for p in true_points)
+        error = min(float(np.linalg.norm(np.asarray(target.cut_point_m) - p)) for p in true_points)
         errors.append(error)
         false_targets += error > FALSE_TARGET_M
     stages: dict[str, list[float]] = {}
     for result in published:
-        for stage, ms in result["timing_ms"].items():
+        for stage, ms in result.timing_ms.items():
             stages.setdefault(stage, []).append(ms)
     fresh = sum(age <= 1000 * max_age_s for age in ages)
     return {

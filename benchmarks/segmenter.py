@@ -26,12 +26,14 @@ import re
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from branchrange.evaluate_cuts import RECALL_RADIUS_M, CutScores
+from branchrange.frame_result import Branch
 from branchrange.pipeline import Pipeline, untracked_whole_frame
 from branchrange.segmentation.choose import make_segmenter
 
@@ -127,13 +129,12 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
                                     segmenter=built.get(name))  # process_disparity: no backend is built
                 mask = scene["mask"] if name == "truth" else None
                 result = pipeline.process_disparity(scene["left"], disparity, confidence, mask=mask, backend=stereo)
-                target = next((x for x in result["branches"] if x["id"] == result["target_id"]), None)
-                scores.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], result["branches"], target)
-                times.setdefault(key, []).append(result["timing_ms"]["masks"])
+                scores.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], result.branches, result.target)
+                times.setdefault(key, []).append(result.timing_ms["masks"])
                 points = [np.asarray(t["cut_point_m"]) for t in scene["truth"]]
-                for est in result["branches"]:
-                    ok = any(np.linalg.norm(np.asarray(est["cut_point_m"]) - p) <= RECALL_RADIUS_M for p in points)
-                    confidences.setdefault(key, []).append((est["confidence"], ok))
+                for est in result.branches:
+                    ok = any(np.linalg.norm(np.asarray(est.cut_point_m) - p) <= RECALL_RADIUS_M for p in points)
+                    confidences.setdefault(key, []).append((est.confidence, ok))
         print(f"  scene {i + 1}/{scenes}", end="\r", file=sys.stderr)
     out = {}
     for key, s in scores.items():
@@ -154,7 +155,8 @@ def polygon_hits(annotations: dict, pixel: tuple[float, float]) -> str:
     return "unlabelled"
 
 
-def draw_overlay(path: Path, left: np.ndarray, annotations: dict, labels: np.ndarray | None, branches: list[dict]) -> None:
+def draw_overlay(path: Path, left: np.ndarray, annotations: dict, labels: np.ndarray | None,
+                 branches: Sequence[Branch]) -> None:
     """Left image with instances tinted, polygons (green branch, red not-branch) and cut points."""
     image = cv2.cvtColor(left, cv2.COLOR_RGB2BGR).astype(np.float32)
     if labels is not None:
@@ -170,7 +172,7 @@ def draw_overlay(path: Path, left: np.ndarray, annotations: dict, labels: np.nda
         cv2.polylines(image, [np.round(np.asarray(region["polygon"])).astype(np.int32)], True, colour, 1)
     marks = {"branch": (0, 255, 0), "not_branch": (0, 0, 255), "unlabelled": (0, 255, 255)}
     for b in branches:
-        x, y = b["pixel"]
+        x, y = b.pixel
         cv2.circle(image, (int(round(x)), int(round(y))), 6, marks[polygon_hits(annotations, (x, y))], 2)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), image)
@@ -190,18 +192,18 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
             config = untracked_whole_frame(REAL_MAX_DISP.get(folder.name, 192))
             pipeline = Pipeline(config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=make_segmenter(name))
             result = pipeline.process(left, right)
-            hits = [polygon_hits(annotations, b["pixel"]) for b in result["branches"]]
+            hits = [polygon_hits(annotations, b.pixel) for b in result.branches]
             labelled = [h for h in hits if h != "unlabelled"]
             on_branch = sum(h == "branch" for h in hits)
             out[f"{folder.name}/{name}"] = {
                 "cut_points": len(hits), "on_branch": on_branch, "on_not_branch": len(labelled) - on_branch,
                 "unlabelled": len(hits) - len(labelled),
                 "precision": on_branch / len(labelled) if labelled else None,
-                "ms_segmenter": result["timing_ms"]["masks"]}
+                "ms_segmenter": result.timing_ms["masks"]}
             if overlays is not None:
                 masks = pipeline.last.masks
                 draw_overlay(overlays / f"{folder.name}_{name}.png", left, annotations,
-                             masks.labels if masks is not None else None, result["branches"])
+                             masks.labels if masks is not None else None, result.branches)
     return out
 
 

@@ -41,6 +41,7 @@ from branchrange.geometry import (
 from branchrange.masks import BranchMasks, MaskCrop, as_crop, check_instance_count, erode
 from branchrange.settings_check import Checks, Settings, in_physical_range
 from branchrange.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
+from stereo.pinhole import depth_from_disparity
 
 TargetPolicy = Literal["nearest_confident", "nearest", "most_confident", "thickest"]
 TARGET_POLICIES: tuple[str, ...] = ("nearest_confident", "nearest", "most_confident", "thickest")
@@ -136,23 +137,6 @@ class BranchEstimate:
     n_points: int
     id: int = -1
 
-    def to_dict(self) -> dict:
-        """The branch entry of a `branchrange/v1` result."""
-        return {
-            "id": int(self.id),
-            "mask_id": int(self.mask_id),
-            "cut_point_m": [round(float(v), 5) for v in self.cut_point_m],
-            "distance_m": round(float(self.distance_m), 5),
-            "pixel": [round(float(self.pixel[0]), 2), round(float(self.pixel[1]), 2)],
-            "diameter_m": round(float(self.diameter_m), 5),
-            "axis": [round(float(v), 5) for v in self.axis],
-            "base_m": [round(float(v), 5) for v in self.base_m],
-            "confidence": round(float(self.confidence), 4),
-            "valid_fraction": round(float(self.valid_fraction), 4),
-            "residual_m": round(float(self.residual_m), 5),
-            "points": int(self.n_points),
-        }
-
 
 @dataclass(frozen=True)
 class DroppedBranch:
@@ -160,10 +144,6 @@ class DroppedBranch:
 
     mask_id: int
     reason: str
-
-    def to_dict(self) -> dict:
-        """The `dropped` entry of a `branchrange/v1` result."""
-        return {"mask_id": int(self.mask_id), "reason": self.reason}
 
 
 @dataclass
@@ -333,7 +313,7 @@ def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: S
     silhouette = image_axis(crop, cut_by)
     profile = width_profile(silhouette)
     d_median = float(np.median(d))
-    z_median = geometry.fb / d_median
+    z_median = depth_from_disparity(d_median, geometry.focal_px, geometry.baseline_m)
     radius_guess = 0.5 * profile.at(0.0) * z_median / geometry.focal_px
     if silhouette.length_px >= 2.0 * max(1.0, profile.at(0.0)):
         # the visible front spans about d·r/Z px of disparity across the width

@@ -33,16 +33,18 @@ import statistics
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, Any
 
 from branchrange.config import Config
+from branchrange.frame_result import FrameResult, Latency
 from branchrange.frame_results import result_line, run_header_line, stereo_stage
 from branchrange.mavlink import MavlinkRelay
 from branchrange.newest_slot import NewestSlot
 from branchrange.pair_check import check_rectification
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
+from stereo.backends.base import validate_pair
 
 log = logging.getLogger("branchrange.daemon")
 #: Stall timeouts without a frame after which the source is closed and opened again.
@@ -52,8 +54,8 @@ CORRUPT_FRAMES_LOST = 5
 #: Frames after which the measured capture → publish time is compared with `max_result_age_s`.
 WARMUP_FRAMES = 3
 
-#: Called once per processed frame with the `branchrange/v1` result and the pipeline's `FrameArtifacts`.
-ResultObserver = Callable[[dict[str, Any], Any], None]
+#: Called once per processed frame with its `FrameResult` and the pipeline's `FrameArtifacts`.
+ResultObserver = Callable[[FrameResult, Any], None]
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,7 +87,7 @@ class Daemon:
             # a restart appends to the same log: each run starts with its header, never silently at frame 0 again
             self._results.write(run_header_line("daemon", cfg, cfg.camera.source))
         self._stop = threading.Event()
-        self._latest: dict[str, Any] | None = None
+        self._latest: FrameResult | None = None
         self._slot = NewestSlot()
         self._counts_lock = threading.Lock()
         self.camera_lost = False
@@ -108,7 +110,7 @@ class Daemon:
         """Stereo outputs replaced before the geometry stage took them (it was busy with an older one)."""
         return self._slot.replaced
 
-    def latest_result(self) -> dict[str, Any] | None:
+    def latest_result(self) -> FrameResult | None:
         """The newest frame's result (for GET /latest)."""
         return self._latest
 
@@ -155,6 +157,7 @@ class Daemon:
         left, right = frame.left, frame.right
         rectifier = getattr(self.pipeline, "rectifier", None)
         try:
+            validate_pair(left, right)
             if rectifier is not None:
                 left, right = rectifier.rectify(left, right)
             check_rectification(left, right).log(log)
@@ -183,15 +186,15 @@ class Daemon:
             finally:
                 self._slot.task_done()
 
-    def _publish(self, result: dict[str, Any], item: _StereoOutput) -> None:
+    def _publish(self, result: FrameResult, item: _StereoOutput) -> None:
         now = time.monotonic()
         age = now - item.captured_at
-        result["latency"] = {"capture_to_stereo_ms": round(1000 * (item.stereo_started_at - item.captured_at), 3),
-                             "capture_to_geometry_ms": round(1000 * (item.stereo_done_at - item.captured_at), 3),
-                             "capture_to_publish_ms": round(1000 * age, 3)}
+        result = replace(result, latency=Latency(round(1000 * (item.stereo_started_at - item.captured_at), 3),
+                                                 round(1000 * (item.stereo_done_at - item.captured_at), 3),
+                                                 round(1000 * age, 3)))
         if self.relay is not None:
             self.relay.publish(result, captured_at=item.captured_at)
-            result["targets"] = self.relay.targets()  # fused in local NED (with vehicle state), for the log and /latest
+            result = replace(result, targets=self.relay.targets())  # fused in local NED, for the log and /latest
         self._check_age(age)
         if self._results is not None:
             self._results.write(result_line(result))

@@ -7,7 +7,7 @@ Scores:
 - median and 90th-percentile 3D cut-point error over the matched pairs (m);
 - median distance error: |estimated − true camera distance| / true distance, in %;
 - false cut points per frame: estimates with no truth cut point (visible or not) within 5 cm;
-- target within 5 cm: share of frames with a target (the pipeline's `target_id`, by its target
+- target within 5 cm: share of frames with a target (the result's `target`, by the pipeline's target
   policy) whose cut point lies within 5 cm of a truth cut point.
 Stereo: the set's exact disparity ('gt', the geometry's own error), 'sgbm', or 'emcstereo' (with
 weights); masks: the set's instance masks ('gt') or the built-in segmenter ('segmenter').
@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from branchrange.frame_result import Branch
 from branchrange.pipeline import Pipeline, PipelineConfig, untracked_whole_frame
 
 RECALL_RADIUS_M = 0.05
@@ -130,15 +131,16 @@ class CutScores:
         """Share of the frames' targets that lie within 5 cm of a truth cut point."""
         return self.targets_within / self.targets if self.targets else float("nan")
 
-    def add_frame(self, truth: Sequence[dict], estimated: Sequence[dict], target: dict | None = None) -> None:
-        """Match one frame's estimates (and its `target` branch, if any) to its truth and accumulate the scores."""
+    def add_frame(self, truth: Sequence[dict], estimated: Sequence[Branch], target: Branch | None = None) -> None:
+        """Match one frame's estimates (and its `target` branch, if any) to its truth (the set's branch
+        records: `cut_point_m`, optional `cut_visible`) and accumulate the scores."""
         self.frames += 1
         true_points = [np.asarray(b["cut_point_m"], dtype=np.float64) for b in truth]
         if target is not None:
             self.targets += 1
-            aim = np.asarray(target["cut_point_m"], dtype=np.float64)
+            aim = np.asarray(target.cut_point_m, dtype=np.float64)
             self.targets_within += any(float(np.linalg.norm(aim - t)) <= RECALL_RADIUS_M for t in true_points)
-        guesses = [np.asarray(b["cut_point_m"], dtype=np.float64) for b in estimated]
+        guesses = [np.asarray(b.cut_point_m, dtype=np.float64) for b in estimated]
         pairs = sorted((float(np.linalg.norm(g - t)), ti, gi)
                        for ti, t in enumerate(true_points) for gi, g in enumerate(guesses))
         used_truth: set[int] = set()
@@ -208,10 +210,9 @@ def evaluate_cuts(root: str | Path, stereo_modes: Sequence[str] = ("gt", "sgbm")
                 start = time.perf_counter()
                 result = pipeline.process_disparity(frame.left, disparity, confidence,
                                                     mask=frame.mask if masks == "gt" else None, backend=stereo)
-                estimated = [b for b in result["branches"] if b["confidence"] >= min_confidence]
-                target = next((b for b in result["branches"] if b["id"] == result["target_id"]), None)
+                estimated = [b for b in result.branches if b.confidence >= min_confidence]
                 entry = scores[(stereo, masks)]
-                entry.add_frame(frame.branches, estimated, target)
+                entry.add_frame(frame.branches, estimated, result.target)
                 entry.seconds += stereo_seconds + time.perf_counter() - start
     return list(scores.values())
 

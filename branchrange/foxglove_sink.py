@@ -36,8 +36,8 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 
+from branchrange.frame_result import SCHEMA_PATH, FrameResult
 from branchrange.newest_slot import NewestSlot
-from branchrange.pipeline import SCHEMA_PATH
 
 log = logging.getLogger("branchrange.foxglove")
 
@@ -206,7 +206,7 @@ class FoxgloveSink:
         state is known (the daemon does this)."""
         self._pose_now = pose_now
 
-    def __call__(self, result: dict[str, Any], artifacts: Any = None) -> None:
+    def __call__(self, result: FrameResult, artifacts: Any = None) -> None:
         """One frame: its result and, with `artifacts` (branchrange.pipeline.FrameArtifacts), its images."""
         if self._pose_now is not None and (pose := self._pose_now()) is not None:
             self.set_vehicle_pose(*pose)
@@ -222,62 +222,63 @@ class FoxgloveSink:
             try:
                 self._log_frame(*item)
             except Exception:  # a frame the sink cannot show must not end the thread
-                log.exception("frame %s not sent to Foxglove", item[0].get("frame", {}).get("index"))
+                log.exception("frame %s not sent to Foxglove", item[0].frame.index)
             finally:
                 self._slot.task_done()
 
-    def _log_frame(self, result: dict[str, Any], artifacts: Any) -> None:
+    def _log_frame(self, result: FrameResult, artifacts: Any) -> None:
         """Log the frame's messages at its capture time (see the module docstring)."""
         fg = self._fg.messages
-        stamp_ns = int(result["frame"]["timestamp_ns"])
+        stamp_ns = result.frame.timestamp_ns
         stamp = fg.Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
         if artifacts is not None:
             self._log_images(result, artifacts, stamp, stamp_ns)
-        camera, frame = result["camera"], result["frame"]
-        f = camera["focal_px"]
-        cx, cy = camera.get("cx", (frame["width"] - 1) / 2), camera.get("cy", (frame["height"] - 1) / 2)
+        camera, frame = result.camera, result.frame
+        f = camera.focal_px
+        cx = (frame.width - 1) / 2 if camera.cx is None else camera.cx
+        cy = (frame.height - 1) / 2 if camera.cy is None else camera.cy
         self._camera_info.log(fg.CameraCalibration(
-            timestamp=stamp, frame_id=CAMERA_FRAME, width=frame["width"], height=frame["height"],
+            timestamp=stamp, frame_id=CAMERA_FRAME, width=frame.width, height=frame.height,
             distortion_model="plumb_bob", D=[0.0] * 5, K=[f, 0, cx, 0, f, cy, 0, 0, 1], R=[1, 0, 0, 0, 1, 0, 0, 0, 1],
             P=[f, 0, cx, 0, 0, f, cy, 0, 0, 0, 1, 0]), log_time=stamp_ns)
         self._cut_points.log(self._scene(result, stamp), log_time=stamp_ns)
-        target = next((b for b in result["branches"] if b["id"] == result["target_id"]), None)
+        target = result.target
         if target is not None:
-            x, y, z, w = _quaternion_x_to(target["axis"])
+            x, y, z, w = _quaternion_x_to(target.axis)
             self._target.log(fg.PoseInFrame(timestamp=stamp, frame_id=CAMERA_FRAME, pose=fg.Pose(
-                position=fg.Vector3(x=target["cut_point_m"][0], y=target["cut_point_m"][1], z=target["cut_point_m"][2]),
+                position=fg.Vector3(x=target.cut_point_m[0], y=target.cut_point_m[1], z=target.cut_point_m[2]),
                 orientation=fg.Quaternion(x=x, y=y, z=z, w=w))), log_time=stamp_ns)
         transforms = self._transforms(stamp)
         if transforms:
             self._tf.log(fg.FrameTransforms(transforms=transforms), log_time=stamp_ns)
-        self._timing.log({k: float(v) for k, v in result["timing_ms"].items()}, log_time=stamp_ns)
-        self._result.log(result, log_time=stamp_ns)
+        self._timing.log({k: float(v) for k, v in result.timing_ms.items()}, log_time=stamp_ns)
+        self._result.log(result.to_json_dict(), log_time=stamp_ns)
         self.frames += 1
 
-    def _log_images(self, result: dict[str, Any], artifacts: Any, stamp: Any, stamp_ns: int) -> None:
+    def _log_images(self, result: FrameResult, artifacts: Any, stamp: Any, stamp_ns: int) -> None:
         from branchrange.overlay import draw_overlay
         from stereo.io import colorize_disparity
 
         fg = self._fg.messages
         overlay = draw_overlay(artifacts.left, result, artifacts.masks)
-        disparity = colorize_disparity(artifacts.disparity, max_disp=result["stereo"]["max_disparity"])
+        disparity = colorize_disparity(artifacts.disparity, max_disp=result.stereo.max_disparity)
         for channel, image in ((self._overlay, overlay), (self._disparity, disparity)):
             channel.log(fg.CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=_jpeg(image), format="jpeg"),
                         log_time=stamp_ns)
 
-    def _scene(self, result: dict[str, Any], stamp: Any) -> Any:
+    def _scene(self, result: FrameResult, stamp: Any) -> Any:
         """All branches of the frame as scene entities, after deleting the previous frame's."""
         fg = self._fg.messages
         entities = []
-        for branch in result["branches"]:
-            is_target = branch["id"] == result["target_id"]
-            c = float(branch["confidence"])
+        for branch in result.branches:
+            is_target = result.is_target(branch)
+            c = branch.confidence
             rgba = TARGET_RGBA if is_target else tuple(lo + (hi - lo) * c for lo, hi in zip(LOW_RGBA, HIGH_RGBA))
             colour = fg.Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
-            cut, base, axis = (np.asarray(branch[k], dtype=float) for k in ("cut_point_m", "base_m", "axis"))
-            size = max(float(branch["diameter_m"]) * 1.5, MIN_SPHERE_M)
-            label = (f"{'TARGET ' if is_target else ''}#{branch['id']}  {branch['distance_m']:.2f} m  "
-                     f"conf {c:.2f}  Ø {branch['diameter_m'] * 100:.1f} cm")
+            cut, base, axis = (np.asarray(v, dtype=float) for v in (branch.cut_point_m, branch.base_m, branch.axis))
+            size = max(branch.diameter_m * 1.5, MIN_SPHERE_M)
+            label = (f"{'TARGET ' if is_target else ''}#{branch.id}  {branch.distance_m:.2f} m  "
+                     f"conf {c:.2f}  Ø {branch.diameter_m * 100:.1f} cm")
             tip = base + axis * max(AXIS_LENGTH_M, float(np.linalg.norm(cut - base)) * 2)
 
             def point(p: np.ndarray) -> Any:
@@ -288,8 +289,8 @@ class FoxgloveSink:
                                orientation=fg.Quaternion(w=1.0))
 
             entities.append(fg.SceneEntity(
-                timestamp=stamp, frame_id=CAMERA_FRAME, id=f"branch-{branch['id']}",
-                metadata=[fg.KeyValuePair(key="distance_m", value=f"{branch['distance_m']:.4f}"),
+                timestamp=stamp, frame_id=CAMERA_FRAME, id=f"branch-{branch.id}",
+                metadata=[fg.KeyValuePair(key="distance_m", value=f"{branch.distance_m:.4f}"),
                           fg.KeyValuePair(key="confidence", value=f"{c:.3f}"),
                           fg.KeyValuePair(key="target", value=str(is_target).lower())],
                 spheres=[fg.SpherePrimitive(pose=at(cut), size=fg.Vector3(x=size, y=size, z=size), color=colour)],

@@ -7,8 +7,8 @@ timing aside), and both write the same log lines.
 
 A results log starts each run with a header line (`run_header_line`): `{"schema":
 "branchrange/run-header/v1", "version", "config_sha256", "started_utc", "source", "kind"}`, so
-runs appended to one file stay apart. `read_results` gives back the frame results of a log and
-skips the headers; `read_runs` groups them by run.
+runs appended to one file stay apart. `read_runs` gives back a log's JSON records grouped by run;
+`read_results` its frame results as typed `FrameResult`s (`FrameResult.from_json_dict`), headers skipped.
 """
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from branchrange.config import Config, pipeline_config
+from branchrange.frame_result import FrameResult
 from camera.sources import SourceError, StereoFrame
 
 
@@ -55,7 +56,7 @@ def stereo_stage(pipeline: Any, frame: StereoFrame) -> Any:
     return pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
 
 
-def process_frame(pipeline: Any, frame: StereoFrame) -> dict[str, Any]:
+def process_frame(pipeline: Any, frame: StereoFrame) -> FrameResult:
     """The frame's result: both halves in a row, exactly as the daemon runs them on two threads.
 
     Raises `ValueError` (the pipeline's input or geometry errors) when the pipeline rejects the frame.
@@ -63,9 +64,14 @@ def process_frame(pipeline: Any, frame: StereoFrame) -> dict[str, Any]:
     return pipeline.geometry_stage(stereo_stage(pipeline, frame))
 
 
-def result_line(result: dict[str, Any]) -> str:
-    """The result as one compact JSON line, newline included: the results log format."""
-    return json.dumps(result, separators=(",", ":")) + "\n"
+def json_line(record: dict[str, Any]) -> str:
+    """A JSON object as one compact line, newline included: the results log format."""
+    return json.dumps(record, separators=(",", ":")) + "\n"
+
+
+def result_line(result: FrameResult) -> str:
+    """A frame's result as one results-log line."""
+    return json_line(result.to_json_dict())
 
 
 RUN_HEADER_SCHEMA = "branchrange/run-header/v1"
@@ -89,7 +95,7 @@ def run_header(kind: str, cfg: Config, source: str) -> dict[str, Any]:
 
 def run_header_line(kind: str, cfg: Config, source: str) -> str:
     """`run_header(...)` as one JSON line, newline included: the first line a run writes to its log."""
-    return result_line(run_header(kind, cfg, source))
+    return json_line(run_header(kind, cfg, source))
 
 
 def is_run_header(record: Any) -> bool:
@@ -98,8 +104,8 @@ def is_run_header(record: Any) -> bool:
 
 
 def read_runs(path: str | Path) -> list[tuple[dict[str, Any] | None, list[dict[str, Any]]]]:
-    """The runs of a results log: (header, frame results) each; results before any header (logs
-    written before headers existed) come as a run whose header is None. Blank lines are skipped."""
+    """The runs of a results log as JSON records: (header, frame results) each; results before any
+    header (logs written before headers existed) come as a run whose header is None. Blank lines are skipped."""
     runs: list[tuple[dict[str, Any] | None, list[dict[str, Any]]]] = []
     with open(path, encoding="utf-8") as stream:
         for record in (json.loads(line) for line in stream if line.strip()):
@@ -112,7 +118,10 @@ def read_runs(path: str | Path) -> list[tuple[dict[str, Any] | None, list[dict[s
     return runs
 
 
-def read_results(path: str | Path) -> Iterator[dict[str, Any]]:
-    """Every frame result of a results log, in order, run headers skipped."""
+def read_results(path: str | Path) -> Iterator[FrameResult]:
+    """Every frame result of a results log, in order, run headers skipped.
+
+    Raises `ResultFormatError` (a ValueError) naming the key of a line that is not a `branchrange/v1` result.
+    """
     for _, results in read_runs(path):
-        yield from results
+        yield from (FrameResult.from_json_dict(record) for record in results)

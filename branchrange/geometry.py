@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stereo import pinhole
+
 
 class GeometryError(ValueError):
     """Camera parameters or point sets that cannot give a meaningful 3D result."""
@@ -87,7 +89,7 @@ def disparity_to_depth(disparity: np.ndarray, geometry: StereoGeometry) -> np.nd
     disparity = np.asarray(disparity, dtype=np.float32)
     depth = np.full(disparity.shape, np.inf, dtype=np.float32)
     valid = valid_disparity(disparity)
-    depth[valid] = geometry.fb / disparity[valid]
+    depth[valid] = pinhole.depth_from_disparity(disparity[valid], geometry.focal_px, geometry.baseline_m)
     return depth
 
 
@@ -100,7 +102,7 @@ def backproject(u: np.ndarray, v: np.ndarray, disparity: np.ndarray, geometry: S
     d = np.asarray(disparity, dtype=np.float64)
     if d.size and not (np.all(np.isfinite(d)) and np.all(d > 0)):
         raise GeometryError("backproject needs finite, positive disparities; filter with valid_disparity first")
-    z = geometry.fb / d
+    z = pinhole.depth_from_disparity(d, geometry.focal_px, geometry.baseline_m)
     x = (np.asarray(u, dtype=np.float64) - geometry.cx) * z / geometry.focal_px
     y = (np.asarray(v, dtype=np.float64) - geometry.cy) * z / geometry.focal_px
     return np.stack([x, y, z], axis=-1)
@@ -109,12 +111,9 @@ def backproject(u: np.ndarray, v: np.ndarray, disparity: np.ndarray, geometry: S
 def project(points: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
     """Pixel coordinates `(N, 2)` as (u, v) of 3D points `(N, 3)` in metres (z must be > 0)."""
     points = np.atleast_2d(np.asarray(points, dtype=np.float64))
-    z = points[:, 2]
-    if np.any(z <= 0):
+    if np.any(points[:, 2] <= 0):
         raise GeometryError("cannot project points at or behind the camera (z <= 0)")
-    u = geometry.focal_px * points[:, 0] / z + geometry.cx
-    v = geometry.focal_px * points[:, 1] / z + geometry.cy
-    return np.stack([u, v], axis=-1)
+    return pinhole.project(points, geometry.focal_px, geometry.cx, geometry.cy)
 
 
 def pixel_ray(u: float, v: float, geometry: StereoGeometry) -> np.ndarray:

@@ -12,6 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from branchrange.frame_result import Branch, FrameResult
+from branchrange.geometry import StereoGeometry, project
 from branchrange.masks import BranchMasks
 
 _TARGET_RGB = (255, 40, 40)
@@ -48,11 +50,11 @@ class Box:
         return self.x0 >= 0 and self.y0 >= 0 and self.x1 <= width and self.y1 <= height
 
 
-def label_parts(branch: dict, is_target: bool) -> list[str]:
+def label_parts(branch: Branch, is_target: bool) -> list[str]:
     """What a person reads beside a cut point: distance in metres and confidence in percent,
     "TARGET" first on the target. The parts are drawn with a middle dot between them
     ("TARGET · 1.23 m · 87 %"): OpenCV's fonts have no "·", so the dot is drawn, not typed."""
-    parts = [f"{branch['distance_m']:.2f} m", f"{round(100 * float(branch['confidence']))} %"]
+    parts = [f"{branch.distance_m:.2f} m", f"{round(100 * branch.confidence)} %"]
     return ["TARGET", *parts] if is_target else parts
 
 
@@ -138,33 +140,31 @@ def _nearest_point(box: Box, u: int, v: int) -> tuple[int, int]:
     return min(max(u, box.x0), box.x1 - 1), min(max(v, box.y0), box.y1 - 1)
 
 
-def status_parts(result: dict, unlabelled: int = 0) -> list[str]:
+def status_parts(result: FrameResult, unlabelled: int = 0) -> list[str]:
     """The status line: cut-point count, the target's distance (or "no target" and why), unlabelled count."""
-    branches = result.get("branches", [])
-    parts = [f"{len(branches)} cut points"]
-    target = next((b for b in branches if b["id"] == result.get("target_id")), None)
+    parts = [f"{len(result.branches)} cut points"]
+    target = result.target
     if target is not None:
-        parts.append(f"target {target['distance_m']:.2f} m")
+        parts.append(f"target {target.distance_m:.2f} m")
     else:
-        parts.append("no target" + (f" ({result['reason'][:60]})" if result.get("reason") else ""))
+        parts.append("no target" + (f" ({result.reason[:60]})" if result.reason else ""))
     if unlabelled:
         parts.append(f"{unlabelled} unlabelled (no room)")
     return parts
 
 
-def layout_labels(result: dict, width: int, height: int, scale: float,
-                  clearance: int) -> tuple[Box, list[tuple[dict, list[str], Box | None]]]:
+def layout_labels(result: FrameResult, width: int, height: int, scale: float,
+                  clearance: int) -> tuple[Box, list[tuple[Branch, list[str], Box | None]]]:
     """Where the status line and each branch's label go in a `width × height` frame.
 
     The status line takes the top-left corner and every cut point's marker (`clearance` px
     around it) stays uncovered; the labels follow, target first, then nearest first, placed by
     `place_labels`; a label with no free place gets None (the status line then counts them).
     """
-    target_id = result.get("target_id")
-    order = sorted(result.get("branches", []), key=lambda b: (b["id"] != target_id, b["distance_m"]))
-    parts = [label_parts(b, b["id"] == target_id) for b in order]
+    order = sorted(result.branches, key=lambda b: (not result.is_target(b), b.distance_m))
+    parts = [label_parts(b, result.is_target(b)) for b in order]
     sizes = [_parts_size(p, scale)[:2] for p in parts]
-    anchors = [(int(round(b["pixel"][0])), int(round(b["pixel"][1]))) for b in order]
+    anchors = [_pixel(b) for b in order]
     markers = [Box(u - clearance // 2, v - clearance // 2, u + clearance // 2 + 1, v + clearance // 2 + 1)
                for u, v in anchors]
     unlabelled = 0
@@ -178,10 +178,26 @@ def layout_labels(result: dict, width: int, height: int, scale: float,
         unlabelled = max(missing, 1)
 
 
-def draw_overlay(left: np.ndarray, result: dict, masks: BranchMasks | None = None, alpha: float = 0.45) -> np.ndarray:
+def _pixel(branch: Branch) -> tuple[int, int]:
+    """The branch's cut pixel (u, v), rounded to the nearest pixel."""
+    return int(round(branch.pixel[0])), int(round(branch.pixel[1]))
+
+
+def _axis_stroke(branch: Branch, geometry: StereoGeometry) -> tuple[float, float] | None:
+    """The image direction (du, dv) px of the branch's axis at its cut point (5 cm toward the tip,
+    projected), or None when that stretch leaves the half-space in front of the camera."""
+    cut, axis = np.asarray(branch.cut_point_m), np.asarray(branch.axis)
+    if cut[2] <= 0 or cut[2] + 0.05 * axis[2] <= 0:
+        return None
+    start, end = project(np.stack([cut, cut + 0.05 * axis]), geometry)
+    return float(end[0] - start[0]), float(end[1] - start[1])
+
+
+def draw_overlay(left: np.ndarray, result: FrameResult, masks: BranchMasks | None = None,
+                 alpha: float = 0.45) -> np.ndarray:
     """The overlay as RGB `uint8 H×W×3`: `left` (RGB `uint8 H×W×3`, rectified) with `masks` tinted,
-    every branch of `result` (a `branchrange/v1` dict) marked at its cut pixel with its axis drawn
-    and labelled with distance and confidence, and the target ringed in red and labelled TARGET."""
+    every branch of `result` marked at its cut pixel with its axis drawn and labelled with distance
+    and confidence, and the target ringed in red and labelled TARGET."""
     canvas = left.copy()
     if masks is not None and masks.shape == left.shape[:2]:
         tint = np.zeros_like(canvas)
@@ -198,29 +214,26 @@ def draw_overlay(left: np.ndarray, result: dict, masks: BranchMasks | None = Non
         canvas[painted] = blended[painted]
     scale = max(0.35, left.shape[1] / 1600.0)
     radius = max(4, left.shape[1] // 160)
-    focal = float(result["camera"]["focal_px"])
-    target_id = result.get("target_id")
-    for branch in result.get("branches", []):
-        colour = _TARGET_RGB if branch["id"] == target_id else _CUT_RGB
-        u, v = (int(round(c)) for c in branch["pixel"])
-        x, y, z = branch["cut_point_m"]
-        ax, ay, az = branch["axis"]
-        if z + 0.05 * az > 0:  # the axis direction as a short stroke toward the tip
-            tip = (focal * (x + 0.05 * ax) / (z + 0.05 * az) - focal * x / z, focal * (y + 0.05 * ay) / (z + 0.05 * az) - focal * y / z)
-            norm = float(np.hypot(*tip)) or 1.0
-            end = (int(round(u + 3 * radius * tip[0] / norm)), int(round(v + 3 * radius * tip[1] / norm)))
+    geometry = result.camera.geometry()
+    for branch in result.branches:
+        colour = _TARGET_RGB if result.is_target(branch) else _CUT_RGB
+        u, v = _pixel(branch)
+        stroke = _axis_stroke(branch, geometry)
+        if stroke is not None:  # the axis direction as a short stroke toward the tip
+            norm = float(np.hypot(*stroke)) or 1.0
+            end = (int(round(u + 3 * radius * stroke[0] / norm)), int(round(v + 3 * radius * stroke[1] / norm)))
             cv2.line(canvas, (u, v), end, _CUT_RGB, max(1, radius // 3), cv2.LINE_AA)
         cv2.circle(canvas, (u, v), radius, colour, max(1, radius // 3), cv2.LINE_AA)
         cv2.drawMarker(canvas, (u, v), colour, cv2.MARKER_CROSS, radius, 1, cv2.LINE_AA)
-        if branch["id"] == target_id:
+        if result.is_target(branch):
             cv2.circle(canvas, (u, v), 2 * radius + 2, _TARGET_RGB, max(2, radius // 2), cv2.LINE_AA)
     status_box, labels = layout_labels(result, canvas.shape[1], canvas.shape[0], scale, clearance=4 * radius + 6)
     unlabelled = sum(box is None for _, _, box in labels)
     _draw_label(canvas, status_box, status_parts(result, unlabelled), (255, 255, 255), scale)
-    placed = [(branch, parts, box, _TARGET_RGB if branch["id"] == target_id else _CUT_RGB)
+    placed = [(branch, parts, box, _TARGET_RGB if result.is_target(branch) else _CUT_RGB)
               for branch, parts, box in labels if box is not None]
     for branch, _, box, colour in placed:  # leader lines first, so labels cover lines, not the reverse
-        u, v = (int(round(c)) for c in branch["pixel"])
+        u, v = _pixel(branch)
         near = _nearest_point(box, u, v)
         if np.hypot(near[0] - u, near[1] - v) > 3 * radius:  # a label pushed away keeps a line to its point
             cv2.line(canvas, (u, v), near, colour, 1, cv2.LINE_AA)
@@ -229,7 +242,7 @@ def draw_overlay(left: np.ndarray, result: dict, masks: BranchMasks | None = Non
     return canvas
 
 
-def write_overlay(path: str | Path, left: np.ndarray, result: dict, masks: BranchMasks | None = None) -> Path:
+def write_overlay(path: str | Path, left: np.ndarray, result: FrameResult, masks: BranchMasks | None = None) -> Path:
     """Draw the overlay and write it as PNG (or any format OpenCV knows by extension); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,7 @@ Cost: ~10–25 ms at 640×360 on one core (ORB on ≤ 1000 features); images wid
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -49,10 +49,6 @@ class PairCheck:
     matches: int
     status: str
     message: str
-
-    def to_dict(self) -> dict:
-        """JSON-ready form (the `pair_check` field of a result)."""
-        return asdict(self)
 
     def raise_if_refused(self) -> None:
         """`PairRefusedError` when the pair must not be used for stereo."""
@@ -87,9 +83,10 @@ def vertical_offsets(left: np.ndarray, right: np.ndarray, features: int = 1000) 
 
 
 def check_rectification(left: np.ndarray, right: np.ndarray) -> PairCheck:
-    """How far apart the rows of a stereo pair are (see the module docstring for the thresholds)."""
-    if left.shape[:2] != right.shape[:2]:
-        raise ValueError(f"left {left.shape[:2]} and right {right.shape[:2]} images differ in size")
+    """How far apart the rows of a stereo pair are (see the module docstring for the thresholds).
+
+    The pair is one its caller validated (`stereo.backends.validate_pair`): RGB `uint8 H×W×3`, same size.
+    """
     dy = vertical_offsets(left, right)
     if dy.size:
         centre = float(np.median(dy))

@@ -1,4 +1,4 @@
-"""The per-frame pipeline: stereo pair (+ optional mask) → cut points in the `branchrange/v1` schema.
+"""The per-frame pipeline: stereo pair (+ optional mask) → cut points, a `FrameResult` (`branchrange/v1`).
 
 Stages, each timed in `timing_ms`: rectify (when a raw calibration is given) → stereo backend →
 masks (given, or the segmenter) → cut points → tracking (stable ids) → target. One `Pipeline` is
@@ -13,7 +13,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from branchrange.cutpoints import (
@@ -23,6 +22,18 @@ from branchrange.cutpoints import (
     TrunkModel,
     estimate_cut_points,
     select_target,
+)
+from branchrange.frame_result import (
+    Branch,
+    CameraInfo,
+    DroppedInstance,
+    Frame,
+    FrameResult,
+    MasksInfo,
+    PairCheckInfo,
+    RoiInfo,
+    RoiRegion,
+    StereoInfo,
 )
 from branchrange.geometry import StereoGeometry, offset_disparity, valid_disparity
 from branchrange.masks import (
@@ -38,9 +49,8 @@ from branchrange.pair_check import PairCheck, check_rectification
 from branchrange.segmenter import Segmenter
 from branchrange.timing import lap_ms
 from branchrange.tracking import BranchTracker, TrackerConfig
+from stereo.backends.base import validate_image, validate_pair
 
-SCHEMA_ID = "branchrange/v1"
-SCHEMA_PATH = Path(__file__).with_name("schemas") / "result_v1.json"
 
 MaskInput = BranchMasks | np.ndarray | str | Path | None
 
@@ -82,17 +92,6 @@ def untracked_whole_frame(max_disp: int = 192, target_policy: str = DEFAULT_TARG
     whole-frame sgbm stereo searching `max_disp` px, targets chosen by `target_policy`."""
     return PipelineConfig(stereo=StereoConfig(mode="full", max_disp=max_disp),
                           cutpoints=CutPointConfig(tracking=False, target_policy=target_policy))
-
-
-def _check_image(image: Any, which: str) -> np.ndarray:
-    """The image itself when it is a `uint8 H×W×3` array, else `PipelineInputError` naming it."""
-    if not isinstance(image, np.ndarray):
-        raise PipelineInputError(f"{which} image must be a numpy array, got {type(image).__name__}")
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise PipelineInputError(f"{which} image must be uint8 H×W×3 RGB, got {image.dtype} of shape {image.shape}")
-    if image.shape[0] < 2 or image.shape[1] < 2:
-        raise PipelineInputError(f"{which} image is empty: shape {image.shape}")
-    return image
 
 
 @dataclass(frozen=True)
@@ -237,13 +236,13 @@ class Pipeline:
         check_instance_count(masks, self.config.cutpoints.max_instances)  # before any other work on such a mask
         if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
             validate_masks(masks, shape)
-            masks = replace(masks, labels=_rectify_labels(self.rectifier, masks.labels))
+            masks = replace(masks, labels=self.rectifier.rectify_labels(masks.labels))
         validate_masks(masks, shape)
         return masks
 
     def process(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
-                index: int = 0, timestamp_ns: int = 0) -> dict:
-        """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → result dict.
+                index: int = 0, timestamp_ns: int = 0) -> FrameResult:
+        """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → its `FrameResult`.
 
         `mask`: an instance-id / binary mask (array, path or `BranchMasks`) in the left image's
         pixels, or None for the segmenter. The same as `geometry_stage(stereo_stage(...))`.
@@ -260,10 +259,7 @@ class Pipeline:
         """
         start = time.perf_counter()
         timing: dict[str, float] = {}
-        left, right = _check_image(left, "left"), _check_image(right, "right")
-        if left.shape != right.shape:
-            raise PipelineInputError(f"left {left.shape[1]}×{left.shape[0]} and right {right.shape[1]}×{right.shape[0]} "
-                                     "images differ in size; a stereo pair must match pixel for pixel")
+        validate_pair(left, right, PipelineInputError)
         geometry = self.geometry_for(left.shape[1], left.shape[0])
         masks = self._masks(mask, left.shape[:2])
         if self.rectifier is not None:
@@ -290,13 +286,13 @@ class Pipeline:
 
     def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
                           mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
-                          backend: str = "given") -> dict:
+                          backend: str = "given") -> FrameResult:
         """The stages after stereo on a rectified left image and its `float32 H×W` disparity (px).
 
         `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
         """
         start = time.perf_counter()
-        left = _check_image(left, "left")
+        left = validate_image(left, "left", PipelineInputError)
         disparity = np.asarray(disparity, dtype=np.float32)
         if disparity.shape != left.shape[:2]:
             raise PipelineInputError(f"disparity is {disparity.shape[1]}×{disparity.shape[0]} px but the left "
@@ -315,7 +311,7 @@ class Pipeline:
                             (time.perf_counter() - start) * 1000.0)
         return self.geometry_stage(stage)
 
-    def geometry_stage(self, stage: StereoStage) -> dict:
+    def geometry_stage(self, stage: StereoStage) -> FrameResult:
         """The second half of a frame: masks (the segmenter when none) → cut points → tracking → target → result.
 
         `timing_ms.total` is the compute time of both halves (ms), not including any wait between them.
@@ -359,34 +355,17 @@ class Pipeline:
         if target is None and cut.branches:
             reason = f"no branch reaches the target confidence {self.config.cutpoints.target_min_confidence}"
         timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
-        result = {
-            "schema": SCHEMA_ID,
-            "frame": {"index": stage.index, "timestamp_ns": stage.timestamp_ns,
-                      "width": int(left.shape[1]), "height": int(left.shape[0])},
-            "camera": {"focal_px": geometry.focal_px, "baseline_m": geometry.baseline_m,
-                       "cx": geometry.cx, "cy": geometry.cy},
-            "stereo": {"backend": stage.backend, "max_disparity": int(max_disparity),
-                       "valid_fraction": round(float(valid.mean()), 4)},
-            "timing_ms": timing,
-            "masks": {"source": masks.source if masks is not None else "none",
-                      "instances": len(masks.branch_ids()) if masks is not None else 0,
-                      "trunk": masks is not None and masks.trunk() is not None},
-            "branches": [b.to_dict() for b in sorted(cut.branches, key=lambda b: b.id)],
-            "dropped": [d.to_dict() for d in cut.dropped],
-            "target_id": None if target is None else int(target.id),
-        }
-        if reason is not None:
-            result["reason"] = reason
-        if stage.regions is not None:
-            result["roi"] = {"regions": [region.to_dict() for region in stage.regions]}
-        if stage.pair_check is not None:
-            result["pair_check"] = stage.pair_check.to_dict()
-        return result
-
-
-def _rectify_labels(rectifier: Any, labels: np.ndarray) -> np.ndarray:
-    """Instance labels drawn on the raw left image, moved to the rectified left image (nearest id)."""
-    c = rectifier.calibration
-    map_x, map_y = cv2.initUndistortRectifyMap(c.K1, c.D1, rectifier.R1, rectifier.P1, c.image_size, cv2.CV_32FC1)
-    return cv2.remap(labels.astype(np.float32), map_x, map_y, cv2.INTER_NEAREST,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.int32)
+        return FrameResult(
+            frame=Frame(stage.index, stage.timestamp_ns, int(left.shape[1]), int(left.shape[0])),
+            camera=CameraInfo(geometry.focal_px, geometry.baseline_m, geometry.cx, geometry.cy),
+            stereo=StereoInfo(stage.backend, int(max_disparity), round(float(valid.mean()), 4)),
+            timing_ms=timing,
+            masks=MasksInfo("none", 0, False) if masks is None else
+            MasksInfo(masks.source, len(masks.branch_ids()), masks.trunk() is not None),
+            branches=tuple(Branch.from_estimate(b) for b in sorted(cut.branches, key=lambda b: b.id)),
+            dropped=tuple(DroppedInstance.from_dropped(d) for d in cut.dropped),
+            target_id=None if target is None else int(target.id),
+            reason=reason,
+            roi=None if stage.regions is None else RoiInfo(tuple(RoiRegion.from_region(r) for r in stage.regions)),
+            pair_check=None if stage.pair_check is None else PairCheckInfo.from_check(stage.pair_check),
+        )

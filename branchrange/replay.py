@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from branchrange.config import Config
+from branchrange.frame_result import FrameResult
 from branchrange.frame_results import pipeline_for, process_frame, result_line, run_header_line
 from branchrange.overlay import draw_overlay
 from branchrange.overlay_video import OverlayVideoWriter, check_video
@@ -30,7 +31,7 @@ from stereo.progress import progress_bar
 log = logging.getLogger("branchrange.replay")
 #: Called once per processed frame with its result and the pipeline's `FrameArtifacts` (the daemon's
 #: observer contract; branchrange.foxglove_sink.FoxgloveSink is one).
-Observer = Callable[[dict[str, Any], Any], None]
+Observer = Callable[[FrameResult, Any], None]
 
 
 def _stats(values: list[float], digits: int) -> dict[str, float | int]:
@@ -67,20 +68,21 @@ class ReplaySummary:
     _target_distances: list[float] = field(default_factory=list, init=False, repr=False)
     _timing: dict[str, list[float]] = field(default_factory=dict, init=False, repr=False)
 
-    def add(self, result: dict[str, Any]) -> None:
-        """Count one frame's `branchrange/v1` result."""
+    def add(self, result: FrameResult) -> None:
+        """Count one frame's result."""
         self.frames += 1
-        branches = result["branches"]
+        branches = result.branches
         self.detections += len(branches)
         self.frames_with_branches += bool(branches)
         for branch in branches:
-            self._tracks.add(int(branch["id"]))
-            self._distances.append(float(branch["distance_m"]))
-            if branch["id"] == result["target_id"]:
-                self._target_tracks.add(int(branch["id"]))
-                self._target_distances.append(float(branch["distance_m"]))
-        self.frames_with_target += result["target_id"] is not None
-        for stage, ms in result["timing_ms"].items():
+            self._tracks.add(branch.id)
+            self._distances.append(branch.distance_m)
+        target = result.target
+        if target is not None:
+            self._target_tracks.add(target.id)
+            self._target_distances.append(target.distance_m)
+        self.frames_with_target += target is not None
+        for stage, ms in result.timing_ms.items():
             self._timing.setdefault(stage, []).append(float(ms))
 
     def to_dict(self) -> dict[str, Any]:
@@ -133,19 +135,19 @@ def source_spec(recording: str | Path) -> str:
     return f"{'rosbag' if is_bag else 'replay'}:{text}"
 
 
-def _overlay_frame(pipeline: Any, result: dict[str, Any]) -> np.ndarray:
+def _overlay_frame(pipeline: Any, result: FrameResult) -> np.ndarray:
     """The overlay (RGB `uint8 H×W×3`) of the frame the pipeline just processed into `result`: its
     rectified left view, the masks it used (recorded or segmented) and the cut points."""
     return draw_overlay(pipeline.last.left, result, pipeline.last.masks)
 
 
-def _notify(observers: Sequence[Observer], result: dict[str, Any], artifacts: Any) -> None:
+def _notify(observers: Sequence[Observer], result: FrameResult, artifacts: Any) -> None:
     """Give the frame to every observer; one that fails is logged and the replay goes on, as in the daemon."""
     for observer in observers:
         try:
             observer(result, artifacts)
         except Exception:  # an observer (a viewer, a sink) must never stop the replay
-            log.exception("frame %d: observer %r failed", result["frame"]["index"], observer)
+            log.exception("frame %d: observer %r failed", result.frame.index, observer)
 
 
 def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, *, video: str | Path | None = None,

@@ -61,11 +61,6 @@ class Region:
         x0, y0, x1, y1 = self.box
         return (x1 - x0) * (y1 - y0)
 
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON form of the result's `roi.regions` entries."""
-        return {"id": self.instance_id, "box": list(self.box), "d_min": self.d_min, "d_range": self.d_range,
-                "backend": self.backend}
-
 
 @dataclass(frozen=True, eq=False)
 class CoarseTrunk:

@@ -26,7 +26,8 @@ class Rectifier:
     Uses cv2.stereoRectify with CALIB_ZERO_DISPARITY and alpha 0 (only valid pixels, no black
     borders) at the calibration's image size; the remap tables are built once here and reused for
     every frame. An already rectified calibration (`is_rectified`) leaves pixels untouched.
-    Rectified left frame: OpenCV axes; depth `Z = focal_px * baseline_m / disparity`.
+    Rectified left frame: OpenCV axes; depth `Z = focal_px * baseline_m / disparity`
+    (`stereo.pinhole.depth_from_disparity`).
     """
 
     def __init__(self, calibration: StereoCalibration) -> None:
@@ -45,6 +46,7 @@ class Rectifier:
                 cv2.initUndistortRectifyMap(c.K1, c.D1, self.R1, self.P1, size, cv2.CV_16SC2),
                 cv2.initUndistortRectifyMap(c.K2, c.D2, self.R2, self.P2, size, cv2.CV_16SC2),
             )
+        self._label_maps: tuple[np.ndarray, np.ndarray] | None = None  # built on the first mask
         for name in ("R1", "R2", "P1", "P2", "Q"):
             getattr(self, name).setflags(write=False)
 
@@ -89,8 +91,19 @@ class Rectifier:
         return (cv2.remap(left, left_a, left_b, cv2.INTER_LINEAR),
                 cv2.remap(right, right_a, right_b, cv2.INTER_LINEAR))
 
-    def depth_m(self, disparity_px: np.ndarray | float) -> np.ndarray:
-        """Depth Z = f·B/d in metres for disparities in pixels of the rectified pair (inf where d ≤ 0)."""
-        d = np.asarray(disparity_px, dtype=np.float64)
-        with np.errstate(divide="ignore"):
-            return np.where(d > 0, self.focal_px * self.baseline_m / np.where(d > 0, d, 1.0), np.inf)
+    def rectify_labels(self, labels: np.ndarray) -> np.ndarray:
+        """Instance labels (`H×W` ids) drawn on the raw left image, moved onto the rectified left image:
+        `int32 H×W`, each pixel the id nearest to where it came from, 0 where it came from outside.
+
+        The float remap tables (exact positions: ids must not blend) are built on the first call and kept,
+        so a mask per frame costs a remap, not a map rebuild. An already rectified calibration leaves
+        the labels as they are.
+        """
+        if self._maps is None:
+            return labels
+        if self._label_maps is None:
+            c = self.calibration
+            self._label_maps = cv2.initUndistortRectifyMap(c.K1, c.D1, self.R1, self.P1, c.image_size, cv2.CV_32FC1)
+        map_x, map_y = self._label_maps
+        return cv2.remap(labels.astype(np.float32), map_x, map_y, cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.int32)

@@ -23,6 +23,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from stereo.pinhole import depth_from_disparity
+
 DEFAULT_MAX_DISP = 192
 CLAMP_MIN = 1e-6
 BAD_THRESHOLDS: dict[str, float] = {"bad_0_5": 0.5, "bad_1": 1.0, "bad_2": 2.0, "bad_3": 3.0, "bad_4": 4.0, "bad_5": 5.0}
@@ -48,8 +50,8 @@ def _delta_fractions(pred: np.ndarray, gt: np.ndarray, suffix: str = "") -> dict
 
 def _depth_metrics(pred: np.ndarray, gt: np.ndarray, focal_px: float, baseline_m: float) -> dict[str, float]:
     """Depth-based metrics from clamped disparities of the valid pixels (Z = f·B/d, metres)."""
-    pred_z = focal_px * baseline_m / pred
-    gt_z = focal_px * baseline_m / gt
+    pred_z = depth_from_disparity(pred, focal_px, baseline_m)
+    gt_z = depth_from_disparity(gt, focal_px, baseline_m)
     err_z = np.abs(pred_z - gt_z)
     return {
         "abs_rel_depth": float(np.mean(err_z / gt_z)),

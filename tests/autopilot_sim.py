@@ -31,6 +31,7 @@ from branchrange.flight import FlightPose
 from branchrange.mavlink.connection import mavutil_v2
 from branchrange.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
 from mavlink_peer import Received
+from result_factory import branch, frame_result
 
 ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
 MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
@@ -247,8 +248,7 @@ def fly_frames(sim: AutopilotSim, relay, mount: CameraMount, branches_ned: list[
         time.sleep(max(0.0, captured + latency_s - time.monotonic()))
         pose = sim.pose_at(captured)
         cams = [noisy(camera_point(pose, p, mount), rng, tracking) for p in branches_ned]
-        result = {"branches": [{"id": i, "cut_point_m": [float(v) for v in c], "confidence": 0.8}
-                               for i, c in enumerate(cams)], "target_id": 0}
+        result = frame_result([branch(i, c, confidence=0.8) for i, c in enumerate(cams)], target_id=0)
         relay.publish(result, captured_at=captured)
         published.append(Published(captured, time.monotonic(), cams[0]))
     return published

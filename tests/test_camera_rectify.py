@@ -9,6 +9,7 @@ import pytest
 
 from camera import FrameSizeError, Rectifier, StereoCalibration, from_kitti, from_rectified, from_zed_conf
 from camera.zed_conf import parse_ini
+from stereo.pinhole import depth_from_disparity
 
 WIDTH, HEIGHT = 640, 400
 
@@ -115,7 +116,7 @@ def test_rectified_rig_puts_points_on_one_row_and_gives_true_depth(rendered) -> 
         disparity = found_left[0] - found_right[0]
         depth_true = (rectifier.R1 @ point)[2]
         vertical.append(abs(found_left[1] - found_right[1]))
-        depth_error.append(abs(float(rectifier.depth_m(disparity)) - depth_true) / depth_true)
+        depth_error.append(abs(float(depth_from_disparity(disparity, rectifier.focal_px, rectifier.baseline_m)) - depth_true) / depth_true)
         disparities.append(disparity)
     # the raw images really are misaligned: without rectification rows differ by pixels
     raw_rows = [abs(_centroid(raw_left, g)[1] - _centroid(raw_right, h)[1]) for g, h in zip(
@@ -163,7 +164,7 @@ def test_real_zed_calibration_rectifies_to_its_baseline_with_aligned_rows(shared
     rect_left = _undistort(raw_left, calib.K1, calib.D1, rectifier.R1, rectifier.P1)
     rect_right = _undistort(raw_right, calib.K2, calib.D2, rectifier.R2, rectifier.P2)
     np.testing.assert_allclose(rect_left[:, 1], rect_right[:, 1], atol=0.01)
-    depth = rectifier.depth_m(rect_left[:, 0] - rect_right[:, 0])
+    depth = depth_from_disparity(rect_left[:, 0] - rect_right[:, 0], rectifier.focal_px, rectifier.baseline_m)
     np.testing.assert_allclose(depth, (points @ rectifier.R1.T)[:, 2], rtol=1e-4)
 
 
@@ -235,3 +236,27 @@ def test_rectify_maps_are_built_once_and_reused(rendered, monkeypatch: pytest.Mo
     second = rectifier.rectify(left, right)
     assert len(calls) == 2  # one map per view, at construction
     assert np.array_equal(first[0], second[0]) and not np.array_equal(first[0], left)
+
+
+def test_label_maps_are_built_once_and_move_ids_like_the_image(rendered, monkeypatch: pytest.MonkeyPatch) -> None:
+    calib, left, right = rendered
+    labels = np.zeros((HEIGHT, WIDTH), np.uint16)
+    labels[100:180, 200:420] = 7
+    labels[250:300, 50:150] = 65535  # the trunk id survives (exact in float32)
+    calls: list[int] = []
+    original = cv2.initUndistortRectifyMap
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    rectifier = Rectifier(calib)
+    monkeypatch.setattr(cv2, "initUndistortRectifyMap", counting)
+    first, second = rectifier.rectify_labels(labels), rectifier.rectify_labels(labels)
+    assert len(calls) == 1  # the label tables, once; the image tables were built before
+    assert first.dtype == np.int32 and np.array_equal(first, second)
+    assert set(np.unique(first)) == {0, 7, 65535}  # nearest id: no blends between ids
+    moved = rectifier.rectify(np.repeat((labels == 7).astype(np.uint8)[:, :, None] * 255, 3, axis=2), right)[0][..., 0]
+    agree = (first == 7) == (moved > 127)
+    assert agree.mean() > 0.995  # the labels land where the image's pixels land
+    assert not np.array_equal(first, labels.astype(np.int32))  # a real rig: something moved

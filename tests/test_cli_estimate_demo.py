@@ -10,12 +10,13 @@ import pytest
 
 from branchrange.cli import main
 from branchrange.evaluate_cuts import CutScores, evaluate_cuts
-from branchrange.pipeline import SCHEMA_PATH
+from branchrange.frame_result import SCHEMA_PATH
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
 from stereo.io import write_rgb
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.writer import write_dataset, write_mask
+from result_factory import branch
 
 SCHEMA = json.loads(SCHEMA_PATH.read_text(encoding="utf-8"))
 
@@ -156,8 +157,9 @@ def test_evaluate_cuts_scores_ground_truth_geometry(tiny_set):
 def test_evaluate_cuts_scores_a_target_far_from_every_truth_as_a_miss():
     scores = CutScores("gt", "gt")
     truth = [{"cut_point_m": [0.0, 0.0, 1.0], "cut_visible": True}]
-    scores.add_frame(truth, [{"cut_point_m": [0.0, 0.0, 1.01]}], target={"cut_point_m": [0.0, 0.0, 1.01]})
-    scores.add_frame(truth, [{"cut_point_m": [0.0, 0.0, 1.2]}], target={"cut_point_m": [0.0, 0.0, 1.2]})
+    near, far = branch(0, [0.0, 0.0, 1.01]), branch(0, [0.0, 0.0, 1.2])
+    scores.add_frame(truth, [near], target=near)
+    scores.add_frame(truth, [far], target=far)
     scores.add_frame(truth, [], target=None)
     assert (scores.targets, scores.targets_within, scores.target_accuracy) == (2, 1, 0.5)
 

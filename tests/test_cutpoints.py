@@ -13,6 +13,7 @@ from branchrange.cutpoints import (
     estimate_cut_points,
     select_target,
 )
+from branchrange.frame_result import Branch, DroppedInstance
 from branchrange.masks import masks_from_array
 
 OFFSET = CutPointConfig().cut_offset_m
@@ -174,7 +175,8 @@ def test_target_selector_policies_and_confidence_floor():
 def test_dropped_and_estimates_serialise_to_plain_json_types():
     scene, _, _ = branch_with_trunk()
     [b] = estimate(scene).branches
-    entry = b.to_dict()
+    entry = Branch.from_estimate(b).to_json_dict()
     assert set(entry) >= {"id", "cut_point_m", "distance_m", "pixel", "diameter_m", "axis", "base_m", "confidence"}
-    assert all(isinstance(v, float) for v in entry["cut_point_m"])
-    assert DroppedBranch(3, "why").to_dict() == {"mask_id": 3, "reason": "why"}
+    assert all(type(v) is float for v in entry["cut_point_m"]) and isinstance(entry["cut_point_m"], list)
+    assert entry["distance_m"] == round(b.distance_m, 5) and type(entry["points"]) is int
+    assert DroppedInstance.from_dropped(DroppedBranch(3, "why")).to_json_dict() == {"mask_id": 3, "reason": "why"}

@@ -105,7 +105,7 @@ def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_rec
         assert branchrange_main(["daemon", "--config", str(config), "--max-frames", str(TREE_FRAMES)]) == 0
     finally:
         listener.finish()
-    lines = list(read_results(results))
+    lines = [r.to_json_dict() for r in read_results(results)]
     assert len(lines) >= TREE_FRAMES - 1 and all(r["masks"]["source"] == "array" for r in lines)
     targets = [next(b for b in r["branches"] if b["id"] == r["target_id"]) for r in lines]
     truth = truth_of(tree_scene(), targets[0]["mask_id"])
@@ -274,8 +274,7 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
     state = relay.link_state()
     assert state["reconnects"] >= 1 and state["send_errors"] >= 1
     distances = [d.msg.current_distance for d in of_type(after, "DISTANCE_SENSOR") if d.msg.current_distance <= 1000]
-    logged = {round(b["distance_m"] * 100) for r in read_results(tmp_path / "results.jsonl")
-              for b in r["branches"] if b["id"] == r["target_id"]}
+    logged = {round(r.target.distance_m * 100) for r in read_results(tmp_path / "results.jsonl") if r.target is not None}
     assert distances and set(distances) <= logged  # fresh results resumed, not a replay of old ones
     assert len(list(read_results(tmp_path / "results.jsonl"))) == daemon.frames  # one line per frame
 
@@ -337,7 +336,7 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
     finally:
         poller.join(timeout=10)
         peer.close()
-    logged = list(read_results(results))
+    logged = [r.to_json_dict() for r in read_results(results)]
     assert seen, "the daemon's API never answered /latest"
     assert seen["latest"] in logged  # /latest is a logged result, key for key
     health = seen["health"]
@@ -389,7 +388,7 @@ def test_stereo_and_geometry_run_on_separate_threads_on_the_newest_frames(record
     daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"), pipeline=pipeline,
                     observers=[lambda result, artifacts: published.append((result, artifacts))])
     daemon.run()
-    indices = [result["frame"]["index"] for result, _ in published]
+    indices = [result.frame.index for result, _ in published]
     assert indices == sorted(indices) and len(indices) < FRAMES
     assert daemon.dropped + daemon.skipped == FRAMES - len(indices) - daemon.rejected
     assert daemon.dropped > 0  # the camera's frames were not queued behind the slow stereo stage
@@ -397,9 +396,9 @@ def test_stereo_and_geometry_run_on_separate_threads_on_the_newest_frames(record
                 if j > i and s_start < g_end - 0.1 and s_end > g_start + 0.1]  # ≥ 0.1 s of the two 0.3 s stages together
     assert overlaps, "stereo never ran while geometry did"
     for result, artifacts in published:
-        latency = result["latency"]
-        assert 0 <= latency["capture_to_stereo_ms"] <= latency["capture_to_geometry_ms"] <= latency["capture_to_publish_ms"]
-        assert latency["capture_to_publish_ms"] >= 600 - 50  # both slowed halves lie between capture and publishing
+        latency = result.latency
+        assert 0 <= latency.capture_to_stereo_ms <= latency.capture_to_geometry_ms <= latency.capture_to_publish_ms
+        assert latency.capture_to_publish_ms >= 600 - 50  # both slowed halves lie between capture and publishing
         assert artifacts is not None and artifacts.disparity.shape == (256, 320)
     health = daemon.health()["camera"]
     assert health["dropped"] == daemon.dropped and health["skipped"] == daemon.skipped
@@ -451,7 +450,7 @@ def test_a_failing_observer_is_logged_and_never_stops_the_daemon(recording, capl
 
     daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"),
                     pipeline=pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))),
-                    observers=[broken, lambda result, artifacts: seen.append(result["frame"]["index"])])
+                    observers=[broken, lambda result, artifacts: seen.append(result.frame.index)])
     assert daemon.run(max_frames=3) == 3
     assert len(seen) == 3 and daemon.rejected == 0
     assert sum("viewer gone" in r.getMessage() for r in caplog.records) == 3

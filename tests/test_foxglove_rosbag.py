@@ -9,6 +9,7 @@ import re
 import struct
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -20,6 +21,7 @@ from websockets.sync.client import connect
 from branchrange.cli import main as branchrange_main
 from branchrange.config import Config, StereoConfig
 from branchrange.foxglove_layout import layout, layout_text
+from branchrange.frame_result import FrameResult
 from branchrange.frame_results import read_results
 from branchrange.foxglove_sink import (BODY_FRAME, CAMERA_FRAME, LOCAL_FRAME, TOPICS, FoxgloveSink, FoxgloveTargetError,
                                        FoxgloveTargets, parse_targets)
@@ -42,7 +44,7 @@ def without_timing(results: list[dict]) -> list[dict]:
 
 
 def read_lines(path) -> list[dict]:
-    return list(read_results(path))  # frame results; the run header is skipped
+    return [r.to_json_dict() for r in read_results(path)]  # frame results; the run header is skipped
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +110,7 @@ def test_a_failing_observer_is_logged_and_the_others_get_every_frame(runs):
                                                            for i, r in enumerate(runs["failures"])]
     assert len(runs["failures"]) == FRAMES and "a viewer that breaks" in str(runs["failures"][0].exc_info[1])
     seen = runs["seen"]
-    assert [r["frame"]["index"] for r, _ in seen] == list(range(FRAMES))
+    assert [r.frame.index for r, _ in seen] == list(range(FRAMES))
     result, artifacts = seen[-1]
     assert artifacts.left.shape == (HEIGHT, WIDTH, 3) and artifacts.disparity.shape == (HEIGHT, WIDTH)
 
@@ -140,7 +142,7 @@ def test_foxglove_mcap_holds_every_channel_with_one_message_per_frame(runs):
 
 
 def test_vehicle_pose_and_mount_give_the_transform_tree_and_no_images_without_artifacts(runs, tmp_path):
-    result = runs["recording"][0]
+    result = FrameResult.from_json_dict(runs["recording"][0])
     mount = CameraMount.from_rpy((0, -30, 0), (0.1, 0, 0.05))
     with FoxgloveSink(FoxgloveTargets(mcap=tmp_path / "tf.mcap"), mount=mount) as sink:
         sink(result, None)
@@ -156,7 +158,7 @@ def test_vehicle_pose_and_mount_give_the_transform_tree_and_no_images_without_ar
 
 def test_newest_only_sink_returns_at_once_and_logs_the_newest_frames(runs, tmp_path):
     result, artifacts = runs["seen"][-1]
-    frames = [dict(result, frame=dict(result["frame"], index=i)) for i in range(6)]
+    frames = [replace(result, frame=replace(result.frame, index=i)) for i in range(6)]
     release, busy = threading.Event(), threading.Event()
     with FoxgloveSink(FoxgloveTargets(mcap=tmp_path / "newest.mcap"), newest_only=True) as sink:
         log_frame = sink._log_frame
@@ -194,7 +196,7 @@ def test_live_server_streams_the_channels_to_a_websocket_client(runs):
         ws.send(json.dumps({"op": "subscribe", "subscriptions": [
             {"id": i, "channelId": channels[topic]["id"]} for i, topic in subscriptions.items()]}))
         received: dict[str, bytes] = {}
-        no_target = {TOPICS["target"]} if result["target_id"] is None else set()
+        no_target = {TOPICS["target"]} if result.target is None else set()
         expected = set(TOPICS.values()) - {TOPICS["tf"]} - no_target
         while not expected <= set(received) and time.monotonic() < deadline:
             sink(result, artifacts)  # the daemon keeps sending; the subscription takes effect within a frame or two
@@ -207,7 +209,7 @@ def test_live_server_streams_the_channels_to_a_websocket_client(runs):
             except TimeoutError:
                 pass
     assert expected <= set(received), f"missing {expected - set(received)}"
-    assert json.loads(received[TOPICS["result"]]) == result
+    assert json.loads(received[TOPICS["result"]]) == result.to_json_dict()
 
 
 def test_parse_targets_and_its_errors():

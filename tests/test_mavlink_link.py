@@ -12,9 +12,10 @@ from branchrange.config import MavlinkConfig
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from branchrange.mavlink.connection import SigningKeyError, load_signing_key, mavutil_v2
 from mavlink_peer import LoopbackPeer, of_type
+from result_factory import branch, frame_result
 
 KEY = bytes(range(32))
-RESULT = {"branches": [{"id": 4, "cut_point_m": [0.0, 0.0, 2.5]}], "target_id": 4}
+RESULT = frame_result([branch(4, [0.0, 0.0, 2.5])], target_id=4)
 
 
 @pytest.fixture

@@ -8,18 +8,13 @@ import numpy as np
 import pytest
 
 from branchrange.config import MavlinkConfig
+from branchrange.frame_result import FrameResult
 from branchrange.mavlink import CameraMount, MavlinkRelay
 from mavlink_peer import LoopbackPeer, of_type
+from result_factory import branch, frame_result
 
-RESULT = {
-    "schema": "branchrange/v1",
-    "branches": [
-        {"id": 0, "cut_point_m": [0.1, -0.2, 1.4], "distance_m": 1.4177},
-        {"id": 3, "cut_point_m": [0.5, 0.25, 2.0], "distance_m": 2.0768},
-        {"id": 7, "cut_point_m": [-0.6, 0.1, 3.0], "distance_m": 3.0610},
-    ],
-    "target_id": 0,
-}
+RESULT = frame_result([branch(0, [0.1, -0.2, 1.4]), branch(3, [0.5, 0.25, 2.0]), branch(7, [-0.6, 0.1, 3.0])],
+                      target_id=0)
 MOUNT_XYZ = (0.2, 0.0, 0.05)
 
 
@@ -35,7 +30,7 @@ def relay_for(peer: LoopbackPeer, **overrides) -> MavlinkRelay:
     return MavlinkRelay(cfg, CameraMount.from_rpy((0, 0, 0), MOUNT_XYZ))
 
 
-def first_frame_after_publish(peer: LoopbackPeer, relay: MavlinkRelay, result: dict):
+def first_frame_after_publish(peer: LoopbackPeer, relay: MavlinkRelay, result: FrameResult):
     """Publish once and return the messages of the first frame set carrying the target."""
     relay.publish(result)
     got = peer.collect(2.0, until=lambda r: any(m.type == "DEBUG_VECT" and not math.isnan(m.msg.x) for m in r))
@@ -51,7 +46,7 @@ def test_frame_messages_decode_with_body_frd_positions_and_centimetres(peer):
     obstacles = of_type(frame, "OBSTACLE_DISTANCE_3D")
     (vect,) = of_type(frame, "DEBUG_VECT")
 
-    assert dist.msg.current_distance == round(math.dist((0, 0, 0), RESULT["branches"][0]["cut_point_m"]) * 100) == 142
+    assert dist.msg.current_distance == round(math.dist((0, 0, 0), RESULT.branches[0].cut_point_m) * 100) == 142
     assert (dist.msg.min_distance, dist.msg.max_distance, dist.msg.covariance) == (20, 1000, 255)
     assert dist.msg.orientation == 100 and list(dist.msg.quaternion) == [1.0, 0.0, 0.0, 0.0]
     # the target (id 0) is not an obstacle by default; the others are, in body FRD plus the mount offset

@@ -3,30 +3,32 @@ labels that neither overlap each other nor leave the frame, even for a crowd of 
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import pytest
+from result_factory import branch, frame_result
 
+from branchrange.frame_result import FrameResult
 from branchrange.overlay import Box, draw_overlay, label_parts, layout_labels, place_labels, status_parts
 
 
-def crowded_result(count: int, width: int, height: int, seed: int = 0) -> dict:
+def crowded_result(count: int, width: int, height: int, seed: int = 0) -> FrameResult:
     """`count` branches whose cut points sit within 40 px of each other near the right edge."""
     rng = np.random.default_rng(seed)
     branches = []
     for i in range(count):
         u, v = width - 20 + rng.uniform(-20, 15), height / 2 + rng.uniform(-20, 20)
         z = 1.0 + 0.05 * i
-        branches.append({"id": 90 + i, "pixel": [u, v], "cut_point_m": [0.1, 0.0, z], "distance_m": z,
-                         "axis": [0.0, -1.0, 0.0], "diameter_m": 0.02, "base_m": [0.1, 0.05, z],
-                         "confidence": 0.87 - 0.01 * i})
-    return {"camera": {"focal_px": 500.0}, "branches": branches, "target_id": 93}
+        branches.append(replace(branch(90 + i, [0.1, 0.0, z], confidence=0.87 - 0.01 * i, pixel=(u, v),
+                                       axis=(0.0, -1.0, 0.0)), distance_m=z))
+    return frame_result(branches, target_id=93 if count > 3 else None, width=width, height=height, focal_px=500.0)
 
 
 def test_label_text_is_distance_and_confidence_and_names_the_target():
-    branch = {"distance_m": 1.234, "confidence": 0.871}
-    assert label_parts(branch, is_target=False) == ["1.23 m", "87 %"]
-    assert label_parts(branch, is_target=True) == ["TARGET", "1.23 m", "87 %"]
+    one = replace(branch(1, [0.0, 0.0, 1.234]), confidence=0.871)
+    assert label_parts(one, is_target=False) == ["1.23 m", "87 %"]
+    assert label_parts(one, is_target=True) == ["TARGET", "1.23 m", "87 %"]
     result = crowded_result(5, 640, 360)
     assert status_parts(result) == ["5 cut points", "target 1.15 m"]
     assert status_parts(crowded_result(2, 640, 360), unlabelled=1) == ["2 cut points", "no target", "1 unlabelled (no room)"]
@@ -44,7 +46,7 @@ def test_many_close_branches_get_labels_inside_the_frame_without_overlap(count, 
         assert box.inside(width, height), box
     for a, b in itertools.combinations([status, *boxes], 2):
         assert not a.intersects(b), (a, b)
-    assert labels[0][0]["id"] == 93 and labels[0][1][0] == "TARGET"  # the target is placed first
+    assert labels[0][0].id == 93 and labels[0][1][0] == "TARGET"  # the target is placed first
     image = draw_overlay(np.full((height, width, 3), 90, np.uint8), result)
     assert image.shape == (height, width, 3)
 

@@ -10,7 +10,8 @@ import pytest
 from branchrange.config import SegmenterConfig, StereoConfig
 from branchrange.cutpoints import CutPointConfig
 from branchrange.masks import MaskError, masks_from_array
-from branchrange.pipeline import SCHEMA_PATH, Pipeline, PipelineConfig, PipelineInputError
+from branchrange.frame_result import SCHEMA_PATH, Frame
+from branchrange.pipeline import Pipeline, PipelineConfig, PipelineInputError
 from branchrange.segmenter import Segmenter
 from camera import StereoCalibration
 from stereo.synth import SynthCamera, render_scene
@@ -39,7 +40,7 @@ def visible_truth(scene):
 
 
 def errors_by_truth(result, scene):
-    estimates = {b["mask_id"]: np.array(b["cut_point_m"]) for b in result["branches"]}
+    estimates = {b.mask_id: np.array(b.cut_point_m) for b in result.branches}
     return {b.id: float(np.linalg.norm(estimates[b.id] - np.array(b.cut_point_m)))
             for b in visible_truth(scene) if b.id in estimates}
 
@@ -51,11 +52,11 @@ def sgbm_result(scene):
 
 
 def test_sgbm_result_matches_the_schema_with_per_stage_timing(sgbm_result, validator):
-    validator.validate(sgbm_result)
-    assert sgbm_result["schema"] == "branchrange/v1"
-    assert sgbm_result["frame"] == {"index": 7, "timestamp_ns": 123, "width": 640, "height": 360}
-    assert sgbm_result["stereo"]["backend"] == "sgbm" and sgbm_result["stereo"]["max_disparity"] == 128
-    timing = sgbm_result["timing_ms"]
+    validator.validate(sgbm_result.to_json_dict())
+    assert sgbm_result.schema == "branchrange/v1"
+    assert sgbm_result.frame == Frame(index=7, timestamp_ns=123, width=640, height=360)
+    assert sgbm_result.stereo.backend == "sgbm" and sgbm_result.stereo.max_disparity == 128
+    timing = sgbm_result.timing_ms
     assert timing["stereo"] > 0 and timing["cutpoints"] > 0
     assert timing["total"] >= timing["stereo"] + timing["cutpoints"]
 
@@ -69,32 +70,32 @@ def test_sgbm_cut_points_land_near_the_truth(sgbm_result, scene):
 
 
 def test_target_is_the_nearest_branch_with_distance_weighted_by_confidence(sgbm_result):
-    branches = sgbm_result["branches"]
-    confident = [b for b in branches if b["confidence"] >= 0.3]
+    branches = sgbm_result.branches
+    confident = [b for b in branches if b.confidence >= 0.3]
     assert confident
-    best = min(confident, key=lambda b: b["distance_m"] / b["confidence"])
-    assert sgbm_result["target_id"] == best["id"]
+    best = min(confident, key=lambda b: b.distance_m / b.confidence)
+    assert sgbm_result.target_id == best.id and sgbm_result.target == best
 
 
 def test_ground_truth_disparity_and_masks_give_sub_centimetre_cut_points(scene, validator):
     result = pipeline_for(scene).process_disparity(scene.left, scene.disparity, mask=scene.instance_mask)
-    validator.validate(result)
+    validator.validate(result.to_json_dict())
     errors = errors_by_truth(result, scene)
     assert len(errors) == len(visible_truth(scene))
     assert np.median(list(errors.values())) < 0.01
     assert max(errors.values()) < 0.05
-    for branch in result["branches"]:
-        truth = scene.branches[branch["mask_id"] - 1]
-        assert branch["diameter_m"] == pytest.approx(2 * truth.radius_at(truth.cut_offset_m), rel=0.35, abs=0.002)
-        assert np.dot(branch["axis"], truth.direction) > 0.99
+    for branch in result.branches:
+        truth = scene.branches[branch.mask_id - 1]
+        assert branch.diameter_m == pytest.approx(2 * truth.radius_at(truth.cut_offset_m), rel=0.35, abs=0.002)
+        assert np.dot(branch.axis, truth.direction) > 0.99
 
 
 def test_built_in_segmenter_finds_branches_without_a_mask(scene, validator):
     result = pipeline_for(scene, segmenter=SegmenterConfig(model="geometric")).process_disparity(scene.left, scene.disparity)
-    validator.validate(result)
-    assert result["masks"]["source"] == "geometric"
+    validator.validate(result.to_json_dict())
+    assert result.masks.source == "geometric"
     found = [b for b in visible_truth(scene)
-             if any(np.linalg.norm(np.array(e["cut_point_m"]) - b.cut_point_m) < 0.05 for e in result["branches"])]
+             if any(np.linalg.norm(np.array(e.cut_point_m) - b.cut_point_m) < 0.05 for e in result.branches)]
     assert len(found) >= 2
 
 
@@ -117,20 +118,20 @@ def test_a_plugged_in_segmenter_replaces_the_built_in_one(scene):
                         baseline_m=scene.camera.baseline_m, segmenter=plugged)
     result = pipeline.process_disparity(scene.left, scene.disparity)
     given = pipeline_for(scene, cutpoints=CutPointConfig(tracking=False)).process_disparity(scene.left, scene.disparity, mask=scene.instance_mask)
-    assert result["masks"]["source"] == "truth" and result["masks"]["trunk"] is True
-    assert [b["cut_point_m"] for b in result["branches"]] == [b["cut_point_m"] for b in given["branches"]]
-    assert len(result["branches"]) == len(visible_truth(scene))
+    assert result.masks.source == "truth" and result.masks.trunk is True
+    assert [b.cut_point_m for b in result.branches] == [b.cut_point_m for b in given.branches]
+    assert len(result.branches) == len(visible_truth(scene))
 
 
 def test_ids_stay_stable_across_frames(scene):
     pipeline = pipeline_for(scene)
     first = pipeline.process_disparity(scene.left, scene.disparity, mask=scene.instance_mask, index=0)
     second = pipeline.process_disparity(scene.left, scene.disparity, mask=scene.instance_mask, index=1)
-    assert {b["mask_id"]: b["id"] for b in first["branches"]} == {b["mask_id"]: b["id"] for b in second["branches"]}
-    assert first["target_id"] == second["target_id"] is not None
+    assert {b.mask_id: b.id for b in first.branches} == {b.mask_id: b.id for b in second.branches}
+    assert first.target_id == second.target_id is not None
     pipeline.reset()
     third = pipeline.process_disparity(scene.left, scene.disparity, mask=scene.instance_mask, index=2)
-    assert min(b["id"] for b in third["branches"]) > max(b["id"] for b in second["branches"])
+    assert min(b.id for b in third.branches) > max(b.id for b in second.branches)
 
 
 def test_raw_calibration_path_rectifies_pair_and_mask(scene):
@@ -143,9 +144,9 @@ def test_raw_calibration_path_rectifies_pair_and_mask(scene):
                         calibration=raw)
     assert pipeline.rectifier is not None
     result = pipeline.process(scene.left, scene.right, mask=scene.instance_mask)
-    assert result["camera"]["focal_px"] == pytest.approx(cam.focal_px, rel=1e-6)
-    assert result["camera"]["baseline_m"] == pytest.approx(cam.baseline_m, rel=1e-6)
-    assert result["masks"]["instances"] == len(np.unique(scene.instance_mask[(scene.instance_mask > 0)
+    assert result.camera.focal_px == pytest.approx(cam.focal_px, rel=1e-6)
+    assert result.camera.baseline_m == pytest.approx(cam.baseline_m, rel=1e-6)
+    assert result.masks.instances == len(np.unique(scene.instance_mask[(scene.instance_mask > 0)
                                                                             & (scene.instance_mask < 65533)]))
     assert sum(e < 0.05 for e in errors_by_truth(result, scene).values()) >= 0.7 * len(visible_truth(scene))
 
@@ -171,18 +172,18 @@ def test_wrong_size_mask_is_refused(scene):
 def test_empty_mask_gives_an_empty_result_with_a_reason(scene, validator):
     result = pipeline_for(scene).process_disparity(scene.left, scene.disparity,
                                                    mask=np.zeros(scene.disparity.shape, np.uint16))
-    validator.validate(result)
-    assert result["branches"] == [] and result["target_id"] is None
-    assert "no branch instance" in result["reason"]
+    validator.validate(result.to_json_dict())
+    assert result.branches == () and result.target_id is None and result.target is None
+    assert "no branch instance" in result.reason
 
 
 @pytest.mark.parametrize("fill", [0.0, np.nan, np.inf, -5.0])
 def test_all_invalid_disparity_gives_an_empty_result_with_a_reason(scene, validator, fill):
     disparity = np.full(scene.disparity.shape, fill, np.float32)
     result = pipeline_for(scene).process_disparity(scene.left, disparity, mask=scene.instance_mask)
-    validator.validate(result)
-    assert result["branches"] == [] and result["target_id"] is None
-    assert "no valid disparity" in result["reason"]
+    validator.validate(result.to_json_dict())
+    assert result.branches == () and result.target_id is None and result.target is None
+    assert "no valid disparity" in result.reason
 
 
 def test_non_finite_disparity_values_are_no_evidence(scene, validator):
@@ -190,10 +191,10 @@ def test_non_finite_disparity_values_are_no_evidence(scene, validator):
     disparity[scene.instance_mask == 1] = np.nan  # branch 1 loses all its depth
     disparity[::7, ::5] = np.inf
     result = pipeline_for(scene).process_disparity(scene.left, disparity, mask=scene.instance_mask)
-    validator.validate(result)
-    assert 1 not in [b["mask_id"] for b in result["branches"]]
-    assert any(d["mask_id"] == 1 and "valid depth" in d["reason"] for d in result["dropped"])
-    assert all(np.all(np.isfinite(b["cut_point_m"])) for b in result["branches"])
+    validator.validate(result.to_json_dict())
+    assert 1 not in [b.mask_id for b in result.branches]
+    assert any(d.mask_id == 1 and "valid depth" in d.reason for d in result.dropped)
+    assert all(np.all(np.isfinite(b.cut_point_m)) for b in result.branches)
 
 
 def test_calibration_for_another_resolution_is_refused(scene):

@@ -34,11 +34,11 @@ def results():
 
 
 def test_roi_cut_points_equal_whole_frame_ones_with_truth_masks(results):
-    full = {b["mask_id"]: b for b in results["full"]["branches"]}
-    roi = {b["mask_id"]: b for b in results["roi"]["branches"]}
+    full = {b.mask_id: b for b in results["full"].branches}
+    roi = {b.mask_id: b for b in results["roi"].branches}
     assert len(roi) >= len(full) - 1 and set(roi) & set(full)
     def error(branch: dict) -> float:
-        return float(np.linalg.norm(np.subtract(branch["cut_point_m"], truth_of(tree_scene(), branch["mask_id"]).cut_point_m)))
+        return float(np.linalg.norm(np.subtract(branch.cut_point_m, truth_of(tree_scene(), branch.mask_id).cut_point_m)))
 
     right = [m for m in set(roi) & set(full) if error(full[m]) <= 0.05]
     assert len(right) >= 5
@@ -49,22 +49,22 @@ def test_roi_cut_points_equal_whole_frame_ones_with_truth_masks(results):
 
 def test_roi_result_names_its_regions_and_matches_less_than_the_frame(results):
     result = results["roi"]
-    regions = result["roi"]["regions"]
+    regions = result.roi.regions
     scene = tree_scene()
     branches = {int(i) for i in np.unique(scene.instance_mask)} - {0, 65533, 65534, 65535}
-    assert {r["id"] for r in regions} == branches  # every branch; the trunk keeps its coarse disparity
+    assert {r.id for r in regions} == branches  # every branch; the trunk keeps its coarse disparity
     for region in regions:
-        x0, y0, x1, y1 = region["box"]
-        ys, xs = np.nonzero(scene.instance_mask == region["id"])
+        x0, y0, x1, y1 = region.box
+        ys, xs = np.nonzero(scene.instance_mask == region.id)
         assert x0 <= xs.min() and y0 <= ys.min() and x1 > xs.max() and y1 > ys.max()
-        assert region["d_range"] % 16 == 0 and region["d_min"] + region["d_range"] <= 64
+        assert region.d_range % 16 == 0 and region.d_min + region.d_range <= 64
         true_disparity = scene.disparity[ys, xs]
-        inside = (true_disparity >= region["d_min"]) & (true_disparity < region["d_min"] + region["d_range"])
+        inside = (true_disparity >= region.d_min) & (true_disparity < region.d_min + region.d_range)
         assert inside.mean() >= 0.9, region  # the window holds the instance's true disparities
-    searched = sum((r["box"][2] - r["box"][0]) * (r["box"][3] - r["box"][1]) * r["d_range"] for r in regions)
+    searched = sum((r.box[2] - r.box[0]) * (r.box[3] - r.box[1]) * r.d_range for r in regions)
     assert searched < 480 * 270 * 64  # the point of the mode
-    assert result["stereo"]["backend"] == "sgbm-roi"
-    assert {"coarse_stereo", "roi_stereo", "stereo", "cutpoints", "total"} <= set(result["timing_ms"])
+    assert result.stereo.backend == "sgbm-roi"
+    assert {"coarse_stereo", "roi_stereo", "stereo", "cutpoints", "total"} <= set(result.timing_ms)
 
 
 def test_roi_mode_with_the_builtin_segmenter_gives_full_resolution_silhouettes():
@@ -73,11 +73,11 @@ def test_roi_mode_with_the_builtin_segmenter_gives_full_resolution_silhouettes()
     pipeline = _pipeline("roi", "geometric")
     result = pipeline.process(scene.left, scene.right)
     masks = pipeline.last.masks
-    assert masks is not None and masks.labels.shape == (270, 480) and result["masks"]["source"] != "none"
+    assert masks is not None and masks.labels.shape == (270, 480) and result.masks.source != "none"
     disparity = pipeline.last.disparity
     branch = (masks.labels > 0) & (masks.labels != masks.trunk_id)
     assert branch.any() and np.all(disparity[branch] > 0)  # every branch pixel has a fine disparity
-    assert result["roi"]["regions"]
+    assert result.roi.regions
 
 
 def test_a_backend_without_windowed_matching_is_refused_in_roi_mode():
@@ -109,11 +109,11 @@ def test_a_network_matches_only_the_nearest_regions_and_sgbm_the_rest():
                                        roi=RoiConfig(coarse_width=240, network_regions=1), cutpoints=UNTRACKED),
                         focal_px=cam.focal_px, baseline_m=cam.baseline_m, principal_point=(cam.cx, cam.cy),
                         backend=EMCStereoBackend(EMCStereo(max_disp=64).eval()))
-    regions = pipeline.process(scene.left, scene.right, mask=scene.instance_mask)["roi"]["regions"]
-    by_network = [r for r in regions if r["backend"] == "emcstereo"]
-    assert len(by_network) == 1 and {r["backend"] for r in regions} == {"emcstereo", "sgbm"}
-    centre = [r["d_min"] + r["d_range"] / 2 for r in regions]
-    assert by_network[0]["d_min"] + by_network[0]["d_range"] / 2 == max(centre)
+    regions = pipeline.process(scene.left, scene.right, mask=scene.instance_mask).roi.regions
+    by_network = [r for r in regions if r.backend == "emcstereo"]
+    assert len(by_network) == 1 and {r.backend for r in regions} == {"emcstereo", "sgbm"}
+    centre = [r.d_min + r.d_range / 2 for r in regions]
+    assert by_network[0].d_min + by_network[0].d_range / 2 == max(centre)
 
 
 def test_the_trunk_cylinder_comes_from_the_coarse_pass_in_metres():

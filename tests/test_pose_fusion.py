@@ -25,6 +25,7 @@ from branchrange.mavlink.frames import rotation_exp, rotation_log
 from branchrange.mavlink.messages import BodyPoint, FrameTargets, obstacles
 from branchrange.mavlink.vehicle_state import ClockOffset, Pose, VehicleState
 from branchrange.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
+from result_factory import frame_result
 
 MOUNT = CameraMount.from_rpy((0.0, -10.0, 0.0), (0.12, 0.0, 0.04))
 TRACKING = TrackingConfig()
@@ -243,13 +244,13 @@ def test_fused_target_and_latency_compensated_body_target_match_the_truth():
     # the autopilot was asked for both streams and acknowledged; clocks agree to the transport delay
     assert sim.rates_hz == {30: pytest.approx(50.0), 32: pytest.approx(50.0)} and state["message_interval_acks"] >= 2
     assert state["vehicle_state"]["clock_offset_s"] == pytest.approx(sim.boot, abs=0.005)
-    assert state["mode"] == "world" and targets["frame"] == "local_ned"
-    by_id = {t["id"]: t for t in targets["tracks"]}
-    target = by_id[targets["target_track_id"]]
-    assert target["observations"] == 12 and target["age_s"] < 0.5 and target["sigma_m"] < 0.01
-    assert np.linalg.norm(np.array(target["ned_m"]) - CUT_NED) < 0.02
-    (other,) = [t for t in targets["tracks"] if t["id"] != target["id"]]
-    assert np.linalg.norm(np.array(other["ned_m"]) - OTHER_NED) < 0.02
+    assert state["mode"] == "world" and targets.frame == "local_ned"
+    by_id = {t.id: t for t in targets.tracks}
+    target = by_id[targets.target_track_id]
+    assert target.observations == 12 and target.age_s < 0.5 and target.sigma_m < 0.01
+    assert np.linalg.norm(np.array(target.ned_m) - CUT_NED) < 0.02
+    (other,) = [t for t in targets.tracks if t.id != target.id]
+    assert np.linalg.norm(np.array(other.ned_m) - OTHER_NED) < 0.02
 
     # every DEBUG_VECT from the 6th frame on, against the truth in the body frame of its arrival
     compensated, uncompensated = body_target_errors(sim, published, MOUNT, CUT_NED, skip_frames=5)
@@ -269,7 +270,7 @@ def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so(c
         time.sleep(0.05)
         state, targets = relay.link_state(), relay.targets()
     assert state["connected"] is True and state["mode"] == "camera" and state["vehicle_state"]["available"] is False
-    assert targets == {"frame": "camera", "target_track_id": None, "tracks": []}
+    assert targets.to_json_dict() == {"frame": "camera", "target_track_id": None, "tracks": []}
     assert any("no vehicle state" in r.getMessage() for r in caplog.records)
     sent = [r for r in sim.of_type("DEBUG_VECT") if not math.isnan(r.msg.x)]
     np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5)
@@ -363,9 +364,7 @@ def test_foxglove_follows_the_vehicle_pose_the_relay_receives(tmp_path):
 
     from branchrange.foxglove_sink import FoxgloveSink, FoxgloveTargets
 
-    result = {"schema": "branchrange/v1", "frame": {"index": 0, "timestamp_ns": 1, "width": 64, "height": 48},
-              "camera": {"focal_px": 50.0, "baseline_m": 0.06, "cx": 31.5, "cy": 23.5}, "branches": [],
-              "target_id": None, "timing_ms": {"total": 1.0}}
+    result = frame_result(timestamp_ns=1)
     with AutopilotSim(approach_flight(0.3), heartbeat_period_s=0.2) as sim, relay_for(sim) as relay:
         wait_for_state(relay)
         position, attitude = relay.vehicle_pose()

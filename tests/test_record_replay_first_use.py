@@ -118,7 +118,7 @@ def test_replay_writes_a_run_header_and_readers_skip_it(recording, tmp_path):
     defaults = Config()  # replay runs the defaults with camera.source set to the recording
     expected = dataclasses.replace(defaults, camera=dataclasses.replace(defaults.camera, source=f"replay:{recording}"))
     assert first["config_sha256"] == config_sha256(expected) and first["version"][0].isdigit()
-    results = list(read_results(out))
+    results = [r.to_json_dict() for r in read_results(out)]
     assert len(results) == FRAMES and all(r["schema"] == "branchrange/v1" for r in results)
     # Two runs appended to one log (as the daemon's results_jsonl does) stay apart.
     other = Config(stereo=StereoConfig(max_disp=64))

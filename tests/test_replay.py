@@ -16,9 +16,9 @@ from branchrange.cli import main as branchrange_main
 from branchrange.commands.replay import summary_path
 from branchrange.config import Config, StereoConfig
 from branchrange.daemon import Daemon
-from branchrange.frame_results import pipeline_for, read_results
+from branchrange.frame_results import pipeline_for, read_results, read_runs
 from branchrange.overlay_video import DEFAULT_CODECS, OverlayVideoWriter, VideoCodec, VideoWriteError, check_video
-from branchrange.pipeline import SCHEMA_PATH
+from branchrange.frame_result import SCHEMA_PATH
 from camera.sources import Recorder, ReplaySource, StereoFrame
 from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, truth_of, write_tree_recording
 
@@ -48,7 +48,8 @@ def replayed(recording, config_file, tmp_path_factory):
     results, video = out / "results.jsonl", out / "overlay.mp4"
     status = branchrange_main(["replay", str(recording), "--out", str(results), "--overlay-video", str(video),
                                "--summary", "--config", str(config_file)])
-    lines = list(read_results(results))
+    ((_, lines),) = read_runs(results)  # the JSON records as written
+    assert [r.to_json_dict() for r in read_results(results)] == lines  # read back typed, written back the same
     return status, lines, json.loads(summary_path(results).read_text()), video
 
 
@@ -161,7 +162,7 @@ def test_replay_skips_a_corrupt_frame_and_counts_it(recording, tmp_path):
     from branchrange.replay import replay_recording
 
     summary = replay_recording(broken, cfg, tmp_path / "r.jsonl", progress=False)
-    lines = list(read_results(tmp_path / "r.jsonl"))
+    lines = [r.to_json_dict() for r in read_results(tmp_path / "r.jsonl")]
     assert [r["frame"]["index"] for r in lines] == [0, 2, 3]
     assert summary.corrupt == 1 and summary.frames == 3 and summary.to_dict()["frames"]["with_target"] == 3
 
@@ -185,7 +186,7 @@ def test_replay_results_equal_the_daemons_on_the_same_recording(recording, repla
         daemon.run()
     finally:
         daemon.close()
-    daemon_lines = list(read_results(tmp_path / "daemon.jsonl"))
+    daemon_lines = [r.to_json_dict() for r in read_results(tmp_path / "daemon.jsonl")]
     assert len(daemon_lines) >= FRAMES - 1  # a heavily loaded machine may make the daemon drop one
     by_index = {r["frame"]["index"]: r for r in replay_lines}
     for result in daemon_lines:

@@ -73,7 +73,7 @@ def test_pipeline_with_learned_segmenter_gives_a_cut_point_near_the_truth(scene)
                         principal_point=(cam.cx, cam.cy), segmenter=make_segmenter("learned"))
     result = pipeline.process_disparity(rendered.left, stereo.disparity, stereo.confidence, backend="sgbm")
     truth = [np.asarray(b.cut_point_m) for b in rendered.branches if b.cut_visible]
-    errors = [min(np.linalg.norm(np.asarray(b["cut_point_m"]) - t) for t in truth) for b in result["branches"]]
+    errors = [min(np.linalg.norm(np.asarray(b.cut_point_m) - t) for t in truth) for b in result.branches]
     assert errors and min(errors) < 0.05
 
 

@@ -144,7 +144,7 @@ def test_pipeline_uses_the_named_onnx_segmenter(models):
     pipeline = Pipeline(config, focal_px=100.0, baseline_m=0.1)
     disparity = np.full((64, 128), 10.0, np.float32)
     result = pipeline.process_disparity(_scene(), disparity)
-    assert result["masks"] == {"source": "onnx:yolo.onnx", "instances": 1, "trunk": True}
+    assert result.masks.to_json_dict() == {"source": "onnx:yolo.onnx", "instances": 1, "trunk": True}
 
 
 def test_bad_names_models_and_settings_are_clear_errors(models, tmp_path):

@@ -211,7 +211,7 @@ def test_branchrange_replay_reads_the_recording(wobbly_recording: Path, tmp_path
     args = build_parser("branchrange", "test", ["branchrange.commands.replay"]).parse_args(
         ["replay", str(wobbly_recording), "--out", str(tmp_path / "results.jsonl")])
     assert args.func(args) == 0
-    lines = list(read_results(tmp_path / "results.jsonl"))  # the run header skipped
+    lines = [r.to_json_dict() for r in read_results(tmp_path / "results.jsonl")]  # the run header skipped
     truth = FlightTruth.load(wobbly_recording)
     assert [line["frame"]["timestamp_ns"] for line in lines] == [pose.timestamp_ns for pose in truth.poses]
     assert sum(bool(line["branches"]) for line in lines) >= 5

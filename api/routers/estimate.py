@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, status
+from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from api.auth import require_token
@@ -22,6 +23,7 @@ from api.limits import decode_image, decode_mask, read_upload
 from api.schemas import ErrorBody, EstimateResult
 from branchrange.settings_check import PHYSICAL_RANGES, RangeError, check_calibration, check_physical
 from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, BackendConfigError, check_max_disp
+from stereo.backends.base import StereoInputError, validate_pair
 
 router = APIRouter(dependencies=[Depends(require_token)])
 
@@ -137,9 +139,10 @@ async def stereo_request(
                             baseline_m=_camera_value("baseline_m", baseline_m, "baseline_m"))
     left_img = await _decoded(left, "left", settings)
     right_img = await _decoded(right, "right", settings)
-    if left_img.shape != right_img.shape:
-        raise _unprocessable(f"left is {left_img.shape[1]}×{left_img.shape[0]} px but right is "
-                             f"{right_img.shape[1]}×{right_img.shape[0]} px; a stereo pair must match")
+    try:
+        validate_pair(left_img, right_img)  # the pair is checked here, once, for both routes
+    except StereoInputError as exc:
+        raise _unprocessable(str(exc)) from None
     if calibration is not None:
         size = (left_img.shape[1], left_img.shape[0])
         camera = CameraSpec(calibration=await _load_calibration(calibration, resolution, size, settings.max_upload_bytes))
@@ -160,7 +163,7 @@ async def _infer(request: Request, func: Any, *args: Any, **kwargs: Any) -> Any:
         return out
 
 
-@router.post("/estimate", response_model=EstimateResult, response_model_exclude_unset=True, responses=ERRORS,
+@router.post("/estimate", response_model=EstimateResult, responses=ERRORS,
              summary="Cut points of the branches in a stereo pair")
 async def post_estimate(
     request: Request,
@@ -171,7 +174,7 @@ async def post_estimate(
     segmenter: Annotated[Literal["configured", "structure", "geometric"], Form(description=(
         "without a mask: 'configured' = the server's [segmenter] model (e.g. its onnx:FILE), "
         "'structure' or 'geometric' = a built-in one"))] = "configured",
-) -> dict:
+) -> JSONResponse:
     """Stereo pair (+ optional mask) and camera → the `branchrange/v1` result."""
     settings = request.app.state.settings
     mask_arr = None
@@ -181,9 +184,10 @@ async def post_estimate(
         if mask_arr.shape != pair.left.shape[:2]:
             raise _unprocessable(f"mask is {mask_arr.shape[1]}×{mask_arr.shape[0]} px but the images are "
                                  f"{pair.left.shape[1]}×{pair.left.shape[0]} px; it must match the left image")
-    return await _infer(request, request.app.state.estimator.estimate, pair.left, pair.right, mask_arr, pair.camera,
-                        backend=pair.backend, max_disp=pair.max_disp,
-                        segmenter=None if segmenter == "configured" else segmenter)
+    result = await _infer(request, request.app.state.estimator.estimate, pair.left, pair.right, mask_arr, pair.camera,
+                          backend=pair.backend, max_disp=pair.max_disp,
+                          segmenter=None if segmenter == "configured" else segmenter)
+    return JSONResponse(result.to_json_dict())
 
 
 def _encode_kitti_png(disparity: np.ndarray) -> bytes:

@@ -9,11 +9,11 @@ from importlib import metadata
 from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request, status
-from fastapi.responses import PlainTextResponse
+from fastapi.responses import JSONResponse, PlainTextResponse
 
 from api.auth import BEARER, require_token
 from api.schemas import ErrorBody, EstimateResult, Health, Version
-from branchrange.pipeline import SCHEMA_ID
+from branchrange.frame_result import SCHEMA_ID
 
 router = APIRouter()
 API_VERSION = "1"
@@ -111,10 +111,10 @@ def link_metrics(link: dict[str, Any]) -> list[str]:
     return lines
 
 
-@router.get("/latest", response_model=EstimateResult, response_model_exclude_unset=True,
+@router.get("/latest", response_model=EstimateResult,
             dependencies=[Depends(require_token)],
             responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}}, summary="Daemon mode: the newest result")
-def get_latest(request: Request) -> dict:
+def get_latest(request: Request) -> JSONResponse:
     """The newest frame's result in daemon mode; 404 outside it or before the first frame."""
     live = request.app.state.live
     if live is None:
@@ -122,4 +122,4 @@ def get_latest(request: Request) -> dict:
     result = live.latest_result()
     if result is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "no frame has been processed yet")
-    return result
+    return JSONResponse(result.to_json_dict())

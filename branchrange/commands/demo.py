@@ -12,6 +12,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,9 @@ from branchrange.commands.estimate import (
     segmenter_settings,
     whole_frame_stereo,
 )
+
+if TYPE_CHECKING:
+    from branchrange.frame_result import FrameResult
 
 DEMO_SEED = 6
 
@@ -39,9 +43,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def truth_table(result: dict, truth: list) -> str:
+def truth_table(result: FrameResult, truth: list) -> str:
     """Each truth branch with a visible cut point next to its estimate (nearest within 25 cm)."""
-    estimates = [(b, np.asarray(b["cut_point_m"])) for b in result["branches"]]
+    estimates = [(b, np.asarray(b.cut_point_m)) for b in result.branches]
     rows = [f"{'truth':>5} {'est id':>6}  {'estimated cut (m)':>23}  {'true cut (m)':>23} "
             f"{'3D err cm':>9} {'dist est':>8} {'dist true':>9} {'dist err':>8}"]
     errors = []
@@ -58,9 +62,9 @@ def truth_table(result: dict, truth: list) -> str:
         est, point = match
         error = float(np.linalg.norm(point - true_point))
         errors.append(error)
-        pct = 100.0 * (est["distance_m"] - true_distance) / true_distance
-        rows.append(f"{branch.id:>5} {est['id']:>6}  {' '.join(f'{v:7.3f}' for v in point):>23}  {xyz:>23} "
-                    f"{100 * error:>9.2f} {est['distance_m']:>8.3f} {true_distance:>9.3f} {pct:>7.2f}%")
+        pct = 100.0 * (est.distance_m - true_distance) / true_distance
+        rows.append(f"{branch.id:>5} {est.id:>6}  {' '.join(f'{v:7.3f}' for v in point):>23}  {xyz:>23} "
+                    f"{100 * error:>9.2f} {est.distance_m:>8.3f} {true_distance:>9.3f} {pct:>7.2f}%")
     visible = sum(1 for b in truth if b.cut_visible)
     if errors:
         rows.append(f"{sum(e <= 0.05 for e in errors)} of {visible} visible cut points within 5 cm; "
@@ -100,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         print(f"branchrange demo: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    timing = result["timing_ms"]
+    timing = result.timing_ms
     print(f"pipeline: {timing['total']:.0f} ms (stereo {timing['stereo']:.0f} ms, masks {timing['masks']:.0f} ms, "
           f"cut points {timing['cutpoints']:.0f} ms); masks from "
           f"{'the ' + pipeline.segmenter.name + ' segmenter' if args.segmenter else 'the truth mask'}")
@@ -112,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         write_rgb(args.out / "left.png", scene.left)
         write_rgb(args.out / "right.png", scene.right)
-        (args.out / "result.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+        (args.out / "result.json").write_text(json.dumps(result.to_json_dict(), indent=1) + "\n", encoding="utf-8")
         overlay = write_overlay(args.out / "overlay.png", pipeline.last.left, result, pipeline.last.masks)
     except (ValueError, OSError) as exc:
         print(f"branchrange demo: error: cannot write the outputs to {args.out}: {exc}", file=sys.stderr)

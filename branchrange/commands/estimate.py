@@ -11,22 +11,25 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from branchrange.frame_result import FrameResult
 
 #: Exit status for input the command cannot use (bad file, size, calibration …).
 EXIT_BAD_INPUT = 2
 
 
-def branch_table(result: dict) -> str:
+def branch_table(result: FrameResult) -> str:
     """A plain-text table of a result's cut points (one row per branch, the target starred)."""
     rows = [f"{'id':>4} {'x':>7} {'y':>7} {'z':>7} {'dist m':>7} {'diam mm':>7} {'conf':>5}  target"]
-    for b in result["branches"]:
-        x, y, z = b["cut_point_m"]
-        star = "*" if b["id"] == result.get("target_id") else ""
-        rows.append(f"{b['id']:>4} {x:>7.3f} {y:>7.3f} {z:>7.3f} {b['distance_m']:>7.3f} "
-                    f"{b['diameter_m'] * 1000:>7.1f} {b['confidence']:>5.2f}  {star}")
-    if not result["branches"]:
-        rows.append(f"  (no cut points: {result.get('reason', 'none found')})")
+    for b in result.branches:
+        x, y, z = b.cut_point_m
+        star = "*" if result.is_target(b) else ""
+        rows.append(f"{b.id:>4} {x:>7.3f} {y:>7.3f} {z:>7.3f} {b.distance_m:>7.3f} "
+                    f"{b.diameter_m * 1000:>7.1f} {b.confidence:>5.2f}  {star}")
+    if not result.branches:
+        rows.append(f"  (no cut points: {result.reason or 'none found'})")
     return "\n".join(rows)
 
 
@@ -158,12 +161,12 @@ def run(args: argparse.Namespace) -> int:
         left, right = read_rgb(args.left), read_rgb(args.right)
         pipeline = _pipeline(args, config, (left.shape[1], left.shape[0]))
         result = pipeline.process(left, right, mask=args.mask)
-        if result["pair_check"]["status"] == "warning":
-            print(f"branchrange estimate: warning: {result['pair_check']['message']}", file=sys.stderr)
-        if args.mask is not None and result["masks"]["instances"] == 0:
+        if result.pair_check is not None and result.pair_check.status == "warning":
+            print(f"branchrange estimate: warning: {result.pair_check.message}", file=sys.stderr)
+        if args.mask is not None and result.masks.instances == 0:
             raise ValueError(f"{args.mask}: the mask holds no branch instance (expected ids other than 0 "
                              f"and the trunk id {args.trunk_id})")
-        text = json.dumps(result, indent=1)
+        text = json.dumps(result.to_json_dict(), indent=1)
         if args.json is not None:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(text + "\n", encoding="utf-8")

@@ -17,7 +17,7 @@ The target branch goes into OBSTACLE_DISTANCE_3D only with `target_as_obstacle`,
 time under another id: a cut point within `duplicate_radius_m` of the target is the target seen
 twice (a second mask instance or track of the same branch). Cut points with a confidence below
 `obstacle_min_confidence` are not obstacles (a 5 mm twig misplaced by 1.7 m must not fence the
-drone off); results without a confidence key count as confident. ArduPilot's
+drone off). ArduPilot's
 MAVLink proximity backend also files DISTANCE_SENSOR readings whose orientation is one of the
 eight horizontal directions into its fence (AP_Proximity_MAV::handle_distance_sensor_msg), so
 unless the target is meant to be an obstacle, DISTANCE_SENSOR carries orientation CUSTOM (100)
@@ -26,7 +26,6 @@ with the mount quaternion: rangefinder consumers and logs still read it, the fen
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +33,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from branchrange.config import MavlinkConfig
+from branchrange.frame_result import FrameResult
 from branchrange.mavlink.frames import MAV_SENSOR_ROTATION_CUSTOM, CameraMount
 
 #: obstacle_id of the out-of-range point that clears ArduPilot's obstacle set.
@@ -72,21 +72,12 @@ def heartbeat(camera_lost: bool) -> mavlink2.MAVLink_heartbeat_message:
         mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, status, 3)
 
 
-def target_branch(result: Mapping[str, Any] | None) -> Mapping[str, Any] | None:
-    """The branch `result["target_id"]` names, or None (no result, no target, unknown id)."""
-    if result is None or result.get("target_id") is None:
-        return None
-    return next((b for b in result.get("branches", []) if b.get("id") == result["target_id"]), None)
-
-
-def targets_from_result(result: Mapping[str, Any] | None, mount: CameraMount) -> FrameTargets:
+def targets_from_result(result: FrameResult | None, mount: CameraMount) -> FrameTargets:
     """A result's cut points in body FRD through the mount (the frame of their capture)."""
     if result is None:
         return FrameTargets(None, [])
-    points = [BodyPoint(int(b["id"]), mount.to_body(b["cut_point_m"]), float(b.get("confidence", 1.0)))
-              for b in result.get("branches", [])]
-    target = target_branch(result)
-    return FrameTargets(next((p for p in points if target is not None and p.id == target["id"]), None), points)
+    points = [BodyPoint(b.id, mount.to_body(b.cut_point_m), b.confidence) for b in result.branches]
+    return FrameTargets(next((p for p in points if p.id == result.target_id), None), points)
 
 
 def obstacles(targets: FrameTargets, cfg: MavlinkConfig, duplicate_radius_m: float) -> list[BodyPoint]:

@@ -29,10 +29,11 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 from branchrange.config import MavlinkConfig, TrackingConfig
+from branchrange.frame_result import FrameResult, WorldTargets
 from branchrange.mavlink import messages
 from branchrange.mavlink.approach import ApproachPlanner
 from branchrange.mavlink.connection import MavlinkLink, load_signing_key
@@ -64,7 +65,7 @@ class MavlinkRelay:
         self._clock = clock
         key = load_signing_key(cfg.signing_key_file) if cfg.signing_key_file else None
         self._cond = threading.Condition()
-        self._latest: tuple[Mapping[str, Any], float] | None = None
+        self._latest: tuple[FrameResult, float] | None = None
         self._new_result = False
         self._camera_lost = False
         self._lost_changed = False
@@ -92,7 +93,7 @@ class MavlinkRelay:
         self._thread = threading.Thread(target=self._run, name="mavlink-relay", daemon=True)
         self._thread.start()
 
-    def publish(self, result: Mapping[str, Any], captured_at: float | None = None) -> None:
+    def publish(self, result: FrameResult, captured_at: float | None = None) -> None:
         """Hand over a frame's result; `captured_at` (the relay's clock, s) defaults to now."""
         captured_at = self._clock() if captured_at is None else captured_at
         fused = self._fuse(result, captured_at)
@@ -102,7 +103,7 @@ class MavlinkRelay:
             self._new_result = True
             self._cond.notify()
 
-    def _fuse(self, result: Mapping[str, Any], captured_at: float) -> bool:
+    def _fuse(self, result: FrameResult, captured_at: float) -> bool:
         """Fuse the result's cut points into the world tracks; False when there is no pose at capture."""
         with self._state_lock:
             pose = self._vehicle.pose_at(captured_at)
@@ -111,11 +112,10 @@ class MavlinkRelay:
                 return False
             cam_to_ned = pose.rotation @ self._mount.camera_to_body
             measurements = [
-                Measurement(int(b["id"]), pose.body_to_ned(self._mount.to_body(b["cut_point_m"])),
-                            measurement_covariance(b["cut_point_m"], cam_to_ned, self._tracking),
-                            float(b.get("confidence", 1.0)))
-                for b in result.get("branches", [])]
-            self._tracks.update(measurements, captured_at, result.get("target_id"))
+                Measurement(b.id, pose.body_to_ned(self._mount.to_body(b.cut_point_m)),
+                            measurement_covariance(b.cut_point_m, cam_to_ned, self._tracking), b.confidence)
+                for b in result.branches]
+            self._tracks.update(measurements, captured_at, result.target_id)
             return True
 
     def vehicle_pose(self) -> tuple[tuple[float, float, float], tuple[float, float, float, float]] | None:
@@ -127,7 +127,7 @@ class MavlinkRelay:
         return (float(pose.position_m[0]), float(pose.position_m[1]), float(pose.position_m[2])), \
             quaternion_wxyz(pose.rotation)
 
-    def targets(self) -> dict[str, Any]:
+    def targets(self) -> WorldTargets:
         """The fused tracks for /latest and the results log: local NED metres, 1-σ radius, age, count.
 
         `frame` is "local_ned" while vehicle state is in use, "camera" when results go out in the
@@ -136,9 +136,9 @@ class MavlinkRelay:
         now = self._clock()
         with self._state_lock:
             target = self._tracks.target(now)
-            return {"frame": "local_ned" if self._mode == "world" else "camera",
-                    "target_track_id": None if target is None else target.track_id,
-                    "tracks": [t.to_dict(now) for t in self._tracks.fresh(now)]}
+            return WorldTargets(frame="local_ned" if self._mode == "world" else "camera",
+                                target_track_id=None if target is None else target.track_id,
+                                tracks=tuple(t.summary(now) for t in self._tracks.fresh(now)))
 
     def set_camera_lost(self, lost: bool) -> None:
         """Mark the camera lost (HEARTBEAT CRITICAL) or back; a heartbeat goes out at once."""

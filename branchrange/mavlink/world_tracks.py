@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
+
+from branchrange.frame_result import WorldTrack
 
 from branchrange.config import TrackingConfig
 
@@ -84,14 +85,14 @@ class Track:
         self.last_seen = max(self.last_seen, t)
         self.branch_id = z.branch_id
 
-    def to_dict(self, now: float) -> dict[str, Any]:
-        """Plain-JSON view for /latest, the JSONL log and /health (metres, m², seconds)."""
-        return {"id": self.track_id, "branch_id": self.branch_id,
-                "ned_m": [round(float(v), 4) for v in self.position_m],
-                "sigma_m": round(self.sigma_m, 4),
-                "covariance_m2": [[float(f"{v:.3g}") for v in row] for row in self.covariance_m2],
-                "age_s": round(now - self.last_seen, 3), "observations": self.observations,
-                "confidence": round(self.confidence, 3)}
+    def summary(self, now: float) -> WorldTrack:
+        """The track as a result reports it at time `now` (s): metres rounded to 0.1 mm, m² to 3
+        significant digits, seconds to ms (for /latest and the JSONL log)."""
+        x, y, z = (round(float(v), 4) for v in self.position_m)
+        rows = tuple(tuple(float(f"{v:.3g}") for v in row) for row in self.covariance_m2)
+        return WorldTrack(id=self.track_id, branch_id=self.branch_id, ned_m=(x, y, z), sigma_m=round(self.sigma_m, 4),
+                          covariance_m2=rows, age_s=round(now - self.last_seen, 3),  # type: ignore[arg-type]
+                          observations=self.observations, confidence=round(self.confidence, 3))
 
 
 class WorldTracks:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -95,14 +95,24 @@ def sanitize_dense_output(disparity: np.ndarray, confidence: np.ndarray) -> tupl
     return disparity, confidence
 
 
-def validate_pair(left: np.ndarray, right: np.ndarray) -> None:
-    """Raise StereoInputError unless left and right are both uint8 `H×W×3` arrays of the same shape."""
-    for side, image in (("left", left), ("right", right)):
-        if not isinstance(image, np.ndarray):
-            raise StereoInputError(f"{side} image must be a numpy array, got {type(image).__name__}")
-        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise StereoInputError(f"{side} image must be uint8 H×W×3 RGB, got {image.dtype} of shape {image.shape}")
-        if image.shape[0] == 0 or image.shape[1] == 0:
-            raise StereoInputError(f"{side} image is empty: shape {image.shape}")
+def validate_image(image: Any, side: str, error: type[ValueError] = StereoInputError) -> np.ndarray:
+    """`image` itself when it is an RGB `uint8 H×W×3` array of at least 2×2 px, else `error` naming
+    `side` ("left", "right") and what the image is instead."""
+    if not isinstance(image, np.ndarray):
+        raise error(f"{side} image must be a numpy array, got {type(image).__name__}")
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise error(f"{side} image must be uint8 H×W×3 RGB, got {image.dtype} of shape {image.shape}")
+    if image.shape[0] < 2 or image.shape[1] < 2:
+        raise error(f"{side} image is empty: shape {image.shape}")
+    return image
+
+
+def validate_pair(left: Any, right: Any, error: type[ValueError] = StereoInputError) -> None:
+    """The one check of a stereo pair, made once where a pair enters (a backend's `compute`, the
+    pipeline, the API, the daemon): both `validate_image`, and the same size pixel for pixel.
+    Raises `error` (default `StereoInputError`; the pipeline passes its `PipelineInputError`)."""
+    validate_image(left, "left", error)
+    validate_image(right, "right", error)
     if left.shape != right.shape:
-        raise StereoInputError(f"left {left.shape} and right {right.shape} images must have the same shape (a rectified pair)")
+        raise error(f"left {left.shape[1]}×{left.shape[0]} and right {right.shape[1]}×{right.shape[0]} images "
+                    "differ in size; a stereo pair must have the same shape, pixel for pixel")

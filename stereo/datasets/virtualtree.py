@@ -22,6 +22,7 @@ import numpy as np
 
 from stereo.datasets.base import DatasetError, PairRecord, StereoDataset, require_dir
 from stereo.io import read_exr_depth
+from stereo.pinhole import disparity_from_depth
 
 #: The VirtualTree rig: focal length in pixels at 1920 px width, baseline in centimetres.
 VIRTUALTREE_FOCAL_PX = 960.0
@@ -40,7 +41,7 @@ def depth_cm_to_disparity(
     depth = np.asarray(depth_cm, dtype=np.float64)
     valid = np.isfinite(depth) & (depth > 0) & (depth < SKY_DEPTH_CM)
     disparity = np.zeros(depth.shape, dtype=np.float32)
-    disparity[valid] = (focal_px * baseline_cm / depth[valid]).astype(np.float32)
+    disparity[valid] = disparity_from_depth(depth[valid], focal_px, baseline_cm).astype(np.float32)
     return disparity
 
 

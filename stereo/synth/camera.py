@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stereo.pinhole import disparity_from_depth, project
+
 #: The VirtualTree / ZED Mini rig: focal length in pixels at this width, baseline in metres.
 ZED_MINI_FOCAL_PX_AT_1920 = 960.0
 ZED_MINI_REFERENCE_WIDTH = 1920
@@ -60,15 +62,14 @@ class SynthCamera:
     def project(self, points_m: np.ndarray, view: str = "left") -> np.ndarray:
         """Pixel coordinates `(N, 2)` of points `(N, 3)` (metres, left camera frame) seen from `view`."""
         pts = np.atleast_2d(np.asarray(points_m, dtype=np.float64)) - self.origin(view)
-        z = pts[:, 2]
-        return np.stack([self.focal_px * pts[:, 0] / z + self.cx, self.focal_px * pts[:, 1] / z + self.cy], axis=1)
+        return project(pts, self.focal_px, self.cx, self.cy)
 
     def disparity_from_depth(self, depth_m: np.ndarray) -> np.ndarray:
         """Disparity `f·B/Z` (px, float32) of a depth map (m); non-finite or non-positive depth gives 0."""
         depth = np.asarray(depth_m, dtype=np.float64)
         valid = np.isfinite(depth) & (depth > 0)
         disparity = np.zeros(depth.shape, dtype=np.float32)
-        disparity[valid] = self.focal_px * self.baseline_m / depth[valid]
+        disparity[valid] = disparity_from_depth(depth[valid], self.focal_px, self.baseline_m)
         return disparity
 
     def to_dict(self) -> dict[str, float | int]:
