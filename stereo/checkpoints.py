@@ -78,7 +78,7 @@ _PSMNET_MISSING_BIASES = ("backbone.layer2.0.downsample.0.bias", "backbone.layer
 
 #: Training checkpoints often carry metric dicts of numpy scalars; these rebuild plain numbers only.
 _NUMPY_SCALAR_GLOBALS = [
-    np._core.multiarray.scalar, np.dtype,
+    np._core.multiarray.scalar, np.dtype,  # type: ignore[attr-defined]  # private in numpy's stubs, public at run time
     *(type(np.dtype(t)) for t in (np.float16, np.float32, np.float64, np.int32, np.int64, np.bool_)),
 ]
 
@@ -104,13 +104,14 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu",
     if verify_sha256:
         verify_registered(path, registry)
     state, config, layout = read_checkpoint(path)
-    overrides = {k: v for k, v in (("hourglass_wiring", hourglass_wiring), ("align_corners", align_corners))
-                 if v is not None}
     try:
-        config = dataclasses.replace(config, **overrides)
+        if hourglass_wiring is not None:
+            config = dataclasses.replace(config, hourglass_wiring=hourglass_wiring)
+        if align_corners is not None:
+            config = dataclasses.replace(config, align_corners=align_corners)
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from exc
-    model = EMCStereo(**config.to_dict())
+    model = EMCStereo.from_config(config)
     load_state_strict(model, state, source=f"{path} ({layout} layout)")
     return model.to(device).eval()
 
@@ -298,7 +299,7 @@ def psmnet_to_ours(state: Mapping[str, torch.Tensor], max_disp: int = 192) -> di
     return renamed
 
 
-def load_state_strict(model: torch.nn.Module, state: Mapping[str, torch.Tensor], source: str) -> None:
+def load_state_strict(model: EMCStereo, state: Mapping[str, torch.Tensor], source: str) -> None:
     """Copy every tensor into `model`, failing with one message that lists every mismatch."""
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))

@@ -85,6 +85,12 @@ class EMCStereo(StagedStereo):
         self.aggregation = StackedHourglass(hourglass_wiring)
         self.regression = DisparityRegression(max_disp)
 
+    @classmethod
+    def from_config(cls, config: ModelConfig) -> EMCStereo:
+        """The variant `config` describes, with freshly initialised weights."""
+        return cls(config.ema, config.msf, config.coord, config.max_disp, config.hourglass_wiring,
+                   config.align_corners)
+
     @property
     def max_disp(self) -> int:
         return self.config.max_disp
