@@ -6,6 +6,7 @@ implementations, so a change to the sequence is made here and both follow it.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterator
 
@@ -18,7 +19,7 @@ MIN_SIZE = 256
 SIZE_MULTIPLE = 32
 
 
-class StagedStereo(nn.Module):
+class StagedStereo(nn.Module, ABC):
     """The stage sequence of a PSMNet-style network; subclasses implement the four stages.
 
     Stages, all on ImageNet-normalised (B, 3, H, W) views padded as `check_input_size` asks:
@@ -28,18 +29,22 @@ class StagedStereo(nn.Module):
     confidence, both (B, H, W), disparity in pixels of the input.
     """
 
+    @abstractmethod
     def features(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        raise NotImplementedError
+        """Reference and target feature maps, each (B, C, H/4, W/4)."""
 
+    @abstractmethod
     def cost_volume(self, reference: torch.Tensor, target: torch.Tensor, disparities: int) -> torch.Tensor:
-        raise NotImplementedError
+        """The (B, 2C, disparities/4, H/4, W/4) concatenation volume of the two feature maps."""
 
+    @abstractmethod
     def aggregate(self, volume: torch.Tensor) -> Iterator[torch.Tensor]:
-        raise NotImplementedError
+        """Yield the costs c1, c2, c3 (B, 1, D/4, H/4, W/4); the caller lets go of `volume`."""
 
+    @abstractmethod
     def regress(self, cost: torch.Tensor, disparities: int, height: int,
                 width: int) -> tuple[torch.Tensor, torch.Tensor]:
-        raise NotImplementedError
+        """Disparity (px) and confidence, both (B, height, width), from one low-resolution cost."""
 
     def costs(self, left: torch.Tensor, right: torch.Tensor, disparities: int) -> Iterator[torch.Tensor]:
         """The first three stages: yield c1, c2, c3 (B, 1, disparities/4, H/4, W/4) for a padded pair.
