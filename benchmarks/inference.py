@@ -25,8 +25,12 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # imported in the child processes only, so the parent starts without torch
+    import torch
 
 #: The full model's forward pass at 384×1248 (max_disp 192), in GFLOP, the figure the
 #: efficiency line is defined with (torch's FlopCounterMode counts 1338.8 for the convolutions
@@ -120,7 +124,7 @@ def run_matmul(config: BenchConfig) -> BenchResult:
     return BenchResult(latencies, cpu, 0.0, {"gflops_per_s": 2 * n**3 / statistics.median(latencies) / 1e9})
 
 
-def _network_inputs(config: BenchConfig) -> tuple["torch.Tensor", "torch.Tensor"]:
+def _network_inputs(config: BenchConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """The random pair as the emcstereo backend feeds it to the network: normalised, padded tensors."""
     import torch
 
@@ -292,8 +296,10 @@ def format_row(config: BenchConfig, result: BenchResult) -> str:
     if "export_s" in result.extra:
         work = f"export {result.extra['export_s']:.0f} s"
     return (
-        f"{config.runner:<10} {size:>9} {config.threads:>7} {config.max_disp if config.runner not in BASELINES else '':>8} "
-        f"{median_ms:10.1f} {min(result.latencies_s) * 1e3:9.1f} {network} {cores:6.2f} {result.peak_rss_mib:9.0f}  {work}"
+        f"{config.runner:<10} {size:>9} {config.threads:>7} "
+        f"{config.max_disp if config.runner not in BASELINES else '':>8} "
+        f"{median_ms:10.1f} {min(result.latencies_s) * 1e3:9.1f} {network} {cores:6.2f} "
+        f"{result.peak_rss_mib:9.0f}  {work}"
     )
 
 

@@ -79,12 +79,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=2))
-    print(f"cut point misplaced: more than {args.misplaced_m} m from every true cut point; good: within {RECALL_RADIUS_M} m")
+    print(f"cut point misplaced: more than {args.misplaced_m} m from every true cut point; "
+          f"good: within {RECALL_RADIUS_M} m")
     for masks, entry in report["masks"].items():
         print(f"sgbm + {masks} masks: {entry['cut_points']} cut points")
         print(f"{'min conf.':>9} {'good kept':>10} {'misplaced kept':>15} {'misplaced share of kept':>24}")
         for r in entry["rows"]:
-            print(f"{r['threshold']:>9} {r['good_kept']!s:>10} {r['misplaced_kept']!s:>15} {r['misplaced_share_of_kept']!s:>24}")
+            print(f"{r['threshold']:>9} {r['good_kept']!s:>10} {r['misplaced_kept']!s:>15} "
+                  f"{r['misplaced_share_of_kept']!s:>24}")
     return 0
 
 

@@ -24,7 +24,8 @@ single-frame target cut points against the truth (camera frame at capture), and 
 target at arrival, compensated and not.
 
     .venv/bin/python benchmarks/pose_compensation.py --json out/pose_compensation.json
-    .venv/bin/python -m branchrange.cli synth-flight --out /tmp/flight --frames 20 --fps 8 --resolution 640x360 --start-m 2.0 --end-m 1.0 --seed 1
+    .venv/bin/python -m branchrange.cli synth-flight --out /tmp/flight --frames 20 --fps 8 \\
+        --resolution 640x360 --start-m 2.0 --end-m 1.0 --seed 1
     .venv/bin/python benchmarks/pose_compensation.py --flight /tmp/flight --json out/pose_flight.json
 """
 from __future__ import annotations
@@ -42,11 +43,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 
-from autopilot_sim import (AutopilotSim, approach_flight, body_target_errors, flight_from_camera_poses,  # noqa: E402
-                           fly_frames)
+from autopilot_sim import AutopilotSim, approach_flight, body_target_errors, flight_from_camera_poses, fly_frames  # noqa: E402
+from realtime import cpu_name  # noqa: E402
+
 from branchrange.config import MavlinkConfig, TrackingConfig  # noqa: E402
 from branchrange.mavlink import CameraMount, MavlinkRelay  # noqa: E402
-from realtime import cpu_name  # noqa: E402
 
 FPS = 15.0
 MOUNT = CameraMount.from_rpy((0.0, -10.0, 0.0), (0.12, 0.0, 0.04))

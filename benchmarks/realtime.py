@@ -30,7 +30,7 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
 - `ratio_to_baseline.{fresh_rate,latency_p50}`: against `full-sgbm` with the same segmenter.
 Also `cpu` (model and vector extensions), `threads`, `sequence`, `max_result_age_s`.
 
-    .venv/bin/python benchmarks/realtime.py --json out/realtime.json                      # renders a default HD720 flight first
+    .venv/bin/python benchmarks/realtime.py --json out/realtime.json   # renders a default HD720 flight first
     .venv/bin/python benchmarks/realtime.py --sequence out/flight --modes roi-sgbm --segmenter builtin
 """
 from __future__ import annotations
@@ -88,7 +88,7 @@ class WithoutMasks:
     def is_lost(self) -> bool:
         return self.source.is_lost
 
-    def __iter__(self) -> "WithoutMasks":
+    def __iter__(self) -> WithoutMasks:
         return self
 
     def __next__(self) -> Any:
@@ -259,7 +259,8 @@ def print_table(report: dict[str, Any]) -> None:
     print("-" * len(header))
     for name, row in report["modes"].items():
         ratio = row.get("ratio_to_baseline", {})
-        print(f"{name:24} {row['fresh_rate_hz']:8.2f} {fmt(row['latency_ms']['p50']):>7} {fmt(row['latency_ms']['p95']):>7} "
+        print(f"{name:24} {row['fresh_rate_hz']:8.2f} "
+              f"{fmt(row['latency_ms']['p50']):>7} {fmt(row['latency_ms']['p95']):>7} "
               f"{fmt(row['latency_ms']['max']):>7} {row['frames_processed']:5d} {row['frames_dropped']:5d} "
               f"{fmt(row['target_error_m']['median'], 100, 1):>10} {fmt(row['target_error_m']['p90'], 100, 1):>10} "
               f"{fmt(row['target_recall'], 1, 2):>6} {fmt(row['false_target_rate'], 1, 2):>6} "

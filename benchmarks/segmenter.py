@@ -220,7 +220,8 @@ def print_tables(synthetic: dict, real: dict) -> None:
         print(f"{key:<22} {cells}   ≥0.8: {count} cut points, {share:.0%} correct; "
               f"≥90 % correct from confidence {r['min_confidence_for_90pct']}")
     if real:
-        print(f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} {'precision':>9} {'ms':>6}")
+        print(f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} "
+              f"{'precision':>9} {'ms':>6}")
         for key, r in real.items():
             print(f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_not_branch']:>7} {r['unlabelled']:>6} "
                   f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}")

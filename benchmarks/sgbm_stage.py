@@ -86,7 +86,7 @@ def methods(max_disp: int) -> dict[str, Method]:
         "ours: + half-res LR check (shipped)": SGBMBackend(max_disp),
     }
     return {"plain OpenCV colour": plain_opencv(max_disp, grey=False), "plain OpenCV grey": plain_opencv(max_disp, grey=True),
-            **{name: (lambda l, r, b=backend: b.compute(l, r).disparity) for name, backend in steps.items()}}
+            **{name: (lambda left, right, b=backend: b.compute(left, right).disparity) for name, backend in steps.items()}}
 
 
 def interleaved_medians(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
@@ -185,7 +185,8 @@ def print_report(report: dict[str, object]) -> None:
     print("| method | ms |\n|---|---|")
     for name, ms in roi["ms"].items():
         print(f"| {name} | {ms:.2f} |")
-    print(f"compute_roi × plain colour {roi['ratio_to_plain_colour']:.2f}, × plain grey {roi['ratio_to_plain_grey']:.2f}; "
+    print(f"compute_roi × plain colour {roi['ratio_to_plain_colour']:.2f}, "
+          f"× plain grey {roi['ratio_to_plain_grey']:.2f}; "
           f"accuracy in the box: " + ", ".join(f"{k} {v:.3f}" for k, v in roi["accuracy"].items()) + "\n")
     print("### Accuracy (matched-pixel EPE px / Bad-1 / Bad-2, density)")
     pairs = list(report["accuracy"])

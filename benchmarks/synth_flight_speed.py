@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from realtime import cpu_name  # benchmarks/ is the script's directory, so on sys.path
+
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.flight import FlightRenderer
 from stereo.synth.flight_path import FlightOptions
@@ -47,8 +48,8 @@ def measure(width: int, height: int, seeds: list[int], repeats: int) -> list[dic
         for seed in seeds:
             leaves = "sparse" if foliage else "bare"
             calls = {"render_scene 1 ray/px (baseline)":
-                     [lambda: render_scene(seed, camera, supersample=1, foliage=leaves)],
-                     "render_scene 2x2 rays/px (default)": [lambda: render_scene(seed, camera, foliage=leaves)]}
+                     [lambda s=seed, f=leaves: render_scene(s, camera, supersample=1, foliage=f)],
+                     "render_scene 2x2 rays/px (default)": [lambda s=seed, f=leaves: render_scene(s, camera, foliage=f)]}
             for blur in (False, True):
                 renderer = FlightRenderer(FlightOptions(frames=31, width=width, height=height, seed=seed,
                                                         foliage=foliage, motion_blur=blur, jitter_deg=1.0, sway_m=0.05))

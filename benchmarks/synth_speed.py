@@ -42,9 +42,9 @@ def pair_rows(sizes: list[tuple[int, int]], seeds: list[int]) -> list[tuple[str,
     rows = []
     for width, height in sizes:
         camera = SynthCamera.zed_mini(width, height)
-        configs = [("truth pass only (baseline)", lambda s: truth_pass(s, camera)),
-                   ("pair, 2x2 rays/px, 1 thread", lambda s: render_scene(s, camera, threads=1)),
-                   ("pair, 2x2 rays/px, 2 threads", lambda s: render_scene(s, camera, threads=2))]
+        configs = [("truth pass only (baseline)", lambda s, c=camera: truth_pass(s, c)),
+                   ("pair, 2x2 rays/px, 1 thread", lambda s, c=camera: render_scene(s, c, threads=1)),
+                   ("pair, 2x2 rays/px, 2 threads", lambda s, c=camera: render_scene(s, c, threads=2))]
         for name, run in configs:
             times = [timed(run, seed) for seed in seeds]
             rows.append((f"{width}x{height}", name, statistics.median(t[0] for t in times),

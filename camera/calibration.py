@@ -160,7 +160,7 @@ def from_rectified(focal_px: float, cx: float, cy: float, baseline_m: float, siz
     k2 = camera_matrix(focal_px, focal_px, cx if cx_right is None else cx_right, cy)
     zeros = np.zeros(5)
     return StereoCalibration(k1, zeros, k2, zeros, np.eye(3), np.array([-baseline_m, 0.0, 0.0]),
-                             tuple(size), is_rectified=True, source=source)
+                             (size[0], size[1]), is_rectified=True, source=source)
 
 
 def read_calibration_text(path: str | Path) -> str:

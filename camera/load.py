@@ -13,7 +13,6 @@ from camera.middlebury import from_middlebury_calib
 from camera.opencv_file import from_opencv_file
 from camera.zed_conf import from_zed_conf
 
-
 #: File suffix of each format, for uploads written to a temporary file (the content decides).
 _SUFFIXES = {"zed": ".conf", "depthai": ".json", "kitti": ".txt", "middlebury": ".txt"}
 

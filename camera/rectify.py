@@ -33,6 +33,12 @@ class Rectifier:
     def __init__(self, calibration: StereoCalibration) -> None:
         self.calibration = calibration
         size = calibration.image_size
+        # Rotations (3×3), projections (3×4) and the reprojection matrix Q (4×4) of the rectified pair.
+        self.R1: np.ndarray
+        self.R2: np.ndarray
+        self.P1: np.ndarray
+        self.P2: np.ndarray
+        self.Q: np.ndarray
         if calibration.is_rectified:
             self.R1 = self.R2 = np.eye(3)
             self.P1, self.P2, self.Q = rectified_projections(calibration)

@@ -27,8 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from camera.calibration import (CalibrationError, StereoCalibration, camera_matrix, parse_number,
-                                read_calibration_text)
+from camera.calibration import CalibrationError, StereoCalibration, camera_matrix, parse_number, read_calibration_text
 
 #: Image size (width, height) of one eye at each resolution of the file.
 ZED_RESOLUTIONS: dict[str, tuple[int, int]] = {

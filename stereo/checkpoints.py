@@ -16,6 +16,10 @@ Wiring settings follow the source (`ModelConfig`): PSMNet checkpoints run with P
 (`"openstereo"`, `True`), ours with what they store; ours written before these settings existed
 carry `LEGACY_SETTINGS`, what this package ran then. `load_model(…, hourglass_wiring=…,
 align_corners=…)` overrides either.
+
+A file named as a registered release (`stereo.weights.REGISTRY`, e.g. `emcstereo_virtualtree_best.pth`)
+must have the release's SHA-256, or `load_model` refuses it with a `WeightsMismatchError`;
+`verify_sha256=False` (`--no-verify-weights`) loads a local file of that name anyway.
 """
 from __future__ import annotations
 
@@ -34,6 +38,7 @@ import numpy as np
 import torch
 
 from .model import EMCStereo, ModelConfig
+from .weights import REGISTRY, WeightsInfo, cached_sha256, registered_as
 
 FORMAT = "branchrange.emcstereo/1"
 
@@ -73,7 +78,7 @@ _PSMNET_MISSING_BIASES = ("backbone.layer2.0.downsample.0.bias", "backbone.layer
 
 #: Training checkpoints often carry metric dicts of numpy scalars; these rebuild plain numbers only.
 _NUMPY_SCALAR_GLOBALS = [
-    np._core.multiarray.scalar, np.dtype,
+    np._core.multiarray.scalar, np.dtype,  # type: ignore[attr-defined]  # private in numpy's stubs, public at run time
     *(type(np.dtype(t)) for t in (np.float16, np.float32, np.float64, np.int32, np.int64, np.bool_)),
 ]
 
@@ -82,23 +87,52 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be loaded; the message names the file and what was found."""
 
 
+class WeightsMismatchError(CheckpointError):
+    """A file named as a registered release whose contents are not the release's (corrupt, truncated or other)."""
+
+
 def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu", *,
-               hourglass_wiring: str | None = None, align_corners: bool | None = None) -> EMCStereo:
+               hourglass_wiring: str | None = None, align_corners: bool | None = None,
+               verify_sha256: bool = True, registry: Mapping[str, WeightsInfo] = REGISTRY) -> EMCStereo:
     """Build the right EMCStereo variant from a checkpoint in any supported layout, in eval mode.
 
     `hourglass_wiring` / `align_corners` override what the checkpoint's source implies (module docstring).
+    A file named as an entry of `registry` is checked against its SHA-256 first (`verify_registered`)
+    unless `verify_sha256` is False.
     """
     path = Path(path)
+    if verify_sha256:
+        verify_registered(path, registry)
     state, config, layout = read_checkpoint(path)
-    overrides = {k: v for k, v in (("hourglass_wiring", hourglass_wiring), ("align_corners", align_corners))
-                 if v is not None}
     try:
-        config = dataclasses.replace(config, **overrides)
+        if hourglass_wiring is not None:
+            config = dataclasses.replace(config, hourglass_wiring=hourglass_wiring)
+        if align_corners is not None:
+            config = dataclasses.replace(config, align_corners=align_corners)
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from exc
-    model = EMCStereo(**config.to_dict())
+    model = EMCStereo.from_config(config)
     load_state_strict(model, state, source=f"{path} ({layout} layout)")
     return model.to(device).eval()
+
+
+def verify_registered(path: Path, registry: Mapping[str, WeightsInfo] = REGISTRY) -> WeightsInfo | None:
+    """The registry entry `path` is named after, once its SHA-256 matched; None for a file of another name.
+
+    Raises `WeightsMismatchError` naming the file and both hashes when the contents differ.
+    """
+    info = registered_as(path, registry)
+    if info is None or not path.is_file():  # a missing file is reported by the load itself
+        return None
+    digest = cached_sha256(path)
+    if digest != info.sha256:
+        raise WeightsMismatchError(
+            f"{path}: SHA-256 {digest} does not match {info.sha256}, registered for {info.name} "
+            f"({info.filename}); the file is corrupt, truncated or another checkpoint: fetch it again "
+            f"(emcstereo weights fetch {info.name}), or load a local file of that name with "
+            "--no-verify-weights (verify_sha256=False)"
+        )
+    return info
 
 
 def read_checkpoint(path: Path) -> tuple[dict[str, torch.Tensor], ModelConfig, str]:
@@ -265,7 +299,7 @@ def psmnet_to_ours(state: Mapping[str, torch.Tensor], max_disp: int = 192) -> di
     return renamed
 
 
-def load_state_strict(model: torch.nn.Module, state: Mapping[str, torch.Tensor], source: str) -> None:
+def load_state_strict(model: EMCStereo, state: Mapping[str, torch.Tensor], source: str) -> None:
     """Copy every tensor into `model`, failing with one message that lists every mismatch."""
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))

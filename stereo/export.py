@@ -15,8 +15,8 @@ import torch
 from torch import nn
 
 from .model import EMCStereo
-from .model.emcstereo import check_input_size
 from .model.fast_inference import FastInference
+from .model.stages import check_input_size
 
 #: Metadata the exported file carries: padded input height and width, disparity range (px).
 METADATA_KEYS = ("height", "width", "max_disp")

@@ -39,7 +39,8 @@ def valid_mask(gt: np.ndarray, max_disp: float = DEFAULT_MAX_DISP) -> np.ndarray
     """Boolean `H×W` mask of the pixels that count: ground truth finite and in the open interval (0, max_disp)."""
     gt = np.asarray(gt)
     with np.errstate(invalid="ignore"):
-        return np.isfinite(gt) & (gt > 0) & (gt < max_disp)
+        mask: np.ndarray = np.isfinite(gt) & (gt > 0) & (gt < max_disp)
+    return mask
 
 
 def _delta_fractions(pred: np.ndarray, gt: np.ndarray, suffix: str = "") -> dict[str, float]:
@@ -81,7 +82,7 @@ def image_metrics(
         raise ValueError(f"prediction {pred.shape} and ground truth {gt.shape} must be the same H×W shape")
     if (focal_px is None) != (baseline_m is None):
         raise ValueError(f"depth metrics need both focal_px and baseline_m, got focal_px={focal_px}, baseline_m={baseline_m}")
-    if focal_px is not None and not (focal_px > 0 and baseline_m > 0):
+    if focal_px is not None and baseline_m is not None and not (focal_px > 0 and baseline_m > 0):
         raise ValueError(f"focal_px and baseline_m must be positive, got {focal_px} and {baseline_m}")
     mask = valid_mask(gt, max_disp)
     n_valid = int(mask.sum())
@@ -104,7 +105,7 @@ def image_metrics(
         "rmse_log": float(np.sqrt(np.mean((np.log(p_c) - np.log(g_c)) ** 2))),
         **_delta_fractions(p_c, g_c),
     }
-    if focal_px is not None:
+    if focal_px is not None and baseline_m is not None:
         metrics.update(_depth_metrics(p_c, g_c, float(focal_px), float(baseline_m)))
     metrics["valid_pixels"] = float(n_valid)
     return metrics

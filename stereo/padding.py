@@ -59,7 +59,8 @@ def compute_padding(height: int, width: int, multiple: int = PAD_MULTIPLE, minim
 def _check_size(x: ArrayT, padding: Padding, expected: tuple[int, int], what: str) -> None:
     """Raise ValueError when the last two axes of `x` are not `expected`."""
     if x.ndim < 2 or tuple(x.shape[-2:]) != expected:
-        raise ValueError(f"{what} expects (..., H, W) = (..., {expected[0]}, {expected[1]}) for {padding}, got shape {tuple(x.shape)}")
+        raise ValueError(f"{what} expects (..., H, W) = (..., {expected[0]}, {expected[1]}) for {padding}, "
+                         f"got shape {tuple(x.shape)}")
 
 
 def _edge_indices(padding: Padding) -> tuple[np.ndarray, np.ndarray]:

@@ -3,6 +3,8 @@
 Nothing downloads implicitly: `fetch_weights` runs only when a user asks (`emcstereo weights
 fetch`). A download goes to a temporary file beside the destination and becomes the real file
 only after its size and SHA-256 check out, so no partial or unverified file is ever left behind.
+A file that carries a registered file name is checked again on every load (`registered_as`,
+`cached_sha256`, used by `stereo.checkpoints.load_model`), hashed once per size and mtime.
 """
 from __future__ import annotations
 
@@ -12,9 +14,10 @@ import os
 import tempfile
 import urllib.error
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 CHUNK = 1 << 20
 
@@ -79,6 +82,28 @@ def sha256_of(path: Path) -> str:
     return digest.hexdigest()
 
 
+def registered_as(path: Path, registry: Mapping[str, WeightsInfo] = REGISTRY) -> WeightsInfo | None:
+    """The registry entry whose file name `path` carries (what `fetch_weights` writes), or None for a local file."""
+    return next((info for info in registry.values() if info.filename == path.name), None)
+
+
+#: SHA-256 of the files hashed in this process, by (real path, device, inode, size, mtime in ns).
+_DIGESTS: dict[tuple[str, int, int, int, int], str] = {}
+
+
+def cached_sha256(path: Path) -> str:
+    """`sha256_of(path)`, computed once per file version: a file whose size or mtime changed is hashed again.
+
+    Loading the same 62 MB release in every backend a process builds then costs one read, not one each.
+    """
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    digest = _DIGESTS.get(key)
+    if digest is None:
+        digest = _DIGESTS[key] = sha256_of(path)
+    return digest
+
+
 def fetch_weights(info: WeightsInfo, dest_dir: Path, *, url: str | None = None, timeout_s: float = 30.0,
                   progress: Callable[[int, int | None], None] | None = None) -> Path:
     """Download `info` into `dest_dir`, verify it, and return the final path.
@@ -103,7 +128,8 @@ def fetch_weights(info: WeightsInfo, dest_dir: Path, *, url: str | None = None, 
         tmp.unlink(missing_ok=True)
 
 
-def _download(url: str, out, timeout_s: float, progress) -> tuple[str, int]:
+def _download(url: str, out: BinaryIO, timeout_s: float,
+              progress: Callable[[int, int | None], None] | None) -> tuple[str, int]:
     digest = hashlib.sha256()
     received = 0
     try:

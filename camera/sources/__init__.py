@@ -9,8 +9,17 @@ from __future__ import annotations
 from typing import Any
 
 from camera.sources.faults import FaultInjectingSource, FaultPlan
-from camera.sources.frame import (Backoff, CorruptFrameError, SourceBase, SourceConfigError, SourceDisconnected,
-                                  SourceError, SourceUnavailable, StereoFrame, StereoSource)
+from camera.sources.frame import (
+    Backoff,
+    CorruptFrameError,
+    SourceBase,
+    SourceConfigError,
+    SourceDisconnected,
+    SourceError,
+    SourceUnavailable,
+    StereoFrame,
+    StereoSource,
+)
 from camera.sources.latest import LatestFrameSource
 from camera.sources.recorder import Recorder, record
 from camera.sources.recording_format import RecordingFormatError

@@ -15,7 +15,8 @@ class LatestFrameSource(SourceBase):
     the inner source (CorruptFrameError, SourceDisconnected) are handed to the consumer by the
     next `next()` call and capture goes on; any other exception ends capture and is raised once,
     after which iteration stops. `get(timeout)` is `next()` with a timeout (None when nothing
-    new came); `get_stamped` adds the frame's arrival time. `is_lost` and `calibration` are the inner source's. Closing closes the inner source.
+    new came); `get_stamped` adds the frame's arrival time. `is_lost` and `calibration` are the inner
+    source's. Closing closes the inner source.
     """
 
     def __init__(self, source: StereoSource) -> None:

@@ -28,8 +28,15 @@ import numpy as np
 
 from camera.calibration import StereoCalibration
 from camera.depthai_json import calibrated_size, calibration_from_depthai_dict, socket_number
-from camera.sources.frame import (Backoff, CorruptFrameError, SourceBase, SourceConfigError, SourceDisconnected,
-                                  SourceUnavailable, StereoFrame)
+from camera.sources.frame import (
+    Backoff,
+    CorruptFrameError,
+    SourceBase,
+    SourceConfigError,
+    SourceDisconnected,
+    SourceUnavailable,
+    StereoFrame,
+)
 
 
 @dataclass(frozen=True)
@@ -149,7 +156,7 @@ def open_oak_device(config: OakConfig) -> OakSession:
     check_output_aspect(calibrated_size(eeprom, config.left_socket, "OAK device EEPROM"), config)
     left, right = add_stereo_cameras(pipeline, config)
     calibration = calibration_from_depthai_dict(eeprom, "OAK device EEPROM", config.left_socket,
-                                                config.right_socket, tuple(config.size))
+                                                config.right_socket, (int(config.size[0]), int(config.size[1])))
     return OakSession(pipeline, left, right, calibration)
 
 

@@ -9,8 +9,14 @@ from camera.calibration import StereoCalibration
 from camera.opencv_file import write_opencv_file
 from camera.sources.frame import CorruptFrameError, StereoFrame
 from camera.sources.image_files import write_mask, write_rgb
-from camera.sources.recording_format import (CALIBRATION_NAME, MANIFEST_NAME, TIMESTAMP_COLUMNS, TIMESTAMPS_NAME,
-                                             mask_name, write_manifest)
+from camera.sources.recording_format import (
+    CALIBRATION_NAME,
+    MANIFEST_NAME,
+    TIMESTAMP_COLUMNS,
+    TIMESTAMPS_NAME,
+    mask_name,
+    write_manifest,
+)
 
 IMAGE_FORMATS = ("png", "jpg")
 

@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import cv2
 
@@ -23,8 +23,15 @@ from camera.calibration import StereoCalibration
 from camera.load import load_calibration
 from camera.sources.frame import SourceBase, SourceConfigError, SourceUnavailable, StereoFrame
 from camera.sources.image_files import read_mask, read_rgb, split_side_by_side
-from camera.sources.recording_format import (CALIBRATION_NAME, MANIFEST_NAME, TIMESTAMPS_NAME, RecordingFormatError,
-                                             mask_name, read_manifest, read_timestamps)
+from camera.sources.recording_format import (
+    CALIBRATION_NAME,
+    MANIFEST_NAME,
+    TIMESTAMPS_NAME,
+    RecordingFormatError,
+    mask_name,
+    read_manifest,
+    read_timestamps,
+)
 
 #: Pacing modes: "recorded" waits so frames come at the recorded rate, "fast" returns them at once.
 PACES = ("recorded", "fast")
@@ -32,6 +39,33 @@ DEFAULT_PERIOD_NS = 33_333_333
 #: Frame rate given to a folder of pairs (which has no timestamps) unless `fps` says otherwise.
 PAIR_FOLDER_FPS = 15.0
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class FrameReader(Protocol):
+    """How `ReplaySource` reads one kind of container: frames in order, a position, and what it knows up front."""
+
+    @property
+    def count(self) -> int | None:
+        """Frames in the container, None where it does not say before they are read."""
+
+    @property
+    def period_ns(self) -> int:
+        """Nanoseconds between frames (recorded median or given rate)."""
+
+    def read(self) -> StereoFrame | None:
+        """The next frame, None at the end."""
+
+    def seek(self, position: int) -> None:
+        """Make frame `position` (0-based) the next one read."""
+
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of each view in pixels."""
+
+    def calibration(self) -> StereoCalibration | None:
+        """The container's own calibration, None if it has none."""
+
+    def close(self) -> None:
+        """Release the files or handles."""
 
 
 class _DirectoryFrames:
@@ -156,23 +190,24 @@ class _VideoFrames:
     def __init__(self, path: Path, fps: float | None) -> None:
         self.path = path
         self._capture: cv2.VideoCapture | None = None
-        self._open()
-        assert self._capture is not None
-        reported = self._capture.get(cv2.CAP_PROP_FPS)
+        capture = self._open()
+        reported = capture.get(cv2.CAP_PROP_FPS)
         rate = fps if fps is not None else reported
         if not rate or rate <= 0:
             raise SourceConfigError(f"{path}: the video reports no frame rate; pass fps= to replay it")
-        self.period_ns = int(round(1e9 / rate))
-        self.count = int(self._capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+        self.period_ns: int = int(round(1e9 / rate))
+        self.count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
 
-    def _open(self) -> None:
+    def _open(self) -> cv2.VideoCapture:
+        """The video (re)opened at its first frame; also kept as `self._capture`."""
         if self._capture is not None:
             self._capture.release()
-        self._capture = cv2.VideoCapture(str(self.path))
-        if not self._capture.isOpened():
+        capture = self._capture = cv2.VideoCapture(str(self.path))
+        if not capture.isOpened():
             raise SourceUnavailable(f"{self.path}: OpenCV cannot open this video; expected a side-by-side "
                                     "stereo video (e.g. .avi/.mkv/.mp4) readable by OpenCV's FFmpeg backend")
         self._position = 0
+        return capture
 
     def frame_size(self) -> tuple[int, int]:
         """(width, height) of one view: half the video's width, its full height."""
@@ -235,7 +270,7 @@ class ReplaySource(SourceBase):
         if start < 0:
             raise SourceConfigError(f"start is {start}; expected a frame position ≥ 0")
         self.path = Path(path)
-        self._frames = self._open_frames(fps)
+        self._frames: FrameReader = self._open_frames(fps)
         if self._frames.count is not None and start >= self._frames.count:
             raise SourceConfigError(f"start is {start}; {self.path} has {self._frames.count} frames")
         self.calibration = calibration if calibration is not None else self._frames.calibration()
@@ -252,9 +287,9 @@ class ReplaySource(SourceBase):
         self._wall_start: int | None = None
         self._stream_start: int | None = None
 
-    def _open_frames(self, fps: float | None) -> Any:
-        """The frame reader of `self.path` (read, seek, count, period_ns, frame_size, calibration, close);
-        a subclass replaying another container (camera.sources.rosbag) returns its own."""
+    def _open_frames(self, fps: float | None) -> FrameReader:
+        """The frame reader of `self.path`; a subclass replaying another container (camera.sources.rosbag)
+        returns its own."""
         if self.path.is_dir():
             return _directory_frames(self.path, fps)
         if self.path.is_file():

@@ -159,8 +159,8 @@ class _BagFrames:
         except (AnyReaderError, OSError, ValueError, KeyError) as error:
             raise SourceUnavailable(f"{path}: not a readable ROS 2 bag ({error})") from error
         self._by_topic = {c.topic: c for c in self._reader.connections}
-        wanted = {"left": (topics.left, (IMAGE_TYPE, COMPRESSED_TYPE)),
-                  "right": (topics.right, (IMAGE_TYPE, COMPRESSED_TYPE))}
+        wanted: dict[str, tuple[str, tuple[str, ...]]] = {"left": (topics.left, (IMAGE_TYPE, COMPRESSED_TYPE)),
+                                                          "right": (topics.right, (IMAGE_TYPE, COMPRESSED_TYPE))}
         if use_camera_info:
             wanted |= {"left_info": (topics.left_info, (CAMERA_INFO_TYPE,)),
                        "right_info": (topics.right_info, (CAMERA_INFO_TYPE,))}
@@ -294,14 +294,16 @@ class RosbagSource(ReplaySource):
         super().__init__(path, pace=pace, loop=loop, start=start, calibration=calibration, **options)
 
     def _open_frames(self, fps: float | None) -> _BagFrames:
-        return _BagFrames(self.path, self.topics, int(round(self.tolerance_ms * 1e6)), self.use_camera_info)
+        # Kept under its own type too: the bag reader has more to say than a FrameReader.
+        self._bag = _BagFrames(self.path, self.topics, int(round(self.tolerance_ms * 1e6)), self.use_camera_info)
+        return self._bag
 
     @property
     def recorded_fps(self) -> float:
         """Left images per second over the bag's span (for an overlay video's rate; 30 when the bag says nothing)."""
-        return self._frames.recorded_fps()
+        return self._bag.recorded_fps()
 
     @property
     def unpaired(self) -> dict[str, int]:
         """Images skipped for want of a partner so far, per side."""
-        return dict(self._frames.unpaired)
+        return dict(self._bag.unpaired)

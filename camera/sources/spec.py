@@ -2,8 +2,8 @@
 
 Specs: `zed:0`, `zed:0:HD720`, `zed:/dev/video0`, `zed:/dev/video0:VGA` (device index or path, then
 an optional mode), `oak`, `oak:640x400`, `oak:1280x800@60` (output size and fps), `replay:PATH`
-(a recording directory, a folder of pairs `left/` + `right/`, or a side-by-side video file), `rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag,
-see camera.sources.rosbag).
+(a recording directory, a folder of pairs `left/` + `right/`, or a side-by-side video file),
+`rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag, see camera.sources.rosbag).
 """
 from __future__ import annotations
 

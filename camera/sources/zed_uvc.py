@@ -20,10 +20,17 @@ from typing import Any
 import cv2
 
 from camera.calibration import FrameSizeError, StereoCalibration
-from camera.sources.frame import (Backoff, CorruptFrameError, SourceBase, SourceConfigError, SourceDisconnected,
-                                  SourceUnavailable, StereoFrame)
-from camera.sources.image_files import split_side_by_side
 from camera.load import load_calibration
+from camera.sources.frame import (
+    Backoff,
+    CorruptFrameError,
+    SourceBase,
+    SourceConfigError,
+    SourceDisconnected,
+    SourceUnavailable,
+    StereoFrame,
+)
+from camera.sources.image_files import split_side_by_side
 
 
 @dataclass(frozen=True)

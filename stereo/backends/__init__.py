@@ -34,6 +34,7 @@ def make_backend(
     max_disp: int = 192,
     device: str = "cpu",
     precision: str = "fp32",
+    verify_sha256: bool = True,
 ) -> StereoBackend:
     """Build a backend by name.
 
@@ -41,6 +42,7 @@ def make_backend(
     with `stereo.checkpoints.load_model` (any supported layout); without weights it builds a
     randomly initialised full model and warns (UntrainedModelWarning). `max_disp` is the inference
     search range (multiple of 16, at most the model's trained range); fp16/bf16 need CUDA.
+    `verify_sha256=False` loads emcstereo weights named as a registered release without checking them.
     """
     if name == "sgbm":
         for option, value, default in (("weights", weights, None), ("device", device, "cpu"), ("precision", precision, "fp32")):
@@ -61,7 +63,7 @@ def make_backend(
             )
             model = EMCStereo()
         else:
-            model = load_model(weights, device=resolve_device(device))
+            model = load_model(weights, device=resolve_device(device), verify_sha256=verify_sha256)
         return EMCStereoBackend(model, max_disp=max_disp, device=device, precision=precision)
     if name == "onnx":  # an exported EMCStereo graph under ONNX Runtime (stereo/backends/onnx.py)
         from stereo.backends.onnx import make_onnx_backend

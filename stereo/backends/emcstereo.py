@@ -76,7 +76,8 @@ class EMCStereoBackend:
         self.device = resolve_device(device)
         if precision != "fp32" and self.device.type != "cuda":
             raise BackendConfigError(
-                f"precision {precision!r} needs a CUDA device (autocast is CUDA-only here); use precision='fp32' on {self.device}"
+                f"precision {precision!r} needs a CUDA device (autocast is CUDA-only here); "
+                f"use precision='fp32' on {self.device}"
             )
         self.max_disparity = max_disp
         self.precision = precision

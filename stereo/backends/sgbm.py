@@ -88,7 +88,7 @@ class SGBMBackend:
         self._matchers: dict[tuple[int, int], cv2.StereoSGBM] = {}
 
     def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
-        """Disparity (float32 px in (0, max_disp), 0 invalid) and LR-agreement confidence of a rectified RGB uint8 pair."""
+        """Disparity (float32 px in (0, max_disp), 0 invalid) and LR-check confidence of a rectified RGB uint8 pair."""
         validate_pair(left, right)
         height, width = left.shape[:2]
         return self._window(left, right, (0, 0, width, height), 0, self.max_disparity, context=0, check=self.lr_check)

@@ -13,6 +13,7 @@ import torch
 
 import stereo
 from stereo.commands.train import run_reporting_input_errors
+from stereo.commands.weights import add_no_verify_flag
 from stereo.datasets import SPLIT_FILE_DATASETS, DatasetError, StereoDataset, open_dataset
 from stereo.datasets.splits import split_train_val
 from stereo.evaluation import EvaluationResult, evaluate, format_table, write_reports
@@ -39,7 +40,7 @@ def _run(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     """Score the weights on every requested split, write the reports and print the table."""
     device = torch.device(args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
-    model = stereo.load_model(args.weights, device=device)
+    model = stereo.load_model(args.weights, device=device, verify_sha256=args.verify_sha256)
     splits = args.split or (["test"] if args.dataset in SPLIT_FILE_DATASETS else ["val"])
     out_dir = Path(args.out)
     results: dict[str, EvaluationResult] = {}
@@ -63,6 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--dataset", required=True, choices=DATASET_NAMES)
     parser.add_argument("--root", required=True, help="dataset folder")
     parser.add_argument("--weights", required=True, help="checkpoint (ours, the authors' or PSMNet's)")
+    add_no_verify_flag(parser)
     parser.add_argument("--split", action="append", help="split to score (repeatable); default test / val")
     parser.add_argument("--out", default="eval", help="output folder for metrics.json, metrics.txt, vis/")
     parser.add_argument("--vis", type=int, default=10, help="draw the first N pairs (0 = none)")

@@ -74,7 +74,8 @@ def _run(args: argparse.Namespace) -> int:
             write_rgb(args.preview, preview_image(scenes))
         except (OSError, StereoIOError) as exc:
             raise SystemExit(f"emcstereo synth: cannot write --preview {args.preview}: {exc}") from exc
-        print(f"wrote preview of scenes 0..{count - 1} to {args.preview} (left | right | disparity | mask, cut points ringed)")
+        print(f"wrote preview of scenes 0..{count - 1} to {args.preview} "
+              "(left | right | disparity | mask, cut points ringed)")
     return 0
 
 

@@ -18,7 +18,6 @@ from stereo.training.run import run_training
 from stereo.training.selfsup import SelfSupConfig
 from stereo.training.trainer import TrainResult
 
-
 #: Errors caused by what the user gave (config, data, weights); the commands print them without a traceback.
 INPUT_ERRORS = (ConfigError, DatasetError, CheckpointError, StereoIOError, ExportError)
 

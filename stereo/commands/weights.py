@@ -43,6 +43,13 @@ def _verify(args: argparse.Namespace) -> int:
     return 1
 
 
+def add_no_verify_flag(parser: argparse.ArgumentParser) -> None:
+    """`--no-verify-weights` (sets `verify_sha256=False`) on a command that loads a checkpoint."""
+    parser.add_argument("--no-verify-weights", dest="verify_sha256", action="store_false",
+                        help="load a local file that carries a registered release's name without checking "
+                             "its SHA-256 against the registry")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `weights` to the `emcstereo` command."""
     parser = sub.add_parser("weights", help="list, download and verify released checkpoints")

@@ -33,7 +33,8 @@ def open_dataset(name: str, root: str | Path, split: str | Path | None = None) -
     if name == "middlebury":
         return MiddleburyDataset(root)
     raise DatasetError(
-        f"unknown dataset {name!r}; expected virtualtree, synthetic, sceneflow, kitti2012, kitti2015, eth3d or middlebury"
+        f"unknown dataset {name!r}; expected virtualtree, synthetic, sceneflow, kitti2012, kitti2015, "
+        "eth3d or middlebury"
     )
 
 

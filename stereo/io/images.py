@@ -25,7 +25,7 @@ def _decode(path: Path, flags: int) -> np.ndarray:
 
 
 def read_rgb(path: str | Path) -> np.ndarray:
-    """Read an image file as RGB `uint8` `H×W×3` (grey and palette files are expanded, alpha dropped, 16-bit scaled to 8)."""
+    """Read an image file as RGB `uint8` `H×W×3` (grey and palette expanded, alpha dropped, 16-bit scaled to 8)."""
     path = Path(path)
     return cv2.cvtColor(_decode(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 

@@ -2,23 +2,19 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import torch
-from torch import nn
 
 from .aggregation import StackedHourglass
 from .backbone import SPP_POOLS, FeatureBackbone
 from .cost_volume import concat_cost_volume
 from .fast_inference import FastInference
 from .regression import DisparityRegression, upsample_cost
+from .stages import StagedStereo, check_input_size, last_cost
 
-#: The smallest padded H and W the network accepts (the 64×64 SPP pool at ¼ resolution).
-MIN_SIZE = 256
-#: H and W must be multiples of this (two stride-2 3D stages below ¼ resolution).
-SIZE_MULTIPLE = 32
 #: The largest disparity range a model may be built with: 5× the authors' 192, far above any camera
 #: here, and small enough that a corrupt checkpoint cannot ask for a multi-gigabyte cost volume.
 MAX_DISP_LIMIT = 1024
@@ -71,13 +67,14 @@ class ModelConfig:
         return cls(**{**defaults, **values})
 
 
-class EMCStereo(nn.Module):
+class EMCStereo(StagedStereo):
     """EMCStereo (PSMNet template + EMA, MSFblock, CoordAtt); any of the eight variants.
 
     `forward(left, right)`: ImageNet-normalised (B, 3, H, W) tensors, H and W multiples of 32 and
     ≥ 256. Training mode returns the three deeply supervised disparities [(B, H, W)] × 3; eval
     mode returns only the third, (B, H, W), in pixels of the input. `hourglass_wiring` and
     `align_corners` are described in `ModelConfig`; a checkpoint must run with the ones it was trained with.
+    The order of the stages is `StagedStereo`'s; this class gives the reference implementation of each.
     """
 
     def __init__(self, ema: bool = True, msf: bool = True, coord: bool = True, max_disp: int = 192,
@@ -88,16 +85,22 @@ class EMCStereo(nn.Module):
         self.aggregation = StackedHourglass(hourglass_wiring)
         self.regression = DisparityRegression(max_disp)
 
+    @classmethod
+    def from_config(cls, config: ModelConfig) -> EMCStereo:
+        """The variant `config` describes, with freshly initialised weights."""
+        return cls(config.ema, config.msf, config.coord, config.max_disp, config.hourglass_wiring,
+                   config.align_corners)
+
     @property
     def max_disp(self) -> int:
         return self.config.max_disp
 
     def forward(self, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor | list[torch.Tensor]:
-        costs = self._costs(left, right, self.max_disp)
+        costs = self.costs(left, right, self.max_disp)
         height, width = left.shape[2:]
         if self.training:
             return [self.regression(self._upsample(c, self.max_disp, height, width)) for c in costs]
-        return self.regression(self._upsample(costs[-1], self.max_disp, height, width))
+        return self.regression(self._upsample(last_cost(costs), self.max_disp, height, width))
 
     def infer(self, left: torch.Tensor, right: torch.Tensor, max_disp: int | None = None,
               *, fast: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
@@ -114,12 +117,10 @@ class EMCStereo(nn.Module):
         if disparities <= 0 or disparities % DISPARITY_STEP or disparities > self.max_disp:
             raise ValueError(f"inference max_disp must be a multiple of {DISPARITY_STEP} in (0, {self.max_disp}], got {max_disp}")
         if fast:
-            check_input_size(left, right)
+            check_input_size(left, right)  # before building the fast copy, not only inside it
             with torch.inference_mode():
                 return self.fast_inference()(left, right, disparities)
-        cost = self._costs(left, right, disparities)[-1]
-        height, width = left.shape[2:]
-        return self.regression.with_confidence(self._upsample(cost, disparities, height, width))
+        return self.disparity_and_confidence(left, right, disparities)
 
     def fast_inference(self) -> FastInference:
         """The `FastInference` copy of the current weights, rebuilt when any parameter or buffer changed.
@@ -136,16 +137,24 @@ class EMCStereo(nn.Module):
             self.__dict__["_fast_cache"] = cached
         return cached[1]
 
-    def _costs(self, left: torch.Tensor, right: torch.Tensor, disparities: int) -> list[torch.Tensor]:
-        check_input_size(left, right)
+    def features(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if self.training and per_view_batchnorm_possible(left):
             # One view at a time, as PSMNet and the authors do: each BatchNorm normalises (and
             # updates its running statistics) with one view's batch statistics, twice per step.
-            ref, tgt = self.backbone(left), self.backbone(right)
-        else:  # eval (running statistics: one batched pass is the same, and faster) or the fallback
-            ref, tgt = self.backbone(torch.cat([left, right], dim=0)).chunk(2, dim=0)
-        volume = concat_cost_volume(ref, tgt, disparities // 4)
-        return self.aggregation(volume)
+            return self.backbone(left), self.backbone(right)
+        # eval (running statistics: one batched pass is the same, and faster) or the fallback
+        reference, target = self.backbone(torch.cat([left, right], dim=0)).chunk(2, dim=0)
+        return reference, target
+
+    def cost_volume(self, reference: torch.Tensor, target: torch.Tensor, disparities: int) -> torch.Tensor:
+        return concat_cost_volume(reference, target, disparities // 4)
+
+    def aggregate(self, volume: torch.Tensor) -> Iterator[torch.Tensor]:
+        return self.aggregation.costs(volume)
+
+    def regress(self, cost: torch.Tensor, disparities: int, height: int,
+                width: int) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.regression.with_confidence(self._upsample(cost, disparities, height, width))
 
     def _upsample(self, cost: torch.Tensor, disparities: int, height: int, width: int) -> torch.Tensor:
         return upsample_cost(cost, disparities, height, width, self.max_disp, self.config.align_corners)
@@ -171,15 +180,3 @@ def per_view_batchnorm_possible(view: torch.Tensor) -> bool:
 
 #: Set once the per-view fallback has been reported (one warning per process, not per step).
 _FALLBACK_WARNED: list[bool] = []
-
-
-def check_input_size(left: torch.Tensor, right: torch.Tensor) -> None:
-    """Raise a ValueError naming the shape when the pair cannot go through the network."""
-    if left.shape != right.shape or left.dim() != 4 or left.shape[1] != 3:
-        raise ValueError(f"left and right must both be (B, 3, H, W); got {tuple(left.shape)} and {tuple(right.shape)}")
-    height, width = left.shape[2:]
-    if height % SIZE_MULTIPLE or width % SIZE_MULTIPLE or height < MIN_SIZE or width < MIN_SIZE:
-        raise ValueError(
-            f"input {height}×{width} must be padded to multiples of {SIZE_MULTIPLE} and at least "
-            f"{MIN_SIZE}×{MIN_SIZE} (use stereo.padding)"
-        )

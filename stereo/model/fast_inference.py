@@ -1,6 +1,7 @@
 """The fast inference path: an inference-only copy of EMCStereo that computes the same disparities.
 
-What it changes against the plain eval forward, all exact up to float rounding:
+It runs the model's own stage sequence (`stages.StagedStereo`) and swaps only how each stage is
+computed. What it changes against the plain eval forward, all exact up to float rounding:
 - BatchNorm folded into the convolution before it (`fusion.fold_batchnorms`), on a copy;
 - convolutions as direct oneDNN calls with the ReLU fused in (`onednn.fuse_convolutions`);
 - channels-last layouts (NHWC / NDHWC), on which oneDNN's convolutions run several times faster
@@ -13,19 +14,23 @@ What it changes against the plain eval forward, all exact up to float rounding:
 """
 from __future__ import annotations
 
-from collections import deque
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import torch
-from torch import nn
 
 from .cost_volume import concat_cost_volume
 from .fusion import fold_batchnorms
 from .memory import release_freed_memory
 from .onednn import fuse_convolutions
 from .regression import upsampled_soft_argmin
+from .stages import StagedStereo
+
+if TYPE_CHECKING:  # a runtime import would be circular: EMCStereo builds its FastInference
+    from .emcstereo import EMCStereo
 
 
-class FastInference(nn.Module):
+class FastInference(StagedStereo):
     """Eval-mode EMCStereo (running BN statistics) for inference only; built from a model, never trained.
 
     `forward(left, right, disparities) -> (disparity, confidence)`, both (B, H, W) float32;
@@ -33,7 +38,7 @@ class FastInference(nn.Module):
     `use_onednn=False` keeps PyTorch's public convolution calls (what runs on CUDA anyway).
     """
 
-    def __init__(self, model: nn.Module, rows_per_chunk: int = 32, use_onednn: bool = True) -> None:
+    def __init__(self, model: EMCStereo, rows_per_chunk: int = 32, use_onednn: bool = True) -> None:
         super().__init__()
         values = model.regression.weight.detach().reshape(-1)
         if not torch.equal(values, torch.arange(values.numel(), dtype=values.dtype, device=values.device)):
@@ -49,17 +54,24 @@ class FastInference(nn.Module):
 
     def forward(self, left: torch.Tensor, right: torch.Tensor,
                 disparities: int) -> tuple[torch.Tensor, torch.Tensor]:
-        height, width = left.shape[2:]
+        return self.disparity_and_confidence(left, right, disparities)
+
+    def features(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both views in one channels-last batch; the backbone's freed heap goes back before the 3D stages."""
         images = torch.cat([left, right], dim=0).contiguous(memory_format=torch.channels_last)
         reference, target = self.backbone(images).chunk(2, dim=0)
         del images
         release_freed_memory()
-        costs = self.aggregation.costs(
-            concat_cost_volume(reference, target, disparities // 4, memory_format=torch.channels_last_3d)
-        )
-        del reference, target
-        # Only the last cost is needed: consume the generator keeping one at a time, so c1 and
-        # c2 are freed as soon as the next one exists (a list would hold all three).
-        cost = deque(costs, maxlen=1).pop()
+        return reference, target
+
+    def cost_volume(self, reference: torch.Tensor, target: torch.Tensor, disparities: int) -> torch.Tensor:
+        return concat_cost_volume(reference, target, disparities // 4, memory_format=torch.channels_last_3d)
+
+    def aggregate(self, volume: torch.Tensor) -> Iterator[torch.Tensor]:
+        return self.aggregation.costs(volume)
+
+    def regress(self, cost: torch.Tensor, disparities: int, height: int,
+                width: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Upsampling fused with the soft-argmin, `rows_per_chunk` output rows at a time."""
         return upsampled_soft_argmin(cost, self.disparity_values[:disparities], height, width, self.max_disp,
                                      self.align_corners, rows_per_chunk=self.rows_per_chunk)

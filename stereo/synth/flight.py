@@ -30,8 +30,15 @@ import numpy as np
 from stereo.synth.camera import RayGrid, SynthCamera
 from stereo.synth.flight_path import ApproachPath, FlightOptions
 from stereo.synth.motion_blur import blur_along_motion, image_motion
-from stereo.synth.render import (RenderedViews, auto_gain, develop, rasterise, render_views, scene_batches,
-                                  with_visibility)
+from stereo.synth.render import (
+    RenderedViews,
+    auto_gain,
+    develop,
+    rasterise,
+    render_views,
+    scene_batches,
+    with_visibility,
+)
 from stereo.synth.scene import SceneDescription, build_scene
 from stereo.synth.truth import BranchTruth
 from stereo.synth.viewpoint import scene_in_camera
@@ -171,7 +178,7 @@ class FlightRenderer:
         return seen_at_end[0] if seen_at_end else by_thickness[0].id
 
     def _cut_seen(self, branch_id: int, rotation: np.ndarray, position: np.ndarray) -> bool:
-        """Whether a check-size truth pass (ids only, no shading) from this pose shows branch `branch_id`'s cut point."""
+        """Whether a check-size truth pass (ids only, no shading) from this pose shows `branch_id`'s cut point."""
         scene = scene_in_camera(self.scene, rotation, position, self.check_camera)
         _, ids, _ = rasterise(scene_batches(scene, self.check_camera), RayGrid.for_view(self.check_camera, "left", 1),
                               None, None)

@@ -26,7 +26,8 @@ import numpy as np
 from stereo.synth.options import SynthOptions
 from stereo.synth.primitives import cross3, unit
 
-#: Approach speed (m/s) when neither `frames` nor `speed_mps` is given: mid of the 0.3–0.5 m/s a pruning drone closes at.
+#: Approach speed (m/s) when neither `frames` nor `speed_mps` is given: mid of the 0.3–0.5 m/s a
+#: pruning drone closes at.
 DEFAULT_SPEED_MPS = 0.4
 #: Capture time of frame 0 (ns): a fixed start, so a sequence's timestamps depend on its options only.
 FIRST_TIMESTAMP_NS = 1_000_000_000

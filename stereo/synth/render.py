@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from stereo.synth.camera import RayGrid, SynthCamera
-from stereo.synth.options import SynthOptions
 from stereo.synth.cones import ConeBatch
 from stereo.synth.leaves import LeafBatch
+from stereo.synth.options import SynthOptions
 from stereo.synth.primitives import Batch, Lighting
 from stereo.synth.scene import SceneDescription, build_scene
 from stereo.synth.sky import Sky

@@ -17,9 +17,9 @@ from typing import NamedTuple
 import numpy as np
 
 from stereo.synth.camera import SynthCamera
-from stereo.synth.options import SynthOptions
 from stereo.synth.cones import BarkMaterial, Cone
 from stereo.synth.leaves import Leaf
+from stereo.synth.options import SynthOptions
 from stereo.synth.planes import PlaneLayer
 from stereo.synth.primitives import Lighting, cross3, norm3, rowdot, unit, unit_rows
 from stereo.synth.sky import Sky
@@ -201,7 +201,7 @@ class _SceneBuilder:
         return (lam < 0.999) & (s >= 0.0) & (s <= length) & (dist < 1.05 * radius)
 
     def _branch_fits(self, base: np.ndarray, axis: np.ndarray, length: float, r0: float) -> bool:
-        """The branch stays 0.3–4 m away, is at least half in the image and unhidden by the trunk, with its cut point in view."""
+        """The branch stays 0.3–4 m away, at least half in the image, unhidden by the trunk, its cut point in view."""
         pts = self._axis_points(base, axis, length)
         dist = norm3(pts)
         if dist.min() < BRANCH_RANGE_M[0] + r0 or dist.max() > BRANCH_RANGE_M[1] or pts[:, 2].min() < 0.25:
@@ -213,7 +213,7 @@ class _SceneBuilder:
 
     def _draw_branch(self, foot: np.ndarray, trunk_axis: np.ndarray, span: tuple[float, float],
                      trunk: Cone) -> _DrawnBranch | None:
-        """A branch growing out of `trunk` (drawn from `foot` along world `trunk_axis`) that fits, or None after 40 tries."""
+        """A branch out of `trunk` (drawn from `foot` along world `trunk_axis`) that fits, or None after 40 tries."""
         rng = self.rng
         for _ in range(40):
             s_att = rng.uniform(*span)

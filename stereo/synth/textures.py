@@ -99,7 +99,10 @@ def detail_tile(rng: np.random.Generator) -> np.ndarray:
 
 
 def sample_tile(tile: np.ndarray, u_px: np.ndarray, v_px: np.ndarray) -> np.ndarray:
-    """Bilinear, wrapping lookup of `tile` (`S×S×C`) at tile coordinates (columns `u_px`, rows `v_px`), `(N,)` each → `(N, C)`."""
+    """Bilinear, wrapping lookup of `tile` (`S×S×C`) at tile coordinates (columns `u_px`, rows `v_px`).
+
+    `u_px`, `v_px` `(N,)` each → `(N, C)`.
+    """
     tile = np.ascontiguousarray(tile)
     size_v, size_u = tile.shape[:2]
     n = u_px.size

@@ -1,9 +1,10 @@
 """Experiment configuration: TOML files validated into dataclasses.
 
-A file has the sections `[model]` (the EMCStereo variant, `stereo.model.ModelConfig`), `[data]`, `[optim]`, `[train]` and `[finetune]`; every key
-has a default, unknown keys and wrong types raise `ConfigError` naming `section.key`. A file may
-start with `extends = "other.toml"` (relative to itself): the other file is read first and this
-one's keys override it, which keeps the recipe variants (e.g. the eight-way ablation) short.
+A file has the sections `[model]` (the EMCStereo variant, `stereo.model.ModelConfig`), `[data]`,
+`[optim]`, `[train]` and `[finetune]`; every key has a default, unknown keys and wrong types raise
+`ConfigError` naming `section.key`. A file may start with `extends = "other.toml"` (relative to
+itself): the other file is read first and this one's keys override it, which keeps the recipe
+variants (e.g. the eight-way ablation) short.
 Command-line overrides use the same dotted names (`train.epochs=3`).
 """
 from __future__ import annotations
@@ -227,7 +228,8 @@ def validate(config: ExperimentConfig) -> None:
         (len(optim.betas) == 2, f"optim.betas {list(optim.betas)}: expected two values"),
         (optim.lr > 0, f"optim.lr {optim.lr}: expected a positive learning rate"),
         (config.model.max_disp > 0 and config.model.max_disp % 16 == 0,
-         f"model.max_disp {config.model.max_disp}: expected a positive multiple of 16 (the cost volume is at 1/4 resolution and the hourglasses halve it twice)"),
+         f"model.max_disp {config.model.max_disp}: expected a positive multiple of 16 (the cost volume is "
+         "at 1/4 resolution and the hourglasses halve it twice)"),
     ]
     for ok, message in checks:
         if not ok:

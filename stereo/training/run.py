@@ -23,7 +23,7 @@ def build_model(config: ExperimentConfig) -> EMCStereo:
         raise ConfigError(f"data.crop {list(config.data.crop)}: EMCStereo needs both sides ≥ {MIN_SIZE}")
     if config.finetune.weights:
         return warm_start(config.finetune.weights, config.model)
-    return EMCStereo(**config.model.to_dict())
+    return EMCStereo.from_config(config.model)
 
 
 def resolve_resume(config: ExperimentConfig, resume: str | None) -> Path | None:
