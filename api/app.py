@@ -14,8 +14,8 @@ from api.estimator import Estimator
 from api.limits import BodySizeLimit, InferenceSlots, ShedWhenBusy
 from api.metrics import Metrics
 from api.routers import estimate, status
-from branchrange.frame_result import FrameResult
-from branchrange.config import ApiConfig
+from branchrange.core.frame_result import FrameResult
+from branchrange.core.config import ApiConfig
 
 DESCRIPTION = """Cut points of tree branches, in metres, from a stereo pair.
 

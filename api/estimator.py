@@ -12,8 +12,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from branchrange.frame_result import FrameResult
-from branchrange.pipeline import Pipeline, PipelineConfig
+from branchrange.core.frame_result import FrameResult
+from branchrange.core.pipeline import Pipeline, PipelineConfig
 from stereo.backends import WEIGHTED_BACKENDS, make_backend
 
 
@@ -43,7 +43,7 @@ class Estimator(Protocol):
 
 
 class PipelineEstimator:
-    """`Estimator` over `branchrange.pipeline.Pipeline`: one pipeline per request (each request is
+    """`Estimator` over `branchrange.core.pipeline.Pipeline`: one pipeline per request (each request is
     its own camera; no tracking across requests), stereo backends built once and reused; every
     pair's rectification is checked (`pair_check` in the result, 422 when refused)."""
 

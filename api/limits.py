@@ -18,7 +18,7 @@ from fastapi import HTTPException, UploadFile, status
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from branchrange.settings_check import RangeError, check_image_size
+from branchrange.core.settings_check import RangeError, check_image_size
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"

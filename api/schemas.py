@@ -1,6 +1,6 @@
 """Pydantic models of what the API returns, so that the OpenAPI document describes it.
 
-The result (`EstimateResult`) is `branchrange.frame_result.FrameResult` itself, under the API's name:
+The result (`EstimateResult`) is `branchrange.core.frame_result.FrameResult` itself, under the API's name:
 the dataclasses that the pipeline returns, that the `branchrange/v1` JSON schema is generated from,
 are the response model, so the three cannot drift apart. Routes answer with
 `FrameResult.to_json_dict()` (optional parts the pipeline did not fill stay out rather than turning
@@ -14,7 +14,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from branchrange.frame_result import FrameResult
+from branchrange.core.frame_result import FrameResult
 
 
 @dataclass(frozen=True, kw_only=True)

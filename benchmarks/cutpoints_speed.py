@@ -85,9 +85,9 @@ def time_cases(folder: Path, repeats: int, baseline: bool) -> dict:
     """Worker: time `estimate_cut_points` on every case (ms per frame) and keep the cut points."""
     import numpy as np
 
-    from branchrange.cutpoints import CutPointConfig, estimate_cut_points
-    from branchrange.geometry import StereoGeometry
-    from branchrange.masks import masks_from_array
+    from branchrange.core.cutpoints import CutPointConfig, estimate_cut_points
+    from branchrange.core.geometry import StereoGeometry
+    from branchrange.core.masks import masks_from_array
 
     out: dict = {}
     for case in CASES:

@@ -24,8 +24,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
-from branchrange.evaluate_cuts import RECALL_RADIUS_M, read_frame, scene_indices  # noqa: E402
-from branchrange.pipeline import Pipeline, untracked_whole_frame  # noqa: E402
+from branchrange.offline.evaluate_cuts import RECALL_RADIUS_M, read_frame, scene_indices  # noqa: E402
+from branchrange.core.pipeline import Pipeline, untracked_whole_frame  # noqa: E402
 
 THRESHOLDS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 

@@ -1,6 +1,6 @@
 """What the pipeline around the network costs at HD720, as a share of the network's own time.
 
-One synthetic 1280×720 scene (stereo.synth) goes through `branchrange.pipeline.Pipeline` with a
+One synthetic 1280×720 scene (stereo.synth) goes through `branchrange.core.pipeline.Pipeline` with a
 raw ZED calibration (so rectification runs), the emcstereo backend (fast path, random weights)
 and the scene's instance mask; the JSON serialisation of the result is timed too. Prints each
 stage's median milliseconds and `(everything − network) / network`; the target is ≤ 10 %.
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from branchrange.pipeline import Pipeline
+    from branchrange.core.pipeline import Pipeline
     from camera import load_calibration
     from stereo.backends.emcstereo import EMCStereoBackend
     from stereo.model import EMCStereo

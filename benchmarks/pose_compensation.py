@@ -16,7 +16,7 @@ on is compared with the true cut point in the body frame *at the moment it arriv
 Numbers are millimetres (median, p95 over sends; `--repeats` flights per cell pooled), and the
 ratio uncompensated / compensated of the medians.
 
-`--flight DIR` runs the whole chain instead: the daemon (`branchrange.daemon.Daemon`, sgbm, the
+`--flight DIR` runs the whole chain instead: the daemon (`branchrange.onboard.daemon.Daemon`, sgbm, the
 recording's truth masks, `--stereo-mode` roi) replays a `branchrange synth-flight` recording at its frame rate while the
 simulator flies the poses of its `flight.json` (hovering at the first pose until the first frame
 is released); reported: the fused target track against the true cut point (local NED), the
@@ -46,8 +46,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 from autopilot_sim import AutopilotSim, approach_flight, body_target_errors, flight_from_camera_poses, fly_frames  # noqa: E402
 from realtime import cpu_name  # noqa: E402
 
-from branchrange.config import MavlinkConfig, TrackingConfig  # noqa: E402
-from branchrange.mavlink import CameraMount, MavlinkRelay  # noqa: E402
+from branchrange.core.config import MavlinkConfig, TrackingConfig  # noqa: E402
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay  # noqa: E402
 
 FPS = 15.0
 MOUNT = CameraMount.from_rpy((0.0, -10.0, 0.0), (0.12, 0.0, 0.04))
@@ -97,10 +97,10 @@ def flight_clock(sim: AutopilotSim):
 
 def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str, Any]:
     """The daemon replays `directory` while the simulator flies its flight.json; errors in metres."""
-    from branchrange.config import CameraConfig, Config, LogConfig, StereoConfig
-    from branchrange.daemon import Daemon
-    from branchrange.flight import FlightTruth
-    from branchrange.frame_results import pipeline_for
+    from branchrange.core.config import CameraConfig, Config, LogConfig, StereoConfig
+    from branchrange.onboard.daemon import Daemon
+    from branchrange.offline.flight import FlightTruth
+    from branchrange.core.frame_results import pipeline_for
     from camera.sources import ReplaySource
 
     truth = FlightTruth.load(directory)

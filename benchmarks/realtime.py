@@ -2,8 +2,8 @@
 
 Each frame is released at its recorded timestamp (as a 15 fps camera would deliver it; decoding
 happens ahead of the release, as a camera delivers raw frames), and goes through the daemon's own
-code path — `branchrange.daemon.Daemon` with its capture, stereo and geometry+send threads, the
-pipeline of `branchrange.frame_results.pipeline_for` and a real `MavlinkRelay` sending to a UDP
+code path — `branchrange.onboard.daemon.Daemon` with its capture, stereo and geometry+send threads, the
+pipeline of `branchrange.core.frame_results.pipeline_for` and a real `MavlinkRelay` sending to a UDP
 socket on 127.0.0.1 — on `--threads` CPU threads (OpenCV and torch). Nothing waits for the slow
 stage: frames the daemon has no time for are dropped, as onboard.
 
@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from branchrange.frame_result import FrameResult
+    from branchrange.core.frame_result import FrameResult
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = ROOT / "out" / "bench" / "flight_hd720"
@@ -141,10 +141,10 @@ def render_default_sequence(path: Path) -> None:
 
 def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace, truth: Any) -> dict[str, Any]:
     """Replay `sequence` in real time through the daemon in one mode; the metrics of the module docstring."""
-    from branchrange.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig
-    from branchrange.daemon import Daemon
-    from branchrange.frame_results import pipeline_for
-    from branchrange.mavlink import CameraMount, MavlinkRelay
+    from branchrange.core.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig
+    from branchrange.onboard.daemon import Daemon
+    from branchrange.core.frame_results import pipeline_for
+    from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
     from camera.sources import ReplaySource
 
     backend, stereo_mode = MODES[mode]
@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     import torch
 
-    from branchrange.flight import FlightTruth
+    from branchrange.offline.flight import FlightTruth
 
     cv2.setNumThreads(args.threads)
     torch.set_num_threads(args.threads)

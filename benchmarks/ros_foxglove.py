@@ -83,9 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     import numpy as np
 
-    from branchrange.config import Config, StereoConfig
-    from branchrange.foxglove_sink import FoxgloveSink, FoxgloveTargets
-    from branchrange.frame_results import pipeline_for, process_frame
+    from branchrange.core.config import Config, StereoConfig
+    from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargets
+    from branchrange.core.frame_results import pipeline_for, process_frame
     from camera.calibration import from_rectified
     from camera.sources import Recorder, StereoFrame
     from camera.sources.rosbag_writer import write_bag

@@ -5,7 +5,7 @@ training here; default options: ground, background trees and far foliage rows, f
 bare/sparse/dense per scene) at 640×360 (ZED Mini). Per stereo source (sgbm, truth disparity)
 and segmenter (each name given, plus 'truth' = the scene's instance mask), every frame goes
 through `Pipeline.process_disparity`; cut points are matched to the truth as in
-`branchrange.evaluate_cuts` (recall within 5 cm, median 3D error of the matches, false cut
+`branchrange.offline.evaluate_cuts` (recall within 5 cm, median 3D error of the matches, false cut
 points per frame = estimates with no truth cut point within 5 cm). Time per frame is the
 segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s cut
 points by confidence bin: the share within 5 cm of a truth cut point.
@@ -32,10 +32,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from branchrange.evaluate_cuts import RECALL_RADIUS_M, CutScores
-from branchrange.frame_result import Branch
-from branchrange.pipeline import Pipeline, untracked_whole_frame
-from branchrange.segmentation.choose import make_segmenter
+from branchrange.offline.evaluate_cuts import RECALL_RADIUS_M, CutScores
+from branchrange.core.frame_result import Branch
+from branchrange.core.pipeline import Pipeline, untracked_whole_frame
+from branchrange.core.segmentation.choose import make_segmenter
 
 ROOT = Path(__file__).resolve().parents[1]
 TREES = ROOT.parent / "shared" / "data" / "trees"

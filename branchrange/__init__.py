@@ -1,6 +1,10 @@
 """branchrange: from a stereo pair and branch masks to 3D cut points, and how they reach a drone.
 
-The per-frame pipeline (`branchrange.pipeline.Pipeline`), cut-point geometry, masks and the
-built-in segmenter, tracking, the MAVLink relay, the onboard daemon, offline replay and the
-`branchrange` command line.
+Layers, each importing only those below it (tests/test_layers.py):
+- `cli.py`, `commands/`: the `branchrange` command line, on top (it may also import `api/`);
+- `onboard/` (daemon, MAVLink relay, live Foxglove view) and `offline/` (replay, overlay videos,
+  evaluation, flight truth), side by side, neither importing the other; `api/` beside them;
+- `core/`: geometry, masks, segmentation, cut points, tracking, the typed result, the per-frame
+  pipeline (`core.pipeline.Pipeline`) and the configuration;
+- `stereo/` and `camera/` below everything.
 """

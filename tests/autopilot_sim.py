@@ -26,10 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from branchrange.config import TrackingConfig
-from branchrange.flight import FlightPose
-from branchrange.mavlink.connection import mavutil_v2
-from branchrange.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
+from branchrange.core.config import TrackingConfig
+from branchrange.offline.flight import FlightPose
+from branchrange.onboard.mavlink.connection import mavutil_v2
+from branchrange.onboard.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
 from mavlink_peer import Received
 from result_factory import branch, frame_result
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from branchrange.geometry import StereoGeometry
+from branchrange.core.geometry import StereoGeometry
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from branchrange.mavlink.connection import mavutil_v2
+from branchrange.onboard.mavlink.connection import mavutil_v2
 
 
 @dataclass

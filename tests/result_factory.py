@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from branchrange.frame_result import Branch, CameraInfo, Frame, FrameResult, MasksInfo, StereoInfo
+from branchrange.core.frame_result import Branch, CameraInfo, Frame, FrameResult, MasksInfo, StereoInfo
 
 
 def branch(id: int, cut_point_m: Sequence[float], *, confidence: float = 1.0, pixel: Sequence[float] = (0.0, 0.0),

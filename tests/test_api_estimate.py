@@ -14,8 +14,8 @@ from fastapi.testclient import TestClient
 from api import create_app
 from api.estimator import PipelineEstimator
 from api_scene import BAR_DEPTH_M, BAR_DISPARITY, BASELINE_M, FOCAL_PX, bar_scene
-from branchrange.config import ApiConfig
-from branchrange.frame_result import SCHEMA_PATH
+from branchrange.core.config import ApiConfig
+from branchrange.core.frame_result import SCHEMA_PATH
 
 FB = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
 RESULT_SCHEMA = json.loads(SCHEMA_PATH.read_text())

@@ -20,7 +20,7 @@ import pytest
 
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
-from branchrange.config import ConfigError, config_from_dict
+from branchrange.core.config import ConfigError, config_from_dict
 from openapi_check import check_response
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,9 +15,9 @@ from api.estimator import PipelineEstimator
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.serve import check_bind, ServeError
-from branchrange.config import ApiConfig, StereoConfig
-from branchrange.frame_results import result_line
-from branchrange.pipeline import Pipeline, PipelineConfig
+from branchrange.core.config import ApiConfig, StereoConfig
+from branchrange.core.frame_results import result_line
+from branchrange.core.pipeline import Pipeline, PipelineConfig
 from openapi_check import check_response
 
 TOKEN = "s3cret-token"

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from branchrange.cli import main
-from branchrange.evaluate_cuts import CutScores, evaluate_cuts
-from branchrange.frame_result import SCHEMA_PATH
+from branchrange.offline.evaluate_cuts import CutScores, evaluate_cuts
+from branchrange.core.frame_result import SCHEMA_PATH
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
 from stereo.io import write_rgb

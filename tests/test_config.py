@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from branchrange.config import Config, ConfigError, config_from_dict, load_config
+from branchrange.core.config import Config, ConfigError, config_from_dict, load_config
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
 

@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from branchrange.cli import main
-from branchrange.config import (
+from branchrange.core.config import (
     Config,
     ConfigError,
     StereoConfig,
@@ -21,7 +21,7 @@ from branchrange.config import (
     parse_override,
     pipeline_config,
 )
-from branchrange.pipeline import Pipeline
+from branchrange.core.pipeline import Pipeline
 from stereo.backends import BACKEND_NAMES, PRECISIONS, BackendConfigError, SGBMBackend
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
@@ -207,7 +207,7 @@ def test_one_list_of_backends_and_precisions():
     for precision in PRECISIONS:
         assert StereoConfig(precision=precision).precision == precision
     from api import create_app
-    from branchrange.config import ApiConfig
+    from branchrange.core.config import ApiConfig
 
     class _Unused:  # the OpenAPI document is built without an estimator being called
         backend_name = "sgbm"
@@ -227,7 +227,7 @@ def test_one_max_disp_rule_for_config_backend_api_and_command_line(max_disp, cap
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.config import ApiConfig
+    from branchrange.core.config import ApiConfig
 
     with TestClient(create_app(ApiConfig(), PipelineEstimator())) as client:
         r = client.post("/estimate", files={"left": ("l.png", b"x", "image/png"), "right": ("r.png", b"x", "image/png")},

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from branch_geometry_fixtures import GEOMETRY, TRUNK_LABEL, Cylinder, branch_with_trunk, ray_cast, unit
-from branchrange.cutpoints import (
+from branchrange.core.cutpoints import (
     BranchEstimate,
     CutPointConfig,
     CutPointConfigError,
@@ -13,8 +13,8 @@ from branchrange.cutpoints import (
     estimate_cut_points,
     select_target,
 )
-from branchrange.frame_result import Branch, DroppedInstance
-from branchrange.masks import masks_from_array
+from branchrange.core.frame_result import Branch, DroppedInstance
+from branchrange.core.masks import masks_from_array
 
 OFFSET = CutPointConfig().cut_offset_m
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from branchrange.geometry import (
+from branchrange.core.geometry import (
     GeometryError,
     Line3D,
     StereoGeometry,

@@ -11,9 +11,9 @@ from api import create_app
 from api.estimator import PipelineEstimator
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branch_geometry_fixtures import GEOMETRY
-from branchrange.config import ApiConfig, ConfigError, config_from_dict, pipeline_config
-from branchrange.cutpoints import CutPointConfig, CutPointConfigError, estimate_cut_points
-from branchrange.masks import MaskError, masks_from_array
+from branchrange.core.config import ApiConfig, ConfigError, config_from_dict, pipeline_config
+from branchrange.core.cutpoints import CutPointConfig, CutPointConfigError, estimate_cut_points
+from branchrange.core.masks import MaskError, masks_from_array
 
 
 def runs_of_ids(height: int, width: int, count: int, run_px: int = 5) -> np.ndarray:

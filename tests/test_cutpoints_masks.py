@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from branchrange.masks import MaskError, erode, masks_from_array, read_mask, validate_masks, write_instance_mask
+from branchrange.core.masks import MaskError, erode, masks_from_array, read_mask, validate_masks, write_instance_mask
 
 
 def two_branches_and_trunk(trunk_id: int) -> np.ndarray:

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from branch_geometry_fixtures import TRUNK_LABEL, Cylinder, ray_cast, unit
-from branchrange.cutpoints import CutPointConfig, estimate_cut_points, fit_trunk
-from branchrange.cylinder_section import cross_section, radius_from_silhouette
-from branchrange.geometry import GeometryError, Line3D, StereoGeometry
-from branchrange.masks import masks_from_array
-from branchrange.silhouette import image_axis
+from branchrange.core.cutpoints import CutPointConfig, estimate_cut_points, fit_trunk
+from branchrange.core.cylinder_section import cross_section, radius_from_silhouette
+from branchrange.core.geometry import GeometryError, Line3D, StereoGeometry
+from branchrange.core.masks import masks_from_array
+from branchrange.core.silhouette import image_axis
 
 #: The synthetic generator's rig at 640×360 (f = 320 px, principal point at the image centre).
 WIDE = StereoGeometry(focal_px=320.0, baseline_m=0.063, cx=319.5, cy=179.5)

@@ -25,9 +25,9 @@ import numpy as np
 import pytest
 
 from branch_geometry_fixtures import GEOMETRY, TRUNK_LABEL, Cylinder, branch_with_trunk, ray_cast, unit
-from branchrange.cutpoints import CutPointConfig, estimate_cut_points
-from branchrange.geometry import StereoGeometry
-from branchrange.masks import masks_from_array
+from branchrange.core.cutpoints import CutPointConfig, estimate_cut_points
+from branchrange.core.geometry import StereoGeometry
+from branchrange.core.masks import masks_from_array
 
 REFERENCE = Path(__file__).parent / "data" / "cutpoints_reference.json"
 #: The synthetic generator's rig at 640×360.

@@ -17,11 +17,11 @@ import pytest
 
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
-from branchrange.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig, TrackingConfig, pipeline_config
-from branchrange.daemon import Daemon
-from branchrange.frame_results import pipeline_for, read_results, read_runs
-from branchrange.mavlink import CameraMount, MavlinkRelay
-from branchrange.pipeline import Pipeline
+from branchrange.core.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig, TrackingConfig, pipeline_config
+from branchrange.onboard.daemon import Daemon
+from branchrange.core.frame_results import pipeline_for, read_results, read_runs
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+from branchrange.core.pipeline import Pipeline
 from camera.calibration import from_rectified
 from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
 from autopilot_sim import AutopilotSim, approach_flight

@@ -19,14 +19,14 @@ from mcap.reader import make_reader
 from websockets.sync.client import connect
 
 from branchrange.cli import main as branchrange_main
-from branchrange.config import Config, StereoConfig
-from branchrange.foxglove_layout import layout, layout_text
-from branchrange.frame_result import FrameResult
-from branchrange.frame_results import read_results
-from branchrange.foxglove_sink import (BODY_FRAME, CAMERA_FRAME, LOCAL_FRAME, TOPICS, FoxgloveSink, FoxgloveTargetError,
+from branchrange.core.config import Config, StereoConfig
+from branchrange.onboard.foxglove_layout import layout, layout_text
+from branchrange.core.frame_result import FrameResult
+from branchrange.core.frame_results import read_results
+from branchrange.onboard.foxglove_sink import (BODY_FRAME, CAMERA_FRAME, LOCAL_FRAME, TOPICS, FoxgloveSink, FoxgloveTargetError,
                                        FoxgloveTargets, parse_targets)
-from branchrange.mavlink import CameraMount
-from branchrange.replay import replay_recording
+from branchrange.onboard.mavlink import CameraMount
+from branchrange.offline.replay import replay_recording
 from camera.calibration import from_rectified
 from camera.sources.rosbag_writer import write_bag
 from conftest import PROJECT_ROOT

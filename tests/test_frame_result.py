@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import jsonschema
 import pytest
 
-from branchrange.frame_result import (
+from branchrange.core.frame_result import (
     SCHEMA_PATH,
     FrameResult,
     Latency,
@@ -17,7 +18,7 @@ from branchrange.frame_result import (
 )
 from result_factory import branch, frame_result
 
-GOLDEN_REPLAY = SCHEMA_PATH.parents[2] / "tests" / "data" / "result_v1" / "replay.jsonl"
+GOLDEN_REPLAY = Path(__file__).resolve().parent / "data" / "result_v1" / "replay.jsonl"
 
 
 def _golden_results() -> list[dict]:
@@ -27,7 +28,7 @@ def _golden_results() -> list[dict]:
 
 def test_the_packaged_schema_is_the_one_generated_from_the_classes():
     assert json.loads(SCHEMA_PATH.read_text(encoding="utf-8")) == json_schema(), \
-        "regenerate it: python -c 'from branchrange.frame_result import write_json_schema; write_json_schema()'"
+        "regenerate it: python -c 'from branchrange.core.frame_result import write_json_schema; write_json_schema()'"
     jsonschema.Draft202012Validator.check_schema(json_schema())
 
 

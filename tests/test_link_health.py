@@ -7,8 +7,8 @@ import time
 import pytest
 
 from autopilot_sim import MAV_AUTOPILOT_INVALID, MAV_TYPE_GCS, AutopilotSim, approach_flight
-from branchrange.config import MavlinkConfig
-from branchrange.mavlink import CameraMount, MavlinkRelay
+from branchrange.core.config import MavlinkConfig
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 
 KEY = bytes(range(32))
 HOVER = approach_flight(0.0)
@@ -122,7 +122,7 @@ def test_health_hides_source_and_url_without_the_token_and_metrics_report_the_li
     from fastapi.testclient import TestClient
 
     from api import create_app
-    from branchrange.config import ApiConfig
+    from branchrange.core.config import ApiConfig
 
     with AutopilotSim(HOVER, heartbeat_period_s=0.1) as sim, relay_to(sim.port) as relay:
         assert wait_for(lambda: relay.link_state()["connected"], 2.0)

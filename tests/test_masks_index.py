@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from branchrange.masks import InstanceIndex, MaskCrop, erode, masks_from_array, split_binary
+from branchrange.core.masks import InstanceIndex, MaskCrop, erode, masks_from_array, split_binary
 
 
 def random_labels(seed: int, shape=(60, 90), ids=(1, 2, 3, 7, 65535)) -> np.ndarray:

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from branchrange.mavlink.frames import CameraMount, rotation_from_rpy
+from branchrange.onboard.mavlink.frames import CameraMount, rotation_from_rpy
 
 
 def test_forward_camera_maps_opencv_axes_to_frd():

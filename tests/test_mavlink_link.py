@@ -8,9 +8,9 @@ import time
 
 import pytest
 
-from branchrange.config import MavlinkConfig
-from branchrange.mavlink import CameraMount, MavlinkRelay
-from branchrange.mavlink.connection import SigningKeyError, load_signing_key, mavutil_v2
+from branchrange.core.config import MavlinkConfig
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+from branchrange.onboard.mavlink.connection import SigningKeyError, load_signing_key, mavutil_v2
 from mavlink_peer import LoopbackPeer, of_type
 from result_factory import branch, frame_result
 

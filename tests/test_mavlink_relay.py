@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from branchrange.config import MavlinkConfig
-from branchrange.frame_result import FrameResult
-from branchrange.mavlink import CameraMount, MavlinkRelay
+from branchrange.core.config import MavlinkConfig
+from branchrange.core.frame_result import FrameResult
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from mavlink_peer import LoopbackPeer, of_type
 from result_factory import branch, frame_result
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from result_factory import branch, frame_result
 
-from branchrange.frame_result import FrameResult
-from branchrange.overlay import Box, draw_overlay, label_parts, layout_labels, place_labels, status_parts
+from branchrange.core.frame_result import FrameResult
+from branchrange.core.overlay import Box, draw_overlay, label_parts, layout_labels, place_labels, status_parts
 
 
 def crowded_result(count: int, width: int, height: int, seed: int = 0) -> FrameResult:

@@ -10,7 +10,7 @@ import pytest
 
 from api_scene import BAR_DEPTH_M, BAR_DISPARITY, BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main
-from branchrange.pair_check import REFUSE_DY_PX, PairRefusedError, check_rectification
+from branchrange.core.pair_check import REFUSE_DY_PX, PairRefusedError, check_rectification
 from camera import load_calibration
 from camera.calibration import CalibrationError
 from camera.load import detect_format
@@ -66,7 +66,7 @@ def test_api_reports_the_check_and_refuses_with_422(scene):
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.config import ApiConfig
+    from branchrange.core.config import ApiConfig
 
     data = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
     with TestClient(create_app(ApiConfig(), PipelineEstimator())) as client:

@@ -7,12 +7,12 @@ import jsonschema
 import numpy as np
 import pytest
 
-from branchrange.config import SegmenterConfig, StereoConfig
-from branchrange.cutpoints import CutPointConfig
-from branchrange.masks import MaskError, masks_from_array
-from branchrange.frame_result import SCHEMA_PATH, Frame
-from branchrange.pipeline import Pipeline, PipelineConfig, PipelineInputError
-from branchrange.segmenter import Segmenter
+from branchrange.core.config import SegmenterConfig, StereoConfig
+from branchrange.core.cutpoints import CutPointConfig
+from branchrange.core.masks import MaskError, masks_from_array
+from branchrange.core.frame_result import SCHEMA_PATH, Frame
+from branchrange.core.pipeline import Pipeline, PipelineConfig, PipelineInputError
+from branchrange.core.segmentation.segmenter import Segmenter
 from camera import StereoCalibration
 from stereo.synth import SynthCamera, render_scene
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from branchrange.config import RoiConfig, SegmenterConfig, StereoConfig
-from branchrange.cutpoints import CutPointConfig
-from branchrange.pipeline import Pipeline, PipelineConfig
+from branchrange.core.config import RoiConfig, SegmenterConfig, StereoConfig
+from branchrange.core.cutpoints import CutPointConfig
+from branchrange.core.pipeline import Pipeline, PipelineConfig
 from synth_recording import tree_scene, truth_of
 
 UNTRACKED = CutPointConfig(tracking=False)
@@ -118,8 +118,8 @@ def test_a_network_matches_only_the_nearest_regions_and_sgbm_the_rest():
 
 def test_the_trunk_cylinder_comes_from_the_coarse_pass_in_metres():
     """The roi mode fits the trunk on the coarse pass; its axis agrees with the whole-frame fit within 1 cm."""
-    from branchrange.cutpoints import CutPointConfig, fit_trunk
-    from branchrange.masks import masks_from_array
+    from branchrange.core.cutpoints import CutPointConfig, fit_trunk
+    from branchrange.core.masks import masks_from_array
 
     scene = tree_scene()
     pipeline = _pipeline("roi")

@@ -16,15 +16,15 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from autopilot_sim import (ARDUCOPTER_LOITER, AutopilotSim, approach_flight, body_target_errors, camera_point,
                            flight_from_camera_poses, fly_frames, noisy)
-from branchrange.config import MavlinkConfig, TrackingConfig
-from branchrange.flight import FlightCutPoint, FlightPose, FlightTruth
-from branchrange.mavlink import CameraMount, MavlinkRelay
-from branchrange.mavlink.approach import ApproachPlanner
-from branchrange.mavlink.connection import PeerHeartbeat
-from branchrange.mavlink.frames import rotation_exp, rotation_log
-from branchrange.mavlink.messages import BodyPoint, FrameTargets, obstacles
-from branchrange.mavlink.vehicle_state import ClockOffset, Pose, VehicleState
-from branchrange.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
+from branchrange.core.config import MavlinkConfig, TrackingConfig
+from branchrange.offline.flight import FlightCutPoint, FlightPose, FlightTruth
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+from branchrange.onboard.mavlink.approach import ApproachPlanner
+from branchrange.onboard.mavlink.connection import PeerHeartbeat
+from branchrange.onboard.mavlink.frames import rotation_exp, rotation_log
+from branchrange.onboard.mavlink.messages import BodyPoint, FrameTargets, obstacles
+from branchrange.onboard.mavlink.vehicle_state import ClockOffset, Pose, VehicleState
+from branchrange.onboard.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
 from result_factory import frame_result
 
 MOUNT = CameraMount.from_rpy((0.0, -10.0, 0.0), (0.12, 0.0, 0.04))
@@ -352,7 +352,7 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     ({"mavlink": {"heartbeat_timeout_s": 0}}, r"mavlink\.heartbeat_timeout_s = 0\.0: expected seconds > 0"),
 ])
 def test_pose_and_tracking_settings_name_the_key_and_the_range(data, message):
-    from branchrange.config import ConfigError, config_from_dict
+    from branchrange.core.config import ConfigError, config_from_dict
 
     with pytest.raises(ConfigError, match=message):
         config_from_dict(data)
@@ -362,7 +362,7 @@ def test_foxglove_follows_the_vehicle_pose_the_relay_receives(tmp_path):
     """The daemon's Foxglove sink asks the relay for the vehicle's pose: local_ned → body_frd joins the scene."""
     from mcap.reader import make_reader
 
-    from branchrange.foxglove_sink import FoxgloveSink, FoxgloveTargets
+    from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargets
 
     result = frame_result(timestamp_ns=1)
     with AutopilotSim(approach_flight(0.3), heartbeat_period_s=0.2) as sim, relay_for(sim) as relay:

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from branchrange.cli import main as branchrange_main
-from branchrange.config import Config, StereoConfig
-from branchrange.frame_results import RUN_HEADER_SCHEMA, config_sha256, read_results, read_runs, run_header_line
+from branchrange.core.config import Config, StereoConfig
+from branchrange.core.frame_results import RUN_HEADER_SCHEMA, config_sha256, read_results, read_runs, run_header_line
 from camera.sources import ReplaySource
 from camera.sources.image_files import write_mask, write_rgb
 from stereo.progress import progress_bar

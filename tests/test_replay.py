@@ -14,11 +14,11 @@ import pytest
 
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.replay import summary_path
-from branchrange.config import Config, StereoConfig
-from branchrange.daemon import Daemon
-from branchrange.frame_results import pipeline_for, read_results, read_runs
-from branchrange.overlay_video import DEFAULT_CODECS, OverlayVideoWriter, VideoCodec, VideoWriteError, check_video
-from branchrange.frame_result import SCHEMA_PATH
+from branchrange.core.config import Config, StereoConfig
+from branchrange.onboard.daemon import Daemon
+from branchrange.core.frame_results import pipeline_for, read_results, read_runs
+from branchrange.offline.overlay_video import DEFAULT_CODECS, OverlayVideoWriter, VideoCodec, VideoWriteError, check_video
+from branchrange.core.frame_result import SCHEMA_PATH
 from camera.sources import Recorder, ReplaySource, StereoFrame
 from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, truth_of, write_tree_recording
 
@@ -159,7 +159,7 @@ def test_replay_skips_a_corrupt_frame_and_counts_it(recording, tmp_path):
     shutil.copytree(recording, broken)
     (broken / "left" / "000001.png").write_bytes(b"not a png")
     cfg = Config(stereo=StereoConfig(max_disp=64))
-    from branchrange.replay import replay_recording
+    from branchrange.offline.replay import replay_recording
 
     summary = replay_recording(broken, cfg, tmp_path / "r.jsonl", progress=False)
     lines = [r.to_json_dict() for r in read_results(tmp_path / "r.jsonl")]

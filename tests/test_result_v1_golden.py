@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 
 from branchrange.cli import main
-from branchrange.frame_results import read_results, result_line
+from branchrange.core.frame_results import read_results, result_line
 from stereo.io import write_rgb
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.writer import write_mask

@@ -1,13 +1,13 @@
-"""Coarse-to-fine planning (`branchrange.roi`): boxes, disparity windows and which instances get a fine pass."""
+"""Coarse-to-fine planning (`branchrange.core.roi`): boxes, disparity windows and which instances get a fine pass."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from branchrange.config import ConfigError, RoiConfig
-from branchrange.geometry import StereoGeometry
-from branchrange.masks import BranchMasks
-from branchrange.roi import (
+from branchrange.core.config import ConfigError, RoiConfig
+from branchrange.core.geometry import StereoGeometry
+from branchrange.core.masks import BranchMasks
+from branchrange.core.roi import (
     DISPARITY_STEP,
     coarse_scale,
     disparity_window,
@@ -51,7 +51,7 @@ def test_refined_labels_follow_the_fine_disparity_inside_the_window():
     fine = np.zeros((20, 40), np.float32)
     fine[5:13, 9:17] = 40.0   # the branch at full resolution, slightly wider than its coarse cells
     fine[0:20, 0:9] = 10.0    # background, outside the window
-    from branchrange.roi import Region
+    from branchrange.core.roi import Region
 
     coarse[0:2, 0:2] = 9  # the trunk: kept as up-sampled, it has no fine pass
     upsampled = np.kron(coarse, np.ones((2, 2), np.int32))
@@ -63,7 +63,7 @@ def test_refined_labels_follow_the_fine_disparity_inside_the_window():
 def test_the_trunk_takes_the_coarse_disparity_on_every_scale_th_pixel():
     from types import SimpleNamespace
 
-    from branchrange.roi import trunk_from_coarse
+    from branchrange.core.roi import trunk_from_coarse
 
     labels = np.zeros((8, 12), np.int32)
     labels[:, 2:6] = 65535

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from branchrange.commands.train_segmenter import training_config
-from branchrange.cutpoints import estimate_cut_points
-from branchrange.geometry import StereoGeometry
-from branchrange.masks import BranchMasks
-from branchrange.pipeline import Pipeline, PipelineConfig
-from branchrange.segmentation.branchnet import BranchNet, network_input
-from branchrange.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK, classes_from_instances
-from branchrange.segmentation.choose import make_segmenter
-from branchrange.segmentation.learned import SHIPPED_MODEL, LearnedSegmenter, LearnedSegmenterConfig
-from branchrange.segmentation.onnx_model import OnnxSegmenterError
+from branchrange.core.cutpoints import estimate_cut_points
+from branchrange.core.geometry import StereoGeometry
+from branchrange.core.masks import BranchMasks
+from branchrange.core.pipeline import Pipeline, PipelineConfig
+from branchrange.core.segmentation.branchnet import BranchNet, network_input
+from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK, classes_from_instances
+from branchrange.core.segmentation.choose import make_segmenter
+from branchrange.core.segmentation.learned import SHIPPED_MODEL, LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 
 pytest.importorskip("onnxruntime", reason="the learned segmenter runs on onnxruntime")
 #: torch's TorchScript exporter builds the ONNX file in the training test; its deprecation notice is not ours
@@ -127,7 +127,7 @@ def test_training_config_errors_name_the_key(tmp_path):
 
 
 def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
-    from branchrange.segmentation.branchnet_training import train_branchnet
+    from branchrange.core.segmentation.branchnet_training import train_branchnet
 
     config = training_config(None, ["train_seeds=[1, 3]", "val_seeds=[3, 4]", "steps=2", "batch=2", "crop=64",
                                     "val_every=1", "width=4", "threads=1"])

@@ -8,13 +8,13 @@ import pytest
 import torch
 from torch import nn
 
-from branchrange.geometry import StereoGeometry
-from branchrange.config import SegmenterConfig, StereoConfig
-from branchrange.cutpoints import CutPointConfig
-from branchrange.masks import DEFAULT_TRUNK_ID
-from branchrange.pipeline import Pipeline, PipelineConfig
-from branchrange.segmentation.choose import make_segmenter
-from branchrange.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
+from branchrange.core.geometry import StereoGeometry
+from branchrange.core.config import SegmenterConfig, StereoConfig
+from branchrange.core.cutpoints import CutPointConfig
+from branchrange.core.masks import DEFAULT_TRUNK_ID
+from branchrange.core.pipeline import Pipeline, PipelineConfig
+from branchrange.core.segmentation.choose import make_segmenter
+from branchrange.core.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
 
 #: torch's TorchScript exporter is what builds these tiny graphs; its deprecation notice is not ours
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -164,7 +164,7 @@ def test_bad_names_models_and_settings_are_clear_errors(models, tmp_path):
 
 
 def test_config_section_reaches_the_pipeline(models, tmp_path):
-    from branchrange.config import ConfigError, load_config, pipeline_config
+    from branchrange.core.config import ConfigError, load_config, pipeline_config
 
     path = tmp_path / "c.toml"
     path.write_text(f'[segmenter]\nmodel = "onnx:{models["yolo"]}"\nbranch_classes = [0]\ntrunk_classes = [1]\n')
@@ -184,7 +184,7 @@ def test_api_segmenter_field_picks_the_configured_model_or_the_geometric_one(mod
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.config import ApiConfig
+    from branchrange.core.config import ApiConfig
 
     config = PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64),
                             segmenter=SegmenterConfig(model=f"onnx:{models['yolo']}", branch_classes=(0,), trunk_classes=(1,)))

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from branch_geometry_fixtures import GEOMETRY, Cylinder, ray_cast, unit
-from branchrange.masks import DEFAULT_TRUNK_ID
-from branchrange.segmentation.choose import make_segmenter
-from branchrange.segmentation.structure import StructureSegmenter, StructureSegmenterConfig, ridge_pixels
-from branchrange.segmenter import Segmenter, SegmenterConfigError
+from branchrange.core.masks import DEFAULT_TRUNK_ID
+from branchrange.core.segmentation.choose import make_segmenter
+from branchrange.core.segmentation.structure import StructureSegmenter, StructureSegmenterConfig, ridge_pixels
+from branchrange.core.segmentation.segmenter import Segmenter, SegmenterConfigError
 
 TRUNK = Cylinder(np.array([-0.35, -1.0, 1.5]), unit([0, 1, 0]), 2.0, 0.08)
 BRANCH_A = Cylinder(np.array([-0.28, 0.1, 1.46]), unit([1, -0.3, -0.3]), 0.5, 0.015)

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from branchrange.flight import FLIGHT_NAME, FlightCutPoint, FlightFormatError, FlightPose, FlightTruth
-from branchrange.frame_results import read_results
+from branchrange.offline.flight import FLIGHT_NAME, FlightCutPoint, FlightFormatError, FlightPose, FlightTruth
+from branchrange.core.frame_results import read_results
 from camera.sources import ReplaySource
 from stereo.cli import build_parser
 from stereo.synth import LEAF_ID, SynthOptions, render_scene

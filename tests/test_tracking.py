@@ -6,8 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from branchrange.cutpoints import BranchEstimate
-from branchrange.tracking import BranchTracker, TrackerConfig, TrackerConfigError
+from branchrange.core.cutpoints import BranchEstimate
+from branchrange.core.tracking import BranchTracker, TrackerConfig, TrackerConfigError
 
 
 def branch(x, y=0.0, z=1.5, axis=(1.0, 0.0, 0.0), mask_id=1) -> BranchEstimate:

@@ -21,7 +21,7 @@ from api.auth import require_token
 from api.estimator import CameraSpec
 from api.limits import decode_image, decode_mask, read_upload
 from api.schemas import ErrorBody, EstimateResult
-from branchrange.settings_check import PHYSICAL_RANGES, RangeError, check_calibration, check_physical
+from branchrange.core.settings_check import PHYSICAL_RANGES, RangeError, check_calibration, check_physical
 from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, BackendConfigError, check_max_disp
 from stereo.backends.base import StereoInputError, validate_pair
 

@@ -13,7 +13,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 
 from api.auth import BEARER, require_token
 from api.schemas import ErrorBody, EstimateResult, Health, Version
-from branchrange.frame_result import SCHEMA_ID
+from branchrange.core.frame_result import SCHEMA_ID
 
 router = APIRouter()
 API_VERSION = "1"

@@ -8,10 +8,15 @@ import os
 import signal
 import sys
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from branchrange.commands.config_args import add_config_arguments, config_from_args
 from branchrange.commands.serve import TOKEN_ENV, ServeError, check_bind
+
+if TYPE_CHECKING:  # imported when the command runs: `branchrange --help` stays fast
+    from api.metrics import Metrics
+    from branchrange.core.config import Config
+    from branchrange.onboard.daemon import Daemon
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _start_api(cfg: Any, daemon: Any, metrics: Any) -> tuple[Any, threading.Thread]:
+def _start_api(cfg: Config, daemon: Daemon, metrics: Metrics) -> tuple[Any, threading.Thread]:
     """uvicorn serving /latest, /health, /metrics in a background thread of this process."""
     import uvicorn
 
@@ -45,12 +50,12 @@ def _start_api(cfg: Any, daemon: Any, metrics: Any) -> tuple[Any, threading.Thre
 def run(args: argparse.Namespace) -> int:
     """Build source, pipeline, relay and log from the config; run until the source ends or a signal."""
     from api.metrics import Metrics
-    from branchrange.config import ConfigError
-    from branchrange.daemon import Daemon
-    from branchrange.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
-    from branchrange.frame_results import pipeline_for
-    from branchrange.mavlink import CameraMount, MavlinkRelay
-    from branchrange.mavlink.connection import SigningKeyError
+    from branchrange.core.config import ConfigError
+    from branchrange.onboard.daemon import Daemon
+    from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
+    from branchrange.core.frame_results import pipeline_for
+    from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+    from branchrange.onboard.mavlink.connection import SigningKeyError
     from camera.sources import SourceError, open_source
 
     try:

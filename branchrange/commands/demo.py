@@ -26,7 +26,7 @@ from branchrange.commands.estimate import (
 )
 
 if TYPE_CHECKING:
-    from branchrange.frame_result import FrameResult
+    from branchrange.core.frame_result import FrameResult
 
 DEMO_SEED = 6
 
@@ -74,9 +74,9 @@ def truth_table(result: FrameResult, truth: list) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Render, run, print, write."""
-    from branchrange.cutpoints import CutPointConfig
-    from branchrange.overlay import write_overlay
-    from branchrange.pipeline import Pipeline, PipelineConfig
+    from branchrange.core.cutpoints import CutPointConfig
+    from branchrange.core.overlay import write_overlay
+    from branchrange.core.pipeline import Pipeline, PipelineConfig
     from stereo.commands.synth import parse_size
     from stereo.io import write_rgb
     from stereo.synth import SynthCamera, render_scene

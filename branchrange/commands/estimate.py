@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from branchrange.frame_result import FrameResult
+    from branchrange.core.frame_result import FrameResult
 
 #: Exit status for input the command cannot use (bad file, size, calibration …).
 EXIT_BAD_INPUT = 2
@@ -59,7 +59,7 @@ def chosen_backend(args: argparse.Namespace) -> str:
 def whole_frame_stereo(args: argparse.Namespace) -> Any:
     """The `[stereo]` settings of --backend/--weights/--max-disp for one pair: whole-frame matching
     (ConfigError naming `stereo.max_disp` … for a value out of range)."""
-    from branchrange.config import StereoConfig
+    from branchrange.core.config import StereoConfig
 
     return StereoConfig(backend=chosen_backend(args), weights=str(args.weights or ""), max_disp=args.max_disp,
                         mode="full")
@@ -86,7 +86,7 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
 
 def segmenter_settings(args: argparse.Namespace) -> Any:
     """The `[segmenter]` settings of the segmenter options (ValueError on bad ones)."""
-    from branchrange.config import SegmenterConfig
+    from branchrange.core.config import SegmenterConfig
 
     return SegmenterConfig(model=args.segmenter or "structure", branch_classes=tuple(args.branch_classes),
                            trunk_classes=tuple(args.trunk_classes))
@@ -120,9 +120,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _settings(args: argparse.Namespace) -> Any:
     """The `PipelineConfig` of the options: one pair, untracked, its rectification checked
     (`ConfigError` naming the key of a bad option)."""
-    from branchrange.config import MaskConfig
-    from branchrange.cutpoints import CutPointConfig
-    from branchrange.pipeline import PipelineConfig
+    from branchrange.core.config import MaskConfig
+    from branchrange.core.cutpoints import CutPointConfig
+    from branchrange.core.pipeline import PipelineConfig
 
     return PipelineConfig(stereo=whole_frame_stereo(args), cutpoints=CutPointConfig(tracking=False),
                           masks=MaskConfig(trunk_id=args.trunk_id), segmenter=segmenter_settings(args),
@@ -131,8 +131,8 @@ def _settings(args: argparse.Namespace) -> Any:
 
 def _pipeline(args: argparse.Namespace, config: Any, size: tuple[int, int]) -> Any:
     """The pipeline the arguments describe (raises ValueError subclasses on bad camera input)."""
-    from branchrange.pipeline import Pipeline
-    from branchrange.settings_check import check_calibration, check_image_size, check_physical
+    from branchrange.core.pipeline import Pipeline
+    from branchrange.core.settings_check import check_calibration, check_image_size, check_physical
 
     check_image_size(*size, name=f"{args.left}: image size")
     if args.calib is not None:
@@ -153,7 +153,7 @@ def _pipeline(args: argparse.Namespace, config: Any, size: tuple[int, int]) -> A
 
 def run(args: argparse.Namespace) -> int:
     """Read the pair, run the pipeline once, write JSON / overlay, print the table."""
-    from branchrange.overlay import write_overlay
+    from branchrange.core.overlay import write_overlay
     from stereo.io import read_rgb
 
     try:

@@ -35,9 +35,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and print the table."""
-    from branchrange.cutpoints import DEFAULT_TARGET_POLICY
-    from branchrange.evaluate_cuts import evaluate_cuts, format_table, scores_as_dict
-    from branchrange.pipeline import untracked_whole_frame
+    from branchrange.core.cutpoints import DEFAULT_TARGET_POLICY
+    from branchrange.offline.evaluate_cuts import evaluate_cuts, format_table, scores_as_dict
+    from branchrange.core.pipeline import untracked_whole_frame
 
     stereo = args.stereo or (["gt", "sgbm"] + (["emcstereo"] if args.weights else []))
     try:

@@ -44,10 +44,10 @@ def summary_path(out: str | Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """Load the config with the command line's overrides, replay, print and write the summary."""
-    from branchrange.config import ConfigError
-    from branchrange.overlay_video import VideoWriteError
-    from branchrange.foxglove_sink import FoxgloveTargetError, FoxgloveSink, parse_targets
-    from branchrange.replay import replay_recording, source_spec
+    from branchrange.core.config import ConfigError
+    from branchrange.offline.overlay_video import VideoWriteError
+    from branchrange.onboard.foxglove_sink import FoxgloveTargetError, FoxgloveSink, parse_targets
+    from branchrange.offline.replay import replay_recording, source_spec
     from camera.sources import SourceError
 
     try:

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.config import ConfigError, pipeline_config
+    from branchrange.core.config import ConfigError, pipeline_config
 
     try:
         cfg = config_from_args(args, {"api.host": args.host, "api.port": args.port})

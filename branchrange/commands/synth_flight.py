@@ -4,7 +4,7 @@ The recording is the replay format `branchrange record` writes (recording.json, 
 left/, right/, mask/ with uint16 instance ids, calibration.yaml of the rectified ZED Mini rig
 scaled to the size), so `branchrange replay`, the daemon's `replay:` source and the benchmarks
 read it unchanged; flight.json beside it holds each frame's pose and the true cut points
-(`branchrange.flight`). Frame i is captured at i/fps s after a fixed start.
+(`branchrange.offline.flight`). Frame i is captured at i/fps s after a fixed start.
 """
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     """Render and record the flight. Returns 0 on success, 1 when rendering or writing failed, 2 on bad options."""
     import numpy as np
 
-    from branchrange.flight import FlightCutPoint, FlightPose, FlightTruth
+    from branchrange.offline.flight import FlightCutPoint, FlightPose, FlightTruth
     from camera.calibration import from_rectified
     from camera.sources import Recorder, StereoFrame
     from stereo.synth.flight import FlightRenderer

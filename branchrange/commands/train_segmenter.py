@@ -7,7 +7,7 @@ SHA-256, validation IoU), metrics.csv, training_curve.png and branchnet.pt (the 
 
 Reproduce the shipped model exactly:
     branchrange train-segmenter --out runs/branchnet \\
-        --config branchrange/segmentation/weights/branchnet.json
+        --config branchrange/core/segmentation/weights/branchnet.json
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def training_config(config_file: Path | None, overrides: list[str]):
     """`BranchNetTrainConfig` from a branchnet.json's 'config' and KEY=VALUE overrides; ValueError naming the key."""
-    from branchrange.segmentation.branchnet_training import BranchNetTrainConfig
+    from branchrange.core.segmentation.branchnet_training import BranchNetTrainConfig
 
     values: dict = {}
     if config_file is not None:
@@ -58,7 +58,7 @@ def training_config(config_file: Path | None, overrides: list[str]):
 
 def run(args: argparse.Namespace) -> int:
     """Train and report the final validation IoU."""
-    from branchrange.segmentation.branchnet_training import train_branchnet
+    from branchrange.core.segmentation.branchnet_training import train_branchnet
 
     try:
         config = training_config(args.config, args.set)

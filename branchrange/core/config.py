@@ -1,0 +1,558 @@
+"""BranchRange's one configuration file: each TOML section is the settings dataclass its code uses.
+
+| section | dataclass | used by |
+|---|---|---|
+| `[camera]` | `CameraConfig` | the daemon's frame source, its mount and watchdog |
+| `[stereo]` | `StereoConfig` | `Pipeline.backend` (`stereo.backends.make_backend`), roi or full mode |
+| `[roi]` | `RoiConfig` | `branchrange.core.roi.CoarseToFine` |
+| `[cutpoints]` | `branchrange.core.cutpoints.CutPointConfig` | cut-point estimation, target choice, tracking on/off |
+| `[branch_tracking]` | `branchrange.core.tracking.TrackerConfig` | the per-frame branch ids (`BranchTracker`) |
+| `[masks]` | `MaskConfig` | how mask files and arrays are read |
+| `[segmenter]` | `SegmenterConfig` (+ `[segmenter.structure]`, `[segmenter.geometric]`) | `SegmenterConfig.build` |
+| `[mavlink]` | `MavlinkConfig` | `branchrange.onboard.mavlink.MavlinkRelay` |
+| `[tracking]` | `TrackingConfig` | world-frame target tracks (`branchrange.onboard.mavlink.world_tracks`) |
+| `[api]` | `ApiConfig` | the HTTP service |
+| `[log]` | `LogConfig` | the results log and status reports |
+
+The pipeline's sections reach it together as `pipeline_config(cfg)`, which hands over the section
+objects themselves. Every option has a default, so an empty file is a valid configuration. Every
+option can be set in the file and on the command line (`--set section.key=value`, a TOML value;
+`--set segmenter.structure.max_range_m=3`); an unknown key, a value of the wrong type or out of
+range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
+Examples live in `deploy/*.toml`.
+
+To add an option: add a typed field with a default to its section's dataclass, and its range to
+that class's `checks()` (`branchrange.core.settings_check.Settings`). The loader reads the field list,
+so nothing else changes; a field whose type is itself a settings dataclass is a sub-table.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from branchrange.core.cutpoints import CutPointConfig
+from branchrange.core.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID
+from branchrange.core.segmentation.choose import SEGMENTER_NAMES, check_segmenter_name, make_segmenter
+from branchrange.core.segmentation.learned import LearnedSegmenterConfig
+from branchrange.core.segmentation.onnx_model import OnnxSegmenterConfig
+from branchrange.core.segmentation.structure import StructureSegmenterConfig
+from branchrange.core.segmentation.segmenter import GeometricSegmenterConfig, Segmenter
+from branchrange.core.settings_check import Checks, Settings, SettingsError, in_physical_range
+from branchrange.core.tracking import TrackerConfig
+from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, PRECISIONS, WEIGHTED_BACKENDS, is_valid_max_disp
+
+
+class ConfigError(SettingsError):
+    """A configuration file or value that cannot be used; the message names the key at fault."""
+
+
+#: `stereo.mode`: 'full' matches the whole frame at full resolution; 'roi' coarse-to-fine (`branchrange.core.roi`).
+STEREO_MODES: tuple[str, ...] = ("full", "roi")
+#: `masks.kind`: how a mask file or array is read (`branchrange.core.masks.masks_from_array`).
+MASK_KINDS: tuple[str, ...] = ("auto", "instance", "binary")
+
+
+def _one_of(choices: Iterable[str]) -> str:
+    """'a', 'b' or 'c' — the accepted values of a setting, for messages."""
+    quoted = [repr(c) for c in choices]
+    return ", ".join(quoted[:-1]) + f" or {quoted[-1]}" if len(quoted) > 1 else quoted[0]
+
+
+Vector3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class CameraConfig(Settings):
+    """Where frames come from and how the camera sits on the vehicle.
+
+    `source` is a `camera.sources.open_source` spec; a ZED's mode is part of it
+    (`zed:/dev/zedmini:HD720`, HD720 when left out). `calibration` is a calibration file that
+    overrides what the source knows (a ZED factory `.conf` is read at the spec's mode).
+    `mount_rpy_deg` is the camera's roll, pitch, yaw in degrees relative to a camera looking
+    straight ahead (body FRD, right-handed: pitch > 0 tilts the optical axis up, yaw > 0 turns it
+    right); `mount_xyz_m` the camera's optical centre in body FRD metres from the vehicle origin.
+    `stall_timeout_s`: no frame for this long means the camera is lost (watchdog).
+    """
+
+    section = "camera"
+    error = ConfigError
+
+    source: str = "zed:0"
+    calibration: str = ""
+    mount_rpy_deg: Vector3 = (0.0, 0.0, 0.0)
+    mount_xyz_m: Vector3 = (0.0, 0.0, 0.0)
+    stall_timeout_s: float = 2.0
+
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "source": (bool(self.source.strip()), "a source spec such as 'zed:0', 'oak' or 'replay:PATH'"),
+            "stall_timeout_s": (self.stall_timeout_s > 0, "seconds > 0"),
+        }
+
+
+@dataclass(frozen=True)
+class StereoConfig(Settings):
+    """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments), and how.
+
+    `backend`: one of `stereo.backends.BACKEND_NAMES`. `emcstereo` and `onnx` need `weights` (a
+    checkpoint; the exported .onnx file): a network without them gives meaningless disparities,
+    which the daemon would send to the flight controller as cut points. `max_disp`: the disparity
+    search range in px at full resolution (`stereo.backends.check_max_disp`'s rule). `precision`:
+    one of `stereo.backends.PRECISIONS` (fp16/bf16 need a CUDA `device` and emcstereo). `mode`:
+    'roi' matches the frame at low resolution and each branch at full resolution in its box and
+    disparity window (`[roi]`, `branchrange.core.roi`) — the real-time onboard default; 'full' matches
+    the whole frame.
+    """
+
+    section = "stereo"
+    error = ConfigError
+
+    backend: str = "sgbm"
+    weights: str = ""
+    max_disp: int = 192
+    device: str = "cpu"
+    precision: str = "fp32"
+    mode: str = "roi"
+
+    def checks(self) -> Checks:
+        """The backend, its weights, search range and precision, and the mode."""
+        return {
+            "mode": (self.mode in STEREO_MODES,
+                     "'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)"),
+            "backend": (self.backend in BACKEND_NAMES, _one_of(BACKEND_NAMES)),
+            "weights": (self.backend not in WEIGHTED_BACKENDS or bool(self.weights.strip()),
+                        f"a checkpoint path when stereo.backend = {self.backend!r}"),
+            "max_disp": (is_valid_max_disp(self.max_disp), MAX_DISP_EXPECTED),
+            "precision": (self.precision in PRECISIONS, _one_of(PRECISIONS)),
+        }
+
+    @property
+    def weights_path(self) -> str | None:
+        """`weights` as `make_backend` takes it (None when empty)."""
+        return self.weights or None
+
+
+@dataclass(frozen=True)
+class RoiConfig(Settings):
+    """The coarse-to-fine settings of `stereo.mode = "roi"` (`branchrange.core.roi`; px at full resolution).
+
+    - `coarse_width`: width of the coarse pass in px (frames narrower than 1.5× this are matched
+      coarsely at full resolution, scale 1).
+    - `box_margin_px`: how far each instance's box grows on every side (the matcher's block and the
+      silhouette's edges need context).
+    - `window_margin_px`: how far the disparity window grows beyond the instance's coarse range.
+    - `max_regions`: only the nearest this many branches (by coarse disparity) get a fine pass
+      (the trunk keeps its coarse disparity).
+    - `network_regions`: with a network backend (emcstereo), only the nearest this many regions —
+      the target's candidates — are matched by the network, the others by SGBM (a network region
+      costs about 0.4 s at 200×200 px on 2 CPU cores); 0: every region by the network.
+    """
+
+    section = "roi"
+    error = ConfigError
+
+    coarse_width: int = 640
+    box_margin_px: int = 16
+    window_margin_px: int = 8
+    max_regions: int = 12
+    network_regions: int = 1
+
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "coarse_width": (self.coarse_width >= 64, "at least 64 px"),
+            "box_margin_px": (0 <= self.box_margin_px <= 256, "0..256 px"),
+            "window_margin_px": (0 <= self.window_margin_px <= 64, "0..64 px"),
+            "max_regions": (1 <= self.max_regions <= 256, "1..256"),
+            "network_regions": (0 <= self.network_regions <= 256, "0..256 (0: all)"),
+        }
+
+
+@dataclass(frozen=True)
+class MavlinkConfig(Settings):
+    """The link to the flight controller and what is sent over it (see `branchrange.onboard.mavlink`).
+
+    `url` is a pymavlink connection string: `udpout:HOST:PORT`, `udpin:HOST:PORT`,
+    `tcp:HOST:PORT`, or a serial device path with `baud`. `signing_key_file` holds the 32-byte
+    MAVLink 2 signing key ("" = unsigned). `target_as_obstacle` sends the target branch to the
+    autopilot's proximity fence too (off by default: ArduPilot keeps AVOID_MARGIN from every
+    obstacle, so the drone would stop short of the branch it must cut). Results older than
+    `max_result_age_s` are reported as "no target"; messages go out at least `send_rate_hz` times
+    a second even without new results (ArduPilot and PX4 call a proximity sensor stale at 0.5 s).
+
+    Vehicle state and link health (`branchrange.onboard.mavlink.vehicle_state`): the autopilot is asked for
+    ATTITUDE and LOCAL_POSITION_NED at `state_rate_hz` (MAV_CMD_SET_MESSAGE_INTERVAL) unless
+    `request_vehicle_state` is off; the link counts as connected only while the autopilot's
+    HEARTBEAT arrives, lost after `heartbeat_timeout_s`; a pose older than `pose_timeout_s` is not
+    used (targets then go out in the camera frame of their capture, as without vehicle state).
+    `obstacle_min_confidence`: cut points below it are not sent as obstacles (README says why 0.3).
+    The approach setpoint (SET_POSITION_TARGET_LOCAL_NED, `branchrange.onboard.mavlink.approach`) is off
+    unless `setpoint_enabled`: `setpoint_standoff_m` before the cut point, at most
+    `setpoint_max_step_m` from the vehicle, moving at most `setpoint_max_speed_m_s`, only for a
+    fresh target track with `setpoint_min_observations` and confidence ≥ `setpoint_min_confidence`.
+    """
+
+    section = "mavlink"
+    error = ConfigError
+
+    enabled: bool = True
+    url: str = "udpout:127.0.0.1:14550"
+    baud: int = 921600
+    system_id: int = 1
+    component_id: int = 191
+    signing_key_file: str = ""
+    target_as_obstacle: bool = False
+    max_result_age_s: float = 0.5
+    send_rate_hz: float = 4.0
+    min_distance_m: float = 0.2
+    max_distance_m: float = 10.0
+    sensor_id: int = 0
+    reconnect_interval_s: float = 1.0
+    request_vehicle_state: bool = True
+    state_rate_hz: float = 30.0
+    heartbeat_timeout_s: float = 3.0
+    pose_timeout_s: float = 0.5
+    obstacle_min_confidence: float = 0.3
+    setpoint_enabled: bool = False
+    setpoint_standoff_m: float = 0.6
+    setpoint_max_step_m: float = 1.0
+    setpoint_max_speed_m_s: float = 0.5
+    setpoint_min_observations: int = 5
+    setpoint_min_confidence: float = 0.5
+
+    def checks(self) -> Checks:
+        """The range of every setting; the reported depth band within the physical distance range."""
+        near_ok, _ = in_physical_range("distance_m", self.min_distance_m)
+        far_ok, distances = in_physical_range("distance_m", self.max_distance_m)
+        return {
+            "url": (bool(self.url.strip()), "a pymavlink connection string such as 'udpout:127.0.0.1:14550' or '/dev/ttyTHS1'"),
+            "baud": (self.baud > 0, "a positive baud rate"),
+            "system_id": (1 <= self.system_id <= 255, "an integer in [1, 255]"),
+            "component_id": (1 <= self.component_id <= 255, "an integer in [1, 255]"),
+            "max_result_age_s": (self.max_result_age_s > 0, "seconds > 0"),
+            "send_rate_hz": (self.send_rate_hz >= 2.0, "at least 2 Hz (autopilots call a sensor stale after 0.5 s)"),
+            "max_distance_m": (far_ok, distances),
+            "min_distance_m": (near_ok and self.min_distance_m < self.max_distance_m,
+                               f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})"),
+            "sensor_id": (0 <= self.sensor_id <= 255, "an integer in [0, 255]"),
+            "reconnect_interval_s": (self.reconnect_interval_s > 0, "seconds > 0"),
+            "state_rate_hz": (1.0 <= self.state_rate_hz <= 100.0, "a rate in [1, 100] Hz"),
+            "heartbeat_timeout_s": (self.heartbeat_timeout_s > 0, "seconds > 0 (MAVLink's usual is 3)"),
+            "pose_timeout_s": (0 < self.pose_timeout_s <= 5.0, "seconds in (0, 5]"),
+            "obstacle_min_confidence": (0.0 <= self.obstacle_min_confidence <= 1.0, "a number in [0, 1]"),
+            "setpoint_standoff_m": (self.setpoint_standoff_m >= 0, "metres >= 0"),
+            "setpoint_max_step_m": (self.setpoint_max_step_m > 0, "metres > 0"),
+            "setpoint_max_speed_m_s": (0 < self.setpoint_max_speed_m_s <= 5.0, "a speed in (0, 5] m/s"),
+            "setpoint_min_observations": (self.setpoint_min_observations >= 1, "an integer >= 1"),
+            "setpoint_min_confidence": (0.0 <= self.setpoint_min_confidence <= 1.0, "a number in [0, 1]"),
+        }
+
+
+@dataclass(frozen=True)
+class TrackingConfig(Settings):
+    """World-frame target tracks (`branchrange.onboard.mavlink.world_tracks`), used when vehicle state arrives.
+
+    Each track is a Kalman filter on a static point in local NED. A cut point measured at range r
+    (metres, camera frame) has a standard deviation of `lateral_sigma_at_1m_m`·r across the line of
+    sight and `depth_sigma_at_1m_m`·r² along it (stereo depth error grows with the square of the
+    range); `process_noise_m2_per_s` lets a track follow a branch that sways or a slowly drifting
+    local position. A cut point joins the nearest track within `gate_m`. A track whose newest
+    cut point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than
+    that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count from the
+    capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU
+    companion) by a frame or two: 1.5 s.
+    """
+
+    section = "tracking"
+    error = ConfigError
+
+    gate_m: float = 0.15
+    lateral_sigma_at_1m_m: float = 0.004
+    depth_sigma_at_1m_m: float = 0.01
+    process_noise_m2_per_s: float = 1e-5
+    stale_after_s: float = 1.5
+    forget_after_s: float = 5.0
+
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "gate_m": (self.gate_m > 0, "metres > 0"),
+            "lateral_sigma_at_1m_m": (self.lateral_sigma_at_1m_m > 0, "metres > 0"),
+            "depth_sigma_at_1m_m": (self.depth_sigma_at_1m_m > 0, "metres > 0"),
+            "process_noise_m2_per_s": (self.process_noise_m2_per_s >= 0, "m²/s >= 0"),
+            "stale_after_s": (self.stale_after_s > 0, "seconds > 0"),
+            "forget_after_s": (self.forget_after_s >= self.stale_after_s, f"seconds >= tracking.stale_after_s ({self.stale_after_s})"),
+        }
+
+
+@dataclass(frozen=True)
+class ApiConfig(Settings):
+    """The HTTP service: address, bearer token and resource limits.
+
+    An empty `token` disables authentication, which `branchrange serve` allows on loopback only.
+    `max_concurrency` inferences run at once; one more request gets 503 with `Retry-After:
+    retry_after_s` instead of waiting in an unbounded queue.
+    """
+
+    section = "api"
+    error = ConfigError
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 8080
+    token: str = ""
+    max_upload_mb: float = 20.0
+    max_pixels: int = 2208 * 1242
+    max_concurrency: int = 1
+    retry_after_s: int = 1
+
+    def __post_init__(self) -> None:
+        # never echoed: a token with stray spaces is still a secret. Whitespace-only would count as
+        # "a token set" and let the service bind a public address while no request could match it.
+        if self.token and self.token.strip() != self.token:
+            kind = "is whitespace only" if not self.token.strip() else "has leading or trailing whitespace"
+            raise ConfigError(f"api.token {kind} (or BRANCHRANGE_API_TOKEN): expected a token without "
+                              "surrounding spaces, or empty for no authentication (loopback only)")
+        super().__post_init__()
+
+    def checks(self) -> Checks:
+        """The range of every setting but the token (checked without echoing it)."""
+        return {
+            "port": (0 <= self.port <= 65535, "a TCP port in [0, 65535]"),
+            "max_upload_mb": (self.max_upload_mb > 0, "megabytes > 0"),
+            "max_pixels": (self.max_pixels > 0, "a positive pixel count (width × height)"),
+            "max_concurrency": (self.max_concurrency >= 1, "an integer >= 1"),
+            "retry_after_s": (self.retry_after_s >= 1, "whole seconds >= 1"),
+        }
+
+    @property
+    def max_upload_bytes(self) -> int:
+        """`max_upload_mb` in bytes (MiB)."""
+        return int(self.max_upload_mb * 1024 * 1024)
+
+
+@dataclass(frozen=True)
+class LogConfig(Settings):
+    """Where per-frame results go and how often the daemon reports its status."""
+
+    section = "log"
+    error = ConfigError
+
+    results_jsonl: str = ""
+    level: str = "INFO"
+    status_interval_s: float = 5.0
+
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "level": (self.level in ("DEBUG", "INFO", "WARNING", "ERROR"), "DEBUG, INFO, WARNING or ERROR"),
+            "status_interval_s": (self.status_interval_s > 0, "seconds > 0"),
+        }
+
+
+@dataclass(frozen=True)
+class MaskConfig(Settings):
+    """How instance masks (files, arrays, recordings' masks) are read (`branchrange.core.masks.masks_from_array`).
+
+    `trunk_id`: the trunk's id in instance masks (1..65535); `ignored_ids`: ids that are neither
+    branch nor trunk (twigs, leaves); `kind`: 'auto' (binary when the mask holds only 0 and one
+    value), 'instance' or 'binary' (connected components are the instances).
+    """
+
+    section = "masks"
+    error = ConfigError
+
+    trunk_id: int = DEFAULT_TRUNK_ID
+    ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS
+    kind: str = "auto"
+
+    def checks(self) -> Checks:
+        """The range of every setting."""
+        return {
+            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535 (0 is background)"),
+            "ignored_ids": (all(0 < i <= 65535 for i in self.ignored_ids), "ids in 1..65535"),
+            "kind": (self.kind in MASK_KINDS, _one_of(MASK_KINDS)),
+        }
+
+
+@dataclass(frozen=True)
+class SegmenterConfig(OnnxSegmenterConfig):
+    """Which segmenter finds branches when no mask is given, and the settings of each.
+
+    `model`: 'structure' (built in, 3D structure), 'geometric' (the older built-in one) or
+    'onnx:FILE' (your ONNX model, YOLOv8-seg or per-pixel logits). The model's settings are the
+    other `[segmenter]` keys (`OnnxSegmenterConfig`: `branch_classes` / `trunk_classes`, the
+    model's class ids for branch and trunk; `score_threshold`, …); the built-in segmenters' are
+    the sub-tables `[segmenter.structure]` (`StructureSegmenterConfig`) and `[segmenter.geometric]`
+    (`GeometricSegmenterConfig`).
+    """
+
+    section = "segmenter"
+    error = ConfigError
+
+    model: str = "structure"
+    structure: StructureSegmenterConfig = field(default_factory=StructureSegmenterConfig)
+    geometric: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
+    learned: LearnedSegmenterConfig = field(default_factory=LearnedSegmenterConfig)
+
+    def checks(self) -> Checks:
+        """The model's settings and the model's name (its file is checked when it is loaded)."""
+        try:
+            named = bool(check_segmenter_name(self.model))
+        except ValueError:
+            named = False
+        return {**super().checks(), "model": (named, SEGMENTER_NAMES)}
+
+    def build(self, name: str | None = None) -> Segmenter:
+        """The segmenter `name` names ('structure', 'geometric', 'onnx:FILE'; default `model`) with
+        its settings from this section; `OnnxSegmenterError` for a model that cannot be loaded."""
+        return make_segmenter(name or self.model, self.geometric, self, self.structure, self.learned)
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration, one dataclass per TOML section."""
+
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    roi: RoiConfig = field(default_factory=RoiConfig)
+    cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
+    branch_tracking: TrackerConfig = field(default_factory=TrackerConfig)
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    segmenter: SegmenterConfig = field(default_factory=SegmenterConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    api: ApiConfig = field(default_factory=ApiConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+
+
+#: A command-line override: the dotted key (`stereo.max_disp`, `segmenter.structure.max_range_m`) and its value.
+Override = tuple[str, Any]
+
+
+def _wrong_type(key: str, value: Any, expected: str) -> ConfigError:
+    return ConfigError(f"{key} = {value!r}: expected {expected}")
+
+
+def _coerce(key: str, value: Any, annotation: Any) -> Any:
+    """Check one TOML value against a field's type; ints are accepted where floats are expected,
+    a table where the field is itself a settings dataclass."""
+    if isinstance(annotation, type) and dataclasses.is_dataclass(annotation):
+        return _table(annotation, key, value)
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise _wrong_type(key, value, "true or false")
+        return value
+    if annotation is int:
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise _wrong_type(key, value, "an integer")
+        return value
+    if annotation is float:
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
+            raise _wrong_type(key, value, "a finite number")
+        return float(value)
+    if annotation is str:
+        if not isinstance(value, str):
+            raise _wrong_type(key, value, "a string")
+        return value
+    if typing.get_origin(annotation) is tuple and typing.get_args(annotation)[1:] == (Ellipsis,):
+        if not isinstance(value, list):
+            raise _wrong_type(key, value, "a list")
+        item = typing.get_args(annotation)[0]
+        return tuple(_coerce(f"{key}[{i}]", v, item) for i, v in enumerate(value))
+    if typing.get_origin(annotation) is tuple:
+        items = typing.get_args(annotation)
+        if not (isinstance(value, list) and len(value) == len(items)):
+            raise _wrong_type(key, value, f"a list of {len(items)} numbers")
+        return tuple(_coerce(f"{key}[{i}]", v, t) for i, (v, t) in enumerate(zip(value, items)))
+    raise TypeError(f"config field {key} has an unsupported type {annotation!r}")
+
+
+def _table(cls: type, name: str, table: Any) -> Any:
+    """Settings dataclass `cls` from the TOML table `[name]`: unknown keys refused, every value
+    type-checked, then the class's own range checks; every error a `ConfigError` naming the key."""
+    if not isinstance(table, dict):
+        raise _wrong_type(name, table, f"a table [{name}]")
+    hints = typing.get_type_hints(cls)
+    known = sorted(f.name for f in dataclasses.fields(cls))
+    unknown = sorted(set(table) - set(known))
+    if unknown:
+        raise ConfigError(f"{name}.{unknown[0]}: unknown option; [{name}] takes {', '.join(known)}")
+    values = {key: _coerce(f"{name}.{key}", value, hints[key]) for key, value in table.items()}
+    try:
+        return cls(**values)
+    except ConfigError:
+        raise
+    except ValueError as exc:  # the range check of a section defined beside its code (CutPointConfigError, …)
+        raise ConfigError(str(exc)) from None
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Validate a parsed TOML document into a `Config`; raises `ConfigError` naming the key."""
+    sections = typing.get_type_hints(Config)
+    unknown = sorted(set(data) - set(sections))
+    if unknown:
+        raise ConfigError(f"[{unknown[0]}]: unknown section; the file takes {', '.join(f'[{s}]' for s in sections)}")
+    return Config(**{name: _table(sections[name], name, table) for name, table in data.items()})
+
+
+def parse_override(text: str) -> Override:
+    """`SECTION.KEY=VALUE` (`--set`) → (dotted key, value): the value in TOML syntax
+    (`128`, `true`, `[0, -10, 0]`, `"text"`), a bare word taken as a string (`--set stereo.backend=sgbm`)."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or "." not in key or not all(key.split(".")):
+        raise ConfigError(f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. --set stereo.max_disp=128")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return key, value
+
+
+def with_overrides(data: dict[str, Any], overrides: Iterable[Override]) -> dict[str, Any]:
+    """A copy of the TOML tree `data` with each (dotted key, value) set in it, later ones winning."""
+    tree: dict[str, Any] = {name: dict(table) if isinstance(table, dict) else table for name, table in data.items()}
+    for key, value in overrides:
+        *tables, last = key.split(".")
+        node = tree
+        for depth, name in enumerate(tables):
+            child = node.get(name, {})
+            if not isinstance(child, dict):
+                raise _wrong_type(".".join(tables[:depth + 1]), child, f"a table (--set {key}=…)")
+            node[name] = node = dict(child)
+        node[last] = value
+    return tree
+
+
+def load_config(path: str | Path | None, overrides: Iterable[Override] = ()) -> Config:
+    """Read and validate a TOML configuration file (`None`: the defaults), then the command line's
+    `overrides` ((dotted key, value), e.g. from `parse_override`; later ones win)."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+            config_from_dict(data)  # the file's own errors name the file
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: configuration file not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+    return config_from_dict(with_overrides(data, overrides))
+
+
+def pipeline_config(cfg: Config) -> Any:
+    """The `branchrange.core.pipeline.PipelineConfig` of `cfg`: its pipeline sections themselves."""
+    from branchrange.core.pipeline import PipelineConfig
+
+    return PipelineConfig(stereo=cfg.stereo, roi=cfg.roi, cutpoints=cfg.cutpoints, tracker=cfg.branch_tracking,
+                          masks=cfg.masks, segmenter=cfg.segmenter)

@@ -1,0 +1,127 @@
+"""One source frame → its `branchrange/v1` result and JSONL line, shared by the daemon and the offline replay.
+
+Both build their pipeline with `pipeline_for` and hand every frame to it through `stereo_stage`
+(the daemon then runs `geometry_stage` on its own thread; the replay runs both in `process_frame`),
+so replaying a recording after a flight gives the results the daemon computed in the air (the
+timing aside), and both write the same log lines.
+
+A results log starts each run with a header line (`run_header_line`): `{"schema":
+"branchrange/run-header/v1", "version", "config_sha256", "started_utc", "source", "kind"}`, so
+runs appended to one file stay apart. `read_runs` gives back a log's JSON records grouped by run;
+`read_results` its frame results as typed `FrameResult`s (`FrameResult.from_json_dict`), headers skipped.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Iterator
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from branchrange.core.config import Config, pipeline_config
+from branchrange.core.frame_result import FrameResult
+from camera.sources import SourceError, StereoFrame
+
+
+def pipeline_for(cfg: Config, calibration: Any) -> Any:
+    """The `Pipeline` that the pipeline's sections of `cfg` describe, for a source's calibration,
+    with its stereo backend already built: a calibration outside the physical ranges, a missing
+    checkpoint or a max_disp the backend cannot use fails here, at start-up, rather than as a
+    rejected frame on every frame.
+
+    Raises `SourceError` naming `camera.source` when the source brought no calibration, `RangeError`
+    for a focal length or baseline out of range, and the backend's `ValueError`
+    (`BackendConfigError`, `CheckpointError`) when it cannot be built.
+    """
+    from branchrange.core.pipeline import Pipeline
+    from branchrange.core.settings_check import check_calibration
+
+    if calibration is None:
+        raise SourceError(f"{cfg.camera.source}: no calibration; set camera.calibration")
+    check_calibration(calibration, tuple(calibration.image_size), f"{cfg.camera.source}: calibration")
+    pipeline = Pipeline(pipeline_config(cfg), calibration=calibration)
+    _ = pipeline.backend  # the property builds it
+    return pipeline
+
+
+def stereo_stage(pipeline: Any, frame: StereoFrame) -> Any:
+    """The stereo half of the frame (`Pipeline.stereo_stage`): its pair, its mask when the recording
+    carries one, its index and capture time. The daemon's stereo thread calls it, then
+    `pipeline.geometry_stage` on its geometry thread.
+
+    Raises `ValueError` (the pipeline's input or geometry errors) when the pipeline rejects the frame.
+    """
+    return pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
+
+
+def process_frame(pipeline: Any, frame: StereoFrame) -> FrameResult:
+    """The frame's result: both halves in a row, exactly as the daemon runs them on two threads.
+
+    Raises `ValueError` (the pipeline's input or geometry errors) when the pipeline rejects the frame.
+    """
+    return pipeline.geometry_stage(stereo_stage(pipeline, frame))
+
+
+def json_line(record: dict[str, Any]) -> str:
+    """A JSON object as one compact line, newline included: the results log format."""
+    return json.dumps(record, separators=(",", ":")) + "\n"
+
+
+def result_line(result: FrameResult) -> str:
+    """A frame's result as one results-log line."""
+    return json_line(result.to_json_dict())
+
+
+RUN_HEADER_SCHEMA = "branchrange/run-header/v1"
+
+
+def config_sha256(cfg: Config) -> str:
+    """SHA-256 (hex) of the effective configuration, every key sorted: equal hashes, equal settings."""
+    text = json.dumps(dataclasses.asdict(cfg), sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def run_header(kind: str, cfg: Config, source: str) -> dict[str, Any]:
+    """The header of one run: what wrote it (`kind`, e.g. "replay" or "daemon"), the package
+    version, the configuration's hash, the UTC start time (ISO 8601, ms) and the source spec."""
+    from stereo.cli import package_version
+
+    started = datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return {"schema": RUN_HEADER_SCHEMA, "version": package_version(), "config_sha256": config_sha256(cfg),
+            "started_utc": started, "source": source, "kind": kind}
+
+
+def run_header_line(kind: str, cfg: Config, source: str) -> str:
+    """`run_header(...)` as one JSON line, newline included: the first line a run writes to its log."""
+    return json_line(run_header(kind, cfg, source))
+
+
+def is_run_header(record: Any) -> bool:
+    """Whether a parsed log line is a run header (not a frame result)."""
+    return isinstance(record, dict) and record.get("schema") == RUN_HEADER_SCHEMA
+
+
+def read_runs(path: str | Path) -> list[tuple[dict[str, Any] | None, list[dict[str, Any]]]]:
+    """The runs of a results log as JSON records: (header, frame results) each; results before any
+    header (logs written before headers existed) come as a run whose header is None. Blank lines are skipped."""
+    runs: list[tuple[dict[str, Any] | None, list[dict[str, Any]]]] = []
+    with open(path, encoding="utf-8") as stream:
+        for record in (json.loads(line) for line in stream if line.strip()):
+            if is_run_header(record):
+                runs.append((record, []))
+            else:
+                if not runs:
+                    runs.append((None, []))
+                runs[-1][1].append(record)
+    return runs
+
+
+def read_results(path: str | Path) -> Iterator[FrameResult]:
+    """Every frame result of a results log, in order, run headers skipped.
+
+    Raises `ResultFormatError` (a ValueError) naming the key of a line that is not a `branchrange/v1` result.
+    """
+    for _, results in read_runs(path):
+        yield from (FrameResult.from_json_dict(record) for record in results)

@@ -1,0 +1,371 @@
+"""The per-frame pipeline: stereo pair (+ optional mask) → cut points, a `FrameResult` (`branchrange/v1`).
+
+Stages, each timed in `timing_ms`: rectify (when a raw calibration is given) → stereo backend →
+masks (given, or the segmenter) → cut points → tracking (stable ids) → target. One `Pipeline` is
+built once per camera and reused for every frame; it holds the backend, the rectification maps
+and the tracker's state. `process_disparity` runs the stages after stereo on a given disparity
+(ground truth in evaluation, a disparity computed elsewhere).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from branchrange.core.cutpoints import (
+    DEFAULT_TARGET_POLICY,
+    CutPointConfig,
+    CutPointResult,
+    TrunkModel,
+    estimate_cut_points,
+    select_target,
+)
+from branchrange.core.frame_result import (
+    Branch,
+    CameraInfo,
+    DroppedInstance,
+    Frame,
+    FrameResult,
+    MasksInfo,
+    PairCheckInfo,
+    RoiInfo,
+    RoiRegion,
+    StereoInfo,
+)
+from branchrange.core.geometry import StereoGeometry, offset_disparity, valid_disparity
+from branchrange.core.masks import (
+    BranchMasks,
+    check_instance_count,
+    masks_from_array,
+    read_mask,
+    validate_masks,
+)
+from branchrange.core.config import MaskConfig, RoiConfig, SegmenterConfig, StereoConfig
+from branchrange.core.roi import CoarseToFine, CoarseTrunk, Region
+from branchrange.core.pair_check import PairCheck, check_rectification
+from branchrange.core.segmentation.segmenter import Segmenter
+from branchrange.core.timing import lap_ms
+from branchrange.core.tracking import BranchTracker, TrackerConfig
+from stereo.backends.base import validate_image, validate_pair
+
+
+MaskInput = BranchMasks | np.ndarray | str | Path | None
+
+
+class PipelineInputError(ValueError):
+    """A frame, mask or camera description the pipeline cannot work with; the message says which."""
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of the whole per-frame chain: the pipeline's TOML sections themselves
+    (`branchrange.core.config.pipeline_config` hands them over from a file), and `check_pair`.
+
+    - `stereo` (`[stereo]`): the backend (`stereo.backends.make_backend` arguments) and `mode`:
+      'full' matches the whole frame at full resolution, 'roi' (`branchrange.core.roi`) the whole frame
+      at low resolution and each branch at full resolution in its own box and disparity window —
+      several times faster at HD720. Whole-frame here, the library's default; the onboard config
+      file's default is roi.
+    - `roi` (`[roi]`): the coarse-to-fine settings.
+    - `cutpoints` (`[cutpoints]`): cut-point estimation, the target policy, tracking on or off.
+    - `tracker` (`[branch_tracking]`): how branch ids are kept across frames.
+    - `masks` (`[masks]`): how mask files and arrays are read.
+    - `segmenter` (`[segmenter]`): the segmenter used when no mask is given, and its settings.
+    - `check_pair`: measure the rectified pair's row misalignment (`branchrange.core.pair_check`, ~25 ms)
+      on every frame: result field `pair_check`, and a refusal above the hard limit.
+    """
+
+    stereo: StereoConfig = field(default_factory=lambda: StereoConfig(mode="full"))
+    roi: RoiConfig = field(default_factory=RoiConfig)
+    cutpoints: CutPointConfig = field(default_factory=CutPointConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    segmenter: SegmenterConfig = field(default_factory=SegmenterConfig)
+    check_pair: bool = False
+
+
+def untracked_whole_frame(max_disp: int = 192, target_policy: str = DEFAULT_TARGET_POLICY) -> PipelineConfig:
+    """The settings of evaluations and benchmarks, which score frames one by one: no tracking,
+    whole-frame sgbm stereo searching `max_disp` px, targets chosen by `target_policy`."""
+    return PipelineConfig(stereo=StereoConfig(mode="full", max_disp=max_disp),
+                          cutpoints=CutPointConfig(tracking=False, target_policy=target_policy))
+
+
+@dataclass(frozen=True)
+class FrameArtifacts:
+    """What the last frame left behind, for overlays and debugging: the rectified left image
+    (`uint8 H×W×3`), disparity (`float32 H×W` px, 0 invalid), confidence (`H×W`) and the masks used."""
+
+    left: np.ndarray
+    disparity: np.ndarray
+    confidence: np.ndarray
+    masks: BranchMasks | None
+
+
+@dataclass(frozen=True, eq=False)
+class StereoStage:
+    """What the stereo half of a frame hands to the geometry half.
+
+    `left`: rectified `uint8 H×W×3`; `disparity`: `float32 H×W` px (0 invalid); `confidence`: `H×W`
+    in [0, 1]; `masks`: the frame's instances, or None when the segmenter is to find them;
+    `timing_ms`: the stages so far (ms); `compute_ms`: this half's compute time (ms); `regions`: the
+    fine passes of `mode = "roi"` (None in whole-frame mode); `pair_check`: the rectification check
+    when asked for; `coarse_trunk`: the trunk as the roi mode's coarse pass saw it (its cylinder is
+    fitted from it in the geometry half).
+    """
+
+    left: np.ndarray
+    disparity: np.ndarray
+    confidence: np.ndarray
+    masks: BranchMasks | None
+    geometry: StereoGeometry
+    index: int
+    timestamp_ns: int
+    backend: str
+    max_disparity: int
+    timing_ms: dict[str, float]
+    compute_ms: float
+    regions: tuple[Region, ...] | None = None
+    pair_check: PairCheck | None = None
+    coarse_trunk: CoarseTrunk | None = None
+
+
+class Pipeline:
+    """Cut points of one stereo frame after another.
+
+    Camera: either `calibration` (a `camera.StereoCalibration`; raw pairs are rectified unless
+    `rectified=True` or the calibration says so) or `focal_px` + `baseline_m` (+ `principal_point`,
+    default the image centre) of an already rectified pair. `doffs_px`: the pair's disparity offset
+    (Z = f·B/(d + doffs)); a rectified calibration's default is its right minus left principal
+    column (Middlebury 2014 `calib.txt`). `backend` and `segmenter` may be
+    passed in ready-made (tests, a learned segmenter); otherwise they are built from `config`,
+    the backend lazily on the first frame.
+    """
+
+    def __init__(
+        self,
+        config: PipelineConfig | None = None,
+        *,
+        calibration: Any = None,
+        focal_px: float | None = None,
+        baseline_m: float | None = None,
+        principal_point: tuple[float, float] | None = None,
+        rectified: bool = False,
+        backend: Any = None,
+        segmenter: Segmenter | None = None,
+        doffs_px: float | None = None,
+    ) -> None:
+        self.config = config or PipelineConfig()
+        self.rectifier = None
+        self._size: tuple[int, int] | None = None  # (width, height) the camera description fits
+        if calibration is not None:
+            if focal_px is not None or baseline_m is not None:
+                raise PipelineInputError("give either a calibration or focal_px + baseline_m, not both")
+            self._size = tuple(calibration.image_size)  # type: ignore[assignment]
+            if rectified or calibration.is_rectified:
+                focal_px, baseline_m = float(calibration.K1[0, 0]), float(calibration.baseline_m)
+                principal_point = (float(calibration.K1[0, 2]), float(calibration.K1[1, 2]))
+                if doffs_px is None:  # a rectified calibration's right principal point may sit doffs px right
+                    doffs_px = float(calibration.K2[0, 2] - calibration.K1[0, 2])
+            else:
+                from camera import Rectifier
+
+                self.rectifier = Rectifier(calibration)
+                focal_px, baseline_m = self.rectifier.focal_px, self.rectifier.baseline_m
+                principal_point = self.rectifier.principal_point
+        if focal_px is None or baseline_m is None:
+            raise PipelineInputError("the pipeline needs a calibration, or focal_px and baseline_m of a rectified pair")
+        # validated now (GeometryError names the value) rather than at the first frame
+        StereoGeometry(float(focal_px), float(baseline_m), 0.0, 0.0)
+        self.focal_px, self.baseline_m = float(focal_px), float(baseline_m)
+        self.doffs_px = 0.0 if doffs_px is None else float(doffs_px)
+        offset_disparity(np.zeros(1), self.doffs_px)  # a non-finite doffs fails here, not at the first frame
+        self.principal_point = principal_point
+        self._backend = backend
+        self.segmenter: Segmenter = segmenter or self.config.segmenter.build()
+        self.tracker = BranchTracker(self.config.tracker)
+        self.last: FrameArtifacts | None = None
+        self._coarse_to_fine: CoarseToFine | None = None
+
+    @property
+    def backend(self) -> Any:
+        """The stereo backend, built from the config on first use."""
+        if self._backend is None:
+            from stereo.backends import make_backend
+
+            cfg = self.config.stereo
+            self._backend = make_backend(cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp,
+                                         device=cfg.device, precision=cfg.precision)
+        return self._backend
+
+    @property
+    def coarse_to_fine(self) -> CoarseToFine:
+        """The coarse-to-fine matcher of `mode = "roi"` around the (fine) backend, built on first use."""
+        if self._coarse_to_fine is None:
+            self._coarse_to_fine = CoarseToFine(self.config.roi, self.backend, self.segmenter, self.config.stereo.max_disp)
+        return self._coarse_to_fine
+
+    def geometry_for(self, width: int, height: int) -> StereoGeometry:
+        """The rectified camera model for frames of `width × height` px."""
+        if self._size is not None and self._size != (width, height):
+            raise PipelineInputError(
+                f"the calibration is for {self._size[0]}×{self._size[1]} px images but the frames are "
+                f"{width}×{height} px; use the calibration of this resolution (e.g. --resolution)")
+        if self.principal_point is None:
+            return StereoGeometry.centred(self.focal_px, self.baseline_m, width, height)
+        return StereoGeometry(self.focal_px, self.baseline_m, *self.principal_point)
+
+    def reset(self) -> None:
+        """Forget tracked branches (a new sequence or after the camera was lost)."""
+        self.tracker.reset()
+
+    def _masks(self, mask: MaskInput, shape: tuple[int, int]) -> BranchMasks | None:
+        """The frame's `BranchMasks` from a path, array or ready instance (None when not given)."""
+        if mask is None:
+            return None
+        cfg = self.config.masks
+        if isinstance(mask, (str, Path)):
+            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cfg.kind, ignored_ids=cfg.ignored_ids)
+        elif isinstance(mask, BranchMasks):
+            masks = mask
+        else:
+            masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.kind, ignored_ids=cfg.ignored_ids)
+        check_instance_count(masks, self.config.cutpoints.max_instances)  # before any other work on such a mask
+        if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
+            validate_masks(masks, shape)
+            masks = replace(masks, labels=self.rectifier.rectify_labels(masks.labels))
+        validate_masks(masks, shape)
+        return masks
+
+    def process(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
+                index: int = 0, timestamp_ns: int = 0) -> FrameResult:
+        """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → its `FrameResult`.
+
+        `mask`: an instance-id / binary mask (array, path or `BranchMasks`) in the left image's
+        pixels, or None for the segmenter. The same as `geometry_stage(stereo_stage(...))`.
+        """
+        return self.geometry_stage(self.stereo_stage(left, right, mask, index, timestamp_ns))
+
+    def stereo_stage(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
+                     index: int = 0, timestamp_ns: int = 0) -> StereoStage:
+        """The first half of a frame: checks, rectification, masks read, disparity.
+
+        In `mode = "roi"` this is the coarse pass, the segmenter (when no mask is given) and the
+        full-resolution regions of interest; in `"full"` the whole-frame backend. The onboard
+        daemon runs it on its stereo thread and `geometry_stage` on another.
+        """
+        start = time.perf_counter()
+        timing: dict[str, float] = {}
+        validate_pair(left, right, PipelineInputError)
+        geometry = self.geometry_for(left.shape[1], left.shape[0])
+        masks = self._masks(mask, left.shape[:2])
+        if self.rectifier is not None:
+            left, right = self.rectifier.rectify(left, right)
+        pair_check = check_rectification(left, right) if self.config.check_pair else None
+        if pair_check is not None:
+            pair_check.raise_if_refused()
+        t = lap_ms(timing, "rectify", start)
+        if self.config.stereo.mode == "roi":
+            fine = self.coarse_to_fine.compute(left, right, masks, geometry)
+            timing.update(fine.timing_ms)
+            disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
+            coarse_trunk = fine.trunk
+            backend, max_disparity = f"{self.backend.name}-roi", self.config.stereo.max_disp
+        else:
+            regions, coarse_trunk = None, None
+            stereo = self.backend.compute(left, right)
+            disparity, confidence = stereo.disparity, stereo.confidence
+            backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
+        lap_ms(timing, "stereo", t)
+        return StereoStage(left, disparity, confidence, masks, geometry, int(index), int(timestamp_ns),
+                           backend, max_disparity, timing, (time.perf_counter() - start) * 1000.0, regions, pair_check,
+                           coarse_trunk=coarse_trunk)
+
+    def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
+                          mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
+                          backend: str = "given") -> FrameResult:
+        """The stages after stereo on a rectified left image and its `float32 H×W` disparity (px).
+
+        `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
+        """
+        start = time.perf_counter()
+        left = validate_image(left, "left", PipelineInputError)
+        disparity = np.asarray(disparity, dtype=np.float32)
+        if disparity.shape != left.shape[:2]:
+            raise PipelineInputError(f"disparity is {disparity.shape[1]}×{disparity.shape[0]} px but the left "
+                                     f"image is {left.shape[1]}×{left.shape[0]} px")
+        if confidence is None:
+            confidence = valid_disparity(disparity).astype(np.float32)
+        elif np.shape(confidence) != disparity.shape:
+            raise PipelineInputError(f"confidence has shape {np.shape(confidence)}, expected {disparity.shape}")
+        if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
+            raise PipelineInputError("process_disparity needs a rectified frame; this pipeline rectifies raw pairs")
+        geometry = self.geometry_for(left.shape[1], left.shape[0])
+        masks = self._masks(mask, left.shape[:2])
+        finite_max = np.nanmax(np.where(np.isfinite(disparity), disparity, np.nan)) if np.isfinite(disparity).any() else 0.0
+        stage = StereoStage(left, disparity, np.asarray(confidence), masks, geometry, int(index), int(timestamp_ns),
+                            backend, max(1, int(np.ceil(finite_max)) + 1), {"rectify": 0.0, "stereo": 0.0},
+                            (time.perf_counter() - start) * 1000.0)
+        return self.geometry_stage(stage)
+
+    def geometry_stage(self, stage: StereoStage) -> FrameResult:
+        """The second half of a frame: masks (the segmenter when none) → cut points → tracking → target → result.
+
+        `timing_ms.total` is the compute time of both halves (ms), not including any wait between them.
+        """
+        start = t = time.perf_counter()
+        timing = dict(stage.timing_ms)
+        left, geometry, masks, max_disparity = stage.left, stage.geometry, stage.masks, stage.max_disparity
+        valid = valid_disparity(stage.disparity, max_disparity)
+        # non-finite values are no evidence: keep them out of every later stage
+        disparity = np.where(valid, stage.disparity, 0.0).astype(np.float32)
+        if self.doffs_px:  # from here on, Z = f·B/d (Middlebury's doffs folded into d)
+            disparity = offset_disparity(disparity, self.doffs_px)
+        confidence = np.where(valid, np.nan_to_num(stage.confidence, nan=0.0), 0.0).astype(np.float32)
+        reason = None
+        cut = CutPointResult()
+        if masks is None:
+            masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
+        t = lap_ms(timing, "masks", t)
+        self.last = FrameArtifacts(left, disparity, confidence, masks)
+        if not valid.any():
+            reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
+        elif not masks.branch_ids():
+            reason = (f"the mask ({masks.source}) holds no branch instance" if masks.source != self.segmenter.name
+                      else f"the {masks.source} segmenter found no branch")
+        else:
+            trunk_model: TrunkModel | None | Literal["fit"] = "fit"  # whole-frame mode: from the mask
+            if stage.regions is not None:  # roi mode: the trunk's cylinder from the coarse pass
+                trunk_model = None if stage.coarse_trunk is None else stage.coarse_trunk.fit(self.config.cutpoints)
+                t = lap_ms(timing, "trunk", t)
+            cut = estimate_cut_points(masks, disparity, geometry, self.config.cutpoints,
+                                      confidence=confidence, max_disparity=max_disparity, trunk_model=trunk_model)
+            if not cut.branches:
+                reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
+                    f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5])
+        t = lap_ms(timing, "cutpoints", t)
+        if self.config.cutpoints.tracking:
+            self.tracker.update(cut.branches)
+        t = lap_ms(timing, "tracking", t)
+        target = select_target(cut.branches, self.config.cutpoints.target_policy,
+                               self.config.cutpoints.target_min_confidence)
+        if target is None and cut.branches:
+            reason = f"no branch reaches the target confidence {self.config.cutpoints.target_min_confidence}"
+        timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
+        return FrameResult(
+            frame=Frame(stage.index, stage.timestamp_ns, int(left.shape[1]), int(left.shape[0])),
+            camera=CameraInfo(geometry.focal_px, geometry.baseline_m, geometry.cx, geometry.cy),
+            stereo=StereoInfo(stage.backend, int(max_disparity), round(float(valid.mean()), 4)),
+            timing_ms=timing,
+            masks=MasksInfo("none", 0, False) if masks is None else
+            MasksInfo(masks.source, len(masks.branch_ids()), masks.trunk() is not None),
+            branches=tuple(Branch.from_estimate(b) for b in sorted(cut.branches, key=lambda b: b.id)),
+            dropped=tuple(DroppedInstance.from_dropped(d) for d in cut.dropped),
+            target_id=None if target is None else int(target.id),
+            reason=reason,
+            roi=None if stage.regions is None else RoiInfo(tuple(RoiRegion.from_region(r) for r in stage.regions)),
+            pair_check=None if stage.pair_check is None else PairCheckInfo.from_check(stage.pair_check),
+        )

@@ -1,0 +1,266 @@
+"""Coarse-to-fine stereo: find the branches cheaply, then match each one only where and as far as it is.
+
+The application knows what it looks for. A whole frame at full resolution and a full disparity
+range costs W·H·D; the branches fill a small part of the frame and each lies within a narrow band
+of disparities. So, per frame:
+1. **coarse pass** — the pair at `coarse_width` px wide (640 for HD720, scale s = 2), matched by
+   SGBM over `max_disp / s` disparities: the whole scene, cheaply;
+2. **instances** — the given mask (full resolution; its ids are looked up at coarse resolution), or
+   the segmenter run on the coarse disparity;
+3. **regions** — per branch, its full-resolution box (+ `box_margin_px`) and its disparity window:
+   the 2nd–98th percentile of its coarse disparities × s, ± `window_margin_px`. A branch without
+   coarse evidence (thinner than a coarse pixel) is searched over the whole range in its box;
+4. **fine pass** — the backend's `compute_roi` on each box over its window (SGBM with a
+   `minDisparity` offset; EMCStereo on the left box and the right box shifted by the window start);
+5. **composition** — the boxes' disparities in one full-resolution map, zero elsewhere; a box writes
+   its own branch's pixels and the background around it (boxes overlap where branches meet).
+The trunk is not matched again: it is thick, and its only use is the cylinder that fixes where each
+branch leaves it, so that cylinder is fitted on the coarse pass (`CoarseTrunk`, in the geometry
+half) and the full-resolution map carries the trunk's coarse disparity (× s) on every s-th pixel of
+its mask, for viewers. It was the largest region by far (a whole frame's height near the tree).
+A segmenter's coarse labels are brought to full resolution (nearest); a branch's are kept where the
+fine disparity lies in its window, so silhouettes (and diameters) are full-resolution ones.
+Cut points then come from full-resolution disparity only (the base, where it meets the trunk,
+from the trunk's coarse cylinder).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import cv2
+import numpy as np
+
+from branchrange.core.config import RoiConfig
+from branchrange.core.cutpoints import CutPointConfig, TrunkModel, fit_trunk
+from branchrange.core.geometry import StereoGeometry
+from branchrange.core.masks import BranchMasks, MaskCrop
+from branchrange.core.timing import lap_ms
+
+#: SGBM searches disparities in steps of this many pixels.
+DISPARITY_STEP = 16
+#: Fewest coarse disparities an instance needs for its window to come from them.
+MIN_WINDOW_EVIDENCE = 5
+
+
+@dataclass(frozen=True)
+class Region:
+    """One instance's fine pass: `box` = (x0, y0, x1, y1) px at full resolution (exclusive ends);
+    absolute disparities searched: [d_min, d_min + d_range) px at full resolution."""
+
+    instance_id: int
+    box: tuple[int, int, int, int]
+    d_min: int
+    d_range: int
+    backend: str = ""  # the backend that matched it (set when it was matched)
+
+    @property
+    def pixels(self) -> int:
+        x0, y0, x1, y1 = self.box
+        return (x1 - x0) * (y1 - y0)
+
+
+@dataclass(frozen=True, eq=False)
+class CoarseTrunk:
+    """The trunk as the coarse pass saw it: its mask (`crop`), the coarse disparity (`float32 h×w` px)
+    and camera. Its cylinder (`fit`, in metres like a full-resolution fit) fixes where each branch
+    leaves it; from the coarse pass it costs a quarter, and the trunk is thick enough not to need more.
+    The geometry half fits it, so the stereo half (the slower one) does not carry it."""
+
+    crop: MaskCrop
+    disparity: np.ndarray
+    geometry: StereoGeometry
+    max_disparity: int
+
+    def fit(self, config: CutPointConfig) -> TrunkModel | None:
+        return fit_trunk(self.crop, self.disparity, self.geometry, config, self.max_disparity)
+
+
+@dataclass(frozen=True, eq=False)
+class CoarseToFineResult:
+    """Full-resolution `disparity` (`float32 H×W` px, 0 outside the regions), `confidence` (`H×W`),
+    the instances used (`masks`), the `regions` matched, the trunk as the coarse pass saw it (None
+    without a trunk) and the stage times in ms."""
+
+    disparity: np.ndarray
+    confidence: np.ndarray
+    masks: BranchMasks | None
+    regions: list[Region]
+    trunk: CoarseTrunk | None
+    timing_ms: dict[str, float]
+
+
+def coarse_scale(width: int, coarse_width: int) -> int:
+    """The integer down-scaling factor of the coarse pass: 1 when the frame is already small."""
+    return max(1, int(round(width / coarse_width))) if width >= 1.5 * coarse_width else 1
+
+
+def scaled_geometry(geometry: StereoGeometry, scale: int) -> StereoGeometry:
+    """The camera of an image shrunk `scale` times (pixel centres kept: c' = (c + ½) / s − ½)."""
+    return StereoGeometry(geometry.focal_px / scale, geometry.baseline_m,
+                          (geometry.cx + 0.5) / scale - 0.5, (geometry.cy + 0.5) / scale - 0.5)
+
+
+def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int, max_disp: int) -> tuple[int, int]:
+    """(d_min, d_range) at full resolution from an instance's valid coarse disparities (px at coarse scale).
+
+    The 2nd–98th percentile (a few background pixels at the silhouette do not widen it) × scale,
+    ± `margin_px`, in whole steps of `DISPARITY_STEP` within [0, max_disp). Without enough evidence:
+    the whole range.
+    """
+    if coarse_disparities.size < MIN_WINDOW_EVIDENCE:
+        return 0, max_disp
+    low, high = np.percentile(coarse_disparities, [2.0, 98.0]) * scale
+    d_min = max(0, int(math.floor(low - margin_px)))
+    d_max = min(max_disp, int(math.ceil(high + margin_px)))
+    d_range = DISPARITY_STEP * max(1, math.ceil((d_max - d_min) / DISPARITY_STEP))
+    d_min = max(0, min(d_min, max_disp - d_range))
+    return d_min, min(d_range, max_disp)
+
+
+def plan_regions(instances: BranchMasks, labels_coarse: np.ndarray, coarse_disparity: np.ndarray,
+                 scale: int, config: RoiConfig, max_disp: int) -> list[Region]:
+    """A `Region` per branch of `instances` (full resolution): its box grown by the margin, its
+    disparity window from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse
+    labels. When more than `max_regions` branches are present, the nearest ones (largest median
+    coarse disparity) are kept."""
+    height, width = instances.shape
+    regions, nearness = [], []
+    m = config.box_margin_px
+    for instance in instances.branch_ids():
+        row0, row1, col0, col1 = instances.index.box(instance)  # type: ignore[misc]  # ids come from the index
+        values = coarse_disparity[(labels_coarse == instance) & (coarse_disparity > 0)]
+        d_min, d_range = disparity_window(values, scale, config.window_margin_px, max_disp)
+        box = (max(0, col0 - m), max(0, row0 - m), min(width, col1 + m), min(height, row1 + m))
+        regions.append(Region(int(instance), box, d_min, d_range))
+        nearness.append(float(np.median(values)) if values.size else 0.0)
+    if len(regions) > config.max_regions:
+        order = sorted(range(len(regions)), key=lambda i: -nearness[i])[:config.max_regions]
+        regions = [regions[i] for i in sorted(order)]
+    return regions
+
+
+def refine_labels(labels: np.ndarray, scale: int, disparity: np.ndarray, regions: list[Region],
+                  trunk_id: int | None) -> np.ndarray:
+    """Full-resolution labels (`int32 H×W`) from up-sampled coarse ones (`labels`, nearest): each
+    branch grown by one coarse pixel into the background and kept where the fine disparity lies in
+    its window; the trunk as it is (it has no fine pass)."""
+    kernel = np.ones((2 * scale + 1, 2 * scale + 1), np.uint8)
+    refined = np.zeros_like(labels)
+    if trunk_id is not None:
+        refined[labels == trunk_id] = trunk_id
+    for region in regions:
+        x0, y0, x1, y1 = region.box
+        box_labels = labels[y0:y1, x0:x1]
+        grown = cv2.dilate((box_labels == region.instance_id).astype(np.uint8), kernel).astype(bool)
+        grown &= (box_labels == region.instance_id) | (box_labels == 0)
+        d = disparity[y0:y1, x0:x1]
+        inside = grown & (d >= region.d_min) & (d < region.d_min + region.d_range) & (d > 0)
+        refined[y0:y1, x0:x1][inside] = region.instance_id
+    return refined
+
+
+def trunk_from_coarse(disparity: np.ndarray, confidence: np.ndarray, labels: np.ndarray, trunk_id: int | None,
+                      coarse: Any, scale: int) -> None:
+    """Write the trunk's coarse disparity (× `scale`, full-resolution px) and confidence into the full-
+    resolution maps, in place, on every `scale`-th pixel (rows and columns) of its full-resolution mask."""
+    if trunk_id is None:
+        return
+    offset = scale // 2
+    rows = min(coarse.disparity.shape[0], len(range(offset, labels.shape[0], scale)))
+    cols = min(coarse.disparity.shape[1], len(range(offset, labels.shape[1], scale)))
+    grid = (slice(offset, offset + rows * scale, scale), slice(offset, offset + cols * scale, scale))
+    trunk = labels[grid] == trunk_id
+    disparity[grid][trunk] = coarse.disparity[:rows, :cols][trunk] * scale
+    confidence[grid][trunk] = coarse.confidence[:rows, :cols][trunk]
+
+
+class CoarseToFine:
+    """The `roi` mode's stereo: see the module docstring.
+
+    `fine_backend` needs `compute_roi(left, right, roi, d_min, d_range)` (`stereo.backends`);
+    the coarse pass is always SGBM (an EMCStereo coarse pass would cost more than it saves).
+    `segmenter` finds instances at coarse resolution when a frame comes without a mask.
+    """
+
+    def __init__(self, config: RoiConfig, fine_backend: Any, segmenter: Any, max_disp: int) -> None:
+        if not hasattr(fine_backend, "compute_roi"):
+            raise ValueError(f"stereo backend {getattr(fine_backend, 'name', fine_backend)!r} cannot match regions "
+                             "of interest; use mode = 'full' with it")
+        self.config = config
+        self.fine = fine_backend
+        self.segmenter = segmenter
+        self.max_disp = int(max_disp)
+        self._sgbm_backends: dict[int, Any] = {}  # SGBM backends by max_disp (coarse pass, regions beyond network_regions)
+
+    def _sgbm(self, max_disp: int) -> Any:
+        """An SGBM backend for `max_disp` (coarse pass, or regions beyond `network_regions`), built once."""
+        if max_disp not in self._sgbm_backends:
+            from stereo.backends import make_backend
+
+            self._sgbm_backends[max_disp] = make_backend("sgbm", max_disp=max_disp)
+        return self._sgbm_backends[max_disp]
+
+    def _matchers(self, regions: list[Region]) -> list[Any]:
+        """The backend for each region: the fine backend for all when it is SGBM, else for the nearest
+        `network_regions` (largest window centre; 0: all) and SGBM for the rest."""
+        if self.fine.name == "sgbm":
+            return [self.fine] * len(regions)
+        sgbm = self._sgbm(self.max_disp)
+        limit = self.config.network_regions
+        nearest = sorted(range(len(regions)), key=lambda i: -(regions[i].d_min + regions[i].d_range / 2))
+        chosen = set(nearest if limit == 0 else nearest[:limit])
+        return [self.fine if i in chosen else sgbm for i in range(len(regions))]
+
+    def compute(self, left: np.ndarray, right: np.ndarray, masks: BranchMasks | None,
+                geometry: StereoGeometry) -> CoarseToFineResult:
+        """Full-resolution disparity inside each instance's region of a rectified `uint8 H×W×3` pair."""
+        timing: dict[str, float] = {}
+        t = time.perf_counter()
+        height, width = left.shape[:2]
+        scale = coarse_scale(width, self.config.coarse_width)
+        small = (width // scale, height // scale)
+        coarse_max = DISPARITY_STEP * max(1, math.ceil(self.max_disp / scale / DISPARITY_STEP))
+        if scale > 1:
+            left_small = cv2.resize(left, small, interpolation=cv2.INTER_AREA)
+            right_small = cv2.resize(right, small, interpolation=cv2.INTER_AREA)
+        else:
+            left_small, right_small = left, right
+        coarse = self._sgbm(coarse_max).compute(left_small, right_small)
+        t = lap_ms(timing, "coarse_stereo", t)
+        if masks is None:
+            found = self.segmenter.segment(left_small, coarse.disparity, scaled_geometry(geometry, scale),
+                                           coarse.confidence)
+            coarse_labels = found.labels
+            labels_full = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
+            instances = replace(found, labels=labels_full)
+        else:
+            instances = masks
+            coarse_labels = masks.labels[scale // 2::scale, scale // 2::scale][:small[1], :small[0]]
+            labels_full = masks.labels
+        t = lap_ms(timing, "segment", t)
+        trunk_crop = BranchMasks(coarse_labels, instances.trunk_id).trunk_crop() if instances.trunk_id is not None else None
+        trunk = None if trunk_crop is None else \
+            CoarseTrunk(trunk_crop, coarse.disparity, scaled_geometry(geometry, scale), coarse_max)
+        regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
+        disparity = np.zeros((height, width), np.float32)
+        confidence = np.zeros((height, width), np.float32)
+        trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
+        matchers = self._matchers(regions)
+        regions = [replace(region, backend=backend.name) for region, backend in zip(regions, matchers)]
+        for region, backend in zip(regions, matchers):
+            result = backend.compute_roi(left, right, region.box, region.d_min, region.d_range)
+            x0, y0, x1, y1 = region.box
+            box_labels = labels_full[y0:y1, x0:x1]
+            take = ((box_labels == region.instance_id) | (box_labels == 0)) & (result.disparity > 0)
+            disparity[y0:y1, x0:x1][take] = result.disparity[take]
+            confidence[y0:y1, x0:x1][take] = result.confidence[take]
+        t = lap_ms(timing, "roi_stereo", t)
+        if masks is None:
+            instances = replace(instances, labels=refine_labels(labels_full, scale, disparity, regions,
+                                                                instances.trunk_id))
+            lap_ms(timing, "refine", t)
+        return CoarseToFineResult(disparity, confidence, instances, regions, trunk, timing)
+

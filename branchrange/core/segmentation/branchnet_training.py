@@ -1,0 +1,191 @@
+"""Training `BranchNet` on CPU from synthetic scenes, and exporting it to the ONNX file the segmenter ships.
+
+`train_branchnet(config, out_dir)`: renders (or reads cached) training scenes, trains with random
+crops and strong photometric randomisation, validates on scenes kept apart from training, writes
+`metrics.csv`, `training_curve.png`, `branchnet.onnx` and `branchnet.json` (config, seed, per-class
+IoU, the ONNX file's SHA-256). Same config + same cached scenes → the same weights (torch's CPU
+kernels are deterministic at a fixed thread count).
+
+Why these augmentations: the real trees are not the synthetic ones. Scale (0.5–1.6×) covers other
+focal lengths and branch widths; gain, contrast, gamma, per-channel colour, greyscale (some stereo
+cameras are monochrome), blur and noise cover exposure, white balance, focus and sensor; horizontal
+flips double the geometry. The disparity channel is left as SGBM gives it (holes and all).
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
+from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample
+
+
+@dataclass(frozen=True)
+class BranchNetTrainConfig:
+    """How `BranchNet` is trained (seeds are `stereo.synth` scene seeds).
+
+    - `train_seeds`, `val_seeds`: [first, last) scene seeds for training and validation; both below
+      `TRAIN_SEED_LIMIT`, disjoint.
+    - `steps`, `batch`, `crop`: optimiser steps, crops per step, crop side in px.
+    - `lr`, `weight_decay`: AdamW with a cosine decay to 2 % of `lr`.
+    - `class_weights`: cross-entropy weights of background, trunk, branch (branch pixels are ~1 %).
+    - `branch_crop_share`: share of crops centred on a branch pixel (the rest anywhere).
+    - `width`: `BranchNet` channel width; `seed`: crops, augmentation and initial weights;
+      `threads`: torch CPU threads; `val_every`: steps between validations.
+    """
+
+    train_seeds: tuple[int, int] = (1, 1201)
+    val_seeds: tuple[int, int] = (2801, 2831)
+    steps: int = 5000
+    batch: int = 8
+    crop: int = 192
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    class_weights: tuple[float, float, float] = (1.0, 1.0, 4.0)
+    branch_crop_share: float = 0.6
+    width: int = 12
+    seed: int = 0
+    threads: int = 2
+    val_every: int = 500
+
+    def __post_init__(self) -> None:
+        for name in ("train_seeds", "val_seeds"):
+            first, last = getattr(self, name)
+            if not 0 < first < last <= TRAIN_SEED_LIMIT:
+                raise ValueError(f"{name} must be [first, last) with 0 < first < last ≤ {TRAIN_SEED_LIMIT}")
+        if max(self.train_seeds[0], self.val_seeds[0]) < min(self.train_seeds[1], self.val_seeds[1]):
+            raise ValueError("train_seeds and val_seeds overlap")
+        if self.steps < 1 or self.batch < 1 or self.crop % 16 or self.crop < 64:
+            raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
+
+
+def augment(left: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """`uint8 H×W×3` with random gain, contrast, gamma, colour balance, greyscale, blur and noise."""
+    image = left.astype(np.float32) / 255.0
+    image = image * rng.uniform(0.85, 1.15, size=3)  # white balance
+    mean = image.mean()
+    image = (image - mean) * rng.uniform(0.6, 1.4) + mean * rng.uniform(0.5, 1.5)  # contrast, exposure
+    image = np.clip(image, 0.0, 1.0) ** rng.uniform(0.6, 1.6)
+    if rng.random() < 0.3:
+        image = np.repeat(image.mean(axis=2, keepdims=True), 3, axis=2)
+    if rng.random() < 0.3:
+        image = cv2.GaussianBlur(image, (0, 0), rng.uniform(0.4, 1.3))
+    image = image + rng.normal(0.0, rng.uniform(0.0, 0.025), size=image.shape).astype(np.float32)
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def training_crop(sample: dict[str, np.ndarray], config: BranchNetTrainConfig,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(input `float32 (5, c, c)`, classes `int64 (c, c)`) of one randomly scaled, augmented, cropped sample."""
+    scale = float(rng.uniform(0.5, 1.6))
+    height, width = sample["classes"].shape
+    size = (max(config.crop, round(width * scale)), max(config.crop, round(height * scale)))
+    left = cv2.resize(sample["left"], size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+    disparity = cv2.resize(sample["disparity"].astype(np.float32), size, interpolation=cv2.INTER_NEAREST)
+    classes = cv2.resize(sample["classes"], size, interpolation=cv2.INTER_NEAREST)
+    branch_v, branch_u = np.nonzero(classes == BRANCH)
+    half = config.crop // 2
+    if len(branch_u) and rng.random() < config.branch_crop_share:
+        pick = int(rng.integers(len(branch_u)))
+        top = int(np.clip(branch_v[pick] - half + rng.integers(-half // 2, half // 2 + 1), 0, size[1] - config.crop))
+        lft = int(np.clip(branch_u[pick] - half + rng.integers(-half // 2, half // 2 + 1), 0, size[0] - config.crop))
+    else:
+        top, lft = int(rng.integers(0, size[1] - config.crop + 1)), int(rng.integers(0, size[0] - config.crop + 1))
+    window = np.s_[top:top + config.crop, lft:lft + config.crop]
+    # the crop's disparity is scaled like its whole frame's, as at run time
+    features = network_input(augment(left[window], rng), disparity[window], disparity_scale(disparity))
+    target = classes[window].astype(np.int64)
+    if rng.random() < 0.5:
+        features, target = features[:, :, ::-1], target[:, ::-1]
+    return np.ascontiguousarray(features), np.ascontiguousarray(target)
+
+
+def class_iou(model: BranchNet, samples: list[dict[str, np.ndarray]]) -> dict[str, float]:
+    """Intersection over union per class on whole frames (IGNORE pixels left out)."""
+    intersection = np.zeros(len(CLASSES))
+    union = np.zeros(len(CLASSES))
+    model.eval()
+    with torch.inference_mode():
+        for sample in samples:
+            features, (h, w) = padded_to_stride(network_input(sample["left"], sample["disparity"].astype(np.float32)))
+            predicted = model(torch.from_numpy(features)[None])[0].argmax(0).numpy()[:h, :w]
+            truth = sample["classes"]
+            counted = truth != IGNORE
+            for k in range(len(CLASSES)):
+                p, t = (predicted == k) & counted, (truth == k) & counted
+                intersection[k] += np.count_nonzero(p & t)
+                union[k] += np.count_nonzero(p | t)
+    model.train()
+    return {name: float(intersection[k] / union[k]) if union[k] else float("nan") for k, name in enumerate(CLASSES)}
+
+
+def export_onnx(model: BranchNet, path: Path) -> str:
+    """Write `model` as ONNX (input `image` (1, 5, H, W), dynamic H, W; output `logits`); its SHA-256."""
+    model = model.eval().to(memory_format=torch.contiguous_format)
+    example = torch.zeros(1, 5, 368, 640)
+    torch.onnx.export(model, example, str(path), input_names=["image"], output_names=["logits"],
+                      dynamic_axes={"image": {2: "height", 3: "width"}, "logits": {2: "height", 3: "width"}},
+                      opset_version=17, dynamo=False)
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path, log=print) -> dict:
+    """Train, validate and export (see the module docstring); returns the metadata written to `branchnet.json`."""
+    from stereo.training.curves import plot_panel
+    from stereo.io import write_rgb
+
+    torch.manual_seed(config.seed)
+    torch.set_num_threads(config.threads)
+    rng = np.random.default_rng(config.seed)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    train_seeds = np.arange(*config.train_seeds)
+    validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
+    model = BranchNet(config.width).to(memory_format=torch.channels_last)  # ~1.4× faster convolutions on CPU
+    optimiser = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=config.lr, total_steps=config.steps,
+                                                   pct_start=0.05, final_div_factor=50)
+    weights = torch.tensor(config.class_weights, dtype=torch.float32)
+    history: list[dict] = []
+    running, start = [], time.perf_counter()
+    for step in range(1, config.steps + 1):
+        crops = [training_crop(cached_sample(data_dir, int(rng.choice(train_seeds))), config, rng)
+                 for _ in range(config.batch)]
+        inputs = torch.from_numpy(np.stack([c[0] for c in crops])).contiguous(memory_format=torch.channels_last)
+        targets = torch.from_numpy(np.stack([c[1] for c in crops]))
+        loss = F.cross_entropy(model(inputs), targets, weight=weights, ignore_index=IGNORE)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        running.append(float(loss.detach()))
+        if step % config.val_every == 0 or step == config.steps:
+            iou = class_iou(model, validation)
+            row = {"step": step, "train_loss": float(np.mean(running)), **{f"iou_{k}": v for k, v in iou.items()},
+                   "seconds": round(time.perf_counter() - start, 1)}
+            history.append(row)
+            running = []
+            log(" ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+    with (out_dir / "metrics.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(history[0]))
+        writer.writeheader()
+        writer.writerows(history)
+    steps = [row["step"] for row in history]
+    write_rgb(out_dir / "training_curve.png", np.concatenate([
+        plot_panel("train loss", steps, [r["train_loss"] for r in history], (31, 119, 180), "step"),
+        plot_panel("val IoU branch", steps, [r["iou_branch"] for r in history], (214, 39, 40), "step"),
+        plot_panel("val IoU trunk", steps, [r["iou_trunk"] for r in history], (44, 160, 44), "step")], axis=1))
+    torch.save(model.state_dict(), out_dir / "branchnet.pt")
+    sha256 = export_onnx(model, out_dir / "branchnet.onnx")
+    meta = {"model": "BranchNet", "width": config.width, "classes": list(CLASSES), "onnx_sha256": sha256,
+            "config": asdict(config), "final": history[-1], "torch": torch.__version__}
+    (out_dir / "branchnet.json").write_text(json.dumps(meta, indent=1) + "\n")
+    return meta

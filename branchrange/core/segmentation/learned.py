@@ -1,0 +1,137 @@
+"""`LearnedSegmenter`: branch instances from the shipped `BranchNet` (ONNX, onnxruntime on CPU) plus geometry.
+
+Steps (one frame):
+1. `BranchNet` gives per-pixel background / trunk / branch probabilities from the left image and
+   the disparity (`branchrange.core.segmentation.branchnet`);
+2. the trunk is the largest connected trunk region (the tree being pruned; other trunks are
+   background to the cut-point stage);
+3. branch pixels are cut apart where the depth jumps (`depth_edge_ratio`, as in the built-in
+   segmenters: a stem crossing in front of another becomes two), then split into 8-connected
+   instances; instances under `min_area_px` are dropped;
+4. each instance's score is the mean branch probability over its pixels — carried in
+   `BranchMasks.scores` and multiplied into its cut point's confidence, so a doubtful instance
+   never produces a confident cut point.
+
+The weights file ships inside the package (`weights/branchnet.onnx`, under 1 MB) and is checked
+against the SHA-256 recorded beside it (`weights/branchnet.json`, which also holds the training
+config, seed and validation IoU); `model=` takes another file trained with `branchrange
+train-segmenter`, checked against its own JSON when one sits beside it.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
+from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
+from branchrange.core.segmentation.branchnet import CLASSES, padded_to_stride, network_input
+from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
+from branchrange.core.segmentation.segmenter import depth_edges
+from branchrange.core.settings_check import Checks, Settings
+
+#: the shipped model and its metadata (SHA-256, training config, validation IoU)
+SHIPPED_MODEL = Path(__file__).with_name("weights") / "branchnet.onnx"
+_TRUNK, _BRANCH = CLASSES.index("trunk"), CLASSES.index("branch")
+
+
+@dataclass(frozen=True)
+class LearnedSegmenterConfig(Settings):
+    """Settings of `LearnedSegmenter`.
+
+    - `model`: an ONNX `BranchNet` file; empty = the shipped one.
+    - `branch_threshold`: branch probability a pixel needs (0..1); the trunk is the arg-max class.
+    - `min_area_px`: smaller branch instances are dropped (speckle, twig tips).
+    - `depth_edge_ratio`: neighbours whose depths differ by more than this fraction are cut apart.
+    - `threads`: onnxruntime intra-op threads.
+    - `trunk_id`: the id the trunk gets in the returned instances.
+    """
+
+    section = "segmenter.learned"
+    error = OnnxSegmenterError
+
+    model: str = ""
+    branch_threshold: float = 0.5
+    min_area_px: int = 12
+    depth_edge_ratio: float = 0.06
+    threads: int = 2
+    trunk_id: int = DEFAULT_TRUNK_ID
+
+    def checks(self) -> Checks:
+        """Range checks of the settings (`Settings`)."""
+        return {
+            "branch_threshold": (0 < self.branch_threshold < 1, "a probability in (0, 1)"),
+            "min_area_px": (self.min_area_px >= 1, "≥ 1 pixel"),
+            "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
+            "threads": (1 <= self.threads <= 64, "1..64 threads"),
+            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
+        }
+
+
+def verified_model(path: Path) -> Path:
+    """`path` itself when the SHA-256 in the JSON beside it (if any) matches the file; else `OnnxSegmenterError`."""
+    meta_path = path.with_suffix(".json")
+    if not path.is_file():
+        raise OnnxSegmenterError(f"learned segmenter: no model file {path}")
+    if meta_path.is_file():
+        expected = json.loads(meta_path.read_text(encoding="utf-8")).get("onnx_sha256")
+        found = hashlib.sha256(path.read_bytes()).hexdigest()
+        if expected and expected != found:
+            raise OnnxSegmenterError(f"learned segmenter: {path} has SHA-256 {found}, but {meta_path.name} "
+                                     f"records {expected}: the file is damaged or not the one trained")
+    return path
+
+
+def _softmax(logits: np.ndarray) -> np.ndarray:
+    """Softmax over axis 0 of `(C, H, W)` logits."""
+    shifted = np.exp(logits - logits.max(axis=0, keepdims=True))
+    return shifted / shifted.sum(axis=0, keepdims=True)
+
+
+class LearnedSegmenter:
+    """`Segmenter` over `BranchNet` (see the module docstring)."""
+
+    name = "learned"
+
+    def __init__(self, config: LearnedSegmenterConfig = LearnedSegmenterConfig()) -> None:
+        self.config = config
+        self.model_path = verified_model(Path(config.model) if config.model else SHIPPED_MODEL)
+        self.session = onnx_session(self.model_path, config.threads)
+        self._input = self.session.get_inputs()[0].name
+
+    def probabilities(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """`float32 (3, H, W)` background / trunk / branch probabilities of a frame."""
+        features, (height, width) = padded_to_stride(network_input(left, disparity))
+        logits = self.session.run(None, {self._input: features[None]})[0][0, :, :height, :width]
+        return _softmax(logits)
+
+    def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
+                confidence: np.ndarray | None = None) -> BranchMasks:
+        """Branch instances (1..K, each scored) and the trunk (`trunk_id`) of one rectified frame."""
+        cfg = self.config
+        disparity = np.asarray(disparity, dtype=np.float32)
+        if left.shape[:2] != disparity.shape:
+            raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
+        probs = self.probabilities(left, disparity)
+        labels = np.zeros(disparity.shape, dtype=np.int32)
+        trunk = (probs.argmax(axis=0) == _TRUNK).astype(np.uint8)
+        count, components, stats, _ = cv2.connectedComponentsWithStats(trunk, connectivity=8)
+        if count > 1:
+            labels[components == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))] = cfg.trunk_id
+        depth = np.where(valid_disparity(disparity), disparity_to_depth(disparity, geometry), np.inf)
+        branch = (probs[_BRANCH] >= cfg.branch_threshold) & (labels == 0)
+        branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
+        count, components, stats, _ = cv2.connectedComponentsWithStats(branch.astype(np.uint8), connectivity=8)
+        keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= cfg.min_area_px) + 1
+        renumber = np.zeros(count, dtype=np.int32)
+        renumber[keep] = np.arange(1, len(keep) + 1)
+        instances = renumber[components]
+        labels = np.where(instances > 0, instances, labels)
+        sums = np.bincount(instances.ravel(), weights=probs[_BRANCH].ravel(), minlength=len(keep) + 1)
+        sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
+        scores = {int(i): float(sums[i] / sizes[i]) for i in range(1, len(keep) + 1)}
+        return BranchMasks(labels, cfg.trunk_id, self.name, scores=scores)

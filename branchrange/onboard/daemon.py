@@ -1,0 +1,365 @@
+"""The onboard daemon: camera source → pipeline → MAVLink relay + JSONL results log (+ API state).
+
+Three threads, so no stage waits for a slower one and every stage works on the newest input.
+The JSONL results log starts each run with a run header line (`frame_results.run_header`), so a
+restart is visible in the log. Threads:
+- **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
+  dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
+  clock — the capture time every age and latency is measured from;
+- **stereo** (the `run()` thread): on the first frame of each opened camera, a check that the
+  rectified rows are aligned (`branchrange.core.pair_check`: a warning with the fix when not); then
+  rectification and disparity (`Pipeline.stereo_stage`; in
+  `stereo.mode = "roi"` the coarse pass, the segmenter and the full-resolution regions); it is
+  also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
+  or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
+  results go stale → "no target"); after three stall timeouts it closes the source, opens a fresh
+  one and forgets tracked branches;
+- **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
+  on the newest stereo output (one slot: an output the worker had no time for is replaced by the
+  next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
+  never waits for either), the JSONL log, /latest and the observers.
+Each result carries `latency` (ms from capture to the stereo stage, to the geometry stage, to
+publishing), besides the per-stage `timing_ms`. A result already older than
+`mavlink.max_result_age_s` when published is counted (`late`) and goes out as "no target". After
+the first `WARMUP_FRAMES` frames the daemon logs, once, whether its measured capture → publish
+time can meet `max_result_age_s`, and what to change when it cannot. A status line (fps, latency,
+drops, camera, link) every `log.status_interval_s`. `stop()` (the SIGTERM/SIGINT handler calls
+it) ends the loop within one stall timeout.
+"""
+from __future__ import annotations
+
+import logging
+import statistics
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import IO, Any, Protocol
+
+from branchrange.core.config import Config
+from branchrange.core.frame_result import FrameResult, Latency
+from branchrange.core.frame_results import result_line, run_header_line, stereo_stage
+from branchrange.onboard.mavlink import MavlinkRelay
+from branchrange.onboard.newest_slot import NewestSlot
+from branchrange.core.pair_check import check_rectification
+from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
+from stereo.backends.base import validate_pair
+
+log = logging.getLogger("branchrange.daemon")
+#: Stall timeouts without a frame after which the source is closed and opened again.
+REOPEN_AFTER_STALLS = 3
+#: Unreadable frames in a row after which the camera counts as lost (a vanished recording, a dying cable).
+CORRUPT_FRAMES_LOST = 5
+#: Frames after which the measured capture → publish time is compared with `max_result_age_s`.
+WARMUP_FRAMES = 3
+
+#: Called once per processed frame with its `FrameResult` and the pipeline's `FrameArtifacts`.
+ResultObserver = Callable[[FrameResult, Any], None]
+
+
+class DaemonMetrics(Protocol):
+    """What the daemon reports to a metrics registry (`api.metrics.Metrics` when the API runs in the
+    same process); declared here so the onboard layer does not import the API above it."""
+
+    def observe_frame(self, seconds: float, source: str) -> None:
+        """One published frame, `seconds` from capture to publishing; `source` labels who processed it."""
+
+    def count_error(self, kind: str) -> None:
+        """One error of `kind` (e.g. 'camera_lost')."""
+
+
+@dataclass(frozen=True, eq=False)
+class _StereoOutput:
+    """A frame between the two halves: the stereo stage's output and when the frame arrived (monotonic s)."""
+
+    stage: Any
+    captured_at: float
+    stereo_started_at: float
+    stereo_done_at: float
+
+
+class Daemon:
+    """Runs the onboard loop; also the `LiveStatus` the API reads (`latest_result`, `health`)."""
+
+    def __init__(self, cfg: Config, *, open_source: Callable[[], StereoSource], pipeline: Any,
+                 relay: MavlinkRelay | None = None, results_path: str | Path | None = None,
+                 metrics: DaemonMetrics | None = None, observers: Sequence[ResultObserver] = ()):
+        self.cfg = cfg
+        self._open_source = open_source
+        self.pipeline = pipeline
+        self.relay = relay
+        self.metrics = metrics
+        self.observers = list(observers)
+        self._results: IO[str] | None = None
+        if results_path:
+            Path(results_path).parent.mkdir(parents=True, exist_ok=True)
+            self._results = open(results_path, "a", encoding="utf-8", buffering=1)  # one flushed line per frame
+            # a restart appends to the same log: each run starts with its header, never silently at frame 0 again
+            self._results.write(run_header_line("daemon", cfg, cfg.camera.source))
+        self._stop = threading.Event()
+        self._latest: FrameResult | None = None
+        self._slot = NewestSlot()
+        self._counts_lock = threading.Lock()
+        self.camera_lost = False
+        self.frames = 0
+        self.corrupt = 0
+        self.rejected = 0
+        self.reopens = 0
+        self.dropped = 0
+        self.late = 0  # results older than mavlink.max_result_age_s when published
+        self._dropped_by_closed_sources = 0
+        self._corrupt_in_a_row = 0
+        self._latencies: list[float] = []
+        self._warmup: list[tuple[float, float, float]] = []  # (capture → publish, stereo, geometry) s
+        self._speed_reported = False
+        self._pair_checked = False
+        self._speed_warned = False
+
+    @property
+    def skipped(self) -> int:
+        """Stereo outputs replaced before the geometry stage took them (it was busy with an older one)."""
+        return self._slot.replaced
+
+    def latest_result(self) -> FrameResult | None:
+        """The newest frame's result (for GET /latest)."""
+        return self._latest
+
+    def health(self) -> dict[str, Any]:
+        """Model, camera and link state (for GET /health)."""
+        camera = {"source": self.cfg.camera.source, "lost": self.camera_lost, "frames": self.frames,
+                  "dropped": self.dropped, "skipped": self.skipped, "corrupt": self.corrupt,
+                  "reopens": self.reopens, "late": self.late}
+        model = {"loaded": True, "backend": self.cfg.stereo.backend, "max_disp": self.cfg.stereo.max_disp,
+                 "mode": self.cfg.stereo.mode}
+        return {"model": model, "camera": camera,
+                "mavlink": None if self.relay is None else self.relay.link_state()}
+
+    def stop(self) -> None:
+        """Ask the loop to finish (safe from a signal handler or another thread)."""
+        self._stop.set()
+
+    def _count_error(self, kind: str) -> None:
+        if self.metrics is not None:
+            self.metrics.count_error(kind)
+
+    def _set_camera_lost(self, lost: bool) -> None:
+        if lost != self.camera_lost:
+            self.camera_lost = lost
+            (log.warning if lost else log.info)("camera %s", "lost" if lost else "back")
+            if lost:
+                self._count_error("camera_lost")
+            if self.relay is not None:
+                self.relay.set_camera_lost(lost)
+
+    def _reject(self, index: int, error: Exception) -> None:
+        with self._counts_lock:
+            self.rejected += 1
+        self._count_error("rejected_frame")
+        if isinstance(error, ValueError):
+            log.warning("frame %d rejected by the pipeline: %s", index, error)
+        else:  # a bug, not bad input: keep flying, but leave the traceback in the log
+            log.error("frame %d failed: %r", index, error, exc_info=error)
+
+    def _check_pair(self, frame: Any) -> None:
+        """Once per opened camera: are its (rectified) rows aligned? A misaligned pair gives confident
+        nonsense, so say so in the log, with how to fix it (`branchrange.core.pair_check`)."""
+        self._pair_checked = True
+        left, right = frame.left, frame.right
+        rectifier = getattr(self.pipeline, "rectifier", None)
+        try:
+            validate_pair(left, right)
+            if rectifier is not None:
+                left, right = rectifier.rectify(left, right)
+            check_rectification(left, right).log(log)
+        except ValueError as error:  # a frame the pipeline will reject anyway, with its own message
+            log.debug("pair check skipped: %s", error)
+
+    def _stereo(self, frame: Any, captured_at: float) -> None:
+        """The stereo half of one frame, handed to the geometry worker."""
+        if not self._pair_checked:
+            self._check_pair(frame)
+        started = time.monotonic()
+        try:
+            stage = stereo_stage(self.pipeline, frame)
+        except Exception as error:  # noqa: BLE001 — one bad frame must not stop the vehicle's sensor
+            self._reject(frame.index, error)
+            return
+        self._slot.put(_StereoOutput(stage, captured_at, started, time.monotonic()))
+
+    def _geometry_worker(self) -> None:
+        """The geometry + send thread: the newest stereo output → result → relay, log, /latest, observers."""
+        while (item := self._slot.take()) is not None:
+            try:
+                self._publish(self.pipeline.geometry_stage(item.stage), item)
+            except Exception as error:  # noqa: BLE001 — the next frame may well be fine
+                self._reject(item.stage.index, error)
+            finally:
+                self._slot.task_done()
+
+    def _publish(self, result: FrameResult, item: _StereoOutput) -> None:
+        now = time.monotonic()
+        age = now - item.captured_at
+        result = replace(result, latency=Latency(round(1000 * (item.stereo_started_at - item.captured_at), 3),
+                                                 round(1000 * (item.stereo_done_at - item.captured_at), 3),
+                                                 round(1000 * age, 3)))
+        if self.relay is not None:
+            self.relay.publish(result, captured_at=item.captured_at)
+            result = replace(result, targets=self.relay.targets())  # fused in local NED, for the log and /latest
+        self._check_age(age)
+        if self._results is not None:
+            self._results.write(result_line(result))
+        self._latest = result
+        for observer in self.observers:
+            try:
+                observer(result, self.pipeline.last)
+            except Exception as error:  # noqa: BLE001 — a viewer must never stop the daemon
+                log.warning("result observer %r failed: %r", observer, error)
+        with self._counts_lock:
+            self.frames += 1
+            self._latencies.append(age)
+        if self.metrics is not None:
+            self.metrics.observe_frame(age, "daemon")
+        if len(self._warmup) < WARMUP_FRAMES:
+            self._warmup.append((age, item.stereo_done_at - item.stereo_started_at, now - item.stereo_done_at))
+            if len(self._warmup) == WARMUP_FRAMES:
+                self._report_speed()
+
+    def _report_speed(self) -> None:
+        """Once, after the first frames: can this configuration meet `max_result_age_s`, and if not, what to change."""
+        if self._speed_reported or not self._warmup:
+            return
+        self._speed_reported = True
+        age, stereo, geometry = (statistics.median(column) for column in zip(*self._warmup))
+        limit = self.cfg.mavlink.max_result_age_s
+        if age <= limit:
+            log.info("speed: capture → publish %.0f ms (stereo %.0f ms, geometry %.0f ms) within "
+                     "mavlink.max_result_age_s = %.0f ms", 1000 * age, 1000 * stereo, 1000 * geometry, 1000 * limit)
+            return
+        self._speed_warned = True
+        advice = ("set stereo.mode = 'roi'" if self.cfg.stereo.mode != "roi" else
+                  "lower stereo.max_disp to the working range, or roi.coarse_width")
+        if self.cfg.stereo.backend != "sgbm":
+            advice += ", or use stereo.backend = 'sgbm' on this computer"
+        log.warning("speed: capture → publish takes %.0f ms (stereo %.0f ms, geometry %.0f ms), more than "
+                    "mavlink.max_result_age_s = %.0f ms: every result goes out as 'no target'. To fix: %s",
+                    1000 * age, 1000 * stereo, 1000 * geometry, 1000 * limit, advice)
+
+    def _check_age(self, age_s: float) -> None:
+        """Count a result that was stale on publishing; after a warm-up that was fast enough, warn on the
+        first one (during the warm-up, the speed report says it)."""
+        if age_s <= self.cfg.mavlink.max_result_age_s:
+            return
+        self.late += 1
+        if len(self._warmup) >= WARMUP_FRAMES and not self._speed_warned:
+            self._speed_warned = True
+            log.warning("frame took %.0f ms, more than mavlink.max_result_age_s = %.0f ms: its result goes out as "
+                        "'no target' (the computer may be busy with something else)",
+                        1000 * age_s, 1000 * self.cfg.mavlink.max_result_age_s)
+
+    def _status(self, since: float, now: float, frames_then: int) -> None:
+        with self._counts_lock:
+            fps = (self.frames - frames_then) / max(now - since, 1e-9)
+            latency = 1000 * sum(self._latencies) / len(self._latencies) if self._latencies else 0.0
+            self._latencies.clear()
+        state = None if self.relay is None else self.relay.link_state()
+        link = "off" if state is None else ("up" if state["connected"] else "down")
+        pose = "off" if state is None else state["mode"]  # world: fused in local NED; camera: no vehicle state
+        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d skipped=%d corrupt=%d late=%d camera=%s link=%s "
+                 "pose=%s", self.frames, fps, latency, self.dropped, self.skipped, self.corrupt, self.late,
+                 "lost" if self.camera_lost else "ok", link, pose)
+
+    def _done(self, max_frames: int | None) -> bool:
+        return self._stop.is_set() or (max_frames is not None and self.frames >= max_frames)
+
+    def run(self, max_frames: int | None = None) -> int:
+        """Process frames until the source ends, `max_frames` are done or `stop()`; returns frames done."""
+        worker = threading.Thread(target=self._geometry_worker, name="geometry-send", daemon=True)
+        self._slot = NewestSlot()
+        worker.start()
+        timeout = self.cfg.camera.stall_timeout_s
+        source = self._try_open()
+        stalls = 0
+        status_at, frames_then = time.monotonic(), self.frames
+        try:
+            while not self._done(max_frames):
+                now = time.monotonic()
+                if now - status_at >= self.cfg.log.status_interval_s:
+                    self._status(status_at, now, frames_then)
+                    status_at, frames_then = now, self.frames
+                stamped = None
+                if source is None:
+                    self._stop.wait(timeout)
+                else:
+                    try:
+                        stamped = source.get_stamped(timeout=timeout)
+                    except StopIteration:
+                        log.info("source ended")
+                        break
+                    except CorruptFrameError as exc:
+                        self._on_corrupt(exc)
+                        continue
+                    except SourceDisconnected as exc:
+                        log.warning("camera disconnected: %s", exc)
+                if stamped is None or source is None or source.is_lost:
+                    self._set_camera_lost(True)
+                    stalls += stamped is None
+                    if stalls >= REOPEN_AFTER_STALLS:
+                        source, stalls = self._reopen(source), 0
+                    if stamped is None:
+                        continue
+                stalls = self._corrupt_in_a_row = 0
+                self._set_camera_lost(False)
+                self.dropped = self._dropped_by_closed_sources + source.dropped
+                if max_frames is not None:
+                    self._slot.wait_idle()  # a counted run processes every frame it takes, and no more
+                    if self._done(max_frames):
+                        break
+                self._stereo(*stamped)
+        finally:
+            if source is not None:
+                source.close()
+            self._slot.wait_idle()  # the last stereo output still gets its geometry and send
+            self._slot.close()
+            worker.join()
+        self._report_speed()  # a run shorter than the warm-up
+        self._status(status_at, time.monotonic(), frames_then)
+        return self.frames
+
+    def _on_corrupt(self, error: CorruptFrameError) -> None:
+        """Skip an unreadable frame; several in a row mean the camera (or the recording) is gone."""
+        self.corrupt += 1
+        self._corrupt_in_a_row += 1
+        self._count_error("corrupt_frame")
+        log.warning("corrupt frame skipped: %s", error)
+        if self._corrupt_in_a_row == CORRUPT_FRAMES_LOST:
+            log.warning("%d unreadable frames in a row: treating the camera as lost", CORRUPT_FRAMES_LOST)
+            self._set_camera_lost(True)
+
+    def _try_open(self) -> LatestFrameSource | None:
+        """A fresh source with its capture thread, or None (logged) when the camera cannot be opened."""
+        try:
+            return LatestFrameSource(self._open_source())
+        except SourceError as exc:
+            log.error("cannot open the camera: %s", exc)
+            return None
+
+    def _reopen(self, source: LatestFrameSource | None) -> LatestFrameSource | None:
+        """Close a stalled source and open a fresh one; tracked branches are forgotten."""
+        log.warning("no frame for %d stall timeouts: reopening the camera", REOPEN_AFTER_STALLS)
+        if source is not None:
+            source.close()
+            self._dropped_by_closed_sources += source.dropped
+        self.reopens += 1
+        self._pair_checked = False  # a camera plugged in again may be another one
+        self._slot.wait_idle()  # the tracker is the worker's until then
+        self.pipeline.reset()
+        return self._try_open()
+
+    def close(self) -> None:
+        """Close the results log and the relay (the source is closed by `run`)."""
+        if self.relay is not None:
+            self.relay.close()
+        if self._results is not None:
+            self._results.close()
+            self._results = None
