@@ -1,5 +1,6 @@
 """The app factory: `create_app(settings, estimator, state=None)` wires settings, auth, limits,
 metrics and the routers (FastAPI "bigger applications" layout)."""
+
 from __future__ import annotations
 
 import time
@@ -14,8 +15,8 @@ from api.estimator import Estimator
 from api.limits import BodySizeLimit, InferenceSlots, ShedWhenBusy
 from api.metrics import Metrics
 from api.routers import estimate, status
-from branchrange.core.frame_result import FrameResult
 from branchrange.core.config import ApiConfig
+from branchrange.core.frame_result import FrameResult
 
 DESCRIPTION = """Cut points of tree branches, in metres, from a stereo pair.
 
@@ -37,12 +38,14 @@ class LiveStatus(Protocol):
         ...
 
 
-def create_app(settings: ApiConfig, estimator: Estimator | None, state: LiveStatus | None = None,
-               metrics: Metrics | None = None) -> FastAPI:
+def create_app(
+    settings: ApiConfig, estimator: Estimator | None, state: LiveStatus | None = None, metrics: Metrics | None = None
+) -> FastAPI:
     """The FastAPI app. `estimator` None leaves out the POST routes (a daemon that only reports);
     `state` (the daemon) enables `/latest` and the camera/link parts of `/health`."""
-    app = FastAPI(title="BranchRange", version=status.package_version(), description=DESCRIPTION,
-                  docs_url=None, redoc_url=None)  # served from local assets: see add_offline_docs
+    app = FastAPI(
+        title="BranchRange", version=status.package_version(), description=DESCRIPTION, docs_url=None, redoc_url=None
+    )  # served from local assets: see add_offline_docs
     app.state.settings = settings
     app.state.estimator = estimator
     app.state.live = state
@@ -50,8 +53,9 @@ def create_app(settings: ApiConfig, estimator: Estimator | None, state: LiveStat
     app.state.slots = InferenceSlots(settings.max_concurrency, settings.retry_after_s)
     app.add_exception_handler(RequestValidationError, validation_error_answer)
     # both inside the metrics middleware, so their 413s and 503s are counted
-    app.add_middleware(ShedWhenBusy, slots=app.state.slots,
-                       paths=frozenset(route.path for route in estimate.router.routes))
+    app.add_middleware(
+        ShedWhenBusy, slots=app.state.slots, paths=frozenset(route.path for route in estimate.router.routes)
+    )
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
 
     @app.middleware("http")
@@ -59,8 +63,9 @@ def create_app(settings: ApiConfig, estimator: Estimator | None, state: LiveStat
         start = time.perf_counter()
         response = await call_next(request)
         route = request.scope.get("route")
-        app.state.metrics.observe_request(getattr(route, "path", "unmatched"), request.method,
-                                          response.status_code, time.perf_counter() - start)
+        app.state.metrics.observe_request(
+            getattr(route, "path", "unmatched"), request.method, response.status_code, time.perf_counter() - start
+        )
         return response
 
     if estimator is not None:

@@ -4,6 +4,7 @@ The scheme is FastAPI's `HTTPBearer`, so the OpenAPI document names it (`securit
 every route that needs it; the check itself is ours (constant-time, one message for missing and
 wrong tokens).
 """
+
 from __future__ import annotations
 
 import hmac
@@ -15,13 +16,17 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 BEARER = HTTPBearer(auto_error=False, description="the token of `[api] token` or BRANCHRANGE_API_TOKEN")
 
 
-def require_token(request: Request,
-                  credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]) -> None:
+def require_token(
+    request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]
+) -> None:
     """Reject the request with 401 unless it carries `Authorization: Bearer <the configured token>`."""
     token = request.app.state.settings.token
     if not token:
         return
     given = "" if credentials is None else credentials.credentials.strip()
     if not hmac.compare_digest(given.encode(), token.encode()):
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing or wrong bearer token (Authorization: Bearer …)",
-                            headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "missing or wrong bearer token (Authorization: Bearer …)",
+            headers={"WWW-Authenticate": "Bearer"},
+        )

@@ -5,6 +5,7 @@ with 422 and `{"detail": [{"loc": …, "msg": …}, …]}`; every other error of
 `{"detail": "…"}`. The handler here folds the list into one message naming each field, so a
 client parses one error shape and the document describes what is sent.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -33,7 +34,7 @@ def validation_message(errors: list[dict[str, Any]]) -> str:
             continue
         value = repr(error.get("input"))
         if len(value) > MAX_VALUE_CHARS:
-            value = value[:MAX_VALUE_CHARS - 1] + "…"
+            value = value[: MAX_VALUE_CHARS - 1] + "…"
         lines.append(f"{field} = {value}: {error.get('msg', 'invalid')}")
     return "; ".join(lines)
 

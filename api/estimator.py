@@ -4,6 +4,7 @@ Routes hand over decoded RGB arrays and a `CameraSpec`; an estimator returns the
 result or the disparity. Keeping routes to this protocol lets them be tested with any real
 implementation and keeps FastAPI out of the pipeline.
 """
+
 from __future__ import annotations
 
 import threading
@@ -30,14 +31,30 @@ class CameraSpec:
 class Estimator(Protocol):
     """What the API calls: one stereo pair in, a result or a disparity out (blocking; run off-loop)."""
 
-    def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> FrameResult:
+    def estimate(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        mask: np.ndarray | None,
+        camera: CameraSpec,
+        *,
+        backend: str | None = None,
+        max_disp: int | None = None,
+        segmenter: str | None = None,
+    ) -> FrameResult:
         """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`;
         `segmenter` 'structure' / 'geometric' asks for a built-in segmenter instead of the server's configured one."""
         ...
 
-    def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
-                  backend: str | None = None, max_disp: int | None = None) -> np.ndarray:
+    def disparity(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        camera: CameraSpec,
+        *,
+        backend: str | None = None,
+        max_disp: int | None = None,
+    ) -> np.ndarray:
         """Disparity `float32 H×W` (pixels, rectified left view) of the pair."""
         ...
 
@@ -62,8 +79,9 @@ class PipelineEstimator:
     def _settings(self, backend: str | None, max_disp: int | None) -> PipelineConfig:
         """The configuration with a request's backend and max_disp in place of the defaults."""
         stereo = self.config.stereo
-        return replace(self.config, stereo=replace(stereo, backend=backend or stereo.backend,
-                                                   max_disp=max_disp or stereo.max_disp))
+        return replace(
+            self.config, stereo=replace(stereo, backend=backend or stereo.backend, max_disp=max_disp or stereo.max_disp)
+        )
 
     def backend(self, backend: str | None = None, max_disp: int | None = None) -> Any:
         """The stereo backend for these options (default: the configured one), built on first use and
@@ -71,13 +89,16 @@ class PipelineEstimator:
         so a bad [stereo] section fails before the service listens."""
         name = backend or self.config.stereo.backend
         if name in WEIGHTED_BACKENDS and not self.config.stereo.weights:
-            raise ValueError(f"backend {name!r} has no weights on this server (stereo.weights); "
-                             "an untrained network would give meaningless cut points")
+            raise ValueError(
+                f"backend {name!r} has no weights on this server (stereo.weights); "
+                "an untrained network would give meaningless cut points"
+            )
         cfg = self._settings(backend, max_disp).stereo
         key = (cfg.backend, cfg.max_disp)
         if key not in self._backends:
-            self._backends[key] = make_backend(cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp,
-                                               device=cfg.device, precision=cfg.precision)
+            self._backends[key] = make_backend(
+                cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp, device=cfg.device, precision=cfg.precision
+            )
         return self._backends[key]
 
     def segmenter(self, name: str | None = None) -> Any:
@@ -87,20 +108,43 @@ class PipelineEstimator:
             self._segmenters[name] = self.config.segmenter.build(name)
         return self._segmenters[name]
 
-    def _pipeline(self, camera: CameraSpec, backend: str | None, max_disp: int | None,
-                  segmenter: str | None = None) -> Pipeline:
+    def _pipeline(
+        self, camera: CameraSpec, backend: str | None, max_disp: int | None, segmenter: str | None = None
+    ) -> Pipeline:
         stereo = self.backend(backend, max_disp)  # first: its message says why a backend cannot serve
-        return Pipeline(self._settings(backend, max_disp), calibration=camera.calibration, focal_px=camera.focal_px,
-                        baseline_m=camera.baseline_m, backend=stereo, segmenter=self.segmenter(segmenter))
+        return Pipeline(
+            self._settings(backend, max_disp),
+            calibration=camera.calibration,
+            focal_px=camera.focal_px,
+            baseline_m=camera.baseline_m,
+            backend=stereo,
+            segmenter=self.segmenter(segmenter),
+        )
 
-    def estimate(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None, camera: CameraSpec, *,
-                 backend: str | None = None, max_disp: int | None = None, segmenter: str | None = None) -> FrameResult:
+    def estimate(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        mask: np.ndarray | None,
+        camera: CameraSpec,
+        *,
+        backend: str | None = None,
+        max_disp: int | None = None,
+        segmenter: str | None = None,
+    ) -> FrameResult:
         """See `Estimator.estimate`; input errors are the pipeline's ValueErrors."""
         with self._lock:
             return self._pipeline(camera, backend, max_disp, segmenter).process(left, right, mask)
 
-    def disparity(self, left: np.ndarray, right: np.ndarray, camera: CameraSpec, *,
-                  backend: str | None = None, max_disp: int | None = None) -> np.ndarray:
+    def disparity(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        camera: CameraSpec,
+        *,
+        backend: str | None = None,
+        max_disp: int | None = None,
+    ) -> np.ndarray:
         """See `Estimator.disparity`: rectified when the calibration is raw, then the backend (which
         checks the pair, `stereo.backends.validate_pair`, as the route did)."""
         with self._lock:

@@ -5,6 +5,7 @@ parses a multipart body, spooling files to disk, before any dependency runs, so 
 sit in front of the app), each upload while it is read, and an image's width × height from its
 PNG/JPEG header before it is decoded (a small file can decode to gigabytes).
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -50,8 +51,10 @@ class InferenceSlots:
 
     def busy_answer(self) -> tuple[str, dict[str, str]]:
         """The 503's message and headers (`Retry-After`)."""
-        return (f"all {self.capacity} inference slots are busy; retry in {self.retry_after_s} s",
-                {"Retry-After": str(self.retry_after_s)})
+        return (
+            f"all {self.capacity} inference slots are busy; retry in {self.retry_after_s} s",
+            {"Retry-After": str(self.retry_after_s)},
+        )
 
     @asynccontextmanager
     async def slot(self) -> AsyncIterator[None]:
@@ -78,8 +81,9 @@ class ShedWhenBusy:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "http" and scope["path"] in self.paths and self.slots.busy:
             detail, headers = self.slots.busy_answer()
-            response = JSONResponse({"detail": detail}, status.HTTP_503_SERVICE_UNAVAILABLE,
-                                    headers={**headers, "Connection": "close"})
+            response = JSONResponse(
+                {"detail": detail}, status.HTTP_503_SERVICE_UNAVAILABLE, headers={**headers, "Connection": "close"}
+            )
             await response(scope, receive, send)
             return
         await self.app(scope, receive, send)
@@ -106,8 +110,11 @@ class BodySizeLimit:
             return
         declared = dict(scope["headers"]).get(b"content-length", b"").decode("latin-1")
         if declared.isdigit() and int(declared) > self.max_bytes:
-            response = JSONResponse({"detail": _body_too_large(declared, self.max_bytes)},
-                                    status.HTTP_413_CONTENT_TOO_LARGE, headers={"Connection": "close"})
+            response = JSONResponse(
+                {"detail": _body_too_large(declared, self.max_bytes)},
+                status.HTTP_413_CONTENT_TOO_LARGE,
+                headers={"Connection": "close"},
+            )
             await response(scope, receive, send)
             return
         received = 0
@@ -117,7 +124,9 @@ class BodySizeLimit:
             message = await receive()
             received += len(message.get("body", b""))
             if received > self.max_bytes:  # raised inside the route: FastAPI turns it into the response
-                raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, _body_too_large(f"more than {self.max_bytes}", self.max_bytes))
+                raise HTTPException(
+                    status.HTTP_413_CONTENT_TOO_LARGE, _body_too_large(f"more than {self.max_bytes}", self.max_bytes)
+                )
             return message
 
         await self.app(scope, counting_receive, send)
@@ -127,7 +136,9 @@ async def read_upload(upload: UploadFile, field: str, max_bytes: int) -> bytes:
     """The bytes of an uploaded file; 413 above `max_bytes`, 422 when empty."""
     data = await upload.read(max_bytes + 1)
     if len(data) > max_bytes:
-        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"{field}: file exceeds {max_bytes} bytes (api.max_upload_mb)")
+        raise HTTPException(
+            status.HTTP_413_CONTENT_TOO_LARGE, f"{field}: file exceeds {max_bytes} bytes (api.max_upload_mb)"
+        )
     if not data:
         raise _unprocessable(f"{field}: the uploaded file is empty")
     return data
@@ -142,9 +153,9 @@ def image_dimensions(data: bytes, field: str) -> tuple[int, int]:
         while i + 9 <= len(data):
             if data[i] != 0xFF:
                 break
-            marker, length = data[i + 1], struct.unpack(">H", data[i + 2:i + 4])[0]
+            marker, length = data[i + 1], struct.unpack(">H", data[i + 2 : i + 4])[0]
             if marker in _JPEG_SOF:
-                height, width = struct.unpack(">HH", data[i + 5:i + 9])
+                height, width = struct.unpack(">HH", data[i + 5 : i + 9])
                 return width, height
             i += 2 + length
         raise _unprocessable(f"{field}: a JPEG without a readable frame header (truncated or corrupt)")
@@ -158,8 +169,10 @@ def _check_pixels(data: bytes, field: str, max_pixels: int) -> None:
     except RangeError as exc:
         raise _unprocessable(str(exc)) from None
     if width * height > max_pixels:
-        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
-                            f"{field}: {width}×{height} = {width * height} pixels exceeds the limit of {max_pixels} (api.max_pixels)")
+        raise HTTPException(
+            status.HTTP_413_CONTENT_TOO_LARGE,
+            f"{field}: {width}×{height} = {width * height} pixels exceeds the limit of {max_pixels} (api.max_pixels)",
+        )
 
 
 def decode_image(data: bytes, field: str, max_pixels: int) -> np.ndarray:
@@ -178,5 +191,7 @@ def decode_mask(data: bytes, field: str, max_pixels: int) -> np.ndarray:
     if mask is None:
         raise _unprocessable(f"{field}: the mask could not be decoded (corrupt or truncated)")
     if mask.ndim == 3:
-        raise _unprocessable(f"{field}: a mask must be single-channel (instance ids or 0/255), got {mask.shape[2]} channels")
+        raise _unprocessable(
+            f"{field}: a mask must be single-channel (instance ids or 0/255), got {mask.shape[2]} channels"
+        )
     return mask

@@ -3,6 +3,7 @@
 Request metrics are labelled by the route's path template (not the raw URL) so that the number
 of series stays bounded.
 """
+
 from __future__ import annotations
 
 import bisect
@@ -78,16 +79,25 @@ class Metrics:
     def render(self) -> str:
         """All metrics in the Prometheus text format."""
         with self._lock:
-            lines = ["# HELP branchrange_http_requests_total HTTP requests by route, method and status.",
-                     "# TYPE branchrange_http_requests_total counter"]
+            lines = [
+                "# HELP branchrange_http_requests_total HTTP requests by route, method and status.",
+                "# TYPE branchrange_http_requests_total counter",
+            ]
             lines += [f"branchrange_http_requests_total{_label_text(k)} {v}" for k, v in sorted(self._requests.items())]
-            lines += ["# HELP branchrange_http_request_duration_seconds HTTP request latency.",
-                      "# TYPE branchrange_http_request_duration_seconds histogram"]
+            lines += [
+                "# HELP branchrange_http_request_duration_seconds HTTP request latency.",
+                "# TYPE branchrange_http_request_duration_seconds histogram",
+            ]
             lines += self._latency.lines("branchrange_http_request_duration_seconds")
-            lines += ["# HELP branchrange_frames_total Stereo frames processed.",
-                      "# TYPE branchrange_frames_total counter", f"branchrange_frames_total {self._frames}"]
-            lines += ["# HELP branchrange_frame_duration_seconds Time to process one frame.",
-                      "# TYPE branchrange_frame_duration_seconds histogram"]
+            lines += [
+                "# HELP branchrange_frames_total Stereo frames processed.",
+                "# TYPE branchrange_frames_total counter",
+                f"branchrange_frames_total {self._frames}",
+            ]
+            lines += [
+                "# HELP branchrange_frame_duration_seconds Time to process one frame.",
+                "# TYPE branchrange_frame_duration_seconds histogram",
+            ]
             lines += self._inference.lines("branchrange_frame_duration_seconds")
             lines += ["# HELP branchrange_errors_total Errors by kind.", "# TYPE branchrange_errors_total counter"]
             lines += [f"branchrange_errors_total{_label_text(k)} {v}" for k, v in sorted(self._errors.items())]

@@ -7,6 +7,7 @@ are the response model, so the three cannot drift apart. Routes answer with
 into nulls): the API's JSON is the daemon's and the replay's. Units are metres, pixels and
 milliseconds; 3D points are in the rectified left camera frame (x right, y down, z forward).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -24,6 +24,7 @@ load average: the machine may be shared, so read the same-run ratios, not the ab
 
     .venv/bin/python benchmarks/cutpoints_speed.py --repeats 7 --json cutpoints_speed.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -50,8 +51,13 @@ def cpu_description() -> dict:
     except (OSError, subprocess.CalledProcessError):
         model = "unknown (no lscpu)"
     flags = Path("/proc/cpuinfo").read_text(encoding="utf-8") if Path("/proc/cpuinfo").exists() else ""
-    return {"model": model, "cores": os.cpu_count(), "avx2": " avx2" in flags, "avx512": " avx512f" in flags,
-            "load_average_1min": round(os.getloadavg()[0], 2)}
+    return {
+        "model": model,
+        "cores": os.cpu_count(),
+        "avx2": " avx2" in flags,
+        "avx512": " avx512f" in flags,
+        "load_average_1min": round(os.getloadavg()[0], 2),
+    }
 
 
 def write_frames(folder: Path) -> None:
@@ -70,10 +76,14 @@ def write_frames(folder: Path) -> None:
     canvas_labels = np.zeros((1440, 2560), np.int32)
     canvas_disparity = np.zeros((1440, 2560), np.float32)
     top, left = 300, 700
-    canvas_labels[top:top + 720, left:left + 1280] = labels
-    canvas_disparity[top:top + 720, left:left + 1280] = disparity
-    np.savez(folder / "canvas_1440p_10.npz", labels=canvas_labels, disparity=canvas_disparity,
-             geometry=[camera.focal_px, camera.baseline_m, camera.cx + left, camera.cy + top])
+    canvas_labels[top : top + 720, left : left + 1280] = labels
+    canvas_disparity[top : top + 720, left : left + 1280] = disparity
+    np.savez(
+        folder / "canvas_1440p_10.npz",
+        labels=canvas_labels,
+        disparity=canvas_disparity,
+        geometry=[camera.focal_px, camera.baseline_m, camera.cx + left, camera.cy + top],
+    )
     many = np.minimum(np.arange(512 * 640) // 5 + 1, 65000).reshape(512, 640).astype(np.int32)
     flat = np.full((512, 640), 20.0, np.float32)
     np.savez(folder / "ids_65000.npz", labels=many, disparity=flat, geometry=[320.0, 0.063, 319.5, 255.5])
@@ -111,8 +121,13 @@ def time_cases(folder: Path, repeats: int, baseline: bool) -> dict:
                 times.append((time.perf_counter() - start) * 1000.0)
                 cpu_times.append((time.process_time() - cpu_start) * 1000.0)
         points = {} if result is None else {b.mask_id: b.cut_point_m.tolist() for b in result.branches}
-        out[case] = {"ms": times, "cpu_ms": cpu_times, "cut_points": points, "error": error,
-                     "branches": len(masks_from_array(frame["labels"], kind="instance").branch_ids())}
+        out[case] = {
+            "ms": times,
+            "cpu_ms": cpu_times,
+            "cut_points": points,
+            "error": error,
+            "branches": len(masks_from_array(frame["labels"], kind="instance").branch_ids()),
+        }
     return out
 
 
@@ -130,7 +145,9 @@ def run_worker(folder: Path, repeats: int, pythonpath: str, baseline: bool) -> d
 
 def export_baseline(revision: str, folder: Path) -> None:
     """The `branchrange` package at `revision`, exported into `folder`."""
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", revision, "branchrange"], capture_output=True, check=False)
+    archive = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", revision, "branchrange"], capture_output=True, check=False
+    )
     if archive.returncode != 0:
         raise SystemExit(f"cannot export branchrange at {revision!r}: {archive.stderr.decode().strip()}")
     subprocess.run(["tar", "-x", "-C", str(folder)], input=archive.stdout, check=True)
@@ -142,8 +159,12 @@ def summarise(current: list[dict], baseline: list[dict]) -> dict:
     for case in CASES:
         new = [t for run in current for t in run[case]["ms"]]
         new_cpu = [t for run in current for t in run[case]["cpu_ms"]]
-        row = {"branches": current[0][case]["branches"], "new_ms": {"median": statistics.median(new), "min": min(new)},
-               "new_cpu_ms": statistics.median(new_cpu), "new_error": current[0][case]["error"]}
+        row = {
+            "branches": current[0][case]["branches"],
+            "new_ms": {"median": statistics.median(new), "min": min(new)},
+            "new_cpu_ms": statistics.median(new_cpu),
+            "new_error": current[0][case]["error"],
+        }
         if case in baseline[0]:
             scale = 1.0 / BASELINE_ID_SHARE if case.startswith("ids_65000") else 1.0
             old = [t * scale for run in baseline for t in run[case]["ms"]]
@@ -156,28 +177,37 @@ def summarise(current: list[dict], baseline: list[dict]) -> dict:
             a, b = current[0][case]["cut_points"], baseline[0][case]["cut_points"]
             if not case.startswith("ids_65000"):
                 row["same_branches"] = sorted(a) == sorted(b)
-                row["max_cut_point_diff_m"] = max((max(abs(x - y) for x, y in zip(a[k], b[k])) for k in a if k in b),
-                                                  default=0.0)
+                row["max_cut_point_diff_m"] = max(
+                    (max(abs(x - y) for x, y in zip(a[k], b[k])) for k in a if k in b), default=0.0
+                )
         rows[case] = row
     return rows
 
 
 def print_table(rows: dict, cpu: dict, baseline: str) -> None:
     """The table: one line per case."""
-    print(f"CPU: {cpu['model']} ({cpu['cores']} cores, AVX2 {'yes' if cpu['avx2'] else 'no'}, "
-          f"AVX-512 {'yes' if cpu['avx512'] else 'no'}); load average {cpu['load_average_1min']} at the start")
+    print(
+        f"CPU: {cpu['model']} ({cpu['cores']} cores, AVX2 {'yes' if cpu['avx2'] else 'no'}, "
+        f"AVX-512 {'yes' if cpu['avx512'] else 'no'}); load average {cpu['load_average_1min']} at the start"
+    )
     print(f"baseline: branchrange at {baseline}; ms per frame: wall clock median (min) | CPU median\n")
     print(f"{'case':<17}{'branches':>9}{'baseline ms':>34}{'current ms':>28}{'speed-up':>14}{'max Δ cut m':>13}  note")
     for case, row in rows.items():
-        old = (f"{row['old_ms']['median']:.1f} ({row['old_ms']['min']:.1f}) | {row['old_cpu_ms']:.1f}"
-               + ("*" if row.get("old_extrapolated") else "") if "old_ms" in row else "—")
+        old = (
+            f"{row['old_ms']['median']:.1f} ({row['old_ms']['min']:.1f}) | {row['old_cpu_ms']:.1f}"
+            + ("*" if row.get("old_extrapolated") else "")
+            if "old_ms" in row
+            else "—"
+        )
         new = f"{row['new_ms']['median']:.1f} ({row['new_ms']['min']:.1f}) | {row['new_cpu_ms']:.1f}"
         speedup = f"{row['speedup']:.1f}× | {row['speedup_cpu']:.1f}×" if "speedup" in row else "—"
         diff = f"{row['max_cut_point_diff_m']:.1e}" if "max_cut_point_diff_m" in row else "—"
         note = row["new_error"][:100] if row["new_error"] else ("cap lifted" if case == "ids_65000" else "")
         print(f"{case:<17}{row['branches']:>9}{old:>34}{new:>28}{speedup:>14}{diff:>13}  {note}")
-    print(f"\n* extrapolated: the baseline ran {BASELINE_ID_SHARE:.0%} of the ids in the same frame, time ×"
-          f"{1 / BASELINE_ID_SHARE:.0f}")
+    print(
+        f"\n* extrapolated: the baseline ran {BASELINE_ID_SHARE:.0%} of the ids in the same frame, time ×"
+        f"{1 / BASELINE_ID_SHARE:.0f}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -210,8 +240,13 @@ def main(argv: list[str] | None = None) -> int:
     rows = summarise(current, baseline)
     print_table(rows, cpu, args.baseline)
     if args.json is not None:
-        args.json.write_text(json.dumps({"cpu": cpu, "baseline": args.baseline, "repeats": args.repeats,
-                                         "rounds": args.rounds, "cases": rows}, indent=2), encoding="utf-8")
+        args.json.write_text(
+            json.dumps(
+                {"cpu": cpu, "baseline": args.baseline, "repeats": args.repeats, "rounds": args.rounds, "cases": rows},
+                indent=2,
+            ),
+            encoding="utf-8",
+        )
         print(f"wrote {args.json}")
     return 0
 

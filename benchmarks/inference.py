@@ -14,6 +14,7 @@ Runners: `emcstereo` (the backend, fast path), `plain` (the same model's plain e
 (torch `@`, MKL) and `matmul-dnn` (oneDNN). To benchmark something new, add a runner to RUNNERS
 and configurations to `build_configs`.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -132,8 +133,9 @@ def _network_inputs(config: BenchConfig) -> tuple[torch.Tensor, torch.Tensor]:
     from stereo.padding import compute_padding, pad_image
 
     left, right = random_pair(config.height, config.width)
-    images = pad_image(normalize_images(np.stack([left, right]), torch.device("cpu")),
-                       compute_padding(config.height, config.width))
+    images = pad_image(
+        normalize_images(np.stack([left, right]), torch.device("cpu")), compute_padding(config.height, config.width)
+    )
     return images[:1], images[1:]
 
 
@@ -274,7 +276,9 @@ def build_configs(args: argparse.Namespace) -> list[BenchConfig]:
     configs = [BenchConfig(runner, args.matmul_size, args.matmul_size, **common) for runner in BASELINES]
     for runner in args.backends:
         if runner == "parity":  # the real pairs have their own sizes
-            configs.append(BenchConfig(runner, 0, 0, max_disp=args.max_disp[0], threads=args.threads, warmup=0, repeats=1))
+            configs.append(
+                BenchConfig(runner, 0, 0, max_disp=args.max_disp[0], threads=args.threads, warmup=0, repeats=1)
+            )
             continue
         for height, width in args.sizes:
             for max_disp in args.max_disp if runner != "sgbm" else args.max_disp[:1]:
@@ -306,14 +310,24 @@ def format_row(config: BenchConfig, result: BenchResult) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Run every configuration, print the table and the efficiency line."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=lambda s: [parse_size(v) for v in s.split(",")], default=[(256, 512), (384, 1248)],
-                        help="comma-separated HEIGHTxWIDTH list (default 256x512,384x1248)")
-    parser.add_argument("--backends", type=lambda s: s.split(","), default=["emcstereo", "sgbm"], help="comma-separated runners")
+    parser.add_argument(
+        "--sizes",
+        type=lambda s: [parse_size(v) for v in s.split(",")],
+        default=[(256, 512), (384, 1248)],
+        help="comma-separated HEIGHTxWIDTH list (default 256x512,384x1248)",
+    )
+    parser.add_argument(
+        "--backends", type=lambda s: s.split(","), default=["emcstereo", "sgbm"], help="comma-separated runners"
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--max-disp", type=lambda s: [int(v) for v in s.split(",")], default=[192],
-                        help="comma-separated disparity ranges for the network runners (default 192)")
+    parser.add_argument(
+        "--max-disp",
+        type=lambda s: [int(v) for v in s.split(",")],
+        default=[192],
+        help="comma-separated disparity ranges for the network runners (default 192)",
+    )
     parser.add_argument("--matmul-size", type=int, default=2048)
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -324,8 +338,10 @@ def main(argv: list[str] | None = None) -> int:
     if unknown or args.repeats < 1 or args.warmup < 0 or args.threads < 1:
         parser.error(f"need known runners {sorted(RUNNERS)} (got {unknown}), repeats ≥ 1, warmup ≥ 0, threads ≥ 1")
 
-    print(f"{'backend':<10} {'size':>9} {'threads':>7} {'max_disp':>8} {'median ms':>10} {'min ms':>9} "
-          f"{'network ms':>10} {'cores':>6} {'peak MiB':>9}  rate")
+    print(
+        f"{'backend':<10} {'size':>9} {'threads':>7} {'max_disp':>8} {'median ms':>10} {'min ms':>9} "
+        f"{'network ms':>10} {'cores':>6} {'peak MiB':>9}  rate"
+    )
     results: dict[BenchConfig, BenchResult] = {}
     for config in build_configs(args):
         results[config] = measure(config)
@@ -333,13 +349,18 @@ def main(argv: list[str] | None = None) -> int:
 
     rate = max(r.extra["gflops_per_s"] for c, r in results.items() if c.runner in BASELINES)
     print()
-    measured = [(c.runner, r) for c, r in results.items()
-                if c.runner in ("emcstereo", "plain") and (c.height, c.width) == EFFICIENCY_SIZE and c.max_disp == 192]
+    measured = [
+        (c.runner, r)
+        for c, r in results.items()
+        if c.runner in ("emcstereo", "plain") and (c.height, c.width) == EFFICIENCY_SIZE and c.max_disp == 192
+    ]
     for runner, result in measured:
         latency = statistics.median(result.latencies_s)
         efficiency = FULL_MODEL_GFLOP_384x1248 / latency / rate
-        print(f"efficiency at 384x1248 ({runner}): {FULL_MODEL_GFLOP_384x1248} GFLOP / {latency:.2f} s / "
-              f"{rate:.1f} GFLOP/s (faster matmul, {args.threads} threads) = {efficiency:.1%}")
+        print(
+            f"efficiency at 384x1248 ({runner}): {FULL_MODEL_GFLOP_384x1248} GFLOP / {latency:.2f} s / "
+            f"{rate:.1f} GFLOP/s (faster matmul, {args.threads} threads) = {efficiency:.1%}"
+        )
     if not measured:
         print("\nefficiency: needs emcstereo at 384x1248 with max_disp 192 among the configurations")
     return 0

@@ -7,6 +7,7 @@ stage's median milliseconds and `(everything − network) / network`; the target
 
     .venv/bin/python benchmarks/pipeline_overhead.py --repeats 3
 """
+
 from __future__ import annotations
 
 import argparse
@@ -66,8 +67,10 @@ def main(argv: list[str] | None = None) -> int:
     for key in stages:
         print(f"{key:<12} {medians[key]:10.1f} ms")
     around = medians["wall"] - medians["network"]
-    print(f"around the network (wall − network, incl. serialisation): {around:.1f} ms = "
-          f"{around / medians['network']:.1%} of the network's {medians['network']:.0f} ms")
+    print(
+        f"around the network (wall − network, incl. serialisation): {around:.1f} ms = "
+        f"{around / medians['network']:.1%} of the network's {medians['network']:.0f} ms"
+    )
     return 0
 
 

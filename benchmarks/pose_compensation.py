@@ -28,6 +28,7 @@ target at arrival, compensated and not.
         --resolution 640x360 --start-m 2.0 --end-m 1.0 --seed 1
     .venv/bin/python benchmarks/pose_compensation.py --flight /tmp/flight --json out/pose_flight.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -67,7 +68,9 @@ def one_flight(speed: float, latency: float, frames: int, seed: int) -> tuple[li
     tracking = TrackingConfig()
     # far enough that the branch stays ahead during the whole flight (closest ~0.8 m)
     cut = target_ned(0.8 + speed * (latency + frames / FPS))
-    with AutopilotSim(approach_flight(speed, start_ned_m=tuple(START), heading_deg=HEADING_DEG), heartbeat_period_s=0.2) as sim:
+    with AutopilotSim(
+        approach_flight(speed, start_ned_m=tuple(START), heading_deg=HEADING_DEG), heartbeat_period_s=0.2
+    ) as sim:
         cfg = MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0)
         with MavlinkRelay(cfg, MOUNT, tracking=tracking) as relay:
             deadline = time.monotonic() + 5.0
@@ -75,7 +78,9 @@ def one_flight(speed: float, latency: float, frames: int, seed: int) -> tuple[li
                 if time.monotonic() > deadline:
                     raise SystemExit(f"no vehicle state from the simulator: {relay.link_state()}")
                 time.sleep(0.02)
-            published = fly_frames(sim, relay, MOUNT, [cut], frames, FPS, latency, np.random.default_rng(seed), tracking)
+            published = fly_frames(
+                sim, relay, MOUNT, [cut], frames, FPS, latency, np.random.default_rng(seed), tracking
+            )
             time.sleep(0.2)
         return body_target_errors(sim, published, MOUNT, cut, SKIP_FRAMES)
 
@@ -98,9 +103,9 @@ def flight_clock(sim: AutopilotSim):
 def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str, Any]:
     """The daemon replays `directory` while the simulator flies its flight.json; errors in metres."""
     from branchrange.core.config import CameraConfig, Config, LogConfig, StereoConfig
-    from branchrange.onboard.daemon import Daemon
-    from branchrange.offline.flight import FlightTruth
     from branchrange.core.frame_results import pipeline_for
+    from branchrange.offline.flight import FlightTruth
+    from branchrange.onboard.daemon import Daemon
     from camera.sources import ReplaySource
 
     truth = FlightTruth.load(directory)
@@ -109,18 +114,27 @@ def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str,
     published: list[tuple[float, dict[str, Any]]] = []
     with AutopilotSim(trajectory, heartbeat_period_s=0.2) as sim:
         sim.start = time.monotonic() + 3600.0  # hover at the first pose until the first frame
-        cfg = Config(camera=CameraConfig(source=f"replay:{directory}", mount_rpy_deg=(0.0, -10.0, 0.0),
-                                         mount_xyz_m=(0.12, 0.0, 0.04)),
-                     stereo=StereoConfig(max_disp=max_disp, mode=stereo_mode), log=LogConfig(status_interval_s=3600.0),
-                     mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0))
+        cfg = Config(
+            camera=CameraConfig(
+                source=f"replay:{directory}", mount_rpy_deg=(0.0, -10.0, 0.0), mount_xyz_m=(0.12, 0.0, 0.04)
+            ),
+            stereo=StereoConfig(max_disp=max_disp, mode=stereo_mode),
+            log=LogConfig(status_interval_s=3600.0),
+            mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0),
+        )
         replay = ReplaySource(directory, pace="recorded", clock=flight_clock(sim))
         pipeline = pipeline_for(cfg, replay.calibration)
         relay = MavlinkRelay(cfg.mavlink, MOUNT, tracking=cfg.tracking)
         deadline = time.monotonic() + 5.0
         while not relay.link_state()["vehicle_state"]["available"] and time.monotonic() < deadline:
             time.sleep(0.02)
-        daemon = Daemon(cfg, open_source=lambda: replay, pipeline=pipeline, relay=relay,
-                        observers=[lambda result, _: published.append((time.monotonic(), result))])
+        daemon = Daemon(
+            cfg,
+            open_source=lambda: replay,
+            pipeline=pipeline,
+            relay=relay,
+            observers=[lambda result, _: published.append((time.monotonic(), result))],
+        )
         try:
             daemon.run()
             time.sleep(0.2)
@@ -133,8 +147,13 @@ def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str,
             if branch is None or branch.mask_id not in cuts_ned:
                 continue
             position = next(i for i, p in enumerate(truth.poses) if p.index == result.frame.index)
-            single.append(float(np.linalg.norm(np.asarray(branch.cut_point_m)
-                                               - truth.cut_points_in_camera(position)[branch.mask_id])))
+            single.append(
+                float(
+                    np.linalg.norm(
+                        np.asarray(branch.cut_point_m) - truth.cut_points_in_camera(position)[branch.mask_id]
+                    )
+                )
+            )
         for r in sim.of_type("DEBUG_VECT"):
             newest = [res for at, res in published if at <= r.at]
             target = newest[-1].target if newest else None
@@ -147,20 +166,33 @@ def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str,
     fused = None
     if track is not None:
         nearest = min(cuts_ned, key=lambda i: float(np.linalg.norm(np.asarray(track.ned_m) - cuts_ned[i])))
-        fused = {"cut_id": nearest, "error_mm": round(1000 * float(np.linalg.norm(np.asarray(track.ned_m) - cuts_ned[nearest])), 2),
-                 "observations": track.observations, "sigma_mm": round(1000 * track.sigma_m, 2)}
+        fused = {
+            "cut_id": nearest,
+            "error_mm": round(1000 * float(np.linalg.norm(np.asarray(track.ned_m) - cuts_ned[nearest])), 2),
+            "observations": track.observations,
+            "sigma_mm": round(1000 * track.sigma_m, 2),
+        }
     latencies = [res["latency"]["capture_to_publish_ms"] for _, res in published if "latency" in res]
-    return {"flight": str(directory), "frames_published": len(published), "fused_target": fused,
-            "latency_ms_median": round(float(np.median(latencies)), 1) if latencies else None,
-            "single_frame_target": summary(single), "compensated": summary(compensated),
-            "uncompensated": summary(uncompensated), "sends": len(compensated)}
+    return {
+        "flight": str(directory),
+        "frames_published": len(published),
+        "fused_target": fused,
+        "latency_ms_median": round(float(np.median(latencies)), 1) if latencies else None,
+        "single_frame_target": summary(single),
+        "compensated": summary(compensated),
+        "uncompensated": summary(uncompensated),
+        "sends": len(compensated),
+    }
 
 
 def summary(errors: list[float]) -> dict[str, float | None]:
     """Median and p95 in millimetres (None when nothing was sent)."""
     if not errors:
         return {"median_mm": None, "p95_mm": None}
-    return {"median_mm": round(1000 * float(np.median(errors)), 2), "p95_mm": round(1000 * float(np.percentile(errors, 95)), 2)}
+    return {
+        "median_mm": round(1000 * float(np.median(errors)), 2),
+        "p95_mm": round(1000 * float(np.percentile(errors, 95)), 2),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -170,9 +202,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=20, help="frames per flight (15 fps)")
     parser.add_argument("--repeats", type=int, default=3, help="flights per cell, pooled")
     parser.add_argument("--json", type=Path, help="write the report here")
-    parser.add_argument("--flight", type=Path, help="a `branchrange synth-flight` recording: run the daemon on it instead")
+    parser.add_argument(
+        "--flight", type=Path, help="a `branchrange synth-flight` recording: run the daemon on it instead"
+    )
     parser.add_argument("--max-disp", type=int, default=64, help="sgbm disparities with --flight")
-    parser.add_argument("--stereo-mode", default="roi", help="stereo.mode with --flight: 'roi' (onboard default) or 'full'")
+    parser.add_argument(
+        "--stereo-mode", default="roi", help="stereo.mode with --flight: 'roi' (onboard default) or 'full'"
+    )
     args = parser.parse_args(argv)
     if args.flight:
         report = {"cpu": cpu_name(), **daemon_flight(args.flight, args.max_disp, args.stereo_mode)}
@@ -191,22 +227,42 @@ def main(argv: list[str] | None = None) -> int:
                 c, u = one_flight(speed, latency, args.frames, seed=repeat)
                 comp += c
                 uncomp += u
-            cell = {"speed_m_s": speed, "latency_s": latency, "sends": len(comp),
-                    "compensated": summary(comp), "uncompensated": summary(uncomp)}
-            cell["ratio"] = (round(cell["uncompensated"]["median_mm"] / max(cell["compensated"]["median_mm"], 1e-6), 1)
-                             if comp else None)
+            cell = {
+                "speed_m_s": speed,
+                "latency_s": latency,
+                "sends": len(comp),
+                "compensated": summary(comp),
+                "uncompensated": summary(uncomp),
+            }
+            cell["ratio"] = (
+                round(cell["uncompensated"]["median_mm"] / max(cell["compensated"]["median_mm"], 1e-6), 1)
+                if comp
+                else None
+            )
             cells.append(cell)
             print(f"  {speed} m/s, {latency} s: done", file=sys.stderr)
-    report: dict[str, Any] = {"cpu": cpu_name(), "fps": FPS, "state_rate_hz": 50.0, "repeats": args.repeats,
-                              "frames": args.frames, "cells": cells}
-    print(f"CPU: {report['cpu']}; {args.repeats} flights × {args.frames} frames per row; error of the body-frame target "
-          "at arrival, mm")
-    print(f"{'speed m/s':>9} {'latency s':>9} {'sends':>6} {'comp. median':>12} {'comp. p95':>9} "
-          f"{'uncomp. median':>14} {'uncomp. p95':>11} {'ratio':>6}")
+    report: dict[str, Any] = {
+        "cpu": cpu_name(),
+        "fps": FPS,
+        "state_rate_hz": 50.0,
+        "repeats": args.repeats,
+        "frames": args.frames,
+        "cells": cells,
+    }
+    print(
+        f"CPU: {report['cpu']}; {args.repeats} flights × {args.frames} frames per row; error of the body-frame target "
+        "at arrival, mm"
+    )
+    print(
+        f"{'speed m/s':>9} {'latency s':>9} {'sends':>6} {'comp. median':>12} {'comp. p95':>9} "
+        f"{'uncomp. median':>14} {'uncomp. p95':>11} {'ratio':>6}"
+    )
     for c in cells:
-        print(f"{c['speed_m_s']:>9} {c['latency_s']:>9} {c['sends']:>6} {c['compensated']['median_mm']:>12} "
-              f"{c['compensated']['p95_mm']:>9} {c['uncompensated']['median_mm']:>14} {c['uncompensated']['p95_mm']:>11} "
-              f"{c['ratio']:>6}")
+        print(
+            f"{c['speed_m_s']:>9} {c['latency_s']:>9} {c['sends']:>6} {c['compensated']['median_mm']:>12} "
+            f"{c['compensated']['p95_mm']:>9} {c['uncompensated']['median_mm']:>14} {c['uncompensated']['p95_mm']:>11} "
+            f"{c['ratio']:>6}"
+        )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=2))

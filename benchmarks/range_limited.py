@@ -9,6 +9,7 @@ The 192 row is the baseline measured in the same run.
 
     python benchmarks/range_limited.py --weights runs/x/best.pth [--scenes 4] [--size 384x1248]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -46,8 +47,13 @@ def real_pairs() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
             pairs.append((sample["left"], sample["right"], sample["disparity"]))
     flying = SHARED_STEREO / "sceneflow_flyingthings3d_train_A_0000_0006"
     if flying.is_dir():
-        pairs.append((read_rgb(flying / "left_cleanpass.png"), read_rgb(flying / "right_cleanpass.png"),
-                      read_pfm(flying / "disp_left.pfm")))
+        pairs.append(
+            (
+                read_rgb(flying / "left_cleanpass.png"),
+                read_rgb(flying / "right_cleanpass.png"),
+                read_pfm(flying / "disp_left.pfm"),
+            )
+        )
     return pairs
 
 
@@ -88,8 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     width, height = (int(v) for v in args.scene_size.split("x"))
     lat_h, lat_w = (int(v) for v in args.size.split("x"))
     sets = {"synthetic": synthetic_pairs(args.scenes, args.scene_seed, width, height), "real": real_pairs()}
-    print(f"weights {args.weights}; {args.threads} threads; latency at {lat_h}×{lat_w}; "
-          f"synthetic {args.scenes} scenes {width}×{height}; real {len(sets['real'])} pairs")
+    print(
+        f"weights {args.weights}; {args.threads} threads; latency at {lat_h}×{lat_w}; "
+        f"synthetic {args.scenes} scenes {width}×{height}; real {len(sets['real'])} pairs"
+    )
     header = f"{'max_disp':>8} {'latency s':>9} {'×192':>6}"
     for name in sets:
         header += f" | {name} EPE<192 {'Bad3<192':>8} EPE<{WORKING_RANGE} Bad3<{WORKING_RANGE}"
@@ -106,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             predictions = [backend.compute(left, right).disparity for left, right, _ in pairs]
             everything, working = score(predictions, pairs, 192), score(predictions, pairs, WORKING_RANGE)
-            row += (f" | {everything['epe']:>13.3f} {everything['bad3']:>8.3f}"
-                    f" {working['epe']:>6.3f} {working['bad3']:>7.3f}")
+            row += (
+                f" | {everything['epe']:>13.3f} {everything['bad3']:>8.3f}"
+                f" {working['epe']:>6.3f} {working['bad3']:>7.3f}"
+            )
         print(row, flush=True)
     return 0
 

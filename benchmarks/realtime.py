@@ -33,6 +33,7 @@ Also `cpu` (model and vector extensions), `threads`, `sequence`, `max_result_age
     .venv/bin/python benchmarks/realtime.py --json out/realtime.json   # renders a default HD720 flight first
     .venv/bin/python benchmarks/realtime.py --sequence out/flight --modes roi-sgbm --segmenter builtin
 """
+
 from __future__ import annotations
 
 import argparse
@@ -142,8 +143,8 @@ def render_default_sequence(path: Path) -> None:
 def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace, truth: Any) -> dict[str, Any]:
     """Replay `sequence` in real time through the daemon in one mode; the metrics of the module docstring."""
     from branchrange.core.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig
-    from branchrange.onboard.daemon import Daemon
     from branchrange.core.frame_results import pipeline_for
+    from branchrange.onboard.daemon import Daemon
     from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
     from camera.sources import ReplaySource
 
@@ -152,10 +153,12 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     if backend == "emcstereo" and not weights:
         weights = str(random_weights(args))
     sink = UdpSink()
-    cfg = Config(camera=CameraConfig(source=f"replay:{sequence}"),
-                 stereo=StereoConfig(backend=backend, weights=weights, max_disp=args.max_disp, mode=stereo_mode),
-                 log=LogConfig(status_interval_s=3600.0),
-                 mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sink.port}", max_result_age_s=args.max_result_age_s))
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{sequence}"),
+        stereo=StereoConfig(backend=backend, weights=weights, max_disp=args.max_disp, mode=stereo_mode),
+        log=LogConfig(status_interval_s=3600.0),
+        mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sink.port}", max_result_age_s=args.max_result_age_s),
+    )
 
     def open_source() -> Any:
         source = ReplaySource(sequence, pace="recorded")
@@ -169,8 +172,13 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     probe.close()
     relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
     published: list[FrameResult] = []
-    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay,
-                    observers=[lambda result, _artifacts: published.append(result)])
+    daemon = Daemon(
+        cfg,
+        open_source=open_source,
+        pipeline=pipeline,
+        relay=relay,
+        observers=[lambda result, _artifacts: published.append(result)],
+    )
     started = time.monotonic()
     try:
         daemon.run()
@@ -196,8 +204,7 @@ def random_weights(args: argparse.Namespace) -> Path:
     return path
 
 
-def summarise(published: list[FrameResult], daemon: Any, truth: Any, max_age_s: float,
-              wall_s: float) -> dict[str, Any]:
+def summarise(published: list[FrameResult], daemon: Any, truth: Any, max_age_s: float, wall_s: float) -> dict[str, Any]:
     """The docstring's metrics from the published results and the daemon's counters."""
     ages = [r.latency.capture_to_publish_ms for r in published if r.latency is not None]
     positions = {pose.index: i for i, pose in enumerate(truth.poses)}
@@ -234,8 +241,10 @@ def summarise(published: list[FrameResult], daemon: Any, truth: Any, max_age_s: 
         "target_recall": round(hits / with_truth, 4) if with_truth else None,
         "false_target_rate": round(false_targets / targets, 4) if targets else None,
         "stage_ms": {stage: {"p50": percentile(values, 50)} for stage, values in sorted(stages.items())},
-        "handover_ms": {key: {"p50": percentile([r["latency"][key] for r in published], 50)}
-                        for key in ("capture_to_stereo_ms", "capture_to_geometry_ms", "capture_to_publish_ms")},
+        "handover_ms": {
+            key: {"p50": percentile([r["latency"][key] for r in published], 50)}
+            for key in ("capture_to_stereo_ms", "capture_to_geometry_ms", "capture_to_publish_ms")
+        },
         "wall_s": round(wall_s, 2),
     }
 
@@ -251,35 +260,47 @@ def fmt(value: Any, scale: float = 1.0, digits: int = 0) -> str:
 
 
 def print_table(report: dict[str, Any]) -> None:
-    print(f"\nreal-time replay of {report['sequence']} on {report['cpu']}, {report['threads']} threads, "
-          f"max_result_age_s {report['max_result_age_s']}")
-    header = (f"{'mode/segmenter':24} {'fresh Hz':>8} {'p50 ms':>7} {'p95 ms':>7} {'max ms':>7} {'proc':>5} {'drop':>5} "
-              f"{'err med cm':>10} {'err p90 cm':>10} {'recall':>6} {'false':>6} {'× fresh':>7} {'× p50':>6}")
+    print(
+        f"\nreal-time replay of {report['sequence']} on {report['cpu']}, {report['threads']} threads, "
+        f"max_result_age_s {report['max_result_age_s']}"
+    )
+    header = (
+        f"{'mode/segmenter':24} {'fresh Hz':>8} {'p50 ms':>7} {'p95 ms':>7} {'max ms':>7} {'proc':>5} {'drop':>5} "
+        f"{'err med cm':>10} {'err p90 cm':>10} {'recall':>6} {'false':>6} {'× fresh':>7} {'× p50':>6}"
+    )
     print(header)
     print("-" * len(header))
     for name, row in report["modes"].items():
         ratio = row.get("ratio_to_baseline", {})
-        print(f"{name:24} {row['fresh_rate_hz']:8.2f} "
-              f"{fmt(row['latency_ms']['p50']):>7} {fmt(row['latency_ms']['p95']):>7} "
-              f"{fmt(row['latency_ms']['max']):>7} {row['frames_processed']:5d} {row['frames_dropped']:5d} "
-              f"{fmt(row['target_error_m']['median'], 100, 1):>10} {fmt(row['target_error_m']['p90'], 100, 1):>10} "
-              f"{fmt(row['target_recall'], 1, 2):>6} {fmt(row['false_target_rate'], 1, 2):>6} "
-              f"{fmt(ratio.get('fresh_rate'), 1, 2):>7} {fmt(ratio.get('latency_p50'), 1, 2):>6}")
+        print(
+            f"{name:24} {row['fresh_rate_hz']:8.2f} "
+            f"{fmt(row['latency_ms']['p50']):>7} {fmt(row['latency_ms']['p95']):>7} "
+            f"{fmt(row['latency_ms']['max']):>7} {row['frames_processed']:5d} {row['frames_dropped']:5d} "
+            f"{fmt(row['target_error_m']['median'], 100, 1):>10} {fmt(row['target_error_m']['p90'], 100, 1):>10} "
+            f"{fmt(row['target_recall'], 1, 2):>6} {fmt(row['false_target_rate'], 1, 2):>6} "
+            f"{fmt(ratio.get('fresh_rate'), 1, 2):>7} {fmt(ratio.get('latency_p50'), 1, 2):>6}"
+        )
     print("\nper-stage p50 (ms):")
     for name, row in report["modes"].items():
         print(f"  {name:24} " + "  ".join(f"{stage} {fmt(v['p50'], 1, 1)}" for stage, v in row["stage_ms"].items()))
     print("\nframe arrival → each hand-over, p50 (ms):")
     for name, row in report["modes"].items():
-        print(f"  {name:24} " + "  ".join(f"{key.removesuffix('_ms')} {fmt(v['p50'], 1, 1)}"
-                                         for key, v in row["handover_ms"].items()))
+        print(
+            f"  {name:24} "
+            + "  ".join(f"{key.removesuffix('_ms')} {fmt(v['p50'], 1, 1)}" for key, v in row["handover_ms"].items())
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sequence", type=Path, help=f"a flight recording (default: render {DEFAULT_SEQUENCE} once)")
-    parser.add_argument("--modes", default="full-sgbm,roi-sgbm,roi-emcstereo", help=f"comma-separated: {', '.join(MODES)}")
+    parser.add_argument(
+        "--modes", default="full-sgbm,roi-sgbm,roi-emcstereo", help=f"comma-separated: {', '.join(MODES)}"
+    )
     parser.add_argument("--segmenter", choices=("truth", "builtin", "both"), default="both")
-    parser.add_argument("--weights", help="EMCStereo checkpoint for roi-emcstereo (default: random weights, timing only)")
+    parser.add_argument(
+        "--weights", help="EMCStereo checkpoint for roi-emcstereo (default: random weights, timing only)"
+    )
     parser.add_argument("--max-disp", type=int, default=128, help="full-resolution disparity range, px")
     parser.add_argument("--max-result-age-s", type=float, default=0.5)
     parser.add_argument("--threads", type=int, default=2, help="OpenCV and torch threads")
@@ -302,8 +323,14 @@ def main(argv: list[str] | None = None) -> int:
         render_default_sequence(sequence)
     truth = FlightTruth.load(sequence)
     segmenters = ["truth", "builtin"] if args.segmenter == "both" else [args.segmenter]
-    report: dict[str, Any] = {"cpu": cpu_name(), "threads": args.threads, "sequence": str(sequence),
-                              "max_result_age_s": args.max_result_age_s, "max_disp": args.max_disp, "modes": {}}
+    report: dict[str, Any] = {
+        "cpu": cpu_name(),
+        "threads": args.threads,
+        "sequence": str(sequence),
+        "max_result_age_s": args.max_result_age_s,
+        "max_disp": args.max_disp,
+        "modes": {},
+    }
     for segmenter in segmenters:
         for mode in modes:
             print(f"{mode}/{segmenter} ...", file=sys.stderr)
@@ -313,9 +340,13 @@ def main(argv: list[str] | None = None) -> int:
             for mode in modes:
                 row = report["modes"][f"{mode}/{segmenter}"]
                 row["ratio_to_baseline"] = {
-                    "fresh_rate": round(row["fresh_rate_hz"] / baseline["fresh_rate_hz"], 2) if baseline["fresh_rate_hz"] else None,
+                    "fresh_rate": round(row["fresh_rate_hz"] / baseline["fresh_rate_hz"], 2)
+                    if baseline["fresh_rate_hz"]
+                    else None,
                     "latency_p50": round(row["latency_ms"]["p50"] / baseline["latency_ms"]["p50"], 3)
-                    if row["latency_ms"]["p50"] and baseline["latency_ms"]["p50"] else None}
+                    if row["latency_ms"]["p50"] and baseline["latency_ms"]["p50"]
+                    else None,
+                }
     print_table(report)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

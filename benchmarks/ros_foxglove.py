@@ -10,6 +10,7 @@ adds to the daemon's geometry+send thread. Medians over `--repeats` passes after
 
     .venv/bin/python benchmarks/ros_foxglove.py --json out/ros_foxglove.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -56,8 +57,14 @@ def subscribed_client(port: int, stop: threading.Event) -> threading.Thread:
             while not channels:
                 message = json.loads(ws.recv(timeout=5))
                 channels = message.get("channels", []) if message["op"] == "advertise" else []
-            ws.send(json.dumps({"op": "subscribe",
-                                "subscriptions": [{"id": i, "channelId": c["id"]} for i, c in enumerate(channels)]}))
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "subscribe",
+                        "subscriptions": [{"id": i, "channelId": c["id"]} for i, c in enumerate(channels)],
+                    }
+                )
+            )
             ready.set()
             while not stop.is_set():
                 try:
@@ -84,8 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     from branchrange.core.config import Config, StereoConfig
-    from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargets
     from branchrange.core.frame_results import pipeline_for, process_frame
+    from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargets
     from camera.calibration import from_rectified
     from camera.sources import Recorder, StereoFrame
     from camera.sources.rosbag_writer import write_bag
@@ -97,23 +104,33 @@ def main(argv: list[str] | None = None) -> int:
     cam = scene.camera
     calibration = from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (width, height))
     rng = np.random.default_rng(0)
-    frames = [StereoFrame(*(np.clip(v + rng.normal(0, 1.0, v.shape), 0, 255).astype(np.uint8)
-                            for v in (scene.left, scene.right)), 1_000_000_000 + i * 66_666_667, i)
-              for i in range(args.frames)]
+    frames = [
+        StereoFrame(
+            *(np.clip(v + rng.normal(0, 1.0, v.shape), 0, 255).astype(np.uint8) for v in (scene.left, scene.right)),
+            1_000_000_000 + i * 66_666_667,
+            i,
+        )
+        for i in range(args.frames)
+    ]
     rows: dict[str, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         with Recorder(work / "rec", calibration=calibration) as recorder:
             for frame in frames:
                 recorder.write(frame)
-        bags = {"rosbag MCAP bgra8": ("mcap", "bgra8"), "rosbag SQLite bgra8": ("sqlite3", "bgra8"),
-                "rosbag MCAP jpeg": ("mcap", "jpeg")}
+        bags = {
+            "rosbag MCAP bgra8": ("mcap", "bgra8"),
+            "rosbag SQLite bgra8": ("sqlite3", "bgra8"),
+            "rosbag MCAP jpeg": ("mcap", "jpeg"),
+        }
         for name, (storage, encoding) in bags.items():
             write_bag(frames, calibration, work / name.replace(" ", "_"), storage=storage, encoding=encoding)
         read_base = per_frame_ms(lambda: read_all(f"replay:{work / 'rec'}"), args.frames, args.repeats)
         rows["recording PNG read (baseline)"] = {"ms": read_base, "ratio": 1.0}
         for name in bags:
-            ms = per_frame_ms(lambda n=name: read_all(f"rosbag:{work / n.replace(' ', '_')}"), args.frames, args.repeats)
+            ms = per_frame_ms(
+                lambda n=name: read_all(f"rosbag:{work / n.replace(' ', '_')}"), args.frames, args.repeats
+            )
             rows[f"{name} read"] = {"ms": ms, "ratio": ms / read_base}
 
         cfg = Config(stereo=StereoConfig(max_disp=args.max_disp))
@@ -149,15 +166,28 @@ def main(argv: list[str] | None = None) -> int:
             ms = statistics.median(timings[1:])
             rows[name] = {"ms": ms, "ratio": ms / pipe_ms}
 
-    print(f"CPU: {cpu_name()}; {width}×{height}, {args.frames} frames, median of {args.repeats} passes; "
-          "the machine is shared, so compare the ratios")
+    print(
+        f"CPU: {cpu_name()}; {width}×{height}, {args.frames} frames, median of {args.repeats} passes; "
+        "the machine is shared, so compare the ratios"
+    )
     print(f"{'what':<38} {'ms/frame':>9} {'ratio':>7}")
     for name, row in rows.items():
         print(f"{name:<38} {row['ms']:9.1f} {row['ratio']:7.3f}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"cpu": cpu_name(), "size": [width, height], "frames": args.frames,
-                                         "repeats": args.repeats, "rows": rows}, indent=2) + "\n")
+        args.json.write_text(
+            json.dumps(
+                {
+                    "cpu": cpu_name(),
+                    "size": [width, height],
+                    "frames": args.frames,
+                    "repeats": args.repeats,
+                    "rows": rows,
+                },
+                indent=2,
+            )
+            + "\n"
+        )
     return 0
 
 

@@ -18,6 +18,7 @@ polygon; overlays (polygons, instances, cut points) are written to --overlays.
     python benchmarks/segmenter.py [--scenes 30] [--segmenters geometric] [--json out.json]
                                    [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,10 +33,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from branchrange.offline.evaluate_cuts import RECALL_RADIUS_M, CutScores
 from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.choose import make_segmenter
+from branchrange.offline.evaluate_cuts import RECALL_RADIUS_M, CutScores
 
 ROOT = Path(__file__).resolve().parents[1]
 TREES = ROOT.parent / "shared" / "data" / "trees"
@@ -57,8 +58,10 @@ def cpu_name() -> str:
     model = re.search(r"Model name:\s*(.+)", text)
     flags = re.search(r"Flags:\s*(.+)", text)
     flag_set = set(flags.group(1).split()) if flags else set()
-    return (f"{model.group(1).strip() if model else 'unknown'}; AVX2 {'yes' if 'avx2' in flag_set else 'no'}, "
-            f"AVX-512 {'yes' if 'avx512f' in flag_set else 'no'}; {len(__import__('os').sched_getaffinity(0))} cores")
+    return (
+        f"{model.group(1).strip() if model else 'unknown'}; AVX2 {'yes' if 'avx2' in flag_set else 'no'}, "
+        f"AVX-512 {'yes' if 'avx512f' in flag_set else 'no'}; {len(__import__('os').sched_getaffinity(0))} cores"
+    )
 
 
 def load_scene(seed: int, cache: Path | None) -> dict:
@@ -76,9 +79,15 @@ def load_scene(seed: int, cache: Path | None) -> dict:
     stereo = make_backend("sgbm", max_disp=192).compute(rendered.left, rendered.right)
     cam = rendered.camera
     truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
-    scene = {"left": rendered.left, "disparity": rendered.disparity, "mask": rendered.instance_mask,
-             "sgbm": stereo.disparity, "sgbm_conf": stereo.confidence,
-             "camera": np.array([cam.focal_px, cam.baseline_m, cam.cx, cam.cy]), "truth": json.dumps(truth)}
+    scene = {
+        "left": rendered.left,
+        "disparity": rendered.disparity,
+        "mask": rendered.instance_mask,
+        "sgbm": stereo.disparity,
+        "sgbm_conf": stereo.confidence,
+        "camera": np.array([cam.focal_px, cam.baseline_m, cam.cx, cam.cy]),
+        "truth": json.dumps(truth),
+    }
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, **scene)
@@ -125,11 +134,18 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
             confidence = scene["sgbm_conf"] if stereo == "sgbm" else None
             for name in [*segmenters, "truth"]:
                 key = f"{stereo}/{name}"
-                pipeline = Pipeline(untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy),
-                                    segmenter=built.get(name))  # process_disparity: no backend is built
+                pipeline = Pipeline(
+                    untracked_whole_frame(),
+                    focal_px=f,
+                    baseline_m=b,
+                    principal_point=(cx, cy),
+                    segmenter=built.get(name),
+                )  # process_disparity: no backend is built
                 mask = scene["mask"] if name == "truth" else None
                 result = pipeline.process_disparity(scene["left"], disparity, confidence, mask=mask, backend=stereo)
-                scores.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], result.branches, result.target)
+                scores.setdefault(key, CutScores(stereo, name)).add_frame(
+                    scene["truth"], result.branches, result.target
+                )
                 times.setdefault(key, []).append(result.timing_ms["masks"])
                 points = [np.asarray(t["cut_point_m"]) for t in scene["truth"]]
                 for est in result.branches:
@@ -138,11 +154,16 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
         print(f"  scene {i + 1}/{scenes}", end="\r", file=sys.stderr)
     out = {}
     for key, s in scores.items():
-        out[key] = {"recall": s.recall, "median_error_cm": 100 * s.error_quantile(0.5), "false_per_frame": s.false_per_frame,
-                    "ms_per_frame": float(np.median(times[key])), "frames": s.frames,
-                    "reliability": reliability(confidences[key]),
-                    "at_0.8": share_correct_above(confidences[key], 0.8),
-                    "min_confidence_for_90pct": lowest_reliable_threshold(confidences[key])}
+        out[key] = {
+            "recall": s.recall,
+            "median_error_cm": 100 * s.error_quantile(0.5),
+            "false_per_frame": s.false_per_frame,
+            "ms_per_frame": float(np.median(times[key])),
+            "frames": s.frames,
+            "reliability": reliability(confidences[key]),
+            "at_0.8": share_correct_above(confidences[key], 0.8),
+            "min_confidence_for_90pct": lowest_reliable_threshold(confidences[key]),
+        }
     return out
 
 
@@ -155,8 +176,9 @@ def polygon_hits(annotations: dict, pixel: tuple[float, float]) -> str:
     return "unlabelled"
 
 
-def draw_overlay(path: Path, left: np.ndarray, annotations: dict, labels: np.ndarray | None,
-                 branches: Sequence[Branch]) -> None:
+def draw_overlay(
+    path: Path, left: np.ndarray, annotations: dict, labels: np.ndarray | None, branches: Sequence[Branch]
+) -> None:
     """Left image with instances tinted, polygons (green branch, red not-branch) and cut points."""
     image = cv2.cvtColor(left, cv2.COLOR_RGB2BGR).astype(np.float32)
     if labels is not None:
@@ -190,41 +212,60 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
         left, right = read_rgb(folder / "left.png"), read_rgb(folder / "right.png")
         for name in segmenters:
             config = untracked_whole_frame(REAL_MAX_DISP.get(folder.name, 192))
-            pipeline = Pipeline(config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=make_segmenter(name))
+            pipeline = Pipeline(
+                config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=make_segmenter(name)
+            )
             result = pipeline.process(left, right)
             hits = [polygon_hits(annotations, b.pixel) for b in result.branches]
             labelled = [h for h in hits if h != "unlabelled"]
             on_branch = sum(h == "branch" for h in hits)
             out[f"{folder.name}/{name}"] = {
-                "cut_points": len(hits), "on_branch": on_branch, "on_not_branch": len(labelled) - on_branch,
+                "cut_points": len(hits),
+                "on_branch": on_branch,
+                "on_not_branch": len(labelled) - on_branch,
                 "unlabelled": len(hits) - len(labelled),
                 "precision": on_branch / len(labelled) if labelled else None,
-                "ms_segmenter": result.timing_ms["masks"]}
+                "ms_segmenter": result.timing_ms["masks"],
+            }
             if overlays is not None:
                 masks = pipeline.last.masks
-                draw_overlay(overlays / f"{folder.name}_{name}.png", left, annotations,
-                             masks.labels if masks is not None else None, result.branches)
+                draw_overlay(
+                    overlays / f"{folder.name}_{name}.png",
+                    left,
+                    annotations,
+                    masks.labels if masks is not None else None,
+                    result.branches,
+                )
     return out
 
 
 def print_tables(synthetic: dict, real: dict) -> None:
     print(f"{'stereo/segmenter':<22} {'recall≤5cm':>10} {'median err':>10} {'false/frame':>11} {'ms/frame':>9}")
     for key, r in synthetic.items():
-        print(f"{key:<22} {r['recall']:>10.1%} {r['median_error_cm']:>8.2f}cm {r['false_per_frame']:>11.2f} "
-              f"{r['ms_per_frame']:>9.1f}")
+        print(
+            f"{key:<22} {r['recall']:>10.1%} {r['median_error_cm']:>8.2f}cm {r['false_per_frame']:>11.2f} "
+            f"{r['ms_per_frame']:>9.1f}"
+        )
     print("\nreliability (confidence bin: cut points, share within 5 cm)")
     for key, r in synthetic.items():
-        cells = "  ".join(f"{label}: {n:>3} {share:>5.0%}" if n else f"{label}: {n:>3}   -  "
-                          for label, n, share in r["reliability"])
+        cells = "  ".join(
+            f"{label}: {n:>3} {share:>5.0%}" if n else f"{label}: {n:>3}   -  " for label, n, share in r["reliability"]
+        )
         count, share = r["at_0.8"]
-        print(f"{key:<22} {cells}   ≥0.8: {count} cut points, {share:.0%} correct; "
-              f"≥90 % correct from confidence {r['min_confidence_for_90pct']}")
+        print(
+            f"{key:<22} {cells}   ≥0.8: {count} cut points, {share:.0%} correct; "
+            f"≥90 % correct from confidence {r['min_confidence_for_90pct']}"
+        )
     if real:
-        print(f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} "
-              f"{'precision':>9} {'ms':>6}")
+        print(
+            f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} "
+            f"{'precision':>9} {'ms':>6}"
+        )
         for key, r in real.items():
-            print(f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_not_branch']:>7} {r['unlabelled']:>6} "
-                  f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}")
+            print(
+                f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_not_branch']:>7} {r['unlabelled']:>6} "
+                f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}"
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -241,8 +282,10 @@ def main(argv: list[str] | None = None) -> int:
     synthetic = run_synthetic(args.segmenters, args.scenes, args.cache)
     real = {} if args.skip_real else run_real(args.segmenters, args.overlays)
     print_tables(synthetic, real)
-    print(f"\n{args.scenes} scenes at {SIZE[0]}×{SIZE[1]}, seeds {FIRST_SEED}–{FIRST_SEED + args.scenes - 1}; "
-          f"{time.perf_counter() - start:.0f} s")
+    print(
+        f"\n{args.scenes} scenes at {SIZE[0]}×{SIZE[1]}, seeds {FIRST_SEED}–{FIRST_SEED + args.scenes - 1}; "
+        f"{time.perf_counter() - start:.0f} s"
+    )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"cpu": cpu_name(), "synthetic": synthetic, "real": real}, indent=1) + "\n")

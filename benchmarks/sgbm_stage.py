@@ -20,6 +20,7 @@ OpenCV's default is all cores). The CPU is named from `lscpu` with its AVX2/AVX-
 
     PYTHONPATH=. python benchmarks/sgbm_stage.py [--repeats 7] [--seed 3] [--json FILE]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,7 +42,11 @@ from stereo.synth import SynthCamera, render_scene
 
 THREADS = 2
 SHARED_STEREO = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "stereo"
-REAL_PAIRS = (("middlebury2001_tsukuba", 32), ("middlebury2001_venus", 32), ("sceneflow_flyingthings3d_train_A_0000_0006", 192))
+REAL_PAIRS = (
+    ("middlebury2001_tsukuba", 32),
+    ("middlebury2001_venus", 32),
+    ("sceneflow_flyingthings3d_train_A_0000_0006", 192),
+)
 ROI_BOX = (480, 240, 800, 480)  # 320×240 at the HD720 frame's centre
 ROI_WINDOW = 32
 
@@ -66,8 +71,9 @@ def cpu_name() -> str:
 def plain_opencv(max_disp: int, grey: bool, min_disp: int = 0) -> Method:
     """OpenCV StereoSGBM as shipped (3-way, block 5); float32 px, 0 unmatched. Grey includes the conversion."""
     channels = 1 if grey else 3
-    matcher = cv2.StereoSGBM_create(min_disp, max_disp, 5, P1=8 * channels * 25, P2=32 * channels * 25,
-                                    mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    matcher = cv2.StereoSGBM_create(
+        min_disp, max_disp, 5, P1=8 * channels * 25, P2=32 * channels * 25, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY
+    )
 
     def run(left: np.ndarray, right: np.ndarray) -> np.ndarray:
         if grey:
@@ -85,8 +91,11 @@ def methods(max_disp: int) -> dict[str, Method]:
         "ours: + left padding": SGBMBackend(max_disp, lr_check=False),
         "ours: + half-res LR check (shipped)": SGBMBackend(max_disp),
     }
-    return {"plain OpenCV colour": plain_opencv(max_disp, grey=False), "plain OpenCV grey": plain_opencv(max_disp, grey=True),
-            **{name: (lambda left, right, b=backend: b.compute(left, right).disparity) for name, backend in steps.items()}}
+    return {
+        "plain OpenCV colour": plain_opencv(max_disp, grey=False),
+        "plain OpenCV grey": plain_opencv(max_disp, grey=True),
+        **{name: (lambda left, right, b=backend: b.compute(left, right).disparity) for name, backend in steps.items()},
+    }
 
 
 def interleaved_medians(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
@@ -106,14 +115,19 @@ def time_whole_frame(left: np.ndarray, right: np.ndarray, max_disp: int, repeats
     """Per-method medians, the shipped backend's stage split, and ratios to plain OpenCV."""
     shipped = SGBMBackend(max_disp)
     stages: list[dict[str, float]] = []
-    calls: dict[str, Callable[[], object]] = {name: (lambda m=method: m(left, right)) for name, method in methods(max_disp).items()}
+    calls: dict[str, Callable[[], object]] = {
+        name: (lambda m=method: m(left, right)) for name, method in methods(max_disp).items()
+    }
     calls["ours: + half-res LR check (shipped)"] = lambda: stages.append(shipped.compute(left, right).timing_ms)
     medians = interleaved_medians(calls, repeats)
     ours = medians["ours: + half-res LR check (shipped)"]
     return {
-        "size": f"{left.shape[1]}x{left.shape[0]}", "max_disp": max_disp, "ms": medians,
+        "size": f"{left.shape[1]}x{left.shape[0]}",
+        "max_disp": max_disp,
+        "ms": medians,
         "stages_ms": {key: statistics.median(s[key] for s in stages) for key in stages[0]},
-        "ratio_to_plain_colour": ours / medians["plain OpenCV colour"], "ratio_to_plain_grey": ours / medians["plain OpenCV grey"],
+        "ratio_to_plain_colour": ours / medians["plain OpenCV colour"],
+        "ratio_to_plain_grey": ours / medians["plain OpenCV grey"],
     }
 
 
@@ -126,16 +140,24 @@ def time_roi(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, repeats
     backend = SGBMBackend(ROI_WINDOW)
     crop_left, crop_right = (np.ascontiguousarray(image[y0:y1, x0:x1]) for image in (left, right))
     colour, grey = plain_opencv(ROI_WINDOW, grey=False), plain_opencv(ROI_WINDOW, grey=True)
-    medians = interleaved_medians({
-        "plain OpenCV colour (crop)": lambda: colour(crop_left, crop_right),
-        "plain OpenCV grey (crop)": lambda: grey(crop_left, crop_right),
-        "ours compute_roi": lambda: backend.compute_roi(left, right, ROI_BOX, d_min, ROI_WINDOW),
-    }, repeats)
+    medians = interleaved_medians(
+        {
+            "plain OpenCV colour (crop)": lambda: colour(crop_left, crop_right),
+            "plain OpenCV grey (crop)": lambda: grey(crop_left, crop_right),
+            "ours compute_roi": lambda: backend.compute_roi(left, right, ROI_BOX, d_min, ROI_WINDOW),
+        },
+        repeats,
+    )
     result = backend.compute_roi(left, right, ROI_BOX, d_min, ROI_WINDOW).disparity
-    return {"roi": ROI_BOX, "d_min": d_min, "d_range": ROI_WINDOW, "ms": medians,
-            "ratio_to_plain_colour": medians["ours compute_roi"] / medians["plain OpenCV colour (crop)"],
-            "ratio_to_plain_grey": medians["ours compute_roi"] / medians["plain OpenCV grey (crop)"],
-            "accuracy": scores(result, truth)}
+    return {
+        "roi": ROI_BOX,
+        "d_min": d_min,
+        "d_range": ROI_WINDOW,
+        "ms": medians,
+        "ratio_to_plain_colour": medians["ours compute_roi"] / medians["plain OpenCV colour (crop)"],
+        "ratio_to_plain_grey": medians["ours compute_roi"] / medians["plain OpenCV grey (crop)"],
+        "accuracy": scores(result, truth),
+    }
 
 
 def scores(prediction: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -143,7 +165,12 @@ def scores(prediction: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     matched = prediction > 0
     scored = (truth > 0) & (truth < 192)
     metrics = image_metrics(prediction, np.where(matched, truth, 0))
-    return {"epe": metrics["epe"], "bad_1": metrics["bad_1"], "bad_2": metrics["bad_2"], "density": float(matched[scored].mean())}
+    return {
+        "epe": metrics["epe"],
+        "bad_1": metrics["bad_1"],
+        "bad_2": metrics["bad_2"],
+        "density": float(matched[scored].mean()),
+    }
 
 
 def real_pairs() -> list[tuple[str, int, np.ndarray, np.ndarray, np.ndarray]]:
@@ -154,25 +181,45 @@ def real_pairs() -> list[tuple[str, int, np.ndarray, np.ndarray, np.ndarray]]:
         if not folder.is_dir():
             continue
         if name.startswith("sceneflow"):
-            pairs.append((name, max_disp, read_rgb(folder / "left_cleanpass.png"), read_rgb(folder / "right_cleanpass.png"),
-                          read_pfm(folder / "disp_left.pfm")))
+            pairs.append(
+                (
+                    name,
+                    max_disp,
+                    read_rgb(folder / "left_cleanpass.png"),
+                    read_rgb(folder / "right_cleanpass.png"),
+                    read_pfm(folder / "disp_left.pfm"),
+                )
+            )
         else:
             scale = read_middlebury2001_info(folder / "info.txt").scale
-            pairs.append((name, max_disp, read_rgb(folder / "imL.png"), read_rgb(folder / "imR.png"),
-                          read_middlebury2001_disparity(folder / "groundtruth.png", scale)))
+            pairs.append(
+                (
+                    name,
+                    max_disp,
+                    read_rgb(folder / "imL.png"),
+                    read_rgb(folder / "imR.png"),
+                    read_middlebury2001_disparity(folder / "groundtruth.png", scale),
+                )
+            )
     return pairs
 
 
-def accuracy(pairs: list[tuple[str, int, np.ndarray, np.ndarray, np.ndarray]]) -> dict[str, dict[str, dict[str, float]]]:
+def accuracy(
+    pairs: list[tuple[str, int, np.ndarray, np.ndarray, np.ndarray]],
+) -> dict[str, dict[str, dict[str, float]]]:
     """scores() of every method on every pair: {pair: {method: scores}}."""
-    return {name: {method: scores(run(left, right), truth) for method, run in methods(max_disp).items()}
-            for name, max_disp, left, right, truth in pairs}
+    return {
+        name: {method: scores(run(left, right), truth) for method, run in methods(max_disp).items()}
+        for name, max_disp, left, right, truth in pairs
+    }
 
 
 def print_report(report: dict[str, object]) -> None:
     """The tables for people."""
-    print(f"CPU: {report['cpu']}; OpenCV {report['opencv']} on {THREADS} threads; load average "
-          f"{report['load_before']:.2f} → {report['load_after']:.2f}; {report['repeats']} repeats, median\n")
+    print(
+        f"CPU: {report['cpu']}; OpenCV {report['opencv']} on {THREADS} threads; load average "
+        f"{report['load_before']:.2f} → {report['load_after']:.2f}; {report['repeats']} repeats, median\n"
+    )
     for run in report["whole_frame"]:
         print(f"### {run['size']}, max_disp {run['max_disp']}")
         print("| method | ms | × plain colour | × plain grey |\n|---|---|---|---|")
@@ -185,15 +232,21 @@ def print_report(report: dict[str, object]) -> None:
     print("| method | ms |\n|---|---|")
     for name, ms in roi["ms"].items():
         print(f"| {name} | {ms:.2f} |")
-    print(f"compute_roi × plain colour {roi['ratio_to_plain_colour']:.2f}, "
-          f"× plain grey {roi['ratio_to_plain_grey']:.2f}; "
-          f"accuracy in the box: " + ", ".join(f"{k} {v:.3f}" for k, v in roi["accuracy"].items()) + "\n")
+    print(
+        f"compute_roi × plain colour {roi['ratio_to_plain_colour']:.2f}, "
+        f"× plain grey {roi['ratio_to_plain_grey']:.2f}; "
+        f"accuracy in the box: " + ", ".join(f"{k} {v:.3f}" for k, v in roi["accuracy"].items()) + "\n"
+    )
     print("### Accuracy (matched-pixel EPE px / Bad-1 / Bad-2, density)")
     pairs = list(report["accuracy"])
     print("| method | " + " | ".join(pairs) + " |\n|---|" + "---|" * len(pairs))
     for method in report["accuracy"][pairs[0]]:
         cells = [report["accuracy"][p][method] for p in pairs]
-        print(f"| {method} | " + " | ".join(f"{c['epe']:.3f} / {c['bad_1']:.3f} / {c['bad_2']:.3f}, {c['density']:.3f}" for c in cells) + " |")
+        print(
+            f"| {method} | "
+            + " | ".join(f"{c['epe']:.3f} / {c['bad_1']:.3f} / {c['bad_2']:.3f}, {c['density']:.3f}" for c in cells)
+            + " |"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -207,9 +260,15 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(THREADS)
     load_before = os.getloadavg()[0]
     scene = render_scene(args.seed, SynthCamera.zed_mini(1280, 720))
-    coarse_left, coarse_right = (cv2.resize(image, (640, 360), interpolation=cv2.INTER_AREA) for image in (scene.left, scene.right))
+    coarse_left, coarse_right = (
+        cv2.resize(image, (640, 360), interpolation=cv2.INTER_AREA) for image in (scene.left, scene.right)
+    )
     report: dict[str, object] = {
-        "cpu": cpu_name(), "opencv": cv2.__version__, "threads": THREADS, "repeats": args.repeats, "seed": args.seed,
+        "cpu": cpu_name(),
+        "opencv": cv2.__version__,
+        "threads": THREADS,
+        "repeats": args.repeats,
+        "seed": args.seed,
         "timing_input": "synthetic ZED Mini HD720 pair (stereo.synth.render_scene); 640x360 = it resized (INTER_AREA)",
         "whole_frame": [time_whole_frame(scene.left, scene.right, max_disp, args.repeats) for max_disp in (64, 128)]
         + [time_whole_frame(coarse_left, coarse_right, 64, args.repeats)],

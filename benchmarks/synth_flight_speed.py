@@ -12,6 +12,7 @@ wall time on a shared machine depends on what else runs.
     .venv/bin/python benchmarks/synth_flight_speed.py                      # HD720, 3 seeds, bare + foliage
     .venv/bin/python benchmarks/synth_flight_speed.py --size 640x360 --json out/flight_speed.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,24 +48,47 @@ def measure(width: int, height: int, seeds: list[int], repeats: int) -> list[dic
         samples: dict[str, list[tuple[float, float]]] = {}
         for seed in seeds:
             leaves = "sparse" if foliage else "bare"
-            calls = {"render_scene 1 ray/px (baseline)":
-                     [lambda s=seed, f=leaves: render_scene(s, camera, supersample=1, foliage=f)],
-                     "render_scene 2x2 rays/px (default)": [lambda s=seed, f=leaves: render_scene(s, camera, foliage=f)]}
+            calls = {
+                "render_scene 1 ray/px (baseline)": [
+                    lambda s=seed, f=leaves: render_scene(s, camera, supersample=1, foliage=f)
+                ],
+                "render_scene 2x2 rays/px (default)": [lambda s=seed, f=leaves: render_scene(s, camera, foliage=f)],
+            }
             for blur in (False, True):
-                renderer = FlightRenderer(FlightOptions(frames=31, width=width, height=height, seed=seed,
-                                                        foliage=foliage, motion_blur=blur, jitter_deg=1.0, sway_m=0.05))
+                renderer = FlightRenderer(
+                    FlightOptions(
+                        frames=31,
+                        width=width,
+                        height=height,
+                        seed=seed,
+                        foliage=foliage,
+                        motion_blur=blur,
+                        jitter_deg=1.0,
+                        sway_m=0.05,
+                    )
+                )
                 name = f"flight frame{' + motion blur' if blur else ''}"
                 calls[name] = [lambda r=renderer, i=index: r.render(i) for index in (0, 15, 30)]
             for _ in range(repeats):
                 for name, runs in calls.items():
                     samples.setdefault(name, []).extend(timed(run) for run in runs)
-        base_wall, base_cpu = (statistics.median(t[k] for t in samples["render_scene 1 ray/px (baseline)"])
-                               for k in (0, 1))
+        base_wall, base_cpu = (
+            statistics.median(t[k] for t in samples["render_scene 1 ray/px (baseline)"]) for k in (0, 1)
+        )
         for name, times in samples.items():
             wall, cpu = (statistics.median(t[k] for t in times) for k in (0, 1))
-            rows.append({"foliage": foliage, "what": name, "wall_s": wall, "cpu_s": cpu,
-                         "max_wall_s": max(t[0] for t in times), "wall_ratio_to_baseline": wall / base_wall,
-                         "cpu_ratio_to_baseline": cpu / base_cpu, "samples": len(times)})
+            rows.append(
+                {
+                    "foliage": foliage,
+                    "what": name,
+                    "wall_s": wall,
+                    "cpu_s": cpu,
+                    "max_wall_s": max(t[0] for t in times),
+                    "wall_ratio_to_baseline": wall / base_wall,
+                    "cpu_ratio_to_baseline": cpu / base_cpu,
+                    "samples": len(times),
+                }
+            )
     return rows
 
 
@@ -84,16 +108,22 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.size}, {cpu}; load average {load_before[0]:.1f} before, {load_after[0]:.1f} after")
     print(f"{'foliage':<8} {'what':<36} {'wall s':>7} {'max s':>7} {'CPU s':>7} {'wall ×':>7} {'CPU ×':>7}")
     for row in rows:
-        print(f"{'sparse' if row['foliage'] else 'bare':<8} {row['what']:<36} {row['wall_s']:>7.2f} "
-              f"{row['max_wall_s']:>7.2f} {row['cpu_s']:>7.2f} {row['wall_ratio_to_baseline']:>7.2f} "
-              f"{row['cpu_ratio_to_baseline']:>7.2f}")
+        print(
+            f"{'sparse' if row['foliage'] else 'bare':<8} {row['what']:<36} {row['wall_s']:>7.2f} "
+            f"{row['max_wall_s']:>7.2f} {row['cpu_s']:>7.2f} {row['wall_ratio_to_baseline']:>7.2f} "
+            f"{row['cpu_ratio_to_baseline']:>7.2f}"
+        )
     print("× = median over the median of `render_scene 1 ray/px` (same seeds, same run)")
     frames = [row["wall_s"] for row in rows if str(row["what"]).startswith("flight")]
     print(f"slowest median flight frame {max(frames):.2f} s (budget {BUDGET_S:.1f} s per HD720 frame on 2 cores)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"size": args.size, "cpu": cpu, "load_average": [load_before[0], load_after[0]],
-                                         "rows": rows}, indent=1) + "\n")
+        args.json.write_text(
+            json.dumps(
+                {"size": args.size, "cpu": cpu, "load_average": [load_before[0], load_after[0]], "rows": rows}, indent=1
+            )
+            + "\n"
+        )
     return 0
 
 

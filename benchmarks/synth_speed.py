@@ -7,6 +7,7 @@ both printed; on a shared machine the wall time depends on what else runs.
     .venv/bin/python benchmarks/synth_speed.py                        # pairs + 100 scenes at 640×360
     .venv/bin/python benchmarks/synth_speed.py --dataset-scenes 0     # pairs only
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,13 +43,21 @@ def pair_rows(sizes: list[tuple[int, int]], seeds: list[int]) -> list[tuple[str,
     rows = []
     for width, height in sizes:
         camera = SynthCamera.zed_mini(width, height)
-        configs = [("truth pass only (baseline)", lambda s, c=camera: truth_pass(s, c)),
-                   ("pair, 2x2 rays/px, 1 thread", lambda s, c=camera: render_scene(s, c, threads=1)),
-                   ("pair, 2x2 rays/px, 2 threads", lambda s, c=camera: render_scene(s, c, threads=2))]
+        configs = [
+            ("truth pass only (baseline)", lambda s, c=camera: truth_pass(s, c)),
+            ("pair, 2x2 rays/px, 1 thread", lambda s, c=camera: render_scene(s, c, threads=1)),
+            ("pair, 2x2 rays/px, 2 threads", lambda s, c=camera: render_scene(s, c, threads=2)),
+        ]
         for name, run in configs:
             times = [timed(run, seed) for seed in seeds]
-            rows.append((f"{width}x{height}", name, statistics.median(t[0] for t in times),
-                         statistics.median(t[1] for t in times)))
+            rows.append(
+                (
+                    f"{width}x{height}",
+                    name,
+                    statistics.median(t[0] for t in times),
+                    statistics.median(t[1] for t in times),
+                )
+            )
     return rows
 
 
@@ -67,8 +76,10 @@ def main() -> None:
     if args.dataset_scenes:
         with tempfile.TemporaryDirectory() as out:
             wall, cpu = timed(write_dataset, out, args.dataset_scenes, 0, 640, 360, workers=args.workers)
-        print(f"{'640x360':<10} {f'{args.dataset_scenes} scenes, {args.workers} workers':<30} {wall:>8.1f} "
-              f"{'(children)':>8}  = {wall / args.dataset_scenes:.2f} s/scene")
+        print(
+            f"{'640x360':<10} {f'{args.dataset_scenes} scenes, {args.workers} workers':<30} {wall:>8.1f} "
+            f"{'(children)':>8}  = {wall / args.dataset_scenes:.2f} s/scene"
+        )
 
 
 if __name__ == "__main__":

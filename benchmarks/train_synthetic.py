@@ -7,6 +7,7 @@ Prints one table row per stage with held-out EPE / D1 / Bad-3 and seconds per it
 
     python benchmarks/train_synthetic.py --steps 100 --selfsup-steps 50 --threads 1
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,13 +43,22 @@ class WithoutGroundTruth:
 def recipe(root: Path, out: Path, args: argparse.Namespace, steps: int, lr: float, pairs: int) -> ExperimentConfig:
     """The config of one stage: `steps` steps over whole epochs of `pairs` training pairs."""
     epochs = -(-steps // max(1, pairs // args.batch_size))
-    return build_config({
-        "model": {"max_disp": args.max_disp},
-        "data": {"dataset": "synthetic", "root": str(root), "crop": list(args.crop), "num_workers": 0},
-        "optim": {"lr": lr, "warmup_steps": max(1, steps // 20)},
-        "train": {"epochs": epochs, "batch_size": args.batch_size, "precision": args.precision, "patience": 0,
-                  "vis_count": 0, "max_steps": steps, "out_dir": str(out)},
-    })
+    return build_config(
+        {
+            "model": {"max_disp": args.max_disp},
+            "data": {"dataset": "synthetic", "root": str(root), "crop": list(args.crop), "num_workers": 0},
+            "optim": {"lr": lr, "warmup_steps": max(1, steps // 20)},
+            "train": {
+                "epochs": epochs,
+                "batch_size": args.batch_size,
+                "precision": args.precision,
+                "patience": 0,
+                "vis_count": 0,
+                "max_steps": steps,
+                "out_dir": str(out),
+            },
+        }
+    )
 
 
 def row(stage: str, metrics: dict, seconds_per_step: float | None) -> str:
@@ -77,8 +87,9 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     total = args.train_scenes + args.heldout_scenes
-    root = write_dataset(args.out / "synth", scenes=total, seed=11, width=args.size[0], height=args.size[1],
-                         progress=False).root
+    root = write_dataset(
+        args.out / "synth", scenes=total, seed=11, width=args.size[0], height=args.size[1], progress=False
+    ).root
     (root / "bench_train.txt").write_text("".join(split_line(i) + "\n" for i in range(args.train_scenes)))
     (root / "bench_heldout.txt").write_text("".join(split_line(i) + "\n" for i in range(args.train_scenes, total)))
     train_set, held_out = SyntheticDataset(root, "bench_train"), SyntheticDataset(root, "bench_heldout")
@@ -86,13 +97,21 @@ def main() -> None:
 
     seed_everything(0)
     model = EMCStereo(max_disp=args.max_disp)
-    print(f"device {device}, threads {torch.get_num_threads()}, {args.train_scenes} train / {args.heldout_scenes} "
-          f"held-out scenes {args.size[0]}×{args.size[1]}, crop {args.crop[0]}×{args.crop[1]}, max_disp {args.max_disp}")
+    print(
+        f"device {device}, threads {torch.get_num_threads()}, {args.train_scenes} train / {args.heldout_scenes} "
+        f"held-out scenes {args.size[0]}×{args.size[1]}, crop {args.crop[0]}×{args.crop[1]}, max_disp {args.max_disp}"
+    )
     print(f"{'stage':<28}{'EPE':>8}{'D1':>8}{'Bad-3':>8}{'s/iter':>8}")
     print(row("untrained", score(model.to(device)), None), flush=True)
     started = time.perf_counter()
-    trainer = Trainer(recipe(root, args.out / "supervised", args, args.steps, args.lr, len(train_set)), model, train_set, None,
-                      context=DistributedContext(device=device), show_progress=False)
+    trainer = Trainer(
+        recipe(root, args.out / "supervised", args, args.steps, args.lr, len(train_set)),
+        model,
+        train_set,
+        None,
+        context=DistributedContext(device=device),
+        show_progress=False,
+    )
     result = trainer.fit()
     per_step = (time.perf_counter() - started) / max(1, result.steps)
     print(row(f"supervised {result.steps} steps", score(model), per_step), flush=True)
@@ -100,8 +119,15 @@ def main() -> None:
         config = recipe(root, args.out / "selfsup", args, args.selfsup_steps, args.lr / 5, len(held_out))
         config = build_config({**config.to_dict(), "data": {**config.to_dict()["data"], "color_jitter": False}})
         started = time.perf_counter()
-        ss = SelfSupervisedTrainer(config, model, WithoutGroundTruth(held_out), None, selfsup=SelfSupConfig(),
-                                   context=DistributedContext(device=device), show_progress=False).fit()
+        ss = SelfSupervisedTrainer(
+            config,
+            model,
+            WithoutGroundTruth(held_out),
+            None,
+            selfsup=SelfSupConfig(),
+            context=DistributedContext(device=device),
+            show_progress=False,
+        ).fit()
         per_step = (time.perf_counter() - started) / max(1, ss.steps)
         print(row(f"+ self-supervised {ss.steps} steps", score(model), per_step), flush=True)
 

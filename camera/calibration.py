@@ -6,6 +6,7 @@ point from the left camera frame to the right one, `x_right = R @ x_left + T`, w
 For a right camera that sits to the right of the left one, `T[0]` is therefore negative
 (about -baseline).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -60,42 +61,64 @@ class StereoCalibration:
 
     def __post_init__(self) -> None:
         arrays = {
-            "K1": (self.K1, (3, 3)), "K2": (self.K2, (3, 3)), "R": (self.R, (3, 3)), "T": (self.T, (3,)),
-            "D1": (self.D1, None), "D2": (self.D2, None),
+            "K1": (self.K1, (3, 3)),
+            "K2": (self.K2, (3, 3)),
+            "R": (self.R, (3, 3)),
+            "T": (self.T, (3,)),
+            "D1": (self.D1, None),
+            "D2": (self.D2, None),
         }
         for key, (value, shape) in arrays.items():
             array = np.asarray(value, dtype=np.float64)
             if shape is None:
                 array = array.reshape(-1)
                 if array.size not in DISTORTION_LENGTHS:
-                    raise CalibrationError(self.source, key, f"has {array.size} coefficients",
-                                           f"one of {DISTORTION_LENGTHS} OpenCV distortion coefficients")
+                    raise CalibrationError(
+                        self.source,
+                        key,
+                        f"has {array.size} coefficients",
+                        f"one of {DISTORTION_LENGTHS} OpenCV distortion coefficients",
+                    )
             elif array.size == int(np.prod(shape)):
                 array = array.reshape(shape)
             else:
                 raise CalibrationError(self.source, key, f"has shape {array.shape}", f"shape {shape}")
             if not np.all(np.isfinite(array)):
-                raise CalibrationError(self.source, key, f"contains a non-finite value {array.tolist()}",
-                                       "finite numbers")
+                raise CalibrationError(
+                    self.source, key, f"contains a non-finite value {array.tolist()}", "finite numbers"
+                )
             array.setflags(write=False)
             object.__setattr__(self, key, array)
         try:
             width, height = (int(v) for v in self.image_size)
         except (TypeError, ValueError):
-            raise CalibrationError(self.source, "image_size", f"is {self.image_size!r}",
-                                   "(width, height) in pixels") from None
+            raise CalibrationError(
+                self.source, "image_size", f"is {self.image_size!r}", "(width, height) in pixels"
+            ) from None
         if not (0 < width <= MAX_IMAGE_SIDE_PX and 0 < height <= MAX_IMAGE_SIDE_PX):
-            raise CalibrationError(self.source, "image_size", f"is {self.image_size}",
-                                   f"a positive (width, height) in pixels, each at most {MAX_IMAGE_SIDE_PX}")
+            raise CalibrationError(
+                self.source,
+                "image_size",
+                f"is {self.image_size}",
+                f"a positive (width, height) in pixels, each at most {MAX_IMAGE_SIDE_PX}",
+            )
         object.__setattr__(self, "image_size", (width, height))
         for key in ("K1", "K2"):
             k = getattr(self, key)
             if k[0, 0] <= 0 or k[1, 1] <= 0:
-                raise CalibrationError(self.source, key, f"has focal lengths fx={k[0, 0]}, fy={k[1, 1]}",
-                                       "positive focal lengths in pixels")
+                raise CalibrationError(
+                    self.source,
+                    key,
+                    f"has focal lengths fx={k[0, 0]}, fy={k[1, 1]}",
+                    "positive focal lengths in pixels",
+                )
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-4) or np.linalg.det(self.R) < 0:
-            raise CalibrationError(self.source, "R", f"is not a rotation matrix: {self.R.tolist()}",
-                                   "an orthonormal 3×3 matrix with determinant +1")
+            raise CalibrationError(
+                self.source,
+                "R",
+                f"is not a rotation matrix: {self.R.tolist()}",
+                "an orthonormal 3×3 matrix with determinant +1",
+            )
         if self.baseline_m <= 0:
             raise CalibrationError(self.source, "T", f"is {self.T.tolist()}", "a non-zero translation in metres")
 
@@ -117,8 +140,11 @@ class StereoCalibration:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, StereoCalibration):
             return NotImplemented
-        return (self.image_size == other.image_size and self.is_rectified == other.is_rectified
-                and all(np.array_equal(getattr(self, k), getattr(other, k)) for k in ("K1", "D1", "K2", "D2", "R", "T")))
+        return (
+            self.image_size == other.image_size
+            and self.is_rectified == other.is_rectified
+            and all(np.array_equal(getattr(self, k), getattr(other, k)) for k in ("K1", "D1", "K2", "D2", "R", "T"))
+        )
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -131,9 +157,13 @@ def require_image_size(calibration: StereoCalibration, size: tuple[int, int]) ->
     """
     if tuple(calibration.image_size) != tuple(size):
         width, height = calibration.image_size
-        raise FrameSizeError(calibration.source, "image size", f"is {width}×{height} px",
-                             f"{size[0]}×{size[1]} px, the size of the images; use the calibration "
-                             "of this resolution (e.g. --resolution)")
+        raise FrameSizeError(
+            calibration.source,
+            "image size",
+            f"is {width}×{height} px",
+            f"{size[0]}×{size[1]} px, the size of the images; use the calibration "
+            "of this resolution (e.g. --resolution)",
+        )
 
 
 def camera_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
@@ -141,8 +171,16 @@ def camera_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
 
 
-def from_rectified(focal_px: float, cx: float, cy: float, baseline_m: float, size: tuple[int, int],
-                   *, cx_right: float | None = None, source: str = "<rectified>") -> StereoCalibration:
+def from_rectified(
+    focal_px: float,
+    cx: float,
+    cy: float,
+    baseline_m: float,
+    size: tuple[int, int],
+    *,
+    cx_right: float | None = None,
+    source: str = "<rectified>",
+) -> StereoCalibration:
     """Calibration of an already rectified pair known only by focal length, principal point and baseline.
 
     `focal_px`, `cx`, `cy` in pixels at `size` = (width, height); `baseline_m` in metres (> 0);
@@ -159,8 +197,17 @@ def from_rectified(focal_px: float, cx: float, cy: float, baseline_m: float, siz
     k1 = camera_matrix(focal_px, focal_px, cx, cy)
     k2 = camera_matrix(focal_px, focal_px, cx if cx_right is None else cx_right, cy)
     zeros = np.zeros(5)
-    return StereoCalibration(k1, zeros, k2, zeros, np.eye(3), np.array([-baseline_m, 0.0, 0.0]),
-                             (size[0], size[1]), is_rectified=True, source=source)
+    return StereoCalibration(
+        k1,
+        zeros,
+        k2,
+        zeros,
+        np.eye(3),
+        np.array([-baseline_m, 0.0, 0.0]),
+        (size[0], size[1]),
+        is_rectified=True,
+        source=source,
+    )
 
 
 def read_calibration_text(path: str | Path) -> str:
@@ -169,13 +216,15 @@ def read_calibration_text(path: str | Path) -> str:
     try:
         data = path.read_bytes()
     except OSError as error:
-        raise CalibrationError(path, "<file>", f"cannot be read ({error.strerror})",
-                               "an existing, readable calibration file") from error
+        raise CalibrationError(
+            path, "<file>", f"cannot be read ({error.strerror})", "an existing, readable calibration file"
+        ) from error
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as error:
-        raise CalibrationError(path, "<file>", f"is not UTF-8 text (byte {error.start})",
-                               "a text calibration file") from error
+        raise CalibrationError(
+            path, "<file>", f"is not UTF-8 text (byte {error.start})", "a text calibration file"
+        ) from error
     return "\n".join(text.splitlines())
 
 

@@ -11,6 +11,7 @@ toCameraSocket, lengthUnit}}]`. The extrinsics of camera S map a point from S's 
 Intrinsics are scaled to the requested size the way `CalibrationHandler.getCameraIntrinsics(...,
 keepAspectRatio=True)` does: scale by the width ratio, then centre vertically (a crop or a pad).
 """
+
 from __future__ import annotations
 
 import json
@@ -23,10 +24,22 @@ from camera.calibration import CalibrationError, StereoCalibration
 
 #: Socket names depthai uses (CameraBoardSocket), mapped to their numbers.
 SOCKETS: dict[str, int] = {
-    "CAM_A": 0, "RGB": 0, "CENTER": 0, "A": 0,
-    "CAM_B": 1, "LEFT": 1, "B": 1,
-    "CAM_C": 2, "RIGHT": 2, "C": 2,
-    "CAM_D": 3, "D": 3, "CAM_E": 4, "E": 4, "CAM_F": 5, "F": 5,
+    "CAM_A": 0,
+    "RGB": 0,
+    "CENTER": 0,
+    "A": 0,
+    "CAM_B": 1,
+    "LEFT": 1,
+    "B": 1,
+    "CAM_C": 2,
+    "RIGHT": 2,
+    "C": 2,
+    "CAM_D": 3,
+    "D": 3,
+    "CAM_E": 4,
+    "E": 4,
+    "CAM_F": 5,
+    "F": 5,
 }
 
 #: Metres per unit of depthai's LengthUnit values (METER, CENTIMETER, MILLIMETER, INCH, FOOT).
@@ -79,15 +92,20 @@ class _Cameras:
         self.entries: dict[int, dict[str, Any]] = {}
         for index, item in enumerate(data["cameraData"]):
             if not (isinstance(item, list) and len(item) == 2 and isinstance(item[1], dict)):
-                raise CalibrationError(source, f"cameraData[{index}]", f"is {str(item)[:60]}",
-                                       "a [socket, {intrinsicMatrix, …}] pair")
+                raise CalibrationError(
+                    source, f"cameraData[{index}]", f"is {str(item)[:60]}", "a [socket, {intrinsicMatrix, …}] pair"
+                )
             self.entries[integer_field(item[0], source, f"cameraData[{index}][0]", "a socket number")] = item[1]
 
     def entry(self, socket: int) -> dict[str, Any]:
         """The cameraData entry of a socket, or a CalibrationError listing the file's sockets."""
         if socket not in self.entries:
-            raise CalibrationError(self.source, f"cameraData socket {socket}", "is missing",
-                                   f"one of the file's sockets {sorted(self.entries)}")
+            raise CalibrationError(
+                self.source,
+                f"cameraData socket {socket}",
+                "is missing",
+                f"one of the file's sockets {sorted(self.entries)}",
+            )
         return self.entries[socket]
 
     def array(self, socket: int, key: str, shape: tuple[int, ...], where: str = "") -> np.ndarray:
@@ -99,7 +117,9 @@ class _Cameras:
         try:
             values = np.array(container[key], dtype=np.float64)
         except (KeyError, TypeError, ValueError):
-            raise CalibrationError(self.source, label, "is missing or not numeric", f"numbers of shape {shape}") from None
+            raise CalibrationError(
+                self.source, label, "is missing or not numeric", f"numbers of shape {shape}"
+            ) from None
         if values.shape != shape:
             raise CalibrationError(self.source, label, f"has shape {values.shape}", f"shape {shape}")
         if not np.all(np.isfinite(values)):
@@ -109,30 +129,42 @@ class _Cameras:
     def intrinsics(self, socket: int, size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         """(K scaled to `size` (3×3 px), distortion (n,), size (w, h)); `size` None keeps the calibration size."""
         entry = self.entry(socket)
-        camera_type = integer_field(entry.get("cameraType", 0), self.source, f"cameraData[{socket}].cameraType",
-                                    "0 (perspective)")
+        camera_type = integer_field(
+            entry.get("cameraType", 0), self.source, f"cameraData[{socket}].cameraType", "0 (perspective)"
+        )
         if camera_type != 0:
-            raise CalibrationError(self.source, f"cameraData[{socket}].cameraType", f"is {entry['cameraType']}",
-                                   "0 (perspective); fisheye and other models are not supported")
+            raise CalibrationError(
+                self.source,
+                f"cameraData[{socket}].cameraType",
+                f"is {entry['cameraType']}",
+                "0 (perspective); fisheye and other models are not supported",
+            )
         matrix = self.array(socket, "intrinsicMatrix", (3, 3))
         try:
             calib_size = (int(entry["width"]), int(entry["height"]))
         except (KeyError, TypeError, ValueError):
-            raise CalibrationError(self.source, f"cameraData[{socket}].width/height", "is missing",
-                                   "the calibration image size in pixels") from None
+            raise CalibrationError(
+                self.source, f"cameraData[{socket}].width/height", "is missing", "the calibration image size in pixels"
+            ) from None
         if min(calib_size) <= 0:
-            raise CalibrationError(self.source, f"cameraData[{socket}].width/height", f"is {calib_size}",
-                                   "a positive calibration image size in pixels")
+            raise CalibrationError(
+                self.source,
+                f"cameraData[{socket}].width/height",
+                f"is {calib_size}",
+                "a positive calibration image size in pixels",
+            )
         raw_coeffs = entry.get("distortionCoeff") or [0.0] * 14
         label = f"cameraData[{socket}].distortionCoeff"
         try:
             coeffs = np.array(raw_coeffs, dtype=np.float64).reshape(-1)
         except (TypeError, ValueError):
-            raise CalibrationError(self.source, label, f"is {str(raw_coeffs)[:60]}",
-                                   "a list of 14 OpenCV distortion coefficients") from None
+            raise CalibrationError(
+                self.source, label, f"is {str(raw_coeffs)[:60]}", "a list of 14 OpenCV distortion coefficients"
+            ) from None
         if coeffs.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(coeffs)):
-            raise CalibrationError(self.source, label, f"has {coeffs.size} values",
-                                   "14 finite OpenCV distortion coefficients")
+            raise CalibrationError(
+                self.source, label, f"has {coeffs.size} values", "14 finite OpenCV distortion coefficients"
+            )
         out_size = calib_size if size is None else (int(size[0]), int(size[1]))
         return scale_intrinsics(matrix, calib_size, out_size), coeffs, out_size
 
@@ -143,26 +175,45 @@ class _Cameras:
         current = socket
         while True:
             extrinsics = self.entry(current).get("extrinsics") or {}
-            target = integer_field(extrinsics.get("toCameraSocket", -1), self.source,
-                                   f"cameraData[{current}].extrinsics.toCameraSocket", "a socket number (-1: none)")
+            target = integer_field(
+                extrinsics.get("toCameraSocket", -1),
+                self.source,
+                f"cameraData[{current}].extrinsics.toCameraSocket",
+                "a socket number (-1: none)",
+            )
             if target < 0:
                 return transform, current
             if target in seen:
-                raise CalibrationError(self.source, f"cameraData[{current}].extrinsics.toCameraSocket",
-                                       f"loops back to socket {target} ({' → '.join(map(str, seen + [target]))})",
-                                       "a chain of extrinsics without cycles")
+                raise CalibrationError(
+                    self.source,
+                    f"cameraData[{current}].extrinsics.toCameraSocket",
+                    f"loops back to socket {target} ({' → '.join(map(str, seen + [target]))})",
+                    "a chain of extrinsics without cycles",
+                )
             rotation = self.array(current, "rotationMatrix", (3, 3), "extrinsics")
             translation = extrinsics.get("translation") or {}
             try:
                 t = np.array([translation[k] for k in "xyz"], dtype=np.float64)
             except (KeyError, TypeError, ValueError):
-                raise CalibrationError(self.source, f"cameraData[{current}].extrinsics.translation",
-                                       "is missing or incomplete", "{x, y, z} in centimetres") from None
-            unit = integer_field(extrinsics.get("lengthUnit", DEFAULT_LENGTH_UNIT), self.source,
-                                 f"cameraData[{current}].extrinsics.lengthUnit", f"one of {sorted(LENGTH_UNITS_M)}")
+                raise CalibrationError(
+                    self.source,
+                    f"cameraData[{current}].extrinsics.translation",
+                    "is missing or incomplete",
+                    "{x, y, z} in centimetres",
+                ) from None
+            unit = integer_field(
+                extrinsics.get("lengthUnit", DEFAULT_LENGTH_UNIT),
+                self.source,
+                f"cameraData[{current}].extrinsics.lengthUnit",
+                f"one of {sorted(LENGTH_UNITS_M)}",
+            )
             if unit not in LENGTH_UNITS_M:
-                raise CalibrationError(self.source, f"cameraData[{current}].extrinsics.lengthUnit", f"is {unit}",
-                                       f"one of {sorted(LENGTH_UNITS_M)} (m, cm, mm, inch, foot)")
+                raise CalibrationError(
+                    self.source,
+                    f"cameraData[{current}].extrinsics.lengthUnit",
+                    f"is {unit}",
+                    f"one of {sorted(LENGTH_UNITS_M)} (m, cm, mm, inch, foot)",
+                )
             step = np.eye(4)
             step[:3, :3] = rotation
             step[:3, 3] = t * LENGTH_UNITS_M[unit]
@@ -195,9 +246,13 @@ def calibrated_size(data: Any, socket: int | str, source: str) -> tuple[int, int
     return _Cameras(data, source).intrinsics(number, None)[2]
 
 
-def calibration_from_depthai_dict(data: Any, source: str, left_socket: int | str | None = None,
-                                  right_socket: int | str | None = None,
-                                  size: tuple[int, int] | None = None) -> StereoCalibration:
+def calibration_from_depthai_dict(
+    data: Any,
+    source: str,
+    left_socket: int | str | None = None,
+    right_socket: int | str | None = None,
+    size: tuple[int, int] | None = None,
+) -> StereoCalibration:
     """A stereo calibration from depthai's calibration JSON already parsed into a dict (see module doc)."""
     cameras = _Cameras(data, source)
     left = _chosen_socket(data, source, left_socket, "leftCameraSocket", 1)
@@ -207,15 +262,22 @@ def calibration_from_depthai_dict(data: Any, source: str, left_socket: int | str
     left_to_root, left_root = cameras.to_root(left)
     right_to_root, right_root = cameras.to_root(right)
     if left_root != right_root:
-        raise CalibrationError(source, f"cameraData[{left}].extrinsics",
-                               f"sockets {left} and {right} are not linked (chains end at {left_root} and {right_root})",
-                               "extrinsics that connect the two cameras")
+        raise CalibrationError(
+            source,
+            f"cameraData[{left}].extrinsics",
+            f"sockets {left} and {right} are not linked (chains end at {left_root} and {right_root})",
+            "extrinsics that connect the two cameras",
+        )
     left_to_right = np.linalg.inv(right_to_root) @ left_to_root
     return StereoCalibration(k1, d1, k2, d2, left_to_right[:3, :3], left_to_right[:3, 3], out_size, source=source)
 
 
-def from_depthai_json(path: str | Path, left_socket: int | str | None = None, right_socket: int | str | None = None,
-                      size: tuple[int, int] | None = None) -> StereoCalibration:
+def from_depthai_json(
+    path: str | Path,
+    left_socket: int | str | None = None,
+    right_socket: int | str | None = None,
+    size: tuple[int, int] | None = None,
+) -> StereoCalibration:
     """Load an OAK calibration JSON for a socket pair (default: the file's stereo pair, else CAM_B/CAM_C).
 
     `size` (w, h) is the frame size the cameras will deliver; intrinsics are scaled to it
@@ -225,8 +287,11 @@ def from_depthai_json(path: str | Path, left_socket: int | str | None = None, ri
     try:
         data = json.loads(path.read_text(encoding="utf-8-sig"))
     except OSError as error:
-        raise CalibrationError(path, "<file>", f"cannot be read ({error.strerror})", "a depthai calibration JSON") from None
+        raise CalibrationError(
+            path, "<file>", f"cannot be read ({error.strerror})", "a depthai calibration JSON"
+        ) from None
     except json.JSONDecodeError as error:
-        raise CalibrationError(path, f"line {error.lineno}", f"is not valid JSON ({error.msg})",
-                               "a depthai calibration JSON") from None
+        raise CalibrationError(
+            path, f"line {error.lineno}", f"is not valid JSON ({error.msg})", "a depthai calibration JSON"
+        ) from None
     return calibration_from_depthai_dict(data, str(path), left_socket, right_socket, size)

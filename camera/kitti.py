@@ -4,6 +4,7 @@ Lines `KEY: v1 v2 …`; `P_rect_XX` is a 3×4 row-major projection of camera XX 
 frame of camera 00, `S_rect_XX` the rectified image size (w, h). With `P = K [I | t]` the
 baseline between two cameras is `(P_left[0,3] - P_right[0,3]) / fx` (0.5327 m for 02→03).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -42,11 +43,20 @@ def from_kitti(path: str | Path, left: str = "02", right: str = "03") -> StereoC
     width, height = _numbers(entries, f"S_rect_{left}", 2, path)
     fx = p_left[0, 0]
     if fx <= 0 or not np.isclose(p_right[0, 0], fx, rtol=1e-6) or not np.isclose(p_right[1, 2], p_left[1, 2]):
-        raise CalibrationError(path, f"P_rect_{right}", f"fx={p_right[0, 0]}, cy={p_right[1, 2]} differ from "
-                               f"P_rect_{left}'s fx={fx}, cy={p_left[1, 2]}", "a rectified pair sharing fx and cy")
+        raise CalibrationError(
+            path,
+            f"P_rect_{right}",
+            f"fx={p_right[0, 0]}, cy={p_right[1, 2]} differ from P_rect_{left}'s fx={fx}, cy={p_left[1, 2]}",
+            "a rectified pair sharing fx and cy",
+        )
     baseline = (p_left[0, 3] - p_right[0, 3]) / fx
     if baseline <= 0:
-        raise CalibrationError(path, f"P_rect_{right}", f"puts camera {right} {baseline:.4f} m right of {left}",
-                               f"camera {right} to the right of camera {left} (swap left/right)")
-    return from_rectified(fx, p_left[0, 2], p_left[1, 2], baseline, (int(width), int(height)),
-                          cx_right=p_right[0, 2], source=str(path))
+        raise CalibrationError(
+            path,
+            f"P_rect_{right}",
+            f"puts camera {right} {baseline:.4f} m right of {left}",
+            f"camera {right} to the right of camera {left} (swap left/right)",
+        )
+    return from_rectified(
+        fx, p_left[0, 2], p_left[1, 2], baseline, (int(width), int(height)), cx_right=p_right[0, 2], source=str(path)
+    )

@@ -1,4 +1,5 @@
 """`load_calibration`: open any supported calibration file, recognised by its content, not its name."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -44,14 +45,25 @@ def _format_of_text(text: str, path: str | Path) -> str:
         return "opencv"
     if {"CAM0", "CAM1", "BASELINE"} <= lines:
         return "middlebury"
-    raise CalibrationError(path, "<file>", "is in no known calibration format",
-                           "a ZED SN*.conf, an OpenCV YAML/JSON/XML with K1 D1 K2 D2 R T, "
-                           "a depthai calibration JSON, a KITTI calib_cam_to_cam.txt or a Middlebury calib.txt")
+    raise CalibrationError(
+        path,
+        "<file>",
+        "is in no known calibration format",
+        "a ZED SN*.conf, an OpenCV YAML/JSON/XML with K1 D1 K2 D2 R T, "
+        "a depthai calibration JSON, a KITTI calib_cam_to_cam.txt or a Middlebury calib.txt",
+    )
 
 
-def load_calibration(path: str | Path, resolution: str | None = None, *, size: tuple[int, int] | None = None,
-                     left_socket: int | str | None = None, right_socket: int | str | None = None,
-                     kitti_left: str = "02", kitti_right: str = "03") -> StereoCalibration:
+def load_calibration(
+    path: str | Path,
+    resolution: str | None = None,
+    *,
+    size: tuple[int, int] | None = None,
+    left_socket: int | str | None = None,
+    right_socket: int | str | None = None,
+    kitti_left: str = "02",
+    kitti_right: str = "03",
+) -> StereoCalibration:
     """Load a stereo calibration of any supported format.
 
     `resolution` picks a ZED file's resolution (2K/FHD/HD/VGA; required for ZED files). `size`
@@ -62,8 +74,9 @@ def load_calibration(path: str | Path, resolution: str | None = None, *, size: t
     fmt = detect_format(path)
     if fmt == "zed":
         if resolution is None:
-            raise CalibrationError(path, "resolution", "was not given for a ZED calibration file",
-                                   "resolution= one of 2K, FHD, HD, VGA")
+            raise CalibrationError(
+                path, "resolution", "was not given for a ZED calibration file", "resolution= one of 2K, FHD, HD, VGA"
+            )
         return from_zed_conf(path, resolution)
     if fmt == "depthai":
         data = json.loads(read_calibration_text(path))
@@ -87,8 +100,9 @@ def _upload_suffix(data: bytes) -> str:
     return _SUFFIXES[fmt]
 
 
-def load_calibration_bytes(data: bytes, name: str, resolution: str | None = None, *,
-                           size: tuple[int, int] | None = None) -> StereoCalibration:
+def load_calibration_bytes(
+    data: bytes, name: str, resolution: str | None = None, *, size: tuple[int, int] | None = None
+) -> StereoCalibration:
     """`load_calibration` of a file's bytes (an upload), with errors naming it `name`.
 
     The bytes go to a private temporary folder under a fixed name whose suffix the content
@@ -101,7 +115,6 @@ def load_calibration_bytes(data: bytes, name: str, resolution: str | None = None
         try:
             return dataclasses.replace(load_calibration(path, resolution, size=size), source=name)
         except CalibrationError as error:
-            raise CalibrationError(name, error.key, error.problem.replace(str(path), name),
-                                   error.expected) from None
+            raise CalibrationError(name, error.key, error.problem.replace(str(path), name), error.expected) from None
         except ValueError as error:
             raise ValueError(str(error).replace(str(path), name)) from None

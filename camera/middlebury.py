@@ -6,6 +6,7 @@ keys not needed here (`ndisp`, `isint`, `vmin`, `vmax`, `dyavg`, `dymax`). Depth
 `Z = baseline · f / (d + doffs)`: the right camera's principal point sits `doffs` px right of the
 left's, so the returned calibration keeps both principal points (`K2[0, 2] − K1[0, 2]` = doffs).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -38,7 +39,9 @@ def from_middlebury_calib(path: str | Path) -> StereoCalibration:
             values[key.strip().lower()] = value.strip()
     for key in REQUIRED_KEYS:
         if key not in values:
-            raise CalibrationError(path, key, "is missing", "a Middlebury calib.txt with cam0, cam1, baseline, width, height")
+            raise CalibrationError(
+                path, key, "is missing", "a Middlebury calib.txt with cam0, cam1, baseline, width, height"
+            )
     k0, k1 = _matrix(path, "cam0", values["cam0"]), _matrix(path, "cam1", values["cam1"])
     try:
         baseline_mm = float(values["baseline"])
@@ -47,11 +50,14 @@ def from_middlebury_calib(path: str | Path) -> StereoCalibration:
     except ValueError as exc:
         raise CalibrationError(path, "baseline/width/height/doffs", f"is not a number ({exc})", "numbers") from None
     if not np.isclose(doffs, k1[0, 2] - k0[0, 2], atol=0.01):
-        raise CalibrationError(path, "doffs", f"is {doffs} but cam1 cx − cam0 cx is {k1[0, 2] - k0[0, 2]}",
-                               "doffs = cx1 − cx0 (pixels)")
+        raise CalibrationError(
+            path, "doffs", f"is {doffs} but cam1 cx − cam0 cx is {k1[0, 2] - k0[0, 2]}", "doffs = cx1 − cx0 (pixels)"
+        )
     if not (np.isclose(k0[0, 0], k1[0, 0]) and np.isclose(k0[1, 2], k1[1, 2])):
-        raise CalibrationError(path, "cam1", "has another focal length or cy than cam0",
-                               "a rectified pair (same f and cy in cam0 and cam1)")
-    return from_rectified(k0[0, 0], k0[0, 2], k0[1, 2], baseline_mm / 1000.0, size,
-                          cx_right=k1[0, 2], source=str(path))
-
+        raise CalibrationError(
+            path,
+            "cam1",
+            "has another focal length or cy than cam0",
+            "a rectified pair (same f and cy in cam0 and cam1)",
+        )
+    return from_rectified(k0[0, 0], k0[0, 2], k0[1, 2], baseline_mm / 1000.0, size, cx_right=k1[0, 2], source=str(path))

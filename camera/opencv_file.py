@@ -6,6 +6,7 @@ Keys: `K1`, `K2` (3×3, px), `D1`, `D2` (OpenCV distortion vectors), `R` (3×3, 
 Optional `rectified: 1` marks an already rectified pair. Matrices may be stored as
 `!!opencv-matrix` nodes or as plain (nested) number lists.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -28,8 +29,9 @@ def _open(path: Path) -> cv2.FileStorage:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as error:  # OpenCV 5 surfaces parser errors as SystemError
         reason = getattr(error, "err", None) or getattr(error.__cause__, "err", None) or "parse error"
-        raise CalibrationError(path, "<file>", f"is not a valid FileStorage file ({reason})",
-                               "OpenCV YAML, JSON or XML") from None
+        raise CalibrationError(
+            path, "<file>", f"is not a valid FileStorage file ({reason})", "OpenCV YAML, JSON or XML"
+        ) from None
     if not storage.isOpened():
         raise CalibrationError(path, "<file>", "could not be opened by cv2.FileStorage", "OpenCV YAML, JSON or XML")
     return storage
@@ -41,7 +43,9 @@ MAX_ARRAY_NUMBERS = 64
 #: OpenCV's single-channel element types, as an `!!opencv-matrix` `dt` names them.
 _MATRIX_TYPES = frozenset("ucwsifdh")
 _MATRIX_FIELDS = ("rows", "cols", "dt", "data")
-_MATRIX_EXPECTED = f"an !!opencv-matrix with rows, cols, a one-letter dt and rows × cols ≤ {MAX_ARRAY_NUMBERS} data values"
+_MATRIX_EXPECTED = (
+    f"an !!opencv-matrix with rows, cols, a one-letter dt and rows × cols ≤ {MAX_ARRAY_NUMBERS} data values"
+)
 
 
 def _number(node: cv2.FileNode, path: Path, key: str) -> float:
@@ -59,7 +63,9 @@ def _sequence_values(node: cv2.FileNode, path: Path, key: str) -> list[float]:
         row = [item.at(j) for j in range(min(item.size(), MAX_ARRAY_NUMBERS + 1))] if item.isSeq() else [item]
         values.extend(_number(value, path, key) for value in row)
         if len(values) > MAX_ARRAY_NUMBERS:
-            raise CalibrationError(path, key, f"holds more than {MAX_ARRAY_NUMBERS} numbers", "a calibration matrix or vector")
+            raise CalibrationError(
+                path, key, f"holds more than {MAX_ARRAY_NUMBERS} numbers", "a calibration matrix or vector"
+            )
     return values
 
 
@@ -118,7 +124,9 @@ def _read_array(storage: cv2.FileStorage, path: Path, key: str, size: int | None
         else:
             numbers = [_number(node, path, name)]
     except CalibrationError as error:
-        raise CalibrationError(path, name, error.problem, expected if error.expected == "numbers" else error.expected) from None
+        raise CalibrationError(
+            path, name, error.problem, expected if error.expected == "numbers" else error.expected
+        ) from None
     values = np.array(numbers, dtype=np.float64)
     if values.size == 0 or (size is not None and values.size != size):
         raise CalibrationError(path, name, f"holds {values.size} numbers", expected)
@@ -158,10 +166,15 @@ def from_opencv_file(path: str | Path, size: tuple[int, int] | None = None) -> S
         raise CalibrationError(path, "R", f"holds {r.size} numbers", "a 3×3 rotation matrix or a Rodrigues 3-vector")
     baseline = float(np.linalg.norm(t))
     if baseline > MAX_BASELINE_M:
-        raise CalibrationError(path, "T", f"has length {baseline:g}, implausible in metres",
-                               f"a translation in metres (under {MAX_BASELINE_M} m; was it written in mm?)")
-    return StereoCalibration(k1, d1, k2, d2, r.reshape(3, 3), t, (width, height), is_rectified=rectified,
-                             source=str(path))
+        raise CalibrationError(
+            path,
+            "T",
+            f"has length {baseline:g}, implausible in metres",
+            f"a translation in metres (under {MAX_BASELINE_M} m; was it written in mm?)",
+        )
+    return StereoCalibration(
+        k1, d1, k2, d2, r.reshape(3, 3), t, (width, height), is_rectified=rectified, source=str(path)
+    )
 
 
 def write_opencv_file(calibration: StereoCalibration, path: str | Path) -> Path:

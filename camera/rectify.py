@@ -1,4 +1,5 @@
 """Rectification of raw stereo pairs: maps computed once from a calibration, applied to every frame."""
+
 from __future__ import annotations
 
 import cv2
@@ -13,10 +14,14 @@ def rectified_projections(calibration: StereoCalibration) -> tuple[np.ndarray, n
     p2 = np.hstack([calibration.K2, calibration.K2 @ calibration.T.reshape(3, 1)])
     fx, cx1, cy = p1[0, 0], p1[0, 2], p1[1, 2]
     tx = p2[0, 3] / p2[0, 0]
-    q = np.array([[1.0, 0.0, 0.0, -cx1],
-                  [0.0, 1.0, 0.0, -cy],
-                  [0.0, 0.0, 0.0, fx],
-                  [0.0, 0.0, -1.0 / tx, (cx1 - calibration.K2[0, 2]) / tx]])
+    q = np.array(
+        [
+            [1.0, 0.0, 0.0, -cx1],
+            [0.0, 1.0, 0.0, -cy],
+            [0.0, 0.0, 0.0, fx],
+            [0.0, 0.0, -1.0 / tx, (cx1 - calibration.K2[0, 2]) / tx],
+        ]
+    )
     return p1, p2, q
 
 
@@ -46,8 +51,17 @@ class Rectifier:
         else:
             c = calibration
             self.R1, self.R2, self.P1, self.P2, self.Q, _, _ = cv2.stereoRectify(
-                c.K1, c.D1, c.K2, c.D2, size, c.R, c.T.reshape(3, 1),
-                flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0, newImageSize=size)
+                c.K1,
+                c.D1,
+                c.K2,
+                c.D2,
+                size,
+                c.R,
+                c.T.reshape(3, 1),
+                flags=cv2.CALIB_ZERO_DISPARITY,
+                alpha=0.0,
+                newImageSize=size,
+            )
             self._maps = (
                 cv2.initUndistortRectifyMap(c.K1, c.D1, self.R1, self.P1, size, cv2.CV_16SC2),
                 cv2.initUndistortRectifyMap(c.K2, c.D2, self.R2, self.P2, size, cv2.CV_16SC2),
@@ -80,12 +94,19 @@ class Rectifier:
         """Raise FrameSizeError unless `image` is an H×W×3 uint8 frame of the calibration's size."""
         width, height = self.size
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise FrameSizeError(self.calibration.source, f"{which} frame",
-                                 f"has shape {image.shape} and dtype {image.dtype}", "an H×W×3 uint8 RGB image")
+            raise FrameSizeError(
+                self.calibration.source,
+                f"{which} frame",
+                f"has shape {image.shape} and dtype {image.dtype}",
+                "an H×W×3 uint8 RGB image",
+            )
         if image.shape[:2] != (height, width):
-            raise FrameSizeError(self.calibration.source, f"{which} frame",
-                                 f"is {image.shape[1]}×{image.shape[0]} px",
-                                 f"{width}×{height} px, the size the calibration was made for")
+            raise FrameSizeError(
+                self.calibration.source,
+                f"{which} frame",
+                f"is {image.shape[1]}×{image.shape[0]} px",
+                f"{width}×{height} px, the size the calibration was made for",
+            )
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rectified (left, right), each H×W×3 uint8 RGB like the inputs (bilinear interpolation)."""
@@ -94,8 +115,7 @@ class Rectifier:
         if self._maps is None:
             return left, right
         (left_a, left_b), (right_a, right_b) = self._maps
-        return (cv2.remap(left, left_a, left_b, cv2.INTER_LINEAR),
-                cv2.remap(right, right_a, right_b, cv2.INTER_LINEAR))
+        return (cv2.remap(left, left_a, left_b, cv2.INTER_LINEAR), cv2.remap(right, right_a, right_b, cv2.INTER_LINEAR))
 
     def rectify_labels(self, labels: np.ndarray) -> np.ndarray:
         """Instance labels (`H×W` ids) drawn on the raw left image, moved onto the rectified left image:
@@ -111,5 +131,6 @@ class Rectifier:
             c = self.calibration
             self._label_maps = cv2.initUndistortRectifyMap(c.K1, c.D1, self.R1, self.P1, c.image_size, cv2.CV_32FC1)
         map_x, map_y = self._label_maps
-        return cv2.remap(labels.astype(np.float32), map_x, map_y, cv2.INTER_NEAREST,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.int32)
+        return cv2.remap(
+            labels.astype(np.float32), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        ).astype(np.int32)

@@ -20,6 +20,7 @@ same rotation whatever its sign, so R1, R2, P1 and the maps are exactly the samp
 Rodrigues vector is left→right and not its inverse. Reading it the other way round would leave
 rows 5–13 px apart at HD on the shared files (see camera/README.md for the check to run on a camera).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -46,8 +47,10 @@ def resolution_name(resolution: str) -> str:
     name = resolution.strip().upper()
     name = RESOLUTION_ALIASES.get(name, name)
     if name not in ZED_RESOLUTIONS:
-        raise ValueError(f"unknown ZED resolution {resolution!r}; expected one of "
-                         f"{', '.join(ZED_RESOLUTIONS)} (or {', '.join(RESOLUTION_ALIASES)})")
+        raise ValueError(
+            f"unknown ZED resolution {resolution!r}; expected one of "
+            f"{', '.join(ZED_RESOLUTIONS)} (or {', '.join(RESOLUTION_ALIASES)})"
+        )
     return name
 
 
@@ -72,8 +75,9 @@ def parse_ini(text: str, source: str | Path) -> dict[str, dict[str, str]]:
             continue
         key, sep, value = line.partition("=")
         if not sep or current is None:
-            raise CalibrationError(source, f"line {number}", f"reads {raw!r}",
-                                   "'[SECTION]' or 'key=value' inside a section")
+            raise CalibrationError(
+                source, f"line {number}", f"reads {raw!r}", "'[SECTION]' or 'key=value' inside a section"
+            )
         current[key.strip().lower()] = value.strip()
     return sections
 
@@ -81,13 +85,20 @@ def parse_ini(text: str, source: str | Path) -> dict[str, dict[str, str]]:
 def _section(sections: dict[str, dict[str, str]], name: str, source: Path) -> dict[str, str]:
     if name not in sections:
         available = sorted(sections) or ["none"]
-        raise CalibrationError(source, f"[{name}]", "section is missing",
-                               f"a [{name}] section (file has {', '.join(available)})")
+        raise CalibrationError(
+            source, f"[{name}]", "section is missing", f"a [{name}] section (file has {', '.join(available)})"
+        )
     return sections[name]
 
 
-def _value(section: dict[str, str], keys: tuple[str, ...], where: str, source: Path,
-           default: float | None = None, unit: str = "") -> float:
+def _value(
+    section: dict[str, str],
+    keys: tuple[str, ...],
+    where: str,
+    source: Path,
+    default: float | None = None,
+    unit: str = "",
+) -> float:
     """The first of `keys` present in the section, as a number; `default` when none is and one is given."""
     for key in keys:
         if key in section:
@@ -97,8 +108,7 @@ def _value(section: dict[str, str], keys: tuple[str, ...], where: str, source: P
     raise CalibrationError(source, f"{where} {' or '.join(keys)}", "key is missing", f"a number{unit}")
 
 
-def _intrinsics(sections: dict[str, dict[str, str]], eye: str, res: str,
-                source: Path) -> tuple[np.ndarray, np.ndarray]:
+def _intrinsics(sections: dict[str, dict[str, str]], eye: str, res: str, source: Path) -> tuple[np.ndarray, np.ndarray]:
     name = f"{eye}_CAM_{res}"
     section = _section(sections, name, source)
     where = f"[{name}]"
@@ -127,8 +137,12 @@ def from_zed_conf(path: str | Path, resolution: str) -> StereoCalibration:
         raise CalibrationError(path, "resolution", str(error), "2K, FHD, HD or VGA") from None
     if f"LEFT_CAM_{res}" not in sections:
         have = available_resolutions(path)
-        raise CalibrationError(path, f"[LEFT_CAM_{res}]", f"resolution {res} is not in the file",
-                               f"one of the file's resolutions: {', '.join(have) or 'none'}")
+        raise CalibrationError(
+            path,
+            f"[LEFT_CAM_{res}]",
+            f"resolution {res} is not in the file",
+            f"one of the file's resolutions: {', '.join(have) or 'none'}",
+        )
     k1, d1 = _intrinsics(sections, "LEFT", res, path)
     k2, d2 = _intrinsics(sections, "RIGHT", res, path)
     stereo = _section(sections, "STEREO", path)
@@ -138,8 +152,9 @@ def from_zed_conf(path: str | Path, resolution: str) -> StereoCalibration:
     res_l = res.lower()
     ty = _value(stereo, (f"ty_{res_l}", "ty"), "[STEREO]", path, default=0.0)
     tz = _value(stereo, (f"tz_{res_l}", "tz"), "[STEREO]", path, default=0.0)
-    rotation = [_value(stereo, (f"{axis}_{res_l}", axis), "[STEREO]", path, unit=" in radians")
-                for axis in ("rx", "cv", "rz")]
+    rotation = [
+        _value(stereo, (f"{axis}_{res_l}", axis), "[STEREO]", path, unit=" in radians") for axis in ("rx", "cv", "rz")
+    ]
     rmat, _ = cv2.Rodrigues(np.array(rotation, dtype=np.float64))
     t = -np.array([baseline_mm, ty, tz]) / 1000.0
     return StereoCalibration(k1, d1, k2, d2, rmat, t, ZED_RESOLUTIONS[res], source=str(path))

@@ -3,6 +3,7 @@
 The network and checkpoint names are imported on first use, so that tools which only need
 `stereo.io`, `stereo.synth` or the command-line plumbing do not pay for importing torch.
 """
+
 from __future__ import annotations
 
 import importlib

@@ -21,6 +21,7 @@ A file named as a registered release (`stereo.weights.REGISTRY`, e.g. `emcstereo
 must have the release's SHA-256, or `load_model` refuses it with a `WeightsMismatchError`;
 `verify_sha256=False` (`--no-verify-weights`) loads a local file of that name anyway.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -78,7 +79,8 @@ _PSMNET_MISSING_BIASES = ("backbone.layer2.0.downsample.0.bias", "backbone.layer
 
 #: Training checkpoints often carry metric dicts of numpy scalars; these rebuild plain numbers only.
 _NUMPY_SCALAR_GLOBALS = [
-    np._core.multiarray.scalar, np.dtype,  # type: ignore[attr-defined]  # private in numpy's stubs, public at run time
+    np._core.multiarray.scalar,  # type: ignore[attr-defined]  # private in numpy's stubs, public at run time
+    np.dtype,
     *(type(np.dtype(t)) for t in (np.float16, np.float32, np.float64, np.int32, np.int64, np.bool_)),
 ]
 
@@ -91,9 +93,15 @@ class WeightsMismatchError(CheckpointError):
     """A file named as a registered release whose contents are not the release's (corrupt, truncated or other)."""
 
 
-def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu", *,
-               hourglass_wiring: str | None = None, align_corners: bool | None = None,
-               verify_sha256: bool = True, registry: Mapping[str, WeightsInfo] = REGISTRY) -> EMCStereo:
+def load_model(
+    path: str | os.PathLike[str],
+    device: str | torch.device = "cpu",
+    *,
+    hourglass_wiring: str | None = None,
+    align_corners: bool | None = None,
+    verify_sha256: bool = True,
+    registry: Mapping[str, WeightsInfo] = REGISTRY,
+) -> EMCStereo:
     """Build the right EMCStereo variant from a checkpoint in any supported layout, in eval mode.
 
     `hourglass_wiring` / `align_corners` override what the checkpoint's source implies (module docstring).
@@ -155,19 +163,22 @@ def checked_tensors(state: Mapping[str, torch.Tensor], path: Path) -> dict[str, 
         if value.is_floating_point():
             if not bool(torch.isfinite(value).all()):
                 bad = int((~torch.isfinite(value)).sum())
-                raise CheckpointError(f"{path}: tensor {key} holds {bad} NaN/Inf value(s) of {value.numel()}; "
-                                      "the file is corrupt or the training diverged")
+                raise CheckpointError(
+                    f"{path}: tensor {key} holds {bad} NaN/Inf value(s) of {value.numel()}; "
+                    "the file is corrupt or the training diverged"
+                )
             largest = float(value.abs().max()) if value.numel() else 0.0
             if largest > MAX_ABS_WEIGHT:
-                raise CheckpointError(f"{path}: tensor {key} holds |value| {largest:.3g}, above the plausible "
-                                      f"{MAX_ABS_WEIGHT:.0e} (a corrupt file, e.g. a flipped bit)")
+                raise CheckpointError(
+                    f"{path}: tensor {key} holds |value| {largest:.3g}, above the plausible "
+                    f"{MAX_ABS_WEIGHT:.0e} (a corrupt file, e.g. a flipped bit)"
+                )
             if value.dtype != torch.float32:
                 widened.append(f"{key} ({str(value.dtype).removeprefix('torch.')})")
                 value = value.float()
         checked[key] = value
     if widened:
-        warnings.warn(f"{path}: {len(widened)} tensor(s) cast to float32, e.g. {', '.join(widened[:3])}",
-                      stacklevel=3)
+        warnings.warn(f"{path}: {len(widened)} tensor(s) cast to float32, e.g. {', '.join(widened[:3])}", stacklevel=3)
     return checked
 
 
@@ -180,8 +191,7 @@ def torch_load_checked(path: Path) -> Any:
             return torch.load(path, map_location="cpu", weights_only=True)
     # Bytes that are not a torch file reach the legacy unpickler, which fails with whatever its
     # opcodes hit first (KeyError, ValueError, IndexError, …): all mean the same to the user.
-    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError, KeyError, ValueError, IndexError,
-            TypeError) as exc:
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError, KeyError, ValueError, IndexError, TypeError) as exc:
         raise CheckpointError(
             f"{path}: not a readable torch checkpoint ({path.stat().st_size} bytes; truncated or "
             f"corrupt?): {_essence(exc)}"
@@ -233,7 +243,7 @@ def _tensors(mapping: Any, path: Path) -> dict[str, torch.Tensor]:
 
 
 def _strip_module(key: str) -> str:
-    return key[len("module."):] if key.startswith("module.") else key
+    return key[len("module.") :] if key.startswith("module.") else key
 
 
 def _config_from(raw: Mapping[str, Any], state: Mapping[str, torch.Tensor], path: Path) -> ModelConfig:
@@ -277,7 +287,7 @@ def _swap_prefix(key: str, *, to_ours: bool) -> str:
     for ours, theirs in _AUTHORS_PREFIXES:
         src, dst = (theirs, ours) if to_ours else (ours, theirs)
         if key.startswith(src):
-            return dst + key[len(src):]
+            return dst + key[len(src) :]
     raise CheckpointError(f"state_dict key {key!r} belongs to no known part of the model")
 
 
@@ -306,7 +316,8 @@ def load_state_strict(model: EMCStereo, state: Mapping[str, torch.Tensor], sourc
     unexpected = sorted(set(state) - set(expected))
     wrong = [
         f"{k}: file {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
-        for k in expected if k in state and state[k].shape != expected[k].shape
+        for k in expected
+        if k in state and state[k].shape != expected[k].shape
     ]
     if missing or unexpected or wrong:
         parts = [f"{source} does not fit EMCStereo{tuple(model.config.to_dict().values())}:"]
@@ -317,8 +328,9 @@ def load_state_strict(model: EMCStereo, state: Mapping[str, torch.Tensor], sourc
     model.load_state_dict(dict(state), strict=True)
 
 
-def save_checkpoint(model: EMCStereo, path: str | os.PathLike[str], *, layout: str = "ours",
-                    extra: Mapping[str, Any] | None = None) -> Path:
+def save_checkpoint(
+    model: EMCStereo, path: str | os.PathLike[str], *, layout: str = "ours", extra: Mapping[str, Any] | None = None
+) -> Path:
     """Write the model atomically, in our layout or the authors' (`{"model": …}`)."""
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     if layout == "ours":

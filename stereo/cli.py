@@ -3,6 +3,7 @@
 Each subcommand lives in its own module and exposes `register(subparsers)`, which adds its parser
 and sets `func(args) -> int`. `branchrange.cli` builds the application's command the same way.
 """
+
 from __future__ import annotations
 
 import argparse

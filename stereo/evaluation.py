@@ -9,6 +9,7 @@ diverged model is never kept as the best checkpoint. Results go to a JSON file a
 the first N pairs can be drawn as left image / prediction / ground truth, prediction and ground
 truth on the same colour scale.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,8 +31,15 @@ from stereo.padding import compute_padding, pad_image, unpad
 from stereo.progress import progress_bar
 
 #: The columns of the paper's table, in its order, and how the text report names them.
-PAPER_COLUMNS = {"epe": "EPE", "d1_all": "D1-all", "bad_1": "Bad-1", "bad_3": "Bad-3", "rmse": "RMSE",
-                 "abs_rel": "AbsRel", "delta1": "δ1"}
+PAPER_COLUMNS = {
+    "epe": "EPE",
+    "d1_all": "D1-all",
+    "bad_1": "Bad-1",
+    "bad_3": "Bad-3",
+    "rmse": "RMSE",
+    "abs_rel": "AbsRel",
+    "delta1": "δ1",
+}
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +66,13 @@ class EvaluationResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
-        return {"images": len(self.per_image), "skipped": self.skipped, "failed": self.failed, "mean": self.mean,
-                "per_image": self.per_image}
+        return {
+            "images": len(self.per_image),
+            "skipped": self.skipped,
+            "failed": self.failed,
+            "mean": self.mean,
+            "per_image": self.per_image,
+        }
 
 
 def autocast_context(device: torch.device, precision: str) -> AbstractContextManager:
@@ -121,9 +134,11 @@ def evaluate(
     for index in progress_bar(iterable=range(count), desc="evaluate", disable=not progress, leave=False):
         raw = dataset[index]
         sample = to_network_input(raw)
-        pred = predict_disparity(
-            model, sample["left"][None].to(device), sample["right"][None].to(device), precision
-        )[0].cpu().numpy()
+        pred = (
+            predict_disparity(model, sample["left"][None].to(device), sample["right"][None].to(device), precision)[0]
+            .cpu()
+            .numpy()
+        )
         gt = raw["disparity"]
         name = str(raw["meta"]["name"])
         if not np.isfinite(pred[valid_mask(gt, max_disp)]).all():
@@ -139,8 +154,12 @@ def evaluate(
     if averager.count:
         result.mean = averager.mean()
     else:
-        log.warning("no image of %d could be scored (%d without valid ground truth, %d failed)",
-                    count, len(result.skipped), len(result.failed))
+        log.warning(
+            "no image of %d could be scored (%d without valid ground truth, %d failed)",
+            count,
+            len(result.skipped),
+            len(result.failed),
+        )
     return result
 
 
@@ -154,7 +173,9 @@ def format_table(results: dict[str, EvaluationResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_reports(results: dict[str, EvaluationResult], out_dir: Path, extra: dict[str, Any] | None = None) -> tuple[Path, Path]:
+def write_reports(
+    results: dict[str, EvaluationResult], out_dir: Path, extra: dict[str, Any] | None = None
+) -> tuple[Path, Path]:
     """Write `metrics.json` (per split: mean and per-image metrics) and `metrics.txt` (the table)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     json_path, text_path = out_dir / "metrics.json", out_dir / "metrics.txt"
@@ -164,5 +185,12 @@ def write_reports(results: dict[str, EvaluationResult], out_dir: Path, extra: di
     return json_path, text_path
 
 
-__all__ = ["EvaluationResult", "autocast_context", "disparity_panel", "evaluate", "format_table",
-           "predict_disparity", "write_reports"]
+__all__ = [
+    "EvaluationResult",
+    "autocast_context",
+    "disparity_panel",
+    "evaluate",
+    "format_table",
+    "predict_disparity",
+    "write_reports",
+]

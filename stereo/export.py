@@ -5,6 +5,7 @@ only, traced at one padded input size and one disparity range: inputs `left`, `r
 ImageNet-normalised float32 (1, 3, H, W); outputs `disparity` and `confidence` float32 (1, H, W).
 The size and range are stored in the model's metadata (`METADATA_KEYS`) for the backend to read.
 """
+
 from __future__ import annotations
 
 import os
@@ -39,8 +40,9 @@ class _FixedRangeGraph(nn.Module):
         return self.fast(left, right, self.disparities)
 
 
-def export_onnx(model: EMCStereo, path: str | os.PathLike[str], height: int, width: int,
-                max_disp: int | None = None) -> Path:
+def export_onnx(
+    model: EMCStereo, path: str | os.PathLike[str], height: int, width: int, max_disp: int | None = None
+) -> Path:
     """Write `model`'s inference graph for padded `height × width` inputs to an ONNX file; returns its path.
 
     `height` and `width` must be multiples of 32 and ≥ 256 (pad images as `stereo.padding` does);
@@ -62,8 +64,15 @@ def export_onnx(model: EMCStereo, path: str | os.PathLike[str], height: int, wid
     graph = _FixedRangeGraph(model, disparities).cpu()  # a folded copy: `model` itself stays as it was
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer warnings about Python ints from shapes: the size is fixed on purpose
-        torch.onnx.export(graph, (example, example), str(path), input_names=["left", "right"],
-                          output_names=["disparity", "confidence"], opset_version=OPSET, dynamo=False)
+        torch.onnx.export(
+            graph,
+            (example, example),
+            str(path),
+            input_names=["left", "right"],
+            output_names=["disparity", "confidence"],
+            opset_version=OPSET,
+            dynamo=False,
+        )
     exported = onnx.load(str(path))
     for key, value in zip(METADATA_KEYS, (height, width, disparities)):
         exported.metadata_props.add(key=key, value=str(value))

@@ -17,6 +17,7 @@ absolute depth errors `mae_depth_m`, `rmse_depth_m` in metres. f·B cancels in t
 ones (|Zp − Zg| / Zg = |g/p − 1|), so `delta1_depth` equals `delta1`; `abs_rel_depth` differs
 from the paper's `abs_rel`.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -27,7 +28,14 @@ from stereo.pinhole import depth_from_disparity
 
 DEFAULT_MAX_DISP = 192
 CLAMP_MIN = 1e-6
-BAD_THRESHOLDS: dict[str, float] = {"bad_0_5": 0.5, "bad_1": 1.0, "bad_2": 2.0, "bad_3": 3.0, "bad_4": 4.0, "bad_5": 5.0}
+BAD_THRESHOLDS: dict[str, float] = {
+    "bad_0_5": 0.5,
+    "bad_1": 1.0,
+    "bad_2": 2.0,
+    "bad_3": 3.0,
+    "bad_4": 4.0,
+    "bad_5": 5.0,
+}
 DELTA_BASE = 1.25
 
 
@@ -81,13 +89,17 @@ def image_metrics(
     if pred.shape != gt.shape or pred.ndim != 2:
         raise ValueError(f"prediction {pred.shape} and ground truth {gt.shape} must be the same H×W shape")
     if (focal_px is None) != (baseline_m is None):
-        raise ValueError(f"depth metrics need both focal_px and baseline_m, got focal_px={focal_px}, baseline_m={baseline_m}")
+        raise ValueError(
+            f"depth metrics need both focal_px and baseline_m, got focal_px={focal_px}, baseline_m={baseline_m}"
+        )
     if focal_px is not None and baseline_m is not None and not (focal_px > 0 and baseline_m > 0):
         raise ValueError(f"focal_px and baseline_m must be positive, got {focal_px} and {baseline_m}")
     mask = valid_mask(gt, max_disp)
     n_valid = int(mask.sum())
     if n_valid == 0:
-        raise NoValidPixelsError(f"no ground-truth pixel is finite and inside (0, {max_disp}); the image cannot be scored")
+        raise NoValidPixelsError(
+            f"no ground-truth pixel is finite and inside (0, {max_disp}); the image cannot be scored"
+        )
     p = pred[mask].astype(np.float64)
     g = gt[mask].astype(np.float64)
     if not np.isfinite(p).all():
@@ -117,7 +129,9 @@ class MetricAverager:
     Images without a valid pixel are counted in `skipped` rather than scored.
     """
 
-    def __init__(self, *, max_disp: float = DEFAULT_MAX_DISP, focal_px: float | None = None, baseline_m: float | None = None):
+    def __init__(
+        self, *, max_disp: float = DEFAULT_MAX_DISP, focal_px: float | None = None, baseline_m: float | None = None
+    ):
         self.max_disp = max_disp
         self.focal_px = focal_px
         self.baseline_m = baseline_m
@@ -128,7 +142,9 @@ class MetricAverager:
     def update(self, pred: np.ndarray, gt: np.ndarray) -> dict[str, float] | None:
         """Score one image, add it to the average and return its metrics (None when it had no valid pixel)."""
         try:
-            metrics = image_metrics(pred, gt, max_disp=self.max_disp, focal_px=self.focal_px, baseline_m=self.baseline_m)
+            metrics = image_metrics(
+                pred, gt, max_disp=self.max_disp, focal_px=self.focal_px, baseline_m=self.baseline_m
+            )
         except NoValidPixelsError:
             self.skipped += 1
             return None

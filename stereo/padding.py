@@ -7,6 +7,7 @@ resolution), so smaller inputs are padded further. Functions here act on the las
 numpy array or torch tensor (`(..., H, W)`), so they serve `(B, 3, H, W)` images and `(B, H, W)`
 disparities alike.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -59,8 +60,10 @@ def compute_padding(height: int, width: int, multiple: int = PAD_MULTIPLE, minim
 def _check_size(x: ArrayT, padding: Padding, expected: tuple[int, int], what: str) -> None:
     """Raise ValueError when the last two axes of `x` are not `expected`."""
     if x.ndim < 2 or tuple(x.shape[-2:]) != expected:
-        raise ValueError(f"{what} expects (..., H, W) = (..., {expected[0]}, {expected[1]}) for {padding}, "
-                         f"got shape {tuple(x.shape)}")
+        raise ValueError(
+            f"{what} expects (..., H, W) = (..., {expected[0]}, {expected[1]}) for {padding}, "
+            f"got shape {tuple(x.shape)}"
+        )
 
 
 def _edge_indices(padding: Padding) -> tuple[np.ndarray, np.ndarray]:
@@ -75,7 +78,9 @@ def pad_image(x: ArrayT, padding: Padding) -> ArrayT:
     _check_size(x, padding, (padding.height, padding.width), "pad_image")
     rows, cols = _edge_indices(padding)
     if isinstance(x, torch.Tensor):
-        return x.index_select(-2, torch.from_numpy(rows).to(x.device)).index_select(-1, torch.from_numpy(cols).to(x.device))
+        return x.index_select(-2, torch.from_numpy(rows).to(x.device)).index_select(
+            -1, torch.from_numpy(cols).to(x.device)
+        )
     return np.take(np.take(x, rows, axis=-2), cols, axis=-1)
 
 

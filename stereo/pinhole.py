@@ -6,11 +6,15 @@ rectified left camera frame (x right, y down, z forward): `(u, v) = f·(X, Y)/Z 
 Callers pass valid values only (finite, positive disparity or depth; points in front of the camera):
 what counts as invalid, and what stands in for it, differs between them.
 """
+
 from __future__ import annotations
+
+from typing import TypeVar
 
 import numpy as np
 
-ArrayOrFloat = np.ndarray | float
+#: An array in gives an array of the same shape out, a number gives a number.
+ArrayOrFloat = TypeVar("ArrayOrFloat", np.ndarray, float)
 
 
 def depth_from_disparity(disparity: ArrayOrFloat, focal_px: float, baseline: float) -> ArrayOrFloat:

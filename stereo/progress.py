@@ -6,6 +6,7 @@ terminal; elsewhere it prints one plain line (no carriage return, no padding) at
 `PLAIN_INTERVAL_S` seconds, plus the first and the last state. Used by `record`, `replay`,
 `emcstereo synth`, training, evaluation and weight downloads.
 """
+
 from __future__ import annotations
 
 import sys
@@ -41,11 +42,29 @@ def _is_terminal(stream: TextIO) -> bool:
         return False
 
 
-def progress_bar(*, desc: str, total: int | None = None, unit: str = "it", disable: bool = False,
-                 file: TextIO | None = None, **options: Any) -> tqdm:
+def progress_bar(
+    *,
+    desc: str,
+    total: int | None = None,
+    unit: str = "it",
+    disable: bool = False,
+    file: TextIO | None = None,
+    **options: Any,
+) -> tqdm:
     """A tqdm bar on `file` (default stderr): live on a terminal, sparse plain lines otherwise."""
     stream = sys.stderr if file is None else file
     if disable or _is_terminal(stream):
         return tqdm(total=total, desc=desc, unit=unit, disable=disable, file=stream, **options)
-    return tqdm(total=total, desc=desc, unit=unit, file=_PlainLines(stream), mininterval=PLAIN_INTERVAL_S,
-                maxinterval=PLAIN_INTERVAL_S * 10, miniters=1, ascii=True, dynamic_ncols=False, ncols=100, **options)
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit=unit,
+        file=_PlainLines(stream),
+        mininterval=PLAIN_INTERVAL_S,
+        maxinterval=PLAIN_INTERVAL_S * 10,
+        miniters=1,
+        ascii=True,
+        dynamic_ncols=False,
+        ncols=100,
+        **options,
+    )

@@ -6,6 +6,7 @@ only after its size and SHA-256 check out, so no partial or unverified file is e
 A file that carries a registered file name is checked again on every load (`registered_as`,
 `cached_sha256`, used by `stereo.checkpoints.load_model`), hashed once per size and mtime.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -49,13 +50,27 @@ REGISTRY: dict[str, WeightsInfo] = {
             size_bytes=61_866_765,
             variant={"ema": True, "msf": True, "coord": True, "max_disp": 192},
             metrics={
-                "virtualtree/val": {"epe": 1.314849, "d1_all": 0.058010, "bad_1": 0.153278, "bad_3": 0.073348,
-                                    "rmse": 4.825643, "abs_rel": 0.056242, "delta1": 0.962039},
-                "virtualtree/test": {"epe": 1.307740, "d1_all": 0.059573, "bad_1": 0.151631, "bad_3": 0.073064,
-                                     "rmse": 4.707669, "abs_rel": 0.056088, "delta1": 0.961051},
+                "virtualtree/val": {
+                    "epe": 1.314849,
+                    "d1_all": 0.058010,
+                    "bad_1": 0.153278,
+                    "bad_3": 0.073348,
+                    "rmse": 4.825643,
+                    "abs_rel": 0.056242,
+                    "delta1": 0.962039,
+                },
+                "virtualtree/test": {
+                    "epe": 1.307740,
+                    "d1_all": 0.059573,
+                    "bad_1": 0.151631,
+                    "bad_3": 0.073064,
+                    "rmse": 4.707669,
+                    "abs_rel": 0.056088,
+                    "delta1": 0.961051,
+                },
             },
             description="The authors' deployed EMCStereo (epoch 252 on VirtualTree); input RGB in [0,1], "
-                        "ImageNet-normalised, padded top/right to a multiple of 32.",
+            "ImageNet-normalised, padded top/right to a multiple of 32.",
         ),
     )
 }
@@ -104,8 +119,14 @@ def cached_sha256(path: Path) -> str:
     return digest
 
 
-def fetch_weights(info: WeightsInfo, dest_dir: Path, *, url: str | None = None, timeout_s: float = 30.0,
-                  progress: Callable[[int, int | None], None] | None = None) -> Path:
+def fetch_weights(
+    info: WeightsInfo,
+    dest_dir: Path,
+    *,
+    url: str | None = None,
+    timeout_s: float = 30.0,
+    progress: Callable[[int, int | None], None] | None = None,
+) -> Path:
     """Download `info` into `dest_dir`, verify it, and return the final path.
 
     An already present file with the right checksum is kept without downloading.
@@ -128,8 +149,9 @@ def fetch_weights(info: WeightsInfo, dest_dir: Path, *, url: str | None = None, 
         tmp.unlink(missing_ok=True)
 
 
-def _download(url: str, out: BinaryIO, timeout_s: float,
-              progress: Callable[[int, int | None], None] | None) -> tuple[str, int]:
+def _download(
+    url: str, out: BinaryIO, timeout_s: float, progress: Callable[[int, int | None], None] | None
+) -> tuple[str, int]:
     digest = hashlib.sha256()
     received = 0
     try:

@@ -1,4 +1,5 @@
 """A small exact stereo scene for the API tests: a textured bar (the branch) before a textured wall."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

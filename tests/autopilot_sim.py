@@ -16,6 +16,7 @@ latency after capture with its capture time, holding the true cut points seen fr
 pose at capture plus the noise the tracker's measurement model assumes. The tests and
 `benchmarks/pose_compensation.py` both use it.
 """
+
 from __future__ import annotations
 
 import math
@@ -25,13 +26,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from mavlink_peer import Received
+from result_factory import branch, frame_result
 
 from branchrange.core.config import TrackingConfig
 from branchrange.offline.flight import FlightPose
 from branchrange.onboard.mavlink.connection import mavutil_v2
 from branchrange.onboard.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
-from mavlink_peer import Received
-from result_factory import branch, frame_result
 
 ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
 MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
@@ -54,8 +55,14 @@ class SimPose:
 Trajectory = Callable[[float], SimPose]
 
 
-def approach_flight(speed_m_s: float, start_ned_m=(0.0, 0.0, -2.0), heading_deg: float = 20.0,
-                    sway_m: float = 0.05, yaw_swing_deg: float = 6.0, tilt_deg: float = 3.0) -> Trajectory:
+def approach_flight(
+    speed_m_s: float,
+    start_ned_m=(0.0, 0.0, -2.0),
+    heading_deg: float = 20.0,
+    sway_m: float = 0.05,
+    yaw_swing_deg: float = 6.0,
+    tilt_deg: float = 3.0,
+) -> Trajectory:
     """A copter closing on a branch: straight at `speed_m_s` along `heading_deg`, swaying sideways
     (amplitude `sway_m`, 0.5 Hz), yawing ±`yaw_swing_deg` (0.3 Hz) and rolling/pitching ±`tilt_deg`."""
     start = np.asarray(start_ned_m, dtype=np.float64)
@@ -73,8 +80,9 @@ def approach_flight(speed_m_s: float, start_ned_m=(0.0, 0.0, -2.0), heading_deg:
     return pose
 
 
-def flight_from_camera_poses(poses: list[FlightPose], mount: CameraMount, start_ned_m=(0.0, 0.0, -2.0),
-                             heading_deg: float = 0.0):
+def flight_from_camera_poses(
+    poses: list[FlightPose], mount: CameraMount, start_ned_m=(0.0, 0.0, -2.0), heading_deg: float = 0.0
+):
     """A camera flight (`FlightTruth.poses` of a `flight.json`, as `branchrange synth-flight` writes it:
     world = the camera frame of the first pose, `X_world = R_world_cam · X_cam + t_world_cam`) flown
     by a vehicle carrying the camera on `mount`, whose body is level at `start_ned_m` facing
@@ -116,9 +124,19 @@ def _rates(trajectory: Trajectory, t: float, dt: float = 1e-3) -> tuple[np.ndarr
 class AutopilotSim:
     """See the module docstring. Use as a context manager; `port` is where it listens."""
 
-    def __init__(self, trajectory: Trajectory, *, heartbeat_period_s: float = 1.0, mode: int = ARDUCOPTER_GUIDED,
-                 armed: bool = True, mav_type: int = MAV_TYPE_QUADROTOR, autopilot: int = MAV_AUTOPILOT_ARDUPILOTMEGA,
-                 signing_key: bytes | None = None, answer_interval_requests: bool = True, boot_age_s: float = 100.0):
+    def __init__(
+        self,
+        trajectory: Trajectory,
+        *,
+        heartbeat_period_s: float = 1.0,
+        mode: int = ARDUCOPTER_GUIDED,
+        armed: bool = True,
+        mav_type: int = MAV_TYPE_QUADROTOR,
+        autopilot: int = MAV_AUTOPILOT_ARDUPILOTMEGA,
+        signing_key: bytes | None = None,
+        answer_interval_requests: bool = True,
+        boot_age_s: float = 100.0,
+    ):
         self.trajectory = trajectory
         self.heartbeat_period_s = heartbeat_period_s
         self.mode, self.armed, self.mav_type, self.autopilot = mode, armed, mav_type, autopilot
@@ -168,7 +186,9 @@ class AutopilotSim:
             roll, pitch, yaw = math.atan2(r[2, 1], r[2, 2]), -math.asin(r[2, 0]), math.atan2(r[1, 0], r[0, 0])
             self.conn.mav.attitude_send(boot_ms, roll, pitch, yaw, *(float(w) for w in rates))
         else:
-            self.conn.mav.local_position_ned_send(boot_ms, *(float(v) for v in pose.position_m), *(float(v) for v in velocity))
+            self.conn.mav.local_position_ned_send(
+                boot_ms, *(float(v) for v in pose.position_m), *(float(v) for v in velocity)
+            )
 
     def _handle(self, msg, now: float) -> None:
         with self._lock:
@@ -208,7 +228,7 @@ class AutopilotSim:
         self._thread.join(timeout=2.0)
         self.conn.close()
 
-    def __enter__(self) -> "AutopilotSim":
+    def __enter__(self) -> AutopilotSim:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -221,7 +241,8 @@ def camera_point(pose: SimPose, point_ned_m: np.ndarray, mount: CameraMount) -> 
 
 
 def noisy(point_cam_m: np.ndarray, rng: np.random.Generator, tracking: TrackingConfig) -> np.ndarray:
-    """A cut point with the noise `tracking` assumes: depth σ = depth_sigma_at_1m_m·r², lateral σ = lateral_sigma_at_1m_m·r."""
+    """A cut point with the noise `tracking` assumes: depth σ = depth_sigma_at_1m_m·r²,
+    lateral σ = lateral_sigma_at_1m_m·r."""
     r = float(np.linalg.norm(point_cam_m))
     u = point_cam_m / r
     lateral = rng.normal(0.0, tracking.lateral_sigma_at_1m_m * r, 3)
@@ -238,8 +259,17 @@ class Published:
     target_cam_m: np.ndarray
 
 
-def fly_frames(sim: AutopilotSim, relay, mount: CameraMount, branches_ned: list[np.ndarray], frames: int,
-               fps: float, latency_s: float, rng: np.random.Generator, tracking: TrackingConfig) -> list[Published]:
+def fly_frames(
+    sim: AutopilotSim,
+    relay,
+    mount: CameraMount,
+    branches_ned: list[np.ndarray],
+    frames: int,
+    fps: float,
+    latency_s: float,
+    rng: np.random.Generator,
+    tracking: TrackingConfig,
+) -> list[Published]:
     """Capture `frames` frames at `fps` and publish each `latency_s` after capture (branch 0 is the target)."""
     t0 = time.monotonic() + 0.01
     published = []
@@ -254,8 +284,9 @@ def fly_frames(sim: AutopilotSim, relay, mount: CameraMount, branches_ned: list[
     return published
 
 
-def body_target_errors(sim: AutopilotSim, published: list[Published], mount: CameraMount, target_ned: np.ndarray,
-                       skip_frames: int) -> tuple[list[float], list[float]]:
+def body_target_errors(
+    sim: AutopilotSim, published: list[Published], mount: CameraMount, target_ned: np.ndarray, skip_frames: int
+) -> tuple[list[float], list[float]]:
     """Per DEBUG_VECT the sim received after `skip_frames` publications: the error (m) of the sent target and
     of the uncompensated one (the newest result through the mount alone) against the truth in the body
     frame at the moment it arrived."""

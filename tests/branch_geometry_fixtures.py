@@ -4,6 +4,7 @@ Independent of the synthetic scene generator so the geometry is tested against n
 here from first principles: a ray through each pixel is intersected with finite cylinders, the
 nearest hit wins (z-buffer), disparity = f·B/Z.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -47,8 +48,9 @@ class CylinderScene:
 def ray_cast(width: int, height: int, geometry: StereoGeometry, parts: dict[int, list[Cylinder]]) -> CylinderScene:
     """Render `parts` (label → cylinders) seen from the left camera; nearest surface wins."""
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    rays = np.stack([(u - geometry.cx) / geometry.focal_px, (v - geometry.cy) / geometry.focal_px,
-                     np.ones_like(u)], axis=-1)
+    rays = np.stack(
+        [(u - geometry.cx) / geometry.focal_px, (v - geometry.cy) / geometry.focal_px, np.ones_like(u)], axis=-1
+    )
     depth = np.full((height, width), np.inf)
     labels = np.zeros((height, width), dtype=np.int32)
     for label, cylinders in parts.items():
@@ -60,8 +62,8 @@ def ray_cast(width: int, height: int, geometry: StereoGeometry, parts: dict[int,
             w_perp = w - (w @ a) * a
             qa = np.einsum("hwc,hwc->hw", d_perp, d_perp)
             qb = d_perp @ w_perp
-            qc = w_perp @ w_perp - cyl.radius ** 2
-            disc = qb ** 2 - qa * qc
+            qc = w_perp @ w_perp - cyl.radius**2
+            disc = qb**2 - qa * qc
             hit = (disc >= 0) & (qa > 1e-12)
             s = np.where(hit, (-qb - np.sqrt(np.maximum(disc, 0))) / np.maximum(qa, 1e-12), 0.0)
             t_axis = (s[..., None] * rays - p0) @ a
@@ -78,8 +80,9 @@ GEOMETRY = StereoGeometry(focal_px=500.0, baseline_m=0.063, cx=159.5, cy=119.5)
 TRUNK_LABEL = 100
 
 
-def branch_with_trunk(direction=(1.0, -0.3, -0.4), radius=0.015, length=0.45, trunk=True,
-                      width=320, height=240) -> tuple[CylinderScene, np.ndarray, np.ndarray]:
+def branch_with_trunk(
+    direction=(1.0, -0.3, -0.4), radius=0.015, length=0.45, trunk=True, width=320, height=240
+) -> tuple[CylinderScene, np.ndarray, np.ndarray]:
     """A vertical trunk at 1.5 m and one branch leaving its surface; returns (scene, base, direction).
 
     The base is where the branch axis leaves the trunk surface (metres, camera frame).

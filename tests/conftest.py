@@ -1,4 +1,5 @@
 """Shared fixtures: where the real data of ../shared lives, skipping with a reason when absent."""
+
 from __future__ import annotations
 
 from pathlib import Path

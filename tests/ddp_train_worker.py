@@ -9,6 +9,7 @@ when EMCSTEREO ARGS are given, it runs the `emcstereo` console entry point (`ste
 them in the same process group — the real command under torchrun — and exits with its status.
 Sharing one launch keeps the test to a single torchrun start-up.
 """
+
 from __future__ import annotations
 
 import os
@@ -40,8 +41,16 @@ def main(config_path: str, out_dir: str, emcstereo_args: list[str]) -> int:
     trainer.sampler.set_epoch(0)
     seen = list(trainer.sampler)
     result = trainer.fit()
-    torch.save({"params": {n: p.detach().clone() for n, p in model.named_parameters()}, "initial": initial,
-                "seen": seen, "steps": result.steps, "world_size": context.world_size}, out / f"rank{context.rank}.pt")
+    torch.save(
+        {
+            "params": {n: p.detach().clone() for n, p in model.named_parameters()},
+            "initial": initial,
+            "seen": seen,
+            "steps": result.steps,
+            "world_size": context.world_size,
+        },
+        out / f"rank{context.rank}.pt",
+    )
     if not emcstereo_args:
         shutdown(context)
         return 0

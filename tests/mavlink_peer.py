@@ -1,4 +1,5 @@
 """A loopback MAVLink 2 peer standing in for the flight controller: it decodes what was really sent."""
+
 from __future__ import annotations
 
 import time

@@ -5,6 +5,7 @@ Run by tests/test_camera_oak.py in a child process with a hard time limit (see t
 No OAK device exists here, and depthai cannot create Camera nodes without one, so two host nodes
 that send frames (made from arrays, as the cameras would) stand in for the left and right cameras.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -66,7 +67,9 @@ class HostSessions:
         left, right = pipeline.create(ArrayCamera), pipeline.create(ArrayCamera)
         base = 1000.0 * (self.opened + 1)
         left.frames = [gray_frame(10 + i, base + i * PERIOD_MS) for i in range(self.pairs)]
-        right.frames = [gray_frame(100 + i, base + i * PERIOD_MS + 1) for i in range(self.pairs) if i not in self.skip_right]
+        right.frames = [
+            gray_frame(100 + i, base + i * PERIOD_MS + 1) for i in range(self.pairs) if i not in self.skip_right
+        ]
         self.opened += 1
         self.cameras += [left, right]
         return OakSession(pipeline, left.out, right.out, self.calibration)

@@ -5,6 +5,7 @@ media type must be one the document lists for it, a JSON body must validate agai
 documented schema (JSON Schema 2020-12, which OpenAPI 3.1 uses; `$ref`s resolve inside the
 document's `components`), and documented headers must be present.
 """
+
 from __future__ import annotations
 
 import jsonschema
@@ -26,4 +27,6 @@ def check_response(spec: dict, method: str, path: str, response) -> None:
     if media == "application/json" and schema:
         document = {**schema, "components": spec["components"]}
         errors = sorted(jsonschema.Draft202012Validator(document).iter_errors(response.json()), key=str)
-        assert not errors, f"{where}: body does not match the documented schema: {errors[0].message} at {list(errors[0].path)}"
+        assert not errors, (
+            f"{where}: body does not match the documented schema: {errors[0].message} at {list(errors[0].path)}"
+        )

@@ -11,6 +11,7 @@
   (three disparities in training mode, the last in eval mode), for tests whose subject is the
   training machinery (DDP, self-supervision) and not the network.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
@@ -60,14 +61,18 @@ class Scene:
 
 def _texture(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
     """Colour texture with coarse and fine structure (float32 in [0, 1])."""
-    coarse = cv2.resize(rng.random((height // 8 + 1, width // 8 + 1, 3)).astype(np.float32), (width, height),
-                        interpolation=cv2.INTER_CUBIC)
+    coarse = cv2.resize(
+        rng.random((height // 8 + 1, width // 8 + 1, 3)).astype(np.float32),
+        (width, height),
+        interpolation=cv2.INTER_CUBIC,
+    )
     fine = cv2.GaussianBlur(rng.random((height, width, 3)).astype(np.float32), (0, 0), 0.8)
     return np.clip(0.55 * coarse + 0.45 * fine, 0.0, 1.0)
 
 
-def planar_scene(seed: int, height: int, width: int, disp_range: tuple[float, float] = (4.0, 40.0),
-                 sky_rows: int = 16) -> Scene:
+def planar_scene(
+    seed: int, height: int, width: int, disp_range: tuple[float, float] = (4.0, 40.0), sky_rows: int = 16
+) -> Scene:
     """A random planar scene of `height × width` px with disparities inside `disp_range`."""
     rng = np.random.default_rng(seed)
     lo, hi = disp_range
@@ -77,7 +82,7 @@ def planar_scene(seed: int, height: int, width: int, disp_range: tuple[float, fl
     for _ in range(2):
         h, w = int(rng.integers(height // 5, height // 2)), int(rng.integers(width // 6, width // 3))
         top, left = int(rng.integers(sky_rows, height - h)), int(rng.integers(0, width - w))
-        disparity[top:top + h, left:left + w] = rng.uniform(lo + 0.5 * (hi - lo), hi)
+        disparity[top : top + h, left : left + w] = rng.uniform(lo + 0.5 * (hi - lo), hi)
     disparity = np.clip(disparity, lo, hi).astype(np.float32)
     disparity[:sky_rows] = 0.0
     right = _texture(rng, height, width)
@@ -86,9 +91,13 @@ def planar_scene(seed: int, height: int, width: int, disp_range: tuple[float, fl
     return Scene(to_u8(left), to_u8(right), disparity)
 
 
-def write_virtualtree_layout(root: Path, scenes: Sequence[Scene], splits: dict[str, Sequence[int]],
-                             focal_px: float = VIRTUALTREE_FOCAL_PX,
-                             baseline_cm: float = VIRTUALTREE_BASELINE_CM) -> Path:
+def write_virtualtree_layout(
+    root: Path,
+    scenes: Sequence[Scene],
+    splits: dict[str, Sequence[int]],
+    focal_px: float = VIRTUALTREE_FOCAL_PX,
+    baseline_cm: float = VIRTUALTREE_BASELINE_CM,
+) -> Path:
     """Write scenes as `left image/left_N.png`, `right image/right_N.png`, `left depth/depth_N.exr` (cm) + splits."""
     for folder in ("left image", "right image", "left depth"):
         (root / folder).mkdir(parents=True, exist_ok=True)
@@ -113,7 +122,9 @@ class TinyStereoNet(nn.Module):
         self.max_disp = max_disp
         self.shifts = max_disp // 2
         self.features = nn.Sequential(
-            nn.Conv2d(3, channels, 3, stride=2, padding=1), nn.BatchNorm2d(channels), nn.ReLU(),
+            nn.Conv2d(3, channels, 3, stride=2, padding=1),
+            nn.BatchNorm2d(channels),
+            nn.ReLU(),
             nn.Conv2d(channels, channels, 3, padding=1),
         )
         self.heads = nn.ModuleList(nn.Conv2d(self.shifts, self.shifts, 3, padding=1) for _ in range(3))

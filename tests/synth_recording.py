@@ -4,6 +4,7 @@ The scene is rendered once per test process at 480×270 (ZED Mini rig scaled: f 
 B = 0.063 m). A camera holding still in front of the tree gives the frames: the same view with
 fresh sensor noise each time (stereo.synth has no camera motion), so every frame is computed anew.
 """
+
 from __future__ import annotations
 
 import functools
@@ -36,8 +37,10 @@ def still_camera_frames(scene: SyntheticScene, count: int, period_ns: int, with_
     rng = np.random.default_rng(1234)
     frames = []
     for i in range(count):
-        left, right = (np.clip(view + rng.normal(0.0, FRAME_NOISE_STD, view.shape), 0, 255).round().astype(np.uint8)
-                       for view in (scene.left, scene.right))
+        left, right = (
+            np.clip(view + rng.normal(0.0, FRAME_NOISE_STD, view.shape), 0, 255).round().astype(np.uint8)
+            for view in (scene.left, scene.right)
+        )
         mask = scene.instance_mask if with_masks else None
         frames.append(StereoFrame(left, right, FIRST_TIMESTAMP_NS + i * period_ns, i, mask))
     return frames

@@ -1,4 +1,5 @@
 """POST /estimate and /disparity through the test client: real pipeline (SGBM) on an exact scene."""
+
 from __future__ import annotations
 
 import asyncio
@@ -9,11 +10,11 @@ import cv2
 import jsonschema
 import numpy as np
 import pytest
+from api_scene import BAR_DEPTH_M, BAR_DISPARITY, BASELINE_M, FOCAL_PX, bar_scene
 from fastapi.testclient import TestClient
 
 from api import create_app
 from api.estimator import PipelineEstimator
-from api_scene import BAR_DEPTH_M, BAR_DISPARITY, BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.core.config import ApiConfig
 from branchrange.core.frame_result import SCHEMA_PATH
 
@@ -60,7 +61,9 @@ def test_estimate_returns_the_bar_cut_point_in_metres(client, scene):
 
 
 def test_estimate_accepts_jpeg_and_no_mask(client, scene):
-    jpg = lambda im: cv2.imencode(".jpg", cv2.cvtColor(im, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    def jpg(im):
+        return cv2.imencode(".jpg", cv2.cvtColor(im, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+
     files = {"left": ("l.jpg", jpg(scene.left), "image/jpeg"), "right": ("r.jpg", jpg(scene.right), "image/jpeg")}
     r = client.post("/estimate", files=files, data=FB)
     assert r.status_code == 200, r.text
@@ -68,13 +71,19 @@ def test_estimate_accepts_jpeg_and_no_mask(client, scene):
 
 
 def test_estimate_with_a_calibration_file(client, scene, tmp_path):
-    yaml = ("%YAML:1.0\n---\n"
-            f"K1: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [{FOCAL_PX}, 0., 159.5, 0., {FOCAL_PX}, 127.5, 0., 0., 1.]\n"
-            "D1: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [0., 0., 0., 0., 0.]\n"
-            f"K2: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [{FOCAL_PX}, 0., 159.5, 0., {FOCAL_PX}, 127.5, 0., 0., 1.]\n"
-            "D2: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [0., 0., 0., 0., 0.]\n"
-            "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [1., 0., 0., 0., 1., 0., 0., 0., 1.]\n"
-            f"T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [{-BASELINE_M}, 0., 0.]\n")
+    k = (
+        "!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: [{FOCAL_PX}, 0., 159.5, 0., {FOCAL_PX}, 127.5, 0., 0., 1.]"
+    )
+    yaml = (
+        "%YAML:1.0\n---\n"
+        f"K1: {k}\n"
+        "D1: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [0., 0., 0., 0., 0.]\n"
+        f"K2: {k}\n"
+        "D2: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [0., 0., 0., 0., 0.]\n"
+        "R: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [1., 0., 0., 0., 1., 0., 0., 0., 1.]\n"
+        f"T: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n   data: [{-BASELINE_M}, 0., 0.]\n"
+    )
     files = {**pair_files(scene), "calibration": ("rig.yml", yaml.encode(), "application/x-yaml")}
     r = client.post("/estimate", files=files, data={"max_disp": "64"})
     assert r.status_code == 200, r.text
@@ -97,28 +106,79 @@ def test_disparity_as_kitti_png_and_npy(client, scene):
 PNG_1x1 = cv2.imencode(".png", np.zeros((1, 1, 3), np.uint8))[1].tobytes()
 
 
-@pytest.mark.parametrize("change, code, message", [
-    (lambda f, d: f.update(left=("l.png", b"not an image at all", "image/png")), 415, "left: expected a PNG or JPEG"),
-    (lambda f, d: f.update(right=("r.png", f["right"][1][:200], "image/png")), 422, "right: the image could not be decoded"),
-    (lambda f, d: f.pop("right"), 422, "right"),
-    (lambda f, d: (d.pop("focal_px"), d.pop("baseline_m")), 422, "missing camera"),
-    (lambda f, d: d.update(focal_px="-3"), 422, "focal_px"),
-    (lambda f, d: d.update(backend="raft"), 422, "backend"),
-    (lambda f, d: f.update(mask=("m.png", cv2.imencode(".png", np.zeros((10, 10), np.uint8))[1].tobytes(), "image/png")), 422, "mask"),
-    (lambda f, d: (f.update(calibration=("x.conf", b"hello", "text/plain")), d.pop("focal_px"), d.pop("baseline_m")), 422, "calibration: x.conf"),
-    (lambda f, d: f.update(calibration=("x.conf", b"hello", "text/plain")), 422, "not both"),
-    (lambda f, d: f.update(left=("big.png", cv2.imencode(".png", np.zeros((400, 400, 3), np.uint8))[1].tobytes(), "image/png")), 413, "pixels exceeds the limit"),
-    (lambda f, d: f.update(left=("l.png", f["left"][1][:100], "image/png")), 422, "left: the image could not be decoded"),
-    (lambda f, d: f.update(left=("l.png", PNG_1x1, "image/png"), right=("r.png", PNG_1x1, "image/png")), 422, "left image"),
-    (lambda f, d: f.update(mask=("m.png", cv2.imencode(".png", np.zeros((100, 120), np.uint8))[1].tobytes(), "image/png")),
-     422, "mask is 120×100 px but the images are 320×256 px"),
-    (lambda f, d: (f.update(calibration=("rig.xml", b"<?xml version='1.0'?><opencv_storage><K1>", "text/xml")),
-                   d.pop("focal_px"), d.pop("baseline_m")), 422, "calibration: rig.xml: <file>: is not a valid FileStorage file"),
-    (lambda f, d: d.update(focal_px="inf"), 422, "focal_px"),
-    (lambda f, d: d.update(baseline_m="nan"), 422, "baseline_m"),
-    (lambda f, d: d.update(backend="emcstereo"), 422, "backend 'emcstereo' has no weights on this server"),
-    (lambda f, d: d.update(max_disp="1000"), 422, "max_disp"),
-])
+@pytest.mark.parametrize(
+    "change, code, message",
+    [
+        (
+            lambda f, d: f.update(left=("l.png", b"not an image at all", "image/png")),
+            415,
+            "left: expected a PNG or JPEG",
+        ),
+        (
+            lambda f, d: f.update(right=("r.png", f["right"][1][:200], "image/png")),
+            422,
+            "right: the image could not be decoded",
+        ),
+        (lambda f, d: f.pop("right"), 422, "right"),
+        (lambda f, d: (d.pop("focal_px"), d.pop("baseline_m")), 422, "missing camera"),
+        (lambda f, d: d.update(focal_px="-3"), 422, "focal_px"),
+        (lambda f, d: d.update(backend="raft"), 422, "backend"),
+        (
+            lambda f, d: f.update(
+                mask=("m.png", cv2.imencode(".png", np.zeros((10, 10), np.uint8))[1].tobytes(), "image/png")
+            ),
+            422,
+            "mask",
+        ),
+        (
+            lambda f, d: (
+                f.update(calibration=("x.conf", b"hello", "text/plain")),
+                d.pop("focal_px"),
+                d.pop("baseline_m"),
+            ),
+            422,
+            "calibration: x.conf",
+        ),
+        (lambda f, d: f.update(calibration=("x.conf", b"hello", "text/plain")), 422, "not both"),
+        (
+            lambda f, d: f.update(
+                left=("big.png", cv2.imencode(".png", np.zeros((400, 400, 3), np.uint8))[1].tobytes(), "image/png")
+            ),
+            413,
+            "pixels exceeds the limit",
+        ),
+        (
+            lambda f, d: f.update(left=("l.png", f["left"][1][:100], "image/png")),
+            422,
+            "left: the image could not be decoded",
+        ),
+        (
+            lambda f, d: f.update(left=("l.png", PNG_1x1, "image/png"), right=("r.png", PNG_1x1, "image/png")),
+            422,
+            "left image",
+        ),
+        (
+            lambda f, d: f.update(
+                mask=("m.png", cv2.imencode(".png", np.zeros((100, 120), np.uint8))[1].tobytes(), "image/png")
+            ),
+            422,
+            "mask is 120×100 px but the images are 320×256 px",
+        ),
+        (
+            lambda f, d: (
+                f.update(calibration=("rig.xml", b"<?xml version='1.0'?><opencv_storage><K1>", "text/xml")),
+                d.pop("focal_px"),
+                d.pop("baseline_m"),
+            ),
+            422,
+            "calibration: rig.xml: <file>: is not a valid FileStorage file",
+        ),
+        (lambda f, d: d.update(focal_px="inf"), 422, "focal_px"),
+        (lambda f, d: d.update(baseline_m="nan"), 422, "baseline_m"),
+        (lambda f, d: d.update(backend="emcstereo"), 422, "backend 'emcstereo' has no weights on this server"),
+        (lambda f, d: d.update(max_disp="1000"), 422, "max_disp"),
+    ],
+)
 def test_bad_requests_get_4xx_with_a_message(client, scene, change, code, message):
     files, data = pair_files(scene), dict(FB)
     change(files, data)
@@ -186,16 +246,23 @@ def test_openapi_documents_every_route_the_result_schema_and_the_bearer_scheme(c
     assert _missing_properties(spec, schemas["EstimateResult"], RESULT_SCHEMA, "result") == []
     assert set(schemas["EstimateResult"]["required"]) == set(RESULT_SCHEMA["required"]) - {"schema"}
     assert "metres" in schemas["Branch"]["properties"]["cut_point_m"]["description"]
-    assert spec["paths"]["/latest"]["get"]["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith("/EstimateResult")
+    assert spec["paths"]["/latest"]["get"]["responses"]["200"]["content"]["application/json"]["schema"][
+        "$ref"
+    ].endswith("/EstimateResult")
     # both POST routes describe their shared fields alike, and name the errors they answer with
-    forms = [_resolve(spec, spec["paths"][p]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"])
-             for p in ("/estimate", "/disparity")]
+    forms = [
+        _resolve(spec, spec["paths"][p]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"])
+        for p in ("/estimate", "/disparity")
+    ]
     for field in ("left", "right", "calibration", "resolution", "focal_px", "baseline_m", "backend", "max_disp"):
         assert forms[0]["properties"][field].get("description"), field
         assert forms[0]["properties"][field] == forms[1]["properties"][field], field
     assert {"413", "415", "422", "503"} <= set(spec["paths"]["/estimate"]["post"]["responses"])
     # bearer auth is declared where the token is checked, and only there
     assert spec["components"]["securitySchemes"]["HTTPBearer"] == {
-        "type": "http", "scheme": "bearer", "description": spec["components"]["securitySchemes"]["HTTPBearer"]["description"]}
+        "type": "http",
+        "scheme": "bearer",
+        "description": spec["components"]["securitySchemes"]["HTTPBearer"]["description"],
+    }
     secured = {path for path, ops in spec["paths"].items() for op in ops.values() if op.get("security")}
     assert secured == {"/estimate", "/disparity", "/metrics", "/latest"}

@@ -4,6 +4,7 @@ The server is the real command in a subprocess on 127.0.0.1 (an ephemeral port),
 crashed OpenCV would kill that process, not pytest: each test ends by checking that `/health`
 still answers. Every error answer is also checked against the served OpenAPI document.
 """
+
 from __future__ import annotations
 
 import os
@@ -17,20 +18,25 @@ from pathlib import Path
 
 import httpx
 import pytest
-
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
+from openapi_check import check_response
+
 from branchrange.cli import main as branchrange_main
 from branchrange.core.config import ConfigError, config_from_dict
-from openapi_check import check_response
 
 ROOT = Path(__file__).resolve().parents[1]
 FB = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
 
 
 def _serve(args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "branchrange.cli", "serve", *args], cwd=ROOT, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
+    return subprocess.Popen(
+        [sys.executable, "-m", "branchrange.cli", "serve", *args],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -72,43 +78,93 @@ def pair():
     return {"left": ("l.png", scene.png("left"), "image/png"), "right": ("r.png", scene.png("right"), "image/png")}
 
 
-def opencv_yaml(k1: str | None = None, width: int = 320, height: int = 256, t: str = f"[{-BASELINE_M}, 0., 0.]") -> bytes:
+def opencv_yaml(
+    k1: str | None = None, width: int = 320, height: int = 256, t: str = f"[{-BASELINE_M}, 0., 0.]"
+) -> bytes:
     """An OpenCV FileStorage YAML stereo calibration of the bar scene; `k1` replaces K1's node body."""
-    k = f"!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [{FOCAL_PX}, 0., 159.5, 0., {FOCAL_PX}, 127.5, 0., 0., 1.]"
+    k = (
+        "!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: [{FOCAL_PX}, 0., 159.5, 0., {FOCAL_PX}, 127.5, 0., 0., 1.]"
+    )
     d = "!!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [0., 0., 0., 0., 0.]"
-    return ("%YAML:1.0\n---\n"
-            f"K1: {k1 or k}\nD1: {d}\nK2: {k}\nD2: {d}\nR: [1., 0., 0., 0., 1., 0., 0., 0., 1.]\nT: {t}\n"
-            f"image_width: {width}\nimage_height: {height}\n").encode()
+    return (
+        "%YAML:1.0\n---\n"
+        f"K1: {k1 or k}\nD1: {d}\nK2: {k}\nD2: {d}\nR: [1., 0., 0., 0., 1., 0., 0., 0., 1.]\nT: {t}\n"
+        f"image_width: {width}\nimage_height: {height}\n"
+    ).encode()
 
 
 # ------------------------------------------------------------------ item 1: malformed !!opencv-matrix
 
 MATRIX = '{"type_id": "opencv-matrix", %s}'
-JSON_REST = ('"D1": [0, 0, 0, 0, 0], "K2": [[400, 0, 159.5], [0, 400, 127.5], [0, 0, 1]], "D2": [0, 0, 0, 0, 0], '
-             '"R": [1, 0, 0, 0, 1, 0, 0, 0, 1], "T": [-0.1, 0, 0], "image_width": 320, "image_height": 256')
+JSON_REST = (
+    '"D1": [0, 0, 0, 0, 0], "K2": [[400, 0, 159.5], [0, 400, 127.5], [0, 0, 1]], "D2": [0, 0, 0, 0, 0], '
+    '"R": [1, 0, 0, 0, 1, 0, 0, 0, 1], "T": [-0.1, 0, 0], "image_width": 320, "image_height": 256'
+)
 
 
-@pytest.mark.parametrize("name, content, message", [
-    # this one corrupted the heap inside FileNode.mat() and aborted the whole server (SIGABRT)
-    ("rig.json", ('{"K1": ' + MATRIX % '"rows": 3, "dt": "2d", "data": [1, 2, 3, 4, 5, 6, 7, 8, 9]' + ", " + JSON_REST + "}").encode(),
-     "K1: is a matrix without cols"),
-    ("rig.yml", opencv_yaml("!!opencv-matrix\n   rows: 3\n   dt: d\n   data: [1., 2., 3., 4., 5., 6., 7., 8., 9.]"),
-     "K1: is a matrix without cols"),
-    ("rig.yml", opencv_yaml("!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [1., 2., 3., 4., 5.]"),
-     "K1: has rows × cols = 3×3 but 5 data values"),
-    ("rig.yml", opencv_yaml("!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: 3d\n   data: [1., 2., 3., 4., 5., 6., 7., 8., 9.]"),
-     "<file>: is not a valid FileStorage file"),  # OpenCV's YAML parser refuses it itself
-    ("rig.json", ('{"K1": ' + MATRIX % '"rows": 3, "cols": 3, "dt": "3d", "data": [1, 2, 3, 4, 5, 6, 7, 8, 9]' + ", "
-                  + JSON_REST + "}").encode(), "K1: has dt = '3d' (multi-channel or unknown)"),
-    ("rig.yml", opencv_yaml("!!opencv-matrix\n   rows: 100000\n   cols: 100000\n   dt: d\n   data: [1.]"),
-     "K1: has rows = 100000"),
-    ("rig.yml", opencv_yaml("!!opencv-matrix\n   rows: x\n   cols: 3\n   dt: d\n   data: [1., 2., 3.]"),
-     "K1: has rows = 'x'"),
-    ("rig.yml", opencv_yaml("[" + ", ".join(["1."] * 5000) + "]"), "K1: holds more than 64 numbers"),
-    ("rig.xml", b'<?xml version="1.0"?>\n<opencv_storage><K1 type_id="opencv-matrix"><rows>3</rows><cols>3</cols>'
-                b"<dt>d</dt><data>1 2 3 4</data></K1></opencv_storage>\n",
-     "K1: has rows × cols = 3×3 but 4 data values"),
-])
+@pytest.mark.parametrize(
+    "name, content, message",
+    [
+        # this one corrupted the heap inside FileNode.mat() and aborted the whole server (SIGABRT)
+        (
+            "rig.json",
+            (
+                '{"K1": '
+                + MATRIX % '"rows": 3, "dt": "2d", "data": [1, 2, 3, 4, 5, 6, 7, 8, 9]'
+                + ", "
+                + JSON_REST
+                + "}"
+            ).encode(),
+            "K1: is a matrix without cols",
+        ),
+        (
+            "rig.yml",
+            opencv_yaml("!!opencv-matrix\n   rows: 3\n   dt: d\n   data: [1., 2., 3., 4., 5., 6., 7., 8., 9.]"),
+            "K1: is a matrix without cols",
+        ),
+        (
+            "rig.yml",
+            opencv_yaml("!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [1., 2., 3., 4., 5.]"),
+            "K1: has rows × cols = 3×3 but 5 data values",
+        ),
+        (
+            "rig.yml",
+            opencv_yaml(
+                "!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: 3d\n   data: [1., 2., 3., 4., 5., 6., 7., 8., 9.]"
+            ),
+            "<file>: is not a valid FileStorage file",
+        ),  # OpenCV's YAML parser refuses it itself
+        (
+            "rig.json",
+            (
+                '{"K1": '
+                + MATRIX % '"rows": 3, "cols": 3, "dt": "3d", "data": [1, 2, 3, 4, 5, 6, 7, 8, 9]'
+                + ", "
+                + JSON_REST
+                + "}"
+            ).encode(),
+            "K1: has dt = '3d' (multi-channel or unknown)",
+        ),
+        (
+            "rig.yml",
+            opencv_yaml("!!opencv-matrix\n   rows: 100000\n   cols: 100000\n   dt: d\n   data: [1.]"),
+            "K1: has rows = 100000",
+        ),
+        (
+            "rig.yml",
+            opencv_yaml("!!opencv-matrix\n   rows: x\n   cols: 3\n   dt: d\n   data: [1., 2., 3.]"),
+            "K1: has rows = 'x'",
+        ),
+        ("rig.yml", opencv_yaml("[" + ", ".join(["1."] * 5000) + "]"), "K1: holds more than 64 numbers"),
+        (
+            "rig.xml",
+            b'<?xml version="1.0"?>\n<opencv_storage><K1 type_id="opencv-matrix"><rows>3</rows><cols>3</cols>'
+            b"<dt>d</dt><data>1 2 3 4</data></K1></opencv_storage>\n",
+            "K1: has rows × cols = 3×3 but 4 data values",
+        ),
+    ],
+)
 def test_malformed_opencv_matrices_get_422_and_the_server_lives(server, pair, name, content, message):
     r = post(server, {**pair, "calibration": (name, content, "text/plain")}, {"max_disp": "64"})
     assert r.status_code == 422 and f"calibration: {name}: {message}" in r.json()["detail"], r.text
@@ -117,14 +173,27 @@ def test_malformed_opencv_matrices_get_422_and_the_server_lives(server, pair, na
 
 # ------------------------------------------------------------------ item 2: image size before maps
 
-@pytest.mark.parametrize("size, message", [
-    ((8000, 8000), "calibration: rig.yml: image size: is 8000×8000 px (expected 320×256 px, the size of the images"),
-    ((100_000, 500), "image_size: is (100000, 500) (expected a positive (width, height) in pixels, each at most 8192)"),
-])
+
+@pytest.mark.parametrize(
+    "size, message",
+    [
+        (
+            (8000, 8000),
+            "calibration: rig.yml: image size: is 8000×8000 px (expected 320×256 px, the size of the images",
+        ),
+        (
+            (100_000, 500),
+            "image_size: is (100000, 500) (expected a positive (width, height) in pixels, each at most 8192)",
+        ),
+    ],
+)
 def test_calibration_image_size_is_checked_before_maps_are_built(server, pair, size, message):
     start = time.perf_counter()
-    r = post(server, {**pair, "calibration": ("rig.yml", opencv_yaml(width=size[0], height=size[1]), "text/plain")},
-             {"max_disp": "64"})
+    r = post(
+        server,
+        {**pair, "calibration": ("rig.yml", opencv_yaml(width=size[0], height=size[1]), "text/plain")},
+        {"max_disp": "64"},
+    )
     assert r.status_code == 422 and message in r.json()["detail"], r.text
     # 8000×8000 maps took seconds and 2.5 GB; the check answers before any is built
     assert time.perf_counter() - start < 10
@@ -143,20 +212,30 @@ def test_image_wider_than_the_maximum_is_refused_from_its_header(server, pair):
 
 # ------------------------------------------------------------------ item 3: the client's file name is no path
 
-@pytest.mark.parametrize("filename, shown", [
-    ("..", "calibration"),
-    ("x" * 300, "x" * 63 + "…"),
-    ("rig\0.yml", "rig.yml"),
-    ("../../etc/passwd", "passwd"),
-])
+
+@pytest.mark.parametrize(
+    "filename, shown",
+    [
+        ("..", "calibration"),
+        ("x" * 300, "x" * 63 + "…"),
+        ("rig\0.yml", "rig.yml"),
+        ("../../etc/passwd", "passwd"),
+    ],
+)
 def test_hostile_calibration_file_names_are_never_paths(server, pair, filename, shown):
     url, spec = server
     boundary = "hardening-boundary"
     parts = []
     for field, (name, data, kind) in {**pair, "calibration": (filename, opencv_yaml(), "text/plain")}.items():
-        parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="{field}"; filename="{name}"\r\n'
-                     f"Content-Type: {kind}\r\n\r\n".encode() + data + b"\r\n")
-    parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="max_disp"\r\n\r\n64\r\n--{boundary}--\r\n'.encode())
+        parts.append(
+            f'--{boundary}\r\nContent-Disposition: form-data; name="{field}"; filename="{name}"\r\n'
+            f"Content-Type: {kind}\r\n\r\n".encode()
+            + data
+            + b"\r\n"
+        )
+    parts.append(
+        f'--{boundary}\r\nContent-Disposition: form-data; name="max_disp"\r\n\r\n64\r\n--{boundary}--\r\n'.encode()
+    )
     headers = {"Content-Type": f"multipart/form-data; boundary={boundary}"}
     r = httpx.post(f"{url}/estimate", content=b"".join(parts), headers=headers, timeout=60)
     check_response(spec, "POST", "/estimate", r)
@@ -169,12 +248,16 @@ def test_hostile_calibration_file_names_are_never_paths(server, pair, filename, 
 
 # ------------------------------------------------------------------ item 4: physical ranges, once, at each entry
 
-@pytest.mark.parametrize("field, value, accepted", [
-    ("baseline_m", "1e300", "a baseline in metres from 0.001 to 10 m"),
-    ("baseline_m", "1e-320", "a baseline in metres from 0.001 to 10 m"),
-    ("focal_px", "1e9", "a focal length in pixels from 1 to 100000 px"),
-    ("focal_px", "0.5", "a focal length in pixels from 1 to 100000 px"),
-])
+
+@pytest.mark.parametrize(
+    "field, value, accepted",
+    [
+        ("baseline_m", "1e300", "a baseline in metres from 0.001 to 10 m"),
+        ("baseline_m", "1e-320", "a baseline in metres from 0.001 to 10 m"),
+        ("focal_px", "1e9", "a focal length in pixels from 1 to 100000 px"),
+        ("focal_px", "0.5", "a focal length in pixels from 1 to 100000 px"),
+    ],
+)
 def test_absurd_focal_or_baseline_gets_422_naming_value_and_range(server, pair, field, value, accepted):
     r = post(server, pair, {**FB, field: value})
     assert r.status_code == 422 and f"{field} = {float(value)!r}: expected {accepted}" in r.json()["detail"], r.text
@@ -182,8 +265,9 @@ def test_absurd_focal_or_baseline_gets_422_naming_value_and_range(server, pair, 
 
 
 def test_calibration_with_an_absurd_baseline_gets_422(server, pair):
-    r = post(server, {**pair, "calibration": ("rig.yml", opencv_yaml(t="[-1e-9, 0., 0.]"), "text/plain")},
-             {"max_disp": "64"})
+    r = post(
+        server, {**pair, "calibration": ("rig.yml", opencv_yaml(t="[-1e-9, 0., 0.]"), "text/plain")}, {"max_disp": "64"}
+    )
     assert r.status_code == 422 and "rig.yml: baseline |T| = 1e-09: expected a baseline in metres" in r.text, r.text
     assert_alive(server[0])
 
@@ -192,16 +276,28 @@ def test_cli_and_config_refuse_the_same_ranges(tmp_path, capsys):
     scene = bar_scene()
     for name in ("left", "right"):
         (tmp_path / f"{name}.png").write_bytes(scene.png(name))
-    base = ["estimate", "--left", str(tmp_path / "left.png"), "--right", str(tmp_path / "right.png"), "--max-disp", "64"]
+    base = [
+        "estimate",
+        "--left",
+        str(tmp_path / "left.png"),
+        "--right",
+        str(tmp_path / "right.png"),
+        "--max-disp",
+        "64",
+    ]
     assert branchrange_main([*base, "--focal-px", str(FOCAL_PX), "--baseline-m", "1e300"]) == 2
     assert "--baseline-m = 1e+300: expected a baseline in metres from 0.001 to 10 m" in capsys.readouterr().err
     assert branchrange_main([*base, "--focal-px", "1e9", "--baseline-m", "0.1"]) == 2
     assert "--focal-px = 1000000000.0: expected a focal length in pixels" in capsys.readouterr().err
     crash = tmp_path / "rig.json"  # the upload that aborted the server made the CLI exit 134 (SIGABRT) too
-    crash.write_text('{"K1": ' + MATRIX % '"rows": 3, "dt": "2d", "data": [1, 2, 3, 4, 5, 6, 7, 8, 9]' + ", " + JSON_REST + "}")
+    crash.write_text(
+        '{"K1": ' + MATRIX % '"rows": 3, "dt": "2d", "data": [1, 2, 3, 4, 5, 6, 7, 8, 9]' + ", " + JSON_REST + "}"
+    )
     assert branchrange_main([*base, "--calib", str(crash)]) == 2
     assert "rig.json: K1: is a matrix without cols (expected an !!opencv-matrix" in capsys.readouterr().err
-    with pytest.raises(ConfigError, match=r"mavlink\.max_distance_m = 1e\+300: expected a distance in metres from 0 to 655 m"):
+    with pytest.raises(
+        ConfigError, match=r"mavlink\.max_distance_m = 1e\+300: expected a distance in metres from 0 to 655 m"
+    ):
         config_from_dict({"mavlink": {"max_distance_m": 1e300}})
     with pytest.raises(ConfigError, match=r"cutpoints\.cut_offset_m = 1e\+300: expected an offset"):
         config_from_dict({"cutpoints": {"cut_offset_m": 1e300}})
@@ -209,13 +305,17 @@ def test_cli_and_config_refuse_the_same_ranges(tmp_path, capsys):
 
 # ------------------------------------------------------------------ item 7: 503 before the body is read
 
+
 def test_busy_service_answers_503_before_reading_the_body(server):
     url, spec = server
     big = bar_scene(1280, 720)
     files = {"left": ("l.png", big.png("left"), "image/png"), "right": ("r.png", big.png("right"), "image/png")}
     answers: list[httpx.Response] = []
-    slow = threading.Thread(target=lambda: answers.append(httpx.post(
-        f"{url}/estimate", files=files, data={**FB, "max_disp": "256"}, timeout=120)))
+    slow = threading.Thread(
+        target=lambda: answers.append(
+            httpx.post(f"{url}/estimate", files=files, data={**FB, "max_disp": "256"}, timeout=120)
+        )
+    )
     slow.start()
     deadline = time.monotonic() + 60
     while httpx.get(f"{url}/health", timeout=10).json()["model"]["inference_in_use"] == 0:
@@ -224,8 +324,10 @@ def test_busy_service_answers_503_before_reading_the_body(server):
     host, port = url.removeprefix("http://").split(":")
     with socket.create_connection((host, int(port)), timeout=10) as sock:
         # headers only: a server that read (or waited for) the 5 MB body before refusing would time out here
-        sock.sendall(b"POST /estimate HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
-                     b"Content-Length: 5000000\r\n\r\n")
+        sock.sendall(
+            b"POST /estimate HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+            b"Content-Length: 5000000\r\n\r\n"
+        )
         answer = b""
         while chunk := sock.recv(4096):
             answer += chunk
@@ -242,12 +344,12 @@ def test_busy_service_answers_503_before_reading_the_body(server):
 
 # ------------------------------------------------------------------ item 9: a whitespace token is no token
 
+
 @pytest.mark.parametrize("env, config", [({"BRANCHRANGE_API_TOKEN": "   "}, ""), ({}, '[api]\ntoken = " \\t "\n')])
 def test_whitespace_token_does_not_let_serve_bind_a_public_address(tmp_path, env, config):
     path = tmp_path / "serve.toml"
     path.write_text(config)
-    proc = _serve(["--config", str(path), "--host", "0.0.0.0", "--port", "0"],
-                  env={"BRANCHRANGE_API_TOKEN": "", **env})
+    proc = _serve(["--config", str(path), "--host", "0.0.0.0", "--port", "0"], env={"BRANCHRANGE_API_TOKEN": "", **env})
     try:
         output, _ = proc.communicate(timeout=60)
     finally:
@@ -264,6 +366,7 @@ def test_a_token_with_stray_spaces_is_refused_without_echoing_it():
 
 
 # ------------------------------------------------------------------ item 11: /docs offline
+
 
 @pytest.mark.parametrize("page", ["/docs", "/redoc"])
 def test_docs_pages_load_every_asset_from_this_server(server, page):

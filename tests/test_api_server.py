@@ -1,4 +1,5 @@
 """The service over real HTTP (uvicorn on 127.0.0.1, ephemeral port): auth, health, metrics, latest, serve."""
+
 from __future__ import annotations
 
 import json
@@ -9,16 +10,16 @@ import time
 import httpx
 import pytest
 import uvicorn
+from api_scene import BASELINE_M, FOCAL_PX, bar_scene
+from openapi_check import check_response
 
 from api import create_app
 from api.estimator import PipelineEstimator
-from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from branchrange.cli import main as branchrange_main
-from branchrange.commands.serve import check_bind, ServeError
+from branchrange.commands.serve import ServeError, check_bind
 from branchrange.core.config import ApiConfig, StereoConfig
 from branchrange.core.frame_results import result_line
 from branchrange.core.pipeline import Pipeline, PipelineConfig
-from openapi_check import check_response
 
 TOKEN = "s3cret-token"
 UPLOAD_LIMIT_MB = 1.0
@@ -35,8 +36,10 @@ class LiveState:
         return self.result
 
     def health(self):
-        return {"camera": {"lost": self.camera_lost, "source": "replay:test"},
-                "mavlink": {"connected": True, "url": "udpout:127.0.0.1:14550"}}
+        return {
+            "camera": {"lost": self.camera_lost, "source": "replay:test"},
+            "mavlink": {"connected": True, "url": "udpout:127.0.0.1:14550"},
+        }
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +95,9 @@ def test_health_reports_model_camera_and_link_and_degrades_when_camera_lost(serv
 
 def test_latest_returns_the_daemons_newest_result_unchanged(server, live):
     scene = bar_scene()
-    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64)), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
+    pipeline = Pipeline(
+        PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64)), focal_px=FOCAL_PX, baseline_m=BASELINE_M
+    )
     result = pipeline.process(scene.left, scene.right, scene.mask, index=7, timestamp_ns=5)
     with httpx.Client(base_url=server, timeout=10, headers=auth()) as c:
         assert c.get("/latest").status_code == 404
@@ -105,11 +110,20 @@ def test_latest_returns_the_daemons_newest_result_unchanged(server, live):
 def test_metrics_count_requests_latencies_frames_and_errors(server):
     scene = bar_scene()
     with httpx.Client(base_url=server, timeout=20, headers=auth()) as c:
-        c.post("/estimate", files={"left": ("l.png", scene.png("left")), "right": ("r.png", scene.png("right"))},
-               data={"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"})
-        c.post("/estimate", files={"left": ("l.png", b"nope"), "right": ("r.png", b"nope")}, data={"focal_px": "1", "baseline_m": "1"})
+        c.post(
+            "/estimate",
+            files={"left": ("l.png", scene.png("left")), "right": ("r.png", scene.png("right"))},
+            data={"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"},
+        )
+        c.post(
+            "/estimate",
+            files={"left": ("l.png", b"nope"), "right": ("r.png", b"nope")},
+            data={"focal_px": "1", "baseline_m": "1"},
+        )
         text = c.get("/metrics").text
-    values = {line.rsplit(" ", 1)[0]: float(line.rsplit(" ", 1)[1]) for line in text.splitlines() if not line.startswith("#")}
+    values = {
+        line.rsplit(" ", 1)[0]: float(line.rsplit(" ", 1)[1]) for line in text.splitlines() if not line.startswith("#")
+    }
     ok = values['branchrange_http_requests_total{route="/estimate",method="POST",status="200"}']
     assert values['branchrange_http_requests_total{route="/estimate",method="POST",status="415"}'] == 1
     assert ok >= 1 and values["branchrange_frames_total"] == ok  # every successful estimate is one frame
@@ -122,8 +136,10 @@ def test_declared_oversized_body_gets_413_before_the_server_reads_it(server):
     host, port = server.removeprefix("http://").split(":")
     with socket.create_connection((host, int(port)), timeout=5) as sock:
         # headers only: a server that waited for the 50 MB body would time out here
-        sock.sendall(b"POST /estimate HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
-                     b"Content-Length: 50000000\r\n\r\n")
+        sock.sendall(
+            b"POST /estimate HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+            b"Content-Length: 50000000\r\n\r\n"
+        )
         answer = b""
         while chunk := sock.recv(4096):  # the server closes the connection after its answer
             answer += chunk
@@ -166,20 +182,40 @@ def test_every_route_answers_as_the_served_openapi_document_says(server, live):
     scene = bar_scene()
     pair = {"left": ("l.png", scene.png("left"), "image/png"), "right": ("r.png", scene.png("right"), "image/png")}
     fb = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
-    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64)), focal_px=FOCAL_PX, baseline_m=BASELINE_M)
+    pipeline = Pipeline(
+        PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64)), focal_px=FOCAL_PX, baseline_m=BASELINE_M
+    )
     live.result = None  # before the daemon's first frame: /latest is 404
     calls = [  # (method, path, keyword arguments of httpx, expected status)
-        ("GET", "/health", {}, 200), ("GET", "/version", {}, 200),
-        ("GET", "/metrics", {"headers": auth()}, 200), ("GET", "/metrics", {}, 401),
-        ("GET", "/latest", {}, 401), ("GET", "/latest", {"headers": auth()}, 404),
+        ("GET", "/health", {}, 200),
+        ("GET", "/version", {}, 200),
+        ("GET", "/metrics", {"headers": auth()}, 200),
+        ("GET", "/metrics", {}, 401),
+        ("GET", "/latest", {}, 401),
+        ("GET", "/latest", {"headers": auth()}, 404),
         ("POST", "/estimate", {"files": pair, "data": fb, "headers": auth()}, 200),
         ("POST", "/estimate", {"files": pair, "data": fb}, 401),
         ("POST", "/estimate", {"files": pair, "data": {**fb, "max_disp": "abc"}, "headers": auth()}, 422),
         ("POST", "/estimate", {"files": {"left": pair["left"]}, "data": fb, "headers": auth()}, 422),
         ("POST", "/estimate", {"files": pair, "data": {**fb, "baseline_m": "1e300"}, "headers": auth()}, 422),
-        ("POST", "/estimate", {"files": {**pair, "left": ("l.png", b"GIF89a", "image/gif")}, "data": fb, "headers": auth()}, 415),
-        ("POST", "/estimate", {"content": b"x" * 2_000_000, "headers": {**auth(), "Content-Type": "multipart/form-data; boundary=b"}}, 413),
-        ("POST", "/estimate", {"content": b"--nope", "headers": {**auth(), "Content-Type": "multipart/form-data"}}, 400),
+        (
+            "POST",
+            "/estimate",
+            {"files": {**pair, "left": ("l.png", b"GIF89a", "image/gif")}, "data": fb, "headers": auth()},
+            415,
+        ),
+        (
+            "POST",
+            "/estimate",
+            {"content": b"x" * 2_000_000, "headers": {**auth(), "Content-Type": "multipart/form-data; boundary=b"}},
+            413,
+        ),
+        (
+            "POST",
+            "/estimate",
+            {"content": b"--nope", "headers": {**auth(), "Content-Type": "multipart/form-data"}},
+            400,
+        ),
         ("POST", "/disparity", {"files": pair, "data": fb, "headers": auth()}, 200),
         ("POST", "/disparity", {"files": pair, "data": {**fb, "format": "npy"}, "headers": auth()}, 200),
         ("POST", "/disparity", {"files": pair, "data": {**fb, "format": "tiff"}, "headers": auth()}, 422),

@@ -1,4 +1,5 @@
 """Windowed disparity (`compute_roi`): SGBM against its whole frame, EMCStereo against a hand-made crop."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -60,7 +61,9 @@ def test_sgbm_roi_with_the_truth_in_its_window_equals_the_whole_frame_inside_the
     assert valid.mean() > 0.6 and both.sum() >= 0.95 * max(valid.sum(), whole_valid.sum())
     assert (np.abs(window.disparity - whole)[both] <= 0.5).mean() >= 0.98
     assert (window.disparity[valid] > d_min).all() and (window.disparity[valid] < d_min + d_range).all()
-    assert (window.confidence[~valid] == 0).all() and (window.confidence[valid] > 0).all() and window.confidence.max() <= 1
+    assert (
+        (window.confidence[~valid] == 0).all() and (window.confidence[valid] > 0).all() and window.confidence.max() <= 1
+    )
     assert {"match", "total"} <= set(window.timing_ms)
 
 
@@ -77,7 +80,9 @@ def test_sgbm_roi_window_that_excludes_the_truth_is_mostly_invalid(scene: Synthe
     assert (farther.disparity > 0).mean() < 0.1
 
 
-def test_sgbm_roi_range_not_a_multiple_of_16_stays_inside_the_requested_window(scene: SyntheticScene, sgbm: SGBMBackend) -> None:
+def test_sgbm_roi_range_not_a_multiple_of_16_stays_inside_the_requested_window(
+    scene: SyntheticScene, sgbm: SGBMBackend
+) -> None:
     result = sgbm.compute_roi(scene.left, scene.right, ROIS[0], 20, 10)  # OpenCV searches 16 from 20
     valid = result.disparity[result.disparity > 0]
     assert result.max_disparity == 30 and valid.size > 0
@@ -120,7 +125,9 @@ def emc() -> EMCStereoBackend:
     return EMCStereoBackend(EMCStereo(), max_disp=192)
 
 
-def network_on_crop(backend: EMCStereoBackend, left: np.ndarray, right: np.ndarray, max_disp: int) -> tuple[np.ndarray, np.ndarray]:
+def network_on_crop(
+    backend: EMCStereoBackend, left: np.ndarray, right: np.ndarray, max_disp: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The reference: normalise by hand, edge-pad top/right to the network's size, infer, un-pad."""
     padding = compute_padding(*left.shape[:2])
 
@@ -135,7 +142,9 @@ def network_on_crop(backend: EMCStereoBackend, left: np.ndarray, right: np.ndarr
     return disparity[0, padding.top :, :width].numpy(), confidence[0, padding.top :, :width].numpy()
 
 
-def test_emcstereo_roi_equals_a_manual_crop_shift_and_network_call(scene: SyntheticScene, emc: EMCStereoBackend) -> None:
+def test_emcstereo_roi_equals_a_manual_crop_shift_and_network_call(
+    scene: SyntheticScene, emc: EMCStereoBackend
+) -> None:
     # A box near the left edge, so part of the extension lies left of the frame, with a window offset d_min > 0.
     roi, d_min, d_range = (4, 100, 60, 140), 12, 16
     x0, y0, x1, y1 = roi
@@ -144,7 +153,9 @@ def test_emcstereo_roi_equals_a_manual_crop_shift_and_network_call(scene: Synthe
     assert (result.backend, result.max_disparity) == ("emcstereo", d_min + d_range)
     assert np.isfinite(result.disparity).all() and 0 <= result.confidence.min() and result.confidence.max() <= 1
     valid = result.confidence > 0
-    assert valid.any() and (result.disparity[valid] >= d_min).all() and (result.disparity[valid] < d_min + d_range).all()
+    assert (
+        valid.any() and (result.disparity[valid] >= d_min).all() and (result.disparity[valid] < d_min + d_range).all()
+    )
     # Reference: left box extended d_range columns leftwards, right image shifted left by d_min;
     # columns left of the frame replicate column 0 (x0 = 4 < d_range + d_min).
     left_cols = np.clip(np.arange(x0 - d_range, x1), 0, None)
@@ -185,8 +196,12 @@ def test_regions_without_the_left_right_check_only_gain_pixels(scene: SyntheticS
     roi = (60, 40, 180, 120)
     d_min, d_range = window_around_truth(scene, roi)
     checked = SGBMBackend(max_disp=SGBM_RANGE).compute_roi(scene.left, scene.right, roi, d_min, d_range)
-    default = SGBMBackend(max_disp=SGBM_RANGE, roi_lr_check=False).compute_roi(scene.left, scene.right, roi, d_min, d_range)
+    default = SGBMBackend(max_disp=SGBM_RANGE, roi_lr_check=False).compute_roi(
+        scene.left, scene.right, roi, d_min, d_range
+    )
     kept = checked.disparity > 0
     assert np.all(default.disparity[kept] == checked.disparity[kept])
     assert (default.disparity > 0).sum() > kept.sum()
-    assert np.all(default.confidence[default.disparity > 0] == 1.0) and np.all(default.confidence[default.disparity == 0] == 0)
+    assert np.all(default.confidence[default.disparity > 0] == 1.0) and np.all(
+        default.confidence[default.disparity == 0] == 0
+    )

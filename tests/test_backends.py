@@ -1,4 +1,5 @@
 """Stereo backends: the shared interface, SGBM on the real pairs of ../shared/data, EMCStereo end to end."""
+
 from __future__ import annotations
 
 import math
@@ -42,7 +43,12 @@ def load_pair(shared_data: Path, name: str) -> Pair:
     """Load one of the three real pairs of ../shared/data/stereo."""
     folder = shared_data / "stereo" / name
     if name == SCENEFLOW:
-        return Pair(name, read_rgb(folder / "left_cleanpass.png"), read_rgb(folder / "right_cleanpass.png"), read_pfm(folder / "disp_left.pfm"))
+        return Pair(
+            name,
+            read_rgb(folder / "left_cleanpass.png"),
+            read_rgb(folder / "right_cleanpass.png"),
+            read_pfm(folder / "disp_left.pfm"),
+        )
     info = read_middlebury2001_info(folder / "info.txt")
     gt = read_middlebury2001_disparity(folder / "groundtruth.png", info.scale)
     return Pair(name, read_rgb(folder / "imL.png"), read_rgb(folder / "imR.png"), gt)
@@ -69,7 +75,13 @@ SGBM_BOUNDS = [
 
 @pytest.mark.parametrize(("name", "max_disp", "epe_max", "bad3_max", "density_min", "bad3_all_max"), SGBM_BOUNDS)
 def test_sgbm_is_accurate_on_real_pairs(
-    shared_data: Path, name: str, max_disp: int, epe_max: float, bad3_max: float, density_min: float, bad3_all_max: float
+    shared_data: Path,
+    name: str,
+    max_disp: int,
+    epe_max: float,
+    bad3_max: float,
+    density_min: float,
+    bad3_all_max: float,
 ) -> None:
     pair = load_pair(shared_data, name)
     result = make_backend("sgbm", max_disp=max_disp).compute(pair.left, pair.right)
@@ -110,8 +122,13 @@ def sgbm_scores(disparity: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     matched = disparity > 0
     scored = (gt > 0) & (gt < 192)
     on_matched = image_metrics(disparity, np.where(matched, gt, 0))
-    return {"epe": on_matched["epe"], "bad_1": on_matched["bad_1"], "bad_2": on_matched["bad_2"],
-            "density": float(matched[scored].mean()), "bad_3_all": image_metrics(disparity, gt)["bad_3"]}
+    return {
+        "epe": on_matched["epe"],
+        "bad_1": on_matched["bad_1"],
+        "bad_2": on_matched["bad_2"],
+        "density": float(matched[scored].mean()),
+        "bad_3_all": image_metrics(disparity, gt)["bad_3"],
+    }
 
 
 def test_sgbm_on_tsukuba_is_no_worse_than_the_old_backend_beyond_the_stated_margin(shared_data: Path) -> None:
@@ -131,7 +148,9 @@ def plain_opencv_sgbm(left: np.ndarray, right: np.ndarray, max_disp: int) -> np.
     return np.where(disparity > 0, disparity, 0.0).astype(np.float32)
 
 
-@pytest.mark.parametrize(("name", "max_disp"), [("middlebury2001_tsukuba", 32), ("middlebury2001_venus", 32), (SCENEFLOW, 192)])
+@pytest.mark.parametrize(
+    ("name", "max_disp"), [("middlebury2001_tsukuba", 32), ("middlebury2001_venus", 32), (SCENEFLOW, 192)]
+)
 def test_sgbm_keeps_its_accuracy_advantage_over_plain_opencv_sgbm(shared_data: Path, name: str, max_disp: int) -> None:
     pair = load_pair(shared_data, name)
     ours = sgbm_scores(make_backend("sgbm", max_disp=max_disp).compute(pair.left, pair.right).disparity, pair.gt)
@@ -188,7 +207,8 @@ def test_sgbm_result_keeps_the_interface_contract() -> None:
 
 def test_left_right_check_keeps_agreeing_pixels_with_graded_confidence() -> None:
     disp_left = np.array([[0.0, 0.0, 2.0, 2.0, 2.0, 3.0]], np.float32)
-    # x=2 → right x=0 (2.0, agrees), x=3 → right x=1 (2.5, off by 0.5), x=4 → right x=2 (4.0, off by 2), x=5 → right 2 (4.0, off by 1)
+    # x=2 → right x=0 (2.0, agrees), x=3 → right x=1 (2.5, off by 0.5), x=4 → right x=2 (4.0, off by 2),
+    # x=5 → right 2 (4.0, off by 1)
     disp_right = np.array([[2.0, 2.5, 4.0, 0.0, 0.0, 0.0]], np.float32)
     disparity, confidence = left_right_check(disp_left, disp_right, tolerance=1.0)
     assert disparity.tolist() == [[0.0, 0.0, 2.0, 2.0, 0.0, 3.0]]
@@ -274,7 +294,9 @@ def test_emcstereo_runs_end_to_end_on_real_pairs(
     assert (result.backend, result.max_disparity) == ("emcstereo", EMC_MAX_DISP)
     assert set(result.timing_ms) == {"preprocess", "network", "postprocess", "total"}
     assert result.timing_ms["network"] > 0
-    assert image_metrics(result.disparity, real_crops[name].gt)["valid_pixels"] > 0  # scoreable against the ground truth
+    assert (
+        image_metrics(result.disparity, real_crops[name].gt)["valid_pixels"] > 0
+    )  # scoreable against the ground truth
 
 
 def test_emcstereo_backend_equals_the_model_on_hand_normalised_padded_input(
@@ -331,7 +353,9 @@ def test_emcstereo_cuda_request_without_cuda_is_refused() -> None:
         EMCStereoBackend(EMCStereo(), device="cuda")
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="fp16/bf16 autocast runs only on CUDA and this machine has none")
+@pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="fp16/bf16 autocast runs only on CUDA and this machine has none"
+)
 @pytest.mark.parametrize("precision", ["fp16", "bf16"])
 def test_emcstereo_mixed_precision_on_cuda_stays_close_to_fp32(precision: str) -> None:
     torch.manual_seed(0)

@@ -1,4 +1,5 @@
 """Calibration loaders on the real files of ../shared/data and on files written here in the real formats."""
+
 from __future__ import annotations
 
 import json
@@ -8,8 +9,18 @@ import cv2
 import numpy as np
 import pytest
 
-from camera import (CalibrationError, StereoCalibration, detect_format, from_depthai_json, from_kitti,
-                    from_opencv_file, from_rectified, from_zed_conf, load_calibration, write_opencv_file)
+from camera import (
+    CalibrationError,
+    StereoCalibration,
+    detect_format,
+    from_depthai_json,
+    from_kitti,
+    from_opencv_file,
+    from_rectified,
+    from_zed_conf,
+    load_calibration,
+    write_opencv_file,
+)
 from camera.depthai_json import calibrated_size
 from camera.zed_conf import available_resolutions
 
@@ -34,11 +45,14 @@ def _write(tmp_path: Path, name: str, text: str, newline: str = "\n") -> Path:
 
 # ---------------------------------------------------------------- ZED factory files (real)
 
+
 @pytest.mark.parametrize("serial", ZED_FILES)
-@pytest.mark.parametrize("resolution, size", [("2K", (2208, 1242)), ("FHD", (1920, 1080)), ("HD", (1280, 720)),
-                                              ("VGA", (672, 376))])
-def test_zed_conf_real_files_load_every_resolution(zed_dir: Path, serial: str, resolution: str,
-                                                    size: tuple[int, int]) -> None:
+@pytest.mark.parametrize(
+    "resolution, size", [("2K", (2208, 1242)), ("FHD", (1920, 1080)), ("HD", (1280, 720)), ("VGA", (672, 376))]
+)
+def test_zed_conf_real_files_load_every_resolution(
+    zed_dir: Path, serial: str, resolution: str, size: tuple[int, int]
+) -> None:
     calib = from_zed_conf(zed_dir / f"{serial}.conf", resolution)
     assert calib.image_size == size
     assert calib.baseline_m == pytest.approx(0.120, abs=0.0005)
@@ -105,16 +119,20 @@ def test_zed_conf_unknown_resolution_is_rejected(zed_dir: Path) -> None:
         from_zed_conf(zed_dir / "SN1010.conf", "4K")
 
 
-@pytest.mark.parametrize("old, new, key, expected", [
-    ("[STEREO]\nBaseline=120", "[NOT_STEREO]\nBaseline=120", "[STEREO]", "section"),
-    ("fy=700.82\n", "", "[LEFT_CAM_HD] fy", "pixels"),
-    ("Baseline=120", "Other=120", "[STEREO] baseline", "mm"),
-    ("fx=698.76", "fx=nan", "[RIGHT_CAM_HD] fx", "finite"),
-    ("cx=665.465", "cx=665,465", "[LEFT_CAM_HD] cx", "'.'"),
-    ("RX_HD=0.00497864", "RX_VGA2=1", "rx_hd", "radians"),
-])
-def test_zed_conf_bad_input_names_key_and_expectation(zed_dir: Path, tmp_path: Path, old: str, new: str,
-                                                      key: str, expected: str) -> None:
+@pytest.mark.parametrize(
+    "old, new, key, expected",
+    [
+        ("[STEREO]\nBaseline=120", "[NOT_STEREO]\nBaseline=120", "[STEREO]", "section"),
+        ("fy=700.82\n", "", "[LEFT_CAM_HD] fy", "pixels"),
+        ("Baseline=120", "Other=120", "[STEREO] baseline", "mm"),
+        ("fx=698.76", "fx=nan", "[RIGHT_CAM_HD] fx", "finite"),
+        ("cx=665.465", "cx=665,465", "[LEFT_CAM_HD] cx", "'.'"),
+        ("RX_HD=0.00497864", "RX_VGA2=1", "rx_hd", "radians"),
+    ],
+)
+def test_zed_conf_bad_input_names_key_and_expectation(
+    zed_dir: Path, tmp_path: Path, old: str, new: str, key: str, expected: str
+) -> None:
     text = (zed_dir / "SN1010.conf").read_text()
     assert old in text
     path = _write(tmp_path, "bad.conf", text.replace(old, new, 1))
@@ -131,6 +149,7 @@ def test_missing_file_is_a_calibration_error(tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------- OpenCV FileStorage
 
+
 @pytest.fixture
 def zed_hd(zed_dir: Path) -> StereoCalibration:
     return from_zed_conf(zed_dir / "SN14966.conf", "HD")
@@ -146,32 +165,71 @@ def test_opencv_file_round_trip_is_exact(zed_hd: StereoCalibration, tmp_path: Pa
 
 def test_opencv_json_with_plain_lists_and_stereo_calib_names(zed_hd: StereoCalibration, tmp_path: Path) -> None:
     path = tmp_path / "plain.json"
-    path.write_text(json.dumps({"M1": zed_hd.K1.tolist(), "D1": zed_hd.D1.tolist(), "M2": zed_hd.K2.tolist(),
-                                "D2": zed_hd.D2.tolist(), "R": zed_hd.R.tolist(), "T": zed_hd.T.tolist()}))
+    path.write_text(
+        json.dumps(
+            {
+                "M1": zed_hd.K1.tolist(),
+                "D1": zed_hd.D1.tolist(),
+                "M2": zed_hd.K2.tolist(),
+                "D2": zed_hd.D2.tolist(),
+                "R": zed_hd.R.tolist(),
+                "T": zed_hd.T.tolist(),
+            }
+        )
+    )
     loaded = from_opencv_file(path, size=(1280, 720))
     assert loaded == zed_hd
 
 
 def test_opencv_file_without_size_names_image_width(zed_hd: StereoCalibration, tmp_path: Path) -> None:
     path = tmp_path / "nosize.json"
-    path.write_text(json.dumps({"K1": zed_hd.K1.tolist(), "D1": [0, 0, 0, 0], "K2": zed_hd.K2.tolist(),
-                                "D2": [0, 0, 0, 0], "R": np.eye(3).tolist(), "T": [-0.1, 0, 0]}))
+    path.write_text(
+        json.dumps(
+            {
+                "K1": zed_hd.K1.tolist(),
+                "D1": [0, 0, 0, 0],
+                "K2": zed_hd.K2.tolist(),
+                "D2": [0, 0, 0, 0],
+                "R": np.eye(3).tolist(),
+                "T": [-0.1, 0, 0],
+            }
+        )
+    )
     with pytest.raises(CalibrationError, match="image_width"):
         from_opencv_file(path)
 
 
 def test_opencv_file_in_millimetres_is_rejected(zed_hd: StereoCalibration, tmp_path: Path) -> None:
     path = tmp_path / "mm.json"
-    path.write_text(json.dumps({"K1": zed_hd.K1.tolist(), "D1": [0] * 5, "K2": zed_hd.K2.tolist(), "D2": [0] * 5,
-                                "R": np.eye(3).tolist(), "T": [-63.0, 0, 0], "image_width": 1280,
-                                "image_height": 720}))
+    path.write_text(
+        json.dumps(
+            {
+                "K1": zed_hd.K1.tolist(),
+                "D1": [0] * 5,
+                "K2": zed_hd.K2.tolist(),
+                "D2": [0] * 5,
+                "R": np.eye(3).tolist(),
+                "T": [-63.0, 0, 0],
+                "image_width": 1280,
+                "image_height": 720,
+            }
+        )
+    )
     with pytest.raises(CalibrationError, match=r"T: .*metres"):
         from_opencv_file(path)
 
 
 def test_opencv_file_missing_key_and_bad_shape(zed_hd: StereoCalibration, tmp_path: Path) -> None:
-    good = {"K1": zed_hd.K1.tolist(), "D1": [0] * 5, "K2": zed_hd.K2.tolist(), "D2": [0] * 5,
-            "R": np.eye(3).tolist(), "T": [-0.06, 0, 0], "image_width": 1280, "image_height": 720}
+    good = {
+        "K1": zed_hd.K1.tolist(),
+        "D1": [0] * 5,
+        "K2": zed_hd.K2.tolist(),
+        "D2": [0] * 5,
+        "R": np.eye(3).tolist(),
+        "T": [-0.06, 0, 0],
+        "image_width": 1280,
+        "image_height": 720,
+    }
     missing = tmp_path / "missing.json"
     missing.write_text(json.dumps({k: v for k, v in good.items() if k != "D2"}))
     with pytest.raises(CalibrationError, match=r"D2: key is missing"):
@@ -181,13 +239,18 @@ def test_opencv_file_missing_key_and_bad_shape(zed_hd: StereoCalibration, tmp_pa
     with pytest.raises(CalibrationError, match=r"K2: holds 2 numbers .*9 numbers"):
         from_opencv_file(wrong)
     infinite = tmp_path / "inf.yaml"
-    infinite.write_text("%YAML:1.0\n---\n" + "\n".join(
-        f"{k}: {json.dumps(v)}" for k, v in {**good, "D1": [0, 0, 0, 0, 1e999]}.items()).replace("Infinity", ".Inf"))
+    infinite.write_text(
+        "%YAML:1.0\n---\n"
+        + "\n".join(f"{k}: {json.dumps(v)}" for k, v in {**good, "D1": [0, 0, 0, 0, 1e999]}.items()).replace(
+            "Infinity", ".Inf"
+        )
+    )
     with pytest.raises(CalibrationError, match=r"D1: .*non-finite"):
         from_opencv_file(infinite)
 
 
 # ---------------------------------------------------------------- depthai calibration JSON
+
 
 @pytest.fixture(scope="module")
 def oak_handler():
@@ -269,22 +332,41 @@ def test_depthai_json_errors_name_socket_and_key(oak_json: Path, tmp_path: Path)
         from_depthai_json(oak_json, "CAM_Q")
 
 
-@pytest.mark.parametrize("edit, key, expected", [
-    (lambda d: d["cameraData"][0].__setitem__(0, "left"), r"cameraData\[0\]\[0\]", "socket number"),
-    (lambda d: d["cameraData"][1][1].__setitem__("cameraType", "fisheye"), r"cameraData\[1\]\.cameraType",
-     r"0 \(perspective\)"),
-    (lambda d: d["cameraData"][1][1].__setitem__("distortionCoeff", ["k1"] * 14), r"cameraData\[1\]\.distortionCoeff",
-     "14 OpenCV distortion"),
-    (lambda d: d["cameraData"][1][1]["extrinsics"].__setitem__("toCameraSocket", "C"),
-     r"cameraData\[1\]\.extrinsics\.toCameraSocket", "socket number"),
-    (lambda d: d["cameraData"][1][1]["extrinsics"].__setitem__("lengthUnit", "cm"),
-     r"cameraData\[1\]\.extrinsics\.lengthUnit", r"one of \[0, 1, 2, 3, 4\]"),
-    (lambda d: d["stereoRectificationData"].__setitem__("leftCameraSocket", "B"),
-     r"stereoRectificationData\.leftCameraSocket", "socket number"),
-    (lambda d: d["cameraData"][1][1].__setitem__("width", 0), r"cameraData\[1\]\.width/height", "positive"),
-])
-def test_depthai_json_with_wrongly_typed_fields_names_the_key(oak_json: Path, tmp_path: Path, edit, key: str,
-                                                              expected: str) -> None:
+@pytest.mark.parametrize(
+    "edit, key, expected",
+    [
+        (lambda d: d["cameraData"][0].__setitem__(0, "left"), r"cameraData\[0\]\[0\]", "socket number"),
+        (
+            lambda d: d["cameraData"][1][1].__setitem__("cameraType", "fisheye"),
+            r"cameraData\[1\]\.cameraType",
+            r"0 \(perspective\)",
+        ),
+        (
+            lambda d: d["cameraData"][1][1].__setitem__("distortionCoeff", ["k1"] * 14),
+            r"cameraData\[1\]\.distortionCoeff",
+            "14 OpenCV distortion",
+        ),
+        (
+            lambda d: d["cameraData"][1][1]["extrinsics"].__setitem__("toCameraSocket", "C"),
+            r"cameraData\[1\]\.extrinsics\.toCameraSocket",
+            "socket number",
+        ),
+        (
+            lambda d: d["cameraData"][1][1]["extrinsics"].__setitem__("lengthUnit", "cm"),
+            r"cameraData\[1\]\.extrinsics\.lengthUnit",
+            r"one of \[0, 1, 2, 3, 4\]",
+        ),
+        (
+            lambda d: d["stereoRectificationData"].__setitem__("leftCameraSocket", "B"),
+            r"stereoRectificationData\.leftCameraSocket",
+            "socket number",
+        ),
+        (lambda d: d["cameraData"][1][1].__setitem__("width", 0), r"cameraData\[1\]\.width/height", "positive"),
+    ],
+)
+def test_depthai_json_with_wrongly_typed_fields_names_the_key(
+    oak_json: Path, tmp_path: Path, edit, key: str, expected: str
+) -> None:
     data = json.loads(oak_json.read_text())
     data["cameraData"].sort(key=lambda item: item[0])  # sockets 0 (A), 1 (B), 2 (C)
     edit(data)
@@ -296,8 +378,20 @@ def test_depthai_json_with_wrongly_typed_fields_names_the_key(oak_json: Path, tm
 
 def test_opencv_file_with_text_where_a_matrix_belongs_names_the_key(zed_hd: StereoCalibration, tmp_path: Path) -> None:
     path = tmp_path / "text.json"
-    path.write_text(json.dumps({"K1": "see datasheet", "D1": [0] * 5, "K2": zed_hd.K2.tolist(), "D2": [0] * 5,
-                                "R": {"yaw": 0}, "T": [-0.06, 0, 0], "image_width": 1280, "image_height": 720}))
+    path.write_text(
+        json.dumps(
+            {
+                "K1": "see datasheet",
+                "D1": [0] * 5,
+                "K2": zed_hd.K2.tolist(),
+                "D2": [0] * 5,
+                "R": {"yaw": 0},
+                "T": [-0.06, 0, 0],
+                "image_width": 1280,
+                "image_height": 720,
+            }
+        )
+    )
     with pytest.raises(CalibrationError, match=r"text\.json: K1: is not a matrix or a list of numbers \(expected 9"):
         from_opencv_file(path)
     path.write_text(path.read_text().replace('"see datasheet"', json.dumps(zed_hd.K1.tolist())))
@@ -306,6 +400,7 @@ def test_opencv_file_with_text_where_a_matrix_belongs_names_the_key(zed_hd: Ster
 
 
 # ---------------------------------------------------------------- KITTI and rectified-only
+
 
 def test_kitti_real_file_gives_p_rect_focal_and_baseline(kitti_file: Path) -> None:
     calib = from_kitti(kitti_file)
@@ -342,8 +437,10 @@ def test_calibration_rejects_non_rotation_and_bad_distortion() -> None:
 
 # ---------------------------------------------------------------- dispatch on content
 
-def test_load_calibration_dispatches_on_content(zed_dir: Path, kitti_file: Path, zed_hd: StereoCalibration,
-                                                tmp_path: Path) -> None:
+
+def test_load_calibration_dispatches_on_content(
+    zed_dir: Path, kitti_file: Path, zed_hd: StereoCalibration, tmp_path: Path
+) -> None:
     renamed = tmp_path / "factory.txt"
     renamed.write_bytes((zed_dir / "SN14966.conf").read_bytes())
     assert detect_format(renamed) == "zed"

@@ -1,4 +1,5 @@
 """`branchrange record`: a replay recorded again through the command gives back the same pairs."""
+
 from __future__ import annotations
 
 import json
@@ -25,8 +26,15 @@ def source_recording(tmp_path: Path) -> Path:
     rng = np.random.default_rng(5)
     k = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
     calibration = StereoCalibration(k, np.zeros(5), k, np.zeros(5), np.eye(3), np.array([-0.063, 0, 0]), (32, 24))
-    frames = [StereoFrame(rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
-                          rng.integers(0, 256, (24, 32, 3), dtype=np.uint8), 10_000 + 1000 * i, i) for i in range(5)]
+    frames = [
+        StereoFrame(
+            rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
+            rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
+            10_000 + 1000 * i,
+            i,
+        )
+        for i in range(5)
+    ]
     with Recorder(tmp_path / "original", calibration=calibration) as recorder:
         record(iter(frames), recorder)
     return tmp_path / "original"
@@ -36,8 +44,9 @@ def test_record_command_is_registered() -> None:
     assert "branchrange.commands.record" in COMMAND_MODULES
 
 
-def test_record_command_copies_frames_and_calibration(source_recording: Path, tmp_path: Path,
-                                                      capsys: pytest.CaptureFixture[str]) -> None:
+def test_record_command_copies_frames_and_calibration(
+    source_recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "copy"
     assert _run(["record", "--source", f"replay:{source_recording}", "--out", str(out), "--frames", "3"]) == 0
     assert "recorded 3 pairs" in capsys.readouterr().out
@@ -53,8 +62,9 @@ def test_record_command_copies_frames_and_calibration(source_recording: Path, tm
     assert manifest["source"] == f"replay:{source_recording}" and manifest["complete"] is True
 
 
-def test_record_command_skips_corrupt_frames(source_recording: Path, tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_record_command_skips_corrupt_frames(
+    source_recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     (source_recording / "left" / "000001.png").write_bytes(b"garbage")
     out = tmp_path / "copy"
     assert _run(["record", "--source", f"replay:{source_recording}", "--out", str(out)]) == 0
@@ -64,8 +74,9 @@ def test_record_command_skips_corrupt_frames(source_recording: Path, tmp_path: P
     assert [f.timestamp_ns for f in ReplaySource(out, pace="fast")] == [10_000, 12_000, 13_000, 14_000]
 
 
-def test_record_command_rejects_bad_source_and_existing_output(source_recording: Path, tmp_path: Path,
-                                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_record_command_rejects_bad_source_and_existing_output(
+    source_recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert _run(["record", "--source", "webcam:0", "--out", str(tmp_path / "x")]) == 2
     assert "expected zed" in capsys.readouterr().err
     assert _run(["record", "--source", f"replay:{tmp_path / 'missing'}", "--out", str(tmp_path / "y")]) == 2
@@ -74,8 +85,9 @@ def test_record_command_rejects_bad_source_and_existing_output(source_recording:
     assert "--overwrite" in capsys.readouterr().err
 
 
-def test_record_command_stops_on_an_error_and_keeps_what_it_wrote(source_recording: Path, tmp_path: Path,
-                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+def test_record_command_stops_on_an_error_and_keeps_what_it_wrote(
+    source_recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert cv2.imwrite(str(source_recording / "left" / "000003.png"), np.zeros((12, 16, 3), np.uint8))
     out = tmp_path / "copy"
     assert _run(["record", "--source", f"replay:{source_recording}", "--out", str(out)]) == 1
@@ -87,8 +99,9 @@ def test_record_command_stops_on_an_error_and_keeps_what_it_wrote(source_recordi
     assert json.loads((out / "recording.json").read_text())["complete"] is True
 
 
-def test_record_command_rejects_a_file_as_output(source_recording: Path, tmp_path: Path,
-                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_record_command_rejects_a_file_as_output(
+    source_recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     target = tmp_path / "a_file"
     target.write_text("not a directory")
     assert _run(["record", "--source", f"replay:{source_recording}", "--out", str(target), "--overwrite"]) == 2

@@ -1,4 +1,5 @@
 """Rectification: sign conventions, and the truth test on a scene rendered through a distorted, rotated rig."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,6 +16,7 @@ WIDTH, HEIGHT = 640, 400
 
 
 # ---------------------------------------------------------------- a scene rendered through a known rig
+
 
 def _rig() -> StereoCalibration:
     """A ZED-Mini-like rig with real-looking distortion, a small rotation and a slightly skewed baseline."""
@@ -42,8 +44,9 @@ TEXTURE_SIZE_M = 3.0
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)
 
 
-def _undistort(points: np.ndarray, k: np.ndarray, d: np.ndarray, r: np.ndarray | None = None,
-               p: np.ndarray | None = None) -> np.ndarray:
+def _undistort(
+    points: np.ndarray, k: np.ndarray, d: np.ndarray, r: np.ndarray | None = None, p: np.ndarray | None = None
+) -> np.ndarray:
     """Raw pixel positions (N, 2) → normalised rays, or rectified pixels when r and p are given (N, 2)."""
     kwargs = {} if r is None else {"R": r, "P": p}
     return cv2.undistortPoints(points.reshape(-1, 1, 2), k, d, criteria=CRITERIA, **kwargs).reshape(-1, 2)
@@ -72,7 +75,7 @@ def _render(calib: StereoCalibration, right: bool, texture: np.ndarray) -> np.nd
     map_y = ((plane_v + TEXTURE_SIZE_M / 2) * scale).astype(np.float32).reshape(HEIGHT, WIDTH)
     grey = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR).ravel()
     for du, dv in DOTS_UV:  # markers: a white sticker with a dark Gaussian dot, on the textured plane
-        r2 = ((plane_u - du) ** 2 + (plane_v - dv) ** 2) / DOT_SIGMA_M ** 2
+        r2 = ((plane_u - du) ** 2 + (plane_v - dv) ** 2) / DOT_SIGMA_M**2
         sticker = np.clip(5.0 - np.sqrt(r2), 0.0, 1.0)
         grey = grey * (1.0 - sticker) + 200.0 * sticker - 150.0 * np.exp(-r2 / 2)
     image = np.clip(grey, 0, 255).reshape(HEIGHT, WIDTH).astype(np.uint8)
@@ -86,9 +89,9 @@ def _dot_world_points() -> np.ndarray:
 def _centroid(image: np.ndarray, guess: np.ndarray, radius: int = 9) -> np.ndarray:
     """Sub-pixel centre of the dark dot near `guess` (x, y): darkness-weighted mean over a window."""
     x0, y0 = int(round(guess[0])), int(round(guess[1]))
-    window = image[y0 - radius:y0 + radius + 1, x0 - radius:x0 + radius + 1, 0].astype(np.float64)
+    window = image[y0 - radius : y0 + radius + 1, x0 - radius : x0 + radius + 1, 0].astype(np.float64)
     weight = np.clip(110.0 - window, 0, None)  # only the dot: sticker 200, texture 150 ± 14, dot centre 50
-    ys, xs = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    ys, xs = np.mgrid[-radius : radius + 1, -radius : radius + 1]
     return np.array([x0 + (weight * xs).sum() / weight.sum(), y0 + (weight * ys).sum() / weight.sum()])
 
 
@@ -116,12 +119,19 @@ def test_rectified_rig_puts_points_on_one_row_and_gives_true_depth(rendered) -> 
         disparity = found_left[0] - found_right[0]
         depth_true = (rectifier.R1 @ point)[2]
         vertical.append(abs(found_left[1] - found_right[1]))
-        depth_error.append(abs(float(depth_from_disparity(disparity, rectifier.focal_px, rectifier.baseline_m)) - depth_true) / depth_true)
+        depth_error.append(
+            abs(float(depth_from_disparity(disparity, rectifier.focal_px, rectifier.baseline_m)) - depth_true)
+            / depth_true
+        )
         disparities.append(disparity)
     # the raw images really are misaligned: without rectification rows differ by pixels
-    raw_rows = [abs(_centroid(raw_left, g)[1] - _centroid(raw_right, h)[1]) for g, h in zip(
-        cv2.projectPoints(points, np.zeros(3), np.zeros(3), calib.K1, calib.D1)[0].reshape(-1, 2),
-        cv2.projectPoints(points, cv2.Rodrigues(calib.R)[0], calib.T, calib.K2, calib.D2)[0].reshape(-1, 2))]
+    raw_rows = [
+        abs(_centroid(raw_left, g)[1] - _centroid(raw_right, h)[1])
+        for g, h in zip(
+            cv2.projectPoints(points, np.zeros(3), np.zeros(3), calib.K1, calib.D1)[0].reshape(-1, 2),
+            cv2.projectPoints(points, cv2.Rodrigues(calib.R)[0], calib.T, calib.K2, calib.D2)[0].reshape(-1, 2),
+        )
+    ]
     assert max(raw_rows) > 5.0
     assert max(vertical) < 0.5, vertical
     assert max(depth_error) < 0.01, depth_error
@@ -180,9 +190,18 @@ def test_zed_rectification_is_stereolabs_samples_with_opencvs_sign_of_t(shared_d
     stereo = parse_ini(path.read_bytes().decode("utf-8-sig"), path)["STEREO"]
     vector = np.array([float(stereo[f"{axis}_hd"]) for axis in ("rx", "cv", "rz")])
     t_mm = np.array([float(stereo["baseline"]), float(stereo.get("ty_hd", 0.0)), float(stereo.get("tz_hd", 0.0))])
-    r1, r2, p1, p2, _, _, _ = cv2.stereoRectify(calib.K1, calib.D1, calib.K2, calib.D2, (1280, 720),
-                                                cv2.Rodrigues(vector)[0], t_mm.reshape(3, 1),
-                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0, newImageSize=(1280, 720))
+    r1, r2, p1, p2, _, _, _ = cv2.stereoRectify(
+        calib.K1,
+        calib.D1,
+        calib.K2,
+        calib.D2,
+        (1280, 720),
+        cv2.Rodrigues(vector)[0],
+        t_mm.reshape(3, 1),
+        flags=cv2.CALIB_ZERO_DISPARITY,
+        alpha=0.0,
+        newImageSize=(1280, 720),
+    )
     ours = Rectifier(calib)
     np.testing.assert_allclose(ours.R1, r1, atol=1e-12)
     np.testing.assert_allclose(ours.R2, r2, atol=1e-12)
@@ -215,8 +234,17 @@ def test_rectified_calibration_passes_pixels_through(shared_data: Path) -> None:
 def test_rectified_q_matches_opencv_for_a_distortion_free_rig() -> None:
     calib = from_rectified(500.0, 320.0, 240.0, 0.1, (640, 480))
     ours = Rectifier(calib)
-    *_, p2, q, _, _ = cv2.stereoRectify(calib.K1, calib.D1, calib.K2, calib.D2, (640, 480), calib.R,
-                                        calib.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1)
+    *_, p2, q, _, _ = cv2.stereoRectify(
+        calib.K1,
+        calib.D1,
+        calib.K2,
+        calib.D2,
+        (640, 480),
+        calib.R,
+        calib.T.reshape(3, 1),
+        flags=cv2.CALIB_ZERO_DISPARITY,
+        alpha=-1,
+    )
     np.testing.assert_allclose(ours.P2, p2, atol=1e-9)
     np.testing.assert_allclose(ours.Q, q, atol=1e-9)
 

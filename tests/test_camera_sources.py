@@ -1,4 +1,5 @@
 """Frame sources: recording and replay, fault injection, latest-frame-wins, ZED over UVC with a file-fed capture."""
+
 from __future__ import annotations
 
 import json
@@ -10,9 +11,24 @@ import numpy as np
 import pytest
 
 from camera import CalibrationError, StereoCalibration, from_zed_conf, load_calibration
-from camera.sources import (Backoff, CorruptFrameError, FaultInjectingSource, FaultPlan, LatestFrameSource, Recorder,
-                            RecordingFormatError, ReplaySource, SourceConfigError, SourceDisconnected,
-                            SourceUnavailable, StereoFrame, StereoSource, ZedUvcSource, open_source, record)
+from camera.sources import (
+    Backoff,
+    CorruptFrameError,
+    FaultInjectingSource,
+    FaultPlan,
+    LatestFrameSource,
+    Recorder,
+    RecordingFormatError,
+    ReplaySource,
+    SourceConfigError,
+    SourceDisconnected,
+    SourceUnavailable,
+    StereoFrame,
+    StereoSource,
+    ZedUvcSource,
+    open_source,
+    record,
+)
 from camera.sources.spec import parse_zed_spec
 
 SIZE = (64, 48)
@@ -24,16 +40,23 @@ def make_frames(count: int, size: tuple[int, int] = SIZE, seed: int = 0) -> list
     """Distinct random RGB pairs with timestamps PERIOD_NS apart."""
     rng = np.random.default_rng(seed)
     width, height = size
-    return [StereoFrame(rng.integers(0, 256, (height, width, 3), dtype=np.uint8),
-                        rng.integers(0, 256, (height, width, 3), dtype=np.uint8), T0 + i * PERIOD_NS, i)
-            for i in range(count)]
+    return [
+        StereoFrame(
+            rng.integers(0, 256, (height, width, 3), dtype=np.uint8),
+            rng.integers(0, 256, (height, width, 3), dtype=np.uint8),
+            T0 + i * PERIOD_NS,
+            i,
+        )
+        for i in range(count)
+    ]
 
 
 @pytest.fixture
 def calibration() -> StereoCalibration:
     k = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
-    return StereoCalibration(k, np.array([-0.1, 0.01, 0, 0, 0]), k, np.zeros(5), np.eye(3),
-                             np.array([-0.063, 0, 0]), SIZE)
+    return StereoCalibration(
+        k, np.array([-0.1, 0.01, 0, 0, 0]), k, np.zeros(5), np.eye(3), np.array([-0.063, 0, 0]), SIZE
+    )
 
 
 @pytest.fixture
@@ -55,8 +78,10 @@ def _same(a: StereoFrame, b: StereoFrame) -> bool:
 
 # ---------------------------------------------------------------- record → replay
 
-def test_record_then_replay_gives_back_the_same_frames(recording: Path, frames: list[StereoFrame],
-                                                       calibration: StereoCalibration) -> None:
+
+def test_record_then_replay_gives_back_the_same_frames(
+    recording: Path, frames: list[StereoFrame], calibration: StereoCalibration
+) -> None:
     with ReplaySource(recording, pace="fast") as source:
         assert isinstance(source, StereoSource)
         replayed = list(source)
@@ -104,8 +129,10 @@ def test_interrupted_recording_still_replays(tmp_path: Path, frames: list[Stereo
 
 
 def test_interrupted_recording_keeps_its_size_and_masks(tmp_path: Path, frames: list[StereoFrame]) -> None:
-    masked = [StereoFrame(f.left, f.right, f.timestamp_ns, f.index, np.full((SIZE[1], SIZE[0]), i + 1, np.uint16))
-              for i, f in enumerate(frames[:3])]
+    masked = [
+        StereoFrame(f.left, f.right, f.timestamp_ns, f.index, np.full((SIZE[1], SIZE[0]), i + 1, np.uint16))
+        for i, f in enumerate(frames[:3])
+    ]
     recorder = Recorder(tmp_path / "cut")
     for frame in masked:
         recorder.write(frame)
@@ -119,8 +146,9 @@ def test_interrupted_recording_keeps_its_size_and_masks(tmp_path: Path, frames: 
     recorder.close()
 
 
-def test_replay_starts_at_a_frame_and_loops_with_growing_index_and_time(recording: Path,
-                                                                        frames: list[StereoFrame]) -> None:
+def test_replay_starts_at_a_frame_and_loops_with_growing_index_and_time(
+    recording: Path, frames: list[StereoFrame]
+) -> None:
     source = ReplaySource(recording, pace="fast", loop=True, start=4)
     got = [next(source) for _ in range(6)]
     source.close()
@@ -157,8 +185,9 @@ def test_corrupt_image_raises_for_that_frame_and_replay_goes_on(recording: Path)
 def test_replay_of_bad_directories_names_the_file(tmp_path: Path, recording: Path) -> None:
     with pytest.raises(SourceUnavailable, match="no such recording"):
         ReplaySource(tmp_path / "nowhere")
-    (recording / "timestamps.csv").write_text("index,timestamp_ns,left,right\n0,5,left/a.png,right/a.png\n"
-                                              "1,5,left/b.png,right/b.png\n")
+    (recording / "timestamps.csv").write_text(
+        "index,timestamp_ns,left,right\n0,5,left/a.png,right/a.png\n1,5,left/b.png,right/b.png\n"
+    )
     with pytest.raises(RecordingFormatError, match=r"timestamps\.csv: line 3: timestamp_ns 5 does not increase"):
         ReplaySource(recording)
     (recording / "recording.json").unlink()
@@ -168,8 +197,9 @@ def test_replay_of_bad_directories_names_the_file(tmp_path: Path, recording: Pat
         ReplaySource(recording, pace="slow")
 
 
-def test_side_by_side_video_replays_losslessly(tmp_path: Path, frames: list[StereoFrame],
-                                               calibration: StereoCalibration) -> None:
+def test_side_by_side_video_replays_losslessly(
+    tmp_path: Path, frames: list[StereoFrame], calibration: StereoCalibration
+) -> None:
     path = tmp_path / "sbs.avi"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 25.0, (2 * SIZE[0], SIZE[1]))
     assert writer.isOpened(), "OpenCV's FFmpeg backend cannot write FFV1 here"
@@ -186,6 +216,7 @@ def test_side_by_side_video_replays_losslessly(tmp_path: Path, frames: list[Ster
 
 
 # ---------------------------------------------------------------- faults
+
 
 class FakeTime:
     """A clock that only moves when something sleeps on it; records every sleep."""
@@ -244,6 +275,7 @@ def test_fault_injector_disconnect_raises_until_the_outage_ends(recording: Path)
 
 # ---------------------------------------------------------------- latest frame wins
 
+
 def test_latest_frame_source_hands_out_only_the_newest(recording: Path) -> None:
     inner = ReplaySource(recording, pace="fast")
     latest = LatestFrameSource(inner)
@@ -281,14 +313,16 @@ def test_latest_frame_source_times_out_with_none(recording: Path) -> None:
 
 # ---------------------------------------------------------------- ZED Mini over UVC (file-fed capture)
 
+
 class FileCapture:
     """A stand-in for cv2.VideoCapture of a ZED: serves side-by-side BGR frames made from a recording's files.
 
     `fail_after` reads succeed, then every read fails (a pulled cable) until the capture is reopened.
     """
 
-    def __init__(self, frames: list[np.ndarray], opened: bool, fail_after: int | None,
-                 native_size: tuple[int, int] | None = None) -> None:
+    def __init__(
+        self, frames: list[np.ndarray], opened: bool, fail_after: int | None, native_size: tuple[int, int] | None = None
+    ) -> None:
         self.frames, self.opened, self.fail_after = frames, opened, fail_after
         self.native_size = native_size
         self.props: dict[int, float] = {}
@@ -340,8 +374,10 @@ def vga_frames(tmp_path: Path) -> tuple[list[StereoFrame], list[np.ndarray]]:
     pairs = make_frames(3, size=(672, 376), seed=3)
     with Recorder(tmp_path / "zed") as recorder:
         record(iter(pairs), recorder)
-    side_by_side = [np.hstack([cv2.imread(str(tmp_path / "zed" / side / f"{i:06d}.png")) for side in ("left", "right")])
-                    for i in range(3)]
+    side_by_side = [
+        np.hstack([cv2.imread(str(tmp_path / "zed" / side / f"{i:06d}.png")) for side in ("left", "right")])
+        for i in range(3)
+    ]
     return pairs, side_by_side
 
 
@@ -401,18 +437,32 @@ def test_zed_uvc_rejects_bad_mode_fps_calibration_device_and_foreign_camera(vga_
         ZedUvcSource(0, "HD1080", 60, capture_factory=CaptureFactory(images, []))
     with pytest.raises(SourceUnavailable, match="cannot be opened"):
         ZedUvcSource(2, "VGA", capture_factory=CaptureFactory(images, [(False, None)]))
-    with pytest.raises(CalibrationError, match=r"image_size: is 1280×720 px \(expected 672×376 px, one eye in mode VGA"):
-        ZedUvcSource(0, "VGA", calibration=from_zed_conf(shared_data / "calibration" / "zed" / "SN1010.conf", "HD"),
-                     capture_factory=CaptureFactory(images, []))
+    with pytest.raises(
+        CalibrationError, match=r"image_size: is 1280×720 px \(expected 672×376 px, one eye in mode VGA"
+    ):
+        ZedUvcSource(
+            0,
+            "VGA",
+            calibration=from_zed_conf(shared_data / "calibration" / "zed" / "SN1010.conf", "HD"),
+            capture_factory=CaptureFactory(images, []),
+        )
     with pytest.raises(SourceConfigError, match=r"delivers 640×480 instead of mode VGA \(1344×376\)"):
         ZedUvcSource(0, "VGA", capture_factory=CaptureFactory(images, [(True, None)], native_size=(640, 480)))
 
 
 # ---------------------------------------------------------------- specs
 
-@pytest.mark.parametrize("rest, expected", [("0", (0, "HD720")), ("1:VGA", (1, "VGA")),
-                                            ("/dev/video0", ("/dev/video0", "HD720")),
-                                            ("/dev/video0:hd1080", ("/dev/video0", "HD1080")), ("", (0, "HD720"))])
+
+@pytest.mark.parametrize(
+    "rest, expected",
+    [
+        ("0", (0, "HD720")),
+        ("1:VGA", (1, "VGA")),
+        ("/dev/video0", ("/dev/video0", "HD720")),
+        ("/dev/video0:hd1080", ("/dev/video0", "HD1080")),
+        ("", (0, "HD720")),
+    ],
+)
 def test_zed_spec_parses_device_and_mode(rest: str, expected: tuple[int | str, str]) -> None:
     assert parse_zed_spec(rest) == expected
 
@@ -426,8 +476,9 @@ def test_zed_spec_with_an_unknown_mode_names_the_modes() -> None:
     assert parse_zed_spec(by_path + ":vga") == (by_path, "VGA")
 
 
-def test_replay_with_a_zed_conf_reads_it_at_the_recording_resolution(vga_frames, tmp_path: Path,
-                                                                       shared_data: Path) -> None:
+def test_replay_with_a_zed_conf_reads_it_at_the_recording_resolution(
+    vga_frames, tmp_path: Path, shared_data: Path
+) -> None:
     conf = shared_data / "calibration" / "zed" / "SN1010.conf"
     with open_source(f"replay:{tmp_path / 'zed'}", calibration=conf, pace="fast") as source:
         assert source.frame_size == (672, 376)
@@ -454,8 +505,13 @@ def test_open_source_replay_and_bad_specs(recording: Path, calibration: StereoCa
         assert len(list(source)) == 6
     other = tmp_path / "other.yaml"
     from camera import write_opencv_file
-    write_opencv_file(StereoCalibration(calibration.K1, calibration.D1, calibration.K2, calibration.D2, calibration.R,
-                                        np.array([-0.12, 0, 0]), SIZE), other)
+
+    write_opencv_file(
+        StereoCalibration(
+            calibration.K1, calibration.D1, calibration.K2, calibration.D2, calibration.R, np.array([-0.12, 0, 0]), SIZE
+        ),
+        other,
+    )
     with open_source(f"replay:{recording}", calibration=other, pace="fast") as source:
         assert source.calibration == load_calibration(other)
     with open_source(f"replay:{recording}", pace="recorded", latest=True) as source:

@@ -1,5 +1,6 @@
 """Damaged or hostile checkpoints: bad `config`, NaN/Inf and bit-flipped weights, float64 tensors,
 garbage for `--resume`; and the wiring settings each checkpoint source implies."""
+
 from __future__ import annotations
 
 import pytest
@@ -25,14 +26,17 @@ def write_ours(path, state, config) -> str:
 VARIANT = {"ema": False, "msf": False, "coord": False, "max_disp": 16}
 
 
-@pytest.mark.parametrize(("config", "message"), [
-    ({**VARIANT, "dropout": 0.1}, r"unknown model setting\(s\) 'dropout'"),
-    ({**VARIANT, "max_disp": "lots"}, r"max_disp must be a positive multiple of 16 up to 1024, got 'lots'"),
-    ({**VARIANT, "max_disp": 10**12}, r"max_disp must be .* got 1000000000000"),
-    ({**VARIANT, "ema": "yes"}, r"ema must be true or false, got 'yes'"),
-    ({**VARIANT, "hourglass_wiring": "pre3"}, r"hourglass_wiring must be one of psmnet, openstereo"),
-    ([1, 2], r"`config` is a list"),
-])
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ({**VARIANT, "dropout": 0.1}, r"unknown model setting\(s\) 'dropout'"),
+        ({**VARIANT, "max_disp": "lots"}, r"max_disp must be a positive multiple of 16 up to 1024, got 'lots'"),
+        ({**VARIANT, "max_disp": 10**12}, r"max_disp must be .* got 1000000000000"),
+        ({**VARIANT, "ema": "yes"}, r"ema must be true or false, got 'yes'"),
+        ({**VARIANT, "hourglass_wiring": "pre3"}, r"hourglass_wiring must be one of psmnet, openstereo"),
+        ([1, 2], r"`config` is a list"),
+    ],
+)
 def test_bad_config_in_our_checkpoint_is_refused_naming_the_key(tmp_path, small_state, capsys, config, message):
     path = write_ours(tmp_path / "bad.pth", small_state, config)
     with pytest.raises(CheckpointError, match=message):
@@ -42,8 +46,9 @@ def test_bad_config_in_our_checkpoint_is_refused_naming_the_key(tmp_path, small_
     assert err.startswith("emcstereo export: error: ") and "bad.pth" in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize(("value", "what"), [(float("nan"), "NaN/Inf"), (float("inf"), "NaN/Inf"),
-                                              (3.4e38, "above the plausible")])
+@pytest.mark.parametrize(
+    ("value", "what"), [(float("nan"), "NaN/Inf"), (float("inf"), "NaN/Inf"), (3.4e38, "above the plausible")]
+)
 def test_non_finite_and_bit_flipped_weights_are_refused_naming_the_tensor(tmp_path, small_state, value, what):
     state = {k: v.clone() for k, v in small_state.items()}
     state["aggregation.dres2.conv3.0.weight"].view(-1)[7] = value
@@ -58,8 +63,9 @@ def test_float64_weights_load_as_float32_with_a_warning_naming_them(tmp_path, sm
     with pytest.warns(UserWarning, match=r"cast to float32, e\.g\. backbone\.firstconv\.0\.0\.weight \(float64\)"):
         model = load_model(path)
     assert all(p.dtype == torch.float32 for p in model.parameters())
-    torch.testing.assert_close(model.state_dict()["aggregation.classif3.1.weight"],
-                               small_state["aggregation.classif3.1.weight"])
+    torch.testing.assert_close(
+        model.state_dict()["aggregation.classif3.1.weight"], small_state["aggregation.classif3.1.weight"]
+    )
 
 
 def test_wiring_follows_the_source_is_stored_in_ours_and_can_be_overridden(tmp_path, small_state):

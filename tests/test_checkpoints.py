@@ -1,4 +1,5 @@
 """Checkpoint loading: the authors' release layout, PSMNet's, ours; strictness and bad files."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -43,11 +44,19 @@ def authors_checkpoint(tmp_path, reference_docs) -> tuple[Path, dict[str, torch.
 def test_authors_release_layout_loads_every_tensor(authors_checkpoint):
     path, state = authors_checkpoint
     model = load_model(path)
-    assert model.config.to_dict() == {"ema": True, "msf": True, "coord": True, "max_disp": 192,
-                                      "hourglass_wiring": "openstereo", "align_corners": True}
+    assert model.config.to_dict() == {
+        "ema": True,
+        "msf": True,
+        "coord": True,
+        "max_disp": 192,
+        "hourglass_wiring": "openstereo",
+        "align_corners": True,
+    }
     ours = model.state_dict()
     torch.testing.assert_close(ours["backbone.ema.conv3x3.weight"], state["Backbone.ema.conv3x3.weight"])
-    torch.testing.assert_close(ours["aggregation.classif3.1.weight"], state["CostProcessor.aggregator.classif3.1.weight"])
+    torch.testing.assert_close(
+        ours["aggregation.classif3.1.weight"], state["CostProcessor.aggregator.classif3.1.weight"]
+    )
     assert not model.training
 
 
@@ -75,8 +84,9 @@ def test_psmnet_checkpoint_loads_into_no_attention_variant(tmp_path, reference_d
     assert float(ours["backbone.layer3.0.downsample.0.bias"].abs().sum()) == 0.0
     torch.testing.assert_close(ours["regression.weight"].flatten(), torch.arange(192, dtype=torch.float32))
     torch.testing.assert_close(ours["backbone.firstconv.2.0.weight"], state["feature_extraction.firstconv.4.0.weight"])
-    torch.testing.assert_close(ours["backbone.layer2.5.conv1.1.running_var"],
-                               state["feature_extraction.layer2.5.conv1.0.1.running_var"])
+    torch.testing.assert_close(
+        ours["backbone.layer2.5.conv1.1.running_var"], state["feature_extraction.layer2.5.conv1.0.1.running_var"]
+    )
     torch.testing.assert_close(ours["aggregation.dres4.conv3.0.weight"], state["dres4.conv3.0.0.weight"])
     torch.testing.assert_close(ours["aggregation.classif2.1.weight"], state["classif2.2.weight"])
     torch.testing.assert_close(ours["backbone.lastconv.1.weight"], state["feature_extraction.lastconv.2.weight"])

@@ -1,4 +1,5 @@
 """`branchrange estimate`, `demo` and `evaluate-cuts` run end to end on synthetic files."""
+
 from __future__ import annotations
 
 import json
@@ -7,16 +8,16 @@ import cv2
 import jsonschema
 import numpy as np
 import pytest
+from result_factory import branch
 
 from branchrange.cli import main
-from branchrange.offline.evaluate_cuts import CutScores, evaluate_cuts
 from branchrange.core.frame_result import SCHEMA_PATH
+from branchrange.offline.evaluate_cuts import CutScores, evaluate_cuts
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
 from stereo.io import write_rgb
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.writer import write_dataset, write_mask
-from result_factory import branch
 
 SCHEMA = json.loads(SCHEMA_PATH.read_text(encoding="utf-8"))
 
@@ -34,23 +35,44 @@ def pair_files(tmp_path_factory):
 def test_estimate_with_focal_and_baseline_writes_json_and_overlay(pair_files, tmp_path, capsys):
     folder, scene = pair_files
     out_json, out_png = tmp_path / "r.json", tmp_path / "o.png"
-    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
-               "--focal-px", str(scene.camera.focal_px), "--baseline-m", str(scene.camera.baseline_m),
-               "--mask", str(folder / "mask.png"), "--max-disp", "128", "--json", str(out_json),
-               "--overlay", str(out_png)])
+    rc = main(
+        [
+            "estimate",
+            "--left",
+            str(folder / "left.png"),
+            "--right",
+            str(folder / "right.png"),
+            "--focal-px",
+            str(scene.camera.focal_px),
+            "--baseline-m",
+            str(scene.camera.baseline_m),
+            "--mask",
+            str(folder / "mask.png"),
+            "--max-disp",
+            "128",
+            "--json",
+            str(out_json),
+            "--overlay",
+            str(out_png),
+        ]
+    )
     assert rc == 0
     result = json.loads(out_json.read_text())
     jsonschema.validate(result, SCHEMA)
     assert result["stereo"]["backend"] == "sgbm" and result["masks"]["instances"] >= 5
-    near = [b for b in scene.branches if b.cut_visible
-            and any(np.linalg.norm(np.array(e["cut_point_m"]) - b.cut_point_m) < 0.05 for e in result["branches"])]
+    near = [
+        b
+        for b in scene.branches
+        if b.cut_visible
+        and any(np.linalg.norm(np.array(e["cut_point_m"]) - b.cut_point_m) < 0.05 for e in result["branches"])
+    ]
     assert len(near) >= 5
     overlay = cv2.imread(str(out_png))
     assert overlay.shape == (360, 640, 3)
     assert not np.array_equal(overlay[..., ::-1], scene.left)  # something was drawn
     target = next(b for b in result["branches"] if b["id"] == result["target_id"])
     u, v = (int(round(c)) for c in target["pixel"])
-    ring = overlay[max(v - 12, 0):v + 13, max(u - 12, 0):u + 13].reshape(-1, 3).astype(int)  # BGR
+    ring = overlay[max(v - 12, 0) : v + 13, max(u - 12, 0) : u + 13].reshape(-1, 3).astype(int)  # BGR
     assert np.any((ring[:, 2] > 200) & (ring[:, 1] < 80) & (ring[:, 0] < 80))  # the target's red ring
     assert "target" in capsys.readouterr().out
 
@@ -58,10 +80,25 @@ def test_estimate_with_focal_and_baseline_writes_json_and_overlay(pair_files, tm
 def test_estimate_with_a_calibration_file_prints_schema_json(pair_files, tmp_path, capsys):
     folder, scene = pair_files
     cam = scene.camera
-    calib = write_opencv_file(from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height)),
-                              tmp_path / "calib.yaml")
-    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
-               "--calib", str(calib), "--rectified", "--mask", str(folder / "mask.png"), "--max-disp", "128"])
+    calib = write_opencv_file(
+        from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height)), tmp_path / "calib.yaml"
+    )
+    rc = main(
+        [
+            "estimate",
+            "--left",
+            str(folder / "left.png"),
+            "--right",
+            str(folder / "right.png"),
+            "--calib",
+            str(calib),
+            "--rectified",
+            "--mask",
+            str(folder / "mask.png"),
+            "--max-disp",
+            "128",
+        ]
+    )
     assert rc == 0
     result = json.loads(capsys.readouterr().out)
     jsonschema.validate(result, SCHEMA)
@@ -72,31 +109,70 @@ def test_estimate_reports_bad_input_with_exit_status_2(pair_files, tmp_path, cap
     folder, scene = pair_files
     small = tmp_path / "small.png"
     write_rgb(small, scene.right[:, :600])
-    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(small),
-               "--focal-px", "320", "--baseline-m", "0.063"])
+    rc = main(
+        [
+            "estimate",
+            "--left",
+            str(folder / "left.png"),
+            "--right",
+            str(small),
+            "--focal-px",
+            "320",
+            "--baseline-m",
+            "0.063",
+        ]
+    )
     assert rc == 2
     assert "differ in size" in capsys.readouterr().err
     wrong = write_opencv_file(from_rectified(640.0, 639.5, 359.5, 0.063, (1280, 720)), tmp_path / "hd.yaml")
-    rc = main(["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
-               "--calib", str(wrong)])
+    rc = main(
+        ["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"), "--calib", str(wrong)]
+    )
     assert rc == 2
     assert "1280×720" in capsys.readouterr().err
-    rc = main(["estimate", "--left", str(tmp_path / "missing.png"), "--right", str(folder / "right.png"),
-               "--focal-px", "320", "--baseline-m", "0.063"])
+    rc = main(
+        [
+            "estimate",
+            "--left",
+            str(tmp_path / "missing.png"),
+            "--right",
+            str(folder / "right.png"),
+            "--focal-px",
+            "320",
+            "--baseline-m",
+            "0.063",
+        ]
+    )
     assert rc == 2 and "missing.png" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("case, message", [
-    ("mask_of_wrong_size", "must match the left image"),
-    ("empty_mask", "holds no branch instance"),
-    ("emcstereo_without_weights", "--backend emcstereo needs --weights"),
-    ("trunk_id_0", "trunk_id = 0"),
-    ("json_in_a_file_not_a_folder", "not_a_folder"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("mask_of_wrong_size", "must match the left image"),
+        ("empty_mask", "holds no branch instance"),
+        ("emcstereo_without_weights", "--backend emcstereo needs --weights"),
+        ("trunk_id_0", "trunk_id = 0"),
+        ("json_in_a_file_not_a_folder", "not_a_folder"),
+    ],
+)
 def test_estimate_names_each_bad_input_and_exits_2_without_a_traceback(case, message, pair_files, tmp_path, capsys):
     folder, scene = pair_files
-    args = ["estimate", "--left", str(folder / "left.png"), "--right", str(folder / "right.png"),
-            "--focal-px", "320", "--baseline-m", "0.063", "--max-disp", "64", "--mask", str(folder / "mask.png")]
+    args = [
+        "estimate",
+        "--left",
+        str(folder / "left.png"),
+        "--right",
+        str(folder / "right.png"),
+        "--focal-px",
+        "320",
+        "--baseline-m",
+        "0.063",
+        "--max-disp",
+        "64",
+        "--mask",
+        str(folder / "mask.png"),
+    ]
     if case == "mask_of_wrong_size":
         write_mask(tmp_path / "small.png", scene.instance_mask[:100, :100])
         args[-1] = str(tmp_path / "small.png")
@@ -165,7 +241,9 @@ def test_evaluate_cuts_scores_a_target_far_from_every_truth_as_a_miss():
 
 
 def test_evaluate_cuts_command_prints_the_table(tiny_set, tmp_path, capsys):
-    rc = main(["evaluate-cuts", str(tiny_set), "--stereo", "gt", "sgbm", "--limit", "1", "--json", str(tmp_path / "s.json")])
+    rc = main(
+        ["evaluate-cuts", str(tiny_set), "--stereo", "gt", "sgbm", "--limit", "1", "--json", str(tmp_path / "s.json")]
+    )
     out = capsys.readouterr().out
     assert rc == 0
     for row in ("gt         gt", "gt         segmenter", "sgbm       gt", "sgbm       segmenter"):

@@ -1,5 +1,6 @@
 """First use of both commands: `--version`, a one-line description for every subcommand, and
 `emcstereo export` refusing to write random weights unless asked."""
+
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
 """The TOML configuration: defaults, the deploy/ examples, and errors that name the key."""
+
 from __future__ import annotations
 
 import configparser
@@ -22,33 +23,47 @@ def test_no_file_and_an_empty_file_give_the_defaults(tmp_path):
 
 def test_values_are_read_and_ints_are_accepted_for_floats(tmp_path):
     path = tmp_path / "c.toml"
-    path.write_text('[mavlink]\nurl = "/dev/ttyTHS1"\nbaud = 921600\nmax_result_age_s = 1\n'
-                    '[camera]\nmount_rpy_deg = [0, -20, 0]\nmount_xyz_m = [0.12, 0.0, 0.05]\n')
+    path.write_text(
+        '[mavlink]\nurl = "/dev/ttyTHS1"\nbaud = 921600\nmax_result_age_s = 1\n'
+        "[camera]\nmount_rpy_deg = [0, -20, 0]\nmount_xyz_m = [0.12, 0.0, 0.05]\n"
+    )
     cfg = load_config(path)
     assert cfg.mavlink.url == "/dev/ttyTHS1" and cfg.mavlink.max_result_age_s == 1.0
     assert isinstance(cfg.mavlink.max_result_age_s, float)
     assert cfg.camera.mount_rpy_deg == (0.0, -20.0, 0.0) and cfg.camera.mount_xyz_m == (0.12, 0.0, 0.05)
 
 
-@pytest.mark.parametrize("data, message", [
-    ({"mavlink": {"send_rate_hz": 1.0}}, r"mavlink\.send_rate_hz = 1\.0: expected at least 2 Hz"),
-    ({"mavlink": {"system_id": 0}}, r"mavlink\.system_id = 0"),
-    ({"mavlink": {"baud": "fast"}}, r"mavlink\.baud = 'fast': expected an integer"),
-    ({"mavlink": {"target_as_obstacle": 1}}, r"mavlink\.target_as_obstacle = 1: expected true or false"),
-    ({"camera": {"mount_rpy_deg": [0, 0]}}, r"camera\.mount_rpy_deg = \[0, 0\]: expected a list of 3 numbers"),
-    ({"camera": {"mount_xyz_m": [0, "x", 0]}}, r"camera\.mount_xyz_m\[1\] = 'x'"),
-    ({"stereo": {"backend": "raft"}}, r"stereo\.backend = 'raft': expected 'sgbm', 'emcstereo' or 'onnx'"),
-    ({"stereo": {"max_disp": 190}}, r"stereo\.max_disp = 190: expected a positive multiple of 16"),
-    ({"stereo": {"max_disp": 100, "backend": "emcstereo", "weights": "w.pth"}}, r"stereo\.max_disp = 100: expected a positive multiple of 16"),
-    ({"stereo": {"backend": "emcstereo"}}, r"stereo\.weights = '': expected a checkpoint path when stereo\.backend = 'emcstereo'"),
-    ({"camera": {"resolution": "HD720"}}, r"camera\.resolution: unknown option; \[camera\] takes calibration, "),
-    ({"api": {"port": 70000}}, r"api\.port = 70000"),
-    ({"api": {"prot": 8080}}, r"api\.prot: unknown option; \[api\] takes .*port"),
-    ({"mavlnk": {}}, r"\[mavlnk\]: unknown section"),
-    ({"log": {"level": "LOUD"}}, r"log\.level = 'LOUD'"),
-    ({"mavlink": {"min_distance_m": 12.0}}, r"mavlink\.min_distance_m = 12\.0: expected .*below mavlink\.max_distance_m"),
-    ({"mavlink": "udp"}, r"mavlink = 'udp': expected a table \[mavlink\]"),
-])
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        ({"mavlink": {"send_rate_hz": 1.0}}, r"mavlink\.send_rate_hz = 1\.0: expected at least 2 Hz"),
+        ({"mavlink": {"system_id": 0}}, r"mavlink\.system_id = 0"),
+        ({"mavlink": {"baud": "fast"}}, r"mavlink\.baud = 'fast': expected an integer"),
+        ({"mavlink": {"target_as_obstacle": 1}}, r"mavlink\.target_as_obstacle = 1: expected true or false"),
+        ({"camera": {"mount_rpy_deg": [0, 0]}}, r"camera\.mount_rpy_deg = \[0, 0\]: expected a list of 3 numbers"),
+        ({"camera": {"mount_xyz_m": [0, "x", 0]}}, r"camera\.mount_xyz_m\[1\] = 'x'"),
+        ({"stereo": {"backend": "raft"}}, r"stereo\.backend = 'raft': expected 'sgbm', 'emcstereo' or 'onnx'"),
+        ({"stereo": {"max_disp": 190}}, r"stereo\.max_disp = 190: expected a positive multiple of 16"),
+        (
+            {"stereo": {"max_disp": 100, "backend": "emcstereo", "weights": "w.pth"}},
+            r"stereo\.max_disp = 100: expected a positive multiple of 16",
+        ),
+        (
+            {"stereo": {"backend": "emcstereo"}},
+            r"stereo\.weights = '': expected a checkpoint path when stereo\.backend = 'emcstereo'",
+        ),
+        ({"camera": {"resolution": "HD720"}}, r"camera\.resolution: unknown option; \[camera\] takes calibration, "),
+        ({"api": {"port": 70000}}, r"api\.port = 70000"),
+        ({"api": {"prot": 8080}}, r"api\.prot: unknown option; \[api\] takes .*port"),
+        ({"mavlnk": {}}, r"\[mavlnk\]: unknown section"),
+        ({"log": {"level": "LOUD"}}, r"log\.level = 'LOUD'"),
+        (
+            {"mavlink": {"min_distance_m": 12.0}},
+            r"mavlink\.min_distance_m = 12\.0: expected .*below mavlink\.max_distance_m",
+        ),
+        ({"mavlink": "udp"}, r"mavlink = 'udp': expected a table \[mavlink\]"),
+    ],
+)
 def test_bad_values_name_the_key_and_what_was_expected(data, message):
     with pytest.raises(ConfigError, match=message):
         config_from_dict(data)
@@ -89,7 +104,8 @@ def test_deploy_files_agree_on_paths_names_and_devices():
     unit.read(DEPLOY / "branchrange-daemon.service")
     service = unit["Service"]
     venv_bin, script, command, _, config_path = re.fullmatch(
-        r"(/\S+/\.venv/bin)/(\S+) (\S+) (--config) (\S+)", service["ExecStart"]).groups()
+        r"(/\S+/\.venv/bin)/(\S+) (\S+) (--config) (\S+)", service["ExecStart"]
+    ).groups()
     scripts = tomllib.loads((DEPLOY.parent / "pyproject.toml").read_text())["project"]["scripts"]
     assert scripts[script] == "branchrange.cli:main" and command == "daemon"
     assert config_path == "/etc/branchrange/onboard.toml"
@@ -99,7 +115,9 @@ def test_deploy_files_agree_on_paths_names_and_devices():
     assert "2" in service["RestartPreventExitStatus"].split()  # exit status of a configuration error
     assert {"video", "dialout"} <= set(service["SupplementaryGroups"].split())
     # the ZED Mini is found by the udev rule's name, in the unit and in the container alike
-    symlink = re.search(r'SUBSYSTEM=="video4linux".*SYMLINK\+="(\w+)"', (DEPLOY / "99-branchrange-cameras.rules").read_text())
+    symlink = re.search(
+        r'SUBSYSTEM=="video4linux".*SYMLINK\+="(\w+)"', (DEPLOY / "99-branchrange-cameras.rules").read_text()
+    )
     assert onboard.camera.source.startswith(f"zed:/dev/{symlink.group(1)}:")
     docker = (DEPLOY / "Dockerfile.jetson").read_text()
     assert f"--device /dev/{symlink.group(1)}:/dev/{symlink.group(1)}" in docker
@@ -107,7 +125,10 @@ def test_deploy_files_agree_on_paths_names_and_devices():
     assert f'CMD ["{command}", "--config", "{config_path}"]' in docker and 'ENTRYPOINT ["branchrange"]' in docker
     assert f"WORKDIR {venv_bin.removesuffix('/.venv/bin')}" in docker
     # the container installs torch first and everything else with the tested pins
-    pins = dict(line.split("==") for line in (DEPLOY / "constraints.txt").read_text().splitlines()
-                if "==" in line and not line.startswith("#"))
+    pins = dict(
+        line.split("==")
+        for line in (DEPLOY / "constraints.txt").read_text().splitlines()
+        if "==" in line and not line.startswith("#")
+    )
     assert f'TORCH_SPEC="torch=={pins["torch"].split("+")[0]}"' in docker
-    assert "pip install -c /tmp/constraints-jetson.txt \".[ros]\"" in docker  # rosbag: and --foxglove on the drone too
+    assert 'pip install -c /tmp/constraints-jetson.txt ".[ros]"' in docker  # rosbag: and --foxglove on the drone too

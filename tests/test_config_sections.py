@@ -1,6 +1,7 @@
 """Each TOML section is the dataclass its code uses: every option settable from the file and from
 `--set`, errors naming the key however the value came in, one list of backends and precisions,
 one max_disp rule, and every example in deploy/ loading."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -27,11 +28,23 @@ from stereo.backends import BACKEND_NAMES, PRECISIONS, BackendConfigError, SGBMB
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
 #: Non-default values for the string options (each must pass its section's checks).
 STRINGS = {
-    "camera.source": "oak", "camera.calibration": "cal.conf", "stereo.backend": "emcstereo",
-    "stereo.weights": "other.pth", "stereo.device": "cuda", "stereo.precision": "bf16", "stereo.mode": "full",
-    "cutpoints.target_policy": "thickest", "masks.kind": "binary", "segmenter.model": "geometric", "segmenter.learned.model": "my_branchnet.onnx",
-    "mavlink.url": "tcp:127.0.0.1:5760", "mavlink.signing_key_file": "k.key", "api.host": "0.0.0.0",
-    "api.token": "s3cret", "log.results_jsonl": "r.jsonl", "log.level": "DEBUG",
+    "camera.source": "oak",
+    "camera.calibration": "cal.conf",
+    "stereo.backend": "emcstereo",
+    "stereo.weights": "other.pth",
+    "stereo.device": "cuda",
+    "stereo.precision": "bf16",
+    "stereo.mode": "full",
+    "cutpoints.target_policy": "thickest",
+    "masks.kind": "binary",
+    "segmenter.model": "geometric",
+    "segmenter.learned.model": "my_branchnet.onnx",
+    "mavlink.url": "tcp:127.0.0.1:5760",
+    "mavlink.signing_key_file": "k.key",
+    "api.host": "0.0.0.0",
+    "api.token": "s3cret",
+    "log.results_jsonl": "r.jsonl",
+    "log.level": "DEBUG",
 }
 #: Every config needs weights once the backend is a network: the base every single change is made on.
 BASE = {"stereo": {"weights": "w.pth"}}
@@ -45,7 +58,7 @@ def leaves(cls: type, prefix: str = "") -> list[tuple[str, Any, Any]]:
         key = f"{prefix}{f.name}"
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         if dataclasses.is_dataclass(hints[f.name]):
-            out += [(f"{key}.{k}", t, d) for k, t, d in leaves(hints[f.name], f"")]
+            out += [(f"{key}.{k}", t, d) for k, t, d in leaves(hints[f.name], "")]
         else:
             out.append((key, hints[f.name], default))
     return out
@@ -127,8 +140,15 @@ OPTIONS = option_keys()
 def test_the_file_has_every_option_of_the_pipeline_sections():
     keys = {key for key, _, _ in OPTIONS}
     assert len([k for k in keys if k.startswith("cutpoints.")]) == 14  # all of CutPointConfig
-    assert {"segmenter.structure.plane_min_share", "segmenter.geometric.excess_green", "segmenter.nms_iou",
-            "branch_tracking.max_missed", "masks.trunk_id", "stereo.precision", "roi.network_regions"} <= keys
+    assert {
+        "segmenter.structure.plane_min_share",
+        "segmenter.geometric.excess_green",
+        "segmenter.nms_iou",
+        "branch_tracking.max_missed",
+        "masks.trunk_id",
+        "stereo.precision",
+        "roi.network_regions",
+    } <= keys
 
 
 @pytest.mark.parametrize("key, kind, default", OPTIONS, ids=[key for key, _, _ in OPTIONS])
@@ -138,7 +158,9 @@ def test_every_option_is_settable_in_the_file_and_with_set(key, kind, default, t
     path = tmp_path / "c.toml"
     path.write_text(toml_document(tree_with(key, value)))
     assert read_back(load_config(path), key) == value
-    from_set = load_config(None, [parse_override('stereo.weights="w.pth"'), parse_override(f"{key}={toml_literal(value)}")])
+    from_set = load_config(
+        None, [parse_override('stereo.weights="w.pth"'), parse_override(f"{key}={toml_literal(value)}")]
+    )
     assert read_back(from_set, key) == value
 
 
@@ -150,23 +172,35 @@ def test_set_wins_over_the_file_and_a_bare_word_is_a_string(tmp_path):
     assert load_config(path).stereo.max_disp == 64
 
 
-@pytest.mark.parametrize("text, message", [
-    ("stereo", r"--set 'stereo': expected SECTION\.KEY=VALUE"),
-    ("max_disp=64", r"--set 'max_disp=64': expected SECTION\.KEY=VALUE"),
-    ("stereo.max_disp=abc", r"stereo\.max_disp = 'abc': expected an integer"),
-    ("stereo.max_disp=100", r"stereo\.max_disp = 100: expected a positive multiple of 16 up to 512 px"),
-    ("cutpoints.cut_ofset_m=0.1", r"cutpoints\.cut_ofset_m: unknown option; \[cutpoints\] takes .*cut_offset_m"),
-    ("cutpoints.min_points=2", r"cutpoints\.min_points = 2: expected ≥ 3 points"),
-    ("cutpoints.max_range_m=900", r"cutpoints\.max_range_m = 900\.0: expected .*a distance in metres from 0 to 655 m"),
-    ("segmenter.structure.max_range_m=0.1", r"segmenter\.structure\.max_range_m = 0\.1: expected > min_range_m"),
-    ("segmenter.structure.plane_share=0.1", r"segmenter\.structure\.plane_share: unknown option; \[segmenter\.structure\]"),
-    ("segmenter.structure=3", r"segmenter\.structure = 3: expected a table \[segmenter\.structure\]"),
-    ("stereo.backend.name=x", r"stereo\.backend = \{'name': 'x'\}: expected a string"),
-    ("branch_tracking.max_axis_angle_deg=200", r"branch_tracking\.max_axis_angle_deg = 200\.0: expected an angle"),
-    ("masks.kind=rgb", r"masks\.kind = 'rgb': expected 'auto', 'instance' or 'binary'"),
-    ("stereo.precision=int8", r"stereo\.precision = 'int8': expected 'fp32', 'fp16' or 'bf16'"),
-    ("segmenter.model=maskrcnn", r"segmenter\.model = 'maskrcnn': expected 'learned', 'geometric', 'structure' or 'onnx:FILE'"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("stereo", r"--set 'stereo': expected SECTION\.KEY=VALUE"),
+        ("max_disp=64", r"--set 'max_disp=64': expected SECTION\.KEY=VALUE"),
+        ("stereo.max_disp=abc", r"stereo\.max_disp = 'abc': expected an integer"),
+        ("stereo.max_disp=100", r"stereo\.max_disp = 100: expected a positive multiple of 16 up to 512 px"),
+        ("cutpoints.cut_ofset_m=0.1", r"cutpoints\.cut_ofset_m: unknown option; \[cutpoints\] takes .*cut_offset_m"),
+        ("cutpoints.min_points=2", r"cutpoints\.min_points = 2: expected ≥ 3 points"),
+        (
+            "cutpoints.max_range_m=900",
+            r"cutpoints\.max_range_m = 900\.0: expected .*a distance in metres from 0 to 655 m",
+        ),
+        ("segmenter.structure.max_range_m=0.1", r"segmenter\.structure\.max_range_m = 0\.1: expected > min_range_m"),
+        (
+            "segmenter.structure.plane_share=0.1",
+            r"segmenter\.structure\.plane_share: unknown option; \[segmenter\.structure\]",
+        ),
+        ("segmenter.structure=3", r"segmenter\.structure = 3: expected a table \[segmenter\.structure\]"),
+        ("stereo.backend.name=x", r"stereo\.backend = \{'name': 'x'\}: expected a string"),
+        ("branch_tracking.max_axis_angle_deg=200", r"branch_tracking\.max_axis_angle_deg = 200\.0: expected an angle"),
+        ("masks.kind=rgb", r"masks\.kind = 'rgb': expected 'auto', 'instance' or 'binary'"),
+        ("stereo.precision=int8", r"stereo\.precision = 'int8': expected 'fp32', 'fp16' or 'bf16'"),
+        (
+            "segmenter.model=maskrcnn",
+            r"segmenter\.model = 'maskrcnn': expected 'learned', 'geometric', 'structure' or 'onnx:FILE'",
+        ),
+    ],
+)
 def test_set_errors_name_the_key_and_what_was_expected(text, message):
     with pytest.raises(ConfigError, match=message):
         load_config(None, [parse_override(text)])
@@ -193,8 +227,14 @@ def test_every_deploy_example_loads_and_takes_set(path):
 
 
 def test_sections_reach_the_pipeline_stages_themselves():
-    cfg = load_config(None, [parse_override("segmenter.structure.max_range_m=3.5"),
-                             parse_override("branch_tracking.gate_m=0.2"), parse_override("cutpoints.erode_px=2")])
+    cfg = load_config(
+        None,
+        [
+            parse_override("segmenter.structure.max_range_m=3.5"),
+            parse_override("branch_tracking.gate_m=0.2"),
+            parse_override("cutpoints.erode_px=2"),
+        ],
+    )
     pipeline = Pipeline(pipeline_config(cfg), focal_px=500.0, baseline_m=0.063)
     assert pipeline.segmenter.config is cfg.segmenter.structure and pipeline.tracker.config.gate_m == 0.2
     assert pipeline.config.cutpoints is cfg.cutpoints
@@ -230,11 +270,30 @@ def test_one_max_disp_rule_for_config_backend_api_and_command_line(max_disp, cap
     from branchrange.core.config import ApiConfig
 
     with TestClient(create_app(ApiConfig(), PipelineEstimator())) as client:
-        r = client.post("/estimate", files={"left": ("l.png", b"x", "image/png"), "right": ("r.png", b"x", "image/png")},
-                        data={"focal_px": "500", "baseline_m": "0.063", "max_disp": str(max_disp)})
+        r = client.post(
+            "/estimate",
+            files={"left": ("l.png", b"x", "image/png"), "right": ("r.png", b"x", "image/png")},
+            data={"focal_px": "500", "baseline_m": "0.063", "max_disp": str(max_disp)},
+        )
     assert r.status_code == 422 and f"max_disp = {max_disp}: expected a positive multiple of 16" in r.text
-    assert main(["estimate", "--left", str(tmp_path / "l.png"), "--right", str(tmp_path / "r.png"),
-                 "--focal-px", "500", "--baseline-m", "0.063", "--max-disp", str(max_disp)]) == 2
+    assert (
+        main(
+            [
+                "estimate",
+                "--left",
+                str(tmp_path / "l.png"),
+                "--right",
+                str(tmp_path / "r.png"),
+                "--focal-px",
+                "500",
+                "--baseline-m",
+                "0.063",
+                "--max-disp",
+                str(max_disp),
+            ]
+        )
+        == 2
+    )
     assert f"stereo.max_disp = {max_disp}" in capsys.readouterr().err
 
 
@@ -248,6 +307,19 @@ def test_commands_that_read_the_config_take_set_and_name_the_key(tmp_path, capsy
     assert main(["replay", str(tmp_path), "--out", str(tmp_path / "r.jsonl"), "--set", "cutpoints.erode_px=-1"]) == 2
     assert "cutpoints.erode_px = -1: expected ≥ 0 px" in capsys.readouterr().err
     # a flag is the shorthand of one key; --set comes after it
-    assert main(["replay", str(tmp_path), "--out", str(tmp_path / "r.jsonl"), "--max-disp", "64",
-                 "--set", "stereo.max_disp=90"]) == 2
+    assert (
+        main(
+            [
+                "replay",
+                str(tmp_path),
+                "--out",
+                str(tmp_path / "r.jsonl"),
+                "--max-disp",
+                "64",
+                "--set",
+                "stereo.max_disp=90",
+            ]
+        )
+        == 2
+    )
     assert "stereo.max_disp = 90" in capsys.readouterr().err

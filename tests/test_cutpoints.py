@@ -1,10 +1,11 @@
 """Cut points against exactly ray-cast cylinders: position, axis, diameter, base side, confidence."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from branch_geometry_fixtures import GEOMETRY, TRUNK_LABEL, Cylinder, branch_with_trunk, ray_cast, unit
+
 from branchrange.core.cutpoints import (
     BranchEstimate,
     CutPointConfig,
@@ -153,13 +154,29 @@ def test_config_errors_name_the_key():
 
 def _branch(mask_id, distance, confidence, diameter):
     point = np.array([0.0, 0.0, distance])
-    return BranchEstimate(mask_id, point, point, np.array([1.0, 0, 0]), distance, (0.0, 0.0), diameter,
-                          confidence, 1.0, 0.0, 100, id=mask_id)
+    return BranchEstimate(
+        mask_id,
+        point,
+        point,
+        np.array([1.0, 0, 0]),
+        distance,
+        (0.0, 0.0),
+        diameter,
+        confidence,
+        1.0,
+        0.0,
+        100,
+        id=mask_id,
+    )
 
 
 def test_target_selector_policies_and_confidence_floor():
-    branches = [_branch(1, 1.0, 0.2, 0.02), _branch(2, 1.5, 0.9, 0.03), _branch(3, 2.0, 0.6, 0.05),
-                _branch(4, 1.2, 0.45, 0.02)]
+    branches = [
+        _branch(1, 1.0, 0.2, 0.02),
+        _branch(2, 1.5, 0.9, 0.03),
+        _branch(3, 2.0, 0.6, 0.05),
+        _branch(4, 1.2, 0.45, 0.02),
+    ]
     # default: smallest distance / confidence among those ≥ 0.3 — 1.5/0.9 beats 1.2/0.45 and 2.0/0.6
     assert select_target(branches).mask_id == 2
     assert select_target(branches, "nearest").mask_id == 4  # nearest among those ≥ 0.3

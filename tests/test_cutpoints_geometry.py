@@ -1,4 +1,5 @@
 """Stereo geometry and the robust line fit against numbers computed by hand."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,16 +1,17 @@
 """A cap on branch instances: a mask of thousands of ids is refused with its count and the cap —
 by `estimate_cut_points`, through the configuration, and as an HTTP 422 from POST /estimate."""
+
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
+from api_scene import BASELINE_M, FOCAL_PX, bar_scene
+from branch_geometry_fixtures import GEOMETRY
 from fastapi.testclient import TestClient
 
 from api import create_app
 from api.estimator import PipelineEstimator
-from api_scene import BASELINE_M, FOCAL_PX, bar_scene
-from branch_geometry_fixtures import GEOMETRY
 from branchrange.core.config import ApiConfig, ConfigError, config_from_dict, pipeline_config
 from branchrange.core.cutpoints import CutPointConfig, CutPointConfigError, estimate_cut_points
 from branchrange.core.masks import MaskError, masks_from_array
@@ -24,8 +25,11 @@ def runs_of_ids(height: int, width: int, count: int, run_px: int = 5) -> np.ndar
 
 def test_65000_ids_are_refused_naming_the_count_and_the_cap():
     masks = masks_from_array(runs_of_ids(512, 640, 65000), kind="instance", source="many.png")
-    with pytest.raises(MaskError, match=r"many\.png: the mask holds 65000 branch instances, more than "
-                                        r"cutpoints\.max_instances = 256"):
+    with pytest.raises(
+        MaskError,
+        match=r"many\.png: the mask holds 65000 branch instances, more than "
+        r"cutpoints\.max_instances = 256",
+    ):
         estimate_cut_points(masks, np.full((512, 640), 20.0, np.float32), GEOMETRY)
 
 
@@ -50,8 +54,11 @@ def test_the_cap_is_a_setting_checked_like_the_others():
 def test_http_estimate_answers_422_with_the_count_and_the_cap():
     scene = bar_scene()
     many = runs_of_ids(*scene.mask.shape, 1000).astype(np.uint16)
-    files = {"left": ("l.png", scene.png("left"), "image/png"), "right": ("r.png", scene.png("right"), "image/png"),
-             "mask": ("m.png", cv2.imencode(".png", many)[1].tobytes(), "image/png")}
+    files = {
+        "left": ("l.png", scene.png("left"), "image/png"),
+        "right": ("r.png", scene.png("right"), "image/png"),
+        "mask": ("m.png", cv2.imencode(".png", many)[1].tobytes(), "image/png"),
+    }
     data = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
     with TestClient(create_app(ApiConfig(max_pixels=400 * 300, max_upload_mb=1.0), PipelineEstimator())) as client:
         r = client.post("/estimate", files=files, data=data)

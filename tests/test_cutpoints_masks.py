@@ -1,4 +1,5 @@
 """Instance masks: 8/16-bit PNGs, binary masks split into components, validation errors."""
+
 from __future__ import annotations
 
 import cv2

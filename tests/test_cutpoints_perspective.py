@@ -1,11 +1,12 @@
 """Cut points where the camera sees in perspective: near, thick trunks off the optical axis, and
 silhouettes the image border cuts — against exactly ray-cast cylinders."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from branch_geometry_fixtures import TRUNK_LABEL, Cylinder, ray_cast, unit
+
 from branchrange.core.cutpoints import CutPointConfig, estimate_cut_points, fit_trunk
 from branchrange.core.cylinder_section import cross_section, radius_from_silhouette
 from branchrange.core.geometry import GeometryError, Line3D, StereoGeometry
@@ -25,8 +26,10 @@ def trunk_and_branch(direction):
     direction = unit(direction)
     across = direction - (direction @ TRUNK_AXIS) * TRUNK_AXIS
     base = TRUNK_AXIS_POINT + direction * TRUNK_RADIUS / np.linalg.norm(across)
-    parts = {TRUNK_LABEL: [Cylinder(TRUNK_AXIS_POINT - 1.5 * TRUNK_AXIS, TRUNK_AXIS, 3.0, TRUNK_RADIUS)],
-             1: [Cylinder(base, direction, 0.5, 0.012)]}
+    parts = {
+        TRUNK_LABEL: [Cylinder(TRUNK_AXIS_POINT - 1.5 * TRUNK_AXIS, TRUNK_AXIS, 3.0, TRUNK_RADIUS)],
+        1: [Cylinder(base, direction, 0.5, 0.012)],
+    }
     return ray_cast(640, 360, WIDE, parts), base, direction
 
 
@@ -53,7 +56,9 @@ def test_cut_point_at_a_thick_off_axis_trunk_within_half_a_centimetre(direction)
 def test_cross_section_recovers_axis_and_radius_from_one_row_to_within_its_pixel_quantisation():
     """One row of a vertical trunk: its edges are known to ±½ px, 2.2 mm at 1.4 m."""
     axis = Line3D(TRUNK_AXIS_POINT, unit([0, 1, 0]))
-    scene = ray_cast(640, 360, WIDE, {1: [Cylinder(TRUNK_AXIS_POINT + [0, -1.0, 0], axis.direction, 2.0, TRUNK_RADIUS)]})
+    scene = ray_cast(
+        640, 360, WIDE, {1: [Cylinder(TRUNK_AXIS_POINT + [0, -1.0, 0], axis.direction, 2.0, TRUNK_RADIUS)]}
+    )
     row = 180
     cols = np.nonzero(scene.labels[row] == 1)[0]
     # edges half a pixel beyond the outermost pixel centres; mean disparity of all but one pixel each side
@@ -64,7 +69,8 @@ def test_cross_section_recovers_axis_and_radius_from_one_row_to_within_its_pixel
     assert np.linalg.norm(section.axis_point_m - axis.at(axis.parameters(section.axis_point_m[None])[0])) < 0.005
     assert section.radius_m == pytest.approx(TRUNK_RADIUS, abs=0.0025)
     assert radius_from_silhouette(centre, np.array([1.0, 0.0]), half_width, axis, WIDE) == pytest.approx(
-        TRUNK_RADIUS, abs=0.0025)
+        TRUNK_RADIUS, abs=0.0025
+    )
 
 
 def test_cross_section_of_an_axis_along_the_line_of_sight_is_refused():
@@ -85,4 +91,3 @@ def test_border_cut_silhouette_takes_its_direction_from_its_sides_not_its_diagon
     assert abs(silhouette.direction @ along) > np.cos(np.radians(2.0))
     principal = image_axis(mask)  # without knowing the trunk's cut, its edge pulls the direction off
     assert abs(principal.direction @ along) < abs(silhouette.direction @ along)
-

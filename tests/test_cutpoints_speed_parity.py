@@ -14,17 +14,18 @@ arithmetic of every discrete decision (RANSAC counts, erosion, edge tensor) and 
 inputs of the fits bit for bit; what differs is the last bit of a few vectorised ray
 normalisations, ~1e-16 relative.
 """
+
 from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
-
 from branch_geometry_fixtures import GEOMETRY, TRUNK_LABEL, Cylinder, branch_with_trunk, ray_cast, unit
+
 from branchrange.core.cutpoints import CutPointConfig, estimate_cut_points
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import masks_from_array
@@ -62,8 +63,12 @@ def _trunk_without_depth(direction) -> Case:
 
 def _thick_and_thin_without_trunk() -> Case:
     start, direction = np.array([-0.3, 0.0, 1.4]), unit([1.0, 0.2, 0.0])
-    scene = ray_cast(320, 240, GEOMETRY, {7: [Cylinder(start, direction, 0.2, 0.025),
-                                              Cylinder(start + 0.2 * direction, direction, 0.25, 0.01)]})
+    scene = ray_cast(
+        320,
+        240,
+        GEOMETRY,
+        {7: [Cylinder(start, direction, 0.2, 0.025), Cylinder(start + 0.2 * direction, direction, 0.25, 0.01)]},
+    )
     return scene.labels, scene.disparity, GEOMETRY, {"trunk_id": None}
 
 
@@ -73,8 +78,15 @@ def _off_axis_trunk(direction) -> Case:
     direction = unit(direction)
     across = direction - (direction @ axis) * axis
     base = axis_point + direction * radius / np.linalg.norm(across)
-    scene = ray_cast(640, 360, WIDE, {TRUNK_LABEL: [Cylinder(axis_point - 1.5 * axis, axis, 3.0, radius)],
-                                      1: [Cylinder(base, direction, 0.5, 0.012)]})
+    scene = ray_cast(
+        640,
+        360,
+        WIDE,
+        {
+            TRUNK_LABEL: [Cylinder(axis_point - 1.5 * axis, axis, 3.0, radius)],
+            1: [Cylinder(base, direction, 0.5, 0.012)],
+        },
+    )
     return scene.labels, scene.disparity, WIDE, {"trunk_id": TRUNK_LABEL}
 
 
@@ -99,7 +111,7 @@ def _synthetic(seed: int, noise_px: float) -> Case:
     disparity = scene.disparity.astype(np.float32)
     if noise_px:
         rng = np.random.default_rng(seed)
-        disparity = (disparity + rng.normal(0, noise_px, disparity.shape).astype(np.float32) * (disparity > 0))
+        disparity = disparity + rng.normal(0, noise_px, disparity.shape).astype(np.float32) * (disparity > 0)
     geometry = StereoGeometry(camera.focal_px, camera.baseline_m, camera.cx, camera.cy)
     return scene.instance_mask, disparity, geometry, {"max_disparity": 128.0}
 
@@ -114,17 +126,21 @@ def _binary() -> Case:
 
 
 CASES: dict[str, Callable[[], Case]] = {
-    **{f"trunk_{i}_{radius}": (lambda d=d, r=radius: _with_trunk(d, r))
-       for i, d in enumerate([(1, -0.3, -0.4), (1, 0, 0), (1, 0.5, 0.3), (1, -1, 0), (0.5, -0.2, -1)])
-       for radius in (0.008, 0.02)},
+    **{
+        f"trunk_{i}_{radius}": (lambda d=d, r=radius: _with_trunk(d, r))
+        for i, d in enumerate([(1, -0.3, -0.4), (1, 0, 0), (1, 0.5, 0.3), (1, -1, 0), (0.5, -0.2, -1)])
+        for radius in (0.008, 0.02)
+    },
     "toward_camera": lambda: _with_trunk((1.0, 0.0, -0.9), 0.02),
     "noisy": lambda: _noisy(1, 0.3, 0.0),
     "outliers": lambda: _noisy(0, 0.0, 0.25),
     "no_trunk_thicker_end": _thick_and_thin_without_trunk,
     "trunk_without_depth": lambda: _trunk_without_depth((1, -0.3, -0.4)),
     "trunk_without_depth_mirrored": lambda: _trunk_without_depth((-1, 0.4, 0.2)),
-    **{f"off_axis_trunk_{i}": (lambda d=d: _off_axis_trunk(d))
-       for i, d in enumerate([(1.0, -0.3, -0.5), (1.0, 0.2, 0.4), (0.6, -0.8, -0.3)])},
+    **{
+        f"off_axis_trunk_{i}": (lambda d=d: _off_axis_trunk(d))
+        for i, d in enumerate([(1.0, -0.3, -0.5), (1.0, 0.2, 0.4), (0.6, -0.8, -0.3)])
+    },
     "border_cut_and_end_on": _border_cut_and_end_on,
     "binary": _binary,
     "synthetic_3_truth": lambda: _synthetic(3, 0.0),
@@ -140,16 +156,37 @@ def run_case(name: str) -> dict:
     masks = masks_from_array(labels, **mask_args)
     result = estimate_cut_points(masks, disparity, geometry, CutPointConfig(), **options)
     return {
-        "branches": [{"mask_id": b.mask_id, "cut_point_m": b.cut_point_m.tolist(), "base_m": b.base_m.tolist(),
-                      "axis": b.axis.tolist(), "distance_m": b.distance_m, "pixel": list(b.pixel),
-                      "diameter_m": b.diameter_m, "confidence": b.confidence, "valid_fraction": b.valid_fraction,
-                      "residual_m": b.residual_m, "n_points": b.n_points} for b in result.branches],
+        "branches": [
+            {
+                "mask_id": b.mask_id,
+                "cut_point_m": b.cut_point_m.tolist(),
+                "base_m": b.base_m.tolist(),
+                "axis": b.axis.tolist(),
+                "distance_m": b.distance_m,
+                "pixel": list(b.pixel),
+                "diameter_m": b.diameter_m,
+                "confidence": b.confidence,
+                "valid_fraction": b.valid_fraction,
+                "residual_m": b.residual_m,
+                "n_points": b.n_points,
+            }
+            for b in result.branches
+        ],
         "dropped": [{"mask_id": d.mask_id, "reason": d.reason} for d in result.dropped],
     }
 
 
-TOLERANCE = {"cut_point_m": 1e-6, "base_m": 1e-6, "axis": 1e-6, "distance_m": 1e-6, "pixel": 1e-4,
-             "diameter_m": 1e-6, "confidence": 1e-6, "valid_fraction": 1e-6, "residual_m": 1e-6}
+TOLERANCE = {
+    "cut_point_m": 1e-6,
+    "base_m": 1e-6,
+    "axis": 1e-6,
+    "distance_m": 1e-6,
+    "pixel": 1e-4,
+    "diameter_m": 1e-6,
+    "confidence": 1e-6,
+    "valid_fraction": 1e-6,
+    "residual_m": 1e-6,
+}
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,5 @@
 """The onboard daemon on replayed recordings: end to end to a loopback MAVLink peer, faults, shutdown."""
+
 from __future__ import annotations
 
 import logging
@@ -14,19 +15,27 @@ from collections import defaultdict
 import httpx
 import numpy as np
 import pytest
-
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
-from branchrange.cli import main as branchrange_main
-from branchrange.core.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig, TrackingConfig, pipeline_config
-from branchrange.onboard.daemon import Daemon
-from branchrange.core.frame_results import pipeline_for, read_results, read_runs
-from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
-from branchrange.core.pipeline import Pipeline
-from camera.calibration import from_rectified
-from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
 from autopilot_sim import AutopilotSim, approach_flight
 from mavlink_peer import LoopbackPeer, of_type
 from synth_recording import tree_scene, truth_of, write_tree_recording
+
+from branchrange.cli import main as branchrange_main
+from branchrange.core.config import (
+    CameraConfig,
+    Config,
+    LogConfig,
+    MavlinkConfig,
+    StereoConfig,
+    TrackingConfig,
+    pipeline_config,
+)
+from branchrange.core.frame_results import pipeline_for, read_results, read_runs
+from branchrange.core.pipeline import Pipeline
+from branchrange.onboard.daemon import Daemon
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+from camera.calibration import from_rectified
+from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
 
 FRAMES = 12
 PERIOD_NS = 250_000_000  # 4 fps: slow enough that a loaded test machine keeps up (latest frame wins)
@@ -57,8 +66,10 @@ def tree_recording(tmp_path_factory):
 def onboard_config(tmp_path, recording, mavlink_url: str, results, extra: str = ""):
     """An onboard.toml for `branchrange daemon`: the replayed recording, sgbm at max_disp 64, the link, the log."""
     config = tmp_path / "onboard.toml"
-    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[stereo]\nmax_disp = 64\n'
-                      f'[mavlink]\nurl = "{mavlink_url}"\n[log]\nresults_jsonl = "{results}"\n{extra}')
+    config.write_text(
+        f'[camera]\nsource = "replay:{recording}"\n[stereo]\nmax_disp = 64\n'
+        f'[mavlink]\nurl = "{mavlink_url}"\n[log]\nresults_jsonl = "{results}"\n{extra}'
+    )
     return config
 
 
@@ -125,27 +136,37 @@ def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_rec
     # every set with a target: the other confident branches as body-FRD obstacles, all stamped alike, within 50 ms
     def obstacles_of(result):  # confident non-target cut points in body FRD by branch id, not the target seen twice
         target = next((b["cut_point_m"] for b in result["branches"] if b["id"] == result["target_id"]), None)
-        return {b["id"]: (b["cut_point_m"][2], b["cut_point_m"][0], b["cut_point_m"][1])
-                for b in result["branches"] if b["id"] != result["target_id"]
-                and b["confidence"] >= MavlinkConfig().obstacle_min_confidence
-                and (target is None or math.dist(b["cut_point_m"], target) >= TrackingConfig().gate_m)}
+        return {
+            b["id"]: (b["cut_point_m"][2], b["cut_point_m"][0], b["cut_point_m"][1])
+            for b in result["branches"]
+            if b["id"] != result["target_id"]
+            and b["confidence"] >= MavlinkConfig().obstacle_min_confidence
+            and (target is None or math.dist(b["cut_point_m"], target) >= TrackingConfig().gate_m)
+        }
 
     sets = list(_frame_sets(peer.received).values())
     complete = [s for s in sets if s[-1].type == "DEBUG_VECT"]  # sent last; the listener may stop mid-set
     assert len(sets) - len(complete) <= 1
-    with_target = [s for s in complete if any(m.type == "DISTANCE_SENSOR" and m.msg.current_distance <= 1000 for m in s)]
+    with_target = [
+        s for s in complete if any(m.type == "DISTANCE_SENSOR" and m.msg.current_distance <= 1000 for m in s)
+    ]
     assert with_target
     for frame_set in with_target:
         sent = {m.msg.obstacle_id: (m.msg.x, m.msg.y, m.msg.z) for m in frame_set if m.type == "OBSTACLE_DISTANCE_3D"}
         assert all(m.msg.frame == 12 for m in frame_set if m.type == "OBSTACLE_DISTANCE_3D")
-        assert any(set(sent) == set(expected) and all(math.dist(sent[i], expected[i]) < 1e-5 for i in sent)
-                   for expected in map(obstacles_of, lines)), f"obstacles {sent} match no logged result"
+        assert any(
+            set(sent) == set(expected) and all(math.dist(sent[i], expected[i]) < 1e-5 for i in sent)
+            for expected in map(obstacles_of, lines)
+        ), f"obstacles {sent} match no logged result"
         assert max(m.at for m in frame_set) - min(m.at for m in frame_set) < 0.05
     heartbeat = of_type(peer.received, "HEARTBEAT")[0].msg
     assert (heartbeat.type, heartbeat.autopilot, heartbeat.system_status) == (18, 8, 4)
     assert heartbeat.get_srcComponent() == 191
-    print(f"\nMAVLink received in the end-to-end test (truth: cut point {tuple(round(c, 4) for c in truth.cut_point_m)} m "
-          f"camera frame, distance {true_distance:.4f} m):")
+    print(
+        "\nMAVLink received in the end-to-end test "
+        f"(truth: cut point {tuple(round(c, 4) for c in truth.cut_point_m)} m "
+        f"camera frame, distance {true_distance:.4f} m):"
+    )
     shown = with_target[-1]
     for r in [of_type(peer.received, "HEARTBEAT")[-1], *shown]:
         print(" ", r.msg.to_dict())
@@ -154,9 +175,12 @@ def test_daemon_end_to_end_on_a_synthetic_tree_sends_the_true_cut_point(tree_rec
 def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     caplog.set_level(logging.INFO, logger="branchrange.daemon")
     peer = LoopbackPeer()
-    cfg = Config(camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.3),
-                 stereo=StereoConfig(max_disp=64), log=LogConfig(status_interval_s=0.5),
-                 mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{peer.port}"))
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.3),
+        stereo=StereoConfig(max_disp=64),
+        log=LogConfig(status_interval_s=0.5),
+        mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{peer.port}"),
+    )
     plan = FaultPlan(drop={2}, corrupt={4}, disconnect={6: 3.0})
     opened = []
 
@@ -168,7 +192,9 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
         return opened[-1]
 
     relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
-    pipeline = Pipeline(pipeline_config(cfg), calibration=from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    pipeline = Pipeline(
+        pipeline_config(cfg), calibration=from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))
+    )
     daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay)
     listener = Listener(peer)
     try:
@@ -198,8 +224,9 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
 def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):
     results = tmp_path / "results.jsonl"
     config = onboard_config(tmp_path, recording, "udpout:127.0.0.1:9", results)
-    proc = subprocess.Popen([sys.executable, "-m", "branchrange.cli", "daemon", "--config", str(config)],
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "branchrange.cli", "daemon", "--config", str(config)], stderr=subprocess.PIPE, text=True
+    )
     try:
         deadline = time.monotonic() + 60
         while (not results.exists() or results.read_text().count("\n") < 2) and time.monotonic() < deadline:
@@ -222,8 +249,9 @@ def test_each_daemon_run_starts_its_log_with_a_run_header(recording, tmp_path):
     cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
     pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
     for _ in range(2):
-        daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"), pipeline=pipeline,
-                        results_path=results)
+        daemon = Daemon(
+            cfg, open_source=lambda: ReplaySource(recording, pace="recorded"), pipeline=pipeline, results_path=results
+        )
         daemon.run(max_frames=2)
         daemon.close()
     runs = read_runs(results)
@@ -248,19 +276,29 @@ def _has_target_distance(received) -> bool:
 def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(recording, tmp_path):
     peer = LoopbackPeer(url="tcpin:127.0.0.1:0")  # the flight controller listens; the daemon connects
     port = peer.port
-    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64),
-                 mavlink=MavlinkConfig(url=f"tcp:127.0.0.1:{port}", reconnect_interval_s=0.2, send_rate_hz=10.0))
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}"),
+        stereo=StereoConfig(max_disp=64),
+        mavlink=MavlinkConfig(url=f"tcp:127.0.0.1:{port}", reconnect_interval_s=0.2, send_rate_hz=10.0),
+    )
     relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
     pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
-    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, loop=True), pipeline=pipeline, relay=relay,
-                    results_path=tmp_path / "results.jsonl")
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: ReplaySource(recording, loop=True),
+        pipeline=pipeline,
+        relay=relay,
+        results_path=tmp_path / "results.jsonl",
+    )
     loop = threading.Thread(target=daemon.run, daemon=True)
     loop.start()
     try:
         assert _has_target_distance(peer.collect(15.0, until=_has_target_distance)), "no distance before the outage"
         peer.close()  # the flight controller goes away
         frames_at_loss = daemon.frames
-        assert _wait_for(lambda: not relay.link_state()["transport_open"], 5.0), "the relay did not notice the dead link"
+        assert _wait_for(lambda: not relay.link_state()["transport_open"], 5.0), (
+            "the relay did not notice the dead link"
+        )
         assert _wait_for(lambda: daemon.frames >= frames_at_loss + 3, 10.0), "the daemon stopped processing"
         frames_at_return = daemon.frames
         peer = LoopbackPeer(url=f"tcpin:127.0.0.1:{port}")  # and comes back on the same port
@@ -274,7 +312,9 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
     state = relay.link_state()
     assert state["reconnects"] >= 1 and state["send_errors"] >= 1
     distances = [d.msg.current_distance for d in of_type(after, "DISTANCE_SENSOR") if d.msg.current_distance <= 1000]
-    logged = {round(r.target.distance_m * 100) for r in read_results(tmp_path / "results.jsonl") if r.target is not None}
+    logged = {
+        round(r.target.distance_m * 100) for r in read_results(tmp_path / "results.jsonl") if r.target is not None
+    }
     assert distances and set(distances) <= logged  # fresh results resumed, not a replay of old ones
     assert len(list(read_results(tmp_path / "results.jsonl"))) == daemon.frames  # one line per frame
 
@@ -283,8 +323,11 @@ def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, c
     """A pipeline slower than mavlink.max_result_age_s never gives the autopilot a target: say so."""
     caplog.set_level(logging.WARNING, logger="branchrange.daemon")
     peer = LoopbackPeer()
-    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64),
-                 mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{peer.port}", max_result_age_s=0.001))
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}"),
+        stereo=StereoConfig(max_disp=64),
+        mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{peer.port}", max_result_age_s=0.001),
+    )
     relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
     pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
     # At the recorded 4 fps every frame is processed; "fast" would let latest-frame-wins drop some.
@@ -309,11 +352,14 @@ def _free_port() -> int:
 
 
 def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, tmp_path):
-    peer = AutopilotSim(approach_flight(0.0), heartbeat_period_s=0.2)  # a flight controller: the link is up only with one
+    peer = AutopilotSim(
+        approach_flight(0.0), heartbeat_period_s=0.2
+    )  # a flight controller: the link is up only with one
     port = _free_port()
     results = tmp_path / "results.jsonl"
-    config = onboard_config(tmp_path, recording, f"udpout:127.0.0.1:{peer.port}", results,
-                            f"[api]\nenabled = true\nport = {port}\n")
+    config = onboard_config(
+        tmp_path, recording, f"udpout:127.0.0.1:{peer.port}", results, f"[api]\nenabled = true\nport = {port}\n"
+    )
     seen: dict = {}
 
     def poll() -> None:  # the ground crew's laptop, while the daemon runs
@@ -345,15 +391,19 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
     assert health["mavlink"]["connected"] is True and health["mavlink"]["url"].startswith("udpout:")
     assert health["mavlink"]["peer"]["autopilot"] == 3 and "vehicle_state" in health["mavlink"]
     assert all(line["targets"]["frame"] in ("local_ned", "camera") for line in logged)  # the fused tracks, per frame
-    frames = [line for line in seen["metrics"].splitlines() if line.startswith("branchrange_frame_duration_seconds_count")]
+    frames = [
+        line for line in seen["metrics"].splitlines() if line.startswith("branchrange_frame_duration_seconds_count")
+    ]
     assert frames and frames[0].startswith('branchrange_frame_duration_seconds_count{source="daemon"}')
     assert float(frames[0].rsplit(" ", 1)[1]) >= 1
 
 
 def test_daemon_fails_at_start_when_the_stereo_backend_cannot_be_built(recording, tmp_path, capsys):
     config = tmp_path / "onboard.toml"
-    config.write_text(f'[camera]\nsource = "replay:{recording}"\n[mavlink]\nenabled = false\n'
-                      f'[stereo]\nbackend = "emcstereo"\nweights = "{tmp_path / "missing.pth"}"\n')
+    config.write_text(
+        f'[camera]\nsource = "replay:{recording}"\n[mavlink]\nenabled = false\n'
+        f'[stereo]\nbackend = "emcstereo"\nweights = "{tmp_path / "missing.pth"}"\n'
+    )
     assert branchrange_main(["daemon", "--config", str(config)]) == 1
     assert "missing.pth: no such checkpoint file" in capsys.readouterr().err
 
@@ -367,9 +417,13 @@ def test_daemon_refuses_an_open_api_on_a_public_address(tmp_path, capsys, monkey
 
 
 def test_stereo_and_geometry_run_on_separate_threads_on_the_newest_frames(recording):
-    """Stereo of the next frame overlaps geometry of the last one; frames nobody had time for are dropped, not queued."""
-    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64),
-                 mavlink=MavlinkConfig(max_result_age_s=5.0))
+    """Stereo of the next frame overlaps geometry of the last one; frames nobody had time for are dropped,
+    not queued."""
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}"),
+        stereo=StereoConfig(max_disp=64),
+        mavlink=MavlinkConfig(max_result_age_s=5.0),
+    )
     pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
     spans: dict[str, list[tuple[int, float, float]]] = {"stereo": [], "geometry": []}
 
@@ -380,20 +434,29 @@ def test_stereo_and_geometry_run_on_separate_threads_on_the_newest_frames(record
             out = stage(*args)
             spans[name].append((index_of(args), start, time.monotonic()))
             return out
+
         return run
 
     pipeline.stereo_stage = slowed("stereo", pipeline.stereo_stage, lambda a: a[3])
     pipeline.geometry_stage = slowed("geometry", pipeline.geometry_stage, lambda a: a[0].index)
     published = []
-    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"), pipeline=pipeline,
-                    observers=[lambda result, artifacts: published.append((result, artifacts))])
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: ReplaySource(recording, pace="recorded"),
+        pipeline=pipeline,
+        observers=[lambda result, artifacts: published.append((result, artifacts))],
+    )
     daemon.run()
     indices = [result.frame.index for result, _ in published]
     assert indices == sorted(indices) and len(indices) < FRAMES
     assert daemon.dropped + daemon.skipped == FRAMES - len(indices) - daemon.rejected
     assert daemon.dropped > 0  # the camera's frames were not queued behind the slow stereo stage
-    overlaps = [(i, j) for (j, s_start, s_end) in spans["stereo"] for (i, g_start, g_end) in spans["geometry"]
-                if j > i and s_start < g_end - 0.1 and s_end > g_start + 0.1]  # ≥ 0.1 s of the two 0.3 s stages together
+    overlaps = [
+        (i, j)
+        for (j, s_start, s_end) in spans["stereo"]
+        for (i, g_start, g_end) in spans["geometry"]
+        if j > i and s_start < g_end - 0.1 and s_end > g_start + 0.1
+    ]  # ≥ 0.1 s of the two 0.3 s stages together
     assert overlaps, "stereo never ran while geometry did"
     for result, artifacts in published:
         latency = result.latency
@@ -429,12 +492,17 @@ def test_a_misaligned_camera_is_reported_once_in_the_log(tmp_path, caplog):
     shifted = np.roll(scene.right, 3, axis=0)
     out = tmp_path / "misaligned"
     cam = scene.camera
-    with Recorder(out, calibration=from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height))) as rec:
+    with Recorder(
+        out, calibration=from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height))
+    ) as rec:
         for i in range(3):
             rec.write(StereoFrame(scene.left, shifted, i * 100_000_000, i))
     cfg = Config(camera=CameraConfig(source=f"replay:{out}"), stereo=StereoConfig(max_disp=64))
-    daemon = Daemon(cfg, open_source=lambda: ReplaySource(out, pace="fast"),
-                    pipeline=pipeline_for(cfg, ReplaySource(out).calibration))
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: ReplaySource(out, pace="fast"),
+        pipeline=pipeline_for(cfg, ReplaySource(out).calibration),
+    )
     daemon.run()
     checks = [r for r in caplog.records if r.getMessage().startswith("pair check:")]
     assert len(checks) == 1 and checks[0].levelno == logging.WARNING and "rectif" in checks[0].getMessage()
@@ -448,9 +516,12 @@ def test_a_failing_observer_is_logged_and_never_stops_the_daemon(recording, capl
     def broken(result, artifacts):
         raise RuntimeError("viewer gone")
 
-    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording, pace="recorded"),
-                    pipeline=pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))),
-                    observers=[broken, lambda result, artifacts: seen.append(result.frame.index)])
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: ReplaySource(recording, pace="recorded"),
+        pipeline=pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))),
+        observers=[broken, lambda result, artifacts: seen.append(result.frame.index)],
+    )
     assert daemon.run(max_frames=3) == 3
     assert len(seen) == 3 and daemon.rejected == 0
     assert sum("viewer gone" in r.getMessage() for r in caplog.records) == 3

@@ -1,4 +1,5 @@
 """Dataset loaders read files in each dataset's real format, and the splits follow the paper's rules."""
+
 from __future__ import annotations
 
 import random
@@ -116,8 +117,11 @@ def _sceneflow_layout(root: Path, shared: Path) -> Path:
 def test_sceneflow_reads_the_real_flyingthings_pfm_in_all_three_subset_layouts(tmp_path, shared_data):
     root = _sceneflow_layout(tmp_path / "sf", shared_data)
     dataset = SceneFlowDataset(root)
-    assert dataset.names() == ["flyingthings3d/A/0000/0006", "monkaa/a_rain_of_stones_x2/0006",
-                               "driving/15mm_focallength/scene_forwards/fast/0006"]
+    assert dataset.names() == [
+        "flyingthings3d/A/0000/0006",
+        "monkaa/a_rain_of_stones_x2/0006",
+        "driving/15mm_focallength/scene_forwards/fast/0006",
+    ]
     expected = read_pfm(root / "flyingthings3d_disparity/A/0000/left/0006.pfm")
     for index in range(3):
         sample = dataset[index]
@@ -226,5 +230,3 @@ def test_group_split_keeps_every_tree_on_one_side():
         group_split(names, r"scene(\d+)")
     with pytest.raises(DatasetError, match=r"group pattern 'tree\(': not a valid regular expression"):
         group_split(names, "tree(")
-
-

@@ -1,4 +1,5 @@
 """Training transforms: valid-preferring crop, asymmetric colour jitter, normalisation, seeded augmentation."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,14 +20,18 @@ from stereo.datasets.transforms import (
 def _sample(height=64, width=96, seed=0):
     rng = np.random.default_rng(seed)
     image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
-    return {"left": image, "right": image.copy(), "disparity": np.zeros((height, width), np.float32),
-            "meta": {"name": "x"}}
+    return {
+        "left": image,
+        "right": image.copy(),
+        "disparity": np.zeros((height, width), np.float32),
+        "meta": {"name": "x"},
+    }
 
 
 def test_crop_prefers_the_window_with_valid_disparity():
     sample = _sample(200, 200)
     sample["disparity"][150:, 150:] = 10.0  # valid only in the bottom-right corner
-    sample["disparity"][:20, :20] = 500.0   # beyond max_disp: not valid
+    sample["disparity"][:20, :20] = 500.0  # beyond max_disp: not valid
     counts = []
     for seed in range(20):
         out = random_valid_crop(sample, 64, 64, np.random.default_rng(seed), enough_valid=4096)

@@ -5,6 +5,7 @@ weights and sampled indices can be compared; then, in the same process group, th
 `emcstereo train` entry point on the real network (sharding, the rank-0 report and files, and
 `--set` switching CoordAtt off).
 """
+
 from __future__ import annotations
 
 import os
@@ -15,7 +16,6 @@ from pathlib import Path
 import pytest
 import torch
 from stereo_training_fixtures import planar_scene, write_virtualtree_layout
-
 
 PROJECT = Path(__file__).resolve().parents[1]
 CONFIG = """
@@ -49,10 +49,27 @@ def job(tmp_path_factory) -> dict:
     out, cli_out = tmp / "out", tmp / "cli_run"
     out.mkdir()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(PROJECT)}
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-               str(PROJECT / "tests" / "ddp_train_worker.py"), str(tmp / "small.toml"), str(out),
-               "train", "--config", str(tmp / "full.toml"), "--out", str(cli_out), "--no-progress", "--device", "cpu",
-               "--set", "model.coord=false"]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+        str(PROJECT / "tests" / "ddp_train_worker.py"),
+        str(tmp / "small.toml"),
+        str(out),
+        "train",
+        "--config",
+        str(tmp / "full.toml"),
+        "--out",
+        str(cli_out),
+        "--no-progress",
+        "--device",
+        "cpu",
+        "--set",
+        "model.coord=false",
+    ]
     done = subprocess.run(command, cwd=PROJECT, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     return {"out": out, "cli_out": cli_out, "stdout": done.stdout}
@@ -84,8 +101,14 @@ def test_emcstereo_train_under_torchrun_shards_the_data_and_reports_once(job):
     assert len(reports) == 1 and reports[0].startswith("finished: 1 steps, 1 epochs"), job["stdout"]
     checkpoint = torch.load(out / "last.pth", weights_only=True)
     assert checkpoint["progress"]["step"] == 1, "2 pairs / 2 processes / batch 1 = 1 step per epoch"
-    assert checkpoint["config"] == {"ema": True, "msf": True, "coord": False, "max_disp": 16,
-                                    "hourglass_wiring": "openstereo", "align_corners": True}
+    assert checkpoint["config"] == {
+        "ema": True,
+        "msf": True,
+        "coord": False,
+        "max_disp": 16,
+        "hourglass_wiring": "openstereo",
+        "align_corners": True,
+    }
     assert len(checkpoint["progress"]["history"]) == 1 and (out / "metrics.csv").is_file()
     best = torch.load(out / "best.pth", weights_only=True)
     assert best["epoch"] == 1 and best["val_metrics"]["epe"] == checkpoint["progress"]["history"][0]["val_epe"]

@@ -1,5 +1,6 @@
 """Evaluation pads top/right, un-pads before scoring, averages per image and writes JSON, text and panels;
 a non-finite prediction fails its image without stopping the evaluation."""
+
 from __future__ import annotations
 
 import json
@@ -56,8 +57,10 @@ def val_predictions(pairs):
     root, model = pairs
     dataset = VirtualTreeDataset(root, "val")
     with single_torch_thread():
-        return [predict_disparity(model, *(to_network_input(dataset[i])[k][None] for k in ("left", "right")))[0].numpy()
-                for i in range(len(dataset))]
+        return [
+            predict_disparity(model, *(to_network_input(dataset[i])[k][None] for k in ("left", "right")))[0].numpy()
+            for i in range(len(dataset))
+        ]
 
 
 def test_metrics_are_averaged_over_images_and_panels_share_one_scale(pairs, val_predictions, tmp_path):
@@ -79,9 +82,28 @@ def test_evaluate_command_writes_json_and_text_tables(pairs, val_predictions, tm
     root, model = pairs
     weights = save_checkpoint(model, tmp_path / "w.pth")
     out = tmp_path / "eval"
-    status = main(["evaluate", "--dataset", "virtualtree", "--root", str(root), "--weights", str(weights),
-                   "--split", "test", "--out", str(out), "--vis", "1", "--max-disp", "48", "--no-progress",
-                   "--device", "cpu"])
+    status = main(
+        [
+            "evaluate",
+            "--dataset",
+            "virtualtree",
+            "--root",
+            str(root),
+            "--weights",
+            str(weights),
+            "--split",
+            "test",
+            "--out",
+            str(out),
+            "--vis",
+            "1",
+            "--max-disp",
+            "48",
+            "--no-progress",
+            "--device",
+            "cpu",
+        ]
+    )
     assert status == 0
     report = json.loads((out / "metrics.json").read_text())
     test = report["splits"]["test"]

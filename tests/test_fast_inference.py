@@ -1,4 +1,5 @@
 """The fast inference path against the plain eager fp32 forward, and each of its parts against its definition."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -127,12 +128,15 @@ def test_fast_copy_leaves_the_training_model_untouched():
     assert all(torch.equal(before[k], after[k]) for k in before)
 
 
-@pytest.mark.parametrize("conv", [
-    nn.Conv2d(5, 7, 3, stride=2, padding=1, bias=False),
-    nn.Conv2d(5, 7, 1, bias=True),
-    nn.Conv3d(4, 6, 3, padding=1, bias=False),
-    nn.ConvTranspose3d(6, 4, 3, stride=2, padding=1, output_padding=1, bias=False),
-])
+@pytest.mark.parametrize(
+    "conv",
+    [
+        nn.Conv2d(5, 7, 3, stride=2, padding=1, bias=False),
+        nn.Conv2d(5, 7, 1, bias=True),
+        nn.Conv3d(4, 6, 3, padding=1, bias=False),
+        nn.ConvTranspose3d(6, 4, 3, stride=2, padding=1, output_padding=1, bias=False),
+    ],
+)
 def test_folded_batchnorm_equals_conv_then_batchnorm(conv):
     torch.manual_seed(0)
     bn = (nn.BatchNorm2d if isinstance(conv, nn.Conv2d) else nn.BatchNorm3d)(conv.out_channels)
@@ -161,9 +165,11 @@ def test_chunked_soft_argmin_equals_full_volume_regression(disparities, rows_per
     cost = torch.randn(2, 1, 48, 9, 11) * 4
     regression = DisparityRegression(192)
     expected_disp, expected_conf = regression.with_confidence(
-        upsample_cost(cost, disparities, 36, 44, 192, align_corners))
-    disp, conf = upsampled_soft_argmin(cost, regression.weight.reshape(-1)[:disparities], 36, 44, 192,
-                                       align_corners, rows_per_chunk=rows_per_chunk)
+        upsample_cost(cost, disparities, 36, 44, 192, align_corners)
+    )
+    disp, conf = upsampled_soft_argmin(
+        cost, regression.weight.reshape(-1)[:disparities], 36, 44, 192, align_corners, rows_per_chunk=rows_per_chunk
+    )
     torch.testing.assert_close(disp, expected_disp, atol=1e-3, rtol=0)
     torch.testing.assert_close(conf, expected_conf, atol=1e-4, rtol=0)
 
@@ -192,9 +198,13 @@ def test_fast_inference_refuses_soft_argmin_weights_other_than_the_disparities()
 @pytest.mark.parametrize("use_onednn", [True, False])
 def test_fused_convolutions_equal_conv_then_relu(use_onednn):
     torch.manual_seed(0)
-    block = nn.Sequential(nn.Conv3d(4, 8, 3, stride=2, padding=1), nn.Identity(), nn.ReLU(),
-                          nn.ConvTranspose3d(8, 4, 3, stride=2, padding=1, output_padding=1),
-                          nn.Conv3d(4, 1, 3, padding=1, bias=True))
+    block = nn.Sequential(
+        nn.Conv3d(4, 8, 3, stride=2, padding=1),
+        nn.Identity(),
+        nn.ReLU(),
+        nn.ConvTranspose3d(8, 4, 3, stride=2, padding=1, output_padding=1),
+        nn.Conv3d(4, 1, 3, padding=1, bias=True),
+    )
     fused = fuse_convolutions(fold_batchnorms(block), use_onednn)
     assert [type(m) for m in fused] == [FusedConv, nn.Identity, nn.Identity, FusedConvTranspose, DepthSplitConv3d]
     assert fused[0].use_onednn == (use_onednn and onednn_available())

@@ -1,6 +1,7 @@
 """From a ZED-style ROS 2 bag to cut points in Foxglove: the synthetic tree sequence as a recording and as bags
 (MCAP and SQLite) gives the same cut points; `--foxglove` writes an MCAP that reads back with the expected
 channels and counts; the live server streams the channels to a WebSocket client on loopback."""
+
 from __future__ import annotations
 
 import json
@@ -15,22 +16,30 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import PROJECT_ROOT
 from mcap.reader import make_reader
+from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, write_tree_recording
 from websockets.sync.client import connect
 
 from branchrange.cli import main as branchrange_main
 from branchrange.core.config import Config, StereoConfig
-from branchrange.onboard.foxglove_layout import layout, layout_text
 from branchrange.core.frame_result import FrameResult
 from branchrange.core.frame_results import read_results
-from branchrange.onboard.foxglove_sink import (BODY_FRAME, CAMERA_FRAME, LOCAL_FRAME, TOPICS, FoxgloveSink, FoxgloveTargetError,
-                                       FoxgloveTargets, parse_targets)
-from branchrange.onboard.mavlink import CameraMount
 from branchrange.offline.replay import replay_recording
+from branchrange.onboard.foxglove_layout import layout, layout_text
+from branchrange.onboard.foxglove_sink import (
+    BODY_FRAME,
+    CAMERA_FRAME,
+    LOCAL_FRAME,
+    TOPICS,
+    FoxgloveSink,
+    FoxgloveTargetError,
+    FoxgloveTargets,
+    parse_targets,
+)
+from branchrange.onboard.mavlink import CameraMount
 from camera.calibration import from_rectified
 from camera.sources.rosbag_writer import write_bag
-from conftest import PROJECT_ROOT
-from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, write_tree_recording
 
 FRAMES = 3
 PERIOD_NS = 100_000_000
@@ -56,15 +65,32 @@ def runs(tmp_path_factory):
     assert branchrange_main(["bag-from-recording", str(recording), "--out", str(root / "bag_mcap")]) == 0
     cam = tree_scene().camera
     calibration = from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height))
-    write_bag(still_camera_frames(tree_scene(), FRAMES, PERIOD_NS, with_masks=False), calibration,
-              root / "bag_sqlite", storage="sqlite3", encoding="bgr8")
+    write_bag(
+        still_camera_frames(tree_scene(), FRAMES, PERIOD_NS, with_masks=False),
+        calibration,
+        root / "bag_sqlite",
+        storage="sqlite3",
+        encoding="bgr8",
+    )
     config = root / "replay.toml"
     config.write_text("[stereo]\nmax_disp = 64\n")
 
     replay_recording(recording, CFG, root / "rec.jsonl", progress=False)
-    status = branchrange_main(["replay", str(root / "bag_mcap"), "--out", str(root / "mcap.jsonl"), "--summary",
-                               "--config", str(config), "--foxglove", str(root / "viz" / "run.mcap"),
-                               "--overlay-video", str(root / "bag_overlay.mp4")])
+    status = branchrange_main(
+        [
+            "replay",
+            str(root / "bag_mcap"),
+            "--out",
+            str(root / "mcap.jsonl"),
+            "--summary",
+            "--config",
+            str(config),
+            "--foxglove",
+            str(root / "viz" / "run.mcap"),
+            "--overlay-video",
+            str(root / "bag_overlay.mp4"),
+        ]
+    )
     seen = []
 
     def failing(result, artifacts):
@@ -75,13 +101,26 @@ def runs(tmp_path_factory):
     handler.emit = failures.append
     logging.getLogger("branchrange.replay").addHandler(handler)
     try:
-        summary = replay_recording(f"rosbag:{root / 'bag_sqlite'}?tolerance_ms=1", CFG, root / "sqlite.jsonl",
-                                   progress=False, observers=[failing, lambda r, a: seen.append((r, a))])
+        summary = replay_recording(
+            f"rosbag:{root / 'bag_sqlite'}?tolerance_ms=1",
+            CFG,
+            root / "sqlite.jsonl",
+            progress=False,
+            observers=[failing, lambda r, a: seen.append((r, a))],
+        )
     finally:
         logging.getLogger("branchrange.replay").removeHandler(handler)
-    return {"root": root, "status": status, "summary": summary, "seen": seen, "failures": failures,
-            "recording": read_lines(root / "rec.jsonl"), "mcap_bag": read_lines(root / "mcap.jsonl"),
-            "sqlite_bag": read_lines(root / "sqlite.jsonl"), "foxglove": root / "viz" / "run.mcap"}
+    return {
+        "root": root,
+        "status": status,
+        "summary": summary,
+        "seen": seen,
+        "failures": failures,
+        "recording": read_lines(root / "rec.jsonl"),
+        "mcap_bag": read_lines(root / "mcap.jsonl"),
+        "sqlite_bag": read_lines(root / "sqlite.jsonl"),
+        "foxglove": root / "viz" / "run.mcap",
+    }
 
 
 def test_bags_give_the_recordings_cut_points(runs):
@@ -106,8 +145,9 @@ def test_the_replay_summary_counts_unpaired_images_for_a_bag(runs):
 
 
 def test_a_failing_observer_is_logged_and_the_others_get_every_frame(runs):
-    assert [r.getMessage() for r in runs["failures"]] == [f"frame {i}: observer {r.args[1]!r} failed"
-                                                           for i, r in enumerate(runs["failures"])]
+    assert [r.getMessage() for r in runs["failures"]] == [
+        f"frame {i}: observer {r.args[1]!r} failed" for i, r in enumerate(runs["failures"])
+    ]
     assert len(runs["failures"]) == FRAMES and "a viewer that breaks" in str(runs["failures"][0].exc_info[1])
     seen = runs["seen"]
     assert [r.frame.index for r, _ in seen] == list(range(FRAMES))
@@ -137,7 +177,7 @@ def test_foxglove_mcap_holds_every_channel_with_one_message_per_frame(runs):
     assert timing == [r["timing_ms"] for r in results]
     overlay = next(m for t, m in messages if t == TOPICS["overlay"])
     assert overlay.data.find(b"jpeg") >= 0
-    jpeg = overlay.data[overlay.data.find(b"\xff\xd8"):]
+    jpeg = overlay.data[overlay.data.find(b"\xff\xd8") :]
     assert cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR).shape == (HEIGHT, WIDTH, 3)
 
 
@@ -175,16 +215,21 @@ def test_newest_only_sink_returns_at_once_and_logs_the_newest_frames(runs, tmp_p
             sink(frame, artifacts)  # returns although the sink's thread is busy
         release.set()
     with (tmp_path / "newest.mcap").open("rb") as f:
-        logged = [json.loads(m.data)["frame"]["index"] for _, c, m in make_reader(f).iter_messages()
-                  if c.topic == TOPICS["result"]]
+        logged = [
+            json.loads(m.data)["frame"]["index"]
+            for _, c, m in make_reader(f).iter_messages()
+            if c.topic == TOPICS["result"]
+        ]
     assert logged == [0, 5]  # the one in hand, then the newest: the waiting ones were replaced, not queued
     assert sink.dropped == 4 and sink.frames == 2
 
 
 def test_live_server_streams_the_channels_to_a_websocket_client(runs):
     result, artifacts = runs["seen"][-1]
-    with FoxgloveSink(FoxgloveTargets(port=0)) as sink, \
-            connect(f"ws://127.0.0.1:{sink.port}", subprotocols=[WS_SUBPROTOCOL], open_timeout=5) as ws:
+    with (
+        FoxgloveSink(FoxgloveTargets(port=0)) as sink,
+        connect(f"ws://127.0.0.1:{sink.port}", subprotocols=[WS_SUBPROTOCOL], open_timeout=5) as ws,
+    ):
         channels: dict[str, dict] = {}
         deadline = time.monotonic() + 10
         while len(channels) < len(TOPICS) and time.monotonic() < deadline:
@@ -193,8 +238,16 @@ def test_live_server_streams_the_channels_to_a_websocket_client(runs):
                 channels.update({c["topic"]: c for c in message["channels"]})
         assert set(channels) == set(TOPICS.values())
         subscriptions = {i: topic for i, topic in enumerate(channels)}
-        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-            {"id": i, "channelId": channels[topic]["id"]} for i, topic in subscriptions.items()]}))
+        ws.send(
+            json.dumps(
+                {
+                    "op": "subscribe",
+                    "subscriptions": [
+                        {"id": i, "channelId": channels[topic]["id"]} for i, topic in subscriptions.items()
+                    ],
+                }
+            )
+        )
         received: dict[str, bytes] = {}
         no_target = {TOPICS["target"]} if result.target is None else set()
         expected = set(TOPICS.values()) - {TOPICS["tf"]} - no_target
@@ -204,7 +257,7 @@ def test_live_server_streams_the_channels_to_a_websocket_client(runs):
                 while True:
                     data = ws.recv(timeout=0.3)
                     if isinstance(data, bytes) and data[0] == 1:  # opcode 1: message data
-                        subscription, = struct.unpack_from("<I", data, 1)
+                        (subscription,) = struct.unpack_from("<I", data, 1)
                         received[subscriptions[subscription]] = data[13:]
             except TimeoutError:
                 pass
@@ -214,7 +267,8 @@ def test_live_server_streams_the_channels_to_a_websocket_client(runs):
 
 def test_parse_targets_and_its_errors():
     assert parse_targets(["out/run.mcap", "ws://0.0.0.0:8765"]) == FoxgloveTargets(
-        mcap=Path("out/run.mcap"), host="0.0.0.0", port=8765)
+        mcap=Path("out/run.mcap"), host="0.0.0.0", port=8765
+    )
     for bad in ("run.json", "ws://localhost", "ws://host:99999", "http://h:1"):
         with pytest.raises(FoxgloveTargetError, match="expected"):
             parse_targets([bad])
@@ -226,8 +280,10 @@ def test_an_unusable_foxglove_target_is_named(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(FoxgloveTargetError, match="cannot write the MCAP file"):
         FoxgloveSink(FoxgloveTargets(mcap=tmp_path / "file" / "run.mcap"))
-    with FoxgloveSink(FoxgloveTargets(port=0)) as first, \
-            pytest.raises(FoxgloveTargetError, match=f"ws://127.0.0.1:{first.port}: cannot serve"):
+    with (
+        FoxgloveSink(FoxgloveTargets(port=0)) as first,
+        pytest.raises(FoxgloveTargetError, match=f"ws://127.0.0.1:{first.port}: cannot serve"),
+    ):
         FoxgloveSink(FoxgloveTargets(port=first.port))
 
 
@@ -247,8 +303,17 @@ def test_daemon_reads_a_bag_and_sends_what_it_publishes_to_foxglove(runs, tmp_pa
     config = tmp_path / "onboard.toml"
     results = tmp_path / "results.jsonl"
     config.write_text(f'[mavlink]\nenabled = false\n[stereo]\nmax_disp = 64\n[log]\nresults_jsonl = "{results}"\n')
-    status = branchrange_main(["daemon", "--config", str(config), "--source", f"rosbag:{runs['root'] / 'bag_mcap'}",
-                               "--foxglove", str(tmp_path / "live.mcap")])
+    status = branchrange_main(
+        [
+            "daemon",
+            "--config",
+            str(config),
+            "--source",
+            f"rosbag:{runs['root'] / 'bag_mcap'}",
+            "--foxglove",
+            str(tmp_path / "live.mcap"),
+        ]
+    )
     assert status == 0
     published = read_lines(results)
     with (tmp_path / "live.mcap").open("rb") as f:
@@ -268,6 +333,6 @@ def test_daemon_reads_a_bag_and_sends_what_it_publishes_to_foxglove(runs, tmp_pa
 
 def test_daemon_refuses_a_bad_foxglove_target(tmp_path, capsys):
     config = tmp_path / "onboard.toml"
-    config.write_text('[mavlink]\nenabled = false\n')
+    config.write_text("[mavlink]\nenabled = false\n")
     assert branchrange_main(["daemon", "--config", str(config), "--foxglove", "ws://localhost"]) == 2
     assert "expected ws://HOST:PORT" in capsys.readouterr().err

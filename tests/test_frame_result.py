@@ -1,4 +1,5 @@
 """The typed result: its JSON form, reading logs back, the target, and the schema generated from it."""
+
 from __future__ import annotations
 
 import json
@@ -7,6 +8,7 @@ from pathlib import Path
 
 import jsonschema
 import pytest
+from result_factory import branch, frame_result
 
 from branchrange.core.frame_result import (
     SCHEMA_PATH,
@@ -16,7 +18,6 @@ from branchrange.core.frame_result import (
     WorldTargets,
     json_schema,
 )
-from result_factory import branch, frame_result
 
 GOLDEN_REPLAY = Path(__file__).resolve().parent / "data" / "result_v1" / "replay.jsonl"
 
@@ -27,8 +28,9 @@ def _golden_results() -> list[dict]:
 
 
 def test_the_packaged_schema_is_the_one_generated_from_the_classes():
-    assert json.loads(SCHEMA_PATH.read_text(encoding="utf-8")) == json_schema(), \
+    assert json.loads(SCHEMA_PATH.read_text(encoding="utf-8")) == json_schema(), (
         "regenerate it: python -c 'from branchrange.core.frame_result import write_json_schema; write_json_schema()'"
+    )
     jsonschema.Draft202012Validator.check_schema(json_schema())
 
 
@@ -67,23 +69,36 @@ def test_optional_parts_are_left_out_until_given_and_nulls_stay_where_the_format
     result = frame_result([branch(1, [0.0, 0.0, 1.0])])
     written = result.to_json_dict()
     assert written["target_id"] is None and "reason" not in written and "latency" not in written
-    assert list(written)[:9] == ["schema", "frame", "camera", "stereo", "timing_ms", "masks", "branches", "dropped",
-                                 "target_id"]
-    daemon = replace(result, latency=Latency(1.0, 2.0, 3.0),
-                     targets=WorldTargets(frame="camera", target_track_id=None, tracks=()))
+    assert list(written)[:9] == [
+        "schema",
+        "frame",
+        "camera",
+        "stereo",
+        "timing_ms",
+        "masks",
+        "branches",
+        "dropped",
+        "target_id",
+    ]
+    daemon = replace(
+        result, latency=Latency(1.0, 2.0, 3.0), targets=WorldTargets(frame="camera", target_track_id=None, tracks=())
+    )
     written = daemon.to_json_dict()
     assert list(written)[-2:] == ["latency", "targets"]
     assert written["targets"] == {"frame": "camera", "target_track_id": None, "tracks": []}
     assert FrameResult.from_json_dict(written) == daemon
 
 
-@pytest.mark.parametrize(("change", "where"), [
-    (lambda r: r["branches"][0].pop("distance_m"), "branches.0.distance_m"),
-    (lambda r: r["frame"].update(width="wide"), "frame.width"),
-    (lambda r: r.update(schema="branchrange/v0"), "schema"),
-    (lambda r: r.update(extra=1), "extra"),
-    (lambda r: r.update(target_id=999), "result: Value error, target_id = 999: no branch has that id"),
-])
+@pytest.mark.parametrize(
+    ("change", "where"),
+    [
+        (lambda r: r["branches"][0].pop("distance_m"), "branches.0.distance_m"),
+        (lambda r: r["frame"].update(width="wide"), "frame.width"),
+        (lambda r: r.update(schema="branchrange/v0"), "schema"),
+        (lambda r: r.update(extra=1), "extra"),
+        (lambda r: r.update(target_id=999), "result: Value error, target_id = 999: no branch has that id"),
+    ],
+)
 def test_a_line_that_is_not_a_v1_result_is_refused_naming_the_key(change, where):
     record = _golden_results()[0]
     change(record)

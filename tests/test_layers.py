@@ -13,6 +13,7 @@
 Every import is read from the source with `ast` (function-level and TYPE_CHECKING imports included),
 so a lazy import cannot hide a dependency on a higher layer.
 """
+
 from __future__ import annotations
 
 import ast
@@ -105,18 +106,38 @@ def test_every_branchrange_module_sits_in_a_named_layer():
     assert loose == [], f"modules directly in branchrange/ belong in core/, onboard/ or offline/: {loose}"
 
 
-@pytest.mark.parametrize(("path", "source", "offending"), [
-    ("branchrange/core/geometry.py", "from branchrange.onboard.daemon import Daemon\n",
-     "branchrange.onboard.daemon.Daemon (onboard)"),
-    ("branchrange/core/masks.py", "def f():\n    from api.metrics import Metrics\n", "api.metrics.Metrics (api)"),
-    ("branchrange/onboard/daemon.py", "import branchrange.offline.replay\n", "branchrange.offline.replay (offline)"),
-    ("branchrange/offline/replay.py", "from ..onboard import foxglove_sink\n",
-     "branchrange.onboard.foxglove_sink (onboard)"),
-    ("api/app.py", "from branchrange.commands.serve import check_bind\n",
-     "branchrange.commands.serve.check_bind (cli)"),
-    ("stereo/metrics.py", "from camera.calibration import Calibration\n", "camera.calibration.Calibration (camera)"),
-    ("branchrange/core/segmentation/__init__.py", "from ...cli import main\n", "branchrange.cli.main (cli)"),
-])
+@pytest.mark.parametrize(
+    ("path", "source", "offending"),
+    [
+        (
+            "branchrange/core/geometry.py",
+            "from branchrange.onboard.daemon import Daemon\n",
+            "branchrange.onboard.daemon.Daemon (onboard)",
+        ),
+        ("branchrange/core/masks.py", "def f():\n    from api.metrics import Metrics\n", "api.metrics.Metrics (api)"),
+        (
+            "branchrange/onboard/daemon.py",
+            "import branchrange.offline.replay\n",
+            "branchrange.offline.replay (offline)",
+        ),
+        (
+            "branchrange/offline/replay.py",
+            "from ..onboard import foxglove_sink\n",
+            "branchrange.onboard.foxglove_sink (onboard)",
+        ),
+        (
+            "api/app.py",
+            "from branchrange.commands.serve import check_bind\n",
+            "branchrange.commands.serve.check_bind (cli)",
+        ),
+        (
+            "stereo/metrics.py",
+            "from camera.calibration import Calibration\n",
+            "camera.calibration.Calibration (camera)",
+        ),
+        ("branchrange/core/segmentation/__init__.py", "from ...cli import main\n", "branchrange.cli.main (cli)"),
+    ],
+)
 def test_an_import_from_a_higher_layer_is_named(path, source, offending):
     found = violations(ROOT / path, source)
     assert len(found) == 1
@@ -124,7 +145,9 @@ def test_an_import_from_a_higher_layer_is_named(path, source, offending):
 
 
 def test_imports_from_the_same_or_a_lower_layer_pass():
-    source = ("from branchrange.core.config import Config\nfrom . import newest_slot\nimport numpy\n"
-              "from stereo.backends.base import validate_pair\nfrom camera.sources import StereoSource\n")
+    source = (
+        "from branchrange.core.config import Config\nfrom . import newest_slot\nimport numpy\n"
+        "from stereo.backends.base import validate_pair\nfrom camera.sources import StereoSource\n"
+    )
     assert violations(ROOT / "branchrange/onboard/daemon.py", source) == []
     assert violations(ROOT / "branchrange/commands/daemon.py", "from api.metrics import Metrics\n") == []

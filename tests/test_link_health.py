@@ -1,12 +1,13 @@
 """Link health tells the truth: connected only while the autopilot's HEARTBEAT arrives (real UDP, signing)."""
+
 from __future__ import annotations
 
 import socket
 import time
 
 import pytest
-
 from autopilot_sim import MAV_AUTOPILOT_INVALID, MAV_TYPE_GCS, AutopilotSim, approach_flight
+
 from branchrange.core.config import MavlinkConfig
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 
@@ -61,8 +62,10 @@ def test_autopilot_connects_within_two_heartbeats_and_names_its_ids():
 
 
 def test_a_ground_station_heartbeat_is_not_the_autopilot():
-    with AutopilotSim(HOVER, heartbeat_period_s=0.1, mav_type=MAV_TYPE_GCS, autopilot=MAV_AUTOPILOT_INVALID) as sim, \
-            relay_to(sim.port) as relay:
+    with (
+        AutopilotSim(HOVER, heartbeat_period_s=0.1, mav_type=MAV_TYPE_GCS, autopilot=MAV_AUTOPILOT_INVALID) as sim,
+        relay_to(sim.port) as relay,
+    ):
         assert wait_for(lambda: sim.heartbeats_sent >= 4, 2.0)
         time.sleep(0.1)
         state = relay.link_state()
@@ -83,8 +86,10 @@ def test_heartbeats_that_stop_mean_lost_after_three_seconds():
 
 
 def test_a_peer_with_the_wrong_signing_key_is_never_connected(key_file):
-    with AutopilotSim(HOVER, heartbeat_period_s=0.1, signing_key=bytes(32)) as sim, \
-            relay_to(sim.port, signing_key_file=str(key_file)) as relay:
+    with (
+        AutopilotSim(HOVER, heartbeat_period_s=0.1, signing_key=bytes(32)) as sim,
+        relay_to(sim.port, signing_key_file=str(key_file)) as relay,
+    ):
         assert wait_for(lambda: sim.heartbeats_sent >= 5, 2.0)
         time.sleep(0.1)
         state = relay.link_state()
@@ -93,12 +98,17 @@ def test_a_peer_with_the_wrong_signing_key_is_never_connected(key_file):
 
 
 def test_an_unsigned_peer_is_not_connected_to_a_signed_relay_but_a_signed_one_is(key_file):
-    with AutopilotSim(HOVER, heartbeat_period_s=0.1) as sim, relay_to(sim.port, signing_key_file=str(key_file)) as relay:
+    with (
+        AutopilotSim(HOVER, heartbeat_period_s=0.1) as sim,
+        relay_to(sim.port, signing_key_file=str(key_file)) as relay,
+    ):
         assert wait_for(lambda: sim.heartbeats_sent >= 4, 2.0)
         time.sleep(0.1)
         unsigned = relay.link_state()
-    with AutopilotSim(HOVER, heartbeat_period_s=0.1, signing_key=KEY) as sim, \
-            relay_to(sim.port, signing_key_file=str(key_file)) as relay:
+    with (
+        AutopilotSim(HOVER, heartbeat_period_s=0.1, signing_key=KEY) as sim,
+        relay_to(sim.port, signing_key_file=str(key_file)) as relay,
+    ):
         assert wait_for(lambda: relay.link_state()["connected"], 2.0)
         signed = relay.link_state()
     assert unsigned["connected"] is False and unsigned["signature_failures"] >= 3
@@ -134,7 +144,11 @@ def test_health_hides_source_and_url_without_the_token_and_metrics_report_the_li
         url = f"udpout:127.0.0.1:{sim.port}"
     for body in (anonymous, wrong):
         assert "source" not in body["camera"] and "url" not in body["mavlink"]
-        assert body["status"] == "ok" and body["mavlink"]["connected"] is True and body["mavlink"]["peer"]["system_id"] == 1
+        assert (
+            body["status"] == "ok"
+            and body["mavlink"]["connected"] is True
+            and body["mavlink"]["peer"]["system_id"] == 1
+        )
     assert crew["camera"]["source"] == "zed:/dev/zedmini:HD720" and crew["mavlink"]["url"] == url
     lines = dict(line.rsplit(" ", 1) for line in metrics.splitlines() if line.startswith("branchrange_mavlink_"))
     assert lines['branchrange_mavlink_connected{system_id="1",component_id="1"}'] == "1"

@@ -1,4 +1,5 @@
 """The one-pass instance index and the per-instance crops equal their whole-frame definitions."""
+
 from __future__ import annotations
 
 import cv2
@@ -15,7 +16,7 @@ def random_labels(seed: int, shape=(60, 90), ids=(1, 2, 3, 7, 65535)) -> np.ndar
     for i in ids:
         for _ in range(rng.integers(1, 4)):
             r, c = rng.integers(0, shape[0]), rng.integers(0, shape[1])
-            labels[r:r + rng.integers(1, 20), c:c + rng.integers(1, 30)] = i
+            labels[r : r + rng.integers(1, 20), c : c + rng.integers(1, 30)] = i
     scatter = rng.random(shape) < 0.02
     labels[scatter] = rng.choice(ids, scatter.sum())
     return labels
@@ -50,8 +51,9 @@ def test_crops_give_the_whole_frame_masks_and_pixels(seed):
         rows, cols = crop.pixels()
         expected = np.nonzero(whole)
         assert np.array_equal(rows, expected[0]) and np.array_equal(cols, expected[1])  # same order
-        assert crop.touches_image_border() == bool(whole[0].any() or whole[-1].any() or whole[:, 0].any()
-                                                   or whole[:, -1].any())
+        assert crop.touches_image_border() == bool(
+            whole[0].any() or whole[-1].any() or whole[:, 0].any() or whole[:, -1].any()
+        )
         assert np.array_equal(crop.with_mask(erode(crop.mask, 1)).full(), erode(whole, 1))
     assert np.array_equal(masks.trunk(), labels == 65535)
 
@@ -77,7 +79,7 @@ def test_distances_on_the_window_equal_the_whole_frame_distance_transform(seed):
 def test_split_binary_numbers_the_kept_components_in_order():
     mask = np.zeros((10, 20), np.uint8)
     mask[1:3, 1:5] = 255  # 8 px
-    mask[5, 8] = 255      # 1 px speckle
+    mask[5, 8] = 255  # 1 px speckle
     mask[7:9, 12:18] = 255  # 12 px
     labels = split_binary(mask, min_area_px=2)
     assert sorted(np.unique(labels).tolist()) == [0, 1, 2]

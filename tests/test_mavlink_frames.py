@@ -1,4 +1,5 @@
 """Camera → body FRD through the mount, and the sensor orientation MAVLink is told."""
+
 from __future__ import annotations
 
 import math
@@ -33,10 +34,21 @@ def test_right_looking_camera_puts_its_optical_axis_along_body_y():
     np.testing.assert_allclose(mount.to_body([1.0, 0, 0]), [-1, 0, 0], atol=1e-12)  # camera right = body back
 
 
-@pytest.mark.parametrize("rpy, orientation", [
-    ((0, 0, 0), 0), ((0, 0, 45), 1), ((0, 0, 90), 2), ((0, 0, -90), 6), ((0, 0, 180), 4),
-    ((0, 90, 0), 24), ((0, -90, 0), 25), ((0, -30, 0), 100), ((20, 0, 0), 0), ((0, 3, 0), 0),
-])
+@pytest.mark.parametrize(
+    "rpy, orientation",
+    [
+        ((0, 0, 0), 0),
+        ((0, 0, 45), 1),
+        ((0, 0, 90), 2),
+        ((0, 0, -90), 6),
+        ((0, 0, 180), 4),
+        ((0, 90, 0), 24),
+        ((0, -90, 0), 25),
+        ((0, -30, 0), 100),
+        ((20, 0, 0), 0),
+        ((0, 3, 0), 0),
+    ],
+)
 def test_sensor_orientation_names_the_standard_direction_or_custom(rpy, orientation):
     assert CameraMount.from_rpy(rpy).sensor_orientation() == orientation
 
@@ -46,10 +58,12 @@ def test_mount_quaternion_rotates_body_x_onto_the_optical_axis():
     w, x, y, z = mount.quaternion_wxyz
     assert math.isclose(w * w + x * x + y * y + z * z, 1.0)
     # rotation matrix of the quaternion equals the mount rotation
-    q_rot = np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    q_rot = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     np.testing.assert_allclose(q_rot, rotation_from_rpy(10.0, -30.0, 25.0), atol=1e-12)
     assert CameraMount.from_rpy().quaternion_wxyz == (1.0, 0.0, 0.0, 0.0)

@@ -1,4 +1,5 @@
 """The link under the relay: MAVLink 2 signing, TCP peers that go away and come back, serial ports."""
+
 from __future__ import annotations
 
 import math
@@ -7,12 +8,12 @@ import select
 import time
 
 import pytest
+from mavlink_peer import LoopbackPeer, of_type
+from result_factory import branch, frame_result
 
 from branchrange.core.config import MavlinkConfig
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from branchrange.onboard.mavlink.connection import SigningKeyError, load_signing_key, mavutil_v2
-from mavlink_peer import LoopbackPeer, of_type
-from result_factory import branch, frame_result
 
 KEY = bytes(range(32))
 RESULT = frame_result([branch(4, [0.0, 0.0, 2.5])], target_id=4)
@@ -118,7 +119,9 @@ def test_relay_speaks_over_a_serial_port():
             deadline = time.monotonic() + 2.0
             # until the published target's set is complete (DEBUG_VECT is its last message); sets sent
             # before `publish` say "no target" (NaN)
-            while time.monotonic() < deadline and not any(m.get_type() == "DEBUG_VECT" and not math.isnan(m.x) for m in got):
+            while time.monotonic() < deadline and not any(
+                m.get_type() == "DEBUG_VECT" and not math.isnan(m.x) for m in got
+            ):
                 if select.select([master], [], [], 0.05)[0]:
                     got += parser.parse_buffer(os.read(master, 4096)) or []
     finally:

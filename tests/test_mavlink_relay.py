@@ -1,4 +1,5 @@
 """The relay speaks real MAVLink 2 to a loopback peer: fields, units, frames, timing, staleness."""
+
 from __future__ import annotations
 
 import math
@@ -6,15 +7,16 @@ import time
 
 import numpy as np
 import pytest
+from mavlink_peer import LoopbackPeer, of_type
+from result_factory import branch, frame_result
 
 from branchrange.core.config import MavlinkConfig
 from branchrange.core.frame_result import FrameResult
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
-from mavlink_peer import LoopbackPeer, of_type
-from result_factory import branch, frame_result
 
-RESULT = frame_result([branch(0, [0.1, -0.2, 1.4]), branch(3, [0.5, 0.25, 2.0]), branch(7, [-0.6, 0.1, 3.0])],
-                      target_id=0)
+RESULT = frame_result(
+    [branch(0, [0.1, -0.2, 1.4]), branch(3, [0.5, 0.25, 2.0]), branch(7, [-0.6, 0.1, 3.0])], target_id=0
+)
 MOUNT_XYZ = (0.2, 0.0, 0.05)
 
 
@@ -54,11 +56,16 @@ def test_frame_messages_decode_with_body_frd_positions_and_centimetres(peer):
     by_id = {o.msg.obstacle_id: o.msg for o in obstacles}
     np.testing.assert_allclose([by_id[3].x, by_id[3].y, by_id[3].z], [2.0 + 0.2, 0.5, 0.25 + 0.05], atol=1e-6)
     np.testing.assert_allclose([by_id[7].x, by_id[7].y, by_id[7].z], [3.0 + 0.2, -0.6, 0.1 + 0.05], atol=1e-6)
-    assert all(o.msg.frame == 12 and o.msg.min_distance == pytest.approx(0.2) and o.msg.max_distance == 10.0 for o in obstacles)
+    assert all(
+        o.msg.frame == 12 and o.msg.min_distance == pytest.approx(0.2) and o.msg.max_distance == 10.0 for o in obstacles
+    )
     assert vect.msg.name == "CUT"
     np.testing.assert_allclose([vect.msg.x, vect.msg.y, vect.msg.z], [1.4 + 0.2, 0.1, -0.2 + 0.05], atol=1e-6)
     # one shared timestamp, all within 50 ms, MAVLink 2 from the onboard computer's ids
-    assert len({m.msg.time_boot_ms for m in [dist, *obstacles]}) == 1 and vect.msg.time_usec == dist.msg.time_boot_ms * 1000
+    assert (
+        len({m.msg.time_boot_ms for m in [dist, *obstacles]}) == 1
+        and vect.msg.time_usec == dist.msg.time_boot_ms * 1000
+    )
     arrivals = [m.at for m in frame]
     assert max(arrivals) - min(arrivals) < 0.050
     assert all(m.msg.get_srcSystem() == 1 and m.msg.get_srcComponent() == 191 for m in frame)

@@ -1,4 +1,5 @@
 """stereo.metrics against hand-computed values (reference facts §6)."""
+
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
 """EMCStereo against the paper: parameter counts, state_dict layout, the stages' numerics."""
+
 from __future__ import annotations
 
 import itertools
@@ -15,10 +16,14 @@ from stereo.model.cost_volume import concat_cost_volume
 from stereo.model.regression import upsample_cost
 
 PAPER_COUNTS = {
-    (False, False, False): 5_225_152, (True, False, False): 5_225_824,
-    (False, True, False): 5_119_744, (False, False, True): 5_226_008,
-    (True, True, False): 5_120_416, (True, False, True): 5_226_680,
-    (False, True, True): 5_120_600, (True, True, True): 5_121_272,
+    (False, False, False): 5_225_152,
+    (True, False, False): 5_225_824,
+    (False, True, False): 5_119_744,
+    (False, False, True): 5_226_008,
+    (True, True, False): 5_120_416,
+    (True, False, True): 5_226_680,
+    (False, True, True): 5_120_600,
+    (True, True, True): 5_121_272,
 }
 
 
@@ -40,8 +45,16 @@ def test_full_model_trainable_count_excludes_frozen_soft_argmin_weights():
 
 def test_params_command_table_is_counted_from_code():
     table = {name: total for name, total, _, _ in parameter_table()}
-    assert table == {"none": 5_225_152, "EMA": 5_225_824, "MSF": 5_119_744, "Coord": 5_226_008,
-                     "EMA+MSF": 5_120_416, "EMA+Coord": 5_226_680, "MSF+Coord": 5_120_600, "all": 5_121_272}
+    assert table == {
+        "none": 5_225_152,
+        "EMA": 5_225_824,
+        "MSF": 5_119_744,
+        "Coord": 5_226_008,
+        "EMA+MSF": 5_120_416,
+        "EMA+Coord": 5_226_680,
+        "MSF+Coord": 5_120_600,
+        "all": 5_121_272,
+    }
 
 
 def test_attention_module_sizes_match_paper():
@@ -49,10 +62,13 @@ def test_attention_module_sizes_match_paper():
     assert (count(EMA(128, 16)), count(MSFBlock(32)), count(CoordAtt(32, 32, 8))) == (672, 5_184, 856)
 
 
-@pytest.mark.parametrize(("ema", "msf", "coord", "listing"), [
-    (True, True, True, "emcstereo_authors_state_dict.txt"),
-    (False, False, False, "emcstereo_authors_noattn_state_dict.txt"),
-])
+@pytest.mark.parametrize(
+    ("ema", "msf", "coord", "listing"),
+    [
+        (True, True, True, "emcstereo_authors_state_dict.txt"),
+        (False, False, False, "emcstereo_authors_noattn_state_dict.txt"),
+    ],
+)
 def test_state_dict_in_authors_layout_matches_reference_key_for_key(reference_docs, ema, msf, coord, listing):
     expected = reference_keys(reference_docs, listing)
     ours = ours_to_authors(EMCStereo(ema, msf, coord).state_dict())
@@ -168,7 +184,8 @@ def test_eight_variants_have_distinct_key_sets():
 
 
 def test_a_disparity_range_the_hourglasses_cannot_halve_twice_is_refused_up_front():
-    """max_disp 20 (a multiple of 4, not of 16) used to crash deep inside the hourglass; now it is a clear ValueError."""
+    """max_disp 20 (a multiple of 4, not of 16) used to crash deep inside the hourglass; now it is a clear
+    ValueError."""
     with pytest.raises(ValueError, match="multiple of 16"):
         EMCStereo(max_disp=20)
     model = EMCStereo(max_disp=32).eval()

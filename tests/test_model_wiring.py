@@ -5,6 +5,7 @@ The hourglass stack is checked against a functional re-implementation written he
 published description (PSMNet's `stackhourglass.py` and OpenStereo's PSMNet cost processor), which
 shares no code with `stereo.model.aggregation`: only the weights.
 """
+
 from __future__ import annotations
 
 import copy
@@ -18,12 +19,20 @@ from stereo.model.aggregation import StackedHourglass
 
 
 def _bn(x: torch.Tensor, state: dict[str, torch.Tensor], name: str) -> torch.Tensor:
-    return F.batch_norm(x, state[f"{name}.running_mean"], state[f"{name}.running_var"],
-                        state[f"{name}.weight"], state[f"{name}.bias"], training=False, eps=1e-5)
+    return F.batch_norm(
+        x,
+        state[f"{name}.running_mean"],
+        state[f"{name}.running_var"],
+        state[f"{name}.weight"],
+        state[f"{name}.bias"],
+        training=False,
+        eps=1e-5,
+    )
 
 
-def _conv(x: torch.Tensor, state: dict[str, torch.Tensor], name: str, stride: int = 1,
-          relu: bool = True) -> torch.Tensor:
+def _conv(
+    x: torch.Tensor, state: dict[str, torch.Tensor], name: str, stride: int = 1, relu: bool = True
+) -> torch.Tensor:
     """3×3×3 convolution `name.0` + BatchNorm `name.1` (+ ReLU)."""
     y = _bn(F.conv3d(x, state[f"{name}.0.weight"], stride=stride, padding=1), state, f"{name}.1")
     return F.relu(y) if relu else y

@@ -1,4 +1,5 @@
 """`emcstereo export --onnx` and the `onnx` backend against the emcstereo backend on a real pair."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,8 +27,21 @@ def exported(tmp_path_factory) -> tuple[EMCStereo, str]:
     model = EMCStereo().eval()
     checkpoint = save_checkpoint(model, folder / "model.pt")
     onnx_path = folder / "model.onnx"
-    status = emcstereo_main(["export", "--onnx", str(onnx_path), "--weights", str(checkpoint),
-                             "--height", str(SIZE), "--width", str(SIZE), "--max-disp", str(RANGE)])
+    status = emcstereo_main(
+        [
+            "export",
+            "--onnx",
+            str(onnx_path),
+            "--weights",
+            str(checkpoint),
+            "--height",
+            str(SIZE),
+            "--width",
+            str(SIZE),
+            "--max-disp",
+            str(RANGE),
+        ]
+    )
     assert status == 0 and onnx_path.is_file()
     return model, str(onnx_path)
 

@@ -1,5 +1,6 @@
 """Overlay labels: distance and confidence a person can read, the target named as such, and
 labels that neither overlap each other nor leave the frame, even for a crowd of close branches."""
+
 from __future__ import annotations
 
 import itertools
@@ -20,8 +21,12 @@ def crowded_result(count: int, width: int, height: int, seed: int = 0) -> FrameR
     for i in range(count):
         u, v = width - 20 + rng.uniform(-20, 15), height / 2 + rng.uniform(-20, 20)
         z = 1.0 + 0.05 * i
-        branches.append(replace(branch(90 + i, [0.1, 0.0, z], confidence=0.87 - 0.01 * i, pixel=(u, v),
-                                       axis=(0.0, -1.0, 0.0)), distance_m=z))
+        branches.append(
+            replace(
+                branch(90 + i, [0.1, 0.0, z], confidence=0.87 - 0.01 * i, pixel=(u, v), axis=(0.0, -1.0, 0.0)),
+                distance_m=z,
+            )
+        )
     return frame_result(branches, target_id=93 if count > 3 else None, width=width, height=height, focal_px=500.0)
 
 
@@ -31,7 +36,11 @@ def test_label_text_is_distance_and_confidence_and_names_the_target():
     assert label_parts(one, is_target=True) == ["TARGET", "1.23 m", "87 %"]
     result = crowded_result(5, 640, 360)
     assert status_parts(result) == ["5 cut points", "target 1.15 m"]
-    assert status_parts(crowded_result(2, 640, 360), unlabelled=1) == ["2 cut points", "no target", "1 unlabelled (no room)"]
+    assert status_parts(crowded_result(2, 640, 360), unlabelled=1) == [
+        "2 cut points",
+        "no target",
+        "1 unlabelled (no room)",
+    ]
     assert "#" not in " ".join(status_parts(result))
 
 

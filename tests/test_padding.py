@@ -1,4 +1,5 @@
 """stereo.padding: top/right padding to multiples of 32 and at least 256, edge mode for images, zeros for disparity."""
+
 from __future__ import annotations
 
 import numpy as np

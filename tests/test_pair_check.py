@@ -1,4 +1,5 @@
 """Input sanity: row misalignment of a pair (warn / refuse) and Middlebury `doffs` in depth."""
+
 from __future__ import annotations
 
 import json
@@ -7,8 +8,8 @@ import logging
 import cv2
 import numpy as np
 import pytest
-
 from api_scene import BAR_DEPTH_M, BAR_DISPARITY, BASELINE_M, FOCAL_PX, bar_scene
+
 from branchrange.cli import main
 from branchrange.core.pair_check import REFUSE_DY_PX, PairRefusedError, check_rectification
 from camera import load_calibration
@@ -73,8 +74,11 @@ def test_api_reports_the_check_and_refuses_with_422(scene):
         replies = {}
         for shift in (3, 20):
             right = cv2.imencode(".png", np.roll(scene.right, shift, axis=0))[1].tobytes()
-            files = {"left": ("l.png", scene.png("left"), "image/png"), "right": ("r.png", right, "image/png"),
-                     "mask": ("m.png", scene.png("mask"), "image/png")}
+            files = {
+                "left": ("l.png", scene.png("left"), "image/png"),
+                "right": ("r.png", right, "image/png"),
+                "mask": ("m.png", scene.png("mask"), "image/png"),
+            }
             replies[shift] = client.post("/estimate", files=files, data=data)
     assert replies[3].status_code == 200 and replies[3].json()["pair_check"]["status"] == "warning"
     assert replies[20].status_code == 422 and "8 px limit" in replies[20].text
@@ -82,10 +86,12 @@ def test_api_reports_the_check_and_refuses_with_422(scene):
 
 def _middlebury_calib(path, doffs: float, width=320, height=256) -> str:
     cx, cy = (width - 1) / 2, (height - 1) / 2
-    path.write_text(f"cam0=[{FOCAL_PX} 0 {cx}; 0 {FOCAL_PX} {cy}; 0 0 1]\n"
-                    f"cam1=[{FOCAL_PX} 0 {cx + doffs}; 0 {FOCAL_PX} {cy}; 0 0 1]\n"
-                    f"doffs={doffs}\nbaseline={BASELINE_M * 1000}\nwidth={width}\nheight={height}\n"
-                    "ndisp=64\nisint=0\nvmin=10\nvmax=40\ndyavg=0\ndymax=0\n")
+    path.write_text(
+        f"cam0=[{FOCAL_PX} 0 {cx}; 0 {FOCAL_PX} {cy}; 0 0 1]\n"
+        f"cam1=[{FOCAL_PX} 0 {cx + doffs}; 0 {FOCAL_PX} {cy}; 0 0 1]\n"
+        f"doffs={doffs}\nbaseline={BASELINE_M * 1000}\nwidth={width}\nheight={height}\n"
+        "ndisp=64\nisint=0\nvmin=10\nvmax=40\ndyavg=0\ndymax=0\n"
+    )
     return str(path)
 
 
@@ -99,9 +105,11 @@ def test_middlebury_calib_with_doffs_gives_the_true_depth(scene, tmp_path):
     pair = _write_pair(tmp_path, scene.left, right, scene.mask)
     common = ["estimate", "--left", pair[0], "--right", pair[1], "--mask", str(tmp_path / "m.png"), "--max-disp", "64"]
     depths = {}
-    for name, camera in (("calib", ["--calib", calib]),
-                         ("doffs", ["--focal-px", str(FOCAL_PX), "--baseline-m", str(BASELINE_M), "--doffs", str(DOFFS_PX)]),
-                         ("ignored", ["--focal-px", str(FOCAL_PX), "--baseline-m", str(BASELINE_M)])):
+    for name, camera in (
+        ("calib", ["--calib", calib]),
+        ("doffs", ["--focal-px", str(FOCAL_PX), "--baseline-m", str(BASELINE_M), "--doffs", str(DOFFS_PX)]),
+        ("ignored", ["--focal-px", str(FOCAL_PX), "--baseline-m", str(BASELINE_M)]),
+    ):
         out = tmp_path / f"{name}.json"
         assert main(common + camera + ["--json", str(out)]) == 0
         (branch,) = json.loads(out.read_text())["branches"]

@@ -1,4 +1,5 @@
 """The per-frame pipeline against the synthetic generator's exact truth, its schema and its bad inputs."""
+
 from __future__ import annotations
 
 import json
@@ -9,8 +10,8 @@ import pytest
 
 from branchrange.core.config import SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
-from branchrange.core.masks import MaskError, masks_from_array
 from branchrange.core.frame_result import SCHEMA_PATH, Frame
+from branchrange.core.masks import MaskError, masks_from_array
 from branchrange.core.pipeline import Pipeline, PipelineConfig, PipelineInputError
 from branchrange.core.segmentation.segmenter import Segmenter
 from camera import StereoCalibration
@@ -41,14 +42,18 @@ def visible_truth(scene):
 
 def errors_by_truth(result, scene):
     estimates = {b.mask_id: np.array(b.cut_point_m) for b in result.branches}
-    return {b.id: float(np.linalg.norm(estimates[b.id] - np.array(b.cut_point_m)))
-            for b in visible_truth(scene) if b.id in estimates}
+    return {
+        b.id: float(np.linalg.norm(estimates[b.id] - np.array(b.cut_point_m)))
+        for b in visible_truth(scene)
+        if b.id in estimates
+    }
 
 
 @pytest.fixture(scope="module")
 def sgbm_result(scene):
-    return pipeline_for(scene, stereo=StereoConfig(mode="full", max_disp=128)).process(scene.left, scene.right, mask=scene.instance_mask,
-                                                     index=7, timestamp_ns=123)
+    return pipeline_for(scene, stereo=StereoConfig(mode="full", max_disp=128)).process(
+        scene.left, scene.right, mask=scene.instance_mask, index=7, timestamp_ns=123
+    )
 
 
 def test_sgbm_result_matches_the_schema_with_per_stage_timing(sgbm_result, validator):
@@ -91,11 +96,16 @@ def test_ground_truth_disparity_and_masks_give_sub_centimetre_cut_points(scene, 
 
 
 def test_built_in_segmenter_finds_branches_without_a_mask(scene, validator):
-    result = pipeline_for(scene, segmenter=SegmenterConfig(model="geometric")).process_disparity(scene.left, scene.disparity)
+    result = pipeline_for(scene, segmenter=SegmenterConfig(model="geometric")).process_disparity(
+        scene.left, scene.disparity
+    )
     validator.validate(result.to_json_dict())
     assert result.masks.source == "geometric"
-    found = [b for b in visible_truth(scene)
-             if any(np.linalg.norm(np.array(e.cut_point_m) - b.cut_point_m) < 0.05 for e in result.branches)]
+    found = [
+        b
+        for b in visible_truth(scene)
+        if any(np.linalg.norm(np.array(e.cut_point_m) - b.cut_point_m) < 0.05 for e in result.branches)
+    ]
     assert len(found) >= 2
 
 
@@ -114,10 +124,16 @@ class TruthSegmenter:
 def test_a_plugged_in_segmenter_replaces_the_built_in_one(scene):
     plugged = TruthSegmenter(scene.instance_mask)
     assert isinstance(plugged, Segmenter)
-    pipeline = Pipeline(PipelineConfig(cutpoints=CutPointConfig(tracking=False)), focal_px=scene.camera.focal_px,
-                        baseline_m=scene.camera.baseline_m, segmenter=plugged)
+    pipeline = Pipeline(
+        PipelineConfig(cutpoints=CutPointConfig(tracking=False)),
+        focal_px=scene.camera.focal_px,
+        baseline_m=scene.camera.baseline_m,
+        segmenter=plugged,
+    )
     result = pipeline.process_disparity(scene.left, scene.disparity)
-    given = pipeline_for(scene, cutpoints=CutPointConfig(tracking=False)).process_disparity(scene.left, scene.disparity, mask=scene.instance_mask)
+    given = pipeline_for(scene, cutpoints=CutPointConfig(tracking=False)).process_disparity(
+        scene.left, scene.disparity, mask=scene.instance_mask
+    )
     assert result.masks.source == "truth" and result.masks.trunk is True
     assert [b.cut_point_m for b in result.branches] == [b.cut_point_m for b in given.branches]
     assert len(result.branches) == len(visible_truth(scene))
@@ -138,16 +154,20 @@ def test_raw_calibration_path_rectifies_pair_and_mask(scene):
     """An unrectified calibration that happens to be ideal gives the same cut points as the rectified path."""
     cam = scene.camera
     k = np.array([[cam.focal_px, 0, cam.cx], [0, cam.focal_px, cam.cy], [0, 0, 1.0]])
-    raw = StereoCalibration(k, np.zeros(5), k, np.zeros(5), np.eye(3), np.array([-cam.baseline_m, 0, 0]),
-                            (cam.width, cam.height))
-    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="full", max_disp=128), cutpoints=CutPointConfig(tracking=False)),
-                        calibration=raw)
+    raw = StereoCalibration(
+        k, np.zeros(5), k, np.zeros(5), np.eye(3), np.array([-cam.baseline_m, 0, 0]), (cam.width, cam.height)
+    )
+    pipeline = Pipeline(
+        PipelineConfig(stereo=StereoConfig(mode="full", max_disp=128), cutpoints=CutPointConfig(tracking=False)),
+        calibration=raw,
+    )
     assert pipeline.rectifier is not None
     result = pipeline.process(scene.left, scene.right, mask=scene.instance_mask)
     assert result.camera.focal_px == pytest.approx(cam.focal_px, rel=1e-6)
     assert result.camera.baseline_m == pytest.approx(cam.baseline_m, rel=1e-6)
-    assert result.masks.instances == len(np.unique(scene.instance_mask[(scene.instance_mask > 0)
-                                                                            & (scene.instance_mask < 65533)]))
+    assert result.masks.instances == len(
+        np.unique(scene.instance_mask[(scene.instance_mask > 0) & (scene.instance_mask < 65533)])
+    )
     assert sum(e < 0.05 for e in errors_by_truth(result, scene).values()) >= 0.7 * len(visible_truth(scene))
 
 
@@ -170,8 +190,9 @@ def test_wrong_size_mask_is_refused(scene):
 
 
 def test_empty_mask_gives_an_empty_result_with_a_reason(scene, validator):
-    result = pipeline_for(scene).process_disparity(scene.left, scene.disparity,
-                                                   mask=np.zeros(scene.disparity.shape, np.uint16))
+    result = pipeline_for(scene).process_disparity(
+        scene.left, scene.disparity, mask=np.zeros(scene.disparity.shape, np.uint16)
+    )
     validator.validate(result.to_json_dict())
     assert result.branches == () and result.target_id is None and result.target is None
     assert "no branch instance" in result.reason

@@ -5,15 +5,16 @@ Tolerance: with ground-truth masks, for every branch whose whole-frame cut point
 the roi mode's cut point is within 1 cm of as good (the same full-resolution SGBM matches both,
 only over a window), and its median error is under 2 cm (the issue's target).
 """
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from synth_recording import tree_scene, truth_of
 
 from branchrange.core.config import RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.pipeline import Pipeline, PipelineConfig
-from synth_recording import tree_scene, truth_of
 
 UNTRACKED = CutPointConfig(tracking=False)
 ROI = RoiConfig(coarse_width=240)  # 480×270 frames: a coarse pass at 240×135 (scale 2), as HD720 → 640×360
@@ -22,23 +23,36 @@ ROI = RoiConfig(coarse_width=240)  # 480×270 frames: a coarse pass at 240×135 
 def _pipeline(mode: str, segmenter_name: str = "structure") -> Pipeline:
     scene = tree_scene()
     cam = scene.camera
-    return Pipeline(PipelineConfig(stereo=StereoConfig(mode=mode, max_disp=64), roi=ROI, cutpoints=UNTRACKED,
-                                   segmenter=SegmenterConfig(model=segmenter_name)),
-                    focal_px=cam.focal_px, baseline_m=cam.baseline_m, principal_point=(cam.cx, cam.cy))
+    return Pipeline(
+        PipelineConfig(
+            stereo=StereoConfig(mode=mode, max_disp=64),
+            roi=ROI,
+            cutpoints=UNTRACKED,
+            segmenter=SegmenterConfig(model=segmenter_name),
+        ),
+        focal_px=cam.focal_px,
+        baseline_m=cam.baseline_m,
+        principal_point=(cam.cx, cam.cy),
+    )
 
 
 @pytest.fixture(scope="module")
 def results():
     scene = tree_scene()
-    return {mode: _pipeline(mode).process(scene.left, scene.right, mask=scene.instance_mask) for mode in ("full", "roi")}
+    return {
+        mode: _pipeline(mode).process(scene.left, scene.right, mask=scene.instance_mask) for mode in ("full", "roi")
+    }
 
 
 def test_roi_cut_points_equal_whole_frame_ones_with_truth_masks(results):
     full = {b.mask_id: b for b in results["full"].branches}
     roi = {b.mask_id: b for b in results["roi"].branches}
     assert len(roi) >= len(full) - 1 and set(roi) & set(full)
+
     def error(branch: dict) -> float:
-        return float(np.linalg.norm(np.subtract(branch.cut_point_m, truth_of(tree_scene(), branch.mask_id).cut_point_m)))
+        return float(
+            np.linalg.norm(np.subtract(branch.cut_point_m, truth_of(tree_scene(), branch.mask_id).cut_point_m))
+        )
 
     right = [m for m in set(roi) & set(full) if error(full[m]) <= 0.05]
     assert len(right) >= 5
@@ -88,8 +102,12 @@ def test_a_backend_without_windowed_matching_is_refused_in_roi_mode():
             raise AssertionError
 
     scene = tree_scene()
-    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="roi", max_disp=64), roi=ROI), focal_px=240.0, baseline_m=0.063,
-                        backend=WholeFrameOnly())
+    pipeline = Pipeline(
+        PipelineConfig(stereo=StereoConfig(mode="roi", max_disp=64), roi=ROI),
+        focal_px=240.0,
+        baseline_m=0.063,
+        backend=WholeFrameOnly(),
+    )
     with pytest.raises(ValueError, match="cannot match regions of interest; use mode = 'full'"):
         pipeline.process(scene.left, scene.right, mask=scene.instance_mask)
 
@@ -105,10 +123,17 @@ def test_a_network_matches_only_the_nearest_regions_and_sgbm_the_rest():
     torch.manual_seed(0)
     scene = tree_scene()
     cam = scene.camera
-    pipeline = Pipeline(PipelineConfig(stereo=StereoConfig(mode="roi", max_disp=64),
-                                       roi=RoiConfig(coarse_width=240, network_regions=1), cutpoints=UNTRACKED),
-                        focal_px=cam.focal_px, baseline_m=cam.baseline_m, principal_point=(cam.cx, cam.cy),
-                        backend=EMCStereoBackend(EMCStereo(max_disp=64).eval()))
+    pipeline = Pipeline(
+        PipelineConfig(
+            stereo=StereoConfig(mode="roi", max_disp=64),
+            roi=RoiConfig(coarse_width=240, network_regions=1),
+            cutpoints=UNTRACKED,
+        ),
+        focal_px=cam.focal_px,
+        baseline_m=cam.baseline_m,
+        principal_point=(cam.cx, cam.cy),
+        backend=EMCStereoBackend(EMCStereo(max_disp=64).eval()),
+    )
     regions = pipeline.process(scene.left, scene.right, mask=scene.instance_mask).roi.regions
     by_network = [r for r in regions if r.backend == "emcstereo"]
     assert len(by_network) == 1 and {r.backend for r in regions} == {"emcstereo", "sgbm"}
@@ -127,8 +152,12 @@ def test_the_trunk_cylinder_comes_from_the_coarse_pass_in_metres():
     assert stage.coarse_trunk is not None and stage.coarse_trunk.disparity.shape == (135, 240)
     coarse = stage.coarse_trunk.fit(CutPointConfig())
     cam = scene.camera
-    full = fit_trunk(masks_from_array(scene.instance_mask).trunk_crop(), scene.disparity,
-                     pipeline.geometry_for(cam.width, cam.height), CutPointConfig())
+    full = fit_trunk(
+        masks_from_array(scene.instance_mask).trunk_crop(),
+        scene.disparity,
+        pipeline.geometry_for(cam.width, cam.height),
+        CutPointConfig(),
+    )
     assert coarse is not None and full is not None
     near = full.cylinder.axis.at(0.0)  # a point on the true-disparity axis: its distance from the coarse axis
     foot = coarse.cylinder.axis.at(coarse.cylinder.axis.parameters(near[None])[0])

@@ -4,6 +4,7 @@ The end-to-end tests fly `autopilot_sim.AutopilotSim` (real MAVLink 2 on 127.0.0
 plays the daemon: frames captured at 15 Hz, each published `LATENCY_S` later with its capture time,
 holding the true cut point seen from the true camera pose at capture plus stereo-like noise.
 """
+
 from __future__ import annotations
 
 import logging
@@ -12,10 +13,19 @@ import time
 
 import numpy as np
 import pytest
+from autopilot_sim import (
+    ARDUCOPTER_LOITER,
+    AutopilotSim,
+    approach_flight,
+    body_target_errors,
+    camera_point,
+    flight_from_camera_poses,
+    fly_frames,
+    noisy,
+)
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from result_factory import frame_result
 
-from autopilot_sim import (ARDUCOPTER_LOITER, AutopilotSim, approach_flight, body_target_errors, camera_point,
-                           flight_from_camera_poses, fly_frames, noisy)
 from branchrange.core.config import MavlinkConfig, TrackingConfig
 from branchrange.offline.flight import FlightCutPoint, FlightPose, FlightTruth
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
@@ -25,7 +35,6 @@ from branchrange.onboard.mavlink.frames import rotation_exp, rotation_log
 from branchrange.onboard.mavlink.messages import BodyPoint, FrameTargets, obstacles
 from branchrange.onboard.mavlink.vehicle_state import ClockOffset, Pose, VehicleState
 from branchrange.onboard.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
-from result_factory import frame_result
 
 MOUNT = CameraMount.from_rpy((0.0, -10.0, 0.0), (0.12, 0.0, 0.04))
 TRACKING = TrackingConfig()
@@ -42,12 +51,21 @@ def camera_flight(speed_m_s: float, seconds: float = 4.0) -> FlightTruth:
     poses = []
     for k in range(int(seconds * FPS) + 1):
         t = k / FPS
-        turn = np.radians([2.0 * math.sin(2 * math.pi * 0.4 * t), 5.0 * math.sin(2 * math.pi * 0.3 * t),
-                           3.0 * math.sin(2 * math.pi * 0.5 * t)])  # about camera x (pitch), y (yaw), z (roll)
-        shift = np.array([0.05 * math.sin(2 * math.pi * 0.5 * t), 0.02 * math.sin(2 * math.pi * 0.7 * t), speed_m_s * t])
+        turn = np.radians(
+            [
+                2.0 * math.sin(2 * math.pi * 0.4 * t),
+                5.0 * math.sin(2 * math.pi * 0.3 * t),
+                3.0 * math.sin(2 * math.pi * 0.5 * t),
+            ]
+        )  # about camera x (pitch), y (yaw), z (roll)
+        shift = np.array(
+            [0.05 * math.sin(2 * math.pi * 0.5 * t), 0.02 * math.sin(2 * math.pi * 0.7 * t), speed_m_s * t]
+        )
         poses.append(FlightPose(k, 1_000_000_000 + round(t * 1e9), rotation_exp(turn), shift))
-    return FlightTruth(poses, [FlightCutPoint(1, np.array([0.05, 0.12, 1.7]), 0.01),
-                               FlightCutPoint(2, np.array([0.35, 0.10, 1.75]), 0.008)])
+    return FlightTruth(
+        poses,
+        [FlightCutPoint(1, np.array([0.05, 0.12, 1.7]), 0.01), FlightCutPoint(2, np.array([0.35, 0.10, 1.75]), 0.008)],
+    )
 
 
 FLIGHT = camera_flight(0.5)
@@ -58,8 +76,13 @@ CUT_NED, OTHER_NED = (WORLD_TO_NED(c.world_m) for c in FLIGHT.cut_points)
 
 def attitude_msg(t_boot: float, pose: Pose, rates=(0.0, 0.0, 0.0)):
     r = pose.rotation
-    return mavlink2.MAVLink_attitude_message(int(round(t_boot * 1000)), math.atan2(r[2, 1], r[2, 2]), -math.asin(r[2, 0]),
-                                             math.atan2(r[1, 0], r[0, 0]), *rates)
+    return mavlink2.MAVLink_attitude_message(
+        int(round(t_boot * 1000)),
+        math.atan2(r[2, 1], r[2, 2]),
+        -math.asin(r[2, 0]),
+        math.atan2(r[1, 0], r[0, 0]),
+        *rates,
+    )
 
 
 def position_msg(t_boot: float, pose: Pose, velocity=(0.0, 0.0, 0.0)):
@@ -116,7 +139,11 @@ def test_a_flight_json_is_flown_with_the_camera_where_its_poses_put_it(tmp_path)
             np.testing.assert_allclose(camera_point(body, world_to_ned(cut.world_m), MOUNT), expected_cam, atol=1e-9)
     first = trajectory(0.0)
     np.testing.assert_allclose(first.position_m, START, atol=1e-12)
-    np.testing.assert_allclose(first.rotation[:, 0], [math.cos(math.radians(HEADING_DEG)), math.sin(math.radians(HEADING_DEG)), 0.0], atol=1e-12)
+    np.testing.assert_allclose(
+        first.rotation[:, 0],
+        [math.cos(math.radians(HEADING_DEG)), math.sin(math.radians(HEADING_DEG)), 0.0],
+        atol=1e-12,
+    )
 
 
 # ---- NED tracks (no network) -----------------------------------------------------------------------
@@ -130,7 +157,9 @@ def measure(track_set: WorldTracks, rng, t: float, points_ned, target_branch=0):
     for i, p in enumerate(points_ned):
         cam = cam_to_ned.T @ (p - camera_ned)
         z_cam = noisy(cam, rng, TRACKING)
-        zs.append(Measurement(i, cam_to_ned @ z_cam + camera_ned, measurement_covariance(z_cam, cam_to_ned, TRACKING), 0.8))
+        zs.append(
+            Measurement(i, cam_to_ned @ z_cam + camera_ned, measurement_covariance(z_cam, cam_to_ned, TRACKING), 0.8)
+        )
     return track_set.update(zs, t, target_branch)
 
 
@@ -148,7 +177,7 @@ def test_ten_observations_fuse_within_two_centimetres_and_the_sigma_falls():
         assert track.observations == 10
         errors.append(float(np.linalg.norm(track.position_m - truth)))
     assert max(errors) < 0.02 and float(np.median(errors)) < 0.01, errors
-    assert sigmas[0] == pytest.approx(TRACKING.depth_sigma_at_1m_m * 1.5 ** 2, rel=0.01)
+    assert sigmas[0] == pytest.approx(TRACKING.depth_sigma_at_1m_m * 1.5**2, rel=0.01)
     assert sigmas[-1] == pytest.approx(sigmas[0] / math.sqrt(10), rel=0.05)  # equal measurements: σ/√n
 
 
@@ -190,7 +219,9 @@ def guided(armed=True, mode=4) -> PeerHeartbeat:
 
 
 def test_approach_setpoint_stands_off_limits_its_step_and_speed():
-    cfg = MavlinkConfig(setpoint_enabled=True, setpoint_standoff_m=0.5, setpoint_max_step_m=1.0, setpoint_max_speed_m_s=0.5)
+    cfg = MavlinkConfig(
+        setpoint_enabled=True, setpoint_standoff_m=0.5, setpoint_max_step_m=1.0, setpoint_max_speed_m_s=0.5
+    )
     tracks = WorldTracks(TRACKING)
     rng = np.random.default_rng(1)
     for k in range(6):
@@ -255,8 +286,10 @@ def test_fused_target_and_latency_compensated_body_target_match_the_truth():
     # every DEBUG_VECT from the 6th frame on, against the truth in the body frame of its arrival
     compensated, uncompensated = body_target_errors(sim, published, MOUNT, CUT_NED, skip_frames=5)
     assert len(compensated) >= 5
-    print(f"body-frame target error: compensated median {1000 * np.median(compensated):.1f} mm "
-          f"(max {1000 * max(compensated):.1f}), uncompensated median {1000 * np.median(uncompensated):.1f} mm")
+    print(
+        f"body-frame target error: compensated median {1000 * np.median(compensated):.1f} mm "
+        f"(max {1000 * max(compensated):.1f}), uncompensated median {1000 * np.median(uncompensated):.1f} mm"
+    )
     assert np.median(compensated) < 0.015 and max(compensated) < 0.03
     assert np.median(uncompensated) > 5 * np.median(compensated)
 
@@ -264,8 +297,10 @@ def test_fused_target_and_latency_compensated_body_target_match_the_truth():
 def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so(caplog):
     caplog.set_level(logging.INFO, logger="branchrange.mavlink")
     rng = np.random.default_rng(2)
-    with AutopilotSim(approach_flight(0.5), heartbeat_period_s=0.2, answer_interval_requests=False) as sim, \
-            relay_for(sim) as relay:
+    with (
+        AutopilotSim(approach_flight(0.5), heartbeat_period_s=0.2, answer_interval_requests=False) as sim,
+        relay_for(sim) as relay,
+    ):
         published = fly(sim, relay, 3, rng, latency_s=0.05)
         time.sleep(0.05)
         state, targets = relay.link_state(), relay.targets()
@@ -273,7 +308,9 @@ def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so(c
     assert targets.to_json_dict() == {"frame": "camera", "target_track_id": None, "tracks": []}
     assert any("no vehicle state" in r.getMessage() for r in caplog.records)
     sent = [r for r in sim.of_type("DEBUG_VECT") if not math.isnan(r.msg.x)]
-    np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5)
+    np.testing.assert_allclose(
+        [sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5
+    )
 
 
 def test_when_the_pose_stops_the_relay_falls_back_to_the_camera_frame_and_warns(caplog):
@@ -294,7 +331,9 @@ def test_when_the_pose_stops_the_relay_falls_back_to_the_camera_frame_and_warns(
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("no vehicle state" in w for w in warnings)
     sent = [r for r in sim.of_type("DEBUG_VECT") if not math.isnan(r.msg.x)]
-    np.testing.assert_allclose([sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5)
+    np.testing.assert_allclose(
+        [sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5
+    )
 
 
 def setpoints_between(sim: AutopilotSim, start: float, end: float):
@@ -305,9 +344,15 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     rng = np.random.default_rng(5)
     tracking = TrackingConfig(stale_after_s=0.4, forget_after_s=2.0)
     with AutopilotSim(approach_flight(0.3), heartbeat_period_s=0.05) as sim:
-        cfg = MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0,
-                            setpoint_enabled=True, setpoint_min_observations=5, setpoint_standoff_m=0.6,
-                            setpoint_max_step_m=2.0)
+        cfg = MavlinkConfig(
+            url=f"udpout:127.0.0.1:{sim.port}",
+            send_rate_hz=10.0,
+            state_rate_hz=50.0,
+            setpoint_enabled=True,
+            setpoint_min_observations=5,
+            setpoint_standoff_m=0.6,
+            setpoint_max_step_m=2.0,
+        )
         with MavlinkRelay(cfg, MOUNT, tracking=tracking) as relay:
             wait_for_state(relay)
             fly(sim, relay, 8, rng, latency_s=0.1)
@@ -331,7 +376,9 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     assert sp.msg.coordinate_frame == 1 and sp.msg.target_system == 1 and sp.msg.target_component == 1
     standoff = np.array([sp.msg.x, sp.msg.y, sp.msg.z])
     horizontal = (CUT_NED - standoff)[:2]
-    assert np.linalg.norm(horizontal) == pytest.approx(0.6, abs=0.03) and sp.msg.z == pytest.approx(CUT_NED[2], abs=0.02)
+    assert np.linalg.norm(horizontal) == pytest.approx(0.6, abs=0.03) and sp.msg.z == pytest.approx(
+        CUT_NED[2], abs=0.02
+    )
     assert np.linalg.norm(standoff - truth.position_m) <= 2.0 + 1e-3
     margin = 0.05 + 0.1 + 0.02  # one heartbeat period + one send period + delivery
     assert setpoints_between(sim, guided_until + margin, loiter_until) == []
@@ -342,15 +389,27 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     assert state["setpoints_sent"] == len(sim.of_type("SET_POSITION_TARGET_LOCAL_NED"))
 
 
-@pytest.mark.parametrize("data, message", [
-    ({"tracking": {"forget_after_s": 0.5}}, r"tracking\.forget_after_s = 0\.5: expected seconds >= tracking\.stale_after_s \(1\.5\)"),
-    ({"tracking": {"gate_m": 0}}, r"tracking\.gate_m = 0\.0: expected metres > 0"),
-    ({"tracking": {"gate": 0.1}}, r"tracking\.gate: unknown option; \[tracking\] takes "),
-    ({"mavlink": {"state_rate_hz": 500}}, r"mavlink\.state_rate_hz = 500\.0: expected a rate in \[1, 100\] Hz"),
-    ({"mavlink": {"obstacle_min_confidence": 1.5}}, r"mavlink\.obstacle_min_confidence = 1\.5: expected a number in \[0, 1\]"),
-    ({"mavlink": {"setpoint_max_speed_m_s": 9}}, r"mavlink\.setpoint_max_speed_m_s = 9\.0: expected a speed in \(0, 5\] m/s"),
-    ({"mavlink": {"heartbeat_timeout_s": 0}}, r"mavlink\.heartbeat_timeout_s = 0\.0: expected seconds > 0"),
-])
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        (
+            {"tracking": {"forget_after_s": 0.5}},
+            r"tracking\.forget_after_s = 0\.5: expected seconds >= tracking\.stale_after_s \(1\.5\)",
+        ),
+        ({"tracking": {"gate_m": 0}}, r"tracking\.gate_m = 0\.0: expected metres > 0"),
+        ({"tracking": {"gate": 0.1}}, r"tracking\.gate: unknown option; \[tracking\] takes "),
+        ({"mavlink": {"state_rate_hz": 500}}, r"mavlink\.state_rate_hz = 500\.0: expected a rate in \[1, 100\] Hz"),
+        (
+            {"mavlink": {"obstacle_min_confidence": 1.5}},
+            r"mavlink\.obstacle_min_confidence = 1\.5: expected a number in \[0, 1\]",
+        ),
+        (
+            {"mavlink": {"setpoint_max_speed_m_s": 9}},
+            r"mavlink\.setpoint_max_speed_m_s = 9\.0: expected a speed in \(0, 5\] m/s",
+        ),
+        ({"mavlink": {"heartbeat_timeout_s": 0}}, r"mavlink\.heartbeat_timeout_s = 0\.0: expected seconds > 0"),
+    ],
+)
 def test_pose_and_tracking_settings_name_the_key_and_the_range(data, message):
     from branchrange.core.config import ConfigError, config_from_dict
 

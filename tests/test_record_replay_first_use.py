@@ -1,5 +1,6 @@
 """`record` from a plain folder of pairs, `record`/`replay` exit codes on deleted and truncated
 recordings, the run header of results logs, and progress output when stderr is not a terminal."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -9,6 +10,7 @@ import shutil
 
 import numpy as np
 import pytest
+from synth_recording import still_camera_frames, tree_scene, write_tree_recording
 
 from branchrange.cli import main as branchrange_main
 from branchrange.core.config import Config, StereoConfig
@@ -16,7 +18,6 @@ from branchrange.core.frame_results import RUN_HEADER_SCHEMA, config_sha256, rea
 from camera.sources import ReplaySource
 from camera.sources.image_files import write_mask, write_rgb
 from stereo.progress import progress_bar
-from synth_recording import still_camera_frames, tree_scene, write_tree_recording
 
 PERIOD_NS = 500_000_000
 FRAMES = 3
@@ -44,8 +45,19 @@ def pair_folder(tmp_path_factory):
 def test_record_from_a_folder_of_pairs_pairs_by_name_and_stamps_by_fps(pair_folder, recording, tmp_path, capsys):
     folder, frames = pair_folder
     out = tmp_path / "out"
-    status = branchrange_main(["record", "--source", f"replay:{folder}", "--out", str(out), "--fps", "10",
-                               "--calibration", str(recording / "calibration.yaml")])
+    status = branchrange_main(
+        [
+            "record",
+            "--source",
+            f"replay:{folder}",
+            "--out",
+            str(out),
+            "--fps",
+            "10",
+            "--calibration",
+            str(recording / "calibration.yaml"),
+        ]
+    )
     assert status == 0, capsys.readouterr().err
     replayed = list(ReplaySource(out, pace="fast"))
     assert [f.timestamp_ns for f in replayed] == [0, 100_000_000, 200_000_000]
@@ -89,8 +101,7 @@ def _damage(recording, tmp_path, how):
 
 
 @pytest.mark.parametrize("how", ["deleted", "truncated csv", "truncated manifest", "images gone"])
-def test_record_and_replay_agree_on_exit_code_2_for_a_deleted_or_truncated_recording(recording, tmp_path,
-                                                                                     capsys, how):
+def test_record_and_replay_agree_on_exit_code_2_for_a_deleted_or_truncated_recording(recording, tmp_path, capsys, how):
     broken = _damage(recording, tmp_path, how)
     assert branchrange_main(["record", "--source", f"replay:{broken}", "--out", str(tmp_path / "rec")]) == 2
     record_err = capsys.readouterr().err

@@ -1,4 +1,5 @@
 """Offline replay of a recorded synthetic tree sequence: results, summary, overlay video, equality with the daemon."""
+
 from __future__ import annotations
 
 import json
@@ -11,16 +12,22 @@ import cv2
 import jsonschema
 import numpy as np
 import pytest
+from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, truth_of, write_tree_recording
 
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.replay import summary_path
 from branchrange.core.config import Config, StereoConfig
-from branchrange.onboard.daemon import Daemon
-from branchrange.core.frame_results import pipeline_for, read_results, read_runs
-from branchrange.offline.overlay_video import DEFAULT_CODECS, OverlayVideoWriter, VideoCodec, VideoWriteError, check_video
 from branchrange.core.frame_result import SCHEMA_PATH
+from branchrange.core.frame_results import pipeline_for, read_results, read_runs
+from branchrange.offline.overlay_video import (
+    DEFAULT_CODECS,
+    OverlayVideoWriter,
+    VideoCodec,
+    VideoWriteError,
+    check_video,
+)
+from branchrange.onboard.daemon import Daemon
 from camera.sources import Recorder, ReplaySource, StereoFrame
-from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, truth_of, write_tree_recording
 
 FRAMES = 4
 PERIOD_NS = 500_000_000  # 2 fps: the daemon comparison replays at this pace and must not drop frames
@@ -46,8 +53,19 @@ def replayed(recording, config_file, tmp_path_factory):
     """`branchrange replay REC --out … --overlay-video … --summary` run once; its outputs."""
     out = tmp_path_factory.mktemp("out")
     results, video = out / "results.jsonl", out / "overlay.mp4"
-    status = branchrange_main(["replay", str(recording), "--out", str(results), "--overlay-video", str(video),
-                               "--summary", "--config", str(config_file)])
+    status = branchrange_main(
+        [
+            "replay",
+            str(recording),
+            "--out",
+            str(results),
+            "--overlay-video",
+            str(video),
+            "--summary",
+            "--config",
+            str(config_file),
+        ]
+    )
     ((_, lines),) = read_runs(results)  # the JSON records as written
     assert [r.to_json_dict() for r in read_results(results)] == lines  # read back typed, written back the same
     return status, lines, json.loads(summary_path(results).read_text()), video
@@ -75,9 +93,15 @@ def test_replay_writes_one_schema_valid_result_per_frame_from_the_recorded_masks
     assert status == 0 and len(lines) == FRAMES
     for i, result in enumerate(lines):
         jsonschema.validate(result, SCHEMA)
-        assert result["frame"] == {"index": i, "timestamp_ns": 1_000_000_000 + i * PERIOD_NS,
-                                   "width": WIDTH, "height": HEIGHT}
-        assert result["masks"]["source"] == "array" and result["masks"]["trunk"] is True  # ground truth, not the segmenter
+        assert result["frame"] == {
+            "index": i,
+            "timestamp_ns": 1_000_000_000 + i * PERIOD_NS,
+            "width": WIDTH,
+            "height": HEIGHT,
+        }
+        assert (
+            result["masks"]["source"] == "array" and result["masks"]["trunk"] is True
+        )  # ground truth, not the segmenter
         assert result["stereo"]["backend"] == "sgbm-roi" and result["stereo"]["max_disparity"] == 64
     # a still camera: the target keeps its track id and its mask instance throughout
     targets = {(b["id"], b["mask_id"]) for r in lines for b in r["branches"] if b["id"] == r["target_id"]}
@@ -94,15 +118,21 @@ def test_replay_target_distance_matches_the_ground_truth(replayed):
         assert target["distance_m"] == pytest.approx(math.dist((0, 0, 0), truth.cut_point_m), abs=0.03)
         assert math.dist(target["cut_point_m"], truth.cut_point_m) < 0.05
     assert summary["distance_m"]["target"]["median"] == pytest.approx(
-        math.dist((0, 0, 0), truth_of(scene, target["mask_id"]).cut_point_m), abs=0.03)
+        math.dist((0, 0, 0), truth_of(scene, target["mask_id"]).cut_point_m), abs=0.03
+    )
 
 
 def test_replay_summary_counts_what_the_results_hold(replayed):
     _, lines, summary, video = replayed
     distances = [b["distance_m"] for r in lines for b in r["branches"]]
     targets = [b["distance_m"] for r in lines for b in r["branches"] if b["id"] == r["target_id"]]
-    assert summary["frames"] == {"processed": FRAMES, "corrupt": 0, "rejected": 0,
-                                 "with_branches": FRAMES, "with_target": FRAMES}
+    assert summary["frames"] == {
+        "processed": FRAMES,
+        "corrupt": 0,
+        "rejected": 0,
+        "with_branches": FRAMES,
+        "with_target": FRAMES,
+    }
     assert summary["branches"]["detections"] == len(distances)
     assert summary["branches"]["tracks"] == len({b["id"] for r in lines for b in r["branches"]})
     assert summary["branches"]["target_tracks"] == len({r["target_id"] for r in lines})
@@ -133,7 +163,7 @@ def test_overlay_video_reopens_with_one_frame_per_result(replayed):
     # the target ring is drawn in red (RGB 255,40,40 → BGR) around the target's cut pixel
     target = next(b for b in lines[0]["branches"] if b["id"] == lines[0]["target_id"])
     u, v = (int(round(c)) for c in target["pixel"])
-    window = decoded[0][max(v - 12, 0):v + 13, max(u - 12, 0):u + 13].reshape(-1, 3).astype(int)
+    window = decoded[0][max(v - 12, 0) : v + 13, max(u - 12, 0) : u + 13].reshape(-1, 3).astype(int)
     reddish = (window[:, 2] > 180) & (window[:, 1] < 110) & (window[:, 0] < 110)
     assert reddish.sum() >= 10
 
@@ -180,8 +210,12 @@ def test_replay_results_equal_the_daemons_on_the_same_recording(recording, repla
     _, replay_lines, _, _ = replayed
     cfg = Config(stereo=StereoConfig(max_disp=64))
     source = ReplaySource(recording)  # paced at the recorded 2 fps, through the daemon's latest-frame-wins
-    daemon = Daemon(cfg, open_source=lambda: source, pipeline=pipeline_for(cfg, source.calibration),
-                    results_path=tmp_path / "daemon.jsonl")
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: source,
+        pipeline=pipeline_for(cfg, source.calibration),
+        results_path=tmp_path / "daemon.jsonl",
+    )
     try:
         daemon.run()
     finally:
@@ -192,5 +226,6 @@ def test_replay_results_equal_the_daemons_on_the_same_recording(recording, repla
     for result in daemon_lines:
         replayed_result = by_index[result["frame"]["index"]]
         timing = ("timing_ms", "latency")  # the daemon's results also say how old they were when sent
-        assert {k: v for k, v in result.items() if k not in timing} == \
-               {k: v for k, v in replayed_result.items() if k not in timing}
+        assert {k: v for k, v in result.items() if k not in timing} == {
+            k: v for k, v in replayed_result.items() if k not in timing
+        }

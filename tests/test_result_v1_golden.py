@@ -6,6 +6,7 @@ header's time and version, and the seconds the demo prints. Key order, number fo
 which optional keys appear are compared as written. `BRANCHRANGE_WRITE_GOLDEN=1` rewrites the files
 (only after a deliberate, documented change of the format).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -14,13 +15,13 @@ import re
 from pathlib import Path
 
 import cv2
+from synth_recording import write_tree_recording
 
 from branchrange.cli import main
 from branchrange.core.frame_results import read_results, result_line
 from stereo.io import write_rgb
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.writer import write_mask
-from synth_recording import write_tree_recording
 
 GOLDEN = Path(__file__).with_name("data") / "result_v1"
 WRITE = os.environ.get("BRANCHRANGE_WRITE_GOLDEN") == "1"
@@ -51,8 +52,11 @@ def test_the_masking_keeps_everything_but_the_varying_values():
 
 def test_demo_writes_the_v1_result_table_and_overlay_it_wrote_before(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "demo")]) == 0
-    printed = "\n".join(line for line in capsys.readouterr().out.splitlines()
-                        if not line.startswith(("rendered scene", "pipeline:", "wrote", "\nwrote")))
+    printed = "\n".join(
+        line
+        for line in capsys.readouterr().out.splitlines()
+        if not line.startswith(("rendered scene", "pipeline:", "wrote", "\nwrote"))
+    )
     _check("demo_result.json", _mask_varying((tmp_path / "demo" / "result.json").read_text(encoding="utf-8")))
     _check("demo_stdout.txt", printed + "\n")
     overlay = cv2.imread(str(tmp_path / "demo" / "overlay.png"))
@@ -65,9 +69,28 @@ def test_estimate_writes_the_v1_json_with_its_pair_check_as_before(tmp_path):
     write_rgb(tmp_path / "right.png", scene.right)
     write_mask(tmp_path / "mask.png", scene.instance_mask)
     out = tmp_path / "r.json"
-    assert main(["estimate", "--left", str(tmp_path / "left.png"), "--right", str(tmp_path / "right.png"),
-                 "--focal-px", str(scene.camera.focal_px), "--baseline-m", str(scene.camera.baseline_m),
-                 "--mask", str(tmp_path / "mask.png"), "--max-disp", "128", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "estimate",
+                "--left",
+                str(tmp_path / "left.png"),
+                "--right",
+                str(tmp_path / "right.png"),
+                "--focal-px",
+                str(scene.camera.focal_px),
+                "--baseline-m",
+                str(scene.camera.baseline_m),
+                "--mask",
+                str(tmp_path / "mask.png"),
+                "--max-disp",
+                "128",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     _check("estimate.json", _mask_varying(out.read_text(encoding="utf-8")).replace(str(tmp_path), "TMP"))
 
 

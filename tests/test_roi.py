@@ -1,4 +1,5 @@
 """Coarse-to-fine planning (`branchrange.core.roi`): boxes, disparity windows and which instances get a fine pass."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -37,10 +38,11 @@ def test_plan_gives_each_branch_a_region_and_keeps_the_nearest():
     labels[0:40, 0:8] = 65535  # the trunk, far
     coarse_disp[:, 0:4] = 5.0
     for k, x in enumerate(range(10, 80, 10), start=1):
-        labels[10:30, x:x + 4] = k
-        coarse_disp[5:15, x // 2:x // 2 + 2] = 10.0 + k  # branch k: nearer with k
-    regions = plan_regions(BranchMasks(labels, 65535), labels[::2, ::2], coarse_disp, 2,
-                           RoiConfig(max_regions=3, box_margin_px=2), 128)
+        labels[10:30, x : x + 4] = k
+        coarse_disp[5:15, x // 2 : x // 2 + 2] = 10.0 + k  # branch k: nearer with k
+    regions = plan_regions(
+        BranchMasks(labels, 65535), labels[::2, ::2], coarse_disp, 2, RoiConfig(max_regions=3, box_margin_px=2), 128
+    )
     assert [r.instance_id for r in regions] == [5, 6, 7]  # the trunk keeps its coarse disparity
     assert regions[-1].box == (68, 8, 76, 32)  # branch 7 at x 70..73, y 10..29, grown by 2 px
 
@@ -49,8 +51,8 @@ def test_refined_labels_follow_the_fine_disparity_inside_the_window():
     coarse = np.zeros((10, 20), np.int32)
     coarse[3:6, 5:8] = 1
     fine = np.zeros((20, 40), np.float32)
-    fine[5:13, 9:17] = 40.0   # the branch at full resolution, slightly wider than its coarse cells
-    fine[0:20, 0:9] = 10.0    # background, outside the window
+    fine[5:13, 9:17] = 40.0  # the branch at full resolution, slightly wider than its coarse cells
+    fine[0:20, 0:9] = 10.0  # background, outside the window
     from branchrange.core.roi import Region
 
     coarse[0:2, 0:2] = 9  # the trunk: kept as up-sampled, it has no fine pass

@@ -1,4 +1,5 @@
 """The rosbag: source on small hand-made bags: encodings, stamp pairing, CameraInfo calibration, clear errors."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,8 +12,14 @@ from camera.calibration import CalibrationError, from_rectified
 from camera.opencv_file import write_opencv_file
 from camera.rectify import Rectifier
 from camera.sources import CorruptFrameError, SourceConfigError, SourceUnavailable, StereoFrame, open_source
-from camera.sources.rosbag import (CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE, BagTopics, RosbagSource,
-                                   parse_rosbag_spec)
+from camera.sources.rosbag import (
+    CAMERA_INFO_TYPE,
+    COMPRESSED_TYPE,
+    IMAGE_TYPE,
+    BagTopics,
+    RosbagSource,
+    parse_rosbag_spec,
+)
 from camera.sources.rosbag_writer import camera_info_message, image_message, write_bag
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
@@ -45,8 +52,10 @@ def write_messages(path, messages, storage=StoragePlugin.MCAP):
 def info_rows(stamp: int, right_p: np.ndarray | None = None):
     rect = Rectifier(CALIBRATION)
     p2 = rect.P2 if right_p is None else right_p
-    return [(TOPICS.left_info, CAMERA_INFO_TYPE, camera_info_message(STORE.types, rect.P1, SIZE, stamp, "l"), stamp),
-            (TOPICS.right_info, CAMERA_INFO_TYPE, camera_info_message(STORE.types, p2, SIZE, stamp, "r"), stamp)]
+    return [
+        (TOPICS.left_info, CAMERA_INFO_TYPE, camera_info_message(STORE.types, rect.P1, SIZE, stamp, "l"), stamp),
+        (TOPICS.right_info, CAMERA_INFO_TYPE, camera_info_message(STORE.types, p2, SIZE, stamp, "r"), stamp),
+    ]
 
 
 def image_row(side: str, rgb: np.ndarray, stamp: int, encoding: str = "bgr8"):
@@ -82,7 +91,7 @@ def test_mono8_and_jpeg_decode_to_rgb(tmp_path):
     luma = sent[0].left.astype(float) @ [0.299, 0.587, 0.114]
     assert np.abs(frame.left[..., 0] - luma).max() <= 1
 
-    y, x = np.mgrid[0:SIZE[1], 0:SIZE[0]]
+    y, x = np.mgrid[0 : SIZE[1], 0 : SIZE[0]]
     smooth = np.stack([x * 6, y * 10, np.full_like(x, 200)], axis=-1).astype(np.uint8)  # R, G, B all different
     write_bag([StereoFrame(smooth, smooth, 0, 0)], CALIBRATION, tmp_path / "jpeg", encoding="jpeg")
     with RosbagSource(tmp_path / "jpeg", pace="fast") as source:
@@ -95,19 +104,25 @@ def test_left_and_right_pair_by_stamp_within_the_tolerance_and_the_rest_is_count
     rows = info_rows(0)
     # pair 0: right 2 ms late (paired); a left alone at 50 ms; pair 1 at 100 ms with the right first;
     # a right alone at 150 ms; pair 2 at 200 ms; a trailing left at 300 ms.
-    rows += [image_row("left", pattern(0), 0), image_row("right", pattern(1), 2 * ms),
-             image_row("left", pattern(2), 50 * ms),
-             image_row("right", pattern(3), 100 * ms), image_row("left", pattern(4), 100 * ms),
-             image_row("right", pattern(5), 150 * ms),
-             image_row("left", pattern(6), 200 * ms), image_row("right", pattern(7), 201 * ms),
-             image_row("left", pattern(8), 300 * ms)]
+    rows += [
+        image_row("left", pattern(0), 0),
+        image_row("right", pattern(1), 2 * ms),
+        image_row("left", pattern(2), 50 * ms),
+        image_row("right", pattern(3), 100 * ms),
+        image_row("left", pattern(4), 100 * ms),
+        image_row("right", pattern(5), 150 * ms),
+        image_row("left", pattern(6), 200 * ms),
+        image_row("right", pattern(7), 201 * ms),
+        image_row("left", pattern(8), 300 * ms),
+    ]
     path = write_messages(tmp_path / "bag", rows)
     with open_source(f"rosbag:{path}?tolerance_ms=5", pace="fast") as source:
         got = list(source)
         unpaired = source.unpaired
     assert [f.timestamp_ns for f in got] == [0, 100 * ms, 200 * ms]
-    assert [np.array_equal(f.left, pattern(s)) and np.array_equal(f.right, pattern(s + 1))
-            for f, s in zip(got, (0, 3, 6))] == [True, False, True]  # pair 1: right was pattern(3), left pattern(4)
+    assert [
+        np.array_equal(f.left, pattern(s)) and np.array_equal(f.right, pattern(s + 1)) for f, s in zip(got, (0, 3, 6))
+    ] == [True, False, True]  # pair 1: right was pattern(3), left pattern(4)
     assert np.array_equal(got[1].left, pattern(4)) and np.array_equal(got[1].right, pattern(3))
     assert unpaired == {"left": 2, "right": 1}
     assert "2 left and 1 right images had no partner within 5.0 ms" in caplog.text
@@ -140,18 +155,26 @@ def test_a_missing_topic_names_the_topics_the_bag_has(tmp_path):
 def test_topics_from_the_spec_override_the_zed_defaults(tmp_path):
     custom = BagTopics("/cam/l/image", "/cam/r/image", "/cam/l/info", "/cam/r/info")
     write_bag(frames(2), CALIBRATION, tmp_path / "bag", topics=custom)
-    spec = (f"rosbag:{tmp_path / 'bag'}?left=/cam/l/image&right=/cam/r/image"
-            "&left_info=/cam/l/info&right_info=/cam/r/info")
+    spec = (
+        f"rosbag:{tmp_path / 'bag'}?left=/cam/l/image&right=/cam/r/image&left_info=/cam/l/info&right_info=/cam/r/info"
+    )
     with open_source(spec, pace="fast") as source:
         assert len(list(source)) == 2
 
 
 def test_an_unsupported_encoding_is_named(tmp_path):
-    msg = STORE.types[IMAGE_TYPE](header=image_message(STORE.types, pattern(0), 0, "l", "rgb8").header, height=SIZE[1],
-                                  width=SIZE[0], encoding="16UC1", is_bigendian=0, step=2 * SIZE[0],
-                                  data=np.zeros(2 * SIZE[0] * SIZE[1], np.uint8))
-    path = write_messages(tmp_path / "bag", info_rows(0) + [(TOPICS.left, IMAGE_TYPE, msg, 0),
-                                                            (TOPICS.right, IMAGE_TYPE, msg, 0)])
+    msg = STORE.types[IMAGE_TYPE](
+        header=image_message(STORE.types, pattern(0), 0, "l", "rgb8").header,
+        height=SIZE[1],
+        width=SIZE[0],
+        encoding="16UC1",
+        is_bigendian=0,
+        step=2 * SIZE[0],
+        data=np.zeros(2 * SIZE[0] * SIZE[1], np.uint8),
+    )
+    path = write_messages(
+        tmp_path / "bag", info_rows(0) + [(TOPICS.left, IMAGE_TYPE, msg, 0), (TOPICS.right, IMAGE_TYPE, msg, 0)]
+    )
     with open_source(f"rosbag:{path}", pace="fast") as source, pytest.raises(SourceConfigError) as error:
         next(source)
     assert "encoding '16UC1' is not supported" in str(error.value) and "bgra8" in str(error.value)
@@ -160,8 +183,12 @@ def test_an_unsupported_encoding_is_named(tmp_path):
 def test_an_undecodable_compressed_image_is_a_corrupt_frame_and_the_next_one_comes(tmp_path):
     header = image_row("left", pattern(0), 0)[2].header
     bad = STORE.types[COMPRESSED_TYPE](header=header, format="jpeg", data=np.arange(50, dtype=np.uint8))
-    rows = info_rows(0) + [(TOPICS.left, COMPRESSED_TYPE, bad, 0), image_row("right", pattern(1), 0, "png"),
-                           image_row("left", pattern(2), 10, "png"), image_row("right", pattern(3), 10, "png")]
+    rows = info_rows(0) + [
+        (TOPICS.left, COMPRESSED_TYPE, bad, 0),
+        image_row("right", pattern(1), 0, "png"),
+        image_row("left", pattern(2), 10, "png"),
+        image_row("right", pattern(3), 10, "png"),
+    ]
     with open_source(f"rosbag:{write_messages(tmp_path / 'bag', rows)}", pace="fast") as source:
         with pytest.raises(CorruptFrameError, match="does not decode"):
             next(source)
@@ -171,8 +198,10 @@ def test_an_undecodable_compressed_image_is_a_corrupt_frame_and_the_next_one_com
 def test_camera_info_with_a_baseline_in_the_wrong_unit_is_refused(tmp_path):
     p2 = Rectifier(CALIBRATION).P2.copy()
     p2[0, 3] = -BASELINE  # Tx = -B instead of -fx·B (seen in old ZED wrappers)
-    path = write_messages(tmp_path / "bag", info_rows(0, right_p=p2) + [image_row("left", pattern(0), 0),
-                                                                         image_row("right", pattern(1), 0)])
+    path = write_messages(
+        tmp_path / "bag",
+        info_rows(0, right_p=p2) + [image_row("left", pattern(0), 0), image_row("right", pattern(1), 0)],
+    )
     with pytest.raises(CalibrationError, match="Tx = -fx·B"):
         open_source(f"rosbag:{path}")
 
@@ -188,11 +217,15 @@ def test_without_camera_info_a_calibration_file_is_needed_and_used(tmp_path):
         assert len(list(source)) == 1
 
 
-@pytest.mark.parametrize("rest, expected", [
-    ("", "expected rosbag:PATH"), ("bag?lft=/a", "option 'lft' is unknown"),
-    ("bag?tolerance_ms=abc", "tolerance_ms is 'abc'"),
-    ("bag?left=camera/left", "expected a topic name starting with /"),
-])
+@pytest.mark.parametrize(
+    "rest, expected",
+    [
+        ("", "expected rosbag:PATH"),
+        ("bag?lft=/a", "option 'lft' is unknown"),
+        ("bag?tolerance_ms=abc", "tolerance_ms is 'abc'"),
+        ("bag?left=camera/left", "expected a topic name starting with /"),
+    ],
+)
 def test_bad_specs_say_what_is_accepted(rest, expected):
     with pytest.raises(SourceConfigError, match=expected):
         parse_rosbag_spec(rest)
@@ -212,13 +245,30 @@ def test_bag_from_recording_command_and_its_errors(tmp_path, capsys):
     with Recorder(tmp_path / "rec", calibration=CALIBRATION) as recorder:
         for frame in frames(2):
             recorder.write(frame)
-    assert branchrange_main(["bag-from-recording", str(tmp_path / "rec"), "--out", str(tmp_path / "bag"),
-                             "--storage", "sqlite3", "--left-topic", "/l"]) == 0
+    assert (
+        branchrange_main(
+            [
+                "bag-from-recording",
+                str(tmp_path / "rec"),
+                "--out",
+                str(tmp_path / "bag"),
+                "--storage",
+                "sqlite3",
+                "--left-topic",
+                "/l",
+            ]
+        )
+        == 0
+    )
     assert "wrote 2 pairs" in capsys.readouterr().out
     with open_source(f"rosbag:{tmp_path / 'bag'}?left=/l", pace="fast") as source:
         assert [f.index for f in source] == [0, 1]
     assert branchrange_main(["bag-from-recording", str(tmp_path / "rec"), "--out", str(tmp_path / "bag")]) == 2
     assert "exists already" in capsys.readouterr().err
-    assert branchrange_main(["bag-from-recording", str(tmp_path / "rec"), "--out", str(tmp_path / "b2"),
-                             "--encoding", "yuv422"]) == 2
+    assert (
+        branchrange_main(
+            ["bag-from-recording", str(tmp_path / "rec"), "--out", str(tmp_path / "b2"), "--encoding", "yuv422"]
+        )
+        == 2
+    )
     assert "encoding is 'yuv422'; expected one of bgra8" in capsys.readouterr().err

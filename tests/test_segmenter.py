@@ -1,12 +1,18 @@
 """The geometric segmenter: thin elongated structure in range is a branch, thick is trunk, green is leaf."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from branch_geometry_fixtures import GEOMETRY, Cylinder, ray_cast, unit
+
 from branchrange.core.masks import DEFAULT_TRUNK_ID
-from branchrange.core.segmentation.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter, SegmenterConfigError
+from branchrange.core.segmentation.segmenter import (
+    GeometricSegmenter,
+    GeometricSegmenterConfig,
+    Segmenter,
+    SegmenterConfigError,
+)
 
 TRUNK = Cylinder(np.array([-0.35, -1.0, 1.5]), unit([0, 1, 0]), 2.0, 0.08)
 BRANCH_A = Cylinder(np.array([-0.28, 0.1, 1.46]), unit([1, -0.3, -0.3]), 0.5, 0.015)

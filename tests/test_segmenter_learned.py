@@ -1,4 +1,5 @@
 """The learned segmenter: the shipped BranchNet on held-out synthetic scenes, its checksum, training and export."""
+
 from __future__ import annotations
 
 import json
@@ -51,8 +52,9 @@ def test_network_input_is_scale_free_in_disparity():
 
 def test_shipped_model_finds_trunk_and_branches_of_a_held_out_scene(scene):
     rendered, stereo = scene
-    geometry = StereoGeometry(rendered.camera.focal_px, rendered.camera.baseline_m, rendered.camera.cx,
-                              rendered.camera.cy)
+    geometry = StereoGeometry(
+        rendered.camera.focal_px, rendered.camera.baseline_m, rendered.camera.cx, rendered.camera.cy
+    )
     masks = LearnedSegmenter().segment(rendered.left, stereo.disparity, geometry, stereo.confidence)
     truth = classes_from_instances(rendered.instance_mask)
     trunk = masks.trunk()
@@ -69,8 +71,13 @@ def test_shipped_model_finds_trunk_and_branches_of_a_held_out_scene(scene):
 def test_pipeline_with_learned_segmenter_gives_a_cut_point_near_the_truth(scene):
     rendered, stereo = scene
     cam = rendered.camera
-    pipeline = Pipeline(PipelineConfig(tracking=False), focal_px=cam.focal_px, baseline_m=cam.baseline_m,
-                        principal_point=(cam.cx, cam.cy), segmenter=make_segmenter("learned"))
+    pipeline = Pipeline(
+        PipelineConfig(tracking=False),
+        focal_px=cam.focal_px,
+        baseline_m=cam.baseline_m,
+        principal_point=(cam.cx, cam.cy),
+        segmenter=make_segmenter("learned"),
+    )
     result = pipeline.process_disparity(rendered.left, stereo.disparity, stereo.confidence, backend="sgbm")
     truth = [np.asarray(b.cut_point_m) for b in rendered.branches if b.cut_visible]
     errors = [min(np.linalg.norm(np.asarray(b.cut_point_m) - t) for t in truth) for b in result.branches]
@@ -84,8 +91,7 @@ def test_segment_score_scales_the_cut_point_confidence(scene):
     labels = rendered.instance_mask.astype(np.int32)
     plain = estimate_cut_points(BranchMasks(labels, 65535), rendered.disparity, geometry)
     ids = [b.mask_id for b in plain.branches]
-    scored = estimate_cut_points(BranchMasks(labels, 65535, scores={i: 0.5 for i in ids}), rendered.disparity,
-                                 geometry)
+    scored = estimate_cut_points(BranchMasks(labels, 65535, scores={i: 0.5 for i in ids}), rendered.disparity, geometry)
     assert ids
     for a, b in zip(plain.branches, scored.branches):
         assert b.confidence == pytest.approx(0.5 * a.confidence)
@@ -129,8 +135,19 @@ def test_training_config_errors_name_the_key(tmp_path):
 def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
-    config = training_config(None, ["train_seeds=[1, 3]", "val_seeds=[3, 4]", "steps=2", "batch=2", "crop=64",
-                                    "val_every=1", "width=4", "threads=1"])
+    config = training_config(
+        None,
+        [
+            "train_seeds=[1, 3]",
+            "val_seeds=[3, 4]",
+            "steps=2",
+            "batch=2",
+            "crop=64",
+            "val_every=1",
+            "width=4",
+            "threads=1",
+        ],
+    )
     lines: list[str] = []
     meta = train_branchnet(config, tmp_path / "run", tmp_path / "data", log=lines.append)
     assert len(lines) == 2 and "iou_branch" in lines[0]

@@ -1,4 +1,5 @@
 """`onnx:FILE` segmenters: tiny YOLOv8-seg and per-pixel-logit models exported here with torch."""
+
 from __future__ import annotations
 
 import json
@@ -8,9 +9,9 @@ import pytest
 import torch
 from torch import nn
 
-from branchrange.core.geometry import StereoGeometry
 from branchrange.core.config import SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
+from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import DEFAULT_TRUNK_ID
 from branchrange.core.pipeline import Pipeline, PipelineConfig
 from branchrange.core.segmentation.choose import make_segmenter
@@ -29,7 +30,7 @@ BRANCH_BAR, TRUNK_BAR, LEAF_BAR, STRAY_BLOB = (12, 38, 12, 18), (84, 96, 0, 63),
 def _box_mask(box: tuple[int, int, int, int], shape=(64, 128)) -> np.ndarray:
     x0, x1, y0, y1 = box
     mask = np.zeros(shape, dtype=bool)
-    mask[y0:y1 + 1, x0:x1 + 1] = True
+    mask[y0 : y1 + 1, x0 : x1 + 1] = True
     return mask
 
 
@@ -58,8 +59,13 @@ class TinyYoloSeg(nn.Module):
         super().__init__()
         pad = 32  # letterbox offset of the image in the input
         rows = []  # x1, y1, x2, y2, class, score
-        for (x0, x1, y0, y1), cls, score in ((BRANCH_BAR, 0, 0.9), (BRANCH_BAR, 0, 0.8), (TRUNK_BAR, 1, 0.7),
-                                             (LEAF_BAR, 2, 0.95), (STRAY_BLOB, 0, 0.1)):
+        for (x0, x1, y0, y1), cls, score in (
+            (BRANCH_BAR, 0, 0.9),
+            (BRANCH_BAR, 0, 0.8),
+            (TRUNK_BAR, 1, 0.7),
+            (LEAF_BAR, 2, 0.95),
+            (STRAY_BLOB, 0, 0.1),
+        ):
             rows.append((x0 - 2, y0 - 2 + pad, x1 + 2, y1 + 2 + pad, cls, score))
         if end_to_end:
             table = [[x1, y1, x2, y2, s, c, 20.0, -10.0] for x1, y1, x2, y2, c, s in rows if c != 0 or s != 0.8]
@@ -91,17 +97,26 @@ class TinyLogits(nn.Module):
 
 def _export(model: nn.Module, path, height: int, width: int, dynamic: bool) -> str:
     axes = {"image": {2: "h", 3: "w"}} if dynamic else None
-    torch.onnx.export(model.eval(), torch.zeros(1, 3, height, width), str(path), input_names=["image"],
-                      dynamic_axes=axes, dynamo=False, opset_version=17)
+    torch.onnx.export(
+        model.eval(),
+        torch.zeros(1, 3, height, width),
+        str(path),
+        input_names=["image"],
+        dynamic_axes=axes,
+        dynamo=False,
+        opset_version=17,
+    )
     return str(path)
 
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory) -> dict[str, str]:
     folder = tmp_path_factory.mktemp("onnx_seg")
-    return {"yolo": _export(TinyYoloSeg(), folder / "yolo.onnx", 128, 128, False),
-            "e2e": _export(TinyYoloSeg(end_to_end=True), folder / "e2e.onnx", 128, 128, False),
-            "logits": _export(TinyLogits(), folder / "logits.onnx", 64, 64, True)}
+    return {
+        "yolo": _export(TinyYoloSeg(), folder / "yolo.onnx", 128, 128, False),
+        "e2e": _export(TinyYoloSeg(end_to_end=True), folder / "e2e.onnx", 128, 128, False),
+        "logits": _export(TinyLogits(), folder / "logits.onnx", 64, 64, True),
+    }
 
 
 @pytest.mark.parametrize("layout", ["yolo", "e2e"])
@@ -128,19 +143,21 @@ def test_logits_model_splits_branch_pixels_into_instances_and_finds_the_trunk(mo
     image[_box_mask(BRANCH_BAR)] = DARK
     image[_box_mask(LEAF_BAR)] = DARK  # a second, separate dark bar
     image[_box_mask(TRUNK_BAR)] = (220, 30, 30)
-    segmenter = make_segmenter(f"onnx:{models['logits']}",
-                               onnx=OnnxSegmenterConfig(branch_classes=(1,), trunk_classes=(2,)))
+    segmenter = make_segmenter(
+        f"onnx:{models['logits']}", onnx=OnnxSegmenterConfig(branch_classes=(1,), trunk_classes=(2,))
+    )
     masks = segmenter.segment(image, np.zeros((64, 128), np.float32), GEOMETRY)
     assert segmenter.layout == "logits" and len(masks.branch_ids()) == 2
-    found = sorted(max(_iou(masks.branch(i), _box_mask(b)) for i in masks.branch_ids())
-                   for b in (BRANCH_BAR, LEAF_BAR))
+    found = sorted(max(_iou(masks.branch(i), _box_mask(b)) for i in masks.branch_ids()) for b in (BRANCH_BAR, LEAF_BAR))
     assert found[0] > 0.7
     assert _iou(masks.trunk(), _box_mask(TRUNK_BAR)) > 0.7 and masks.trunk_id == DEFAULT_TRUNK_ID
 
 
 def test_pipeline_uses_the_named_onnx_segmenter(models):
-    config = PipelineConfig(cutpoints=CutPointConfig(tracking=False),
-                            segmenter=SegmenterConfig(model=f"onnx:{models['yolo']}", branch_classes=(0,), trunk_classes=(1,)))
+    config = PipelineConfig(
+        cutpoints=CutPointConfig(tracking=False),
+        segmenter=SegmenterConfig(model=f"onnx:{models['yolo']}", branch_classes=(0,), trunk_classes=(1,)),
+    )
     pipeline = Pipeline(config, focal_px=100.0, baseline_m=0.1)
     disparity = np.full((64, 128), 10.0, np.float32)
     result = pipeline.process_disparity(_scene(), disparity)
@@ -148,7 +165,9 @@ def test_pipeline_uses_the_named_onnx_segmenter(models):
 
 
 def test_bad_names_models_and_settings_are_clear_errors(models, tmp_path):
-    with pytest.raises(OnnxSegmenterError, match="'onnx:': expected 'learned', 'geometric', 'structure' or 'onnx:FILE'"):
+    with pytest.raises(
+        OnnxSegmenterError, match="'onnx:': expected 'learned', 'geometric', 'structure' or 'onnx:FILE'"
+    ):
         make_segmenter("onnx:")
     with pytest.raises(OnnxSegmenterError, match="no such model file"):
         make_segmenter(f"onnx:{tmp_path / 'missing.onnx'}")
@@ -173,7 +192,7 @@ def test_config_section_reaches_the_pipeline(models, tmp_path):
     path.write_text('[segmenter]\nmodel = "maskrcnn"\n')
     with pytest.raises(ConfigError, match="'maskrcnn': expected 'learned', 'geometric', 'structure' or 'onnx:FILE'"):
         load_config(path)
-    path.write_text('[segmenter]\nbranch_classes = 3\n')
+    path.write_text("[segmenter]\nbranch_classes = 3\n")
     with pytest.raises(ConfigError, match="segmenter.branch_classes"):
         load_config(path)
 
@@ -186,8 +205,10 @@ def test_api_segmenter_field_picks_the_configured_model_or_the_geometric_one(mod
     from api.estimator import PipelineEstimator
     from branchrange.core.config import ApiConfig
 
-    config = PipelineConfig(stereo=StereoConfig(mode="full", max_disp=64),
-                            segmenter=SegmenterConfig(model=f"onnx:{models['yolo']}", branch_classes=(0,), trunk_classes=(1,)))
+    config = PipelineConfig(
+        stereo=StereoConfig(mode="full", max_disp=64),
+        segmenter=SegmenterConfig(model=f"onnx:{models['yolo']}", branch_classes=(0,), trunk_classes=(1,)),
+    )
     left = _scene()
     right = np.roll(left, -8, axis=1)  # a rectified pair 8 px of disparity apart
     png = [cv2.imencode(".png", image)[1].tobytes() for image in (left, right)]
@@ -195,7 +216,9 @@ def test_api_segmenter_field_picks_the_configured_model_or_the_geometric_one(mod
     with TestClient(create_app(ApiConfig(), PipelineEstimator(config))) as client:
         sources = {}
         for choice in ("configured", "geometric"):
-            r = client.post("/estimate", files=files, data={"focal_px": "100", "baseline_m": "0.1", "segmenter": choice})
+            r = client.post(
+                "/estimate", files=files, data={"focal_px": "100", "baseline_m": "0.1", "segmenter": choice}
+            )
             assert r.status_code == 200, r.text
             sources[choice] = r.json()["masks"]["source"]
         bad = client.post("/estimate", files=files, data={"focal_px": "100", "baseline_m": "0.1", "segmenter": "yolo"})
@@ -211,8 +234,21 @@ def test_estimate_command_takes_an_onnx_segmenter_and_its_class_ids(models, tmp_
     left = _scene()
     for name, image in (("l.png", left), ("r.png", np.roll(left, -8, axis=1))):
         cv2.imwrite(str(tmp_path / name), image)
-    common = ["estimate", "--left", str(tmp_path / "l.png"), "--right", str(tmp_path / "r.png"),
-              "--focal-px", "100", "--baseline-m", "0.1", "--max-disp", "64", "--json", str(tmp_path / "r.json")]
+    common = [
+        "estimate",
+        "--left",
+        str(tmp_path / "l.png"),
+        "--right",
+        str(tmp_path / "r.png"),
+        "--focal-px",
+        "100",
+        "--baseline-m",
+        "0.1",
+        "--max-disp",
+        "64",
+        "--json",
+        str(tmp_path / "r.json"),
+    ]
     assert main(common + ["--segmenter", f"onnx:{models['yolo']}", "--trunk-classes", "1"]) == 0
     assert json.loads((tmp_path / "r.json").read_text())["masks"]["source"] == "onnx:yolo.onnx"
     assert main(common + ["--segmenter", f"onnx:{models['yolo']}", "--trunk-classes", "0"]) == 2

@@ -1,14 +1,15 @@
 """The structure segmenter on exact ray-cast scenes: trunk, forks, crossings, a ground plane."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from branch_geometry_fixtures import GEOMETRY, Cylinder, ray_cast, unit
+
 from branchrange.core.masks import DEFAULT_TRUNK_ID
 from branchrange.core.segmentation.choose import make_segmenter
-from branchrange.core.segmentation.structure import StructureSegmenter, StructureSegmenterConfig, ridge_pixels
 from branchrange.core.segmentation.segmenter import Segmenter, SegmenterConfigError
+from branchrange.core.segmentation.structure import StructureSegmenter, StructureSegmenterConfig, ridge_pixels
 
 TRUNK = Cylinder(np.array([-0.35, -1.0, 1.5]), unit([0, 1, 0]), 2.0, 0.08)
 BRANCH_A = Cylinder(np.array([-0.28, 0.1, 1.46]), unit([1, -0.3, -0.3]), 0.5, 0.015)
@@ -62,8 +63,11 @@ def test_two_branches_and_the_trunk(tree):
 def test_a_fork_at_one_depth_becomes_two_instances():
     """Two stems from one point on the trunk, 50° apart, the same depth: one component, two lines."""
     base = np.array([-0.27, 0.0, 1.45])
-    arms = {1: [Cylinder(base, unit([1, -0.45, 0]), 0.45, 0.012)], 2: [Cylinder(base, unit([1, 0.45, 0]), 0.45, 0.012)],
-            100: [TRUNK]}
+    arms = {
+        1: [Cylinder(base, unit([1, -0.45, 0]), 0.45, 0.012)],
+        2: [Cylinder(base, unit([1, 0.45, 0]), 0.45, 0.012)],
+        100: [TRUNK],
+    }
     scene = ray_cast(320, 240, GEOMETRY, arms)
     masks = StructureSegmenter().segment(picture(scene.labels), scene.disparity, GEOMETRY)
     assert len(masks.branch_ids()) == 2

@@ -1,4 +1,5 @@
 """Self-supervised fine-tuning: warping, the occlusion mask, and EPE falling with ground truth withheld."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -36,7 +37,7 @@ def test_warping_the_right_view_with_true_disparity_rebuilds_the_left_view():
 def test_left_right_check_rejects_pixels_the_right_view_contradicts():
     left_disp = torch.full((1, 8, 40), 4.0)
     right_disp = torch.full((1, 8, 40), 4.0)
-    right_disp[..., 10:14] = 9.0       # seen by left pixels x = 14..17
+    right_disp[..., 10:14] = 9.0  # seen by left pixels x = 14..17
     mask = left_right_consistent(left_disp, right_disp)[0, 0]
     assert not mask[:, :4].any(), "the warp leaves the image"
     assert not mask[:, 14:18].any() and mask[:, 4:14].all() and mask[:, 18:].all()
@@ -63,18 +64,26 @@ def test_self_supervised_fine_tuning_lowers_epe_with_ground_truth_withheld(tmp_p
         def __getitem__(self, i):
             return {**unlabelled[i], "disparity": scenes[i].disparity}
 
-    config = build_config({
-        "model": {"max_disp": 32},
-        "data": {"dataset": "virtualtree", "crop": [64, 128], "num_workers": 0, "color_jitter": False},
-        "optim": {"lr": 1e-3, "warmup_steps": 10},
-        "train": {"epochs": 34, "batch_size": 1, "precision": "fp32", "max_steps": 200, "patience": 0,
-                  "vis_count": 0, "out_dir": str(tmp_path / "run")},
-    })
+    config = build_config(
+        {
+            "model": {"max_disp": 32},
+            "data": {"dataset": "virtualtree", "crop": [64, 128], "num_workers": 0, "color_jitter": False},
+            "optim": {"lr": 1e-3, "warmup_steps": 10},
+            "train": {
+                "epochs": 34,
+                "batch_size": 1,
+                "precision": "fp32",
+                "max_steps": 200,
+                "patience": 0,
+                "vis_count": 0,
+                "out_dir": str(tmp_path / "run"),
+            },
+        }
+    )
     seed_everything(0)
     model = TinyStereoNet(max_disp=32)
     before = evaluate(model, WithGroundTruth(), max_disp=32).mean["epe"]
-    result = SelfSupervisedTrainer(config, model, unlabelled, None, selfsup=SelfSupConfig(),
-                                   show_progress=False).fit()
+    result = SelfSupervisedTrainer(config, model, unlabelled, None, selfsup=SelfSupConfig(), show_progress=False).fit()
     after = evaluate(model, WithGroundTruth(), max_disp=32).mean["epe"]
     assert result.steps == 200
     assert before > 4.0 and after < 0.4 * before, f"EPE {before:.2f} → {after:.2f} px"

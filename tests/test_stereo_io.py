@@ -1,4 +1,5 @@
 """File formats of stereo.io: round trips, the real files in ../shared/data, and clear errors on bad input."""
+
 from __future__ import annotations
 
 import struct
@@ -43,7 +44,7 @@ def test_pfm_round_trip_keeps_values_and_row_order(tmp_path: Path, disparity: np
 def test_pfm_is_stored_bottom_up(tmp_path: Path, disparity: np.ndarray) -> None:
     path = tmp_path / "d.pfm"
     write_pfm(path, disparity)
-    first_stored = np.frombuffer(path.read_bytes()[-disparity.nbytes:], dtype="<f4")[:7]
+    first_stored = np.frombuffer(path.read_bytes()[-disparity.nbytes :], dtype="<f4")[:7]
     np.testing.assert_array_equal(first_stored, disparity[-1])
 
 
@@ -110,7 +111,11 @@ def test_kitti_round_trip_quantises_to_1_256_px_and_keeps_invalid_zero(tmp_path:
     write_kitti_disparity(path, disp)
     back = read_kitti_disparity(path)
     expected = np.array(
-        [[0.0, 1.0, 10.5, 0.0], [0.0, round(100.123 * 256) / 256, round(255.99 * 256) / 256, 0.0], [1 / 256, 0.5, 2.0, 3.0]],
+        [
+            [0.0, 1.0, 10.5, 0.0],
+            [0.0, round(100.123 * 256) / 256, round(255.99 * 256) / 256, 0.0],
+            [1 / 256, 0.5, 2.0, 3.0],
+        ],
         np.float32,
     )
     np.testing.assert_allclose(back, expected, rtol=0, atol=1e-6)
@@ -160,7 +165,9 @@ def test_exr_reader_takes_r_of_a_ue5_style_rgb_file(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("pixel_type", "dtype"), [("half", np.float16), ("float", np.float32)])
-def test_exr_writer_uses_the_ue5_layout_depth_in_r_and_nan_in_g_and_b(tmp_path: Path, pixel_type: str, dtype: type) -> None:
+def test_exr_writer_uses_the_ue5_layout_depth_in_r_and_nan_in_g_and_b(
+    tmp_path: Path, pixel_type: str, dtype: type
+) -> None:
     import OpenEXR
 
     depth_cm = np.array([[150.0, 65504.0], [33.25, 1.0]], np.float32)
@@ -244,8 +251,12 @@ def test_write_rgb_names_an_extension_without_encoder(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------- Middlebury 2001
-@pytest.mark.parametrize(("scene", "scale", "levels"), [("tsukuba", 16, {0, 80, 96, 112, 128, 160, 176, 224}), ("venus", 8, None)])
-def test_middlebury_palette_ground_truth_becomes_grey_over_scale(shared_data: Path, scene: str, scale: int, levels: set | None) -> None:
+@pytest.mark.parametrize(
+    ("scene", "scale", "levels"), [("tsukuba", 16, {0, 80, 96, 112, 128, 160, 176, 224}), ("venus", 8, None)]
+)
+def test_middlebury_palette_ground_truth_becomes_grey_over_scale(
+    shared_data: Path, scene: str, scale: int, levels: set | None
+) -> None:
     folder = shared_data / "stereo" / f"middlebury2001_{scene}"
     info = read_middlebury2001_info(folder / "info.txt")
     assert info.scale == scale

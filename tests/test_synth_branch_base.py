@@ -1,4 +1,5 @@
 """The synthetic truth's branch base: exactly where the branch axis leaves the tapered trunk surface."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -56,7 +57,7 @@ def test_exit_distance_of_a_line_through_a_tapered_axis_is_the_closed_form():
         cos_t = float(direction @ cone.axis)
         if abs(cos_t) > 0.9:
             continue
-        expected = cone.radius_at(2.5) / (np.sqrt(1.0 - cos_t ** 2) - k * cos_t)
+        expected = cone.radius_at(2.5) / (np.sqrt(1.0 - cos_t**2) - k * cos_t)
         assert cone.exit_distance(on_axis, direction) == pytest.approx(expected, rel=1e-12)
 
 

@@ -1,4 +1,6 @@
-"""Synthetic flight sequences: per-frame truth vs the renderer, the approach, flight.json, the recording, the command."""
+"""Synthetic flight sequences: per-frame truth vs the renderer, the approach, flight.json, the recording,
+the command."""
+
 from __future__ import annotations
 
 import json
@@ -8,23 +10,39 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from branchrange.offline.flight import FLIGHT_NAME, FlightCutPoint, FlightFormatError, FlightPose, FlightTruth
 from branchrange.core.frame_results import read_results
+from branchrange.offline.flight import FLIGHT_NAME, FlightCutPoint, FlightFormatError, FlightPose, FlightTruth
 from camera.sources import ReplaySource
 from stereo.cli import build_parser
 from stereo.synth import LEAF_ID, SynthOptions, render_scene
+from stereo.synth.camera import SynthCamera
 from stereo.synth.flight import FlightRenderer
 from stereo.synth.flight_path import FlightOptions
-from stereo.synth.camera import SynthCamera
 from stereo.synth.motion_blur import blur_along_motion, image_motion
 from stereo.synth.render import auto_gain, develop, render_views
 from stereo.synth.viewpoint import scene_in_camera
 
 #: A small, fast flight with every disturbance on (sway, jitter, exposure wobble, motion blur).
-WOBBLY = ["--frames", "6", "--resolution", "320x180", "--sway-m", "0.05", "--sway-hz", "1.5", "--jitter-deg", "1.5",
-          "--exposure", "0.2", "--motion-blur", "--seed", "4"]
-WOBBLY_OPTIONS = FlightOptions(frames=6, width=320, height=180, sway_m=0.05, sway_hz=1.5, jitter_deg=1.5,
-                               exposure=0.2, motion_blur=True, seed=4)
+WOBBLY = [
+    "--frames",
+    "6",
+    "--resolution",
+    "320x180",
+    "--sway-m",
+    "0.05",
+    "--sway-hz",
+    "1.5",
+    "--jitter-deg",
+    "1.5",
+    "--exposure",
+    "0.2",
+    "--motion-blur",
+    "--seed",
+    "4",
+]
+WOBBLY_OPTIONS = FlightOptions(
+    frames=6, width=320, height=180, sway_m=0.05, sway_hz=1.5, jitter_deg=1.5, exposure=0.2, motion_blur=True, seed=4
+)
 
 
 def _run(argv: list[str]) -> int:
@@ -85,9 +103,10 @@ def test_truth_pixel_is_the_renderers_cut_pixel_and_lies_on_its_branch(wobbly_re
 def test_flight_approaches_the_target_from_start_to_end_distance():
     options = FlightOptions(frames=5, width=160, height=90, seed=2)
     renderer = FlightRenderer(options)
-    truth = FlightTruth([FlightPose(i, options.timestamp_ns(i), *renderer.world_pose(options.time_s(i)))
-                         for i in range(5)],
-                        [FlightCutPoint(c.id, c.world_m, c.radius_m) for c in renderer.cut_points])
+    truth = FlightTruth(
+        [FlightPose(i, options.timestamp_ns(i), *renderer.world_pose(options.time_s(i))) for i in range(5)],
+        [FlightCutPoint(c.id, c.world_m, c.radius_m) for c in renderer.cut_points],
+    )
     expected = np.linspace(3.0, 0.8, 5)
     for position, distance in enumerate(expected):
         target = truth.cut_points_in_camera(position)[renderer.target_id]
@@ -131,8 +150,12 @@ def test_flight_renderer_at_the_scene_pose_reproduces_render_scene():
     assert np.array_equal(view.views.depth.astype(np.float32), reference.depth_m)
     assert [b.to_dict() for b in view.branches] == [b.to_dict() for b in reference.branches]
     still = SynthOptions(supersample=1, noise_std=0.0, view_gain_jitter=0.0)
-    left, right = develop([view.views.left, view.views.right], auto_gain(view.views.left, renderer.scene.exposure_target),
-                          still, np.random.default_rng(0))
+    left, right = develop(
+        [view.views.left, view.views.right],
+        auto_gain(view.views.left, renderer.scene.exposure_target),
+        still,
+        np.random.default_rng(0),
+    )
     assert np.array_equal(left, reference.left) and np.array_equal(right, reference.right)
 
 
@@ -143,7 +166,7 @@ def test_moving_the_camera_moves_the_rendered_depth_rigidly():
     here = render_views(scene_in_camera(renderer.scene, np.eye(3), np.zeros(3), renderer.camera), renderer.camera, 1, 1)
     ahead = render_views(scene_in_camera(renderer.scene, np.eye(3), step, renderer.camera), renderer.camera, 1, 1)
     cam = renderer.camera
-    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
     ok = np.isfinite(ahead.depth) & (ahead.ids > 0)
     z, u, v = ahead.depth[ok], u[ok], v[ok]
     # the point behind pixel (u, v) of the forward camera, as seen from the first camera
@@ -168,8 +191,10 @@ def test_image_motion_of_a_sideways_step_and_a_yaw():
     sky = image_motion(np.full((36, 64), np.inf), camera, "right", moved, still)
     np.testing.assert_allclose(sky, 0.0, atol=1e-6)  # translation does not move the sky
     angle = math.radians(1.0)
-    yawed = (np.array([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]]),
-             np.zeros(3))
+    yawed = (
+        np.array([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]]),
+        np.zeros(3),
+    )
     centre = image_motion(np.full((36, 64), np.inf), camera, "left", yawed, still)[18, 32]
     assert centre[0] == pytest.approx(camera.focal_px * math.tan(angle), rel=0.02)
 
@@ -209,7 +234,8 @@ def test_recording_replays_with_masks_and_timestamps(wobbly_recording: Path, wob
 
 def test_branchrange_replay_reads_the_recording(wobbly_recording: Path, tmp_path: Path):
     args = build_parser("branchrange", "test", ["branchrange.commands.replay"]).parse_args(
-        ["replay", str(wobbly_recording), "--out", str(tmp_path / "results.jsonl")])
+        ["replay", str(wobbly_recording), "--out", str(tmp_path / "results.jsonl")]
+    )
     assert args.func(args) == 0
     lines = [r.to_json_dict() for r in read_results(tmp_path / "results.jsonl")]  # the run header skipped
     truth = FlightTruth.load(wobbly_recording)
@@ -224,8 +250,9 @@ def test_flight_json_round_trips_exactly(wobbly_recording: Path, tmp_path: Path)
     for a, b in zip(truth.poses, back.poses):
         assert (a.index, a.timestamp_ns, a.visible_cut_ids) == (b.index, b.timestamp_ns, b.visible_cut_ids)
         assert np.array_equal(a.R_world_cam, b.R_world_cam) and np.array_equal(a.t_world_cam, b.t_world_cam)
-    assert [(c.id, c.world_m.tolist(), c.radius_m) for c in truth.cut_points] == \
-        [(c.id, c.world_m.tolist(), c.radius_m) for c in back.cut_points]
+    assert [(c.id, c.world_m.tolist(), c.radius_m) for c in truth.cut_points] == [
+        (c.id, c.world_m.tolist(), c.radius_m) for c in back.cut_points
+    ]
 
 
 def test_pose_at_interpolates_rotation_by_slerp_and_translation_linearly():
@@ -233,8 +260,10 @@ def test_pose_at_interpolates_rotation_by_slerp_and_translation_linearly():
         a = math.radians(degrees)
         return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
 
-    truth = FlightTruth([FlightPose(0, 1000, yaw(0), np.zeros(3)), FlightPose(1, 2000, yaw(30), np.array([0, 0, 1.0]))],
-                        [FlightCutPoint(1, np.array([0, 0, 2.0]), 0.01)])
+    truth = FlightTruth(
+        [FlightPose(0, 1000, yaw(0), np.zeros(3)), FlightPose(1, 2000, yaw(30), np.array([0, 0, 1.0]))],
+        [FlightCutPoint(1, np.array([0, 0, 2.0]), 0.01)],
+    )
     rotation, translation = truth.pose_at(1250)
     np.testing.assert_allclose(rotation, yaw(7.5), atol=1e-12)
     np.testing.assert_allclose(translation, [0, 0, 0.25], atol=1e-12)
@@ -245,28 +274,41 @@ def test_pose_at_interpolates_rotation_by_slerp_and_translation_linearly():
 
 
 def _good_document() -> dict:
-    return {"format": "branchrange-flight", "version": 1,
-            "poses": [{"index": 0, "timestamp_ns": 10, "R_world_cam": np.eye(3).tolist(), "t_world_cam": [0, 0, 0],
-                       "visible_cut_ids": [1]},
-                      {"index": 1, "timestamp_ns": 20, "R_world_cam": np.eye(3).tolist(), "t_world_cam": [0, 0, 0.1]}],
-            "cut_points": [{"id": 1, "world_m": [0, 0, 2], "radius_m": 0.01}]}
+    return {
+        "format": "branchrange-flight",
+        "version": 1,
+        "poses": [
+            {
+                "index": 0,
+                "timestamp_ns": 10,
+                "R_world_cam": np.eye(3).tolist(),
+                "t_world_cam": [0, 0, 0],
+                "visible_cut_ids": [1],
+            },
+            {"index": 1, "timestamp_ns": 20, "R_world_cam": np.eye(3).tolist(), "t_world_cam": [0, 0, 0.1]},
+        ],
+        "cut_points": [{"id": 1, "world_m": [0, 0, 2], "radius_m": 0.01}],
+    }
 
 
-@pytest.mark.parametrize("change, key", [
-    (lambda d: d.update(format="branchrange-recording"), "format"),
-    (lambda d: d.update(version=2), "version"),
-    (lambda d: d.pop("poses"), "poses"),
-    (lambda d: d["poses"][1].pop("t_world_cam"), "t_world_cam"),
-    (lambda d: d["poses"][0].update(R_world_cam=[[1, 0], [0, 1]]), r"poses\[0\].R_world_cam"),
-    (lambda d: d["poses"][0].update(R_world_cam=(2 * np.eye(3)).tolist()), "rotation matrix"),
-    (lambda d: d["poses"][0].update(R_world_cam=np.diag([1.0, 1.0, -1.0]).tolist()), "rotation matrix"),
-    (lambda d: d["poses"][1].update(t_world_cam=[0, "x", 0]), r"poses\[1\].t_world_cam"),
-    (lambda d: d["poses"][1].update(timestamp_ns=5), "increasing"),
-    (lambda d: d["poses"][0].update(index=-1), r"poses\[0\].index"),
-    (lambda d: d["poses"][0].update(visible_cut_ids=[7]), "visible_cut_ids"),
-    (lambda d: d["cut_points"][0].update(radius_m=-0.01), "radius_m"),
-    (lambda d: d["cut_points"].append(dict(d["cut_points"][0])), "distinct"),
-])
+@pytest.mark.parametrize(
+    "change, key",
+    [
+        (lambda d: d.update(format="branchrange-recording"), "format"),
+        (lambda d: d.update(version=2), "version"),
+        (lambda d: d.pop("poses"), "poses"),
+        (lambda d: d["poses"][1].pop("t_world_cam"), "t_world_cam"),
+        (lambda d: d["poses"][0].update(R_world_cam=[[1, 0], [0, 1]]), r"poses\[0\].R_world_cam"),
+        (lambda d: d["poses"][0].update(R_world_cam=(2 * np.eye(3)).tolist()), "rotation matrix"),
+        (lambda d: d["poses"][0].update(R_world_cam=np.diag([1.0, 1.0, -1.0]).tolist()), "rotation matrix"),
+        (lambda d: d["poses"][1].update(t_world_cam=[0, "x", 0]), r"poses\[1\].t_world_cam"),
+        (lambda d: d["poses"][1].update(timestamp_ns=5), "increasing"),
+        (lambda d: d["poses"][0].update(index=-1), r"poses\[0\].index"),
+        (lambda d: d["poses"][0].update(visible_cut_ids=[7]), "visible_cut_ids"),
+        (lambda d: d["cut_points"][0].update(radius_m=-0.01), "radius_m"),
+        (lambda d: d["cut_points"].append(dict(d["cut_points"][0])), "distinct"),
+    ],
+)
 def test_bad_flight_files_name_the_key(tmp_path: Path, change, key: str):
     document = _good_document()
     (tmp_path / FLIGHT_NAME).write_text(json.dumps(document))
@@ -286,18 +328,21 @@ def test_missing_or_garbled_flight_file(tmp_path: Path):
         FlightTruth.load(tmp_path)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--start-m", "0.8", "--end-m", "0.8"], "start_m"),
-    (["--end-m", "3.5"], "start_m"),
-    (["--fps", "-15"], "fps"),
-    (["--resolution", "720p"], "--resolution"),
-    (["--resolution", "1280x"], "--resolution"),
-    (["--frames", "6", "--speed", "0.4"], "speed_mps"),
-    (["--frames", "1"], "frames"),
-    (["--speed", "0"], "speed_mps"),
-    (["--jitter-deg", "-1"], "jitter_deg"),
-    (["--supersample", "9"], "supersample"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--start-m", "0.8", "--end-m", "0.8"], "start_m"),
+        (["--end-m", "3.5"], "start_m"),
+        (["--fps", "-15"], "fps"),
+        (["--resolution", "720p"], "--resolution"),
+        (["--resolution", "1280x"], "--resolution"),
+        (["--frames", "6", "--speed", "0.4"], "speed_mps"),
+        (["--frames", "1"], "frames"),
+        (["--speed", "0"], "speed_mps"),
+        (["--jitter-deg", "-1"], "jitter_deg"),
+        (["--supersample", "9"], "supersample"),
+    ],
+)
 def test_bad_options_exit_2_with_a_message(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv, message):
     assert _run(["synth-flight", "--out", str(tmp_path / "rec"), *argv]) == 2
     err = capsys.readouterr().err
@@ -313,8 +358,22 @@ def test_a_non_empty_out_directory_exits_2(tmp_path: Path, capsys: pytest.Captur
 
 
 def test_progress_lines_when_stderr_is_not_a_terminal(tmp_path: Path, capsys: pytest.CaptureFixture[str]):
-    assert _run(["synth-flight", "--out", str(tmp_path / "rec"), "--frames", "20", "--resolution", "64x36",
-                 "--start-m", "1.2"]) == 0
+    assert (
+        _run(
+            [
+                "synth-flight",
+                "--out",
+                str(tmp_path / "rec"),
+                "--frames",
+                "20",
+                "--resolution",
+                "64x36",
+                "--start-m",
+                "1.2",
+            ]
+        )
+        == 0
+    )
     captured = capsys.readouterr()
     progress = [line for line in captured.err.splitlines() if line.startswith("synth-flight:")]
     assert len(progress) == 10 and progress[-1].startswith("synth-flight: 20/20 frames")

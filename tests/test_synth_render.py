@@ -1,4 +1,5 @@
 """The synthetic scene renderer against its own geometry: exact depth, cut points, photometry, thin twigs."""
+
 from __future__ import annotations
 
 import cv2
@@ -28,7 +29,7 @@ def scenes():
 
 def back_project(depth: np.ndarray, camera: SynthCamera) -> np.ndarray:
     """3D points `H×W×3` (m, left camera frame) of a depth map."""
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
     z = depth.astype(np.float64)
     return np.stack([(u - camera.cx) * z / camera.focal_px, (v - camera.cy) * z / camera.focal_px, z], axis=-1)
 
@@ -81,7 +82,9 @@ def test_branches_meet_the_specified_geometry():
             assert BRANCH_BASE_RADIUS_M[0] <= branch.base_radius_m <= BRANCH_BASE_RADIUS_M[1] + 0.002
             assert branch.tip_radius_m < branch.base_radius_m
             assert np.linalg.norm(branch.direction) == pytest.approx(1.0)
-            axis = np.asarray(branch.base_m) + np.linspace(0, branch.length_m, 20)[:, None] * np.asarray(branch.direction)
+            axis = np.asarray(branch.base_m) + np.linspace(0, branch.length_m, 20)[:, None] * np.asarray(
+                branch.direction
+            )
             assert np.all(np.linalg.norm(axis, axis=1) >= 0.3) and np.all(np.linalg.norm(axis, axis=1) <= 4.0)
             assert branch.cut_offset_m == pytest.approx(0.05)
             assert 0 <= branch.cut_pixel[0] < CAMERA.width and 0 <= branch.cut_pixel[1] < CAMERA.height
@@ -124,8 +127,9 @@ def test_cut_point_projects_onto_its_branch_with_matching_depth(scenes):
             if branch.cut_visible:
                 visible += 1
                 assert scene.instance_mask[y, x] == branch.id
-                ray = np.array([(x - scene.camera.cx) / scene.camera.focal_px,
-                                (y - scene.camera.cy) / scene.camera.focal_px, 1.0])
+                ray = np.array(
+                    [(x - scene.camera.cx) / scene.camera.focal_px, (y - scene.camera.cy) / scene.camera.focal_px, 1.0]
+                )
                 sin_angle = np.linalg.norm(np.cross(ray / np.linalg.norm(ray), branch.direction))
                 radius = branch.radius_at(branch.cut_offset_m)
                 slack = 1.5 * radius / max(sin_angle, 0.2) + 3 * cut[2] / scene.camera.focal_px
@@ -189,8 +193,12 @@ def test_sensor_noise_and_view_gain_jitter_are_applied_per_view():
     assert abs(np.corrcoef(noise[0][both], noise[1][both])[0, 1]) < 0.05  # drawn independently per view
     jittered = render_scene(4, camera, noise_std=0.0, view_gain_jitter=0.2)
     # per-channel gain of each view (±10 % at most); measured left (1.00, 0.98, 1.06), right (0.99, 1.07, 0.96)
-    gains = np.array([[(j[..., ch][k[..., ch]] / c[..., ch][k[..., ch]].astype(np.float64)).mean() for ch in range(3)]
-                      for j, c, k in ((jittered.left, clean.left, unclipped[0]), (jittered.right, clean.right, unclipped[1]))])
+    gains = np.array(
+        [
+            [(j[..., ch][k[..., ch]] / c[..., ch][k[..., ch]].astype(np.float64)).mean() for ch in range(3)]
+            for j, c, k in ((jittered.left, clean.left, unclipped[0]), (jittered.right, clean.right, unclipped[1]))
+        ]
+    )
     assert np.all(np.abs(gains - 1.0) < 0.11) and np.abs(gains[0] - gains[1]).max() > 0.02, gains
     assert np.array_equal(jittered.instance_mask, clean.instance_mask)
 
@@ -206,7 +214,7 @@ def test_every_scene_has_branch_pixels_under_4_px_wide(scenes):
 def test_thin_twigs_are_antialiased_not_aliased():
     sharp = render_scene(9, CAMERA, supersample=1, noise_std=0.0, view_gain_jitter=0.0)
     smooth = render_scene(9, CAMERA, supersample=3, noise_std=0.0, view_gain_jitter=0.0)
-    twig = (smooth.instance_mask == TWIG_ID)
+    twig = smooth.instance_mask == TWIG_ID
     assert twig.sum() > 50
     # same geometry and truth; the supersampled image blends twig and background colours
     assert np.array_equal(sharp.instance_mask, smooth.instance_mask)
@@ -216,8 +224,10 @@ def test_thin_twigs_are_antialiased_not_aliased():
 
 
 def test_needle_clusters_are_thin_leaf_pixels_on_the_same_branches():
-    broad, needles = (render_scene(1, CAMERA, foliage="dense", leaf_shape=shape, noise_std=0.0, view_gain_jitter=0.0)
-                      for shape in ("broad", "needles"))
+    broad, needles = (
+        render_scene(1, CAMERA, foliage="dense", leaf_shape=shape, noise_std=0.0, view_gain_jitter=0.0)
+        for shape in ("broad", "needles")
+    )
     assert (broad.leaf_shape, needles.leaf_shape) == ("broad", "needles")
     kept = []
     for scene in (broad, needles):
@@ -226,13 +236,17 @@ def test_needle_clusters_are_thin_leaf_pixels_on_the_same_branches():
         kept.append(cv2.morphologyEx(leaf, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).sum() / leaf.sum())
     # a 3×3 opening keeps most of the blades' pixels and few of the needles' (measured 0.88 and 0.09)
     assert kept[0] > 0.7 and kept[1] < 0.3, kept
-    geometry = [[(b.id, b.base_m, b.direction, b.length_m, b.base_radius_m) for b in s.branches] for s in (broad, needles)]
+    geometry = [
+        [(b.id, b.base_m, b.direction, b.length_m, b.base_radius_m) for b in s.branches] for s in (broad, needles)
+    ]
     assert geometry[0] == geometry[1]
 
 
 def test_auto_leaf_shape_draws_both_kinds_over_seeds():
-    shapes = {build_scene(np.random.default_rng(seed), CAMERA, SynthOptions(leaf_shape="auto")).leaf_shape
-              for seed in range(5)}
+    shapes = {
+        build_scene(np.random.default_rng(seed), CAMERA, SynthOptions(leaf_shape="auto")).leaf_shape
+        for seed in range(5)
+    }
     assert shapes == {"broad", "needles"}
 
 
@@ -244,8 +258,9 @@ def test_scene_uses_reserved_ids_and_inf_depth_only_on_sky(scenes):
         assert np.all(scene.disparity[sky] == 0)
         assert np.all(scene.instance_mask[sky] == 0)
         finite = np.isfinite(scene.depth_m)
-        assert np.allclose(scene.disparity[finite], scene.camera.focal_px * scene.camera.baseline_m / scene.depth_m[finite],
-                           rtol=1e-5)
+        assert np.allclose(
+            scene.disparity[finite], scene.camera.focal_px * scene.camera.baseline_m / scene.depth_m[finite], rtol=1e-5
+        )
         assert scene.left.dtype == np.uint8 and scene.left.shape == (270, 480, 3)
     assert any(LEAF_ID in np.unique(s.instance_mask) for s in scenes) or all(s.foliage == "bare" for s in scenes)
 
@@ -264,6 +279,9 @@ def test_pose_classes_point_the_camera_as_named(pose):
     scene = build_scene(np.random.default_rng(3), CAMERA, SynthOptions(pose=pose))
     # world "up" seen in the camera frame: its z component is positive when the camera looks up
     up_in_camera = scene.sky.world_from_camera.T @ np.array([0.0, -1.0, 0.0])
-    expected = {"upward": up_in_camera[2] > 0.2, "parallel": abs(up_in_camera[2]) < 0.2,
-                "downward": up_in_camera[2] < -0.2}
+    expected = {
+        "upward": up_in_camera[2] > 0.2,
+        "parallel": abs(up_in_camera[2]) < 0.2,
+        "downward": up_in_camera[2] < -0.2,
+    }
     assert expected[pose], up_in_camera

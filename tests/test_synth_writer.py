@@ -1,4 +1,5 @@
 """The synthetic dataset on disk: VirtualTree layout and split format, EXR in cm, masks, JSON, determinism, CLI."""
+
 from __future__ import annotations
 
 import hashlib
@@ -35,7 +36,11 @@ def read_authors_split(path: Path) -> list[tuple[str, str, str]]:
 
 
 def file_digests(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_split_files_parse_in_the_authors_six_token_format_and_cover_all_scenes(dataset):
@@ -45,8 +50,11 @@ def test_split_files_parse_in_the_authors_six_token_format_and_cover_all_scenes(
         assert len(triples) == expected
         for left, depth, right in triples:
             n = int(left.split("_")[-1].split(".")[0])
-            assert (left, depth, right) == (f"left image/left_{n}.png", f"left depth/depth_{n}.exr",
-                                            f"right image/right_{n}.png")
+            assert (left, depth, right) == (
+                f"left image/left_{n}.png",
+                f"left depth/depth_{n}.exr",
+                f"right image/right_{n}.png",
+            )
             assert all((dataset / p).is_file() for p in (left, depth, right))
             seen.append(n)
     assert sorted(seen) == list(range(10))
@@ -85,8 +93,9 @@ def test_depth_exr_has_the_ue5_channel_layout_r_depth_g_and_b_nan(dataset):
 def test_virtualtree_loader_reads_the_set_through_its_split_files(dataset):
     virtualtree = pytest.importorskip("stereo.datasets.virtualtree", reason="VirtualTree loader not importable")
     camera = SynthCamera.zed_mini(WIDTH, HEIGHT)
-    data = virtualtree.VirtualTreeDataset(dataset, "train", focal_px=camera.focal_px,
-                                          baseline_cm=camera.baseline_m * 100.0)
+    data = virtualtree.VirtualTreeDataset(
+        dataset, "train", focal_px=camera.focal_px, baseline_cm=camera.baseline_m * 100.0
+    )
     assert len(data) == 8
     first = int(Path(data.records[0].left).stem.split("_")[1])
     sample = data[0]
@@ -158,8 +167,24 @@ def test_write_dataset_rejects_bad_arguments(tmp_path):
 
 def test_synth_command_writes_dataset_and_preview(tmp_path, capsys):
     preview = tmp_path / "preview.png"
-    status = emcstereo(["synth", "--out", str(tmp_path / "set"), "--scenes", "2", "--seed", "1", "--size", "96x64",
-                        "--leaf-shape", "needles", "--preview", str(preview), "--quiet"])
+    status = emcstereo(
+        [
+            "synth",
+            "--out",
+            str(tmp_path / "set"),
+            "--scenes",
+            "2",
+            "--seed",
+            "1",
+            "--size",
+            "96x64",
+            "--leaf-shape",
+            "needles",
+            "--preview",
+            str(preview),
+            "--quiet",
+        ]
+    )
     assert status == 0
     assert "wrote 2 scenes" in capsys.readouterr().out
     assert (tmp_path / "set" / "left image" / "left_1.png").is_file()

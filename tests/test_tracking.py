@@ -1,4 +1,5 @@
 """Stable branch ids across frames: gating, global greedy association, track ageing."""
+
 from __future__ import annotations
 
 import re
@@ -13,8 +14,9 @@ from branchrange.core.tracking import BranchTracker, TrackerConfig, TrackerConfi
 def branch(x, y=0.0, z=1.5, axis=(1.0, 0.0, 0.0), mask_id=1) -> BranchEstimate:
     point = np.array([x, y, z])
     a = np.asarray(axis, dtype=float)
-    return BranchEstimate(mask_id, point, point, a / np.linalg.norm(a), float(np.linalg.norm(point)),
-                          (0.0, 0.0), 0.02, 0.9, 1.0, 0.0, 100)
+    return BranchEstimate(
+        mask_id, point, point, a / np.linalg.norm(a), float(np.linalg.norm(point)), (0.0, 0.0), 0.02, 0.9, 1.0, 0.0, 100
+    )
 
 
 def ids(branches):
@@ -69,9 +71,14 @@ def test_reset_forgets_tracks_but_not_the_id_counter():
     assert ids(tracker.update([branch(0.0)])) == [2]
 
 
-@pytest.mark.parametrize("kwargs,message", [({"gate_m": 0}, "branch_tracking.gate_m = 0: expected > 0 m"),
-                                            ({"max_missed": -1}, "branch_tracking.max_missed = -1: expected ≥ 0 frames"),
-                                            ({"max_axis_angle_deg": 0}, "branch_tracking.max_axis_angle_deg = 0: expected an angle")])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        ({"gate_m": 0}, "branch_tracking.gate_m = 0: expected > 0 m"),
+        ({"max_missed": -1}, "branch_tracking.max_missed = -1: expected ≥ 0 frames"),
+        ({"max_axis_angle_deg": 0}, "branch_tracking.max_axis_angle_deg = 0: expected an angle"),
+    ],
+)
 def test_config_errors_name_the_key_value_and_expectation(kwargs, message):
     with pytest.raises(TrackerConfigError, match=re.escape(message)):
         TrackerConfig(**kwargs)

@@ -1,4 +1,5 @@
 """Loss, optimiser groups, LR schedule, EMA, checkpoint RNG state and TOML recipes of the trainer."""
+
 from __future__ import annotations
 
 import math
@@ -22,9 +23,9 @@ CONFIGS = Path(__file__).resolve().parents[1] / "stereo" / "configs"
 
 def _gt():
     gt = torch.full((1, 4, 4), 10.0)
-    gt[0, 0, 0] = 0.0            # invalid: zero
-    gt[0, 0, 1] = 192.0          # invalid: at max_disp
-    gt[0, 0, 2] = float("nan")   # invalid: non-finite
+    gt[0, 0, 0] = 0.0  # invalid: zero
+    gt[0, 0, 1] = 192.0  # invalid: at max_disp
+    gt[0, 0, 2] = float("nan")  # invalid: non-finite
     return gt
 
 
@@ -71,7 +72,11 @@ def test_no_weight_decay_on_biases_and_norm_weights_and_frozen_tensors_left_out(
     decay, no_decay = parameter_groups(model, 1e-4)
     names = {id(p): n for n, p in model.named_parameters()}
     assert sorted(names[id(p)] for p in decay["params"]) == [
-        "features.0.weight", "features.3.weight", "heads.0.weight", "heads.1.weight"]
+        "features.0.weight",
+        "features.3.weight",
+        "heads.0.weight",
+        "heads.1.weight",
+    ]
     assert "features.1.weight" in {names[id(p)] for p in no_decay["params"]}  # BatchNorm weight
     assert all(names[id(p)].endswith((".bias", "features.1.weight")) for p in no_decay["params"])
     assert decay["weight_decay"] == 1e-4 and no_decay["weight_decay"] == 0.0
@@ -81,7 +86,9 @@ def test_no_weight_decay_on_biases_and_norm_weights_and_frozen_tensors_left_out(
 def test_warmup_then_per_iteration_cosine_to_zero():
     schedule = WarmupCosine(warmup_steps=4, total_steps=14)
     assert [schedule(s) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
-    assert schedule(4) == pytest.approx(1.0) and schedule(9) == pytest.approx(0.5) and schedule(14) == pytest.approx(0.0)
+    assert (
+        schedule(4) == pytest.approx(1.0) and schedule(9) == pytest.approx(0.5) and schedule(14) == pytest.approx(0.0)
+    )
     model = torch.nn.Linear(2, 2)
     optimizer = build_optimizer(model, lr=1e-3, weight_decay=0.0)
     scheduler = build_scheduler(optimizer, 4, 14)
@@ -116,38 +123,87 @@ def test_rng_state_round_trips_through_a_weights_only_checkpoint(tmp_path):
 
 #: The headline recipe, key by key (paper Table "Training configuration", reference facts §4, §5, §7).
 HEADLINE = {
-    "model": {"ema": True, "msf": True, "coord": True, "max_disp": 192, "hourglass_wiring": "openstereo",
-              "align_corners": True},
-    "data": {"dataset": "virtualtree", "split": "files", "train_split": "virtualtree_train.txt",
-             "val_split": "virtualtree_val.txt", "val_fraction": 0.1, "split_seed": 0, "group_pattern": "",
-             "crop": [256, 512], "color_jitter": True, "num_workers": 8},
+    "model": {
+        "ema": True,
+        "msf": True,
+        "coord": True,
+        "max_disp": 192,
+        "hourglass_wiring": "openstereo",
+        "align_corners": True,
+    },
+    "data": {
+        "dataset": "virtualtree",
+        "split": "files",
+        "train_split": "virtualtree_train.txt",
+        "val_split": "virtualtree_val.txt",
+        "val_fraction": 0.1,
+        "split_seed": 0,
+        "group_pattern": "",
+        "crop": [256, 512],
+        "color_jitter": True,
+        "num_workers": 8,
+    },
     "optim": {"lr": 5e-4, "weight_decay": 1e-4, "betas": [0.9, 0.999], "warmup_steps": 500},
-    "train": {"epochs": 300, "batch_size": 4, "accumulate": 1, "precision": "fp16", "grad_clip": 1.0,
-              "loss_weights": [0.5, 0.7, 1.0], "clamp_factor": 2.0, "loss_cap": 1000.0, "ema_decay": 0.0,
-              "patience": 50, "seed": 0, "log_every": 10, "vis_count": 10, "checkpoint_every": 0, "max_steps": 0,
-              "val_max_images": 0, "drop_last": True},
+    "train": {
+        "epochs": 300,
+        "batch_size": 4,
+        "accumulate": 1,
+        "precision": "fp16",
+        "grad_clip": 1.0,
+        "loss_weights": [0.5, 0.7, 1.0],
+        "clamp_factor": 2.0,
+        "loss_cap": 1000.0,
+        "ema_decay": 0.0,
+        "patience": 50,
+        "seed": 0,
+        "log_every": 10,
+        "vis_count": 10,
+        "checkpoint_every": 0,
+        "max_steps": 0,
+        "val_max_images": 0,
+        "drop_last": True,
+    },
     "finetune": {"weights": "", "freeze": []},
 }
 PAPER_SPLIT = {"split": "paper", "val_fraction": 0.1, "split_seed": 0}
 #: How every other recipe differs from the headline one.
 RECIPE_CHANGES = {
-    **{f"ablation_{name}": {"model": {"ema": "ema" in name, "msf": "msf" in name, "coord": "coord" in name},
-                            "train": {"epochs": 100}}
-       for name in ("none", "ema", "msf", "coord", "ema_msf", "ema_coord", "msf_coord", "ema_msf_coord")},
+    **{
+        f"ablation_{name}": {
+            "model": {"ema": "ema" in name, "msf": "msf" in name, "coord": "coord" in name},
+            "train": {"epochs": 100},
+        }
+        for name in ("none", "ema", "msf", "coord", "ema_msf", "ema_coord", "msf_coord", "ema_msf_coord")
+    },
     "ablation_base": {"train": {"epochs": 100}},
     # Paper §Implementation: 288×576, lr 4e-4, 200-iteration warm-up, weights (0.25, 0.5, 1.0), effective
     # batch 24, weight EMA 0.9995, EMA weights of epoch 108; facts §7: bf16, 8 per GPU, no early stopping.
-    "sceneflow": {"data": {"dataset": "sceneflow", **PAPER_SPLIT, "crop": [288, 576]},
-                  "optim": {"lr": 4e-4, "warmup_steps": 200},
-                  "train": {"epochs": 108, "batch_size": 8, "accumulate": 3, "precision": "bf16",
-                            "loss_weights": [0.25, 0.5, 1.0], "ema_decay": 0.9995, "patience": 0}},
+    "sceneflow": {
+        "data": {"dataset": "sceneflow", **PAPER_SPLIT, "crop": [288, 576]},
+        "optim": {"lr": 4e-4, "warmup_steps": 200},
+        "train": {
+            "epochs": 108,
+            "batch_size": 8,
+            "accumulate": 3,
+            "precision": "bf16",
+            "loss_weights": [0.25, 0.5, 1.0],
+            "ema_decay": 0.9995,
+            "patience": 0,
+        },
+    },
     "kitti2012": {"data": {"dataset": "kitti2012", **PAPER_SPLIT}},
     "kitti2015": {"data": {"dataset": "kitti2015", **PAPER_SPLIT}},
     "middlebury": {"data": {"dataset": "middlebury", **PAPER_SPLIT}},
-    "eth3d_finetune": {"data": {"dataset": "eth3d", **PAPER_SPLIT}, "optim": {"warmup_steps": 0},
-                       "train": {"epochs": 1, "patience": 0}, "finetune": {"weights": "runs/sceneflow/best.pth"}},
-    "synthetic": {"data": {"dataset": "synthetic", "train_split": "train", "val_split": "val"},
-                  "train": {"epochs": 50, "patience": 10}},
+    "eth3d_finetune": {
+        "data": {"dataset": "eth3d", **PAPER_SPLIT},
+        "optim": {"warmup_steps": 0},
+        "train": {"epochs": 1, "patience": 0},
+        "finetune": {"weights": "runs/sceneflow/best.pth"},
+    },
+    "synthetic": {
+        "data": {"dataset": "synthetic", "train_split": "train", "val_split": "val"},
+        "train": {"epochs": 50, "patience": 10},
+    },
 }
 
 

@@ -11,6 +11,7 @@ The in-process interruption with weight EMA, the fp16 scaler and colour jitter i
 small network in test_training_loop.py. Longer runs: benchmarks/train_synthetic.py (figures in the
 README).
 """
+
 from __future__ import annotations
 
 import os
@@ -48,11 +49,25 @@ def synth_root(tmp_path_factory) -> Path:
 def recipe_tree(root: Path, out_dir: Path, **train) -> dict:
     return {
         "model": {"max_disp": 48},
-        "data": {"dataset": "synthetic", "root": str(root), "train_split": "smoke_train", "val_split": "smoke_val",
-                 "crop": [256, 256], "num_workers": 0},
+        "data": {
+            "dataset": "synthetic",
+            "root": str(root),
+            "train_split": "smoke_train",
+            "val_split": "smoke_val",
+            "crop": [256, 256],
+            "num_workers": 0,
+        },
         "optim": {"lr": 1e-3, "warmup_steps": 1},
-        "train": {"epochs": 3, "batch_size": 1, "precision": "fp32", "patience": 0, "vis_count": 0, "log_every": 1,
-                  "out_dir": str(out_dir), **train},
+        "train": {
+            "epochs": 3,
+            "batch_size": 1,
+            "precision": "fp32",
+            "patience": 0,
+            "vis_count": 0,
+            "log_every": 1,
+            "out_dir": str(out_dir),
+            **train,
+        },
     }
 
 
@@ -65,6 +80,7 @@ def _toml(tree: dict) -> str:
         if isinstance(v, list):
             return "[" + ", ".join(value(x) for x in v) + "]"
         return repr(v)
+
     return "\n".join(f"[{s}]\n" + "\n".join(f"{k} = {value(v)}" for k, v in t.items()) for s, t in tree.items()) + "\n"
 
 
@@ -82,13 +98,17 @@ def assert_same_state(a: dict, b: dict) -> None:
     assert a["progress"]["step"] == b["progress"]["step"] == N_STEPS
     assert a["progress"]["batch_in_epoch"] == b["progress"]["batch_in_epoch"] == 1
     assert a["scheduler"]["last_epoch"] == b["scheduler"]["last_epoch"] == N_STEPS
-    assert a["progress"]["history"][0]["train_loss"] == pytest.approx(b["progress"]["history"][0]["train_loss"], rel=1e-5)
+    assert a["progress"]["history"][0]["train_loss"] == pytest.approx(
+        b["progress"]["history"][0]["train_loss"], rel=1e-5
+    )
     assert a["progress"]["history"][0]["val_epe"] == pytest.approx(b["progress"]["history"][0]["val_epe"], rel=1e-5)
     assert a["model"].keys() == b["model"].keys()
     for key in a["model"]:
         torch.testing.assert_close(a["model"][key], b["model"][key], rtol=1e-5, atol=1e-6, msg=key)
     for index, state in a["optimizer"]["state"].items():
-        torch.testing.assert_close(state["exp_avg_sq"], b["optimizer"]["state"][index]["exp_avg_sq"], rtol=1e-4, atol=1e-9)
+        torch.testing.assert_close(
+            state["exp_avg_sq"], b["optimizer"]["state"][index]["exp_avg_sq"], rtol=1e-4, atol=1e-9
+        )
 
 
 def test_full_model_loss_falls_and_held_out_epe_improves_on_synthetic_scenes(synth_root, first_steps, tmp_path):
@@ -114,7 +134,17 @@ def test_resume_after_sigkill_mid_run_matches_the_uninterrupted_run(synth_root, 
     config_file = tmp_path / "run.toml"
     config_file.write_text(_toml(tree), encoding="utf-8")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(PROJECT)}
-    command = [sys.executable, "-m", "stereo.cli", "train", "--config", str(config_file), "--no-progress", "--device", "cpu"]
+    command = [
+        sys.executable,
+        "-m",
+        "stereo.cli",
+        "train",
+        "--config",
+        str(config_file),
+        "--no-progress",
+        "--device",
+        "cpu",
+    ]
     process = subprocess.Popen(command, cwd=PROJECT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     last = tmp_path / "run" / "last.pth"
     killed_at = None

@@ -1,5 +1,6 @@
 """Trainer behaviours on a small network: gradient accumulation, early stopping, non-finite steps skipped,
 a diverged (NaN) validation that is never the best, and exact resume of every piece of training state."""
+
 from __future__ import annotations
 
 import json
@@ -14,7 +15,6 @@ from stereo.training.config import build_config
 from stereo.training.finetune import freeze
 from stereo.training.trainer import Trainer, seed_everything
 
-
 pytestmark = pytest.mark.filterwarnings("ignore:Detected call of `lr_scheduler.step\\(\\)` before:UserWarning")
 
 
@@ -25,12 +25,20 @@ def root(tmp_path_factory):
 
 
 def make_trainer(root, out, *, frozen=("features",), validate=True, jitter=False, **train) -> Trainer:
-    config = build_config({
-        "model": {"max_disp": 16},
-        "data": {"dataset": "virtualtree", "root": str(root), "crop": [64, 96], "num_workers": 0, "color_jitter": jitter},
-        "optim": {"warmup_steps": 1, "lr": train.pop("lr", 1e-3)},
-        "train": {"epochs": 1, "batch_size": 1, "precision": "fp32", "vis_count": 0, "out_dir": str(out), **train},
-    })
+    config = build_config(
+        {
+            "model": {"max_disp": 16},
+            "data": {
+                "dataset": "virtualtree",
+                "root": str(root),
+                "crop": [64, 96],
+                "num_workers": 0,
+                "color_jitter": jitter,
+            },
+            "optim": {"warmup_steps": 1, "lr": train.pop("lr", 1e-3)},
+            "train": {"epochs": 1, "batch_size": 1, "precision": "fp32", "vis_count": 0, "out_dir": str(out), **train},
+        }
+    )
     seed_everything(0)
     model = TinyStereoNet(max_disp=16)
     freeze(model, frozen)  # BatchNorm kept in eval mode: samples stay independent inside a batch
@@ -96,10 +104,15 @@ def test_nan_validation_is_counted_as_failed_never_best_and_training_goes_on(roo
 
 
 def _training_state(trainer: Trainer) -> dict:
-    return {"model": trainer.model.state_dict(), "ema": trainer.ema.state_dict(), "scaler": trainer.scaler.state_dict(),
-            "optimizer": trainer.optimizer.state_dict()["state"], "lr": trainer.optimizer.param_groups[0]["lr"],
-            "progress": {k: v for k, v in trainer.progress.items() if k != "history"},
-            "history": [{k: v for k, v in row.items() if k != "seconds"} for row in trainer.progress["history"]]}
+    return {
+        "model": trainer.model.state_dict(),
+        "ema": trainer.ema.state_dict(),
+        "scaler": trainer.scaler.state_dict(),
+        "optimizer": trainer.optimizer.state_dict()["state"],
+        "lr": trainer.optimizer.param_groups[0]["lr"],
+        "progress": {k: v for k, v in trainer.progress.items() if k != "history"},
+        "history": [{k: v for k, v in row.items() if k != "seconds"} for row in trainer.progress["history"]],
+    }
 
 
 def test_k_steps_then_resume_equals_n_steps_in_one_go_with_ema_scaler_and_jitter(root, tmp_path):
@@ -132,8 +145,18 @@ def test_gradient_norm_is_clipped_to_grad_clip_before_each_optimiser_step(root, 
     for clip in (0.0, 1e-3):  # 0 = no clipping
         trainer = make_trainer(root, tmp_path / str(clip), frozen=(), validate=False, grad_clip=clip)
         seen = norms.setdefault(clip, [])
-        trainer.optimizer.register_step_pre_hook(lambda opt, args, kwargs, seen=seen: seen.append(math.sqrt(sum(
-            float(p.grad.pow(2).sum()) for group in opt.param_groups for p in group["params"] if p.grad is not None))))
+        trainer.optimizer.register_step_pre_hook(
+            lambda opt, args, kwargs, seen=seen: seen.append(
+                math.sqrt(
+                    sum(
+                        float(p.grad.pow(2).sum())
+                        for group in opt.param_groups
+                        for p in group["params"]
+                        if p.grad is not None
+                    )
+                )
+            )
+        )
         assert trainer.fit().steps == 4
     assert len(norms[1e-3]) == 4 and max(norms[1e-3]) <= 1e-3 * (1 + 1e-4)
     assert min(norms[0.0]) > 1e-2, norms[0.0]

@@ -1,4 +1,5 @@
 """Weights download against a loopback HTTP server: verified, refused, or dropped mid-way."""
+
 from __future__ import annotations
 
 import hashlib
@@ -42,8 +43,14 @@ def server():
 
 
 def info_for(payload: bytes, *, sha: str | None = None) -> WeightsInfo:
-    return WeightsInfo(name="test", filename="test.pth", sha256=sha or hashlib.sha256(payload).hexdigest(),
-                       layout="ours", url="http://127.0.0.1:9/unused", size_bytes=len(payload))
+    return WeightsInfo(
+        name="test",
+        filename="test.pth",
+        sha256=sha or hashlib.sha256(payload).hexdigest(),
+        layout="ours",
+        url="http://127.0.0.1:9/unused",
+        size_bytes=len(payload),
+    )
 
 
 def test_download_with_right_checksum_lands_verified(server, tmp_path):
@@ -72,7 +79,9 @@ def test_unreachable_server_is_a_clear_error(tmp_path):
 
 
 def test_cli_fetch_refuses_file_that_is_not_the_release(server, tmp_path, capsys):
-    code = main(["weights", "fetch", "emcstereo-virtualtree", "--url", f"{server}/w", "--dest", str(tmp_path), "--quiet"])
+    code = main(
+        ["weights", "fetch", "emcstereo-virtualtree", "--url", f"{server}/w", "--dest", str(tmp_path), "--quiet"]
+    )
     assert code == 1
     assert "expected 61866765" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []

@@ -1,5 +1,6 @@
 """Registered weights are checked against their SHA-256 on every load, hashed once per file version;
 local files of other names load unchecked, and `verify_sha256=False` / `--no-verify-weights` overrides."""
+
 from __future__ import annotations
 
 import hashlib
@@ -28,8 +29,13 @@ def small_model(seed: int) -> EMCStereo:
 def registered(tmp_path: Path) -> tuple[Path, dict[str, WeightsInfo]]:
     """A small checkpoint on disk and a test registry that lists it by file name and SHA-256."""
     path = save_checkpoint(small_model(0), tmp_path / "tiny.pth")
-    info = WeightsInfo(name="tiny", filename="tiny.pth", sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
-                       layout="ours", url="http://127.0.0.1:9/never-fetched")
+    info = WeightsInfo(
+        name="tiny",
+        filename="tiny.pth",
+        sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+        layout="ours",
+        url="http://127.0.0.1:9/never-fetched",
+    )
     return path, {info.name: info}
 
 
@@ -55,8 +61,10 @@ def test_override_loads_a_local_file_that_carries_a_registered_name(registered):
     path, registry = registered
     save_checkpoint(small_model(1), path)
     model = load_model(path, registry=registry, verify_sha256=False)
-    assert torch.equal(model.state_dict()["aggregation.classif3.1.weight"],
-                       small_model(1).state_dict()["aggregation.classif3.1.weight"])
+    assert torch.equal(
+        model.state_dict()["aggregation.classif3.1.weight"],
+        small_model(1).state_dict()["aggregation.classif3.1.weight"],
+    )
 
 
 def test_file_of_an_unregistered_name_loads_unchecked(registered, tmp_path, monkeypatch):

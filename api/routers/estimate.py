@@ -3,6 +3,7 @@
 Both take the same pair and camera fields (`stereo_request`, a dependency, so the OpenAPI
 document describes them once and alike); /estimate adds a mask, /disparity an output format.
 """
+
 from __future__ import annotations
 
 import io
@@ -33,8 +34,13 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorBody, "description": "body above api.max_upload_mb or an image above api.max_pixels"},
     415: {"model": ErrorBody, "description": "an image that is not PNG or JPEG"},
     422: {"model": ErrorBody, "description": "a field missing or out of range, an unreadable file or calibration"},
-    503: {"model": ErrorBody, "description": "every inference slot is busy (answered before the body is read)",
-          "headers": {"Retry-After": {"description": "seconds to wait (api.retry_after_s)", "schema": {"type": "integer"}}}},
+    503: {
+        "model": ErrorBody,
+        "description": "every inference slot is busy (answered before the body is read)",
+        "headers": {
+            "Retry-After": {"description": "seconds to wait (api.retry_after_s)", "schema": {"type": "integer"}}
+        },
+    },
 }
 Backend = Literal[BACKEND_NAMES]  # type: ignore[valid-type]  # the one list, stereo.backends
 
@@ -65,7 +71,7 @@ def display_name(filename: str | None, default: str = "calibration") -> str:
     name = "".join(ch for ch in last if ch.isprintable())
     if name in ("", ".", ".."):
         return default
-    return name if len(name) <= MAX_NAME_CHARS else name[:MAX_NAME_CHARS - 1] + "…"
+    return name if len(name) <= MAX_NAME_CHARS else name[: MAX_NAME_CHARS - 1] + "…"
 
 
 def _checked_calibration(data: bytes, name: str, resolution: str | None, size: tuple[int, int]) -> Any:
@@ -87,8 +93,9 @@ async def _load_calibration(upload: UploadFile, resolution: str | None, size: tu
     except ValueError as exc:
         raise _unprocessable(f"calibration: {exc}") from None
     except Exception as exc:  # noqa: BLE001 - an uploaded file is untrusted: a parser crash on it is bad input too
-        raise _unprocessable(f"calibration: {name}: not a readable calibration file "
-                             f"({type(exc).__name__} in its parser)") from None
+        raise _unprocessable(
+            f"calibration: {name}: not a readable calibration file ({type(exc).__name__} in its parser)"
+        ) from None
 
 
 def _camera_value(quantity: str, value: float, field: str) -> float:
@@ -109,16 +116,33 @@ async def stereo_request(
     request: Request,
     left: Annotated[UploadFile, File(description="left image, PNG or JPEG")],
     right: Annotated[UploadFile, File(description="right image, PNG or JPEG, the left one's size")],
-    calibration: Annotated[UploadFile | None, File(
-        description="ZED .conf, OpenCV YAML/JSON/XML, depthai JSON or KITTI calib; the pair is raw and gets "
-                    "rectified (instead of focal_px + baseline_m)")] = None,
+    calibration: Annotated[
+        UploadFile | None,
+        File(
+            description="ZED .conf, OpenCV YAML/JSON/XML, depthai JSON or KITTI calib; the pair is raw and gets "
+            "rectified (instead of focal_px + baseline_m)"
+        ),
+    ] = None,
     resolution: Annotated[str | None, Form(description="ZED .conf files: 2K, FHD, HD or VGA")] = None,
-    focal_px: Annotated[float | None, Form(allow_inf_nan=False, description=(
-        "rectified pair: focal length, pixels at the uploaded size (with baseline_m); "
-        f"{PHYSICAL_RANGES['focal_px'].describe()}"))] = None,
-    baseline_m: Annotated[float | None, Form(allow_inf_nan=False, description=(
-        "rectified pair: baseline, metres (with focal_px); "
-        f"{PHYSICAL_RANGES['baseline_m'].describe()}"))] = None,
+    focal_px: Annotated[
+        float | None,
+        Form(
+            allow_inf_nan=False,
+            description=(
+                "rectified pair: focal length, pixels at the uploaded size (with baseline_m); "
+                f"{PHYSICAL_RANGES['focal_px'].describe()}"
+            ),
+        ),
+    ] = None,
+    baseline_m: Annotated[
+        float | None,
+        Form(
+            allow_inf_nan=False,
+            description=(
+                f"rectified pair: baseline, metres (with focal_px); {PHYSICAL_RANGES['baseline_m'].describe()}"
+            ),
+        ),
+    ] = None,
     backend: Annotated[Backend | None, Form(description="stereo backend; the server's default when left out")] = None,
     max_disp: Annotated[int | None, Form(description=f"disparity search range: {MAX_DISP_EXPECTED}")] = None,
 ) -> StereoRequest:
@@ -132,11 +156,15 @@ async def stereo_request(
     if calibration is not None and (focal_px is not None or baseline_m is not None):
         raise _unprocessable("give either a calibration file or focal_px + baseline_m, not both")
     if calibration is None and (focal_px is None or baseline_m is None):
-        raise _unprocessable("missing camera: upload a calibration file (with resolution for ZED files), "
-                             "or give focal_px and baseline_m of the rectified pair")
+        raise _unprocessable(
+            "missing camera: upload a calibration file (with resolution for ZED files), "
+            "or give focal_px and baseline_m of the rectified pair"
+        )
     if calibration is None:  # checked before any image is decoded
-        camera = CameraSpec(focal_px=_camera_value("focal_px", focal_px, "focal_px"),
-                            baseline_m=_camera_value("baseline_m", baseline_m, "baseline_m"))
+        camera = CameraSpec(
+            focal_px=_camera_value("focal_px", focal_px, "focal_px"),
+            baseline_m=_camera_value("baseline_m", baseline_m, "baseline_m"),
+        )
     left_img = await _decoded(left, "left", settings)
     right_img = await _decoded(right, "right", settings)
     try:
@@ -145,7 +173,9 @@ async def stereo_request(
         raise _unprocessable(str(exc)) from None
     if calibration is not None:
         size = (left_img.shape[1], left_img.shape[0])
-        camera = CameraSpec(calibration=await _load_calibration(calibration, resolution, size, settings.max_upload_bytes))
+        camera = CameraSpec(
+            calibration=await _load_calibration(calibration, resolution, size, settings.max_upload_bytes)
+        )
     return StereoRequest(left_img, right_img, camera, backend, max_disp)
 
 
@@ -163,17 +193,30 @@ async def _infer(request: Request, func: Any, *args: Any, **kwargs: Any) -> Any:
         return out
 
 
-@router.post("/estimate", response_model=EstimateResult, responses=ERRORS,
-             summary="Cut points of the branches in a stereo pair")
+@router.post(
+    "/estimate", response_model=EstimateResult, responses=ERRORS, summary="Cut points of the branches in a stereo pair"
+)
 async def post_estimate(
     request: Request,
     pair: Annotated[StereoRequest, Depends(stereo_request)],
-    mask: Annotated[UploadFile | None, File(description=(
-        "instance-id PNG (0 = background, 8 or 16 bit) or binary mask, the left image's size; "
-        "the server's segmenter runs when left out"))] = None,
-    segmenter: Annotated[Literal["configured", "structure", "geometric"], Form(description=(
-        "without a mask: 'configured' = the server's [segmenter] model (e.g. its onnx:FILE), "
-        "'structure' or 'geometric' = a built-in one"))] = "configured",
+    mask: Annotated[
+        UploadFile | None,
+        File(
+            description=(
+                "instance-id PNG (0 = background, 8 or 16 bit) or binary mask, the left image's size; "
+                "the server's segmenter runs when left out"
+            )
+        ),
+    ] = None,
+    segmenter: Annotated[
+        Literal["configured", "structure", "geometric"],
+        Form(
+            description=(
+                "without a mask: 'configured' = the server's [segmenter] model (e.g. its onnx:FILE), "
+                "'structure' or 'geometric' = a built-in one"
+            )
+        ),
+    ] = "configured",
 ) -> JSONResponse:
     """Stereo pair (+ optional mask) and camera → the `branchrange/v1` result."""
     settings = request.app.state.settings
@@ -182,11 +225,21 @@ async def post_estimate(
         data = await read_upload(mask, "mask", settings.max_upload_bytes)
         mask_arr = await run_in_threadpool(decode_mask, data, "mask", settings.max_pixels)
         if mask_arr.shape != pair.left.shape[:2]:
-            raise _unprocessable(f"mask is {mask_arr.shape[1]}×{mask_arr.shape[0]} px but the images are "
-                                 f"{pair.left.shape[1]}×{pair.left.shape[0]} px; it must match the left image")
-    result = await _infer(request, request.app.state.estimator.estimate, pair.left, pair.right, mask_arr, pair.camera,
-                          backend=pair.backend, max_disp=pair.max_disp,
-                          segmenter=None if segmenter == "configured" else segmenter)
+            raise _unprocessable(
+                f"mask is {mask_arr.shape[1]}×{mask_arr.shape[0]} px but the images are "
+                f"{pair.left.shape[1]}×{pair.left.shape[0]} px; it must match the left image"
+            )
+    result = await _infer(
+        request,
+        request.app.state.estimator.estimate,
+        pair.left,
+        pair.right,
+        mask_arr,
+        pair.camera,
+        backend=pair.backend,
+        max_disp=pair.max_disp,
+        segmenter=None if segmenter == "configured" else segmenter,
+    )
     return JSONResponse(result.to_json_dict())
 
 
@@ -200,16 +253,29 @@ def _encode_kitti_png(disparity: np.ndarray) -> bytes:
         return path.read_bytes()
 
 
-@router.post("/disparity", responses={**ERRORS, 200: {"content": {"image/png": {}, "application/x-npy": {}}}},
-             response_class=Response, summary="Disparity of a stereo pair (KITTI PNG or .npy)")
+@router.post(
+    "/disparity",
+    responses={**ERRORS, 200: {"content": {"image/png": {}, "application/x-npy": {}}}},
+    response_class=Response,
+    summary="Disparity of a stereo pair (KITTI PNG or .npy)",
+)
 async def post_disparity(
     request: Request,
     pair: Annotated[StereoRequest, Depends(stereo_request)],
-    format: Annotated[Literal["png", "npy"], Form(description="png: KITTI 16-bit (value/256 px); npy: float32")] = "png",
+    format: Annotated[
+        Literal["png", "npy"], Form(description="png: KITTI 16-bit (value/256 px); npy: float32")
+    ] = "png",
 ) -> Response:
     """Disparity of the (rectified) left view in pixels; KITTI PNG by default, `.npy` on request."""
-    disparity = await _infer(request, request.app.state.estimator.disparity, pair.left, pair.right, pair.camera,
-                             backend=pair.backend, max_disp=pair.max_disp)
+    disparity = await _infer(
+        request,
+        request.app.state.estimator.disparity,
+        pair.left,
+        pair.right,
+        pair.camera,
+        backend=pair.backend,
+        max_disp=pair.max_disp,
+    )
     if format == "npy":
         buffer = io.BytesIO()
         np.save(buffer, disparity.astype(np.float32))

@@ -3,6 +3,7 @@
 /health answers everyone, but the camera source path and the MAVLink URL (where the vehicle's
 devices and peers are) only to a request with the token, when one is set.
 """
+
 from __future__ import annotations
 
 from importlib import metadata
@@ -44,8 +45,12 @@ async def get_health(request: Request) -> dict:
     HEARTBEAT for 3 s). The camera source and the MAVLink URL are shown only with the token."""
     state = request.app.state
     estimator = state.estimator
-    model = {"loaded": estimator is not None, "backend": getattr(estimator, "backend_name", None),
-             "inference_slots": state.slots.capacity, "inference_in_use": state.slots.in_use}
+    model = {
+        "loaded": estimator is not None,
+        "backend": getattr(estimator, "backend_name", None),
+        "inference_slots": state.slots.capacity,
+        "inference_in_use": state.slots.in_use,
+    }
     body = {"status": "ok", "model": model, "camera": None, "mavlink": None}
     if state.live is not None:
         live = state.live.health()
@@ -70,12 +75,19 @@ def get_version() -> dict:
 
 #: The 401 of /metrics is JSON like every error, though the route's own answer is text: written out,
 #: since FastAPI would document a `model` under the route's media type (text/plain).
-METRICS_401 = {"description": "missing or wrong bearer token",
-               "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}}}
+METRICS_401 = {
+    "description": "missing or wrong bearer token",
+    "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}},
+}
 
 
-@router.get("/metrics", response_class=PlainTextResponse, dependencies=[Depends(require_token)],
-            responses={401: METRICS_401}, summary="Prometheus metrics (text format 0.0.4)")
+@router.get(
+    "/metrics",
+    response_class=PlainTextResponse,
+    dependencies=[Depends(require_token)],
+    responses={401: METRICS_401},
+    summary="Prometheus metrics (text format 0.0.4)",
+)
 def get_metrics(request: Request) -> PlainTextResponse:
     """Requests, latencies, frames and errors in the Prometheus text format; in daemon mode the MAVLink link too."""
     text = request.app.state.metrics.render()
@@ -93,27 +105,55 @@ def link_metrics(link: dict[str, Any]) -> list[str]:
     age = link.get("peer_heartbeat_age_s")
     vehicle = link.get("vehicle_state") or {}
     rows = [
-        ("connected", "gauge", "1 while the autopilot's HEARTBEAT arrives within the timeout.", ids, int(bool(link.get("connected")))),
-        ("heartbeat_age_seconds", "gauge", "Seconds since the autopilot's newest HEARTBEAT (NaN: never).", "",
-         "NaN" if age is None else age),
+        (
+            "connected",
+            "gauge",
+            "1 while the autopilot's HEARTBEAT arrives within the timeout.",
+            ids,
+            int(bool(link.get("connected"))),
+        ),
+        (
+            "heartbeat_age_seconds",
+            "gauge",
+            "Seconds since the autopilot's newest HEARTBEAT (NaN: never).",
+            "",
+            "NaN" if age is None else age,
+        ),
         ("messages_received_total", "counter", "MAVLink messages received.", "", link.get("received", 0)),
         ("messages_sent_total", "counter", "MAVLink messages sent.", "", link.get("sent", 0)),
-        ("signature_failures_total", "counter", "Messages dropped for a missing or wrong signature.", "",
-         link.get("signature_failures", 0)),
-        ("vehicle_state_available", "gauge", "1 while the vehicle pose is known (targets in local NED).", "",
-         int(bool(vehicle.get("available")))),
+        (
+            "signature_failures_total",
+            "counter",
+            "Messages dropped for a missing or wrong signature.",
+            "",
+            link.get("signature_failures", 0),
+        ),
+        (
+            "vehicle_state_available",
+            "gauge",
+            "1 while the vehicle pose is known (targets in local NED).",
+            "",
+            int(bool(vehicle.get("available"))),
+        ),
         ("tracks", "gauge", "Fresh fused target tracks.", "", link.get("tracks", 0)),
     ]
     lines = []
     for name, kind, help_text, labels, value in rows:
-        lines += [f"# HELP branchrange_mavlink_{name} {help_text}", f"# TYPE branchrange_mavlink_{name} {kind}",
-                  f"branchrange_mavlink_{name}{labels} {value}"]
+        lines += [
+            f"# HELP branchrange_mavlink_{name} {help_text}",
+            f"# TYPE branchrange_mavlink_{name} {kind}",
+            f"branchrange_mavlink_{name}{labels} {value}",
+        ]
     return lines
 
 
-@router.get("/latest", response_model=EstimateResult,
-            dependencies=[Depends(require_token)],
-            responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}}, summary="Daemon mode: the newest result")
+@router.get(
+    "/latest",
+    response_model=EstimateResult,
+    dependencies=[Depends(require_token)],
+    responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}},
+    summary="Daemon mode: the newest result",
+)
 def get_latest(request: Request) -> JSONResponse:
     """The newest frame's result in daemon mode; 404 outside it or before the first frame."""
     live = request.app.state.live

@@ -4,6 +4,7 @@ Precedence, lowest first: the defaults, the file, the command's own flags (`--so
 `--max-disp` …, each the shorthand of one key), then every `--set` in order. Each value passes
 the same checks as in the file, so an error names the key whatever way it came in.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -13,11 +14,19 @@ from typing import Any
 
 def add_config_arguments(parser: argparse.ArgumentParser, *, required: bool, sections: str) -> None:
     """Add --config (the TOML file; `sections`: which of its sections the command reads) and --set."""
-    parser.add_argument("--config", required=required,
-                        help=f"TOML configuration ({sections}; see deploy/*.toml)" + ("" if required else "; defaults otherwise"))
-    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                        help="override one configuration key, the value in TOML syntax (repeatable), e.g. "
-                             "--set stereo.max_disp=128 --set segmenter.structure.max_range_m=3")
+    parser.add_argument(
+        "--config",
+        required=required,
+        help=f"TOML configuration ({sections}; see deploy/*.toml)" + ("" if required else "; defaults otherwise"),
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override one configuration key, the value in TOML syntax (repeatable), e.g. "
+        "--set stereo.max_disp=128 --set segmenter.structure.max_range_m=3",
+    )
 
 
 def config_from_args(args: argparse.Namespace, flags: Mapping[str, Any] = {}) -> Any:

@@ -1,4 +1,5 @@
 """`branchrange daemon`: camera → cut points → MAVLink + JSONL log (+ /latest, /health, /metrics), onboard."""
+
 from __future__ import annotations
 
 import argparse
@@ -23,13 +24,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `daemon` to the `branchrange` command."""
     p = subparsers.add_parser("daemon", help="run onboard: camera → cut points → MAVLink", description=__doc__)
     add_config_arguments(p, required=True, sections="every section; see deploy/onboard.toml")
-    p.add_argument("--source", help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH, "
-                                    "rosbag:PATH)")
+    p.add_argument("--source", help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH, rosbag:PATH)")
     p.add_argument("--mavlink", help="MAVLink connection string, overrides mavlink.url")
     p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
-    p.add_argument("--foxglove", action="append", default=[], metavar="ws://HOST:PORT|FILE.mcap",
-                   help="also send every frame to Foxglove: serve a live WebSocket and/or write an MCAP file "
-                        "(repeat for both); open with deploy/foxglove_layout.json")
+    p.add_argument(
+        "--foxglove",
+        action="append",
+        default=[],
+        metavar="ws://HOST:PORT|FILE.mcap",
+        help="also send every frame to Foxglove: serve a live WebSocket and/or write an MCAP file "
+        "(repeat for both); open with deploy/foxglove_layout.json",
+    )
     p.set_defaults(func=run)
 
 
@@ -51,16 +56,18 @@ def run(args: argparse.Namespace) -> int:
     """Build source, pipeline, relay and log from the config; run until the source ends or a signal."""
     from api.metrics import Metrics
     from branchrange.core.config import ConfigError
+    from branchrange.core.frame_results import pipeline_for
     from branchrange.onboard.daemon import Daemon
     from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
-    from branchrange.core.frame_results import pipeline_for
     from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
     from branchrange.onboard.mavlink.connection import SigningKeyError
     from camera.sources import SourceError, open_source
 
     try:
         cfg = config_from_args(args, {"camera.source": args.source, "mavlink.url": args.mavlink})
-        cfg = dataclasses.replace(cfg, api=dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, "")))
+        cfg = dataclasses.replace(
+            cfg, api=dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, ""))
+        )
         if cfg.api.enabled:
             check_bind(cfg.api.host, cfg.api.token)
         targets = parse_targets(args.foxglove) if args.foxglove else None
@@ -83,7 +90,9 @@ def run(args: argparse.Namespace) -> int:
         if targets is not None:
             sink = FoxgloveSink(targets, mount=mount, newest_only=True)
             if relay is not None:
-                sink.follow_vehicle(relay.vehicle_pose)  # the scene in local NED too, while the autopilot streams its pose
+                sink.follow_vehicle(
+                    relay.vehicle_pose
+                )  # the scene in local NED too, while the autopilot streams its pose
     except (SourceError, SigningKeyError, ValueError) as exc:
         for opened in (first, relay, sink):
             if opened is not None:
@@ -93,13 +102,26 @@ def run(args: argparse.Namespace) -> int:
     api = f"http://{cfg.api.host}:{cfg.api.port}" if cfg.api.enabled else "off"
     logging.getLogger("branchrange.daemon").info(
         "starting: mode=%s backend=%s max_disp=%d source=%s mavlink=%s api=%s results=%s foxglove=%s",
-        cfg.stereo.mode, cfg.stereo.backend, cfg.stereo.max_disp, cfg.camera.source,
-        cfg.mavlink.url if relay else "off", api, cfg.log.results_jsonl or "off", sink.describe() if sink else "off")
+        cfg.stereo.mode,
+        cfg.stereo.backend,
+        cfg.stereo.max_disp,
+        cfg.camera.source,
+        cfg.mavlink.url if relay else "off",
+        api,
+        cfg.log.results_jsonl or "off",
+        sink.describe() if sink else "off",
+    )
     sources = iter([first])  # the first source is the one already opened; reopening opens new ones
     metrics = Metrics()
-    daemon = Daemon(cfg, open_source=lambda: next(sources, None) or open_camera(), pipeline=pipeline,
-                    relay=relay, results_path=cfg.log.results_jsonl or None, metrics=metrics,
-                    observers=[sink] if sink is not None else [])
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: next(sources, None) or open_camera(),
+        pipeline=pipeline,
+        relay=relay,
+        results_path=cfg.log.results_jsonl or None,
+        metrics=metrics,
+        observers=[sink] if sink is not None else [],
+    )
     previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in (signal.SIGTERM, signal.SIGINT)}
     server = thread = None
     if cfg.api.enabled:
@@ -110,8 +132,9 @@ def run(args: argparse.Namespace) -> int:
         daemon.close()
         if sink is not None:
             sink.close()
-            logging.getLogger("branchrange.foxglove").info("Foxglove: %d frames sent, %d replaced by newer ones",
-                                                          sink.frames, sink.dropped)
+            logging.getLogger("branchrange.foxglove").info(
+                "Foxglove: %d frames sent, %d replaced by newer ones", sink.frames, sink.dropped
+            )
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if server is not None:

@@ -5,6 +5,7 @@ pairs are rectified unless --rectified) or the focal length and baseline of an a
 pair. Without --mask a segmenter proposes the branches: the built-in 'structure' one (or the older
 'geometric'), or your own ONNX model with --segmenter onnx:FILE.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,10 @@ def branch_table(result: FrameResult) -> str:
     for b in result.branches:
         x, y, z = b.cut_point_m
         star = "*" if result.is_target(b) else ""
-        rows.append(f"{b.id:>4} {x:>7.3f} {y:>7.3f} {z:>7.3f} {b.distance_m:>7.3f} "
-                    f"{b.diameter_m * 1000:>7.1f} {b.confidence:>5.2f}  {star}")
+        rows.append(
+            f"{b.id:>4} {x:>7.3f} {y:>7.3f} {z:>7.3f} {b.distance_m:>7.3f} "
+            f"{b.diameter_m * 1000:>7.1f} {b.confidence:>5.2f}  {star}"
+        )
     if not result.branches:
         rows.append(f"  (no cut points: {result.reason or 'none found'})")
     return "\n".join(rows)
@@ -37,12 +40,21 @@ def add_stereo_arguments(parser: argparse.ArgumentParser, default_backend: str |
     """--backend/--weights/--max-disp, shared by the commands that run a stereo backend."""
     from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED
 
-    parser.add_argument("--backend", choices=BACKEND_NAMES, default=default_backend,
-                        help="stereo backend (default: emcstereo with --weights, else sgbm)")
-    parser.add_argument("--weights", type=Path,
-                        help="EMCStereo checkpoint (any supported layout), or the .onnx file of --backend onnx")
-    parser.add_argument("--max-disp", type=int, default=192,
-                        help=f"disparity search range (stereo.max_disp): {MAX_DISP_EXPECTED} (default 192)")
+    parser.add_argument(
+        "--backend",
+        choices=BACKEND_NAMES,
+        default=default_backend,
+        help="stereo backend (default: emcstereo with --weights, else sgbm)",
+    )
+    parser.add_argument(
+        "--weights", type=Path, help="EMCStereo checkpoint (any supported layout), or the .onnx file of --backend onnx"
+    )
+    parser.add_argument(
+        "--max-disp",
+        type=int,
+        default=192,
+        help=f"disparity search range (stereo.max_disp): {MAX_DISP_EXPECTED} (default 192)",
+    )
 
 
 def chosen_backend(args: argparse.Namespace) -> str:
@@ -61,8 +73,9 @@ def whole_frame_stereo(args: argparse.Namespace) -> Any:
     (ConfigError naming `stereo.max_disp` … for a value out of range)."""
     from branchrange.core.config import StereoConfig
 
-    return StereoConfig(backend=chosen_backend(args), weights=str(args.weights or ""), max_disp=args.max_disp,
-                        mode="full")
+    return StereoConfig(
+        backend=chosen_backend(args), weights=str(args.weights or ""), max_disp=args.max_disp, mode="full"
+    )
 
 
 def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: bool) -> None:
@@ -73,23 +86,47 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
     """
     names = "'structure', 'geometric' or 'onnx:FILE' (YOLOv8-seg or per-pixel-logits ONNX model)"
     if optional_value:
-        parser.add_argument("--segmenter", nargs="?", const="structure", metavar="NAME",
-                            help=f"find branches with a segmenter, not the truth mask: {names}; bare = structure")
+        parser.add_argument(
+            "--segmenter",
+            nargs="?",
+            const="structure",
+            metavar="NAME",
+            help=f"find branches with a segmenter, not the truth mask: {names}; bare = structure",
+        )
     else:
-        parser.add_argument("--segmenter", default="structure", metavar="NAME",
-                            help=f"segmenter used without --mask: {names} (default structure)")
-    parser.add_argument("--branch-classes", type=int, nargs="+", default=[0], metavar="ID",
-                        help="class ids an onnx model uses for branches (default 0)")
-    parser.add_argument("--trunk-classes", type=int, nargs="*", default=[], metavar="ID",
-                        help="class ids an onnx model uses for the trunk (default none)")
+        parser.add_argument(
+            "--segmenter",
+            default="structure",
+            metavar="NAME",
+            help=f"segmenter used without --mask: {names} (default structure)",
+        )
+    parser.add_argument(
+        "--branch-classes",
+        type=int,
+        nargs="+",
+        default=[0],
+        metavar="ID",
+        help="class ids an onnx model uses for branches (default 0)",
+    )
+    parser.add_argument(
+        "--trunk-classes",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="ID",
+        help="class ids an onnx model uses for the trunk (default none)",
+    )
 
 
 def segmenter_settings(args: argparse.Namespace) -> Any:
     """The `[segmenter]` settings of the segmenter options (ValueError on bad ones)."""
     from branchrange.core.config import SegmenterConfig
 
-    return SegmenterConfig(model=args.segmenter or "structure", branch_classes=tuple(args.branch_classes),
-                           trunk_classes=tuple(args.trunk_classes))
+    return SegmenterConfig(
+        model=args.segmenter or "structure",
+        branch_classes=tuple(args.branch_classes),
+        trunk_classes=tuple(args.trunk_classes),
+    )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -101,11 +138,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     camera.add_argument("--calib", type=Path, help="calibration file (format detected from its content)")
     camera.add_argument("--focal-px", type=float, help="rectified focal length in px (with --baseline-m)")
     p.add_argument("--baseline-m", type=float, help="baseline in metres (with --focal-px)")
-    p.add_argument("--principal-point", type=float, nargs=2, metavar=("CX", "CY"),
-                   help="rectified principal point in px (with --focal-px; default the image centre)")
-    p.add_argument("--doffs", type=float, metavar="PX",
-                   help="disparity offset of the rectified pair (Middlebury 2014 doffs): Z = f·B/(d + doffs); "
-                        "with --focal-px (a Middlebury calib.txt given to --calib carries its own)")
+    p.add_argument(
+        "--principal-point",
+        type=float,
+        nargs=2,
+        metavar=("CX", "CY"),
+        help="rectified principal point in px (with --focal-px; default the image centre)",
+    )
+    p.add_argument(
+        "--doffs",
+        type=float,
+        metavar="PX",
+        help="disparity offset of the rectified pair (Middlebury 2014 doffs): Z = f·B/(d + doffs); "
+        "with --focal-px (a Middlebury calib.txt given to --calib carries its own)",
+    )
     p.add_argument("--resolution", help="resolution section of a ZED calibration file (2K, FHD, HD, VGA)")
     p.add_argument("--rectified", action="store_true", help="the images are already rectified: do not rectify")
     p.add_argument("--mask", type=Path, help="instance-id PNG (8/16-bit) or binary mask; default: segmenter")
@@ -124,9 +170,13 @@ def _settings(args: argparse.Namespace) -> Any:
     from branchrange.core.cutpoints import CutPointConfig
     from branchrange.core.pipeline import PipelineConfig
 
-    return PipelineConfig(stereo=whole_frame_stereo(args), cutpoints=CutPointConfig(tracking=False),
-                          masks=MaskConfig(trunk_id=args.trunk_id), segmenter=segmenter_settings(args),
-                          check_pair=True)
+    return PipelineConfig(
+        stereo=whole_frame_stereo(args),
+        cutpoints=CutPointConfig(tracking=False),
+        masks=MaskConfig(trunk_id=args.trunk_id),
+        segmenter=segmenter_settings(args),
+        check_pair=True,
+    )
 
 
 def _pipeline(args: argparse.Namespace, config: Any, size: tuple[int, int]) -> Any:
@@ -139,16 +189,22 @@ def _pipeline(args: argparse.Namespace, config: Any, size: tuple[int, int]) -> A
         from camera import load_calibration
 
         if args.doffs is not None:
-            raise ValueError("--doffs goes with --focal-px; with --calib the calibration sets it "
-                             "(a Middlebury calib.txt's doffs, otherwise 0)")
+            raise ValueError(
+                "--doffs goes with --focal-px; with --calib the calibration sets it "
+                "(a Middlebury calib.txt's doffs, otherwise 0)"
+            )
         calibration = load_calibration(args.calib, args.resolution, size=size)
         check_calibration(calibration, size, str(args.calib))  # before the rectification maps are built
         return Pipeline(config, calibration=calibration, rectified=args.rectified)
     if args.baseline_m is None:
         raise ValueError("--focal-px needs --baseline-m (metres)")
-    return Pipeline(config, focal_px=check_physical("focal_px", args.focal_px, "--focal-px"),
-                    baseline_m=check_physical("baseline_m", args.baseline_m, "--baseline-m"), doffs_px=args.doffs,
-                    principal_point=tuple(args.principal_point) if args.principal_point else None)
+    return Pipeline(
+        config,
+        focal_px=check_physical("focal_px", args.focal_px, "--focal-px"),
+        baseline_m=check_physical("baseline_m", args.baseline_m, "--baseline-m"),
+        doffs_px=args.doffs,
+        principal_point=tuple(args.principal_point) if args.principal_point else None,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -164,8 +220,10 @@ def run(args: argparse.Namespace) -> int:
         if result.pair_check is not None and result.pair_check.status == "warning":
             print(f"branchrange estimate: warning: {result.pair_check.message}", file=sys.stderr)
         if args.mask is not None and result.masks.instances == 0:
-            raise ValueError(f"{args.mask}: the mask holds no branch instance (expected ids other than 0 "
-                             f"and the trunk id {args.trunk_id})")
+            raise ValueError(
+                f"{args.mask}: the mask holds no branch instance (expected ids other than 0 "
+                f"and the trunk id {args.trunk_id})"
+            )
         text = json.dumps(result.to_json_dict(), indent=1)
         if args.json is not None:
             args.json.parent.mkdir(parents=True, exist_ok=True)

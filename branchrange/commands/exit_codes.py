@@ -1,4 +1,5 @@
 """Exit codes shared by `branchrange record` and `branchrange replay`, and the `--help` epilog that states them."""
+
 from __future__ import annotations
 
 #: Every frame the source gave was handled (corrupt frames skipped and counted).

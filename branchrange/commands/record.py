@@ -1,4 +1,5 @@
 """`branchrange record`: stereo pairs from a camera (or a replay) into a recording directory that replays."""
+
 from __future__ import annotations
 
 import argparse
@@ -10,19 +11,34 @@ from branchrange.commands.exit_codes import BAD_INPUT, DONE, EPILOG, STOPPED_ON_
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `record` to the `branchrange` command."""
-    p = subparsers.add_parser("record", help="record stereo pairs from zed:N, oak or replay:PATH into the replay format",
-                              description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--source", required=True,
-                   help="zed:DEVICE[:MODE] (e.g. zed:0, zed:/dev/video0:HD720), oak[:WxH[@FPS]] or replay:PATH "
-                        "(a recording, a folder of pairs PATH/left/*.png + PATH/right/*.png [+ PATH/mask/], or a "
-                        "side-by-side video)")
-    p.add_argument("--fps", type=float, help="frame rate of a folder of pairs (default 15; it has no timestamps) or "
-                                            "a video's, overriding what it reports")
+    p = subparsers.add_parser(
+        "record",
+        help="record stereo pairs from zed:N, oak or replay:PATH into the replay format",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--source",
+        required=True,
+        help="zed:DEVICE[:MODE] (e.g. zed:0, zed:/dev/video0:HD720), oak[:WxH[@FPS]] or replay:PATH "
+        "(a recording, a folder of pairs PATH/left/*.png + PATH/right/*.png [+ PATH/mask/], or a "
+        "side-by-side video)",
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate of a folder of pairs (default 15; it has no timestamps) or "
+        "a video's, overriding what it reports",
+    )
     p.add_argument("--out", required=True, type=Path, help="new (or empty) recording directory")
     p.add_argument("--frames", type=int, help="stop after N pairs (default: until the source ends or Ctrl-C)")
-    p.add_argument("--calibration", type=Path,
-                   help="calibration file stored with the recording (overrides the source's; a ZED SN*.conf is "
-                        "read at the mode's resolution)")
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        help="calibration file stored with the recording (overrides the source's; a ZED SN*.conf is "
+        "read at the mode's resolution)",
+    )
     p.add_argument("--image-format", choices=("png", "jpg"), default="png", help="png is lossless (default)")
     p.add_argument("--overwrite", action="store_true", help="allow a non-empty --out")
     p.set_defaults(func=run)
@@ -53,16 +69,26 @@ def run(args: argparse.Namespace) -> int:
     stopped_by = ""  # why recording ended before the source did or --frames were written
     failed = False
     try:
-        with source, Recorder(args.out, calibration=source.calibration, source_spec=args.source,
-                              image_format=args.image_format, overwrite=args.overwrite) as recorder, \
-                progress_bar(total=args.frames, unit="pair", desc="recording") as bar:
+        with (
+            source,
+            Recorder(
+                args.out,
+                calibration=source.calibration,
+                source_spec=args.source,
+                image_format=args.image_format,
+                overwrite=args.overwrite,
+            ) as recorder,
+            progress_bar(total=args.frames, unit="pair", desc="recording") as bar,
+        ):
+
             def note_corrupt(error: CorruptFrameError) -> None:
                 skipped.append(error)
                 bar.write(f"skipped a corrupt frame: {error}", file=sys.stderr)
 
             try:
-                written = record(source, recorder, args.frames, on_frame=lambda _: bar.update(1),
-                                 on_corrupt=note_corrupt)
+                written = record(
+                    source, recorder, args.frames, on_frame=lambda _: bar.update(1), on_corrupt=note_corrupt
+                )
             except KeyboardInterrupt:
                 written, stopped_by = recorder.frames, "Ctrl-C"
             except (SourceError, ValueError, OSError) as error:  # camera gone, frame size changed, disk full
@@ -75,11 +101,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"branchrange record: --out {args.out}: {error}; expected a new or empty directory", file=sys.stderr)
         return BAD_INPUT
     if written == 0 and skipped and not failed:
-        print(f"branchrange record: none of the {len(skipped)} frames of {args.source} could be read "
-              f"(first: {skipped[0]}); expected a readable recording", file=sys.stderr)
+        print(
+            f"branchrange record: none of the {len(skipped)} frames of {args.source} could be read "
+            f"(first: {skipped[0]}); expected a readable recording",
+            file=sys.stderr,
+        )
         return BAD_INPUT
     calibration = "with calibration" if source.calibration is not None else "without calibration"
     note = f" (stopped by {stopped_by})" if stopped_by else ""
-    print(f"recorded {written} pairs to {args.out} {calibration}{note}"
-          + (f"; skipped {len(skipped)} corrupt frames" if skipped else ""))
+    print(
+        f"recorded {written} pairs to {args.out} {calibration}{note}"
+        + (f"; skipped {len(skipped)} corrupt frames" if skipped else "")
+    )
     return STOPPED_ON_ERROR if failed else DONE

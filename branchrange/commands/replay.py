@@ -1,4 +1,6 @@
-"""`branchrange replay`: a recording → per-frame results (JSONL) as the daemon gives them, a summary, an overlay video."""
+"""`branchrange replay`: a recording → per-frame results (JSONL) as the daemon gives them, a summary, an
+overlay video."""
+
 from __future__ import annotations
 
 import argparse
@@ -14,25 +16,47 @@ from stereo.backends import BACKEND_NAMES
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `replay` to the `branchrange` command."""
-    p = subparsers.add_parser("replay", help="turn a recording into results, a summary and an overlay video",
-                              description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", help="a recording directory (branchrange record), a folder of pairs (left/ + right/ "
-                                     "[+ mask/]), a side-by-side video file, a ROS 2 bag (directory, .mcap or .db3) "
-                                     "or a rosbag:PATH?left=TOPIC&… spec")
+    p = subparsers.add_parser(
+        "replay",
+        help="turn a recording into results, a summary and an overlay video",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "recording",
+        help="a recording directory (branchrange record), a folder of pairs (left/ + right/ "
+        "[+ mask/]), a side-by-side video file, a ROS 2 bag (directory, .mcap or .db3) "
+        "or a rosbag:PATH?left=TOPIC&… spec",
+    )
     p.add_argument("--fps", type=float, help="frame rate of a folder of pairs (default 15) or a video's override")
-    p.add_argument("--out", required=True, help="results: a run header line, then one branchrange/v1 JSON line per frame")
-    p.add_argument("--overlay-video", help="write an overlay video here (.mp4 with mp4v; .avi with MJPG when "
-                                           "this OpenCV cannot write mp4v)")
-    p.add_argument("--summary", action="store_true",
-                   help="print a summary and write it as JSON next to --out (NAME.summary.json)")
-    add_config_arguments(p, required=False, sections="as the daemon reads it: [camera] calibration, [stereo], [roi], "
-                                                     "[cutpoints], [branch_tracking], [masks], [segmenter], [log]")
+    p.add_argument(
+        "--out", required=True, help="results: a run header line, then one branchrange/v1 JSON line per frame"
+    )
+    p.add_argument(
+        "--overlay-video",
+        help="write an overlay video here (.mp4 with mp4v; .avi with MJPG when this OpenCV cannot write mp4v)",
+    )
+    p.add_argument(
+        "--summary", action="store_true", help="print a summary and write it as JSON next to --out (NAME.summary.json)"
+    )
+    add_config_arguments(
+        p,
+        required=False,
+        sections="as the daemon reads it: [camera] calibration, [stereo], [roi], "
+        "[cutpoints], [branch_tracking], [masks], [segmenter], [log]",
+    )
     p.add_argument("--backend", choices=BACKEND_NAMES, help="stereo backend (overrides stereo.backend)")
     p.add_argument("--weights", help="EMCStereo weights (overrides stereo.weights)")
     p.add_argument("--max-disp", type=int, help="largest disparity searched, px (overrides stereo.max_disp)")
-    p.add_argument("--foxglove", action="append", default=[], metavar="FILE.mcap|ws://HOST:PORT",
-                   help="also send every frame to Foxglove: write an MCAP file and/or serve a live WebSocket "
-                        "(repeat for both); open with deploy/foxglove_layout.json")
+    p.add_argument(
+        "--foxglove",
+        action="append",
+        default=[],
+        metavar="FILE.mcap|ws://HOST:PORT",
+        help="also send every frame to Foxglove: write an MCAP file and/or serve a live WebSocket "
+        "(repeat for both); open with deploy/foxglove_layout.json",
+    )
     p.set_defaults(func=run)
 
 
@@ -46,13 +70,20 @@ def run(args: argparse.Namespace) -> int:
     """Load the config with the command line's overrides, replay, print and write the summary."""
     from branchrange.core.config import ConfigError
     from branchrange.offline.overlay_video import VideoWriteError
-    from branchrange.onboard.foxglove_sink import FoxgloveTargetError, FoxgloveSink, parse_targets
     from branchrange.offline.replay import replay_recording, source_spec
+    from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
     from camera.sources import SourceError
 
     try:
-        cfg = config_from_args(args, {"stereo.backend": args.backend, "stereo.weights": args.weights,
-                                      "stereo.max_disp": args.max_disp, "camera.source": source_spec(args.recording)})
+        cfg = config_from_args(
+            args,
+            {
+                "stereo.backend": args.backend,
+                "stereo.weights": args.weights,
+                "stereo.max_disp": args.max_disp,
+                "camera.source": source_spec(args.recording),
+            },
+        )
         targets = parse_targets(args.foxglove) if args.foxglove else None
     except (ConfigError, FoxgloveTargetError) as exc:
         print(f"branchrange replay: {exc}", file=sys.stderr)
@@ -64,8 +95,9 @@ def run(args: argparse.Namespace) -> int:
     sink = None
     try:
         sink = FoxgloveSink(targets) if targets else None
-        summary = replay_recording(args.recording, cfg, args.out, video=args.overlay_video,
-                                   observers=[sink] if sink else [], fps=args.fps)
+        summary = replay_recording(
+            args.recording, cfg, args.out, video=args.overlay_video, observers=[sink] if sink else [], fps=args.fps
+        )
     except (SourceError, ValueError) as exc:  # recording missing / truncated / unreadable, or settings it cannot use
         print(f"branchrange replay: {exc}", file=sys.stderr)
         return BAD_INPUT
@@ -76,8 +108,11 @@ def run(args: argparse.Namespace) -> int:
         if sink is not None:
             sink.close()
     if summary.frames == 0 and summary.corrupt and not summary.rejected:
-        print(f"branchrange replay: none of the {summary.corrupt} frames of {args.recording} could be read; "
-              "expected a readable recording (see the warnings above)", file=sys.stderr)
+        print(
+            f"branchrange replay: none of the {summary.corrupt} frames of {args.recording} could be read; "
+            "expected a readable recording (see the warnings above)",
+            file=sys.stderr,
+        )
         return BAD_INPUT
     print(f"results: {args.out} (a run header and {summary.frames} result lines)")
     if sink is not None:

@@ -1,4 +1,5 @@
 """`branchrange serve`: the HTTP service (POST /estimate, /disparity; GET /health, /version, /metrics)."""
+
 from __future__ import annotations
 
 import argparse
@@ -30,8 +31,9 @@ def is_loopback(host: str) -> bool:
 def check_bind(host: str, token: str) -> None:
     """Refuse a non-loopback address without a bearer token: the API would be open to the network."""
     if not token and not is_loopback(host):
-        raise ServeError(f"refusing to serve on {host} without a token: set [api] token or {TOKEN_ENV}, "
-                         "or bind 127.0.0.1")
+        raise ServeError(
+            f"refusing to serve on {host} without a token: set [api] token or {TOKEN_ENV}, or bind 127.0.0.1"
+        )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -9,6 +9,7 @@ Reproduce the shipped model exactly:
     branchrange train-segmenter --out runs/branchnet \\
         --config branchrange/core/segmentation/weights/branchnet.json
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,14 +21,24 @@ from pathlib import Path
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `train-segmenter` to the `branchrange` command."""
-    p = subparsers.add_parser("train-segmenter", help="train the learned branch segmenter on synthetic scenes (CPU)",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "train-segmenter",
+        help="train the learned branch segmenter on synthetic scenes (CPU)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", required=True, type=Path, help="output directory (model, metadata, curve)")
-    p.add_argument("--data", type=Path, default=Path("out/segdata"),
-                   help="cache of rendered training scenes (default out/segdata)")
+    p.add_argument(
+        "--data", type=Path, default=Path("out/segdata"), help="cache of rendered training scenes (default out/segdata)"
+    )
     p.add_argument("--config", type=Path, help="a branchnet.json whose 'config' to train with (default: built-in)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one training setting, e.g. --set steps=200 (JSON values; repeatable)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one training setting, e.g. --set steps=200 (JSON values; repeatable)",
+    )
     p.set_defaults(func=run)
 
 
@@ -67,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     meta = train_branchnet(config, args.out, args.data, log=lambda line: print(line, flush=True))
     final = meta["final"]
-    print(f"wrote {args.out / 'branchnet.onnx'} (SHA-256 {meta['onnx_sha256'][:16]}…): validation IoU "
-          f"branch {final['iou_branch']:.3f}, trunk {final['iou_trunk']:.3f}")
+    print(
+        f"wrote {args.out / 'branchnet.onnx'} (SHA-256 {meta['onnx_sha256'][:16]}…): validation IoU "
+        f"branch {final['iou_branch']:.3f}, trunk {final['iou_trunk']:.3f}"
+    )
     return 0

@@ -25,6 +25,7 @@ To add an option: add a typed field with a default to its section's dataclass, a
 that class's `checks()` (`branchrange.core.settings_check.Settings`). The loader reads the field list,
 so nothing else changes; a field whose type is itself a settings dataclass is a sub-table.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -41,8 +42,8 @@ from branchrange.core.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID
 from branchrange.core.segmentation.choose import SEGMENTER_NAMES, check_segmenter_name, make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterConfig
-from branchrange.core.segmentation.structure import StructureSegmenterConfig
 from branchrange.core.segmentation.segmenter import GeometricSegmenterConfig, Segmenter
+from branchrange.core.segmentation.structure import StructureSegmenterConfig
 from branchrange.core.settings_check import Checks, Settings, SettingsError, in_physical_range
 from branchrange.core.tracking import TrackerConfig
 from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, PRECISIONS, WEIGHTED_BACKENDS, is_valid_max_disp
@@ -124,11 +125,15 @@ class StereoConfig(Settings):
     def checks(self) -> Checks:
         """The backend, its weights, search range and precision, and the mode."""
         return {
-            "mode": (self.mode in STEREO_MODES,
-                     "'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)"),
+            "mode": (
+                self.mode in STEREO_MODES,
+                "'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)",
+            ),
             "backend": (self.backend in BACKEND_NAMES, _one_of(BACKEND_NAMES)),
-            "weights": (self.backend not in WEIGHTED_BACKENDS or bool(self.weights.strip()),
-                        f"a checkpoint path when stereo.backend = {self.backend!r}"),
+            "weights": (
+                self.backend not in WEIGHTED_BACKENDS or bool(self.weights.strip()),
+                f"a checkpoint path when stereo.backend = {self.backend!r}",
+            ),
             "max_disp": (is_valid_max_disp(self.max_disp), MAX_DISP_EXPECTED),
             "precision": (self.precision in PRECISIONS, _one_of(PRECISIONS)),
         }
@@ -232,15 +237,20 @@ class MavlinkConfig(Settings):
         near_ok, _ = in_physical_range("distance_m", self.min_distance_m)
         far_ok, distances = in_physical_range("distance_m", self.max_distance_m)
         return {
-            "url": (bool(self.url.strip()), "a pymavlink connection string such as 'udpout:127.0.0.1:14550' or '/dev/ttyTHS1'"),
+            "url": (
+                bool(self.url.strip()),
+                "a pymavlink connection string such as 'udpout:127.0.0.1:14550' or '/dev/ttyTHS1'",
+            ),
             "baud": (self.baud > 0, "a positive baud rate"),
             "system_id": (1 <= self.system_id <= 255, "an integer in [1, 255]"),
             "component_id": (1 <= self.component_id <= 255, "an integer in [1, 255]"),
             "max_result_age_s": (self.max_result_age_s > 0, "seconds > 0"),
             "send_rate_hz": (self.send_rate_hz >= 2.0, "at least 2 Hz (autopilots call a sensor stale after 0.5 s)"),
             "max_distance_m": (far_ok, distances),
-            "min_distance_m": (near_ok and self.min_distance_m < self.max_distance_m,
-                               f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})"),
+            "min_distance_m": (
+                near_ok and self.min_distance_m < self.max_distance_m,
+                f"metres >= 0 and below mavlink.max_distance_m ({self.max_distance_m})",
+            ),
             "sensor_id": (0 <= self.sensor_id <= 255, "an integer in [0, 255]"),
             "reconnect_interval_s": (self.reconnect_interval_s > 0, "seconds > 0"),
             "state_rate_hz": (1.0 <= self.state_rate_hz <= 100.0, "a rate in [1, 100] Hz"),
@@ -288,7 +298,10 @@ class TrackingConfig(Settings):
             "depth_sigma_at_1m_m": (self.depth_sigma_at_1m_m > 0, "metres > 0"),
             "process_noise_m2_per_s": (self.process_noise_m2_per_s >= 0, "m²/s >= 0"),
             "stale_after_s": (self.stale_after_s > 0, "seconds > 0"),
-            "forget_after_s": (self.forget_after_s >= self.stale_after_s, f"seconds >= tracking.stale_after_s ({self.stale_after_s})"),
+            "forget_after_s": (
+                self.forget_after_s >= self.stale_after_s,
+                f"seconds >= tracking.stale_after_s ({self.stale_after_s})",
+            ),
         }
 
 
@@ -318,8 +331,10 @@ class ApiConfig(Settings):
         # "a token set" and let the service bind a public address while no request could match it.
         if self.token and self.token.strip() != self.token:
             kind = "is whitespace only" if not self.token.strip() else "has leading or trailing whitespace"
-            raise ConfigError(f"api.token {kind} (or BRANCHRANGE_API_TOKEN): expected a token without "
-                              "surrounding spaces, or empty for no authentication (loopback only)")
+            raise ConfigError(
+                f"api.token {kind} (or BRANCHRANGE_API_TOKEN): expected a token without "
+                "surrounding spaces, or empty for no authentication (loopback only)"
+            )
         super().__post_init__()
 
     def checks(self) -> Checks:
@@ -526,7 +541,7 @@ def with_overrides(data: dict[str, Any], overrides: Iterable[Override]) -> dict[
         for depth, name in enumerate(tables):
             child = node.get(name, {})
             if not isinstance(child, dict):
-                raise _wrong_type(".".join(tables[:depth + 1]), child, f"a table (--set {key}=…)")
+                raise _wrong_type(".".join(tables[: depth + 1]), child, f"a table (--set {key}=…)")
             node[name] = node = dict(child)
         node[last] = value
     return tree
@@ -554,5 +569,11 @@ def pipeline_config(cfg: Config) -> Any:
     """The `branchrange.core.pipeline.PipelineConfig` of `cfg`: its pipeline sections themselves."""
     from branchrange.core.pipeline import PipelineConfig
 
-    return PipelineConfig(stereo=cfg.stereo, roi=cfg.roi, cutpoints=cfg.cutpoints, tracker=cfg.branch_tracking,
-                          masks=cfg.masks, segmenter=cfg.segmenter)
+    return PipelineConfig(
+        stereo=cfg.stereo,
+        roi=cfg.roi,
+        cutpoints=cfg.cutpoints,
+        tracker=cfg.branch_tracking,
+        masks=cfg.masks,
+        segmenter=cfg.segmenter,
+    )

@@ -12,10 +12,11 @@ Per branch (design.md, Cut points):
    often occluded), lifted onto the 3D axis. The base is the end meeting the trunk when a trunk is
    known, else the thicker end (for a branch seen end-on, the deeper end).
 4. Cut point = base + `cut_offset_m` along the axis toward the tip; distance from the camera;
-   diameter = 2·D·sin β from the silhouette's width (D the camera's distance from the axis); confidence ∈ [0, 1] from the valid-depth
-   fraction, the fit (inlier share and residual), the stereo confidence and the amount of evidence.
+   diameter = 2·D·sin β from the silhouette's width (D the camera's distance from the axis); confidence ∈ [0, 1]
+   from the valid-depth fraction, the fit (inlier share and residual), the stereo confidence and the amount of evidence.
 A branch with too little evidence is dropped with a reason, never invented.
 """
+
 from __future__ import annotations
 
 import math
@@ -46,7 +47,7 @@ from stereo.pinhole import depth_from_disparity
 TargetPolicy = Literal["nearest_confident", "nearest", "most_confident", "thickest"]
 TARGET_POLICIES: tuple[str, ...] = ("nearest_confident", "nearest", "most_confident", "thickest")
 #: The target policy unless configured otherwise.
-DEFAULT_TARGET_POLICY = "nearest_confident"
+DEFAULT_TARGET_POLICY: TargetPolicy = "nearest_confident"
 
 
 class CutPointConfigError(ValueError):
@@ -106,11 +107,15 @@ class CutPointConfig(Settings):
             "disparity_noise_px": (self.disparity_noise_px > 0, "> 0 px"),
             "min_inlier_band_m": (self.min_inlier_band_m > 0, "> 0 m"),
             "min_range_m": (near_ok, distances),
-            "max_range_m": (far_ok and self.max_range_m > self.min_range_m,
-                            f"> min_range_m ({self.min_range_m} m), {distances}"),
+            "max_range_m": (
+                far_ok and self.max_range_m > self.min_range_m,
+                f"> min_range_m ({self.min_range_m} m), {distances}",
+            ),
             "max_instances": (self.max_instances >= 1, "≥ 1 instance"),
-            "target_policy": (self.target_policy in TARGET_POLICIES,
-                              "one of " + ", ".join(repr(p) for p in TARGET_POLICIES)),
+            "target_policy": (
+                self.target_policy in TARGET_POLICIES,
+                "one of " + ", ".join(repr(p) for p in TARGET_POLICIES),
+            ),
             "target_min_confidence": (0 <= self.target_min_confidence <= 1, "a confidence in [0, 1]"),
         }
 
@@ -226,13 +231,23 @@ class CylinderFit:
         if s is None:
             s = self.silhouette.coordinate(project(point, geometry)[0])
         s = float(np.clip(s, self.silhouette.s_lo, self.silhouette.s_hi))
-        return radius_from_silhouette(self.profile.centre(self.silhouette, s), self.silhouette.normal,
-                                      0.5 * self.profile.at(s), Line3D(np.asarray(point, dtype=np.float64),
-                                                                       self.axis.direction), geometry)
+        return radius_from_silhouette(
+            self.profile.centre(self.silhouette, s),
+            self.silhouette.normal,
+            0.5 * self.profile.at(s),
+            Line3D(np.asarray(point, dtype=np.float64), self.axis.direction),
+            geometry,
+        )
 
 
-def _onto_axis(surface_point: np.ndarray, direction: np.ndarray, silhouette: ImageAxis, profile: WidthProfile,
-               geometry: StereoGeometry, erode_px: int) -> np.ndarray:
+def _onto_axis(
+    surface_point: np.ndarray,
+    direction: np.ndarray,
+    silhouette: ImageAxis,
+    profile: WidthProfile,
+    geometry: StereoGeometry,
+    erode_px: int,
+) -> np.ndarray:
     """A point of the visible-surface line moved back onto the cylinder axis (3,), metres.
 
     The surface points' mean depth lies `k·r` nearer than the axis (`_surface_offset_factor`), with
@@ -249,9 +264,16 @@ def _onto_axis(surface_point: np.ndarray, direction: np.ndarray, silhouette: Ima
     return point
 
 
-def _axis_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis, profile: WidthProfile,
-                             geometry: StereoGeometry, threshold_px: float, min_points: int,
-                             margin_px: float | None) -> tuple[Line3D, LinearFit] | str:
+def _axis_in_disparity_space(
+    s: np.ndarray,
+    d: np.ndarray,
+    silhouette: ImageAxis,
+    profile: WidthProfile,
+    geometry: StereoGeometry,
+    threshold_px: float,
+    min_points: int,
+    margin_px: float | None,
+) -> tuple[Line3D, LinearFit] | str:
     """A branch's line from disparity along the centreline (robust fit in px), lifted to 3D.
 
     Two stations at the 10th and 90th percentile of the inliers' positions. With `margin_px`
@@ -273,20 +295,32 @@ def _axis_in_disparity_space(s: np.ndarray, d: np.ndarray, silhouette: ImageAxis
     centres = [profile.centre(silhouette, float(st)) for st in stations]
     ends = backproject(np.array([c[0] for c in centres]), np.array([c[1] for c in centres]), disparities, geometry)
     if margin_px is not None:
-        rays = [section_rays(centre, silhouette.normal, 0.5 * profile.at(float(st)), margin_px, geometry)
-                for centre, st in zip(centres, stations)]
+        rays = [
+            section_rays(centre, silhouette.normal, 0.5 * profile.at(float(st)), margin_px, geometry)
+            for centre, st in zip(centres, stations)
+        ]
     for _ in range(0 if margin_px is None else 3):
         if vector_norm(ends[1] - ends[0]) < 1e-6:
             break
-        ends = np.stack([cross_section_from_rays(station, float(disparity), ends[1] - ends[0], geometry).axis_point_m
-                         for station, disparity in zip(rays, disparities)])
+        ends = np.stack(
+            [
+                cross_section_from_rays(station, float(disparity), ends[1] - ends[0], geometry).axis_point_m
+                for station, disparity in zip(rays, disparities)
+            ]
+        )
     if vector_norm(ends[1] - ends[0]) < 1e-6:
         return "branch too short to give an axis direction"
     return Line3D(ends[0], (ends[1] - ends[0]) / vector_norm(ends[1] - ends[0])), fit
 
 
-def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
-                 max_disparity: float | None = None, cut_by: np.ndarray | MaskCrop | None = None) -> CylinderFit | str:
+def fit_cylinder(
+    mask: np.ndarray | MaskCrop,
+    disparity: np.ndarray,
+    geometry: StereoGeometry,
+    config: CutPointConfig,
+    max_disparity: float | None = None,
+    cut_by: np.ndarray | MaskCrop | None = None,
+) -> CylinderFit | str:
     """Fit a (possibly tapered) cylinder to one boolean `H×W` mask (or its `MaskCrop`: the work
     then follows the mask's size, not the image's) and the `H×W` disparity (px).
 
@@ -306,8 +340,10 @@ def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: S
     valid_fraction = float(valid.mean())
     n_valid = int(valid.sum())
     if n_valid < config.min_points or valid_fraction < config.min_valid_fraction:
-        return (f"only {n_valid} of {rows.size} mask pixels have valid depth "
-                f"(need {config.min_points} and {config.min_valid_fraction:.0%})")
+        return (
+            f"only {n_valid} of {rows.size} mask pixels have valid depth "
+            f"(need {config.min_points} and {config.min_valid_fraction:.0%})"
+        )
     rows, cols, d = rows[valid].astype(np.float64), cols[valid].astype(np.float64), d[valid].astype(np.float64)
     points = backproject(cols, rows, d, geometry)
     silhouette = image_axis(crop, cut_by)
@@ -321,16 +357,24 @@ def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: S
         s = (np.stack([cols, rows], axis=1) - silhouette.centre) @ silhouette.direction
         # erosion removes the pixels within erode_px (in u or v) of the edge: that far across it
         margin_px = eroded_px * float(np.max(np.abs(silhouette.normal)))
-        lifted = _axis_in_disparity_space(s, d, silhouette, profile, geometry, threshold_px, config.min_points,
-                                          margin_px if config.surface_correction else None)
+        lifted = _axis_in_disparity_space(
+            s,
+            d,
+            silhouette,
+            profile,
+            geometry,
+            threshold_px,
+            config.min_points,
+            margin_px if config.surface_correction else None,
+        )
         if isinstance(lifted, str):
             return lifted
         line, disparity_fit = lifted
         inliers = disparity_fit.inliers
-        residual_m = disparity_fit.residual * z_median ** 2 / geometry.fb
+        residual_m = disparity_fit.residual * z_median**2 / geometry.fb
         residual_ratio = disparity_fit.residual / threshold_px
     else:
-        depth_noise = z_median ** 2 / geometry.fb * config.disparity_noise_px
+        depth_noise = z_median**2 / geometry.fb * config.disparity_noise_px
         # the visible surface strays up to ~1.3 r from the line through its centroid
         band_m = max(config.min_inlier_band_m, 3.0 * depth_noise, 1.5 * radius_guess)
         try:
@@ -346,8 +390,17 @@ def fit_cylinder(mask: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: S
             a = _onto_axis(line.at(t_lo), line.direction, silhouette, profile, geometry, eroded_px)
             b = _onto_axis(line.at(t_hi), line.direction, silhouette, profile, geometry, eroded_px)
             line = Line3D(a, (b - a) / vector_norm(b - a)) if vector_norm(b - a) > 1e-3 else Line3D(a, line.direction)
-    return CylinderFit(line, silhouette, profile, valid_fraction, points, (rows.astype(np.int64), cols.astype(np.int64)),
-                       inliers, float(residual_m), float(min(1.0, residual_ratio)))
+    return CylinderFit(
+        line,
+        silhouette,
+        profile,
+        valid_fraction,
+        points,
+        (rows.astype(np.int64), cols.astype(np.int64)),
+        inliers,
+        float(residual_m),
+        float(min(1.0, residual_ratio)),
+    )
 
 
 @dataclass(frozen=True)
@@ -381,11 +434,12 @@ class TrunkModel:
             return None
         sign = 1.0 if branch_axis.direction @ toward_tip >= 0 else -1.0
         t_closest = -qb / qa
-        radius = self.cylinder.radius_at(trunk_axis.at(trunk_axis.parameters(branch_axis.at(t_closest)[None])[0]),
-                                         self.geometry)
+        radius = self.cylinder.radius_at(
+            trunk_axis.at(trunk_axis.parameters(branch_axis.at(t_closest)[None])[0]), self.geometry
+        )
         crossing = None
         for _ in range(2):
-            disc = qb * qb - qa * (w_perp @ w_perp - radius ** 2)
+            disc = qb * qb - qa * (w_perp @ w_perp - radius**2)
             if disc < 0:
                 return None
             t = (-qb + sign * math.sqrt(disc)) / qa
@@ -395,8 +449,13 @@ class TrunkModel:
         return crossing
 
 
-def fit_trunk(trunk: np.ndarray | MaskCrop, disparity: np.ndarray, geometry: StereoGeometry, config: CutPointConfig,
-              max_disparity: float | None = None) -> TrunkModel | None:
+def fit_trunk(
+    trunk: np.ndarray | MaskCrop,
+    disparity: np.ndarray,
+    geometry: StereoGeometry,
+    config: CutPointConfig,
+    max_disparity: float | None = None,
+) -> TrunkModel | None:
     """A `TrunkModel` from the boolean `H×W` trunk mask (or its `MaskCrop`) and the disparity (px); None when the
     trunk's depth is too thin to fit or it is not elongated (no axis to speak of)."""
     try:
@@ -430,8 +489,14 @@ def _trunk_side_in_image(silhouette: ImageAxis, trunk: MaskCrop, slice_px: float
     return bool(ends[0] < ends[1])
 
 
-def _low_end_is_base(cylinder: CylinderFit, ends: tuple[np.ndarray, np.ndarray], geometry: StereoGeometry,
-                     trunk: MaskCrop | None, trunk_model: TrunkModel | None, slice_px: float) -> bool:
+def _low_end_is_base(
+    cylinder: CylinderFit,
+    ends: tuple[np.ndarray, np.ndarray],
+    geometry: StereoGeometry,
+    trunk: MaskCrop | None,
+    trunk_model: TrunkModel | None,
+    slice_px: float,
+) -> bool:
     """Which of the two lifted silhouette ends (low, high) is the base, in order of evidence:
     1. the end nearer the trunk's surface in 3D (when the trunk was fitted and one end is clearly
        nearer: 5 cm, or half the other's distance);
@@ -452,8 +517,9 @@ def _low_end_is_base(cylinder: CylinderFit, ends: tuple[np.ndarray, np.ndarray],
     return bool(radius_low >= radius_high)
 
 
-def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: MaskCrop | None,
-          trunk_model: TrunkModel | None) -> tuple[np.ndarray, np.ndarray]:
+def _ends(
+    cylinder: CylinderFit, geometry: StereoGeometry, trunk: MaskCrop | None, trunk_model: TrunkModel | None
+) -> tuple[np.ndarray, np.ndarray]:
     """(base, tip) of a branch on its axis (3,) metres each.
 
     Elongated silhouettes: the mask's ends lifted onto the axis; at a fitted trunk the base is
@@ -467,10 +533,11 @@ def _ends(cylinder: CylinderFit, geometry: StereoGeometry, trunk: MaskCrop | Non
         ends = line.at(np.quantile(t, [0.02, 0.98]))
         return (ends[0], ends[1]) if ends[0][2] >= ends[1][2] else (ends[1], ends[0])
     slice_px = max(3.0, 0.15 * silhouette.length_px)
-    low, high = (line.closest_to_ray(pixel_ray(*silhouette.end_centre(at_low, slice_px), geometry))
-                 for at_low in (True, False))
-    base, tip = (low, high) if _low_end_is_base(cylinder, (low, high), geometry, trunk, trunk_model, slice_px) \
-        else (high, low)
+    ends_px = [silhouette.end_centre(at_low, slice_px) for at_low in (True, False)]
+    low, high = (line.closest_to_ray(pixel_ray(u, v, geometry)) for u, v in ends_px)
+    base, tip = (
+        (low, high) if _low_end_is_base(cylinder, (low, high), geometry, trunk, trunk_model, slice_px) else (high, low)
+    )
     if trunk_model is not None:
         exit_m = trunk_model.exit_point(line, tip - base)
         if exit_m is not None and vector_norm(exit_m - base) < 0.5 * vector_norm(tip - base) + 0.1:
@@ -500,16 +567,34 @@ def estimate_branch(
     the reason when the evidence does not support a cut point.
     """
     try:
-        return _estimate_branch(mask_id, as_crop(mask), disparity, geometry, config, confidence,
-                                None if trunk is None else as_crop(trunk), trunk_model, max_disparity, segment_score)
+        return _estimate_branch(
+            mask_id,
+            as_crop(mask),
+            disparity,
+            geometry,
+            config,
+            confidence,
+            None if trunk is None else as_crop(trunk),
+            trunk_model,
+            max_disparity,
+            segment_score,
+        )
     except GeometryError as exc:  # e.g. the axis runs behind the camera: the depth is inconsistent
         return DroppedBranch(mask_id, f"no consistent branch axis: {exc}")
 
 
-def _estimate_branch(mask_id: int, mask: MaskCrop, disparity: np.ndarray, geometry: StereoGeometry,
-                     config: CutPointConfig, confidence: np.ndarray | None, trunk: MaskCrop | None,
-                     trunk_model: TrunkModel | None, max_disparity: float | None,
-                     segment_score: float = 1.0) -> BranchEstimate | DroppedBranch:
+def _estimate_branch(
+    mask_id: int,
+    mask: MaskCrop,
+    disparity: np.ndarray,
+    geometry: StereoGeometry,
+    config: CutPointConfig,
+    confidence: np.ndarray | None,
+    trunk: MaskCrop | None,
+    trunk_model: TrunkModel | None,
+    max_disparity: float | None,
+    segment_score: float = 1.0,
+) -> BranchEstimate | DroppedBranch:
     """`estimate_branch` without the guard against degenerate geometry."""
     cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
     if isinstance(cylinder, str):
@@ -520,8 +605,10 @@ def _estimate_branch(mask_id: int, mask: MaskCrop, disparity: np.ndarray, geomet
     cut_m = base_m + config.cut_offset_m * axis
     distance = vector_norm(cut_m)
     if not config.min_range_m <= distance <= config.max_range_m:
-        return DroppedBranch(mask_id, f"cut point at {distance:.2f} m is outside the working range "
-                                      f"{config.min_range_m}–{config.max_range_m} m")
+        return DroppedBranch(
+            mask_id,
+            f"cut point at {distance:.2f} m is outside the working range {config.min_range_m}–{config.max_range_m} m",
+        )
     if cut_m[2] <= 0:
         return DroppedBranch(mask_id, "cut point lies behind the camera")
     pixel = project(cut_m, geometry)[0]
@@ -533,10 +620,18 @@ def _estimate_branch(mask_id: int, mask: MaskCrop, disparity: np.ndarray, geomet
     if score < config.min_confidence:
         return DroppedBranch(mask_id, f"confidence {score:.2f} below {config.min_confidence}")
     return BranchEstimate(
-        mask_id=mask_id, cut_point_m=cut_m, base_m=base_m, axis=axis, distance_m=distance,
-        pixel=(float(pixel[0]), float(pixel[1])), diameter_m=float(diameter), confidence=score,
-        valid_fraction=cylinder.valid_fraction, residual_m=cylinder.residual_m,
-        n_points=int(inliers.sum()), id=mask_id,
+        mask_id=mask_id,
+        cut_point_m=cut_m,
+        base_m=base_m,
+        axis=axis,
+        distance_m=distance,
+        pixel=(float(pixel[0]), float(pixel[1])),
+        diameter_m=float(diameter),
+        confidence=score,
+        valid_fraction=cylinder.valid_fraction,
+        residual_m=cylinder.residual_m,
+        n_points=int(inliers.sum()),
+        id=mask_id,
     )
 
 
@@ -571,9 +666,20 @@ def estimate_cut_points(
         trunk_model = None if trunk is None else fit_trunk(trunk, disparity, geometry, config, max_disparity)
     result = CutPointResult()
     for mask_id in masks.branch_ids():
-        outcome = estimate_branch(mask_id, masks.crop(mask_id), disparity, geometry, config,
-                                  confidence=confidence, trunk=trunk, trunk_model=trunk_model,
-                                  max_disparity=max_disparity, segment_score=masks.scores.get(mask_id, 1.0))
+        crop = masks.crop(mask_id)
+        assert crop is not None, "every id of branch_ids() has pixels, hence a crop"
+        outcome = estimate_branch(
+            mask_id,
+            crop,
+            disparity,
+            geometry,
+            config,
+            confidence=confidence,
+            trunk=trunk,
+            trunk_model=trunk_model,
+            max_disparity=max_disparity,
+            segment_score=masks.scores.get(mask_id, 1.0),
+        )
         if isinstance(outcome, DroppedBranch):
             result.dropped.append(outcome)
         else:

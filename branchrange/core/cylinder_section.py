@@ -15,6 +15,7 @@ so the mean disparity of the visible surface across the (eroded) silhouette is `
 number computed here by casting the pixels' rays at the unit-distance circle — and the measured
 mean disparity gives `D`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -46,8 +47,9 @@ def _across_axis(rays: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, n
     return across / lengths[:, None], lengths
 
 
-def _edge_rays(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float,
-               geometry: StereoGeometry) -> np.ndarray:
+def _edge_rays(
+    centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, geometry: StereoGeometry
+) -> np.ndarray:
     """The unit viewing rays `(2, 3)` through the silhouette's two edges at one station."""
     if half_width_px <= 0:
         raise GeometryError(f"cross-section needs a silhouette of positive width, got half width {half_width_px} px")
@@ -64,12 +66,14 @@ def _tangents(edges: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, flo
     return bisector / vector_norm(bisector), sin_beta
 
 
-def radius_from_silhouette(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float,
-                           axis: Line3D, geometry: StereoGeometry) -> float:
+def radius_from_silhouette(
+    centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, axis: Line3D, geometry: StereoGeometry
+) -> float:
     """Radius (m) of a cylinder with a known `axis` (metres) whose silhouette at one station is
     `centre_px ± half_width_px · normal_px` (px): `r = D·sin β`, D the camera's distance from the axis."""
-    edges = _edge_rays(np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64),
-                       half_width_px, geometry)
+    edges = _edge_rays(
+        np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64), half_width_px, geometry
+    )
     _, sin_beta = _tangents(edges, axis.direction)
     return vector_norm(axis.point - (axis.point @ axis.direction) * axis.direction) * sin_beta
 
@@ -86,8 +90,9 @@ class SectionRays:
     centre: np.ndarray
 
 
-def section_rays(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, margin_px: float,
-                 geometry: StereoGeometry) -> SectionRays:
+def section_rays(
+    centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, margin_px: float, geometry: StereoGeometry
+) -> SectionRays:
     """`SectionRays` of the station `centre_px ± half_width_px · normal_px` (px), the samples
     spread over the part more than `margin_px` inside the edges (`SECTION_SAMPLES` of them)."""
     centre_px, normal_px = np.asarray(centre_px, dtype=np.float64), np.asarray(normal_px, dtype=np.float64)
@@ -95,11 +100,18 @@ def section_rays(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: fl
     reach = max(half_width_px - margin_px, 0.0)
     offsets = np.linspace(-reach, reach, SECTION_SAMPLES) if reach > 0 else np.zeros(1)
     samples = pixel_rays(centre_px[None, :] + offsets[:, None] * normal_px[None, :], geometry)
-    return SectionRays(edges, samples, pixel_ray(*centre_px, geometry))
+    return SectionRays(edges, samples, pixel_ray(centre_px[0], centre_px[1], geometry))
 
 
-def cross_section(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: float, margin_px: float,
-                  mean_disparity_px: float, direction: np.ndarray, geometry: StereoGeometry) -> CrossSection:
+def cross_section(
+    centre_px: np.ndarray,
+    normal_px: np.ndarray,
+    half_width_px: float,
+    margin_px: float,
+    mean_disparity_px: float,
+    direction: np.ndarray,
+    geometry: StereoGeometry,
+) -> CrossSection:
     """The axis point and radius of a cylinder at one station of its silhouette.
 
     `centre_px` (u, v) is the silhouette's mid-point at the station, `normal_px` the unit image
@@ -111,12 +123,14 @@ def cross_section(centre_px: np.ndarray, normal_px: np.ndarray, half_width_px: f
     """
     if not mean_disparity_px > 0:
         raise GeometryError(f"cross-section needs a positive disparity, got {mean_disparity_px} px")
-    return cross_section_from_rays(section_rays(centre_px, normal_px, half_width_px, margin_px, geometry),
-                                   mean_disparity_px, direction, geometry)
+    return cross_section_from_rays(
+        section_rays(centre_px, normal_px, half_width_px, margin_px, geometry), mean_disparity_px, direction, geometry
+    )
 
 
-def cross_section_from_rays(rays: SectionRays, mean_disparity_px: float, direction: np.ndarray,
-                            geometry: StereoGeometry) -> CrossSection:
+def cross_section_from_rays(
+    rays: SectionRays, mean_disparity_px: float, direction: np.ndarray, geometry: StereoGeometry
+) -> CrossSection:
     """`cross_section` from a station's `SectionRays` (see there)."""
     direction = np.asarray(direction, dtype=np.float64) / vector_norm(direction)
     if not mean_disparity_px > 0:
@@ -125,7 +139,7 @@ def cross_section_from_rays(rays: SectionRays, mean_disparity_px: float, directi
     # rays through the (eroded) silhouette, cast at the circle of centre `bisector`, radius sin β (D = 1)
     across, lengths = _across_axis(rays.samples, direction)
     c = across @ bisector
-    t_across = c - np.sqrt(np.clip(sin_beta ** 2 - (1.0 - c * c), 0.0, None))
+    t_across = c - np.sqrt(np.clip(sin_beta**2 - (1.0 - c * c), 0.0, None))
     depth_at_unit_distance = t_across / lengths * rays.samples[:, 2]
     if np.any(depth_at_unit_distance <= 0):
         raise GeometryError("the cylinder's visible surface reaches behind the camera")

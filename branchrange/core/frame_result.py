@@ -12,6 +12,7 @@ camera frame (OpenCV axes: x right, y down, z forward). Optional parts that are 
 the JSON (as the pipeline always did); required ones that may be None (`target_id`,
 `pair_check.median_dy_px`, `targets.target_track_id`) are written as null.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -19,7 +20,7 @@ import json
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Final, Literal
 
 from pydantic import ConfigDict, Field, TypeAdapter, ValidationError, with_config
 
@@ -30,7 +31,7 @@ if TYPE_CHECKING:
     from branchrange.core.pair_check import PairCheck
     from branchrange.core.roi import Region
 
-SCHEMA_ID = "branchrange/v1"
+SCHEMA_ID: Final = "branchrange/v1"
 #: The schema generated from these classes (`json_schema`), kept in the package for other languages' readers.
 SCHEMA_PATH = Path(__file__).with_name("schemas") / "result_v1.json"
 
@@ -46,7 +47,8 @@ class JsonPart:
 
     def to_json_dict(self) -> dict[str, Any]:
         """The JSON object: keys in field order, None-valued optional parts left out, tuples as lists."""
-        return _to_json(self)
+        as_json: dict[str, Any] = _to_json(self)
+        return as_json
 
 
 class ResultFormatError(ValueError):
@@ -121,12 +123,20 @@ class Branch(JsonPart):
     @classmethod
     def from_estimate(cls, b: BranchEstimate) -> Branch:
         """The written form of a `cutpoints.BranchEstimate`: plain floats, rounded (mm, 0.01 px, 1e-4)."""
-        return cls(id=int(b.id), mask_id=int(b.mask_id), cut_point_m=_rounded3(b.cut_point_m),
-                   distance_m=round(float(b.distance_m), 5),
-                   pixel=(round(float(b.pixel[0]), 2), round(float(b.pixel[1]), 2)),
-                   diameter_m=round(float(b.diameter_m), 5), axis=_rounded3(b.axis), base_m=_rounded3(b.base_m),
-                   confidence=round(float(b.confidence), 4), valid_fraction=round(float(b.valid_fraction), 4),
-                   residual_m=round(float(b.residual_m), 5), points=int(b.n_points))
+        return cls(
+            id=int(b.id),
+            mask_id=int(b.mask_id),
+            cut_point_m=_rounded3(b.cut_point_m),
+            distance_m=round(float(b.distance_m), 5),
+            pixel=(round(float(b.pixel[0]), 2), round(float(b.pixel[1]), 2)),
+            diameter_m=round(float(b.diameter_m), 5),
+            axis=_rounded3(b.axis),
+            base_m=_rounded3(b.base_m),
+            confidence=round(float(b.confidence), 4),
+            valid_fraction=round(float(b.valid_fraction), 4),
+            residual_m=round(float(b.residual_m), 5),
+            points=int(b.n_points),
+        )
 
 
 def _rounded3(vector: Any) -> Vector3:
@@ -155,8 +165,9 @@ class RoiRegion(JsonPart):
     """One full-resolution region matched in stereo mode 'roi'."""
 
     id: Annotated[int, Field(description="instance id in this frame's mask")]
-    box: Annotated[tuple[NonNegInt, NonNegInt, NonNegInt, NonNegInt],
-                   Field(description="[x0, y0, x1, y1] pixels, exclusive ends")]
+    box: Annotated[
+        tuple[NonNegInt, NonNegInt, NonNegInt, NonNegInt], Field(description="[x0, y0, x1, y1] pixels, exclusive ends")
+    ]
     d_min: Annotated[int, Field(ge=0, description="smallest disparity searched, pixels")]
     d_range: Annotated[int, Field(ge=1, description="disparities searched from d_min, pixels")]
     backend: Annotated[str, Field(description="the backend that matched it (SGBM beyond roi.network_regions)")]
@@ -181,11 +192,14 @@ class RoiInfo(JsonPart):
 class PairCheckInfo(JsonPart):
     """How far apart the rows of the rectified pair are, from feature matches (`branchrange.core.pair_check`)."""
 
-    median_dy_px: Annotated[NonNegFloat | None, Field(description="median |y_left − y_right| of the matches, px; "
-                                                                  "null when unknown")]
+    median_dy_px: Annotated[
+        NonNegFloat | None, Field(description="median |y_left − y_right| of the matches, px; null when unknown")
+    ]
     matches: Annotated[int, Field(ge=0, description="feature matches the estimate rests on")]
-    status: Annotated[Literal["ok", "warning", "unknown"],
-                      Field(description="'ok' (≤ 1 px), 'warning' (> 1 px: rectify or calibrate) or 'unknown'")]
+    status: Annotated[
+        Literal["ok", "warning", "unknown"],
+        Field(description="'ok' (≤ 1 px), 'warning' (> 1 px: rectify or calibrate) or 'unknown'"),
+    ]
     message: Annotated[str, Field(description="the verdict and how to fix a misaligned pair")]
 
     @classmethod
@@ -200,8 +214,12 @@ class Latency(JsonPart):
     """Onboard daemon only: milliseconds from the frame's arrival (monotonic clock) to each hand-over."""
 
     capture_to_stereo_ms: Annotated[NonNegFloat | None, Field(description="arrival → start of the stereo stage")] = None
-    capture_to_geometry_ms: Annotated[NonNegFloat | None, Field(description="arrival → start of the geometry stage")] = None
-    capture_to_publish_ms: Annotated[NonNegFloat | None, Field(description="arrival → result handed to the MAVLink relay")] = None
+    capture_to_geometry_ms: Annotated[
+        NonNegFloat | None, Field(description="arrival → start of the geometry stage")
+    ] = None
+    capture_to_publish_ms: Annotated[
+        NonNegFloat | None, Field(description="arrival → result handed to the MAVLink relay")
+    ] = None
 
 
 @with_config(_STRICT)
@@ -212,8 +230,9 @@ class WorldTrack(JsonPart):
     id: Annotated[int, Field(ge=0, description="track id (OBSTACLE_DISTANCE_3D obstacle_id)")]
     branch_id: Annotated[int, Field(ge=0, description="the branch id it was last matched to")]
     ned_m: Annotated[Vector3, Field(description="fused position, local NED metres")]
-    sigma_m: Annotated[float, Field(ge=0, description="1-σ radius (square root of the covariance's largest "
-                                                      "eigenvalue), metres")]
+    sigma_m: Annotated[
+        float, Field(ge=0, description="1-σ radius (square root of the covariance's largest eigenvalue), metres")
+    ]
     covariance_m2: Annotated[tuple[Vector3, Vector3, Vector3], Field(description="3×3 covariance, m²")]
     age_s: Annotated[float, Field(ge=0, description="seconds since its newest observation was captured")]
     observations: Annotated[int, Field(ge=1)]
@@ -225,8 +244,10 @@ class WorldTrack(JsonPart):
 class WorldTargets(JsonPart):
     """Onboard daemon with a MAVLink relay: the cut points fused in local NED, as they stand after this frame."""
 
-    frame: Annotated[Literal["local_ned", "camera"],
-                     Field(description="'local_ned' while vehicle state is in use, 'camera' without it")]
+    frame: Annotated[
+        Literal["local_ned", "camera"],
+        Field(description="'local_ned' while vehicle state is in use, 'camera' without it"),
+    ]
     target_track_id: Annotated[int | None, Field(description="the target's track, null when none is fresh")]
     tracks: tuple[WorldTrack, ...]
 
@@ -246,14 +267,17 @@ class FrameResult(JsonPart):
     frame: Frame
     camera: CameraInfo
     stereo: StereoInfo
-    timing_ms: Annotated[dict[str, NonNegFloat], Field(json_schema_extra={
-        "required": ["rectify", "stereo", "cutpoints", "total"]})]
+    timing_ms: Annotated[
+        dict[str, NonNegFloat], Field(json_schema_extra={"required": ["rectify", "stereo", "cutpoints", "total"]})
+    ]
     masks: MasksInfo
     branches: tuple[Branch, ...]
-    dropped: Annotated[tuple[DroppedInstance, ...],
-                       Field(description="mask instances that gave no cut point, with the reason")]
-    target_id: Annotated[int | None, Field(description="id of the branch to approach; null when none is "
-                                                       "confident enough")]
+    dropped: Annotated[
+        tuple[DroppedInstance, ...], Field(description="mask instances that gave no cut point, with the reason")
+    ]
+    target_id: Annotated[
+        int | None, Field(description="id of the branch to approach; null when none is confident enough")
+    ]
     reason: Annotated[str | None, Field(description="why there are no branches or no target, when so")] = None
     roi: RoiInfo | None = None
     pair_check: PairCheckInfo | None = None
@@ -314,10 +338,12 @@ def json_schema() -> dict[str, Any]:
     """The `branchrange/v1` JSON schema (draft 2020-12), generated from `FrameResult`."""
     schema = _adapter().json_schema()
     schema["required"] = ["schema", *schema["required"]]
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema",
-            "$id": "https://branchrange.invalid/schemas/result_v1.json",
-            "title": f"{SCHEMA_ID} frame result", **{k: v for k, v in schema.items() if k != "title"}}
-
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": "https://branchrange.invalid/schemas/result_v1.json",
+        "title": f"{SCHEMA_ID} frame result",
+        **{k: v for k, v in schema.items() if k != "title"},
+    }
 
 
 def write_json_schema(path: str | Path = SCHEMA_PATH) -> Path:

@@ -10,13 +10,14 @@ A results log starts each run with a header line (`run_header_line`): `{"schema"
 runs appended to one file stay apart. `read_runs` gives back a log's JSON records grouped by run;
 `read_results` its frame results as typed `FrameResult`s (`FrameResult.from_json_dict`), headers skipped.
 """
+
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import json
 from collections.abc import Iterator
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +62,8 @@ def process_frame(pipeline: Any, frame: StereoFrame) -> FrameResult:
 
     Raises `ValueError` (the pipeline's input or geometry errors) when the pipeline rejects the frame.
     """
-    return pipeline.geometry_stage(stereo_stage(pipeline, frame))
+    result: FrameResult = pipeline.geometry_stage(stereo_stage(pipeline, frame))
+    return result
 
 
 def json_line(record: dict[str, Any]) -> str:
@@ -88,9 +90,15 @@ def run_header(kind: str, cfg: Config, source: str) -> dict[str, Any]:
     version, the configuration's hash, the UTC start time (ISO 8601, ms) and the source spec."""
     from stereo.cli import package_version
 
-    started = datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
-    return {"schema": RUN_HEADER_SCHEMA, "version": package_version(), "config_sha256": config_sha256(cfg),
-            "started_utc": started, "source": source, "kind": kind}
+    started = datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return {
+        "schema": RUN_HEADER_SCHEMA,
+        "version": package_version(),
+        "config_sha256": config_sha256(cfg),
+        "started_utc": started,
+        "source": source,
+        "kind": kind,
+    }
 
 
 def run_header_line(kind: str, cfg: Config, source: str) -> str:

@@ -4,6 +4,7 @@ Frames and units (design.md): 3D points are metres in the rectified left camera 
 axes (x right, y down, z forward); pixels are (u, v) = (column, row) of the rectified left image at
 the resolution the disparity was computed; disparity is in pixels, positive, left reference.
 """
+
 from __future__ import annotations
 
 import math
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stereo import pinhole
+from stereo.pinhole import ArrayOrFloat
 
 
 class GeometryError(ValueError):
@@ -42,7 +44,7 @@ class StereoGeometry:
             raise GeometryError(f"StereoGeometry.baseline_m = {self.baseline_m!r} must be > 0 (metres)")
 
     @classmethod
-    def centred(cls, focal_px: float, baseline_m: float, width: int, height: int) -> "StereoGeometry":
+    def centred(cls, focal_px: float, baseline_m: float, width: int, height: int) -> StereoGeometry:
         """A geometry whose principal point is the image centre, for when only f and B are known."""
         return cls(float(focal_px), float(baseline_m), (width - 1) / 2.0, (height - 1) / 2.0)
 
@@ -63,7 +65,7 @@ def valid_disparity(disparity: np.ndarray, max_disparity: float | None = None) -
     """Boolean `H×W` mask of usable disparities: finite, > 0 and, when given, < `max_disparity`."""
     disparity = np.asarray(disparity)
     with np.errstate(invalid="ignore"):
-        valid = np.isfinite(disparity) & (disparity > 0)
+        valid: np.ndarray = np.isfinite(disparity) & (disparity > 0)
         if max_disparity is not None:
             valid &= disparity < max_disparity
     return valid
@@ -130,7 +132,8 @@ def pixel_rays(pixels: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
     rays[:, 0] = (pixels[:, 0] - geometry.cx) / geometry.focal_px
     rays[:, 1] = (pixels[:, 1] - geometry.cy) / geometry.focal_px
     rays[:, 2] = 1.0
-    return rays / np.sqrt(np.einsum("nc,nc->n", rays, rays))[:, None]
+    unit: np.ndarray = rays / np.sqrt(np.einsum("nc,nc->n", rays, rays))[:, None]
+    return unit
 
 
 @dataclass(frozen=True)
@@ -144,16 +147,19 @@ class Line3D:
         """Perpendicular distance `(N,)` in metres of each point `(N, 3)` from the line."""
         offsets = np.asarray(points, dtype=np.float64) - self.point
         along = offsets @ self.direction
-        return np.linalg.norm(offsets - along[:, None] * self.direction, axis=1)
+        distances: np.ndarray = np.linalg.norm(offsets - along[:, None] * self.direction, axis=1)
+        return distances
 
     def parameters(self, points: np.ndarray) -> np.ndarray:
         """Signed position `t` `(N,)` in metres of each point's foot on the line."""
-        return (np.asarray(points, dtype=np.float64) - self.point) @ self.direction
+        t: np.ndarray = (np.asarray(points, dtype=np.float64) - self.point) @ self.direction
+        return t
 
     def at(self, t: float | np.ndarray) -> np.ndarray:
         """The point(s) `point + t·direction` (`(3,)` or `(N, 3)`)."""
         t = np.asarray(t, dtype=np.float64)
-        return self.point + t[..., None] * self.direction
+        points: np.ndarray = self.point + t[..., None] * self.direction
+        return points
 
     def closest_to_ray(self, ray_direction: np.ndarray) -> np.ndarray:
         """The point `(3,)` of this line closest to the ray from the origin along `ray_direction`.
@@ -245,8 +251,9 @@ def fit_line_robust(
         starts, directions = starts[usable], deltas[usable] / norms[usable, None]
         offsets = scored[None, :, :] - starts[:, None, :]
         perpendicular = np.cross(offsets, directions[:, None, :])
-        counts = np.count_nonzero(np.einsum("kmc,kmc->km", perpendicular, perpendicular)
-                                  < inlier_threshold_m ** 2, axis=1)
+        counts = np.count_nonzero(
+            np.einsum("kmc,kmc->km", perpendicular, perpendicular) < inlier_threshold_m**2, axis=1
+        )
         best = int(np.argmax(counts))
         best_line = Line3D(starts[best], directions[best])
     else:  # every sampled pair coincided: fall back to the plain fit
@@ -277,8 +284,9 @@ def fit_line_robust(
 _SCORE_BLOCK = 1 << 15
 
 
-def _band_scores(x: np.ndarray, y: np.ndarray, slopes: np.ndarray, intercepts: np.ndarray, threshold: float,
-                 penalty_above: float) -> np.ndarray:
+def _band_scores(
+    x: np.ndarray, y: np.ndarray, slopes: np.ndarray, intercepts: np.ndarray, threshold: float, penalty_above: float
+) -> np.ndarray:
     """RANSAC score `(K,)` of each candidate line `intercepts + slopes·x`: the samples `(N,)` within
     `threshold` of it, less `penalty_above` per sample `threshold` or more above it.
 
@@ -292,11 +300,11 @@ def _band_scores(x: np.ndarray, y: np.ndarray, slopes: np.ndarray, intercepts: n
     flags = np.empty(buffer.shape, dtype=bool)
 
     def count(block: np.ndarray) -> np.ndarray | int:  # one flat count is far faster than a count per row
-        return np.count_nonzero(block) if len(block) == 1 else np.count_nonzero(block, axis=1)
+        return int(np.count_nonzero(block)) if len(block) == 1 else np.count_nonzero(block, axis=1)
 
     for start in range(0, slopes.size, step):
         stop = min(start + step, slopes.size)
-        residuals, flag = buffer[:stop - start], flags[:stop - start]
+        residuals, flag = buffer[: stop - start], flags[: stop - start]
         np.multiply(slopes[start:stop, None], x[None, :], out=residuals)
         np.add(intercepts[start:stop, None], residuals, out=residuals)
         np.subtract(y[None, :], residuals, out=residuals)
@@ -317,7 +325,7 @@ class LinearFit:
     inliers: np.ndarray
     residual: float
 
-    def at(self, x: float | np.ndarray) -> float | np.ndarray:
+    def at(self, x: ArrayOrFloat) -> ArrayOrFloat:
         """The fitted y at `x`."""
         return self.intercept + self.slope * x
 
@@ -327,8 +335,9 @@ class LinearFit:
         return float(self.inliers.mean()) if self.inliers.size else 0.0
 
 
-def fit_linear_robust(x: np.ndarray, y: np.ndarray, threshold: float, *, iterations: int = 100,
-                      penalty_above: float = 0.0, seed: int = 0) -> LinearFit:
+def fit_linear_robust(
+    x: np.ndarray, y: np.ndarray, threshold: float, *, iterations: int = 100, penalty_above: float = 0.0, seed: int = 0
+) -> LinearFit:
     """Robust straight line `y(x)` through samples `(N,)`: RANSAC on pairs, least squares on inliers.
 
     Used for disparity along a branch's image axis: a 3D line maps to a line in (u, v, d) space
@@ -368,5 +377,7 @@ def fit_linear_robust(x: np.ndarray, y: np.ndarray, threshold: float, *, iterati
         if np.array_equal(updated, inliers):
             break
         inliers = updated
-    residual = float(np.sqrt(np.mean((y[inliers] - (intercept + slope * x[inliers])) ** 2))) if inliers.any() else float("inf")
+    residual = (
+        float(np.sqrt(np.mean((y[inliers] - (intercept + slope * x[inliers])) ** 2))) if inliers.any() else float("inf")
+    )
     return LinearFit(float(slope), float(intercept), inliers, residual)

@@ -4,6 +4,7 @@ An instance mask is an `H×W` integer image: 0 = background, one id per branch, 
 id (the trunk id, configurable) for the trunk. A binary mask (any non-zero = branch) is split into
 its 8-connected components, each one branch; a binary mask knows no trunk.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -42,14 +43,14 @@ class MaskCrop:
     image_shape: tuple[int, int]
 
     @classmethod
-    def of(cls, mask: np.ndarray, margin: int = 2) -> "MaskCrop":
+    def of(cls, mask: np.ndarray, margin: int = 2) -> MaskCrop:
         """The crop of a whole boolean `H×W` mask: its bounding box grown by `margin` px (clipped)."""
         mask = np.asarray(mask, dtype=bool)
         rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
         if rows.size == 0:
             return cls(np.zeros((0, 0), dtype=bool), 0, 0, mask.shape)
         box = _grown((int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1), margin, mask.shape)
-        return cls(mask[box[0]:box[1], box[2]:box[3]], box[0], box[2], mask.shape)
+        return cls(mask[box[0] : box[1], box[2] : box[3]], box[0], box[2], mask.shape)
 
     def pixels(self) -> tuple[np.ndarray, np.ndarray]:
         """(rows, cols) `(N,)` int64 image coordinates of the mask's pixels, in row-major order."""
@@ -63,11 +64,12 @@ class MaskCrop:
         r1 = min(top + height, self.top + self.mask.shape[0])
         c1 = min(left + width, self.left + self.mask.shape[1])
         if r0 < r1 and c0 < c1:
-            out[r0 - top:r1 - top, c0 - left:c1 - left] = self.mask[r0 - self.top:r1 - self.top,
-                                                                    c0 - self.left:c1 - self.left]
+            out[r0 - top : r1 - top, c0 - left : c1 - left] = self.mask[
+                r0 - self.top : r1 - self.top, c0 - self.left : c1 - self.left
+            ]
         return out
 
-    def with_mask(self, mask: np.ndarray) -> "MaskCrop":
+    def with_mask(self, mask: np.ndarray) -> MaskCrop:
         """The same window holding another boolean mask of its shape (e.g. the eroded one)."""
         return MaskCrop(mask, self.top, self.left, self.image_shape)
 
@@ -75,8 +77,12 @@ class MaskCrop:
         """Whether the mask reaches the image's first or last row or column (the image cuts it)."""
         h, w = self.mask.shape
         height, width = self.image_shape
-        return bool((self.top == 0 and self.mask[0].any()) or (self.top + h == height and self.mask[-1].any())
-                    or (self.left == 0 and self.mask[:, 0].any()) or (self.left + w == width and self.mask[:, -1].any()))
+        return bool(
+            (self.top == 0 and self.mask[0].any())
+            or (self.top + h == height and self.mask[-1].any())
+            or (self.left == 0 and self.mask[:, 0].any())
+            or (self.left + w == width and self.mask[:, -1].any())
+        )
 
     def full(self) -> np.ndarray:
         """The boolean `H×W` mask of the whole image."""
@@ -98,7 +104,8 @@ class MaskCrop:
         c1 = max(self.left + self.mask.shape[1], int(cols.max()) + 1)
         outside = ~self.window(r0, c0, r1 - r0, c1 - c0)
         distance = cv2.distanceTransform(outside.astype(np.uint8), cv2.DIST_L2, 5)
-        return distance[rows - r0, cols - c0]
+        at_points: np.ndarray = distance[rows - r0, cols - c0]
+        return at_points
 
 
 def as_crop(mask: np.ndarray | MaskCrop) -> MaskCrop:
@@ -108,8 +115,12 @@ def as_crop(mask: np.ndarray | MaskCrop) -> MaskCrop:
 
 def _grown(box: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
     """A (row0, row1, col0, col1) half-open box grown by `margin` px on every side, clipped to `shape`."""
-    return (max(box[0] - margin, 0), min(box[1] + margin, shape[0]),
-            max(box[2] - margin, 0), min(box[3] + margin, shape[1]))
+    return (
+        max(box[0] - margin, 0),
+        min(box[1] + margin, shape[0]),
+        max(box[2] - margin, 0),
+        min(box[3] + margin, shape[1]),
+    )
 
 
 @dataclass(frozen=True)
@@ -124,7 +135,7 @@ class InstanceIndex:
     boxes: np.ndarray
 
     @classmethod
-    def of(cls, labels: np.ndarray) -> "InstanceIndex":
+    def of(cls, labels: np.ndarray) -> InstanceIndex:
         """Index of an integer `H×W` label image in O(pixels).
 
         The non-zero pixels in row-major order split into runs of one id within one row; a run's
@@ -186,7 +197,7 @@ class BranchMasks:
     @property
     def shape(self) -> tuple[int, int]:
         """(H, W) of the mask in pixels."""
-        return self.labels.shape  # type: ignore[return-value]
+        return self.labels.shape
 
     @cached_property
     def index(self) -> InstanceIndex:
@@ -227,9 +238,11 @@ def check_instance_count(masks: BranchMasks, max_instances: int) -> None:
     mask before any other work (`estimate_cut_points` checks it first thing)."""
     count = len(masks.branch_ids())
     if count > max_instances:
-        raise MaskError(f"{masks.source}: the mask holds {count} branch instances, more than "
-                        f"cutpoints.max_instances = {max_instances}; a frame of branches has tens, "
-                        "not thousands (is it a label image of another kind?)")
+        raise MaskError(
+            f"{masks.source}: the mask holds {count} branch instances, more than "
+            f"cutpoints.max_instances = {max_instances}; a frame of branches has tens, "
+            "not thousands (is it a label image of another kind?)"
+        )
 
 
 def split_binary(mask: np.ndarray, min_area_px: int = 1) -> np.ndarray:
@@ -249,7 +262,7 @@ def _looks_binary(array: np.ndarray, trunk_id: int | None) -> bool:
     """A mask whose only non-zero value is 255 (or True) and is not the trunk id reads as binary."""
     if trunk_id == 255 or not array.size or int(array.max()) != 255:
         return False
-    return np.count_nonzero(array == 255) == np.count_nonzero(array)
+    return bool(np.count_nonzero(array == 255) == np.count_nonzero(array))
 
 
 def masks_from_array(
@@ -293,8 +306,13 @@ def masks_from_array(
     return BranchMasks(array.astype(np.int32), trunk_id, source, tuple(ignored_ids))
 
 
-def read_mask(path: str | Path, *, trunk_id: int | None = DEFAULT_TRUNK_ID, kind: MaskKind = "auto",
-              ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS) -> BranchMasks:
+def read_mask(
+    path: str | Path,
+    *,
+    trunk_id: int | None = DEFAULT_TRUNK_ID,
+    kind: MaskKind = "auto",
+    ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS,
+) -> BranchMasks:
     """Read an instance-id PNG (8- or 16-bit) or a binary mask image into `BranchMasks`."""
     path = Path(path)
     if not path.is_file():

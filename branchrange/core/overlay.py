@@ -3,9 +3,10 @@ distance and confidence ("1.23 m · 87 %"), and the target ringed and labelled "
 operator checks at a glance. Labels never overlap each other or the status line and stay inside
 the frame (`place_labels`); a label pushed away from its point keeps a leader line to it.
 """
+
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +25,7 @@ _TRUNK_RGB = (40, 160, 255)
 def _instance_colour(instance_id: int) -> tuple[int, int, int]:
     """A distinct, stable RGB colour per instance id (golden-angle hue steps)."""
     hue = int((instance_id * 137.508) % 180)
-    hsv = np.uint8([[[hue, 200, 255]]])
+    hsv = np.array([[[hue, 200, 255]]], dtype=np.uint8)
     r, g, b = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0]
     return int(r), int(g), int(b)
 
@@ -76,8 +77,13 @@ def _parts_size(parts: list[str], scale: float) -> tuple[int, int, int]:
     return width, height, gap
 
 
-def place_labels(anchors: list[tuple[int, int]], sizes: list[tuple[int, int]], frame: tuple[int, int],
-                 reserved: list[Box] = (), clearance: int = 8) -> list[Box | None]:
+def place_labels(
+    anchors: list[tuple[int, int]],
+    sizes: list[tuple[int, int]],
+    frame: tuple[int, int],
+    reserved: Sequence[Box] = (),
+    clearance: int = 8,
+) -> list[Box | None]:
     """Boxes for labels of `sizes` (w, h) px near `anchors` (u, v), inside `frame` (width, height),
     never intersecting each other nor `reserved`; None for a label no free place could take.
 
@@ -90,8 +96,14 @@ def place_labels(anchors: list[tuple[int, int]], sizes: list[tuple[int, int]], f
     placed: list[Box] = list(reserved)
     boxes: list[Box | None] = []
     for (u, v), (w, h) in zip(anchors, sizes):
-        box = next((b for b in _candidates(u, v, w, h, width, height, clearance)
-                    if b.inside(width, height) and not any(b.intersects(p) for p in placed)), None)
+        box = next(
+            (
+                b
+                for b in _candidates(u, v, w, h, width, height, clearance)
+                if b.inside(width, height) and not any(b.intersects(p) for p in placed)
+            ),
+            None,
+        )
         if box is not None:
             placed.append(box)
         boxes.append(box)
@@ -100,6 +112,7 @@ def place_labels(anchors: list[tuple[int, int]], sizes: list[tuple[int, int]], f
 
 def _candidates(u: int, v: int, w: int, h: int, width: int, height: int, clearance: int) -> Iterator[Box]:
     """Boxes of size w×h to try for the label of anchor (u, v), nearest first (see `place_labels`)."""
+
     def at(x: int, y: int) -> Box:
         x = min(max(x, _PAD), width - w - _PAD)
         y = min(max(y, _PAD), height - h - _PAD)
@@ -108,12 +121,12 @@ def _candidates(u: int, v: int, w: int, h: int, width: int, height: int, clearan
     step = h + _PAD
     for ring in range(max(width, height) // step + 1):
         far = clearance + ring * step
-        yield at(u + far, v - h - far // 2)          # right, above the point
-        yield at(u + far, v + far // 2)              # right, below
-        yield at(u - w - far, v - h - far // 2)      # left, above
-        yield at(u - w - far, v + far // 2)          # left, below
-        yield at(u - w // 2, v - h - far)            # straight above
-        yield at(u - w // 2, v + far)                # straight below
+        yield at(u + far, v - h - far // 2)  # right, above the point
+        yield at(u + far, v + far // 2)  # right, below
+        yield at(u - w - far, v - h - far // 2)  # left, above
+        yield at(u - w - far, v + far // 2)  # left, below
+        yield at(u - w // 2, v - h - far)  # straight above
+        yield at(u - w // 2, v + far)  # straight below
     for y in range(_PAD, height - h - _PAD + 1, step):
         for x in range(_PAD, width - w - _PAD + 1, max(1, w // 4)):
             yield Box(x, y, x + w, y + h)
@@ -121,7 +134,7 @@ def _candidates(u: int, v: int, w: int, h: int, width: int, height: int, clearan
 
 def _draw_label(image: np.ndarray, box: Box, parts: list[str], colour: tuple[int, int, int], scale: float) -> None:
     """Parts on a darkened box with a thin frame (drawn in place on RGB `image`), dots between them."""
-    region = image[box.y0:box.y1, box.x0:box.x1]
+    region = image[box.y0 : box.y1, box.x0 : box.x1]
     region[:] = (region * 0.35).astype(np.uint8)  # darken, so the text reads on any background
     cv2.rectangle(image, (box.x0, box.y0), (box.x1 - 1, box.y1 - 1), colour, 1, cv2.LINE_AA)
     _, _, gap = _parts_size(parts, scale)
@@ -153,8 +166,9 @@ def status_parts(result: FrameResult, unlabelled: int = 0) -> list[str]:
     return parts
 
 
-def layout_labels(result: FrameResult, width: int, height: int, scale: float,
-                  clearance: int) -> tuple[Box, list[tuple[Branch, list[str], Box | None]]]:
+def layout_labels(
+    result: FrameResult, width: int, height: int, scale: float, clearance: int
+) -> tuple[Box, list[tuple[Branch, list[str], Box | None]]]:
     """Where the status line and each branch's label go in a `width × height` frame.
 
     The status line takes the top-left corner and every cut point's marker (`clearance` px
@@ -165,8 +179,9 @@ def layout_labels(result: FrameResult, width: int, height: int, scale: float,
     parts = [label_parts(b, result.is_target(b)) for b in order]
     sizes = [_parts_size(p, scale)[:2] for p in parts]
     anchors = [_pixel(b) for b in order]
-    markers = [Box(u - clearance // 2, v - clearance // 2, u + clearance // 2 + 1, v + clearance // 2 + 1)
-               for u, v in anchors]
+    markers = [
+        Box(u - clearance // 2, v - clearance // 2, u + clearance // 2 + 1, v + clearance // 2 + 1) for u, v in anchors
+    ]
     unlabelled = 0
     while True:  # at most twice: once more when the status line must grow to count unlabelled ones
         status_w, status_h, _ = _parts_size(status_parts(result, unlabelled), scale)
@@ -193,8 +208,9 @@ def _axis_stroke(branch: Branch, geometry: StereoGeometry) -> tuple[float, float
     return float(end[0] - start[0]), float(end[1] - start[1])
 
 
-def draw_overlay(left: np.ndarray, result: FrameResult, masks: BranchMasks | None = None,
-                 alpha: float = 0.45) -> np.ndarray:
+def draw_overlay(
+    left: np.ndarray, result: FrameResult, masks: BranchMasks | None = None, alpha: float = 0.45
+) -> np.ndarray:
     """The overlay as RGB `uint8 H×W×3`: `left` (RGB `uint8 H×W×3`, rectified) with `masks` tinted,
     every branch of `result` marked at its cut pixel with its axis drawn and labelled with distance
     and confidence, and the target ringed in red and labelled TARGET."""
@@ -230,8 +246,11 @@ def draw_overlay(left: np.ndarray, result: FrameResult, masks: BranchMasks | Non
     status_box, labels = layout_labels(result, canvas.shape[1], canvas.shape[0], scale, clearance=4 * radius + 6)
     unlabelled = sum(box is None for _, _, box in labels)
     _draw_label(canvas, status_box, status_parts(result, unlabelled), (255, 255, 255), scale)
-    placed = [(branch, parts, box, _TARGET_RGB if result.is_target(branch) else _CUT_RGB)
-              for branch, parts, box in labels if box is not None]
+    placed = [
+        (branch, parts, box, _TARGET_RGB if result.is_target(branch) else _CUT_RGB)
+        for branch, parts, box in labels
+        if box is not None
+    ]
     for branch, _, box, colour in placed:  # leader lines first, so labels cover lines, not the reverse
         u, v = _pixel(branch)
         near = _nearest_point(box, u, v)

@@ -15,6 +15,7 @@ two images (Lowe ratio test), keeps the matches whose vertical offset agrees wit
 Cost: ~10–25 ms at 640×360 on one core (ORB on ≤ 1000 features); images wider than
 `MAX_WIDTH_PX` are checked at reduced size and the offset scaled back.
 """
+
 from __future__ import annotations
 
 import logging
@@ -28,8 +29,10 @@ REFUSE_DY_PX = 8.0
 MIN_MATCHES = 20
 MAX_WIDTH_PX = 1280
 RATIO = 0.75
-FIX_HINT = ("rectify the pair (give the raw frames with their calibration file: --calib, or the API's "
-            "calibration upload) or recalibrate the camera")
+FIX_HINT = (
+    "rectify the pair (give the raw frames with their calibration file: --calib, or the API's "
+    "calibration upload) or recalibrate the camera"
+)
 
 
 class PairRefusedError(ValueError):
@@ -71,7 +74,7 @@ def _gray(image: np.ndarray, scale: float) -> np.ndarray:
 def vertical_offsets(left: np.ndarray, right: np.ndarray, features: int = 1000) -> np.ndarray:
     """y_left − y_right `(N,)` in pixels of the ratio-test ORB matches of a pair (`uint8 H×W[×3]`)."""
     scale = min(1.0, MAX_WIDTH_PX / left.shape[1])
-    orb = cv2.ORB_create(nfeatures=features)
+    orb = cv2.ORB.create(nfeatures=features)
     kp_l, desc_l = orb.detectAndCompute(_gray(left, scale), None)
     kp_r, desc_r = orb.detectAndCompute(_gray(right, scale), None)
     if desc_l is None or desc_r is None or len(kp_l) < 2 or len(kp_r) < 2:
@@ -79,7 +82,8 @@ def vertical_offsets(left: np.ndarray, right: np.ndarray, features: int = 1000) 
     pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(desc_l, desc_r, k=2)
     good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < RATIO * p[1].distance]
     dy = np.array([kp_l[m.queryIdx].pt[1] - kp_r[m.trainIdx].pt[1] for m in good], dtype=np.float64)
-    return dy / scale
+    offsets: np.ndarray = dy / scale
+    return offsets
 
 
 def check_rectification(left: np.ndarray, right: np.ndarray) -> PairCheck:
@@ -93,14 +97,26 @@ def check_rectification(left: np.ndarray, right: np.ndarray) -> PairCheck:
         spread = max(2.0, 3.0 * 1.4826 * float(np.median(np.abs(dy - centre))))
         dy = dy[np.abs(dy - centre) <= spread]
     if dy.size < MIN_MATCHES:
-        return PairCheck(None, int(dy.size), "unknown",
-                         f"only {dy.size} consistent feature matches (need {MIN_MATCHES}): rectification not checked")
+        return PairCheck(
+            None,
+            int(dy.size),
+            "unknown",
+            f"only {dy.size} consistent feature matches (need {MIN_MATCHES}): rectification not checked",
+        )
     median = float(np.median(np.abs(dy)))
     where = f"rows of the pair are {median:.1f} px apart (median |dy| of {dy.size} feature matches)"
     if median > REFUSE_DY_PX:
-        return PairCheck(median, int(dy.size), "refused",
-                         f"{where}, above the {REFUSE_DY_PX:g} px limit: stereo along rows cannot work; {FIX_HINT}")
+        return PairCheck(
+            median,
+            int(dy.size),
+            "refused",
+            f"{where}, above the {REFUSE_DY_PX:g} px limit: stereo along rows cannot work; {FIX_HINT}",
+        )
     if median > WARN_DY_PX:
-        return PairCheck(median, int(dy.size), "warning",
-                         f"{where}, above {WARN_DY_PX:g} px: depth will be sparse and unreliable; {FIX_HINT}")
+        return PairCheck(
+            median,
+            int(dy.size),
+            "warning",
+            f"{where}, above {WARN_DY_PX:g} px: depth will be sparse and unreliable; {FIX_HINT}",
+        )
     return PairCheck(median, int(dy.size), "ok", f"{where}: rectified")

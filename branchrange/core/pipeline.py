@@ -6,6 +6,7 @@ built once per camera and reused for every frame; it holds the backend, the rect
 and the tracker's state. `process_disparity` runs the stages after stereo on a given disparity
 (ground truth in evaluation, a disparity computed elsewhere).
 """
+
 from __future__ import annotations
 
 import time
@@ -15,6 +16,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from branchrange.core.config import MaskConfig, RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import (
     DEFAULT_TARGET_POLICY,
     CutPointConfig,
@@ -43,14 +45,12 @@ from branchrange.core.masks import (
     read_mask,
     validate_masks,
 )
-from branchrange.core.config import MaskConfig, RoiConfig, SegmenterConfig, StereoConfig
-from branchrange.core.roi import CoarseToFine, CoarseTrunk, Region
 from branchrange.core.pair_check import PairCheck, check_rectification
+from branchrange.core.roi import CoarseToFine, CoarseTrunk, Region
 from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.core.timing import lap_ms
 from branchrange.core.tracking import BranchTracker, TrackerConfig
 from stereo.backends.base import validate_image, validate_pair
-
 
 MaskInput = BranchMasks | np.ndarray | str | Path | None
 
@@ -90,8 +90,10 @@ class PipelineConfig:
 def untracked_whole_frame(max_disp: int = 192, target_policy: str = DEFAULT_TARGET_POLICY) -> PipelineConfig:
     """The settings of evaluations and benchmarks, which score frames one by one: no tracking,
     whole-frame sgbm stereo searching `max_disp` px, targets chosen by `target_policy`."""
-    return PipelineConfig(stereo=StereoConfig(mode="full", max_disp=max_disp),
-                          cutpoints=CutPointConfig(tracking=False, target_policy=target_policy))
+    return PipelineConfig(
+        stereo=StereoConfig(mode="full", max_disp=max_disp),
+        cutpoints=CutPointConfig(tracking=False, target_policy=target_policy),
+    )
 
 
 @dataclass(frozen=True)
@@ -197,15 +199,18 @@ class Pipeline:
             from stereo.backends import make_backend
 
             cfg = self.config.stereo
-            self._backend = make_backend(cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp,
-                                         device=cfg.device, precision=cfg.precision)
+            self._backend = make_backend(
+                cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp, device=cfg.device, precision=cfg.precision
+            )
         return self._backend
 
     @property
     def coarse_to_fine(self) -> CoarseToFine:
         """The coarse-to-fine matcher of `mode = "roi"` around the (fine) backend, built on first use."""
         if self._coarse_to_fine is None:
-            self._coarse_to_fine = CoarseToFine(self.config.roi, self.backend, self.segmenter, self.config.stereo.max_disp)
+            self._coarse_to_fine = CoarseToFine(
+                self.config.roi, self.backend, self.segmenter, self.config.stereo.max_disp
+            )
         return self._coarse_to_fine
 
     def geometry_for(self, width: int, height: int) -> StereoGeometry:
@@ -213,7 +218,8 @@ class Pipeline:
         if self._size is not None and self._size != (width, height):
             raise PipelineInputError(
                 f"the calibration is for {self._size[0]}×{self._size[1]} px images but the frames are "
-                f"{width}×{height} px; use the calibration of this resolution (e.g. --resolution)")
+                f"{width}×{height} px; use the calibration of this resolution (e.g. --resolution)"
+            )
         if self.principal_point is None:
             return StereoGeometry.centred(self.focal_px, self.baseline_m, width, height)
         return StereoGeometry(self.focal_px, self.baseline_m, *self.principal_point)
@@ -240,8 +246,9 @@ class Pipeline:
         validate_masks(masks, shape)
         return masks
 
-    def process(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
-                index: int = 0, timestamp_ns: int = 0) -> FrameResult:
+    def process(
+        self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0
+    ) -> FrameResult:
         """One frame: RGB `uint8 H×W×3` pair (raw when a raw calibration was given) → its `FrameResult`.
 
         `mask`: an instance-id / binary mask (array, path or `BranchMasks`) in the left image's
@@ -249,8 +256,9 @@ class Pipeline:
         """
         return self.geometry_stage(self.stereo_stage(left, right, mask, index, timestamp_ns))
 
-    def stereo_stage(self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None,
-                     index: int = 0, timestamp_ns: int = 0) -> StereoStage:
+    def stereo_stage(
+        self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0
+    ) -> StereoStage:
         """The first half of a frame: checks, rectification, masks read, disparity.
 
         In `mode = "roi"` this is the coarse pass, the segmenter (when no mask is given) and the
@@ -280,13 +288,33 @@ class Pipeline:
             disparity, confidence = stereo.disparity, stereo.confidence
             backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
         lap_ms(timing, "stereo", t)
-        return StereoStage(left, disparity, confidence, masks, geometry, int(index), int(timestamp_ns),
-                           backend, max_disparity, timing, (time.perf_counter() - start) * 1000.0, regions, pair_check,
-                           coarse_trunk=coarse_trunk)
+        return StereoStage(
+            left,
+            disparity,
+            confidence,
+            masks,
+            geometry,
+            int(index),
+            int(timestamp_ns),
+            backend,
+            max_disparity,
+            timing,
+            (time.perf_counter() - start) * 1000.0,
+            regions,
+            pair_check,
+            coarse_trunk=coarse_trunk,
+        )
 
-    def process_disparity(self, left: np.ndarray, disparity: np.ndarray, confidence: np.ndarray | None = None,
-                          mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0,
-                          backend: str = "given") -> FrameResult:
+    def process_disparity(
+        self,
+        left: np.ndarray,
+        disparity: np.ndarray,
+        confidence: np.ndarray | None = None,
+        mask: MaskInput = None,
+        index: int = 0,
+        timestamp_ns: int = 0,
+        backend: str = "given",
+    ) -> FrameResult:
         """The stages after stereo on a rectified left image and its `float32 H×W` disparity (px).
 
         `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
@@ -295,8 +323,10 @@ class Pipeline:
         left = validate_image(left, "left", PipelineInputError)
         disparity = np.asarray(disparity, dtype=np.float32)
         if disparity.shape != left.shape[:2]:
-            raise PipelineInputError(f"disparity is {disparity.shape[1]}×{disparity.shape[0]} px but the left "
-                                     f"image is {left.shape[1]}×{left.shape[0]} px")
+            raise PipelineInputError(
+                f"disparity is {disparity.shape[1]}×{disparity.shape[0]} px but the left "
+                f"image is {left.shape[1]}×{left.shape[0]} px"
+            )
         if confidence is None:
             confidence = valid_disparity(disparity).astype(np.float32)
         elif np.shape(confidence) != disparity.shape:
@@ -305,10 +335,22 @@ class Pipeline:
             raise PipelineInputError("process_disparity needs a rectified frame; this pipeline rectifies raw pairs")
         geometry = self.geometry_for(left.shape[1], left.shape[0])
         masks = self._masks(mask, left.shape[:2])
-        finite_max = np.nanmax(np.where(np.isfinite(disparity), disparity, np.nan)) if np.isfinite(disparity).any() else 0.0
-        stage = StereoStage(left, disparity, np.asarray(confidence), masks, geometry, int(index), int(timestamp_ns),
-                            backend, max(1, int(np.ceil(finite_max)) + 1), {"rectify": 0.0, "stereo": 0.0},
-                            (time.perf_counter() - start) * 1000.0)
+        finite_max = (
+            np.nanmax(np.where(np.isfinite(disparity), disparity, np.nan)) if np.isfinite(disparity).any() else 0.0
+        )
+        stage = StereoStage(
+            left,
+            disparity,
+            np.asarray(confidence),
+            masks,
+            geometry,
+            int(index),
+            int(timestamp_ns),
+            backend,
+            max(1, int(np.ceil(finite_max)) + 1),
+            {"rectify": 0.0, "stereo": 0.0},
+            (time.perf_counter() - start) * 1000.0,
+        )
         return self.geometry_stage(stage)
 
     def geometry_stage(self, stage: StereoStage) -> FrameResult:
@@ -334,24 +376,36 @@ class Pipeline:
         if not valid.any():
             reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
         elif not masks.branch_ids():
-            reason = (f"the mask ({masks.source}) holds no branch instance" if masks.source != self.segmenter.name
-                      else f"the {masks.source} segmenter found no branch")
+            reason = (
+                f"the mask ({masks.source}) holds no branch instance"
+                if masks.source != self.segmenter.name
+                else f"the {masks.source} segmenter found no branch"
+            )
         else:
             trunk_model: TrunkModel | None | Literal["fit"] = "fit"  # whole-frame mode: from the mask
             if stage.regions is not None:  # roi mode: the trunk's cylinder from the coarse pass
                 trunk_model = None if stage.coarse_trunk is None else stage.coarse_trunk.fit(self.config.cutpoints)
                 t = lap_ms(timing, "trunk", t)
-            cut = estimate_cut_points(masks, disparity, geometry, self.config.cutpoints,
-                                      confidence=confidence, max_disparity=max_disparity, trunk_model=trunk_model)
+            cut = estimate_cut_points(
+                masks,
+                disparity,
+                geometry,
+                self.config.cutpoints,
+                confidence=confidence,
+                max_disparity=max_disparity,
+                trunk_model=trunk_model,
+            )
             if not cut.branches:
                 reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
-                    f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5])
+                    f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5]
+                )
         t = lap_ms(timing, "cutpoints", t)
         if self.config.cutpoints.tracking:
             self.tracker.update(cut.branches)
         t = lap_ms(timing, "tracking", t)
-        target = select_target(cut.branches, self.config.cutpoints.target_policy,
-                               self.config.cutpoints.target_min_confidence)
+        target = select_target(
+            cut.branches, self.config.cutpoints.target_policy, self.config.cutpoints.target_min_confidence
+        )
         if target is None and cut.branches:
             reason = f"no branch reaches the target confidence {self.config.cutpoints.target_min_confidence}"
         timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
@@ -360,8 +414,9 @@ class Pipeline:
             camera=CameraInfo(geometry.focal_px, geometry.baseline_m, geometry.cx, geometry.cy),
             stereo=StereoInfo(stage.backend, int(max_disparity), round(float(valid.mean()), 4)),
             timing_ms=timing,
-            masks=MasksInfo("none", 0, False) if masks is None else
-            MasksInfo(masks.source, len(masks.branch_ids()), masks.trunk() is not None),
+            masks=MasksInfo("none", 0, False)
+            if masks is None
+            else MasksInfo(masks.source, len(masks.branch_ids()), masks.trunk() is not None),
             branches=tuple(Branch.from_estimate(b) for b in sorted(cut.branches, key=lambda b: b.id)),
             dropped=tuple(DroppedInstance.from_dropped(d) for d in cut.dropped),
             target_id=None if target is None else int(target.id),

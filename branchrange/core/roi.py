@@ -23,6 +23,7 @@ fine disparity lies in its window, so silhouettes (and diameters) are full-resol
 Cut points then come from full-resolution disparity only (the base, where it meets the trunk,
 from the trunk's coarse cylinder).
 """
+
 from __future__ import annotations
 
 import math
@@ -99,8 +100,12 @@ def coarse_scale(width: int, coarse_width: int) -> int:
 
 def scaled_geometry(geometry: StereoGeometry, scale: int) -> StereoGeometry:
     """The camera of an image shrunk `scale` times (pixel centres kept: c' = (c + ½) / s − ½)."""
-    return StereoGeometry(geometry.focal_px / scale, geometry.baseline_m,
-                          (geometry.cx + 0.5) / scale - 0.5, (geometry.cy + 0.5) / scale - 0.5)
+    return StereoGeometry(
+        geometry.focal_px / scale,
+        geometry.baseline_m,
+        (geometry.cx + 0.5) / scale - 0.5,
+        (geometry.cy + 0.5) / scale - 0.5,
+    )
 
 
 def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int, max_disp: int) -> tuple[int, int]:
@@ -120,8 +125,14 @@ def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int,
     return d_min, min(d_range, max_disp)
 
 
-def plan_regions(instances: BranchMasks, labels_coarse: np.ndarray, coarse_disparity: np.ndarray,
-                 scale: int, config: RoiConfig, max_disp: int) -> list[Region]:
+def plan_regions(
+    instances: BranchMasks,
+    labels_coarse: np.ndarray,
+    coarse_disparity: np.ndarray,
+    scale: int,
+    config: RoiConfig,
+    max_disp: int,
+) -> list[Region]:
     """A `Region` per branch of `instances` (full resolution): its box grown by the margin, its
     disparity window from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse
     labels. When more than `max_regions` branches are present, the nearest ones (largest median
@@ -137,13 +148,14 @@ def plan_regions(instances: BranchMasks, labels_coarse: np.ndarray, coarse_dispa
         regions.append(Region(int(instance), box, d_min, d_range))
         nearness.append(float(np.median(values)) if values.size else 0.0)
     if len(regions) > config.max_regions:
-        order = sorted(range(len(regions)), key=lambda i: -nearness[i])[:config.max_regions]
+        order = sorted(range(len(regions)), key=lambda i: -nearness[i])[: config.max_regions]
         regions = [regions[i] for i in sorted(order)]
     return regions
 
 
-def refine_labels(labels: np.ndarray, scale: int, disparity: np.ndarray, regions: list[Region],
-                  trunk_id: int | None) -> np.ndarray:
+def refine_labels(
+    labels: np.ndarray, scale: int, disparity: np.ndarray, regions: list[Region], trunk_id: int | None
+) -> np.ndarray:
     """Full-resolution labels (`int32 H×W`) from up-sampled coarse ones (`labels`, nearest): each
     branch grown by one coarse pixel into the background and kept where the fine disparity lies in
     its window; the trunk as it is (it has no fine pass)."""
@@ -162,8 +174,9 @@ def refine_labels(labels: np.ndarray, scale: int, disparity: np.ndarray, regions
     return refined
 
 
-def trunk_from_coarse(disparity: np.ndarray, confidence: np.ndarray, labels: np.ndarray, trunk_id: int | None,
-                      coarse: Any, scale: int) -> None:
+def trunk_from_coarse(
+    disparity: np.ndarray, confidence: np.ndarray, labels: np.ndarray, trunk_id: int | None, coarse: Any, scale: int
+) -> None:
     """Write the trunk's coarse disparity (× `scale`, full-resolution px) and confidence into the full-
     resolution maps, in place, on every `scale`-th pixel (rows and columns) of its full-resolution mask."""
     if trunk_id is None:
@@ -187,13 +200,17 @@ class CoarseToFine:
 
     def __init__(self, config: RoiConfig, fine_backend: Any, segmenter: Any, max_disp: int) -> None:
         if not hasattr(fine_backend, "compute_roi"):
-            raise ValueError(f"stereo backend {getattr(fine_backend, 'name', fine_backend)!r} cannot match regions "
-                             "of interest; use mode = 'full' with it")
+            raise ValueError(
+                f"stereo backend {getattr(fine_backend, 'name', fine_backend)!r} cannot match regions "
+                "of interest; use mode = 'full' with it"
+            )
         self.config = config
         self.fine = fine_backend
         self.segmenter = segmenter
         self.max_disp = int(max_disp)
-        self._sgbm_backends: dict[int, Any] = {}  # SGBM backends by max_disp (coarse pass, regions beyond network_regions)
+        self._sgbm_backends: dict[
+            int, Any
+        ] = {}  # SGBM backends by max_disp (coarse pass, regions beyond network_regions)
 
     def _sgbm(self, max_disp: int) -> Any:
         """An SGBM backend for `max_disp` (coarse pass, or regions beyond `network_regions`), built once."""
@@ -214,8 +231,9 @@ class CoarseToFine:
         chosen = set(nearest if limit == 0 else nearest[:limit])
         return [self.fine if i in chosen else sgbm for i in range(len(regions))]
 
-    def compute(self, left: np.ndarray, right: np.ndarray, masks: BranchMasks | None,
-                geometry: StereoGeometry) -> CoarseToFineResult:
+    def compute(
+        self, left: np.ndarray, right: np.ndarray, masks: BranchMasks | None, geometry: StereoGeometry
+    ) -> CoarseToFineResult:
         """Full-resolution disparity inside each instance's region of a rectified `uint8 H×W×3` pair."""
         timing: dict[str, float] = {}
         t = time.perf_counter()
@@ -231,19 +249,25 @@ class CoarseToFine:
         coarse = self._sgbm(coarse_max).compute(left_small, right_small)
         t = lap_ms(timing, "coarse_stereo", t)
         if masks is None:
-            found = self.segmenter.segment(left_small, coarse.disparity, scaled_geometry(geometry, scale),
-                                           coarse.confidence)
+            found = self.segmenter.segment(
+                left_small, coarse.disparity, scaled_geometry(geometry, scale), coarse.confidence
+            )
             coarse_labels = found.labels
             labels_full = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
             instances = replace(found, labels=labels_full)
         else:
             instances = masks
-            coarse_labels = masks.labels[scale // 2::scale, scale // 2::scale][:small[1], :small[0]]
+            coarse_labels = masks.labels[scale // 2 :: scale, scale // 2 :: scale][: small[1], : small[0]]
             labels_full = masks.labels
         t = lap_ms(timing, "segment", t)
-        trunk_crop = BranchMasks(coarse_labels, instances.trunk_id).trunk_crop() if instances.trunk_id is not None else None
-        trunk = None if trunk_crop is None else \
-            CoarseTrunk(trunk_crop, coarse.disparity, scaled_geometry(geometry, scale), coarse_max)
+        trunk_crop = (
+            BranchMasks(coarse_labels, instances.trunk_id).trunk_crop() if instances.trunk_id is not None else None
+        )
+        trunk = (
+            None
+            if trunk_crop is None
+            else CoarseTrunk(trunk_crop, coarse.disparity, scaled_geometry(geometry, scale), coarse_max)
+        )
         regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
@@ -259,8 +283,8 @@ class CoarseToFine:
             confidence[y0:y1, x0:x1][take] = result.confidence[take]
         t = lap_ms(timing, "roi_stereo", t)
         if masks is None:
-            instances = replace(instances, labels=refine_labels(labels_full, scale, disparity, regions,
-                                                                instances.trunk_id))
+            instances = replace(
+                instances, labels=refine_labels(labels_full, scale, disparity, regions, instances.trunk_id)
+            )
             lap_ms(timing, "refine", t)
         return CoarseToFineResult(disparity, confidence, instances, regions, trunk, timing)
-

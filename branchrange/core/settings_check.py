@@ -12,6 +12,7 @@ Why ranges and not only "> 0": the cut-point maths multiplies and divides by the
 stereo camera on a drone can be is refused with the value and the accepted range, once, at the
 entry, so nothing downstream has to guard against it.
 """
+
 from __future__ import annotations
 
 import math
@@ -93,13 +94,16 @@ def in_physical_range(quantity: str, value: Any) -> tuple[bool, str]:
     """(whether `value` is a finite number within `PHYSICAL_RANGES[quantity]`, the range described):
     one entry of a `Settings.checks()` table."""
     accepted = PHYSICAL_RANGES[quantity]
-    ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-          and accepted.low <= value <= accepted.high)
+    ok = (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and accepted.low <= value <= accepted.high
+    )
     return ok, accepted.describe()
 
 
-def check_physical(quantity: str, value: Any, name: str | None = None,
-                   error: type[ValueError] = RangeError) -> float:
+def check_physical(quantity: str, value: Any, name: str | None = None, error: type[ValueError] = RangeError) -> float:
     """`value` as a float when it is a finite number within `PHYSICAL_RANGES[quantity]`.
 
     Otherwise raises `error` naming `name` (the key, option or field the user wrote; default the
@@ -116,15 +120,17 @@ def check_physical(quantity: str, value: Any, name: str | None = None,
     return number
 
 
-def check_image_size(width: Any, height: Any, name: str = "image size",
-                     error: type[ValueError] = RangeError) -> tuple[int, int]:
+def check_image_size(
+    width: Any, height: Any, name: str = "image size", error: type[ValueError] = RangeError
+) -> tuple[int, int]:
     """(width, height) in pixels, each within the image-side range; else `error` naming `name`."""
     accepted = PHYSICAL_RANGES["image_side_px"]
     try:
         return tuple(int(check_physical("image_side_px", value, name, error)) for value in (width, height))  # type: ignore[return-value]
     except ValueError:
-        raise error(f"{name} = {width}×{height}: expected each side from {accepted.low:g} to "
-                    f"{accepted.high:g} {accepted.unit}") from None
+        raise error(
+            f"{name} = {width}×{height}: expected each side from {accepted.low:g} to {accepted.high:g} {accepted.unit}"
+        ) from None
 
 
 def check_calibration(calibration: Any, size: tuple[int, int], name: str) -> None:

@@ -3,6 +3,7 @@
 The mask is exact where depth is not (near a junction, at thin tips), so ends and widths come from
 the image; depth only places them in 3D. Pixels are (u, v) = (column, row).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -154,7 +155,7 @@ def _area_along(axis: ImageAxis, count: int) -> np.ndarray:
     area = 16 * histogram(first[whole])
     crossed = axis.s[~whole]
     for start in range(0, crossed.size, _CROSSED_BLOCK):  # blocks of pixels × 16 samples that stay in cache
-        area += histogram(sub_sample_slices(crossed[start:start + _CROSSED_BLOCK, None], shifts[None, :]))
+        area += histogram(sub_sample_slices(crossed[start : start + _CROSSED_BLOCK, None], shifts[None, :]))
     return area / 16.0
 
 

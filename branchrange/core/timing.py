@@ -1,4 +1,5 @@
 """Stage timing shared by the per-frame stages: one dict of milliseconds per frame."""
+
 from __future__ import annotations
 
 import time

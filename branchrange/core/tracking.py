@@ -14,6 +14,7 @@ has confidence 0.1–0.2 and jumps 1.8 m in depth and then 0.12 m between frames
 that still separates neighbouring branches. Low-confidence cut points therefore may change id;
 the target (confident by policy) keeps its id.
 """
+
 from __future__ import annotations
 
 import math

@@ -12,6 +12,7 @@ Scores:
 Stereo: the set's exact disparity ('gt', the geometry's own error), 'sgbm', or 'emcstereo' (with
 weights); masks: the set's instance masks ('gt') or the built-in segmenter ('segmenter').
 """
+
 from __future__ import annotations
 
 import json
@@ -61,8 +62,11 @@ def scene_indices(root: Path, split: str | None = None) -> list[int]:
         if not listing.is_file():
             raise SynthSetError(f"{listing} does not exist (splits: train, val, test)")
         return [int(m.group(1)) for m in re.finditer(r"left_(\d+)\.png", listing.read_text(encoding="utf-8"))]
-    found = sorted(int(m.group(1)) for p in (root / "branches").glob("branches_*.json")
-                   if (m := re.fullmatch(r"branches_(\d+)\.json", p.name)))
+    found = sorted(
+        int(m.group(1))
+        for p in (root / "branches").glob("branches_*.json")
+        if (m := re.fullmatch(r"branches_(\d+)\.json", p.name))
+    )
     if not found:
         raise SynthSetError(f"{root} holds no branches/branches_N.json: not a set written by `emcstereo synth`")
     return found
@@ -70,8 +74,8 @@ def scene_indices(root: Path, split: str | None = None) -> list[int]:
 
 def read_frame(root: Path, index: int) -> SynthFrame:
     """Scene `index` of the set at `root`, with disparity from the EXR depth (cm)."""
-    from stereo.io import read_exr_depth, read_rgb
     from branchrange.core.masks import read_mask
+    from stereo.io import read_exr_depth, read_rgb
 
     record_path = root / "branches" / f"branches_{index}.json"
     try:
@@ -87,8 +91,17 @@ def read_frame(root: Path, index: int) -> SynthFrame:
     disparity = np.zeros(depth_cm.shape, dtype=np.float32)
     disparity[valid] = focal * baseline / (depth_cm[valid] / 100.0)
     mask = read_mask(root / files["mask"], kind="instance").labels
-    return SynthFrame(index, read_rgb(root / files["left"]), read_rgb(root / files["right"]), disparity,
-                      mask, branches, focal, baseline, principal)
+    return SynthFrame(
+        index,
+        read_rgb(root / files["left"]),
+        read_rgb(root / files["right"]),
+        disparity,
+        mask,
+        branches,
+        focal,
+        baseline,
+        principal,
+    )
 
 
 @dataclass
@@ -141,8 +154,9 @@ class CutScores:
             aim = np.asarray(target.cut_point_m, dtype=np.float64)
             self.targets_within += any(float(np.linalg.norm(aim - t)) <= RECALL_RADIUS_M for t in true_points)
         guesses = [np.asarray(b.cut_point_m, dtype=np.float64) for b in estimated]
-        pairs = sorted((float(np.linalg.norm(g - t)), ti, gi)
-                       for ti, t in enumerate(true_points) for gi, g in enumerate(guesses))
+        pairs = sorted(
+            (float(np.linalg.norm(g - t)), ti, gi) for ti, t in enumerate(true_points) for gi, g in enumerate(guesses)
+        )
         used_truth: set[int] = set()
         used_guess: set[int] = set()
         close_matches = 0
@@ -157,7 +171,9 @@ class CutScores:
                 self.errors_m.append(distance)
                 self.recalled += distance <= RECALL_RADIUS_M
                 true_range = float(np.linalg.norm(true_points[ti]))
-                self.distance_errors_pct.append(100.0 * abs(float(np.linalg.norm(guesses[gi])) - true_range) / true_range)
+                self.distance_errors_pct.append(
+                    100.0 * abs(float(np.linalg.norm(guesses[gi])) - true_range) / true_range
+                )
             close_matches += distance <= RECALL_RADIUS_M
         self.truth += sum(1 for b in truth if b.get("cut_visible", True))
         self.false_cut_points += len(guesses) - close_matches
@@ -171,10 +187,18 @@ def _disparities(frame: SynthFrame, stereo: str, backend) -> tuple[np.ndarray, n
     return result.disparity, result.confidence
 
 
-def evaluate_cuts(root: str | Path, stereo_modes: Sequence[str] = ("gt", "sgbm"),
-                  mask_modes: Sequence[str] = MASK_MODES, *, weights: str | None = None, max_disp: int = 192,
-                  limit: int | None = None, split: str | None = None, min_confidence: float = 0.0,
-                  config: PipelineConfig | None = None) -> list[CutScores]:
+def evaluate_cuts(
+    root: str | Path,
+    stereo_modes: Sequence[str] = ("gt", "sgbm"),
+    mask_modes: Sequence[str] = MASK_MODES,
+    *,
+    weights: str | None = None,
+    max_disp: int = 192,
+    limit: int | None = None,
+    split: str | None = None,
+    min_confidence: float = 0.0,
+    config: PipelineConfig | None = None,
+) -> list[CutScores]:
     """Scores of every (stereo, masks) combination over the set at `root` (first `limit` scenes).
 
     Estimated cut points below `min_confidence` are not counted. The stereo backend runs once per
@@ -200,16 +224,18 @@ def evaluate_cuts(root: str | Path, stereo_modes: Sequence[str] = ("gt", "sgbm")
     scores = {(s, m): CutScores(s, m) for s in stereo_modes for m in mask_modes}
     for index in indices:
         frame = read_frame(root, index)
-        pipeline = Pipeline(config, focal_px=frame.focal_px, baseline_m=frame.baseline_m,
-                            principal_point=frame.principal_point)
+        pipeline = Pipeline(
+            config, focal_px=frame.focal_px, baseline_m=frame.baseline_m, principal_point=frame.principal_point
+        )
         for stereo in stereo_modes:
             start = time.perf_counter()
             disparity, confidence = _disparities(frame, stereo, backends.get(stereo))
             stereo_seconds = time.perf_counter() - start
             for masks in mask_modes:
                 start = time.perf_counter()
-                result = pipeline.process_disparity(frame.left, disparity, confidence,
-                                                    mask=frame.mask if masks == "gt" else None, backend=stereo)
+                result = pipeline.process_disparity(
+                    frame.left, disparity, confidence, mask=frame.mask if masks == "gt" else None, backend=stereo
+                )
                 estimated = [b for b in result.branches if b.confidence >= min_confidence]
                 entry = scores[(stereo, masks)]
                 entry.add_frame(frame.branches, estimated, result.target)
@@ -219,22 +245,38 @@ def evaluate_cuts(root: str | Path, stereo_modes: Sequence[str] = ("gt", "sgbm")
 
 def format_table(scores: Sequence[CutScores]) -> str:
     """The scores as a fixed-width text table, one row per (stereo, masks)."""
-    header = (f"{'stereo':<10} {'masks':<10} {'frames':>6} {'branches':>8} {'recall@5cm':>10} "
-              f"{'median 3D':>10} {'p90 3D':>8} {'med dist err':>12} {'false/frame':>11} {'target@5cm':>10} "
-              f"{'s/frame':>8}")
+    header = (
+        f"{'stereo':<10} {'masks':<10} {'frames':>6} {'branches':>8} {'recall@5cm':>10} "
+        f"{'median 3D':>10} {'p90 3D':>8} {'med dist err':>12} {'false/frame':>11} {'target@5cm':>10} "
+        f"{'s/frame':>8}"
+    )
     lines = [header, "-" * len(header)]
     for s in scores:
-        lines.append(f"{s.stereo:<10} {s.masks:<10} {s.frames:>6} {s.truth:>8} {100 * s.recall:>9.1f}% "
-                     f"{100 * s.error_quantile(0.5):>8.2f}cm {100 * s.error_quantile(0.9):>6.2f}cm "
-                     f"{s.median_distance_error_pct:>11.2f}% {s.false_per_frame:>11.2f} "
-                     f"{100 * s.target_accuracy:>9.1f}% {s.seconds / max(s.frames, 1):>8.2f}")
+        lines.append(
+            f"{s.stereo:<10} {s.masks:<10} {s.frames:>6} {s.truth:>8} {100 * s.recall:>9.1f}% "
+            f"{100 * s.error_quantile(0.5):>8.2f}cm {100 * s.error_quantile(0.9):>6.2f}cm "
+            f"{s.median_distance_error_pct:>11.2f}% {s.false_per_frame:>11.2f} "
+            f"{100 * s.target_accuracy:>9.1f}% {s.seconds / max(s.frames, 1):>8.2f}"
+        )
     return "\n".join(lines)
 
 
 def scores_as_dict(scores: Sequence[CutScores]) -> list[dict]:
     """The scores as JSON-ready dicts (metres, %, counts)."""
-    return [{"stereo": s.stereo, "masks": s.masks, "frames": s.frames, "branches": s.truth,
-             "recall": s.recall, "median_error_m": s.error_quantile(0.5), "p90_error_m": s.error_quantile(0.9),
-             "median_distance_error_pct": s.median_distance_error_pct, "false_per_frame": s.false_per_frame,
-             "targets": s.targets, "target_within_5cm": s.target_accuracy,
-             "seconds_per_frame": s.seconds / max(s.frames, 1)} for s in scores]
+    return [
+        {
+            "stereo": s.stereo,
+            "masks": s.masks,
+            "frames": s.frames,
+            "branches": s.truth,
+            "recall": s.recall,
+            "median_error_m": s.error_quantile(0.5),
+            "p90_error_m": s.error_quantile(0.9),
+            "median_distance_error_pct": s.median_distance_error_pct,
+            "false_per_frame": s.false_per_frame,
+            "targets": s.targets,
+            "target_within_5cm": s.target_accuracy,
+            "seconds_per_frame": s.seconds / max(s.frames, 1),
+        }
+        for s in scores
+    ]

@@ -14,6 +14,7 @@ optional when reading, None when absent) lists the cut points that frame shows: 
 camera, inside the image, and the mask at its pixel is its branch. Cut point ids are the branches'
 mask ids.
 """
+
 from __future__ import annotations
 
 import json
@@ -58,7 +59,9 @@ class FlightCutPoint:
 
 def _fail(path: Path, key: str, found: object, expected: str) -> FlightFormatError:
     shown = repr(found)
-    return FlightFormatError(f"{path}: {key} is {shown if len(shown) <= 80 else shown[:77] + '...'}; expected {expected}")
+    return FlightFormatError(
+        f"{path}: {key} is {shown if len(shown) <= 80 else shown[:77] + '...'}; expected {expected}"
+    )
 
 
 def _integer(value: Any, path: Path, key: str, minimum: int = 0) -> int:
@@ -106,17 +109,24 @@ def _read_pose(entry: dict[str, Any], path: Path, key: str) -> FlightPose:
         if not isinstance(visible, list):
             raise _fail(path, f"{key}.visible_cut_ids", visible, "a list of cut point ids")
         visible = [_integer(v, path, f"{key}.visible_cut_ids", 1) for v in visible]
-    return FlightPose(_integer(_field(entry, "index", path, key), path, f"{key}.index"),
-                      _integer(_field(entry, "timestamp_ns", path, key), path, f"{key}.timestamp_ns"),
-                      rotation, translation, visible)
+    return FlightPose(
+        _integer(_field(entry, "index", path, key), path, f"{key}.index"),
+        _integer(_field(entry, "timestamp_ns", path, key), path, f"{key}.timestamp_ns"),
+        rotation,
+        translation,
+        visible,
+    )
 
 
 def _read_cut(entry: dict[str, Any], path: Path, key: str) -> FlightCutPoint:
     radius = _field(entry, "radius_m", path, key)
     if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (math.isfinite(radius) and radius > 0):
         raise _fail(path, f"{key}.radius_m", radius, "a branch radius > 0 m")
-    return FlightCutPoint(_integer(_field(entry, "id", path, key), path, f"{key}.id", 1),
-                          _numbers(_field(entry, "world_m", path, key), (3,), path, f"{key}.world_m"), float(radius))
+    return FlightCutPoint(
+        _integer(_field(entry, "id", path, key), path, f"{key}.id", 1),
+        _numbers(_field(entry, "world_m", path, key), (3,), path, f"{key}.world_m"),
+        float(radius),
+    )
 
 
 def _inconsistency(poses: list[FlightPose], cuts: list[FlightCutPoint]) -> str | None:
@@ -153,8 +163,10 @@ class FlightTruth:
         try:
             document = json.loads(path.read_text(encoding="utf-8"))
         except OSError as error:
-            raise FlightFormatError(f"{path}: cannot be read ({error.strerror}); expected the flight truth "
-                                    "`branchrange synth-flight` writes beside recording.json") from None
+            raise FlightFormatError(
+                f"{path}: cannot be read ({error.strerror}); expected the flight truth "
+                "`branchrange synth-flight` writes beside recording.json"
+            ) from None
         except (UnicodeDecodeError, json.JSONDecodeError) as error:
             raise FlightFormatError(f"{path}: is not JSON ({error}); expected a {FORMAT_NAME} document") from None
         if not isinstance(document, dict) or document.get("format") != FORMAT_NAME:
@@ -163,8 +175,9 @@ class FlightTruth:
         if document.get("version") != FORMAT_VERSION:
             raise _fail(path, "version", document.get("version"), str(FORMAT_VERSION))
         poses = [_read_pose(entry, path, f"poses[{i}]") for i, entry in enumerate(_entries(document, "poses", path))]
-        cuts = [_read_cut(entry, path, f"cut_points[{i}]")
-                for i, entry in enumerate(_entries(document, "cut_points", path))]
+        cuts = [
+            _read_cut(entry, path, f"cut_points[{i}]") for i, entry in enumerate(_entries(document, "cut_points", path))
+        ]
         problem = _inconsistency(poses, cuts)
         if problem:
             raise FlightFormatError(f"{path}: {problem}")
@@ -172,20 +185,33 @@ class FlightTruth:
 
     def write(self, directory: str | Path) -> Path:
         """Write `directory/flight.json` (the directory must exist); returns its path."""
-        poses = [{"index": pose.index, "timestamp_ns": pose.timestamp_ns,
-                  "R_world_cam": np.asarray(pose.R_world_cam, dtype=np.float64).tolist(),
-                  "t_world_cam": np.asarray(pose.t_world_cam, dtype=np.float64).tolist(),
-                  **({} if pose.visible_cut_ids is None else {"visible_cut_ids": list(pose.visible_cut_ids)})}
-                 for pose in self.poses]
-        cuts = [{"id": cut.id, "world_m": np.asarray(cut.world_m, dtype=np.float64).tolist(),
-                 "radius_m": float(cut.radius_m)} for cut in self.cut_points]
+        poses = [
+            {
+                "index": pose.index,
+                "timestamp_ns": pose.timestamp_ns,
+                "R_world_cam": np.asarray(pose.R_world_cam, dtype=np.float64).tolist(),
+                "t_world_cam": np.asarray(pose.t_world_cam, dtype=np.float64).tolist(),
+                **({} if pose.visible_cut_ids is None else {"visible_cut_ids": list(pose.visible_cut_ids)}),
+            }
+            for pose in self.poses
+        ]
+        cuts = [
+            {
+                "id": cut.id,
+                "world_m": np.asarray(cut.world_m, dtype=np.float64).tolist(),
+                "radius_m": float(cut.radius_m),
+            }
+            for cut in self.cut_points
+        ]
 
         def listing(entries: list[dict[str, Any]]) -> str:
             """A JSON list with one entry per line (floats keep every digit, so reading gives them back exactly)."""
             return "[" + ",".join(f"\n  {json.dumps(entry)}" for entry in entries) + ("\n ]" if entries else "]")
 
-        text = (f'{{"format": "{FORMAT_NAME}", "version": {FORMAT_VERSION},\n'
-                f' "poses": {listing(poses)},\n "cut_points": {listing(cuts)}}}\n')
+        text = (
+            f'{{"format": "{FORMAT_NAME}", "version": {FORMAT_VERSION},\n'
+            f' "poses": {listing(poses)},\n "cut_points": {listing(cuts)}}}\n'
+        )
         path = Path(directory) / FLIGHT_NAME
         path.write_text(text, encoding="utf-8")
         return path

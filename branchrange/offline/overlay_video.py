@@ -1,5 +1,6 @@
 """Overlay videos a person can watch: RGB frames into an MPEG-4 (mp4v) .mp4, or MJPG .avi when the
 OpenCV build cannot write mp4v; and a check that the written file reads back frame for frame."""
+
 from __future__ import annotations
 
 import logging
@@ -64,8 +65,12 @@ class OverlayVideoWriter:
             writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*codec.fourcc), self.fps, size)
             if writer.isOpened():
                 if codec is not self.codecs[0]:
-                    log.warning("the %s codec is not available in this OpenCV build; writing %s video to %s instead",
-                                self.codecs[0].fourcc, codec.fourcc, path)
+                    log.warning(
+                        "the %s codec is not available in this OpenCV build; writing %s video to %s instead",
+                        self.codecs[0].fourcc,
+                        codec.fourcc,
+                        path,
+                    )
                 self._writer, self.codec, self.path, self.size = writer, codec, path, size
                 return
             writer.release()
@@ -80,7 +85,9 @@ class OverlayVideoWriter:
         if self._writer is None:
             self._open(size)
         elif size != self.size:
-            raise ValueError(f"video frame {self.frames} is {size[0]}×{size[1]} px; the video is {self.size[0]}×{self.size[1]}")
+            raise ValueError(
+                f"video frame {self.frames} is {size[0]}×{size[1]} px; the video is {self.size[0]}×{self.size[1]}"
+            )
         assert self._writer is not None
         self._writer.write(cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR))
         self.frames += 1
@@ -110,16 +117,19 @@ def check_video(path: str | Path, codec: VideoCodec, frames: int, size: tuple[in
             raise VideoWriteError(f"{path}: OpenCV cannot reopen the video it wrote")
         reported = int(capture.get(cv2.CAP_PROP_FOURCC))
         if reported not in {cv2.VideoWriter_fourcc(*name) for name in codec.reads_back_as}:
-            raise VideoWriteError(f"{path}: reads back as FourCC {_fourcc_text(reported)!r}; expected one of "
-                                  f"{', '.join(codec.reads_back_as)}")
+            raise VideoWriteError(
+                f"{path}: reads back as FourCC {_fourcc_text(reported)!r}; expected one of "
+                f"{', '.join(codec.reads_back_as)}"
+            )
         decoded = 0
         while True:
             ok, image = capture.read()
             if not ok:
                 break
             if (image.shape[1], image.shape[0]) != tuple(size):
-                raise VideoWriteError(f"{path}: frame {decoded} is {image.shape[1]}×{image.shape[0]} px; "
-                                      f"expected {size[0]}×{size[1]}")
+                raise VideoWriteError(
+                    f"{path}: frame {decoded} is {image.shape[1]}×{image.shape[0]} px; expected {size[0]}×{size[1]}"
+                )
             decoded += 1
     finally:
         capture.release()

@@ -7,6 +7,7 @@ frames, so its results are the daemon's, frame for frame (timing aside). A corru
 skipped and a frame the pipeline rejects is logged, as the daemon does. The summary counts
 frames, branches and tracks, and gives distance statistics and per-stage timing.
 """
+
 from __future__ import annotations
 
 import logging
@@ -38,9 +39,14 @@ def _stats(values: list[float], digits: int) -> dict[str, float | int]:
     """count, min, median, mean, max and (population) std of `values`, rounded; just the count when empty."""
     if not values:
         return {"count": 0}
-    return {"count": len(values), "min": round(min(values), digits), "median": round(statistics.median(values), digits),
-            "mean": round(statistics.fmean(values), digits), "max": round(max(values), digits),
-            "std": round(statistics.pstdev(values), digits)}
+    return {
+        "count": len(values),
+        "min": round(min(values), digits),
+        "median": round(statistics.median(values), digits),
+        "mean": round(statistics.fmean(values), digits),
+        "max": round(max(values), digits),
+        "std": round(statistics.pstdev(values), digits),
+    }
 
 
 @dataclass
@@ -87,16 +93,25 @@ class ReplaySummary:
 
     def to_dict(self) -> dict[str, Any]:
         """The summary as JSON-ready values (distances in metres, timing in milliseconds per frame)."""
-        timing = {stage: {k: v for k, v in _stats(values, 3).items() if k != "std"}
-                  for stage, values in self._timing.items()}
+        timing = {
+            stage: {k: v for k, v in _stats(values, 3).items() if k != "std"} for stage, values in self._timing.items()
+        }
         return {
             "recording": self.recording,
-            "frames": {"processed": self.frames, "corrupt": self.corrupt, "rejected": self.rejected,
-                       "with_branches": self.frames_with_branches, "with_target": self.frames_with_target,
-                       **({} if self.unpaired is None else {"unpaired": self.unpaired})},
-            "branches": {"detections": self.detections, "tracks": len(self._tracks),
-                         "target_tracks": len(self._target_tracks),
-                         "per_frame": round(self.detections / self.frames, 3) if self.frames else 0.0},
+            "frames": {
+                "processed": self.frames,
+                "corrupt": self.corrupt,
+                "rejected": self.rejected,
+                "with_branches": self.frames_with_branches,
+                "with_target": self.frames_with_target,
+                **({} if self.unpaired is None else {"unpaired": self.unpaired}),
+            },
+            "branches": {
+                "detections": self.detections,
+                "tracks": len(self._tracks),
+                "target_tracks": len(self._target_tracks),
+                "per_frame": round(self.detections / self.frames, 3) if self.frames else 0.0,
+            },
             "distance_m": {"all": _stats(self._distances, 4), "target": _stats(self._target_distances, 4)},
             "timing_ms": timing,
             "wall_s": round(self.wall_s, 3),
@@ -108,13 +123,17 @@ class ReplaySummary:
         """The summary for a person, a few lines."""
         d = self.to_dict()
         f, b, t = d["frames"], d["branches"], d["distance_m"]["target"]
-        lines = [f"replay of {self.recording}: {f['processed']} frames processed, {f['corrupt']} corrupt, "
-                 f"{f['rejected']} rejected; {d['fps']:.1f} frames/s",
-                 f"branches: {b['detections']} cut points ({b['per_frame']:.2f} per frame) in {b['tracks']} tracks; "
-                 f"a target in {f['with_target']} frames ({b['target_tracks']} tracks)"]
+        lines = [
+            f"replay of {self.recording}: {f['processed']} frames processed, {f['corrupt']} corrupt, "
+            f"{f['rejected']} rejected; {d['fps']:.1f} frames/s",
+            f"branches: {b['detections']} cut points ({b['per_frame']:.2f} per frame) in {b['tracks']} tracks; "
+            f"a target in {f['with_target']} frames ({b['target_tracks']} tracks)",
+        ]
         if t["count"]:
-            lines.append(f"target distance: median {t['median']:.3f} m, min {t['min']:.3f} m, max {t['max']:.3f} m, "
-                         f"std {t['std']:.3f} m")
+            lines.append(
+                f"target distance: median {t['median']:.3f} m, min {t['min']:.3f} m, max {t['max']:.3f} m, "
+                f"std {t['std']:.3f} m"
+            )
         stages = ", ".join(f"{stage} {s['mean']:.1f}" for stage, s in d["timing_ms"].items() if s["count"])
         lines.append(f"mean timing per frame (ms): {stages}")
         if self.unpaired and any(self.unpaired.values()):
@@ -150,9 +169,16 @@ def _notify(observers: Sequence[Observer], result: FrameResult, artifacts: Any) 
             log.exception("frame %d: observer %r failed", result.frame.index, observer)
 
 
-def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, *, video: str | Path | None = None,
-                     progress: bool = True, observers: Sequence[Observer] = (),
-                     fps: float | None = None) -> ReplaySummary:
+def replay_recording(
+    recording: str | Path,
+    cfg: Config,
+    out_jsonl: str | Path,
+    *,
+    video: str | Path | None = None,
+    progress: bool = True,
+    observers: Sequence[Observer] = (),
+    fps: float | None = None,
+) -> ReplaySummary:
     """Process every frame of `recording` (a recording directory, a folder of pairs, a side-by-side video,
     a ROS 2 bag or a `rosbag:` spec, see `source_spec`) with the pipeline `cfg` describes; write a run
     header and one JSON line per frame to `out_jsonl` and, when `video` is given, an overlay video at the
@@ -176,8 +202,10 @@ def replay_recording(recording: str | Path, cfg: Config, out_jsonl: str | Path, 
         out.parent.mkdir(parents=True, exist_ok=True)
         total = source.frame_count if isinstance(source, ReplaySource) else None
         start = time.perf_counter()
-        with out.open("w", encoding="utf-8") as results, \
-                progress_bar(total=total, unit="frame", desc="replay", disable=not progress) as bar:
+        with (
+            out.open("w", encoding="utf-8") as results,
+            progress_bar(total=total, unit="frame", desc="replay", disable=not progress) as bar,
+        ):
             results.write(run_header_line("replay", cfg, spec))
             while True:
                 try:

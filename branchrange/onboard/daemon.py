@@ -26,6 +26,7 @@ time can meet `max_result_age_s`, and what to change when it cannot. A status li
 drops, camera, link) every `log.status_interval_s`. `stop()` (the SIGTERM/SIGINT handler calls
 it) ends the loop within one stall timeout.
 """
+
 from __future__ import annotations
 
 import logging
@@ -40,9 +41,9 @@ from typing import IO, Any, Protocol
 from branchrange.core.config import Config
 from branchrange.core.frame_result import FrameResult, Latency
 from branchrange.core.frame_results import result_line, run_header_line, stereo_stage
+from branchrange.core.pair_check import check_rectification
 from branchrange.onboard.mavlink import MavlinkRelay
 from branchrange.onboard.newest_slot import NewestSlot
-from branchrange.core.pair_check import check_rectification
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 from stereo.backends.base import validate_pair
 
@@ -82,9 +83,17 @@ class _StereoOutput:
 class Daemon:
     """Runs the onboard loop; also the `LiveStatus` the API reads (`latest_result`, `health`)."""
 
-    def __init__(self, cfg: Config, *, open_source: Callable[[], StereoSource], pipeline: Any,
-                 relay: MavlinkRelay | None = None, results_path: str | Path | None = None,
-                 metrics: DaemonMetrics | None = None, observers: Sequence[ResultObserver] = ()):
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        open_source: Callable[[], StereoSource],
+        pipeline: Any,
+        relay: MavlinkRelay | None = None,
+        results_path: str | Path | None = None,
+        metrics: DaemonMetrics | None = None,
+        observers: Sequence[ResultObserver] = (),
+    ):
         self.cfg = cfg
         self._open_source = open_source
         self.pipeline = pipeline
@@ -127,13 +136,23 @@ class Daemon:
 
     def health(self) -> dict[str, Any]:
         """Model, camera and link state (for GET /health)."""
-        camera = {"source": self.cfg.camera.source, "lost": self.camera_lost, "frames": self.frames,
-                  "dropped": self.dropped, "skipped": self.skipped, "corrupt": self.corrupt,
-                  "reopens": self.reopens, "late": self.late}
-        model = {"loaded": True, "backend": self.cfg.stereo.backend, "max_disp": self.cfg.stereo.max_disp,
-                 "mode": self.cfg.stereo.mode}
-        return {"model": model, "camera": camera,
-                "mavlink": None if self.relay is None else self.relay.link_state()}
+        camera = {
+            "source": self.cfg.camera.source,
+            "lost": self.camera_lost,
+            "frames": self.frames,
+            "dropped": self.dropped,
+            "skipped": self.skipped,
+            "corrupt": self.corrupt,
+            "reopens": self.reopens,
+            "late": self.late,
+        }
+        model = {
+            "loaded": True,
+            "backend": self.cfg.stereo.backend,
+            "max_disp": self.cfg.stereo.max_disp,
+            "mode": self.cfg.stereo.mode,
+        }
+        return {"model": model, "camera": camera, "mavlink": None if self.relay is None else self.relay.link_state()}
 
     def stop(self) -> None:
         """Ask the loop to finish (safe from a signal handler or another thread)."""
@@ -200,9 +219,14 @@ class Daemon:
     def _publish(self, result: FrameResult, item: _StereoOutput) -> None:
         now = time.monotonic()
         age = now - item.captured_at
-        result = replace(result, latency=Latency(round(1000 * (item.stereo_started_at - item.captured_at), 3),
-                                                 round(1000 * (item.stereo_done_at - item.captured_at), 3),
-                                                 round(1000 * age, 3)))
+        result = replace(
+            result,
+            latency=Latency(
+                round(1000 * (item.stereo_started_at - item.captured_at), 3),
+                round(1000 * (item.stereo_done_at - item.captured_at), 3),
+                round(1000 * age, 3),
+            ),
+        )
         if self.relay is not None:
             self.relay.publish(result, captured_at=item.captured_at)
             result = replace(result, targets=self.relay.targets())  # fused in local NED, for the log and /latest
@@ -233,17 +257,32 @@ class Daemon:
         age, stereo, geometry = (statistics.median(column) for column in zip(*self._warmup))
         limit = self.cfg.mavlink.max_result_age_s
         if age <= limit:
-            log.info("speed: capture → publish %.0f ms (stereo %.0f ms, geometry %.0f ms) within "
-                     "mavlink.max_result_age_s = %.0f ms", 1000 * age, 1000 * stereo, 1000 * geometry, 1000 * limit)
+            log.info(
+                "speed: capture → publish %.0f ms (stereo %.0f ms, geometry %.0f ms) within "
+                "mavlink.max_result_age_s = %.0f ms",
+                1000 * age,
+                1000 * stereo,
+                1000 * geometry,
+                1000 * limit,
+            )
             return
         self._speed_warned = True
-        advice = ("set stereo.mode = 'roi'" if self.cfg.stereo.mode != "roi" else
-                  "lower stereo.max_disp to the working range, or roi.coarse_width")
+        advice = (
+            "set stereo.mode = 'roi'"
+            if self.cfg.stereo.mode != "roi"
+            else "lower stereo.max_disp to the working range, or roi.coarse_width"
+        )
         if self.cfg.stereo.backend != "sgbm":
             advice += ", or use stereo.backend = 'sgbm' on this computer"
-        log.warning("speed: capture → publish takes %.0f ms (stereo %.0f ms, geometry %.0f ms), more than "
-                    "mavlink.max_result_age_s = %.0f ms: every result goes out as 'no target'. To fix: %s",
-                    1000 * age, 1000 * stereo, 1000 * geometry, 1000 * limit, advice)
+        log.warning(
+            "speed: capture → publish takes %.0f ms (stereo %.0f ms, geometry %.0f ms), more than "
+            "mavlink.max_result_age_s = %.0f ms: every result goes out as 'no target'. To fix: %s",
+            1000 * age,
+            1000 * stereo,
+            1000 * geometry,
+            1000 * limit,
+            advice,
+        )
 
     def _check_age(self, age_s: float) -> None:
         """Count a result that was stale on publishing; after a warm-up that was fast enough, warn on the
@@ -253,9 +292,12 @@ class Daemon:
         self.late += 1
         if len(self._warmup) >= WARMUP_FRAMES and not self._speed_warned:
             self._speed_warned = True
-            log.warning("frame took %.0f ms, more than mavlink.max_result_age_s = %.0f ms: its result goes out as "
-                        "'no target' (the computer may be busy with something else)",
-                        1000 * age_s, 1000 * self.cfg.mavlink.max_result_age_s)
+            log.warning(
+                "frame took %.0f ms, more than mavlink.max_result_age_s = %.0f ms: its result goes out as "
+                "'no target' (the computer may be busy with something else)",
+                1000 * age_s,
+                1000 * self.cfg.mavlink.max_result_age_s,
+            )
 
     def _status(self, since: float, now: float, frames_then: int) -> None:
         with self._counts_lock:
@@ -265,9 +307,20 @@ class Daemon:
         state = None if self.relay is None else self.relay.link_state()
         link = "off" if state is None else ("up" if state["connected"] else "down")
         pose = "off" if state is None else state["mode"]  # world: fused in local NED; camera: no vehicle state
-        log.info("status frames=%d fps=%.1f latency_ms=%.0f dropped=%d skipped=%d corrupt=%d late=%d camera=%s link=%s "
-                 "pose=%s", self.frames, fps, latency, self.dropped, self.skipped, self.corrupt, self.late,
-                 "lost" if self.camera_lost else "ok", link, pose)
+        log.info(
+            "status frames=%d fps=%.1f latency_ms=%.0f dropped=%d skipped=%d corrupt=%d late=%d camera=%s link=%s "
+            "pose=%s",
+            self.frames,
+            fps,
+            latency,
+            self.dropped,
+            self.skipped,
+            self.corrupt,
+            self.late,
+            "lost" if self.camera_lost else "ok",
+            link,
+            pose,
+        )
 
     def _done(self, max_frames: int | None) -> bool:
         return self._stop.is_set() or (max_frames is not None and self.frames >= max_frames)

@@ -7,6 +7,7 @@ then the per-stage timing plot beside the raw result. The file uses Foxglove's l
 (`configById` + the mosaic `layout` tree), which `Layouts → Import from file…` reads.
 Regenerate after changing topics: `python -m branchrange.onboard.foxglove_layout deploy/foxglove_layout.json`.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,10 @@ PLOTTED_STAGES = ("rectify", "stereo", "masks", "cutpoints", "tracking", "total"
 
 def _image_panel(topic: str, title: str, *, with_scene: bool) -> dict[str, Any]:
     """An Image panel showing `topic`, calibrated by the camera info so 3D entities project onto it."""
-    config: dict[str, Any] = {"foxglovePanelTitle": title,
-                              "imageMode": {"imageTopic": topic, "calibrationTopic": TOPICS["camera_info"]}}
+    config: dict[str, Any] = {
+        "foxglovePanelTitle": title,
+        "imageMode": {"imageTopic": topic, "calibrationTopic": TOPICS["camera_info"]},
+    }
     if with_scene:
         config["topics"] = {TOPICS["cut_points"]: {"visible": True}, TOPICS["target"]: {"visible": True}}
     return config
@@ -38,30 +41,68 @@ def layout() -> dict[str, Any]:
             "foxglovePanelTitle": "Cut points (camera frame; local_ned with vehicle pose)",
             "followTf": CAMERA_FRAME,
             "followMode": "follow-pose",
-            "topics": {TOPICS["cut_points"]: {"visible": True},
-                       TOPICS["target"]: {"visible": True, "type": "axis", "axisScale": 0.2}},
-            "cameraState": {"perspective": True, "distance": 3.0, "phi": 60.0, "thetaOffset": 180.0,
-                            "target": [0, 0, 0], "targetOffset": [0, 0, 1.0], "targetOrientation": [0, 0, 0, 1],
-                            "fovy": 45, "near": 0.01, "far": 100},
+            "topics": {
+                TOPICS["cut_points"]: {"visible": True},
+                TOPICS["target"]: {"visible": True, "type": "axis", "axisScale": 0.2},
+            },
+            "cameraState": {
+                "perspective": True,
+                "distance": 3.0,
+                "phi": 60.0,
+                "thetaOffset": 180.0,
+                "target": [0, 0, 0],
+                "targetOffset": [0, 0, 1.0],
+                "targetOrientation": [0, 0, 0, 1],
+                "fovy": 45,
+                "near": 0.01,
+                "far": 100,
+            },
         },
         "Plot!timing": {
             "foxglovePanelTitle": "Per-stage timing (ms)",
-            "paths": [{"value": f"{TOPICS['timing']}.{stage}", "enabled": True, "timestampMethod": "receiveTime",
-                       "label": stage} for stage in PLOTTED_STAGES],
-            "showLegend": True, "legendDisplay": "floating", "xAxisVal": "timestamp", "isSynced": True,
+            "paths": [
+                {
+                    "value": f"{TOPICS['timing']}.{stage}",
+                    "enabled": True,
+                    "timestampMethod": "receiveTime",
+                    "label": stage,
+                }
+                for stage in PLOTTED_STAGES
+            ],
+            "showLegend": True,
+            "legendDisplay": "floating",
+            "xAxisVal": "timestamp",
+            "isSynced": True,
         },
-        "RawMessages!result": {"foxglovePanelTitle": "branchrange/v1 result", "topicPath": TOPICS["result"],
-                               "expansion": "all"},
+        "RawMessages!result": {
+            "foxglovePanelTitle": "branchrange/v1 result",
+            "topicPath": TOPICS["result"],
+            "expansion": "all",
+        },
     }
     mosaic = {
-        "direction": "row", "splitPercentage": 50,
+        "direction": "row",
+        "splitPercentage": 50,
         "first": {"direction": "column", "first": "Image!overlay", "second": "Image!disparity", "splitPercentage": 55},
-        "second": {"direction": "column", "first": "3D!cutpoints", "splitPercentage": 55,
-                   "second": {"direction": "row", "first": "Plot!timing", "second": "RawMessages!result",
-                              "splitPercentage": 55}},
+        "second": {
+            "direction": "column",
+            "first": "3D!cutpoints",
+            "splitPercentage": 55,
+            "second": {
+                "direction": "row",
+                "first": "Plot!timing",
+                "second": "RawMessages!result",
+                "splitPercentage": 55,
+            },
+        },
     }
-    return {"configById": config_by_id, "globalVariables": {}, "userNodes": {}, "playbackConfig": {"speed": 1},
-            "layout": mosaic}
+    return {
+        "configById": config_by_id,
+        "globalVariables": {},
+        "userNodes": {},
+        "playbackConfig": {"speed": 1},
+        "layout": mosaic,
+    }
 
 
 def layout_text() -> str:

@@ -13,7 +13,7 @@ Each call logs, at the frame's capture time (`frame.timestamp_ns`):
 | /branchrange/target | PoseInFrame | the target cut point, x axis along the branch (absent frames: no target) |
 | /branchrange/timing | JSON {stage: ms} | per-stage timing, one series per stage in a Plot panel |
 | /branchrange/result | JSON | the whole `branchrange/v1` result |
-| /branchrange/tf | FrameTransforms | body_frd → camera (the mount); local_ned → body_frd once the vehicle pose is known |
+| /branchrange/tf | FrameTransforms | body_frd → camera (the mount); local_ned → body_frd once the pose is known |
 
 3D entities are in the `camera` frame (rectified left camera, OpenCV axes, metres). The
 transforms on /branchrange/tf place that frame on the vehicle and, once `set_vehicle_pose` gives
@@ -21,6 +21,7 @@ the vehicle's attitude and position, in the local NED frame: Foxglove's 3D panel
 frame `local_ned` then shows the cut points where they are in the world. `deploy/foxglove_layout.json`
 (written by `branchrange.onboard.foxglove_layout`) arranges these topics in one view.
 """
+
 from __future__ import annotations
 
 import json
@@ -60,8 +61,11 @@ MIN_SPHERE_M = 0.03
 TARGET_RGBA = (1.0, 0.1, 0.1, 1.0)
 #: Branches: colour from low (orange) to high (green) confidence.
 LOW_RGBA, HIGH_RGBA = (1.0, 0.6, 0.0, 0.9), (0.1, 0.9, 0.2, 0.9)
-TIMING_SCHEMA = {"type": "object", "title": "branchrange timing (ms per stage)",
-                 "additionalProperties": {"type": "number"}}
+TIMING_SCHEMA = {
+    "type": "object",
+    "title": "branchrange timing (ms per stage)",
+    "additionalProperties": {"type": "number"},
+}
 
 
 class FoxgloveTargetError(ValueError):
@@ -89,14 +93,16 @@ def parse_targets(values: Sequence[str]) -> FoxgloveTargets:
             except ValueError:
                 parsed_port = None
             if parsed_port is None or parts.path not in ("", "/"):
-                raise FoxgloveTargetError(f"--foxglove {value!r}: expected ws://HOST:PORT (e.g. ws://127.0.0.1:8765; "
-                                          "port 0 picks a free one)")
+                raise FoxgloveTargetError(
+                    f"--foxglove {value!r}: expected ws://HOST:PORT (e.g. ws://127.0.0.1:8765; port 0 picks a free one)"
+                )
             host, port = parts.hostname or host, parsed_port
         elif value.endswith(".mcap"):
             mcap = Path(value)
         else:
-            raise FoxgloveTargetError(f"--foxglove {value!r}: expected an MCAP file (NAME.mcap) or a WebSocket "
-                                      "address ws://HOST:PORT")
+            raise FoxgloveTargetError(
+                f"--foxglove {value!r}: expected an MCAP file (NAME.mcap) or a WebSocket address ws://HOST:PORT"
+            )
     return FoxgloveTargets(mcap, host, port)
 
 
@@ -131,8 +137,14 @@ class FoxgloveSink:
     stops the server.
     """
 
-    def __init__(self, targets: FoxgloveTargets, *, mount: Any = None, newest_only: bool = False,
-                 server_name: str = "branchrange") -> None:
+    def __init__(
+        self,
+        targets: FoxgloveTargets,
+        *,
+        mount: Any = None,
+        newest_only: bool = False,
+        server_name: str = "branchrange",
+    ) -> None:
         import foxglove
         from foxglove import channels
 
@@ -163,17 +175,21 @@ class FoxgloveSink:
                 self._writer = foxglove.open_mcap(targets.mcap, allow_overwrite=True, context=ctx)
         except Exception as error:  # OSError, or the SDK's own error
             self.close()
-            raise FoxgloveTargetError(f"--foxglove {targets.mcap}: cannot write the MCAP file ({error}); expected "
-                                      "a .mcap path in a writable folder") from error
+            raise FoxgloveTargetError(
+                f"--foxglove {targets.mcap}: cannot write the MCAP file ({error}); expected "
+                "a .mcap path in a writable folder"
+            ) from error
         try:
             if targets.port is not None:
-                self._server = foxglove.start_server(name=server_name, host=targets.host, port=targets.port,
-                                                     context=ctx)
+                self._server = foxglove.start_server(
+                    name=server_name, host=targets.host, port=targets.port, context=ctx
+                )
         except Exception as error:  # the SDK's own error (address in use, unknown host)
             self.close()
-            raise FoxgloveTargetError(f"--foxglove ws://{targets.host}:{targets.port}: cannot serve ({error}); "
-                                      "expected a free port on an address of this machine (0 picks a free port)") \
-                from error
+            raise FoxgloveTargetError(
+                f"--foxglove ws://{targets.host}:{targets.port}: cannot serve ({error}); "
+                "expected a free port on an address of this machine (0 picks a free port)"
+            ) from error
         if self._slot is not None:
             self._worker = threading.Thread(target=self._drain, name="foxglove", daemon=True)
             self._worker.start()
@@ -237,17 +253,35 @@ class FoxgloveSink:
         f = camera.focal_px
         cx = (frame.width - 1) / 2 if camera.cx is None else camera.cx
         cy = (frame.height - 1) / 2 if camera.cy is None else camera.cy
-        self._camera_info.log(fg.CameraCalibration(
-            timestamp=stamp, frame_id=CAMERA_FRAME, width=frame.width, height=frame.height,
-            distortion_model="plumb_bob", D=[0.0] * 5, K=[f, 0, cx, 0, f, cy, 0, 0, 1], R=[1, 0, 0, 0, 1, 0, 0, 0, 1],
-            P=[f, 0, cx, 0, 0, f, cy, 0, 0, 0, 1, 0]), log_time=stamp_ns)
+        self._camera_info.log(
+            fg.CameraCalibration(
+                timestamp=stamp,
+                frame_id=CAMERA_FRAME,
+                width=frame.width,
+                height=frame.height,
+                distortion_model="plumb_bob",
+                D=[0.0] * 5,
+                K=[f, 0, cx, 0, f, cy, 0, 0, 1],
+                R=[1, 0, 0, 0, 1, 0, 0, 0, 1],
+                P=[f, 0, cx, 0, 0, f, cy, 0, 0, 0, 1, 0],
+            ),
+            log_time=stamp_ns,
+        )
         self._cut_points.log(self._scene(result, stamp), log_time=stamp_ns)
         target = result.target
         if target is not None:
             x, y, z, w = _quaternion_x_to(target.axis)
-            self._target.log(fg.PoseInFrame(timestamp=stamp, frame_id=CAMERA_FRAME, pose=fg.Pose(
-                position=fg.Vector3(x=target.cut_point_m[0], y=target.cut_point_m[1], z=target.cut_point_m[2]),
-                orientation=fg.Quaternion(x=x, y=y, z=z, w=w))), log_time=stamp_ns)
+            self._target.log(
+                fg.PoseInFrame(
+                    timestamp=stamp,
+                    frame_id=CAMERA_FRAME,
+                    pose=fg.Pose(
+                        position=fg.Vector3(x=target.cut_point_m[0], y=target.cut_point_m[1], z=target.cut_point_m[2]),
+                        orientation=fg.Quaternion(x=x, y=y, z=z, w=w),
+                    ),
+                ),
+                log_time=stamp_ns,
+            )
         transforms = self._transforms(stamp)
         if transforms:
             self._tf.log(fg.FrameTransforms(transforms=transforms), log_time=stamp_ns)
@@ -263,8 +297,10 @@ class FoxgloveSink:
         overlay = draw_overlay(artifacts.left, result, artifacts.masks)
         disparity = colorize_disparity(artifacts.disparity, max_disp=result.stereo.max_disparity)
         for channel, image in ((self._overlay, overlay), (self._disparity, disparity)):
-            channel.log(fg.CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=_jpeg(image), format="jpeg"),
-                        log_time=stamp_ns)
+            channel.log(
+                fg.CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=_jpeg(image), format="jpeg"),
+                log_time=stamp_ns,
+            )
 
     def _scene(self, result: FrameResult, stamp: Any) -> Any:
         """All branches of the frame as scene entities, after deleting the previous frame's."""
@@ -277,29 +313,55 @@ class FoxgloveSink:
             colour = fg.Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
             cut, base, axis = (np.asarray(v, dtype=float) for v in (branch.cut_point_m, branch.base_m, branch.axis))
             size = max(branch.diameter_m * 1.5, MIN_SPHERE_M)
-            label = (f"{'TARGET ' if is_target else ''}#{branch.id}  {branch.distance_m:.2f} m  "
-                     f"conf {c:.2f}  Ø {branch.diameter_m * 100:.1f} cm")
+            label = (
+                f"{'TARGET ' if is_target else ''}#{branch.id}  {branch.distance_m:.2f} m  "
+                f"conf {c:.2f}  Ø {branch.diameter_m * 100:.1f} cm"
+            )
             tip = base + axis * max(AXIS_LENGTH_M, float(np.linalg.norm(cut - base)) * 2)
 
             def point(p: np.ndarray) -> Any:
                 return fg.Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
 
             def at(p: np.ndarray) -> Any:
-                return fg.Pose(position=fg.Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                               orientation=fg.Quaternion(w=1.0))
+                return fg.Pose(
+                    position=fg.Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])), orientation=fg.Quaternion(w=1.0)
+                )
 
-            entities.append(fg.SceneEntity(
-                timestamp=stamp, frame_id=CAMERA_FRAME, id=f"branch-{branch.id}",
-                metadata=[fg.KeyValuePair(key="distance_m", value=f"{branch.distance_m:.4f}"),
-                          fg.KeyValuePair(key="confidence", value=f"{c:.3f}"),
-                          fg.KeyValuePair(key="target", value=str(is_target).lower())],
-                spheres=[fg.SpherePrimitive(pose=at(cut), size=fg.Vector3(x=size, y=size, z=size), color=colour)],
-                lines=[fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineStrip, thickness=3.0, scale_invariant=True,
-                                        points=[point(base), point(tip)], color=colour)],
-                texts=[fg.TextPrimitive(pose=at(cut + np.array([0.0, -size, 0.0])), billboard=True, font_size=14.0,
-                                        scale_invariant=True, color=colour, text=label)]))
-        return fg.SceneUpdate(deletions=[fg.SceneEntityDeletion(timestamp=stamp, type=fg.SceneEntityDeletionType.All)],
-                              entities=entities)
+            entities.append(
+                fg.SceneEntity(
+                    timestamp=stamp,
+                    frame_id=CAMERA_FRAME,
+                    id=f"branch-{branch.id}",
+                    metadata=[
+                        fg.KeyValuePair(key="distance_m", value=f"{branch.distance_m:.4f}"),
+                        fg.KeyValuePair(key="confidence", value=f"{c:.3f}"),
+                        fg.KeyValuePair(key="target", value=str(is_target).lower()),
+                    ],
+                    spheres=[fg.SpherePrimitive(pose=at(cut), size=fg.Vector3(x=size, y=size, z=size), color=colour)],
+                    lines=[
+                        fg.LinePrimitive(
+                            type=fg.LinePrimitiveLineType.LineStrip,
+                            thickness=3.0,
+                            scale_invariant=True,
+                            points=[point(base), point(tip)],
+                            color=colour,
+                        )
+                    ],
+                    texts=[
+                        fg.TextPrimitive(
+                            pose=at(cut + np.array([0.0, -size, 0.0])),
+                            billboard=True,
+                            font_size=14.0,
+                            scale_invariant=True,
+                            color=colour,
+                            text=label,
+                        )
+                    ],
+                )
+            )
+        return fg.SceneUpdate(
+            deletions=[fg.SceneEntityDeletion(timestamp=stamp, type=fg.SceneEntityDeletionType.All)], entities=entities
+        )
 
     def _transforms(self, stamp: Any) -> list[Any]:
         """body_frd → camera (the mount) and local_ned → body_frd (the vehicle pose), those that are known."""
@@ -310,17 +372,27 @@ class FoxgloveSink:
         if self.mount is not None:
             w, x, y, z = quaternion_wxyz(self.mount.camera_to_body)
             t = self.mount.translation_m
-            transforms.append(fg.FrameTransform(
-                timestamp=stamp, parent_frame_id=BODY_FRAME, child_frame_id=CAMERA_FRAME,
-                translation=fg.Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                rotation=fg.Quaternion(x=x, y=y, z=z, w=w)))
+            transforms.append(
+                fg.FrameTransform(
+                    timestamp=stamp,
+                    parent_frame_id=BODY_FRAME,
+                    child_frame_id=CAMERA_FRAME,
+                    translation=fg.Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                    rotation=fg.Quaternion(x=x, y=y, z=z, w=w),
+                )
+            )
         if self._vehicle is not None:
             position, (w, x, y, z) = self._vehicle
             norm = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
-            transforms.append(fg.FrameTransform(
-                timestamp=stamp, parent_frame_id=LOCAL_FRAME, child_frame_id=BODY_FRAME,
-                translation=fg.Vector3(x=float(position[0]), y=float(position[1]), z=float(position[2])),
-                rotation=fg.Quaternion(x=x / norm, y=y / norm, z=z / norm, w=w / norm)))
+            transforms.append(
+                fg.FrameTransform(
+                    timestamp=stamp,
+                    parent_frame_id=LOCAL_FRAME,
+                    child_frame_id=BODY_FRAME,
+                    translation=fg.Vector3(x=float(position[0]), y=float(position[1]), z=float(position[2])),
+                    rotation=fg.Quaternion(x=x / norm, y=y / norm, z=z / norm, w=w / norm),
+                )
+            )
         return transforms
 
     def close(self) -> None:

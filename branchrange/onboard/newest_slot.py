@@ -1,5 +1,6 @@
 """A one-item mailbox between two threads where the newest item wins: the daemon's stereo → geometry
 hand-over and the Foxglove sink's frames. A slow taker never works through a queue of stale items."""
+
 from __future__ import annotations
 
 import threading

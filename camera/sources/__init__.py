@@ -4,6 +4,7 @@ Every source is an iterator of `StereoFrame` with `close()`, `calibration` and `
 camera.sources.frame). `OakSource`/`OakConfig` import depthai on first use only, `RosbagSource`/`BagTopics`
 (ROS 2 bags) import rosbags on first use only.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -28,10 +29,29 @@ from camera.sources.spec import open_source
 from camera.sources.zed_uvc import ZED_MODES, ZedUvcSource
 
 __all__ = [
-    "Backoff", "BagTopics", "CorruptFrameError", "FaultInjectingSource", "FaultPlan", "LatestFrameSource", "OakConfig",
-    "OakSource", "Recorder", "RecordingFormatError", "ReplaySource", "RosbagSource", "SourceBase", "SourceConfigError",
-    "SourceDisconnected", "SourceError", "SourceUnavailable", "StereoFrame", "StereoSource", "ZED_MODES",
-    "ZedUvcSource", "open_source", "record",
+    "Backoff",
+    "BagTopics",
+    "CorruptFrameError",
+    "FaultInjectingSource",
+    "FaultPlan",
+    "LatestFrameSource",
+    "OakConfig",
+    "OakSource",
+    "Recorder",
+    "RecordingFormatError",
+    "ReplaySource",
+    "RosbagSource",
+    "SourceBase",
+    "SourceConfigError",
+    "SourceDisconnected",
+    "SourceError",
+    "SourceUnavailable",
+    "StereoFrame",
+    "StereoSource",
+    "ZED_MODES",
+    "ZedUvcSource",
+    "open_source",
+    "record",
 ]
 
 

@@ -22,6 +22,7 @@ does not reconnect by itself. A corrupt frame raises CorruptFrameError once; the
 `next()` goes on with the next frame. `injected` lists what fired, as (position, kind) pairs.
 `sleep`/`clock` can be replaced in tests; by default waits end early when `close()` is called.
 """
+
 from __future__ import annotations
 
 import threading
@@ -56,8 +57,14 @@ class FaultPlan:
 class FaultInjectingSource(SourceBase):
     """A source that passes the wrapped source's frames through, injecting the faults of a FaultPlan."""
 
-    def __init__(self, source: StereoSource, plan: FaultPlan, *, sleep: Callable[[float], Any] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        source: StereoSource,
+        plan: FaultPlan,
+        *,
+        sleep: Callable[[float], Any] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.source = source
         self.plan = plan
         self.calibration = source.calibration
@@ -77,9 +84,12 @@ class FaultInjectingSource(SourceBase):
     def _fire(self, kind: str) -> bool:
         """True the first time fault `kind` is due at the current position."""
         key = (self._position, kind)
-        due = {"drop": self._position in self.plan.drop, "stall": self._position in self.plan.stall,
-               "disconnect": self._position in self.plan.disconnect,
-               "corrupt": self._position in self.plan.corrupt}[kind]
+        due = {
+            "drop": self._position in self.plan.drop,
+            "stall": self._position in self.plan.stall,
+            "disconnect": self._position in self.plan.disconnect,
+            "corrupt": self._position in self.plan.corrupt,
+        }[kind]
         if not due or key in self._fired:
             return False
         self._fired.add(key)

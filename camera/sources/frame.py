@@ -6,6 +6,7 @@ keeps trying to reconnect (while `is_lost` is True; `next()` blocks meanwhile) o
 `SourceDisconnected`; a frame that cannot be decoded raises `CorruptFrameError` for that frame
 only, and the next `next()` call moves on. Sources are context managers; `close()` is idempotent.
 """
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -106,8 +107,10 @@ class Backoff:
 
     def __init__(self, initial_s: float = 0.1, factor: float = 2.0, max_s: float = 5.0) -> None:
         if initial_s <= 0 or factor < 1 or max_s < initial_s:
-            raise SourceConfigError(f"backoff needs 0 < initial_s ≤ max_s and factor ≥ 1, got "
-                                    f"initial_s={initial_s}, factor={factor}, max_s={max_s}")
+            raise SourceConfigError(
+                f"backoff needs 0 < initial_s ≤ max_s and factor ≥ 1, got "
+                f"initial_s={initial_s}, factor={factor}, max_s={max_s}"
+            )
         self.initial_s, self.factor, self.max_s = initial_s, factor, max_s
         self._next = initial_s
 

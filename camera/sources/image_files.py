@@ -1,4 +1,5 @@
 """RGB image files through OpenCV (which speaks BGR): the only place the sources convert colour order."""
+
 from __future__ import annotations
 
 from pathlib import Path

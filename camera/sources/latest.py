@@ -1,4 +1,5 @@
 """Latest-frame-wins: a capture thread drains a live source so a slow consumer never gets stale frames."""
+
 from __future__ import annotations
 
 import threading
@@ -78,8 +79,9 @@ class LatestFrameSource(SourceBase):
         the age of a result is measured from it.
         """
         with self._condition:
-            ready = self._condition.wait_for(lambda: self._latest is not None or self._errors or self._finished,
-                                             timeout)
+            ready = self._condition.wait_for(
+                lambda: self._latest is not None or self._errors or self._finished, timeout
+            )
             if not ready:
                 return None
             if self._errors:

@@ -14,6 +14,7 @@ cannot create without a device. The device half is split so that what can be che
 is run against a recording stand-in pipeline and against depthai's own signatures; building real
 Camera nodes, `readCalibration()` and frames from real sensors have not run.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -66,8 +67,9 @@ class OakConfig:
         if len(self.size) != 2 or min(self.size) <= 0:
             raise SourceConfigError(f"OakConfig.size is {self.size}; expected a positive (width, height)")
         if self.fps <= 0 or self.sync_threshold_ms <= 0 or self.frame_timeout_s <= 0 or self.queue_size < 1:
-            raise SourceConfigError(f"OakConfig needs positive fps, sync_threshold_ms, frame_timeout_s and "
-                                    f"queue_size ≥ 1; got {self}")
+            raise SourceConfigError(
+                f"OakConfig needs positive fps, sync_threshold_ms, frame_timeout_s and queue_size ≥ 1; got {self}"
+            )
 
 
 @dataclass
@@ -98,9 +100,16 @@ def camera_requests(config: OakConfig) -> tuple[CameraRequest, CameraRequest]:
     the calibration scaling of camera.depthai_json assumes (see `check_output_aspect`).
     """
     frame_type = dai.ImgFrame.Type.RGB888i if config.color else dai.ImgFrame.Type.GRAY8
-    left, right = (CameraRequest(dai.CameraBoardSocket(socket_number(socket)), (int(config.size[0]), int(config.size[1])),
-                                 frame_type, dai.ImgResizeMode.CROP, float(config.fps))
-                   for socket in (config.left_socket, config.right_socket))
+    left, right = (
+        CameraRequest(
+            dai.CameraBoardSocket(socket_number(socket)),
+            (int(config.size[0]), int(config.size[1])),
+            frame_type,
+            dai.ImgResizeMode.CROP,
+            float(config.fps),
+        )
+        for socket in (config.left_socket, config.right_socket)
+    )
     return left, right
 
 
@@ -114,8 +123,15 @@ def add_stereo_cameras(pipeline: dai.Pipeline, config: OakConfig) -> tuple[Any, 
         camera = pipeline.create(dai.node.Camera).build(request.socket)
         # enableUndistortion=False: the host Rectifier undistorts with the EEPROM's coefficients; frames
         # undistorted on the device as well would be corrected twice.
-        outputs.append(camera.requestOutput(request.size, request.frame_type, resizeMode=request.resize_mode,
-                                            fps=request.fps, enableUndistortion=False))
+        outputs.append(
+            camera.requestOutput(
+                request.size,
+                request.frame_type,
+                resizeMode=request.resize_mode,
+                fps=request.fps,
+                enableUndistortion=False,
+            )
+        )
     return outputs[0], outputs[1]
 
 
@@ -133,7 +149,8 @@ def check_output_aspect(calibrated_size: tuple[int, int], config: OakConfig) -> 
         raise SourceConfigError(
             f"OakConfig.size is {width}×{height}, narrower than the {calib_width}×{calib_height} the sensor on "
             f"{config.left_socket} was calibrated at; expected an aspect ratio ≥ {calib_width / calib_height:.3f} "
-            f"(e.g. {width}×{int(width * calib_height / calib_width)})")
+            f"(e.g. {width}×{int(width * calib_height / calib_width)})"
+        )
 
 
 def add_pair_sync(pipeline: dai.Pipeline, left: Any, right: Any, config: OakConfig) -> Any:
@@ -155,8 +172,9 @@ def open_oak_device(config: OakConfig) -> OakSession:
     eeprom = pipeline.getDefaultDevice().readCalibration().eepromToJson()
     check_output_aspect(calibrated_size(eeprom, config.left_socket, "OAK device EEPROM"), config)
     left, right = add_stereo_cameras(pipeline, config)
-    calibration = calibration_from_depthai_dict(eeprom, "OAK device EEPROM", config.left_socket,
-                                                config.right_socket, (int(config.size[0]), int(config.size[1])))
+    calibration = calibration_from_depthai_dict(
+        eeprom, "OAK device EEPROM", config.left_socket, config.right_socket, (int(config.size[0]), int(config.size[1]))
+    )
     return OakSession(pipeline, left, right, calibration)
 
 
@@ -187,9 +205,16 @@ class OakSource(SourceBase):
     `open_session` builds the pipeline (default: the first OAK device); tests give a host pipeline.
     """
 
-    def __init__(self, config: OakConfig | None = None, *, calibration: StereoCalibration | None = None,
-                 open_session: Callable[[OakConfig], OakSession] = open_oak_device, reconnect: bool = True,
-                 backoff: Backoff | None = None, sleep: Callable[[float], Any] | None = None) -> None:
+    def __init__(
+        self,
+        config: OakConfig | None = None,
+        *,
+        calibration: StereoCalibration | None = None,
+        open_session: Callable[[OakConfig], OakSession] = open_oak_device,
+        reconnect: bool = True,
+        backoff: Backoff | None = None,
+        sleep: Callable[[float], Any] | None = None,
+    ) -> None:
         self.config = config or OakConfig()
         self.reconnect = reconnect
         self.backoff = backoff or Backoff()
@@ -251,8 +276,10 @@ class OakSource(SourceBase):
                 self._stop_pipeline()
                 self._lost = True
                 if not self.reconnect:
-                    raise SourceDisconnected(f"OAK sockets {self.config.left_socket}/{self.config.right_socket}: no "
-                                             f"frame pair for {self.config.frame_timeout_s} s")
+                    raise SourceDisconnected(
+                        f"OAK sockets {self.config.left_socket}/{self.config.right_socket}: no "
+                        f"frame pair for {self.config.frame_timeout_s} s"
+                    )
                 continue
             self._lost = False
             self.backoff.reset()

@@ -1,4 +1,5 @@
 """Recording stereo frames in the replay format (see camera.sources.recording_format)."""
+
 from __future__ import annotations
 
 import csv
@@ -31,8 +32,15 @@ class Recorder:
     as a context manager, or call `close()` to finish the manifest.
     """
 
-    def __init__(self, out_dir: str | Path, *, calibration: StereoCalibration | None = None, source_spec: str = "",
-                 image_format: str = "png", overwrite: bool = False) -> None:
+    def __init__(
+        self,
+        out_dir: str | Path,
+        *,
+        calibration: StereoCalibration | None = None,
+        source_spec: str = "",
+        image_format: str = "png",
+        overwrite: bool = False,
+    ) -> None:
         if image_format not in IMAGE_FORMATS:
             raise ValueError(f"image_format is {image_format!r}; expected one of {', '.join(IMAGE_FORMATS)}")
         self.directory = Path(out_dir)
@@ -65,17 +73,25 @@ class Recorder:
             if frame.mask is not None:
                 (self.directory / "mask").mkdir(exist_ok=True)
         elif frame.size != self._size:
-            raise ValueError(f"frame {frame.index} is {frame.size[0]}×{frame.size[1]}; the recording is "
-                             f"{self._size[0]}×{self._size[1]}")
+            raise ValueError(
+                f"frame {frame.index} is {frame.size[0]}×{frame.size[1]}; the recording is "
+                f"{self._size[0]}×{self._size[1]}"
+            )
         if self._last_ts is not None and frame.timestamp_ns <= self._last_ts:
-            raise ValueError(f"frame {frame.index} timestamp {frame.timestamp_ns} ns does not follow "
-                             f"{self._last_ts} ns; expected increasing capture times")
+            raise ValueError(
+                f"frame {frame.index} timestamp {frame.timestamp_ns} ns does not follow "
+                f"{self._last_ts} ns; expected increasing capture times"
+            )
         if (frame.mask is not None) != self._manifest["masks"]:
-            raise ValueError(f"frame {frame.index} {'has' if frame.mask is not None else 'lacks'} a mask; "
-                             f"the recording {'has' if self._manifest['masks'] else 'has no'} masks from its first frame")
+            raise ValueError(
+                f"frame {frame.index} {'has' if frame.mask is not None else 'lacks'} a mask; "
+                f"the recording {'has' if self._manifest['masks'] else 'has no'} masks from its first frame"
+            )
         if frame.mask is not None and frame.mask.shape != (self._size[1], self._size[0]):
-            raise ValueError(f"frame {frame.index} mask has shape {frame.mask.shape}; expected "
-                             f"{self._size[1]}×{self._size[0]} like its images")
+            raise ValueError(
+                f"frame {frame.index} mask has shape {frame.mask.shape}; expected "
+                f"{self._size[1]}×{self._size[0]} like its images"
+            )
         name = f"{self.frames:06d}.{self.image_format}"
         write_rgb(self.directory / "left" / name, frame.left)
         write_rgb(self.directory / "right" / name, frame.right)
@@ -94,9 +110,19 @@ class Recorder:
         width, height = self._size or (None, None)
         duration_s = ((self._last_ts or 0) - (self._first_ts or 0)) / 1e9
         fps = (self.frames - 1) / duration_s if self.frames > 1 and duration_s > 0 else None
-        write_manifest(self.directory, {**self._manifest, "frames": self.frames, "width": width, "height": height,
-                                        "first_timestamp_ns": self._first_ts, "last_timestamp_ns": self._last_ts,
-                                        "fps": fps, "complete": complete})
+        write_manifest(
+            self.directory,
+            {
+                **self._manifest,
+                "frames": self.frames,
+                "width": width,
+                "height": height,
+                "first_timestamp_ns": self._first_ts,
+                "last_timestamp_ns": self._last_ts,
+                "fps": fps,
+                "complete": complete,
+            },
+        )
 
     def close(self) -> Path:
         """Finish the recording (final manifest) and return the path of the manifest."""
@@ -113,9 +139,13 @@ class Recorder:
         self.close()
 
 
-def record(frames: Iterable[StereoFrame], recorder: Recorder, limit: int | None = None,
-           on_frame: Callable[[StereoFrame], None] | None = None,
-           on_corrupt: Callable[[CorruptFrameError], None] | None = None) -> int:
+def record(
+    frames: Iterable[StereoFrame],
+    recorder: Recorder,
+    limit: int | None = None,
+    on_frame: Callable[[StereoFrame], None] | None = None,
+    on_corrupt: Callable[[CorruptFrameError], None] | None = None,
+) -> int:
     """Write frames from `frames` (a source) into `recorder` until it ends or `limit` pairs are written.
 
     `on_frame` is called after each pair is written (a progress bar). A frame the source cannot

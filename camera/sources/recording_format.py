@@ -16,6 +16,7 @@ The manifest is written when recording starts (`complete: false`), again after t
 (size, masks) and on close, and timestamps.csv is appended frame by frame, so an interrupted
 recording still replays, with its masks.
 """
+
 from __future__ import annotations
 
 import csv
@@ -59,13 +60,16 @@ def read_manifest(directory: Path) -> dict[str, Any]:
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise RecordingFormatError(f"{path}: missing; expected the manifest of a recording made by "
-                                   "`branchrange record`") from None
+        raise RecordingFormatError(
+            f"{path}: missing; expected the manifest of a recording made by `branchrange record`"
+        ) from None
     except json.JSONDecodeError as error:
         raise RecordingFormatError(f"{path}: not valid JSON ({error.msg} at line {error.lineno})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
-        raise RecordingFormatError(f"{path}: format is {manifest.get('format') if isinstance(manifest, dict) else manifest!r}; "
-                                   f"expected {FORMAT_NAME!r}")
+        raise RecordingFormatError(
+            f"{path}: format is {manifest.get('format') if isinstance(manifest, dict) else manifest!r}; "
+            f"expected {FORMAT_NAME!r}"
+        )
     if manifest.get("version") != FORMAT_VERSION:
         raise RecordingFormatError(f"{path}: version is {manifest.get('version')!r}; expected {FORMAT_VERSION}")
     return manifest
@@ -75,8 +79,9 @@ def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
     """Write the manifest atomically (a partial file never replaces a good one)."""
     path = directory / MANIFEST_NAME
     temporary = path.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps({"format": FORMAT_NAME, "version": FORMAT_VERSION, **manifest}, indent=2) + "\n",
-                         encoding="utf-8")
+    temporary.write_text(
+        json.dumps({"format": FORMAT_NAME, "version": FORMAT_VERSION, **manifest}, indent=2) + "\n", encoding="utf-8"
+    )
     temporary.replace(path)
 
 
@@ -86,7 +91,9 @@ def read_timestamps(directory: Path) -> list[TimestampRow]:
     try:
         handle = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
-        raise RecordingFormatError(f"{path}: missing; expected a CSV with columns {','.join(TIMESTAMP_COLUMNS)}") from None
+        raise RecordingFormatError(
+            f"{path}: missing; expected a CSV with columns {','.join(TIMESTAMP_COLUMNS)}"
+        ) from None
     rows: list[TimestampRow] = []
     with handle:
         reader = csv.reader(handle)
@@ -99,11 +106,15 @@ def read_timestamps(directory: Path) -> list[TimestampRow]:
             try:
                 row = TimestampRow(int(fields[0]), int(fields[1]), fields[2], fields[3])
             except (ValueError, IndexError):
-                raise RecordingFormatError(f"{path}: line {line_number} reads {fields}; expected "
-                                           "integer index, integer timestamp_ns, left path, right path") from None
+                raise RecordingFormatError(
+                    f"{path}: line {line_number} reads {fields}; expected "
+                    "integer index, integer timestamp_ns, left path, right path"
+                ) from None
             if rows and row.timestamp_ns <= rows[-1].timestamp_ns:
-                raise RecordingFormatError(f"{path}: line {line_number}: timestamp_ns {row.timestamp_ns} does not "
-                                           f"increase (previous {rows[-1].timestamp_ns}); expected monotonic times")
+                raise RecordingFormatError(
+                    f"{path}: line {line_number}: timestamp_ns {row.timestamp_ns} does not "
+                    f"increase (previous {rows[-1].timestamp_ns}); expected monotonic times"
+                )
             rows.append(row)
     if not rows:
         raise RecordingFormatError(f"{path}: has no frames; expected at least one row")

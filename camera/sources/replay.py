@@ -7,6 +7,7 @@ timestamps, so frame i is stamped i / fps (default `PAIR_FOLDER_FPS`).
 
 This is also the file-based camera the tests and the daemon's tests use in place of hardware.
 """
+
 from __future__ import annotations
 
 import re
@@ -121,8 +122,10 @@ def _natural_key(name: str) -> list[int | str]:
 
 
 def _images_in(folder: Path) -> list[Path]:
-    return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
-                  key=lambda p: _natural_key(p.name))
+    return sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
+        key=lambda p: _natural_key(p.name),
+    )
 
 
 class _PairFolderFrames:
@@ -137,11 +140,14 @@ class _PairFolderFrames:
         if not self.lefts or len(self.lefts) != len(self.rights):
             raise RecordingFormatError(
                 f"{directory}: left/ holds {len(self.lefts)} images and right/ {len(self.rights)}; expected the same "
-                f"number (at least one) of {'/'.join(IMAGE_SUFFIXES)} files, paired in name order")
+                f"number (at least one) of {'/'.join(IMAGE_SUFFIXES)} files, paired in name order"
+            )
         self.masks = _images_in(directory / "mask") if (directory / "mask").is_dir() else []
         if self.masks and len(self.masks) != len(self.lefts):
-            raise RecordingFormatError(f"{directory}: mask/ holds {len(self.masks)} images for {len(self.lefts)} pairs; "
-                                       "expected one mask per pair (or no mask/ folder)")
+            raise RecordingFormatError(
+                f"{directory}: mask/ holds {len(self.masks)} images for {len(self.lefts)} pairs; "
+                "expected one mask per pair (or no mask/ folder)"
+            )
         self.period_ns = int(round(1e9 / rate))
         self.count = len(self.lefts)
         self._position = 0
@@ -162,8 +168,9 @@ class _PairFolderFrames:
         position = self._position
         self._position += 1
         mask = read_mask(self.masks[position]) if self.masks else None
-        return StereoFrame(read_rgb(self.lefts[position]), read_rgb(self.rights[position]),
-                           position * self.period_ns, position, mask)
+        return StereoFrame(
+            read_rgb(self.lefts[position]), read_rgb(self.rights[position]), position * self.period_ns, position, mask
+        )
 
     def calibration(self) -> StereoCalibration | None:
         """`DIR/calibration.yaml` when present, else None (pass one to ReplaySource or `--calibration`)."""
@@ -180,8 +187,10 @@ def _directory_frames(directory: Path, fps: float | None) -> _DirectoryFrames | 
         return _DirectoryFrames(directory)  # a damaged recording is reported as one, never read as plain pairs
     if (directory / "left").is_dir() and (directory / "right").is_dir():
         return _PairFolderFrames(directory, fps)
-    raise RecordingFormatError(f"{directory}: neither a recording ({MANIFEST_NAME} missing) nor a folder of pairs "
-                               "(left/ and right/ image folders); expected one of the two")
+    raise RecordingFormatError(
+        f"{directory}: neither a recording ({MANIFEST_NAME} missing) nor a folder of pairs "
+        "(left/ and right/ image folders); expected one of the two"
+    )
 
 
 class _VideoFrames:
@@ -204,16 +213,20 @@ class _VideoFrames:
             self._capture.release()
         capture = self._capture = cv2.VideoCapture(str(self.path))
         if not capture.isOpened():
-            raise SourceUnavailable(f"{self.path}: OpenCV cannot open this video; expected a side-by-side "
-                                    "stereo video (e.g. .avi/.mkv/.mp4) readable by OpenCV's FFmpeg backend")
+            raise SourceUnavailable(
+                f"{self.path}: OpenCV cannot open this video; expected a side-by-side "
+                "stereo video (e.g. .avi/.mkv/.mp4) readable by OpenCV's FFmpeg backend"
+            )
         self._position = 0
         return capture
 
     def frame_size(self) -> tuple[int, int]:
         """(width, height) of one view: half the video's width, its full height."""
         assert self._capture is not None
-        return (int(self._capture.get(cv2.CAP_PROP_FRAME_WIDTH)) // 2,
-                int(self._capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        return (
+            int(self._capture.get(cv2.CAP_PROP_FRAME_WIDTH)) // 2,
+            int(self._capture.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+        )
 
     def seek(self, position: int) -> None:
         """Reopen and read forward to `position` (exact, unlike codec-dependent seeking)."""
@@ -262,9 +275,17 @@ class ReplaySource(SourceBase):
     raises CorruptFrameError; the next call goes on.
     """
 
-    def __init__(self, path: str | Path, *, pace: str = "recorded", loop: bool = False, start: int = 0,
-                 calibration: StereoCalibration | None = None, fps: float | None = None,
-                 clock: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        pace: str = "recorded",
+        loop: bool = False,
+        start: int = 0,
+        calibration: StereoCalibration | None = None,
+        fps: float | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         if pace not in PACES:
             raise SourceConfigError(f"pace is {pace!r}; expected one of {', '.join(PACES)}")
         if start < 0:
@@ -322,8 +343,13 @@ class ReplaySource(SourceBase):
             if self._first_ts is None:
                 self._first_ts = frame.timestamp_ns
             self._last_ts, self._last_index = frame.timestamp_ns, frame.index
-        frame = StereoFrame(frame.left, frame.right, frame.timestamp_ns + self._offset_ns,
-                            frame.index + self._pass * (self._last_index + 1), frame.mask)
+        frame = StereoFrame(
+            frame.left,
+            frame.right,
+            frame.timestamp_ns + self._offset_ns,
+            frame.index + self._pass * (self._last_index + 1),
+            frame.mask,
+        )
         self._wait_for(frame.timestamp_ns)
         if self._stop.is_set():
             raise StopIteration

@@ -12,6 +12,7 @@ ROS 2 wrapper's rectified colour topics.
 Spec (camera.sources.open_source): `rosbag:PATH[?left=TOPIC&right=TOPIC&left_info=TOPIC&right_info=TOPIC
 &tolerance_ms=MS]`, PATH a bag directory (metadata.yaml), a `.mcap` or a `.db3` file.
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,8 +36,13 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 #: Raw image encodings read, and how each becomes RGB (None: already RGB).
-ENCODINGS: dict[str, int | None] = {"rgb8": None, "bgr8": cv2.COLOR_BGR2RGB, "bgra8": cv2.COLOR_BGRA2RGB,
-                                    "rgba8": cv2.COLOR_RGBA2RGB, "mono8": cv2.COLOR_GRAY2RGB}
+ENCODINGS: dict[str, int | None] = {
+    "rgb8": None,
+    "bgr8": cv2.COLOR_BGR2RGB,
+    "bgra8": cv2.COLOR_BGRA2RGB,
+    "rgba8": cv2.COLOR_RGBA2RGB,
+    "mono8": cv2.COLOR_GRAY2RGB,
+}
 #: Channels per pixel of each encoding.
 CHANNELS = {"rgb8": 3, "bgr8": 3, "bgra8": 4, "rgba8": 4, "mono8": 1}
 DEFAULT_TOLERANCE_MS = 5.0
@@ -62,24 +68,30 @@ def parse_rosbag_spec(rest: str) -> tuple[Path, BagTopics, float]:
     """(bag path, topics, pairing tolerance in ms) from what follows `rosbag:` (see the module docstring)."""
     path_text, _, query = rest.partition("?")
     if not path_text:
-        raise SourceConfigError(f"source spec 'rosbag:{rest}': expected rosbag:PATH[?left=TOPIC&right=TOPIC&"
-                                "left_info=TOPIC&right_info=TOPIC&tolerance_ms=MS]")
+        raise SourceConfigError(
+            f"source spec 'rosbag:{rest}': expected rosbag:PATH[?left=TOPIC&right=TOPIC&"
+            "left_info=TOPIC&right_info=TOPIC&tolerance_ms=MS]"
+        )
     topics, tolerance_ms = BagTopics(), DEFAULT_TOLERANCE_MS
     for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
         if key not in SPEC_KEYS:
-            raise SourceConfigError(f"source spec 'rosbag:{rest}': option {key!r} is unknown; expected "
-                                    f"{', '.join(SPEC_KEYS)}")
+            raise SourceConfigError(
+                f"source spec 'rosbag:{rest}': option {key!r} is unknown; expected {', '.join(SPEC_KEYS)}"
+            )
         if key == "tolerance_ms":
             try:
                 tolerance_ms = float(value)
             except ValueError:
                 tolerance_ms = -1.0
             if not 0 <= tolerance_ms < 1000:
-                raise SourceConfigError(f"source spec 'rosbag:{rest}': tolerance_ms is {value!r}; expected a "
-                                        "number of milliseconds in [0, 1000)")
+                raise SourceConfigError(
+                    f"source spec 'rosbag:{rest}': tolerance_ms is {value!r}; expected a "
+                    "number of milliseconds in [0, 1000)"
+                )
         elif not value.startswith("/"):
-            raise SourceConfigError(f"source spec 'rosbag:{rest}': {key} is {value!r}; expected a topic name "
-                                    "starting with /")
+            raise SourceConfigError(
+                f"source spec 'rosbag:{rest}': {key} is {value!r}; expected a topic name starting with /"
+            )
         else:
             topics = replace(topics, **{key: value})
     return Path(path_text), topics, tolerance_ms
@@ -98,19 +110,24 @@ def image_from_message(message: Any, msgtype: str, topic: str) -> np.ndarray:
     if msgtype == COMPRESSED_TYPE:
         bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
         if bgr is None:
-            raise CorruptFrameError(f"{topic}: a CompressedImage ({message.format!r}, {data.size} bytes) at "
-                                    f"stamp {stamp_ns(message)} ns does not decode as JPEG or PNG")
+            raise CorruptFrameError(
+                f"{topic}: a CompressedImage ({message.format!r}, {data.size} bytes) at "
+                f"stamp {stamp_ns(message)} ns does not decode as JPEG or PNG"
+            )
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     encoding = str(message.encoding).lower()
     if encoding not in ENCODINGS:
-        raise SourceConfigError(f"{topic}: image encoding {message.encoding!r} is not supported; expected one of "
-                                f"{', '.join(ENCODINGS)}")
+        raise SourceConfigError(
+            f"{topic}: image encoding {message.encoding!r} is not supported; expected one of {', '.join(ENCODINGS)}"
+        )
     height, width, step, channels = int(message.height), int(message.width), int(message.step), CHANNELS[encoding]
     if step < width * channels or data.size < step * height:
-        raise CorruptFrameError(f"{topic}: a {width}×{height} {encoding} image at stamp {stamp_ns(message)} ns has "
-                                f"step {step} and {data.size} bytes; expected step ≥ {width * channels} and "
-                                f"{step * height} bytes")
-    pixels = data[:step * height].reshape(height, step)[:, :width * channels].reshape(height, width, channels)
+        raise CorruptFrameError(
+            f"{topic}: a {width}×{height} {encoding} image at stamp {stamp_ns(message)} ns has "
+            f"step {step} and {data.size} bytes; expected step ≥ {width * channels} and "
+            f"{step * height} bytes"
+        )
+    pixels = data[: step * height].reshape(height, step)[:, : width * channels].reshape(height, width, channels)
     conversion = ENCODINGS[encoding]
     return np.ascontiguousarray(pixels) if conversion is None else cv2.cvtColor(pixels, conversion)
 
@@ -126,20 +143,31 @@ def calibration_from_camera_info(left: Any, right: Any, source: str) -> StereoCa
     p_right = np.asarray(right.p, dtype=float).reshape(3, 4)
     fx, cx, cy = p_left[0, 0], p_left[0, 2], p_left[1, 2]
     if fx <= 0 or p_right[0, 0] <= 0:
-        raise CalibrationError(source, "P", f"has fx = {fx} (left) and {p_right[0, 0]} (right)",
-                               "the rectified projection matrices of both cameras (fx > 0)")
+        raise CalibrationError(
+            source,
+            "P",
+            f"has fx = {fx} (left) and {p_right[0, 0]} (right)",
+            "the rectified projection matrices of both cameras (fx > 0)",
+        )
     if abs(p_right[0, 0] - fx) > 1e-3 * fx or abs(p_right[1, 2] - cy) > 0.5:
-        raise CalibrationError(source, "P", f"left fx {fx:.3f}, cy {cy:.3f} and right fx {p_right[0, 0]:.3f}, "
-                               f"cy {p_right[1, 2]:.3f} differ", "a rectified pair (same focal length and rows); "
-                               "or pass a calibration file")
+        raise CalibrationError(
+            source,
+            "P",
+            f"left fx {fx:.3f}, cy {cy:.3f} and right fx {p_right[0, 0]:.3f}, cy {p_right[1, 2]:.3f} differ",
+            "a rectified pair (same focal length and rows); or pass a calibration file",
+        )
     baseline_m = -p_right[0, 3] / p_right[0, 0]
     low, high = BASELINE_RANGE_M
     if not low <= baseline_m <= high:
-        raise CalibrationError(source, "P[0,3]", f"of the right camera is {p_right[0, 3]}, a baseline of "
-                               f"{baseline_m} m", f"Tx = -fx·B with B in metres in [{low}, {high}]; or pass a "
-                               "calibration file")
-    return from_rectified(fx, cx, cy, baseline_m, (int(left.width), int(left.height)),
-                          cx_right=float(p_right[0, 2]), source=source)
+        raise CalibrationError(
+            source,
+            "P[0,3]",
+            f"of the right camera is {p_right[0, 3]}, a baseline of {baseline_m} m",
+            f"Tx = -fx·B with B in metres in [{low}, {high}]; or pass a calibration file",
+        )
+    return from_rectified(
+        fx, cx, cy, baseline_m, (int(left.width), int(left.height)), cx_right=float(p_right[0, 2]), source=source
+    )
 
 
 class _BagFrames:
@@ -159,11 +187,15 @@ class _BagFrames:
         except (AnyReaderError, OSError, ValueError, KeyError) as error:
             raise SourceUnavailable(f"{path}: not a readable ROS 2 bag ({error})") from error
         self._by_topic = {c.topic: c for c in self._reader.connections}
-        wanted: dict[str, tuple[str, tuple[str, ...]]] = {"left": (topics.left, (IMAGE_TYPE, COMPRESSED_TYPE)),
-                                                          "right": (topics.right, (IMAGE_TYPE, COMPRESSED_TYPE))}
+        wanted: dict[str, tuple[str, tuple[str, ...]]] = {
+            "left": (topics.left, (IMAGE_TYPE, COMPRESSED_TYPE)),
+            "right": (topics.right, (IMAGE_TYPE, COMPRESSED_TYPE)),
+        }
         if use_camera_info:
-            wanted |= {"left_info": (topics.left_info, (CAMERA_INFO_TYPE,)),
-                       "right_info": (topics.right_info, (CAMERA_INFO_TYPE,))}
+            wanted |= {
+                "left_info": (topics.left_info, (CAMERA_INFO_TYPE,)),
+                "right_info": (topics.right_info, (CAMERA_INFO_TYPE,)),
+            }
         for role, (topic, types) in wanted.items():
             self._check_topic(role, topic, types)
         self.count: int | None = None  # pairs are known only once read
@@ -176,15 +208,23 @@ class _BagFrames:
     def _check_topic(self, role: str, topic: str, types: tuple[str, ...]) -> None:
         connection = self._by_topic.get(topic)
         if connection is None:
-            listing = "; ".join(f"{c.topic} ({c.msgtype}, {c.msgcount} messages)"
-                                for c in sorted(self._by_topic.values(), key=lambda c: c.topic)) or "none"
+            listing = (
+                "; ".join(
+                    f"{c.topic} ({c.msgtype}, {c.msgcount} messages)"
+                    for c in sorted(self._by_topic.values(), key=lambda c: c.topic)
+                )
+                or "none"
+            )
             self.close()
-            raise SourceConfigError(f"{self.path}: the {role} topic {topic} is not in the bag; its topics are: "
-                                    f"{listing}. Name the topics in the spec: rosbag:PATH?{role}=TOPIC")
+            raise SourceConfigError(
+                f"{self.path}: the {role} topic {topic} is not in the bag; its topics are: "
+                f"{listing}. Name the topics in the spec: rosbag:PATH?{role}=TOPIC"
+            )
         if connection.msgtype not in types:
             self.close()
-            raise SourceConfigError(f"{self.path}: the {role} topic {topic} carries {connection.msgtype}; "
-                                    f"expected {' or '.join(types)}")
+            raise SourceConfigError(
+                f"{self.path}: the {role} topic {topic} carries {connection.msgtype}; expected {' or '.join(types)}"
+            )
 
     @property
     def period_ns(self) -> int:
@@ -223,13 +263,22 @@ class _BagFrames:
         for role, queue in queues.items():
             self.unpaired[role] += len(queue)
         if any(self.unpaired.values()):
-            log.warning("%s: %d left and %d right images had no partner within %.1f ms and were skipped", self.path,
-                        self.unpaired["left"], self.unpaired["right"], self.tolerance_ns / 1e6)
+            log.warning(
+                "%s: %d left and %d right images had no partner within %.1f ms and were skipped",
+                self.path,
+                self.unpaired["left"],
+                self.unpaired["right"],
+                self.tolerance_ns / 1e6,
+            )
 
     def _frame(self, left: Any, right: Any, index: int) -> StereoFrame:
         left_type, right_type = self._by_topic[self.topics.left].msgtype, self._by_topic[self.topics.right].msgtype
-        return StereoFrame(image_from_message(left, left_type, self.topics.left),
-                           image_from_message(right, right_type, self.topics.right), stamp_ns(left), index)
+        return StereoFrame(
+            image_from_message(left, left_type, self.topics.left),
+            image_from_message(right, right_type, self.topics.right),
+            stamp_ns(left),
+            index,
+        )
 
     def seek(self, position: int) -> None:
         """Read from the bag's start again and skip `position` pairs (a bag has no pair index)."""
@@ -265,8 +314,11 @@ class _BagFrames:
         for topic, message in self._messages(self.topics.left_info, self.topics.right_info):
             first.setdefault(topic, message)
             if len(first) == 2:
-                return calibration_from_camera_info(first[self.topics.left_info], first[self.topics.right_info],
-                                                    f"{self.path} {self.topics.left_info}, {self.topics.right_info}")
+                return calibration_from_camera_info(
+                    first[self.topics.left_info],
+                    first[self.topics.right_info],
+                    f"{self.path} {self.topics.left_info}, {self.topics.right_info}",
+                )
         missing = [t for t in (self.topics.left_info, self.topics.right_info) if t not in first]
         raise SourceConfigError(f"{self.path}: no CameraInfo message on {', '.join(missing)}; pass a calibration file")
 
@@ -285,10 +337,19 @@ class RosbagSource(ReplaySource):
     without a partner within `tolerance_ms` ({"left": n, "right": n}, complete at the end of the bag).
     """
 
-    def __init__(self, path: str | Path, *, topics: BagTopics = BagTopics(),
-                 tolerance_ms: float = DEFAULT_TOLERANCE_MS, use_camera_info: bool = True, pace: str = "recorded",
-                 loop: bool = False, start: int = 0, calibration: StereoCalibration | None = None,
-                 clock: Callable[[], int] | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        topics: BagTopics = BagTopics(),
+        tolerance_ms: float = DEFAULT_TOLERANCE_MS,
+        use_camera_info: bool = True,
+        pace: str = "recorded",
+        loop: bool = False,
+        start: int = 0,
+        calibration: StereoCalibration | None = None,
+        clock: Callable[[], int] | None = None,
+    ) -> None:
         self.topics, self.tolerance_ms, self.use_camera_info = topics, tolerance_ms, use_camera_info
         options: dict[str, Any] = {} if clock is None else {"clock": clock}
         super().__init__(path, pace=pace, loop=loop, start=start, calibration=calibration, **options)

@@ -6,6 +6,7 @@ rectified left/right images on two topics with the same header stamp per pair, a
 `Tx = -fx·B`), as ROS drivers publish them. A raw calibration is applied first (images rectified
 with camera.Rectifier), so the bag always holds what `*_rect_color` topics hold.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -50,22 +51,44 @@ def image_message(types: Any, rgb: np.ndarray, stamp_ns: int, frame_id: str, enc
     pixels = rgb if conversion is None else cv2.cvtColor(rgb, conversion)
     height, width = pixels.shape[:2]
     step = pixels.strides[0]
-    return types[IMAGE_TYPE](header=header, height=height, width=width, encoding=encoding, is_bigendian=0,
-                             step=step, data=np.ascontiguousarray(pixels).ravel())
+    return types[IMAGE_TYPE](
+        header=header,
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=step,
+        data=np.ascontiguousarray(pixels).ravel(),
+    )
 
 
-def camera_info_message(types: Any, projection: np.ndarray, size: tuple[int, int], stamp_ns: int,
-                        frame_id: str) -> Any:
+def camera_info_message(types: Any, projection: np.ndarray, size: tuple[int, int], stamp_ns: int, frame_id: str) -> Any:
     """A rectified `sensor_msgs/CameraInfo`: K from P's first three columns, no distortion, R identity."""
     roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return types[CAMERA_INFO_TYPE](
-        header=_header(types, stamp_ns, frame_id), height=size[1], width=size[0], distortion_model="plumb_bob",
-        d=np.zeros(5), k=projection[:, :3].astype(np.float64).ravel(), r=np.eye(3).ravel(),
-        p=projection.astype(np.float64).ravel(), binning_x=0, binning_y=0, roi=roi)
+        header=_header(types, stamp_ns, frame_id),
+        height=size[1],
+        width=size[0],
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=projection[:, :3].astype(np.float64).ravel(),
+        r=np.eye(3).ravel(),
+        p=projection.astype(np.float64).ravel(),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
 
 
-def write_bag(frames: Iterable[StereoFrame], calibration: StereoCalibration, out: str | Path, *,
-              storage: str = "mcap", encoding: str = DEFAULT_ENCODING, topics: BagTopics = BagTopics()) -> int:
+def write_bag(
+    frames: Iterable[StereoFrame],
+    calibration: StereoCalibration,
+    out: str | Path,
+    *,
+    storage: str = "mcap",
+    encoding: str = DEFAULT_ENCODING,
+    topics: BagTopics = BagTopics(),
+) -> int:
     """Write `frames` (RGB pairs at the calibration's size; stamps = the frames' timestamps, ns) to a new bag
     directory `out`; returns the number of pairs written. `storage`: "mcap" or "sqlite3"; `encoding`: one of
     RAW_ENCODINGS or COMPRESSED_FORMATS. Raises BagWriteError for bad options or an existing `out`, and the
@@ -89,19 +112,32 @@ def write_bag(frames: Iterable[StereoFrame], calibration: StereoCalibration, out
         raise BagWriteError(f"{out}: {error}") from error
     written = 0
     with writer:
-        connections = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in (
-            (topics.left, image_type), (topics.right, image_type),
-            (topics.left_info, CAMERA_INFO_TYPE), (topics.right_info, CAMERA_INFO_TYPE))}
+        connections = {
+            topic: writer.add_connection(topic, msgtype, typestore=store)
+            for topic, msgtype in (
+                (topics.left, image_type),
+                (topics.right, image_type),
+                (topics.left_info, CAMERA_INFO_TYPE),
+                (topics.right_info, CAMERA_INFO_TYPE),
+            )
+        }
         for frame in frames:
             left, right = rectifier.rectify(frame.left, frame.right)
             stamp = int(frame.timestamp_ns)
             messages = (
                 (topics.left, image_message(types, left, stamp, FRAME_IDS["left"], encoding), image_type),
                 (topics.right, image_message(types, right, stamp, FRAME_IDS["right"], encoding), image_type),
-                (topics.left_info, camera_info_message(types, rectifier.P1, rectifier.size, stamp, FRAME_IDS["left"]),
-                 CAMERA_INFO_TYPE),
-                (topics.right_info, camera_info_message(types, rectifier.P2, rectifier.size, stamp, FRAME_IDS["right"]),
-                 CAMERA_INFO_TYPE))
+                (
+                    topics.left_info,
+                    camera_info_message(types, rectifier.P1, rectifier.size, stamp, FRAME_IDS["left"]),
+                    CAMERA_INFO_TYPE,
+                ),
+                (
+                    topics.right_info,
+                    camera_info_message(types, rectifier.P2, rectifier.size, stamp, FRAME_IDS["right"]),
+                    CAMERA_INFO_TYPE,
+                ),
+            )
             for topic, message, msgtype in messages:
                 writer.write(connections[topic], stamp, store.serialize_cdr(message, msgtype))
             written += 1

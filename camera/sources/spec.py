@@ -5,6 +5,7 @@ an optional mode), `oak`, `oak:640x400`, `oak:1280x800@60` (output size and fps)
 (a recording directory, a folder of pairs `left/` + `right/`, or a side-by-side video file),
 `rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag, see camera.sources.rosbag).
 """
+
 from __future__ import annotations
 
 import re
@@ -35,15 +36,25 @@ def parse_zed_spec(rest: str) -> tuple[int | str, str]:
     elif rest.upper() in ZED_MODES:
         device_text, mode = "0", rest.upper()
     elif _MODE_LIKE.match(tail):
-        raise SourceConfigError(f"source spec 'zed:{rest}': mode {tail!r} is unknown; expected one of "
-                                f"{', '.join(ZED_MODES)} (after a device index or /dev/video path)")
+        raise SourceConfigError(
+            f"source spec 'zed:{rest}': mode {tail!r} is unknown; expected one of "
+            f"{', '.join(ZED_MODES)} (after a device index or /dev/video path)"
+        )
     device_text = device_text or "0"
     device: int | str = int(device_text) if device_text.isdigit() else device_text
     return device, mode
 
 
-def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None = None, latest: bool = False,
-                pace: str = "recorded", loop: bool = False, start: int = 0, fps: float | None = None) -> SourceBase:
+def open_source(
+    spec: str,
+    *,
+    calibration: StereoCalibration | str | Path | None = None,
+    latest: bool = False,
+    pace: str = "recorded",
+    loop: bool = False,
+    start: int = 0,
+    fps: float | None = None,
+) -> SourceBase:
     """Open the source a spec names (see the module docstring).
 
     `calibration`: a StereoCalibration or a calibration file overriding what the source knows; a
@@ -63,8 +74,11 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
         match = _OAK_OPTIONS.match(rest) if rest else None
         if rest and match is None:
             raise SourceConfigError(f"source spec {spec!r}: expected oak, oak:WIDTHxHEIGHT or oak:WIDTHxHEIGHT@FPS")
-        config = OakConfig() if match is None else OakConfig(
-            size=(int(match[1]), int(match[2])), fps=float(match[3]) if match[3] else OakConfig.fps)
+        config = (
+            OakConfig()
+            if match is None
+            else OakConfig(size=(int(match[1]), int(match[2])), fps=float(match[3]) if match[3] else OakConfig.fps)
+        )
         source = OakSource(config, calibration=_loaded(calibration, config.size))
     elif kind == "replay":
         if not rest:
@@ -74,12 +88,22 @@ def open_source(spec: str, *, calibration: StereoCalibration | str | Path | None
         from camera.sources.rosbag import RosbagSource, parse_rosbag_spec  # rosbags is imported only for bags
 
         path, topics, tolerance_ms = parse_rosbag_spec(rest)
-        source = _calibrated(RosbagSource(path, topics=topics, tolerance_ms=tolerance_ms,
-                                          use_camera_info=calibration is None, pace=pace, loop=loop, start=start),
-                             calibration)
+        source = _calibrated(
+            RosbagSource(
+                path,
+                topics=topics,
+                tolerance_ms=tolerance_ms,
+                use_camera_info=calibration is None,
+                pace=pace,
+                loop=loop,
+                start=start,
+            ),
+            calibration,
+        )
     else:
-        raise SourceConfigError(f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]], replay:PATH "
-                                "or rosbag:PATH")
+        raise SourceConfigError(
+            f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]], replay:PATH or rosbag:PATH"
+        )
     return LatestFrameSource(source) if latest else source
 
 
@@ -106,6 +130,10 @@ def _loaded(calibration: StereoCalibration | str | Path | None, size: tuple[int,
     resolution = resolution_for_size(size)
     if resolution is None and detect_format(calibration) == "zed":
         sizes = ", ".join(f"{w}×{h}" for w, h in ZED_RESOLUTIONS.values())
-        raise CalibrationError(calibration, "resolution", f"the frames are {size[0]}×{size[1]} px per view, "
-                               "which is no ZED resolution", f"frames of {sizes} px per view")
+        raise CalibrationError(
+            calibration,
+            "resolution",
+            f"the frames are {size[0]}×{size[1]} px per view, which is no ZED resolution",
+            f"frames of {sizes} px per view",
+        )
     return load_calibration(calibration, resolution, size=size)

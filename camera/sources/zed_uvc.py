@@ -8,6 +8,7 @@ reports `is_lost`, and reopens it with exponential backoff until it answers agai
 Hardware status: written against OpenCV's V4L2/UVC behaviour and tested with a fake capture
 that replays files (tests/test_camera_sources.py); it has not been run against a real ZED here.
 """
+
 from __future__ import annotations
 
 import threading
@@ -80,24 +81,38 @@ class ZedUvcSource(SourceBase):
     FrameSizeError when the calibration is for another image size than one eye of the mode.
     """
 
-    def __init__(self, device: int | str = 0, mode: str = "HD720", fps: int | None = None, *,
-                 calibration: StereoCalibration | str | Path | None = None, reconnect: bool = True,
-                 backoff: Backoff | None = None, capture_factory: CaptureFactory = open_uvc_capture,
-                 sleep: Callable[[float], Any] | None = None, clock: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(
+        self,
+        device: int | str = 0,
+        mode: str = "HD720",
+        fps: int | None = None,
+        *,
+        calibration: StereoCalibration | str | Path | None = None,
+        reconnect: bool = True,
+        backoff: Backoff | None = None,
+        capture_factory: CaptureFactory = open_uvc_capture,
+        sleep: Callable[[float], Any] | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self.device = device
         self.mode = zed_mode(mode)
         self.mode_name = mode.strip().upper()
         self.fps = fps if fps is not None else (30 if 30 in self.mode.fps else self.mode.fps[0])
         if self.fps not in self.mode.fps:
-            raise SourceConfigError(f"fps {self.fps} is not offered in mode {self.mode_name}; expected one of "
-                                    f"{', '.join(map(str, self.mode.fps))}")
+            raise SourceConfigError(
+                f"fps {self.fps} is not offered in mode {self.mode_name}; expected one of "
+                f"{', '.join(map(str, self.mode.fps))}"
+            )
         if isinstance(calibration, (str, Path)):
             calibration = load_calibration(calibration, self.mode.resolution)
         eye_size = (self.mode.width // 2, self.mode.height)
         if calibration is not None and calibration.image_size != eye_size:
-            raise FrameSizeError(calibration.source, "image_size",
-                                 f"is {calibration.width}×{calibration.height} px",
-                                 f"{eye_size[0]}×{eye_size[1]} px, one eye in mode {self.mode_name}")
+            raise FrameSizeError(
+                calibration.source,
+                "image_size",
+                f"is {calibration.width}×{calibration.height} px",
+                f"{eye_size[0]}×{eye_size[1]} px, one eye in mode {self.mode_name}",
+            )
         self.calibration = calibration
         self.reconnect = reconnect
         self.backoff = backoff or Backoff()
@@ -111,9 +126,11 @@ class ZedUvcSource(SourceBase):
         self.reconnects = 0
         self._capture = self._open()
         if self._capture is None:
-            raise SourceUnavailable(f"ZED camera {device!r} cannot be opened in mode {self.mode_name} "
-                                    f"({self.mode.width}×{self.mode.height} @ {self.fps} fps); is it plugged in, "
-                                    "and is the device index or /dev/video path right?")
+            raise SourceUnavailable(
+                f"ZED camera {device!r} cannot be opened in mode {self.mode_name} "
+                f"({self.mode.width}×{self.mode.height} @ {self.fps} fps); is it plugged in, "
+                "and is the device index or /dev/video path right?"
+            )
 
     @property
     def is_lost(self) -> bool:
@@ -131,8 +148,10 @@ class ZedUvcSource(SourceBase):
         got = (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         if got != (self.mode.width, self.mode.height):
             capture.release()
-            raise SourceConfigError(f"ZED camera {self.device!r} delivers {got[0]}×{got[1]} instead of mode "
-                                    f"{self.mode_name} ({self.mode.width}×{self.mode.height}); is it a ZED?")
+            raise SourceConfigError(
+                f"ZED camera {self.device!r} delivers {got[0]}×{got[1]} instead of mode "
+                f"{self.mode_name} ({self.mode.width}×{self.mode.height}); is it a ZED?"
+            )
         return capture
 
     def _lose(self) -> None:
@@ -170,8 +189,10 @@ class ZedUvcSource(SourceBase):
             self._lost = False
             self.backoff.reset()
             if bgr.shape[:2] != (self.mode.height, self.mode.width):
-                raise CorruptFrameError(f"ZED camera {self.device!r} gave a {bgr.shape[1]}×{bgr.shape[0]} frame; "
-                                        f"expected {self.mode.width}×{self.mode.height} ({self.mode_name})")
+                raise CorruptFrameError(
+                    f"ZED camera {self.device!r} gave a {bgr.shape[1]}×{bgr.shape[0]} frame; "
+                    f"expected {self.mode.width}×{self.mode.height} ({self.mode_name})"
+                )
             left, right = split_side_by_side(bgr)
             frame = StereoFrame(left, right, timestamp, self._index)
             self._index += 1

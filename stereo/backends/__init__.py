@@ -1,4 +1,5 @@
 """Stereo backends behind one interface: `make_backend("sgbm" | "emcstereo", ...)` → `StereoBackend`."""
+
 from __future__ import annotations
 
 import os
@@ -45,7 +46,11 @@ def make_backend(
     `verify_sha256=False` loads emcstereo weights named as a registered release without checking them.
     """
     if name == "sgbm":
-        for option, value, default in (("weights", weights, None), ("device", device, "cpu"), ("precision", precision, "fp32")):
+        for option, value, default in (
+            ("weights", weights, None),
+            ("device", device, "cpu"),
+            ("precision", precision, "fp32"),
+        ):
             if value != default:
                 raise BackendConfigError(f"the sgbm backend takes no {option} other than {default!r}, got {value!r}")
         return SGBMBackend(max_disp)

@@ -1,4 +1,5 @@
 """The interface every stereo backend keeps: a rectified RGB pair in, disparity and confidence out."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -63,9 +64,14 @@ class StereoBackend(Protocol):
 
 
 def is_valid_max_disp(value: object) -> bool:
-    """Whether `value` is a usable disparity search range: an int multiple of `MAX_DISP_STEP` in (0, `MAX_DISP_LIMIT`]."""
-    return (isinstance(value, int) and not isinstance(value, bool)
-            and 0 < value <= MAX_DISP_LIMIT and value % MAX_DISP_STEP == 0)
+    """Whether `value` is a usable disparity search range: an int multiple of `MAX_DISP_STEP` in
+    (0, `MAX_DISP_LIMIT`]."""
+    return (
+        isinstance(value, int)
+        and not isinstance(value, bool)
+        and 0 < value <= MAX_DISP_LIMIT
+        and value % MAX_DISP_STEP == 0
+    )
 
 
 def check_max_disp(value: object, name: str = "max_disp") -> int:
@@ -114,5 +120,7 @@ def validate_pair(left: Any, right: Any, error: type[ValueError] = StereoInputEr
     validate_image(left, "left", error)
     validate_image(right, "right", error)
     if left.shape != right.shape:
-        raise error(f"left {left.shape[1]}×{left.shape[0]} and right {right.shape[1]}×{right.shape[0]} images "
-                    "differ in size; a stereo pair must have the same shape, pixel for pixel")
+        raise error(
+            f"left {left.shape[1]}×{left.shape[0]} and right {right.shape[1]}×{right.shape[0]} images "
+            "differ in size; a stereo pair must have the same shape, pixel for pixel"
+        )

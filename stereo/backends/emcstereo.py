@@ -3,6 +3,7 @@
 Precision: fp16/bf16 run under CUDA autocast only; asking for them on the CPU raises
 BackendConfigError (CPU autocast would change numerics without a speed-up we have measured).
 """
+
 from __future__ import annotations
 
 import time
@@ -132,7 +133,9 @@ class EMCStereoBackend:
         confidence = np.where(valid, confidence, np.float32(0.0))
         return StereoResult(disparity, confidence, timing, self.name, d_min + d_range)
 
-    def _run(self, left: np.ndarray, right: np.ndarray, max_disp: int) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    def _run(
+        self, left: np.ndarray, right: np.ndarray, max_disp: int
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
         """The network on one validated pair: (disparity, confidence) float32 `H×W` and stage timings in ms."""
         height, width = left.shape[:2]
         padding = compute_padding(height, width)
@@ -147,4 +150,8 @@ class EMCStereoBackend:
             confidence = unpad(confidence[0].float(), padding).cpu().numpy()
         disparity, confidence = sanitize_dense_output(disparity, confidence)
         end = self._now()
-        return disparity, confidence, stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)])
+        return (
+            disparity,
+            confidence,
+            stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)]),
+        )

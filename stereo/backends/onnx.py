@@ -3,6 +3,7 @@
 The graph has one padded input size and one disparity range (read from its metadata); pairs up to
 that size are edge-padded at the top and right to it, as `stereo.padding` pads for the network.
 """
+
 from __future__ import annotations
 
 import os
@@ -44,7 +45,9 @@ class OnnxBackend:
         metadata = self._session.get_modelmeta().custom_metadata_map
         missing = [key for key in METADATA_KEYS if key not in metadata]
         if missing:
-            raise BackendConfigError(f"ONNX model {path} lacks metadata {missing}: export it with `emcstereo export --onnx`")
+            raise BackendConfigError(
+                f"ONNX model {path} lacks metadata {missing}: export it with `emcstereo export --onnx`"
+            )
         self.height, self.width, self.max_disparity = (int(metadata[key]) for key in METADATA_KEYS)
 
     def compute(self, left: np.ndarray, right: np.ndarray) -> StereoResult:
@@ -52,8 +55,10 @@ class OnnxBackend:
         validate_pair(left, right)
         height, width = left.shape[:2]
         if height > self.height or width > self.width:
-            raise StereoInputError(f"pair of {height}×{width} is larger than the {self.height}×{self.width} "
-                                   "the ONNX model was exported for; export it again for this size")
+            raise StereoInputError(
+                f"pair of {height}×{width} is larger than the {self.height}×{self.width} "
+                "the ONNX model was exported for; export it again for this size"
+            )
         padding = Padding(top=self.height - height, right=self.width - width, height=height, width=width)
         start = time.perf_counter()
         with torch.inference_mode():
@@ -66,7 +71,6 @@ class OnnxBackend:
         timing = stage_timings_ms(start, [("preprocess", prepared), ("network", inferred), ("postprocess", end)])
         return StereoResult(disparity, confidence, timing, self.name, self.max_disparity)
 
-
     def compute_roi(
         self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int
     ) -> StereoResult:
@@ -77,14 +81,21 @@ class OnnxBackend:
             "use the sgbm or emcstereo backend for windowed disparity"
         )
 
-def make_onnx_backend(weights: str | os.PathLike[str] | None, max_disp: int, device: str, precision: str) -> OnnxBackend:
+
+def make_onnx_backend(
+    weights: str | os.PathLike[str] | None, max_disp: int, device: str, precision: str
+) -> OnnxBackend:
     """`make_backend("onnx", …)`: `weights` is the exported .onnx file, whose range `max_disp` must match; CPU fp32."""
     if weights is None:
         raise BackendConfigError("the onnx backend needs weights=PATH of a model written by `emcstereo export --onnx`")
     if device != "cpu" or precision != "fp32":
-        raise BackendConfigError(f"the onnx backend runs on cpu in fp32 only, got device={device!r} precision={precision!r}")
+        raise BackendConfigError(
+            f"the onnx backend runs on cpu in fp32 only, got device={device!r} precision={precision!r}"
+        )
     backend = OnnxBackend(weights)
     if backend.max_disparity != max_disp:
-        raise BackendConfigError(f"ONNX model {weights} was exported for max_disp {backend.max_disparity}, not {max_disp}; "
-                                 "pass that max_disp or export again")
+        raise BackendConfigError(
+            f"ONNX model {weights} was exported for max_disp {backend.max_disparity}, not {max_disp}; "
+            "pass that max_disp or export again"
+        )
     return backend

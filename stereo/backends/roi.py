@@ -6,6 +6,7 @@ columns to the left of the box (and, for the right image, columns shifted by the
 the frame's border those columns do not exist, so crops replicate the border pixel there, as the
 whole-frame SGBM pads its left border.
 """
+
 from __future__ import annotations
 
 import operator
@@ -28,7 +29,9 @@ def _as_int(name: str, value: object) -> int:
         raise BackendConfigError(f"{name} must be an integer number of pixels, got {value!r}") from None
 
 
-def validate_window(left: np.ndarray, right: np.ndarray, roi: object, d_min: object, d_range: object) -> tuple[Roi, int, int]:
+def validate_window(
+    left: np.ndarray, right: np.ndarray, roi: object, d_min: object, d_range: object
+) -> tuple[Roi, int, int]:
     """Check a `compute_roi` call; returns (roi, d_min, d_range) as ints.
 
     StereoInputError for a bad pair or a box that is not a non-empty `(x0, y0, x1, y1)` inside the

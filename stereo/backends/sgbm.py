@@ -30,6 +30,7 @@ Confidence (float32 `H×W` in [0, 1], 0 where invalid) is the left-right agreeme
 exp(−½ (Δ / (½ lr_tolerance))²), Δ = |d_left − d_right| px: 1 for perfect agreement, 0.61 at 1 px,
 ≈ 0.14 at the 2-px tolerance. On Tsukuba pixels with confidence < 0.5 have ~6× the EPE of the rest.
 """
+
 from __future__ import annotations
 
 import time
@@ -104,11 +105,18 @@ class SGBMBackend:
         `max_disparity = d_min + d_range`.
         """
         roi, d_min, d_range = validate_window(left, right, roi, d_min, d_range)
-        return self._window(left, right, roi, d_min, d_range, context=ROI_CONTEXT_PX,
-                            check=self.lr_check and self.roi_lr_check)
+        return self._window(
+            left, right, roi, d_min, d_range, context=ROI_CONTEXT_PX, check=self.lr_check and self.roi_lr_check
+        )
 
     def _window(
-        self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int], d_min: int, d_range: int, context: int,
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        roi: tuple[int, int, int, int],
+        d_min: int,
+        d_range: int,
+        context: int,
         check: bool,
     ) -> StereoResult:
         """Match the box `roi` over `[d_min, d_min + d_range)` on a crop of the frames.
@@ -159,10 +167,14 @@ class SGBMBackend:
         """
         height, width = grey_left.shape
         half_size = ((width + 1) // 2, (height + 1) // 2)
-        reference, other = (cv2.flip(cv2.resize(g, half_size, interpolation=cv2.INTER_AREA), 1) for g in (grey_right, grey_left))
+        reference, other = (
+            cv2.flip(cv2.resize(g, half_size, interpolation=cv2.INTER_AREA), 1) for g in (grey_right, grey_left)
+        )
         low, high = d_min // 2, -(-(d_min + d_range) // 2)
         raw = cv2.flip(self._matcher(low, round_up_to_step(high - low)).compute(reference, other), 1)
-        half = np.where(raw > low * _FIXED_POINT, raw.astype(np.float32) * np.float32(2.0 / _FIXED_POINT), np.float32(0.0))
+        half = np.where(
+            raw > low * _FIXED_POINT, raw.astype(np.float32) * np.float32(2.0 / _FIXED_POINT), np.float32(0.0)
+        )
         return cv2.resize(half, (width, height), interpolation=cv2.INTER_NEAREST)
 
     def _matcher(self, d_min: int, num_disparities: int) -> cv2.StereoSGBM:

@@ -4,6 +4,7 @@ Splits: for VirtualTree-layout sets a split-file name or path (default `test`); 
 datasets `val` / `train` of the seeded 90/10 split (default `val`) or `all`. Several `--split`
 flags give several rows. Writes `metrics.json`, `metrics.txt` and the first `--vis` panels.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,20 +48,38 @@ def _evaluate(args: argparse.Namespace) -> int:
     for split in splits:
         dataset = split_dataset(args.dataset, args.root, split, args.val_fraction, args.seed)
         vis_dir = out_dir / "vis" / Path(split).stem if args.vis > 0 else None
-        results[Path(split).stem] = evaluate(model, dataset, device=device, max_disp=args.max_disp, limit=args.limit,
-                                             precision=args.precision, vis_dir=vis_dir, vis_count=args.vis,
-                                             progress=not args.no_progress)
-    write_reports(results, out_dir, extra={"dataset": args.dataset, "root": str(args.root),
-                                           "weights": str(args.weights), "precision": args.precision,
-                                           "max_disp": args.max_disp,
-                                           "note": "per-image metrics averaged over images; AbsRel and δ on disparity"})
+        results[Path(split).stem] = evaluate(
+            model,
+            dataset,
+            device=device,
+            max_disp=args.max_disp,
+            limit=args.limit,
+            precision=args.precision,
+            vis_dir=vis_dir,
+            vis_count=args.vis,
+            progress=not args.no_progress,
+        )
+    write_reports(
+        results,
+        out_dir,
+        extra={
+            "dataset": args.dataset,
+            "root": str(args.root),
+            "weights": str(args.weights),
+            "precision": args.precision,
+            "max_disp": args.max_disp,
+            "note": "per-image metrics averaged over images; AbsRel and δ on disparity",
+        },
+    )
     print(format_table(results), end="")
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `evaluate` to the `emcstereo` command."""
-    parser = sub.add_parser("evaluate", help="score weights on a dataset split (EPE, D1-all, Bad-1/3, RMSE, AbsRel, δ1)")
+    parser = sub.add_parser(
+        "evaluate", help="score weights on a dataset split (EPE, D1-all, Bad-1/3, RMSE, AbsRel, δ1)"
+    )
     parser.add_argument("--dataset", required=True, choices=DATASET_NAMES)
     parser.add_argument("--root", required=True, help="dataset folder")
     parser.add_argument("--weights", required=True, help="checkpoint (ours, the authors' or PSMNet's)")

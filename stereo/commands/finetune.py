@@ -5,6 +5,7 @@ extractor fixed. `--unlabelled DIR` switches to self-supervised fine-tuning on r
 DIR/left and DIR/right (photometric + smoothness + left-right consistency); the config's dataset,
 if it has ground truth, is then used only for validation.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,11 +33,18 @@ def _finetune(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `finetune` to the `emcstereo` command."""
-    parser = sub.add_parser("finetune", help="fine-tune from our / the authors' / PSMNet weights, optionally self-supervised")
+    parser = sub.add_parser(
+        "finetune", help="fine-tune from our / the authors' / PSMNet weights, optionally self-supervised"
+    )
     add_run_arguments(parser)
     parser.add_argument("--weights", required=True, help="checkpoint to start from (any supported layout)")
-    parser.add_argument("--freeze", action="append", default=[], metavar="MODULE",
-                        help="module to keep fixed, e.g. backbone (repeatable)")
+    parser.add_argument(
+        "--freeze",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="module to keep fixed, e.g. backbone (repeatable)",
+    )
     parser.add_argument("--unlabelled", metavar="DIR", help="self-supervised on DIR/left/*.png + DIR/right/*.png")
     parser.add_argument("--smoothness", type=float, default=0.1, help="edge-aware smoothness weight (self-supervised)")
     parser.add_argument("--no-lr-check", action="store_true", help="do not mask left-right inconsistent pixels")

@@ -1,4 +1,5 @@
 """`emcstereo params`: the parameter table of the eight variants, counted from the code."""
+
 from __future__ import annotations
 
 import argparse

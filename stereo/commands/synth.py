@@ -1,4 +1,5 @@
 """`emcstereo synth`: render synthetic stereo tree-branch scenes in the VirtualTree layout, or a preview."""
+
 from __future__ import annotations
 
 import argparse
@@ -27,16 +28,24 @@ def parse_size(text: str) -> tuple[int, int]:
     if width < 64 or height < 64:
         raise argparse.ArgumentTypeError(f"size {text!r} is too small: width and height must be at least 64 px")
     if width > MAX_SIDE_PX or height > MAX_SIDE_PX:
-        raise argparse.ArgumentTypeError(f"size {text!r} is too large: width and height must be at most {MAX_SIDE_PX} px")
+        raise argparse.ArgumentTypeError(
+            f"size {text!r} is too large: width and height must be at most {MAX_SIDE_PX} px"
+        )
     return width, height
 
 
 def _options(args: argparse.Namespace) -> SynthOptions:
     """The generator options the flags ask for; an out-of-range value exits with its message."""
     try:
-        return SynthOptions(cut_offset_m=args.cut_offset, supersample=args.supersample, pose=args.pose,
-                            foliage=args.foliage, leaf_shape=args.leaf_shape, noise_std=args.noise,
-                            background_trees=not args.no_background_trees)
+        return SynthOptions(
+            cut_offset_m=args.cut_offset,
+            supersample=args.supersample,
+            pose=args.pose,
+            foliage=args.foliage,
+            leaf_shape=args.leaf_shape,
+            noise_std=args.noise,
+            background_trees=not args.no_background_trees,
+        )
     except ValueError as exc:
         raise SystemExit(f"emcstereo synth: {exc}") from exc
 
@@ -46,26 +55,41 @@ def _run(args: argparse.Namespace) -> int:
     if args.out is None and args.preview is None:
         raise SystemExit("emcstereo synth: give --out DIR (a dataset), --preview PNG (a picture), or both")
     if args.scenes < 1 or args.workers < 1 or args.preview_scenes < 1:
-        raise SystemExit(f"emcstereo synth: --scenes ({args.scenes}), --workers ({args.workers}) and "
-                         f"--preview-scenes ({args.preview_scenes}) must be at least 1")
+        raise SystemExit(
+            f"emcstereo synth: --scenes ({args.scenes}), --workers ({args.workers}) and "
+            f"--preview-scenes ({args.preview_scenes}) must be at least 1"
+        )
     if args.preview is not None and not cv2.haveImageWriter(str(args.preview)):
-        raise SystemExit(f"emcstereo synth: --preview {args.preview}: no image format for the extension "
-                         f"{args.preview.suffix!r}; use .png")
+        raise SystemExit(
+            f"emcstereo synth: --preview {args.preview}: no image format for the extension "
+            f"{args.preview.suffix!r}; use .png"
+        )
     width, height = args.size
     camera = SynthCamera.zed_mini(width, height)
     options = _options(args)
     if args.out is not None:
         start = time.perf_counter()
         try:
-            summary = write_dataset(args.out, args.scenes, args.seed, width, height, camera=camera, options=options,
-                                    exr_pixel_type="half" if args.exr_half else "float", workers=args.workers,
-                                    progress=not args.quiet)
+            summary = write_dataset(
+                args.out,
+                args.scenes,
+                args.seed,
+                width,
+                height,
+                camera=camera,
+                options=options,
+                exr_pixel_type="half" if args.exr_half else "float",
+                workers=args.workers,
+                progress=not args.quiet,
+            )
         except OSError as exc:
             raise SystemExit(f"emcstereo synth: cannot write the dataset under --out {args.out}: {exc}") from exc
         seconds = time.perf_counter() - start
         counts = ", ".join(f"{name} {len(indices)}" for name, indices in summary.splits.items())
-        print(f"wrote {summary.scenes} scenes ({width}×{height}, f = {camera.focal_px:g} px, B = {camera.baseline_m} m) "
-              f"to {summary.root} in {seconds:.1f} s ({seconds / summary.scenes:.2f} s/scene); splits: {counts}")
+        print(
+            f"wrote {summary.scenes} scenes ({width}×{height}, f = {camera.focal_px:g} px, B = {camera.baseline_m} m) "
+            f"to {summary.root} in {seconds:.1f} s ({seconds / summary.scenes:.2f} s/scene); splits: {counts}"
+        )
     if args.preview is not None:
         count = min(args.preview_scenes, args.scenes)
         scenes = [render_scene(scene_seed(args.seed, i), camera, **vars(options)) for i in range(count)]
@@ -74,15 +98,20 @@ def _run(args: argparse.Namespace) -> int:
             write_rgb(args.preview, preview_image(scenes))
         except (OSError, StereoIOError) as exc:
             raise SystemExit(f"emcstereo synth: cannot write --preview {args.preview}: {exc}") from exc
-        print(f"wrote preview of scenes 0..{count - 1} to {args.preview} "
-              "(left | right | disparity | mask, cut points ringed)")
+        print(
+            f"wrote preview of scenes 0..{count - 1} to {args.preview} "
+            "(left | right | disparity | mask, cut points ringed)"
+        )
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `synth` to the `emcstereo` command."""
-    parser = sub.add_parser("synth", help="render synthetic tree-branch stereo scenes (VirtualTree layout) or a preview",
-                            description=__doc__)
+    parser = sub.add_parser(
+        "synth",
+        help="render synthetic tree-branch stereo scenes (VirtualTree layout) or a preview",
+        description=__doc__,
+    )
     parser.add_argument("--out", type=Path, help="dataset folder to write (created if needed)")
     parser.add_argument("--scenes", type=int, default=10, help="number of scenes (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="dataset seed; same seed, same files (default 0)")
@@ -90,12 +119,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--preview", type=Path, help="write a PNG: left | right | disparity | mask per scene")
     parser.add_argument("--preview-scenes", type=int, default=3, help="scenes in the preview (default 3)")
     parser.add_argument("--supersample", type=int, default=2, help="rays per pixel side for images (default 2)")
-    parser.add_argument("--cut-offset", type=float, default=0.05,
-                        help="truth cut point: metres from the branch base along its axis (default 0.05)")
+    parser.add_argument(
+        "--cut-offset",
+        type=float,
+        default=0.05,
+        help="truth cut point: metres from the branch base along its axis (default 0.05)",
+    )
     parser.add_argument("--pose", choices=POSES, default="auto", help="camera pitch class (default: drawn per scene)")
     parser.add_argument("--foliage", choices=FOLIAGE, default="auto", help="leaves (default: drawn per scene)")
-    parser.add_argument("--leaf-shape", choices=LEAF_SHAPES, default="broad",
-                        help="broad leaf blades, conifer needle clusters, or auto: drawn per scene (default broad)")
+    parser.add_argument(
+        "--leaf-shape",
+        choices=LEAF_SHAPES,
+        default="broad",
+        help="broad leaf blades, conifer needle clusters, or auto: drawn per scene (default broad)",
+    )
     parser.add_argument("--noise", type=float, default=1.0, help="sensor noise std in grey levels (default 1)")
     parser.add_argument("--no-background-trees", action="store_true", help="leave out mid-ground trees")
     parser.add_argument("--exr-half", action="store_true", help="store depth as fp16 like the UE5 originals")

@@ -1,4 +1,5 @@
 """`emcstereo train --config FILE`: train EMCStereo with a recipe from stereo/configs (torchrun-ready)."""
+
 from __future__ import annotations
 
 import argparse
@@ -38,9 +39,16 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", help="override train.out_dir (checkpoints, logs, curve)")
     parser.add_argument("--epochs", type=int, help="override train.epochs")
     parser.add_argument("--batch-size", type=int, help="override train.batch_size (per process)")
-    parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (the schedule keeps its length)")
-    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                        help="override any config key, e.g. --set train.precision=\"bf16\" (repeatable)")
+    parser.add_argument(
+        "--max-steps", type=int, help="stop after this many optimiser steps (the schedule keeps its length)"
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help='override any config key, e.g. --set train.precision="bf16" (repeatable)',
+    )
     parser.add_argument("--resume", help="training checkpoint to continue from, or 'auto' for OUT/last.pth if present")
     parser.add_argument("--device", default="auto", help="auto (CUDA LOCAL_RANK if available), cpu or cuda")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars (e.g. in batch jobs)")
@@ -61,17 +69,30 @@ def config_from_args(args: argparse.Namespace, extra: list[str] = ()) -> Experim
 def report(result: TrainResult) -> None:
     """One summary line on how the run ended."""
     state = "stopped early" if result.stopped_early else "interrupted (max steps)" if result.interrupted else "finished"
-    print(f"{state}: {result.steps} steps, {result.epochs_completed} epochs, best val EPE "
-          f"{result.best_epe:.4f} px at epoch {result.best_epoch}")
+    print(
+        f"{state}: {result.steps} steps, {result.epochs_completed} epochs, best val EPE "
+        f"{result.best_epe:.4f} px at epoch {result.best_epoch}"
+    )
 
 
-def launch(args: argparse.Namespace, config: ExperimentConfig, *, selfsup: SelfSupConfig | None = None,
-           train_set: Dataset | None = None) -> int:
+def launch(
+    args: argparse.Namespace,
+    config: ExperimentConfig,
+    *,
+    selfsup: SelfSupConfig | None = None,
+    train_set: Dataset | None = None,
+) -> int:
     """Join torchrun's process group (if any), train, leave it, and report on the main process."""
     context = context_from_env(os.environ, device=args.device)
     try:
-        result = run_training(config, context=context, resume=args.resume, show_progress=not args.no_progress,
-                              selfsup=selfsup, train_set=train_set)
+        result = run_training(
+            config,
+            context=context,
+            resume=args.resume,
+            show_progress=not args.no_progress,
+            selfsup=selfsup,
+            train_set=train_set,
+        )
     finally:
         shutdown(context)
     if context.is_main:

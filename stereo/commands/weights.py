@@ -1,4 +1,5 @@
 """`emcstereo weights list | fetch NAME | verify FILE`: released checkpoints, checked by SHA-256."""
+
 from __future__ import annotations
 
 import argparse
@@ -12,7 +13,9 @@ from stereo.weights import REGISTRY, WeightsError, fetch_weights, get_weights_in
 def _list(args: argparse.Namespace) -> int:
     for info in REGISTRY.values():
         size = f"{info.size_bytes / 1e6:.1f} MB" if info.size_bytes else "size unknown"
-        print(f"{info.name}: {info.filename} ({info.layout} layout, {size})\n  sha256 {info.sha256}\n  {info.description}")
+        print(
+            f"{info.name}: {info.filename} ({info.layout} layout, {size})\n  sha256 {info.sha256}\n  {info.description}"
+        )
         for split, metrics in info.metrics.items():
             print(f"  claims on {split}: " + ", ".join(f"{k} {v:g}" for k, v in metrics.items()))
     return 0
@@ -22,9 +25,11 @@ def _fetch(args: argparse.Namespace) -> int:
     try:
         info = get_weights_info(args.name)
         with progress_bar(unit="B", unit_scale=True, desc=info.filename, disable=args.quiet) as bar:
+
             def progress(done: int, total: int | None) -> None:
                 bar.total = total
                 bar.update(done - bar.n)
+
             path = fetch_weights(info, Path(args.dest), url=args.url, progress=progress)
     except WeightsError as exc:
         print(f"emcstereo weights fetch: {exc}", file=sys.stderr)
@@ -45,9 +50,13 @@ def _verify(args: argparse.Namespace) -> int:
 
 def add_no_verify_flag(parser: argparse.ArgumentParser) -> None:
     """`--no-verify-weights` (sets `verify_sha256=False`) on a command that loads a checkpoint."""
-    parser.add_argument("--no-verify-weights", dest="verify_sha256", action="store_false",
-                        help="load a local file that carries a registered release's name without checking "
-                             "its SHA-256 against the registry")
+    parser.add_argument(
+        "--no-verify-weights",
+        dest="verify_sha256",
+        action="store_false",
+        help="load a local file that carries a registered release's name without checking "
+        "its SHA-256 against the registry",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -1,4 +1,5 @@
 """Stereo datasets: one template (`base`) and one module per dataset, plus splits and transforms."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -39,6 +40,15 @@ def open_dataset(name: str, root: str | Path, split: str | Path | None = None) -
 
 
 __all__ = [
-    "DatasetError", "Eth3dDataset", "KittiDataset", "MiddleburyDataset", "PairRecord", "SceneFlowDataset",
-    "RectifiedPairsDataset", "StereoDataset", "SyntheticDataset", "VirtualTreeDataset", "open_dataset",
+    "DatasetError",
+    "Eth3dDataset",
+    "KittiDataset",
+    "MiddleburyDataset",
+    "PairRecord",
+    "SceneFlowDataset",
+    "RectifiedPairsDataset",
+    "StereoDataset",
+    "SyntheticDataset",
+    "VirtualTreeDataset",
+    "open_dataset",
 ]

@@ -9,6 +9,7 @@ A dataset is a `torch.utils.data.Dataset` of *raw* samples — dicts with
 Each concrete dataset only discovers its records and reads its own disparity format; training
 transforms (crop, jitter, normalisation) are applied by `stereo.datasets.transforms.Augmented`.
 """
+
 from __future__ import annotations
 
 import copy

@@ -3,6 +3,7 @@
 Images: `two_view_training/<scene>/im0.png` (left) and `im1.png` (right); ground truth:
 `two_view_training_disparity/<scene>/disp0GT.pfm` (pixels, inf = unknown).
 """
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -3,6 +3,7 @@
 Under the root: `left/`, `right/` and `ground_truth/` holding the same `*.png` file names; the
 ground truth is a uint16 PNG of disparity × 256, 0 = invalid.
 """
+
 from __future__ import annotations
 
 from pathlib import Path

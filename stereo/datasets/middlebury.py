@@ -8,6 +8,7 @@ One folder per scene under the root, either
 Images are used at the resolution on disk. Disparities ≥ `max_disp` (192 by default, as the
 authors' tools) are masked out.
 """
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -8,6 +8,7 @@ Under the root, each subset has a frames folder and a disparity folder that mirr
 
 Only the left disparity (PFM, pixels) is used. Subsets whose folders are absent are skipped.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -52,7 +53,9 @@ class SceneFlowDataset(StereoDataset):
         *,
         max_disp: float | None = None,
     ) -> None:
-        self.root = require_dir(Path(root), "a SceneFlow root holding <subset>__frames/ and <subset>_disparity/ folders")
+        self.root = require_dir(
+            Path(root), "a SceneFlow root holding <subset>__frames/ and <subset>_disparity/ folders"
+        )
         table = SCENEFLOW_SUBSETS if subsets is None else dict(subsets)
         records: list[PairRecord] = []
         for subset, (frames_name, disp_name) in table.items():

@@ -6,6 +6,7 @@ The group-aware split holds out whole groups — all frames of one tree, scene o
 taken from each record name by a regular expression — the tree-disjoint split the paper names as
 missing.
 """
+
 from __future__ import annotations
 
 import random

@@ -5,6 +5,7 @@ their own image size, so the rig that turns depth into disparity — focal lengt
 written width and baseline — is read from the `synth.json` the writer leaves in the root
 (`camera.focal_px`, `camera.baseline_m`).
 """
+
 from __future__ import annotations
 
 import json
@@ -23,9 +24,13 @@ def read_rig(root: Path) -> tuple[float, float]:
         camera = json.loads(path.read_text(encoding="utf-8"))["camera"]
         focal_px, baseline_m = float(camera["focal_px"]), float(camera["baseline_m"])
     except FileNotFoundError as exc:
-        raise DatasetError(f"{path}: not found; a synthetic set carries its rig there (camera.focal_px, camera.baseline_m)") from exc
+        raise DatasetError(
+            f"{path}: not found; a synthetic set carries its rig there (camera.focal_px, camera.baseline_m)"
+        ) from exc
     except (ValueError, KeyError, TypeError) as exc:
-        raise DatasetError(f"{path}: expected JSON with a camera object holding numeric focal_px and baseline_m ({exc})") from exc
+        raise DatasetError(
+            f"{path}: expected JSON with a camera object holding numeric focal_px and baseline_m ({exc})"
+        ) from exc
     if focal_px <= 0 or baseline_m <= 0:
         raise DatasetError(f"{path}: focal_px {focal_px} and baseline_m {baseline_m} must be positive")
     return focal_px, baseline_m * 100.0

@@ -9,6 +9,7 @@ no scaling.
 Randomness comes from a `numpy.random.Generator` that `Augmented` derives from (seed, epoch,
 sample index), so a resumed run sees exactly the augmentations the interrupted one would have.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable

@@ -3,6 +3,7 @@
 Layout: `left/NAME.png` and `right/NAME.png` (any of .png, .jpg, .jpeg) with matching names. The
 pairs must already be rectified (rows aligned). Samples carry an all-zero disparity (= unknown).
 """
+
 from __future__ import annotations
 
 from pathlib import Path

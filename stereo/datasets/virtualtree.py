@@ -12,6 +12,7 @@ Depth is stored in centimetres (EXR R channel); disparity = f·B / depth with th
 the set, f = 960 px at 1920 px width and B = 6.3 cm. Depth ≥ 65000 cm (sky, ≈ 65504 in fp16),
 non-finite or ≤ 0 is invalid and becomes disparity 0.
 """
+
 from __future__ import annotations
 
 import re
@@ -74,9 +75,7 @@ def read_split_file(path: Path) -> list[tuple[str, str, str]]:
 def discover_triples(root: Path) -> list[tuple[str, str, str]]:
     """Every `left image/left_N.png` under `root` with its depth and right image, by increasing N."""
     left_dir = require_dir(root / LEFT_DIR, f"'{LEFT_DIR}/left_N.png' files of a VirtualTree-layout dataset")
-    found = sorted(
-        (int(m.group(1)), p.name) for p in left_dir.iterdir() if (m := _LEFT_NAME.match(p.name))
-    )
+    found = sorted((int(m.group(1)), p.name) for p in left_dir.iterdir() if (m := _LEFT_NAME.match(p.name)))
     if not found:
         raise DatasetError(f"{left_dir}: no left_N.png images")
     return [(f"{LEFT_DIR}/{name}", f"{DEPTH_DIR}/depth_{n}.exr", f"{RIGHT_DIR}/right_{n}.png") for n, name in found]
@@ -110,10 +109,14 @@ class VirtualTreeDataset(StereoDataset):
         baseline_cm: float = VIRTUALTREE_BASELINE_CM,
         max_disp: float | None = None,
     ) -> None:
-        self.root = require_dir(Path(root), "a VirtualTree-layout dataset ('left image/', 'right image/', 'left depth/')")
+        self.root = require_dir(
+            Path(root), "a VirtualTree-layout dataset ('left image/', 'right image/', 'left depth/')"
+        )
         self.focal_px = focal_px
         self.baseline_cm = baseline_cm
-        triples = discover_triples(self.root) if split is None else read_split_file(resolve_split_file(self.root, split))
+        triples = (
+            discover_triples(self.root) if split is None else read_split_file(resolve_split_file(self.root, split))
+        )
         super().__init__(self._records(triples), max_disp=max_disp)
 
     def _records(self, triples: Sequence[tuple[str, str, str]]) -> list[PairRecord]:

@@ -1,4 +1,5 @@
 """File formats of stereo data: images, PFM, KITTI PNG and EXR depth, Middlebury 2001 ground truth, colour maps."""
+
 from stereo.io.colormap import colorize_disparity
 from stereo.io.errors import ArrayFormatError, MalformedFileError, StereoIOError
 from stereo.io.exr import read_exr_depth, write_exr_depth

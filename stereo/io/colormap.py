@@ -1,4 +1,5 @@
 """Disparity maps as colour images for people: overlays, debug output, the demo."""
+
 from __future__ import annotations
 
 import cv2

@@ -1,4 +1,5 @@
 """Exceptions raised by the file readers and writers of `stereo.io`."""
+
 from __future__ import annotations
 
 

@@ -6,6 +6,7 @@ The UE5 files carry three channels, R (depth), G and B (NaN everywhere): read wi
 are a 3-channel BGR image whose index 2 is the depth, which is how the authors' loader reads them.
 The writer produces the same layout so that any reader of the real files reads ours.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -41,9 +42,7 @@ def read_exr_depth(path: str | Path, channel: str = "R") -> np.ndarray:
     return pixels.astype(np.float32)
 
 
-def write_exr_depth(
-    path: str | Path, depth: np.ndarray, *, pixel_type: Literal["half", "float"] = "float"
-) -> None:
+def write_exr_depth(path: str | Path, depth: np.ndarray, *, pixel_type: Literal["half", "float"] = "float") -> None:
     """Write float `H×W` depth (any unit; VirtualTree uses cm) in the UE5 layout: a ZIP-compressed EXR whose
     R channel is the depth and whose G and B channels are NaN.
 
@@ -54,7 +53,9 @@ def write_exr_depth(
     if pixel_type not in _PIXEL_TYPES:
         raise ArrayFormatError(f"cannot write {path}: pixel_type {pixel_type!r} must be 'half' or 'float'")
     if depth.ndim != 2 or depth.size == 0 or not np.issubdtype(depth.dtype, np.number):
-        raise ArrayFormatError(f"cannot write {path}: expected a numeric H×W depth map, got {depth.dtype} {depth.shape}")
+        raise ArrayFormatError(
+            f"cannot write {path}: expected a numeric H×W depth map, got {depth.dtype} {depth.shape}"
+        )
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     pixels = np.ascontiguousarray(depth, dtype=_PIXEL_TYPES[pixel_type])
     unused = np.full_like(pixels, np.nan)

@@ -3,6 +3,7 @@
 OpenCV decodes and encodes; BGR exists only inside these functions. Files are read as bytes first
 so that paths with any characters work and a missing file raises `FileNotFoundError`.
 """
+
 from __future__ import annotations
 
 from pathlib import Path

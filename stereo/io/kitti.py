@@ -1,4 +1,5 @@
 """KITTI 2012/2015 disparity PNGs: 16-bit grey, disparity = value / 256, value 0 = no ground truth."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -36,7 +37,9 @@ def write_kitti_disparity(path: str | Path, disparity: np.ndarray) -> None:
     path = Path(path)
     disparity = np.asarray(disparity)
     if disparity.ndim != 2 or not np.issubdtype(disparity.dtype, np.number):
-        raise ArrayFormatError(f"cannot write {path}: expected a numeric H×W disparity, got {disparity.dtype} {disparity.shape}")
+        raise ArrayFormatError(
+            f"cannot write {path}: expected a numeric H×W disparity, got {disparity.dtype} {disparity.shape}"
+        )
     disparity = disparity.astype(np.float64)
     valid = np.isfinite(disparity) & (disparity > 0)
     too_far = valid & (disparity > KITTI_MAX_DISPARITY)

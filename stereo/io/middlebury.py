@@ -2,6 +2,7 @@
 
 The scale (Tsukuba 16, Venus 8) and the number of disparities are the two lines of `info.txt`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

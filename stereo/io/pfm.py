@@ -5,6 +5,7 @@ height, scale — then float32 pixels, rows stored bottom-up. The scale's sign g
 (negative: little-endian); its magnitude is not applied to the data, as the open-dataset tools do.
 OpenCV's reader mishandles some of these files, hence this parser.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -29,7 +30,9 @@ def _header_tokens(data: bytes, path: Path) -> tuple[list[bytes], int]:
         while pos < len(data) and data[pos] not in _WHITESPACE and pos - start < 32:
             pos += 1
         if start == pos:
-            raise MalformedFileError(f"{path}: PFM header ends after {len(tokens)} of 4 tokens (magic, width, height, scale)")
+            raise MalformedFileError(
+                f"{path}: PFM header ends after {len(tokens)} of 4 tokens (magic, width, height, scale)"
+            )
         tokens.append(data[start:pos])
     return tokens, pos
 
@@ -54,7 +57,9 @@ def read_pfm(path: str | Path, *, all_channels: bool = False) -> np.ndarray:
     if width <= 0 or height <= 0:
         raise MalformedFileError(f"{path}: PFM size {width}×{height} must be positive")
     if scale == 0.0 or not np.isfinite(scale):
-        raise MalformedFileError(f"{path}: PFM scale {scale_tok!r} must be non-zero and finite (its sign is the byte order)")
+        raise MalformedFileError(
+            f"{path}: PFM scale {scale_tok!r} must be non-zero and finite (its sign is the byte order)"
+        )
     channels = _CHANNELS[magic]
     n_bytes = width * height * channels * 4
     # The pixel block is the last n_bytes; only whitespace may separate it from the header.
@@ -65,7 +70,9 @@ def read_pfm(path: str | Path, *, all_channels: bool = False) -> np.ndarray:
             f"found {max(len(data) - header_end - 1, 0)}"
         )
     if any(b not in _WHITESPACE for b in data[header_end:offset]):
-        raise MalformedFileError(f"{path}: {offset - header_end} unexpected bytes between the PFM header and its pixels")
+        raise MalformedFileError(
+            f"{path}: {offset - header_end} unexpected bytes between the PFM header and its pixels"
+        )
     dtype = np.dtype("<f4") if scale < 0 else np.dtype(">f4")
     pixels = np.frombuffer(data, dtype=dtype, count=width * height * channels, offset=offset)
     image = pixels.reshape(height, width, channels)[::-1].astype(np.float32)

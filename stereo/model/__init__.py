@@ -1,4 +1,5 @@
 """The EMCStereo network, split into the stages every stereo paper draws."""
+
 from .emcstereo import EMCStereo, ModelConfig
 from .stages import MIN_SIZE, SIZE_MULTIPLE
 

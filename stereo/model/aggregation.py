@@ -1,4 +1,5 @@
 """Stacked-hourglass 3D cost aggregation (PSMNet) with three residually refined heads."""
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -30,8 +31,9 @@ class Hourglass(nn.Module):
         self.conv5 = _deconv_bn(wide, wide)
         self.conv6 = _deconv_bn(wide, channels)
 
-    def forward(self, x: torch.Tensor, presqu: torch.Tensor | None,
-                postsqu: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, presqu: torch.Tensor | None, postsqu: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         pre = self.conv2(self.conv1(x))
         pre = F.relu(pre + postsqu if postsqu is not None else pre, inplace=True)
         out = self.conv4(self.conv3(pre))

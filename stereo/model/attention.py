@@ -3,6 +3,7 @@
 Parameter counts pinned by the paper: EMA(128, 16 groups) 672, MSFBlock(32) 5,184,
 CoordAtt(32, reduction 8) 856.
 """
+
 from __future__ import annotations
 
 import torch
@@ -30,7 +31,7 @@ class EMA(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, c, h, w = x.shape
         g = x.reshape(b * self.groups, c // self.groups, h, w)
-        pooled_h = g.mean(dim=3, keepdim=True)                      # (BG, c, H, 1)
+        pooled_h = g.mean(dim=3, keepdim=True)  # (BG, c, H, 1)
         pooled_w = g.mean(dim=2, keepdim=True).permute(0, 1, 3, 2)  # (BG, c, W, 1)
         gates = self.conv1x1(torch.cat([pooled_h, pooled_w], dim=2))
         gate_h, gate_w = torch.split(gates, [h, w], dim=2)
@@ -106,7 +107,7 @@ class CoordAtt(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[2:]
-        pooled_h = x.mean(dim=3, keepdim=True)                      # (B, C, H, 1)
+        pooled_h = x.mean(dim=3, keepdim=True)  # (B, C, H, 1)
         pooled_w = x.mean(dim=2, keepdim=True).permute(0, 1, 3, 2)  # (B, C, W, 1)
         y = self.act(self.bn1(self.conv1(torch.cat([pooled_h, pooled_w], dim=2))))
         y_h, y_w = torch.split(y, [h, w], dim=2)

@@ -4,6 +4,7 @@ Input (B, 3, H, W) ImageNet-normalised, H and W multiples of 32 and ≥ 256 (the
 `branch1` runs on the ¼-resolution feature); output the 32-channel matching feature
 (B, 32, H/4, W/4).
 """
+
 from __future__ import annotations
 
 import torch

@@ -1,4 +1,5 @@
 """EMCStereo: the four stages (features, cost volume, aggregation, regression) put together."""
+
 from __future__ import annotations
 
 import warnings
@@ -47,12 +48,19 @@ class ModelConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         max_disp = self.max_disp
-        if isinstance(max_disp, bool) or not isinstance(max_disp, int) or not 0 < max_disp <= MAX_DISP_LIMIT \
-                or max_disp % DISPARITY_STEP:
-            raise ValueError(f"max_disp must be a positive multiple of {DISPARITY_STEP} up to {MAX_DISP_LIMIT}, got {max_disp!r}")
+        if (
+            isinstance(max_disp, bool)
+            or not isinstance(max_disp, int)
+            or not 0 < max_disp <= MAX_DISP_LIMIT
+            or max_disp % DISPARITY_STEP
+        ):
+            raise ValueError(
+                f"max_disp must be a positive multiple of {DISPARITY_STEP} up to {MAX_DISP_LIMIT}, got {max_disp!r}"
+            )
         if self.hourglass_wiring not in HOURGLASS_WIRINGS:
-            raise ValueError(f"hourglass_wiring must be one of {', '.join(HOURGLASS_WIRINGS)}, "
-                             f"got {self.hourglass_wiring!r}")
+            raise ValueError(
+                f"hourglass_wiring must be one of {', '.join(HOURGLASS_WIRINGS)}, got {self.hourglass_wiring!r}"
+            )
 
     def to_dict(self) -> dict[str, bool | int | str]:
         return asdict(self)
@@ -77,8 +85,15 @@ class EMCStereo(StagedStereo):
     The order of the stages is `StagedStereo`'s; this class gives the reference implementation of each.
     """
 
-    def __init__(self, ema: bool = True, msf: bool = True, coord: bool = True, max_disp: int = 192,
-                 hourglass_wiring: str = "openstereo", align_corners: bool = True) -> None:
+    def __init__(
+        self,
+        ema: bool = True,
+        msf: bool = True,
+        coord: bool = True,
+        max_disp: int = 192,
+        hourglass_wiring: str = "openstereo",
+        align_corners: bool = True,
+    ) -> None:
         super().__init__()
         self.config = ModelConfig(ema, msf, coord, max_disp, hourglass_wiring, align_corners)
         self.backbone = FeatureBackbone(ema=ema, msf=msf, coord=coord)
@@ -88,8 +103,7 @@ class EMCStereo(StagedStereo):
     @classmethod
     def from_config(cls, config: ModelConfig) -> EMCStereo:
         """The variant `config` describes, with freshly initialised weights."""
-        return cls(config.ema, config.msf, config.coord, config.max_disp, config.hourglass_wiring,
-                   config.align_corners)
+        return cls(config.ema, config.msf, config.coord, config.max_disp, config.hourglass_wiring, config.align_corners)
 
     @property
     def max_disp(self) -> int:
@@ -102,8 +116,9 @@ class EMCStereo(StagedStereo):
             return [self.regression(self._upsample(c, self.max_disp, height, width)) for c in costs]
         return self.regression(self._upsample(last_cost(costs), self.max_disp, height, width))
 
-    def infer(self, left: torch.Tensor, right: torch.Tensor, max_disp: int | None = None,
-              *, fast: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    def infer(
+        self, left: torch.Tensor, right: torch.Tensor, max_disp: int | None = None, *, fast: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Disparity and soft-argmin confidence, both (B, H, W), over a search range ≤ max_disp.
 
         A smaller `max_disp` (a multiple of 16) for a known working range shrinks the cost volume
@@ -115,7 +130,9 @@ class EMCStereo(StagedStereo):
         """
         disparities = self.max_disp if max_disp is None else max_disp
         if disparities <= 0 or disparities % DISPARITY_STEP or disparities > self.max_disp:
-            raise ValueError(f"inference max_disp must be a multiple of {DISPARITY_STEP} in (0, {self.max_disp}], got {max_disp}")
+            raise ValueError(
+                f"inference max_disp must be a multiple of {DISPARITY_STEP} in (0, {self.max_disp}], got {max_disp}"
+            )
         if fast:
             check_input_size(left, right)  # before building the fast copy, not only inside it
             with torch.inference_mode():
@@ -128,8 +145,9 @@ class EMCStereo(StagedStereo):
         A change is seen through each tensor's storage address and in-place version counter
         (`load_state_dict`, optimiser steps and `.to(device)` all move one of them).
         """
-        fingerprint = tuple((t.data_ptr(), t._version, t.dtype, t.device)
-                            for t in self.state_dict(keep_vars=True).values())
+        fingerprint = tuple(
+            (t.data_ptr(), t._version, t.dtype, t.device) for t in self.state_dict(keep_vars=True).values()
+        )
         cached = self.__dict__.get("_fast_cache")
         if cached is None or cached[0] != fingerprint:
             cached = (fingerprint, FastInference(self))
@@ -152,8 +170,9 @@ class EMCStereo(StagedStereo):
     def aggregate(self, volume: torch.Tensor) -> Iterator[torch.Tensor]:
         return self.aggregation.costs(volume)
 
-    def regress(self, cost: torch.Tensor, disparities: int, height: int,
-                width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def regress(
+        self, cost: torch.Tensor, disparities: int, height: int, width: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         return self.regression.with_confidence(self._upsample(cost, disparities, height, width))
 
     def _upsample(self, cost: torch.Tensor, disparities: int, height: int, width: int) -> torch.Tensor:
@@ -173,8 +192,11 @@ def per_view_batchnorm_possible(view: torch.Tensor) -> bool:
         return True
     if not _FALLBACK_WARNED:
         _FALLBACK_WARNED.append(True)
-        warnings.warn(f"training batch 1 at {height}×{width}: BatchNorm statistics span both views (per-view "
-                      "needs a batch ≥ 2 or a crop ≥ 512 on one side)", stacklevel=3)
+        warnings.warn(
+            f"training batch 1 at {height}×{width}: BatchNorm statistics span both views (per-view "
+            "needs a batch ≥ 2 or a crop ≥ 512 on one side)",
+            stacklevel=3,
+        )
     return False
 
 

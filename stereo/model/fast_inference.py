@@ -12,6 +12,7 @@ computed. What it changes against the plain eval forward, all exact up to float 
 - the trilinear upsampling fused with the soft-argmin, a few rows at a time, so the
   full-resolution (D, H, W) volume never exists.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -52,8 +53,7 @@ class FastInference(StagedStereo):
         self.requires_grad_(False)
         self.eval()
 
-    def forward(self, left: torch.Tensor, right: torch.Tensor,
-                disparities: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, left: torch.Tensor, right: torch.Tensor, disparities: int) -> tuple[torch.Tensor, torch.Tensor]:
         return self.disparity_and_confidence(left, right, disparities)
 
     def features(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -70,8 +70,16 @@ class FastInference(StagedStereo):
     def aggregate(self, volume: torch.Tensor) -> Iterator[torch.Tensor]:
         return self.aggregation.costs(volume)
 
-    def regress(self, cost: torch.Tensor, disparities: int, height: int,
-                width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def regress(
+        self, cost: torch.Tensor, disparities: int, height: int, width: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Upsampling fused with the soft-argmin, `rows_per_chunk` output rows at a time."""
-        return upsampled_soft_argmin(cost, self.disparity_values[:disparities], height, width, self.max_disp,
-                                     self.align_corners, rows_per_chunk=self.rows_per_chunk)
+        return upsampled_soft_argmin(
+            cost,
+            self.disparity_values[:disparities],
+            height,
+            width,
+            self.max_disp,
+            self.align_corners,
+            rows_per_chunk=self.rows_per_chunk,
+        )

@@ -4,6 +4,7 @@ In eval mode a BatchNorm is an affine map per channel, `y = (x − μ)·γ/√(�
 convolution it can be absorbed into the convolution's weights and bias, which saves one full pass
 over every activation. The training model is never touched: `fold_batchnorms` works on a deep copy.
 """
+
 from __future__ import annotations
 
 import copy
@@ -28,8 +29,10 @@ def fold_conv_bn(conv: nn.Module, bn: nn.Module) -> nn.Module:
         raise ValueError(f"folding into a grouped transposed convolution is not supported (groups={conv.groups})")
     out_channels = conv.out_channels
     if bn.num_features != out_channels or bn.running_mean is None or bn.running_var is None:
-        raise ValueError(f"BatchNorm with {bn.num_features} features and running statistics expected after a "
-                         f"convolution with {out_channels} output channels")
+        raise ValueError(
+            f"BatchNorm with {bn.num_features} features and running statistics expected after a "
+            f"convolution with {out_channels} output channels"
+        )
     fused = copy.deepcopy(conv)
     with torch.no_grad():
         scale = bn.running_var.double().add(bn.eps).rsqrt()

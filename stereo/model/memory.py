@@ -6,6 +6,7 @@ instead of unmapping them, where the much larger 3D volumes that follow cannot r
 `malloc_trim(0)` returns it. It is a glibc extension: on a C library without it (musl, macOS,
 Windows) or where no C library can be found, `release_freed_memory` does nothing.
 """
+
 from __future__ import annotations
 
 import ctypes

@@ -8,6 +8,7 @@ problem. They are private to PyTorch, so every module here falls back to the pub
 call where they are missing or misbehave (`onednn_available` checks them once), on other devices
 and for other dtypes; both paths compute the same (tested).
 """
+
 from __future__ import annotations
 
 import functools
@@ -30,8 +31,12 @@ def onednn_available() -> bool:
     every module here use the public path instead of failing.
     """
     ops = getattr(torch.ops, "mkldnn", None)
-    if not (torch.backends.mkldnn.is_available() and ops is not None
-            and hasattr(ops, "_convolution_pointwise") and hasattr(ops, "_convolution_transpose_pointwise")):
+    if not (
+        torch.backends.mkldnn.is_available()
+        and ops is not None
+        and hasattr(ops, "_convolution_pointwise")
+        and hasattr(ops, "_convolution_transpose_pointwise")
+    ):
         return False
     generator = torch.Generator().manual_seed(0)
     x = torch.randn(1, 2, 4, 4, generator=generator).contiguous(memory_format=torch.channels_last)
@@ -41,9 +46,11 @@ def onednn_available() -> bool:
         with torch.no_grad():
             fused = ops._convolution_pointwise(x, weight, bias, [1, 1], [1, 1], [1, 1], 1, "relu", [], "")
             transposed = ops._convolution_transpose_pointwise(
-                fused, weight, bias[:2], [1, 1], [1, 1], [2, 2], [1, 1], 1, "none", [], "")
-            return (torch.allclose(fused, F.relu(F.conv2d(x, weight, bias, 1, 1)), atol=1e-5)
-                    and torch.allclose(transposed, F.conv_transpose2d(fused, weight, bias[:2], 2, 1, 1), atol=1e-5))
+                fused, weight, bias[:2], [1, 1], [1, 1], [2, 2], [1, 1], 1, "none", [], ""
+            )
+            return torch.allclose(fused, F.relu(F.conv2d(x, weight, bias, 1, 1)), atol=1e-5) and torch.allclose(
+                transposed, F.conv_transpose2d(fused, weight, bias[:2], 2, 1, 1), atol=1e-5
+            )
     except (RuntimeError, TypeError):
         return False
 
@@ -76,8 +83,17 @@ class FusedConv(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if _runs_on_onednn(x, self.use_onednn):
             return torch.ops.mkldnn._convolution_pointwise(
-                x, self.weight, self.bias, self.padding, self.stride, self.dilation, self.groups,
-                "relu" if self.relu else "none", [], "")
+                x,
+                self.weight,
+                self.bias,
+                self.padding,
+                self.stride,
+                self.dilation,
+                self.groups,
+                "relu" if self.relu else "none",
+                [],
+                "",
+            )
         y = self._functional(x, self.weight, self.bias, self.stride, self.padding, self.dilation, self.groups)
         return F.relu_(y) if self.relu else y
 
@@ -99,10 +115,21 @@ class FusedConvTranspose(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if _runs_on_onednn(x, self.use_onednn):
             return torch.ops.mkldnn._convolution_transpose_pointwise(
-                x, self.weight, self.bias, self.padding, self.output_padding, self.stride, self.dilation, 1,
-                "none", [], "")
-        return self._functional(x, self.weight, self.bias, self.stride, self.padding, self.output_padding,
-                                1, self.dilation)
+                x,
+                self.weight,
+                self.bias,
+                self.padding,
+                self.output_padding,
+                self.stride,
+                self.dilation,
+                1,
+                "none",
+                [],
+                "",
+            )
+        return self._functional(
+            x, self.weight, self.bias, self.stride, self.padding, self.output_padding, 1, self.dilation
+        )
 
 
 class DepthSplitConv3d(nn.Module):
@@ -116,8 +143,13 @@ class DepthSplitConv3d(nn.Module):
 
     def __init__(self, conv: nn.Module, use_onednn: bool = True) -> None:
         super().__init__()
-        if (not isinstance(conv, nn.Conv3d) or tuple(conv.stride) != (1, 1, 1) or tuple(conv.dilation) != (1, 1, 1)
-                or conv.groups != 1 or isinstance(conv.padding, str)):
+        if (
+            not isinstance(conv, nn.Conv3d)
+            or tuple(conv.stride) != (1, 1, 1)
+            or tuple(conv.dilation) != (1, 1, 1)
+            or conv.groups != 1
+            or isinstance(conv.padding, str)
+        ):
             raise TypeError(f"DepthSplitConv3d takes an ungrouped, undilated stride-1 Conv3d, got {conv!r}")
         out_ch, in_ch, taps = conv.weight.shape[:3]
         slices = conv.weight.detach().permute(2, 0, 1, 3, 4).reshape(taps * out_ch, in_ch, *conv.weight.shape[3:])
@@ -131,8 +163,9 @@ class DepthSplitConv3d(nn.Module):
         batch, channels, depth, height, width = x.shape
         planes = x.transpose(1, 2).reshape(batch * depth, channels, height, width)
         if _runs_on_onednn(x, self.use_onednn):
-            per_tap = torch.ops.mkldnn._convolution_pointwise(planes, self.weight, None, self.padding, [1, 1],
-                                                               [1, 1], 1, "none", [], "")
+            per_tap = torch.ops.mkldnn._convolution_pointwise(
+                planes, self.weight, None, self.padding, [1, 1], [1, 1], 1, "none", [], ""
+            )
         else:
             per_tap = F.conv2d(planes, self.weight, None, 1, self.padding)
         per_tap = per_tap.reshape(batch, depth, self.taps, self.out_channels, *per_tap.shape[2:])
@@ -143,7 +176,9 @@ class DepthSplitConv3d(nn.Module):
             first = max(0, self.depth_padding - tap)
             last = min(out_depth, depth + self.depth_padding - tap)
             if last > first:
-                out[:, first:last] += per_tap[:, first + tap - self.depth_padding:last + tap - self.depth_padding, tap]
+                out[:, first:last] += per_tap[
+                    :, first + tap - self.depth_padding : last + tap - self.depth_padding, tap
+                ]
         if self.bias is not None:
             out += self.bias.reshape(1, 1, -1, 1, 1)
         return out.transpose(1, 2)
@@ -166,9 +201,14 @@ def fuse_convolutions(module: nn.Module, use_onednn: bool = True) -> nn.Module:
         for index, (name, child) in enumerate(children):
             if isinstance(child, _TRANSPOSED):
                 setattr(parent, name, FusedConvTranspose(child, use_onednn))
-            elif (isinstance(child, nn.Conv3d) and child.out_channels < DEPTH_SPLIT_MAX_CHANNELS
-                  and tuple(child.stride) == (1, 1, 1) and tuple(child.dilation) == (1, 1, 1) and child.groups == 1
-                  and _following_relu(parent, children, index) is None):
+            elif (
+                isinstance(child, nn.Conv3d)
+                and child.out_channels < DEPTH_SPLIT_MAX_CHANNELS
+                and tuple(child.stride) == (1, 1, 1)
+                and tuple(child.dilation) == (1, 1, 1)
+                and child.groups == 1
+                and _following_relu(parent, children, index) is None
+            ):
                 setattr(parent, name, DepthSplitConv3d(child, use_onednn))
             elif isinstance(child, _CONVS):
                 relu_name = _following_relu(parent, children, index)
@@ -182,7 +222,7 @@ def _following_relu(parent: nn.Module, children: list[tuple[str, nn.Module]], in
     """Name of the ReLU after children[index] in a Sequential, skipping Identity; None if there is none."""
     if not isinstance(parent, nn.Sequential):
         return None
-    for name, child in children[index + 1:]:
+    for name, child in children[index + 1 :]:
         if isinstance(child, nn.ReLU):
             return name
         if not isinstance(child, nn.Identity):

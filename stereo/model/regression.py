@@ -1,4 +1,5 @@
 """From a low-resolution cost to a full-resolution disparity: trilinear upsampling + soft-argmin."""
+
 from __future__ import annotations
 
 import torch
@@ -6,8 +7,9 @@ import torch.nn.functional as F
 from torch import nn
 
 
-def upsample_cost(cost: torch.Tensor, disparities: int, height: int, width: int, max_disp: int,
-                  align_corners: bool = True) -> torch.Tensor:
+def upsample_cost(
+    cost: torch.Tensor, disparities: int, height: int, width: int, max_disp: int, align_corners: bool = True
+) -> torch.Tensor:
     """Trilinear upsampling of (B, 1, Dl, h, w) to (B, disparities, H, W), as the model was trained.
 
     With `disparities == max_disp` this is exactly `interpolate(…, [D, H, W], mode='trilinear',
@@ -19,8 +21,9 @@ def upsample_cost(cost: torch.Tensor, disparities: int, height: int, width: int,
     return F.interpolate(deep, size=(height, width), mode="bilinear", align_corners=align_corners)
 
 
-def depth_positions(disparities: int, max_disp: int, align_corners: bool,
-                    device: torch.device | None = None) -> torch.Tensor:
+def depth_positions(
+    disparities: int, max_disp: int, align_corners: bool, device: torch.device | None = None
+) -> torch.Tensor:
     """Where output disparity d = 0…disparities−1 samples the ¼-resolution depth axis (float64 slices).
 
     The scale is the full range's (`max_disp` → `max_disp // 4` slices), as `F.interpolate` maps
@@ -38,11 +41,10 @@ def upsample_depth(cost: torch.Tensor, disparities: int, max_disp: int, align_co
 
     Index d samples the low-resolution slice at `depth_positions(…)[d]`, clamped to the slices present.
     """
-    low = cost[:, 0]                                        # (B, Dl, h, w)
-    lower, upper, frac = _linear_taps(depth_positions(disparities, max_disp, align_corners, cost.device),
-                                      low.shape[1])
+    low = cost[:, 0]  # (B, Dl, h, w)
+    lower, upper, frac = _linear_taps(depth_positions(disparities, max_disp, align_corners, cost.device), low.shape[1])
     frac = frac.to(low.dtype)[None, :, None, None]
-    return low[:, lower] * (1 - frac) + low[:, upper] * frac   # (B, D, h, w)
+    return low[:, lower] * (1 - frac) + low[:, upper] * frac  # (B, D, h, w)
 
 
 def _linear_taps(pos: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -53,8 +55,9 @@ def _linear_taps(pos: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tens
     return lower, upper, pos - lower
 
 
-def _resize_taps(out_size: int, in_size: int, align_corners: bool,
-                 device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _resize_taps(
+    out_size: int, in_size: int, align_corners: bool, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`_linear_taps` of bilinear resizing from `in_size` to `out_size` samples.
 
     Positions are computed in float32 as PyTorch's own `interpolate` does, so both round alike.
@@ -67,9 +70,16 @@ def _resize_taps(out_size: int, in_size: int, align_corners: bool,
     return _linear_taps(((index + 0.5) * scale - 0.5).clamp(min=0.0), in_size)
 
 
-def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int, width: int,
-                          max_disp: int, align_corners: bool = True, radius: float = 2.0,
-                          rows_per_chunk: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+def upsampled_soft_argmin(
+    cost: torch.Tensor,
+    values: torch.Tensor,
+    height: int,
+    width: int,
+    max_disp: int,
+    align_corners: bool = True,
+    radius: float = 2.0,
+    rows_per_chunk: int = 32,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """`DisparityRegression.with_confidence(upsample_cost(…))` without the full-resolution volume.
 
     cost (B, 1, Dl, h, w) low-resolution costs; values (D,) the disparity of each upsampled
@@ -84,7 +94,7 @@ def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int,
         raise ValueError(f"rows_per_chunk must be positive, got {rows_per_chunk}")
     values = values.float()
     depth = values.numel()
-    deep = upsample_depth(cost.float(), depth, max_disp, align_corners)       # (B, D, h, w)
+    deep = upsample_depth(cost.float(), depth, max_disp, align_corners)  # (B, D, h, w)
     batch = deep.shape[0]
     row_lo, row_hi, row_frac = _resize_taps(height, deep.shape[2], align_corners, cost.device)
     window = torch.arange(int(2 * radius) + 1, device=cost.device)
@@ -92,10 +102,14 @@ def upsampled_soft_argmin(cost: torch.Tensor, values: torch.Tensor, height: int,
     for top in range(0, height, rows_per_chunk):
         rows = slice(top, min(top + rows_per_chunk, height))
         count = rows.stop - rows.start
-        low_rows = torch.lerp(deep[:, :, row_lo[rows]], deep[:, :, row_hi[rows]],
-                              row_frac[rows][None, None, :, None].expand(batch, depth, -1, deep.shape[3]))
-        prob = torch.softmax(F.interpolate(low_rows, size=(count, width), mode="bilinear",
-                                           align_corners=align_corners), dim=1)
+        low_rows = torch.lerp(
+            deep[:, :, row_lo[rows]],
+            deep[:, :, row_hi[rows]],
+            row_frac[rows][None, None, :, None].expand(batch, depth, -1, deep.shape[3]),
+        )
+        prob = torch.softmax(
+            F.interpolate(low_rows, size=(count, width), mode="bilinear", align_corners=align_corners), dim=1
+        )
         estimate = torch.matmul(values, prob.reshape(batch, depth, count * width)).reshape(batch, count, width)
         disparity.append(estimate)
         # Confidence: the probability within ±radius of the estimate, i.e. of the integer

@@ -4,6 +4,7 @@
 (the trainable reference) and `FastInference` (folded, fused, channels-last) are the two
 implementations, so a change to the sequence is made here and both follow it.
 """
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -42,8 +43,9 @@ class StagedStereo(nn.Module, ABC):
         """Yield the costs c1, c2, c3 (B, 1, D/4, H/4, W/4); the caller lets go of `volume`."""
 
     @abstractmethod
-    def regress(self, cost: torch.Tensor, disparities: int, height: int,
-                width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def regress(
+        self, cost: torch.Tensor, disparities: int, height: int, width: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Disparity (px) and confidence, both (B, height, width), from one low-resolution cost."""
 
     def costs(self, left: torch.Tensor, right: torch.Tensor, disparities: int) -> Iterator[torch.Tensor]:
@@ -55,8 +57,9 @@ class StagedStereo(nn.Module, ABC):
         check_input_size(left, right)
         yield from self.aggregate(self.cost_volume(*self.features(left, right), disparities))
 
-    def disparity_and_confidence(self, left: torch.Tensor, right: torch.Tensor,
-                                 disparities: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def disparity_and_confidence(
+        self, left: torch.Tensor, right: torch.Tensor, disparities: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The whole sequence at inference: disparity and confidence (B, H, W) from the last cost."""
         height, width = left.shape[2:]
         return self.regress(last_cost(self.costs(left, right, disparities)), disparities, height, width)

@@ -4,6 +4,7 @@
 ground, sky) from both cameras of a rectified rig; `write_dataset` writes many of them as
 `left image/`, `right image/`, `left depth/` (EXR, cm) plus masks and branch geometry.
 """
+
 from stereo.synth.camera import SynthCamera
 from stereo.synth.options import SynthOptions
 from stereo.synth.render import SyntheticScene, render_scene

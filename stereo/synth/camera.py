@@ -5,6 +5,7 @@ centre, `((W-1)/2, (H-1)/2)`. The left camera is the origin of the scene frame (
 z forward, metres); the right camera sits at `(B, 0, 0)` with the same orientation, so a point at
 depth Z appears `f·B/Z` pixels further left in the right image.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -74,8 +75,14 @@ class SynthCamera:
 
     def to_dict(self) -> dict[str, float | int]:
         """The rig as JSON-ready values (the branches files carry it)."""
-        return {"width": self.width, "height": self.height, "focal_px": self.focal_px,
-                "baseline_m": self.baseline_m, "cx": self.cx, "cy": self.cy}
+        return {
+            "width": self.width,
+            "height": self.height,
+            "focal_px": self.focal_px,
+            "baseline_m": self.baseline_m,
+            "cx": self.cx,
+            "cy": self.cy,
+        }
 
 
 @dataclass(frozen=True)
@@ -100,8 +107,15 @@ class RayGrid:
         offsets = (np.arange(samples) + 0.5) / samples - 0.5
         xs = (np.arange(camera.width)[:, None] + offsets[None, :]).ravel()
         ys = (np.arange(camera.height)[:, None] + offsets[None, :]).ravel()
-        return cls(camera.origin(view), (xs - camera.cx) / camera.focal_px, (ys - camera.cy) / camera.focal_px,
-                   samples, camera.focal_px, camera.cx, camera.cy)
+        return cls(
+            camera.origin(view),
+            (xs - camera.cx) / camera.focal_px,
+            (ys - camera.cy) / camera.focal_px,
+            samples,
+            camera.focal_px,
+            camera.cx,
+            camera.cy,
+        )
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -132,7 +146,9 @@ class RayGrid:
         return r0, r1, c0, c1
 
 
-def enumerate_boxes(r0: np.ndarray, r1: np.ndarray, c0: np.ndarray, c1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def enumerate_boxes(
+    r0: np.ndarray, r1: np.ndarray, c0: np.ndarray, c1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every sample of K boxes as flat arrays `(part, row, col)`, `part` being the box index (0..K-1)."""
     heights = np.maximum(r1 - r0, 0)
     widths = np.where(heights > 0, c1 - c0, 0)

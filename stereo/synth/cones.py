@@ -6,6 +6,7 @@ ray `o + t·d` meets it where `|w|² − (w·a)² = (r0 + k·(w·a))²` with `w 
 quadratic in t, solved per sample. Long cones are cut into pieces along the axis (the same
 surface) so each piece's image box stays tight.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
@@ -108,14 +109,18 @@ class Cone:
         disc = quad_b * quad_b - 4.0 * quad_a * quad_c
         # the two roots in the cancellation-free form q/A, C/q; the exit is the nearest one ahead
         q = -0.5 * (quad_b + np.copysign(np.sqrt(max(disc, 0.0)), quad_b))
-        roots = [r for r in ((q / quad_a if quad_a != 0.0 else np.inf), (quad_c / q if q != 0.0 else np.inf))
-                 if 0.0 < r < np.inf and radius0 + k * da * r >= 0.0]
+        roots = [
+            r
+            for r in ((q / quad_a if quad_a != 0.0 else np.inf), (quad_c / q if q != 0.0 else np.inf))
+            if 0.0 < r < np.inf and radius0 + k * da * r >= 0.0
+        ]
         if disc < 0.0 or not roots:
             raise ValueError(f"exit_distance: the ray along {_rounded(direction)} never leaves the side surface")
         t = min(roots)
         if not 0.0 <= wa + t * da <= self.length:
-            raise ValueError(f"exit_distance: the ray along {_rounded(direction)} leaves through an end, "
-                             "not the side surface")
+            raise ValueError(
+                f"exit_distance: the ray along {_rounded(direction)} leaves through an end, not the side surface"
+            )
         return float(t)
 
 
@@ -154,8 +159,25 @@ class ConeBatch:
         square = _SQUARE[None, :, 0, None] * self.e1[:, None, :] + _SQUARE[None, :, 1, None] * self.e2[:, None, :]
         self.hulls = np.concatenate([e[:, None, :] + r[:, None, None] * square for e, r in zip(ends, radii)], axis=1)
         order = np.argsort(self.hulls[:, :, 2].min(axis=1), kind="stable")
-        for name in ("base", "axis", "length", "r0", "r1", "slope", "s_lo", "s_hi", "capped", "ids", "tile_index",
-                     "around", "along_m", "tint", "e1", "e2", "hulls"):
+        for name in (
+            "base",
+            "axis",
+            "length",
+            "r0",
+            "r1",
+            "slope",
+            "s_lo",
+            "s_hi",
+            "capped",
+            "ids",
+            "tile_index",
+            "around",
+            "along_m",
+            "tint",
+            "e1",
+            "e2",
+            "hulls",
+        ):
             setattr(self, name, getattr(self, name)[order])
 
     def instance_ids(self, part: np.ndarray) -> np.ndarray:
@@ -194,20 +216,30 @@ class ConeBatch:
                     best = np.where((t > NEAR_M) & (s >= lo) & (s <= hi) & (t < best), t, best)
                 capped = np.flatnonzero(self.capped[part])
                 if capped.size:
-                    best[capped] = np.minimum(best[capped], self._cap_depth(
-                        part[capped], w0[part[capped]], rays.dx[cols[capped]], rays.dy[rows[capped]], sd[capped], s_start[capped]))
+                    best[capped] = np.minimum(
+                        best[capped],
+                        self._cap_depth(
+                            part[capped],
+                            w0[part[capped]],
+                            rays.dx[cols[capped]],
+                            rays.dy[rows[capped]],
+                            sd[capped],
+                            s_start[capped],
+                        ),
+                    )
             index = rows * width + cols
             keep = np.flatnonzero(best < depth.ravel()[index])
             if keep.size:
                 yield nearest_per_sample(index[keep], best[keep], part[keep])
 
-    def _cap_depth(self, part: np.ndarray, w0: np.ndarray, dx: np.ndarray, dy: np.ndarray, sd: np.ndarray,
-                   s0: np.ndarray) -> np.ndarray:
+    def _cap_depth(
+        self, part: np.ndarray, w0: np.ndarray, dx: np.ndarray, dy: np.ndarray, sd: np.ndarray, s0: np.ndarray
+    ) -> np.ndarray:
         """Depth of the flat tip caps along the given rays (inf off the disc)."""
         length = self.length[part]
         t = (length - s0) / sd
         rel = w0 + t[:, None] * np.stack([dx, dy, np.ones_like(dx)], axis=1)
-        radial2 = norm3(rel) ** 2 - length ** 2
+        radial2 = norm3(rel) ** 2 - length**2
         return np.where((t > NEAR_M) & (radial2 <= self.r1[part] ** 2), t, np.inf)
 
     def shade(self, points: np.ndarray, part: np.ndarray, light: Lighting, sample_angle: float) -> np.ndarray:
@@ -221,8 +253,7 @@ class ConeBatch:
         normals = (radial_unit - k[:, None] * axis) / np.sqrt(1.0 + k * k)[:, None]
         on_cap = (s >= self.length[part] - 1e-9) & (dist < (self.r0[part] + k * s) * (1 - 1e-6))
         normals[on_cap] = axis[on_cap]
-        theta = np.arctan2(rowdot(radial_unit, self.e2[part]),
-                           rowdot(radial_unit, self.e1[part]))
+        theta = np.arctan2(rowdot(radial_unit, self.e2[part]), rowdot(radial_unit, self.e1[part]))
         u = s / self.along_m[part] * TILE_SIZE
         v = (theta + np.pi) / (2 * np.pi) * self.around[part] * TILE_SIZE
         texel_m = np.minimum(self.along_m[part], 2 * np.pi * (self.r0[part] + k * s) / self.around[part]) / TILE_SIZE

@@ -18,6 +18,7 @@ Photometry: one exposure gain for the whole flight, the auto-exposure of frame 0
 quarter-size render), times the path's exposure wobble; per view gain jitter and sensor noise
 are drawn per frame from the seed and the frame index, so any frame renders alone, identically.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -101,13 +102,13 @@ class FlightRenderer:
         self.camera = SynthCamera.zed_mini(options.width, options.height)
         width = min(CHECK_WIDTH, options.width)
         self.check_camera = SynthCamera.zed_mini(width, max(8, round(options.height * width / options.width)))
-        self.scene: SceneDescription = build_scene(np.random.default_rng(options.seed), self.camera,
-                                                   self.synth_options)
+        self.scene: SceneDescription = build_scene(np.random.default_rng(options.seed), self.camera, self.synth_options)
         self.down = self.scene.sky.world_from_camera[1]  # gravity (world y) in the scene frame
         self.target_id = self._choose_target()
         target = next(b for b in self.scene.branches if b.id == self.target_id)
-        self.path = ApproachPath(np.asarray(target.cut_point_m), self.down, options,
-                                 np.random.default_rng([options.seed, 1]))
+        self.path = ApproachPath(
+            np.asarray(target.cut_point_m), self.down, options, np.random.default_rng([options.seed, 1])
+        )
         self.origin: Pose = self.path.pose(0.0)
         preview = self.view(*self.origin, camera=self.check_camera)
         self.base_gain = auto_gain(preview.views.left, self.scene.exposure_target)
@@ -119,8 +120,10 @@ class FlightRenderer:
     def cut_points(self) -> list[FlightCut]:
         """Every branch's cut point in the world frame (frame 0's left camera)."""
         rotation, position = self.origin
-        return [FlightCut(b.id, (np.asarray(b.cut_point_m) - position) @ rotation,
-                          b.radius_at(b.cut_offset_m)) for b in self.scene.branches]
+        return [
+            FlightCut(b.id, (np.asarray(b.cut_point_m) - position) @ rotation, b.radius_at(b.cut_offset_m))
+            for b in self.scene.branches
+        ]
 
     def world_pose(self, time_s: float) -> Pose:
         """(R_world_cam, t_world_cam) of the left camera at `time_s` (s after frame 0; frame 0 is the world)."""
@@ -151,13 +154,26 @@ class FlightRenderer:
             with ThreadPoolExecutor(max_workers=opts.threads) as pool:
                 left, right = pool.map(
                     lambda image, depth, side: blur_along_motion(
-                        image, image_motion(depth, self.camera, side, now, before), opts.shutter),
-                    (left, right), (view.views.depth, view.views.right_depth), ("left", "right"))
+                        image, image_motion(depth, self.camera, side, now, before), opts.shutter
+                    ),
+                    (left, right),
+                    (view.views.depth, view.views.right_depth),
+                    ("left", "right"),
+                )
         gain = self.base_gain * self.path.gain_factor(time_s)
         left, right = develop([left, right], gain, self.synth_options, np.random.default_rng([opts.seed, 2, index]))
-        return FlightFrame(index, opts.timestamp_ns(index), left, right, view.views.ids,
-                           view.views.depth.astype(np.float32), now[0], now[1], opts.distance_m(time_s),
-                           view.branches)
+        return FlightFrame(
+            index,
+            opts.timestamp_ns(index),
+            left,
+            right,
+            view.views.ids,
+            view.views.depth.astype(np.float32),
+            now[0],
+            now[1],
+            opts.distance_m(time_s),
+            view.branches,
+        )
 
     def __iter__(self) -> Iterator[FlightFrame]:
         return (self.render(index) for index in range(len(self)))
@@ -180,6 +196,7 @@ class FlightRenderer:
     def _cut_seen(self, branch_id: int, rotation: np.ndarray, position: np.ndarray) -> bool:
         """Whether a check-size truth pass (ids only, no shading) from this pose shows `branch_id`'s cut point."""
         scene = scene_in_camera(self.scene, rotation, position, self.check_camera)
-        _, ids, _ = rasterise(scene_batches(scene, self.check_camera), RayGrid.for_view(self.check_camera, "left", 1),
-                              None, None)
+        _, ids, _ = rasterise(
+            scene_batches(scene, self.check_camera), RayGrid.for_view(self.check_camera, "left", 1), None, None
+        )
         return next(b.cut_visible for b in with_visibility(scene.branches, ids) if b.id == branch_id)

@@ -16,6 +16,7 @@ evenly from `start_m` at frame 0 to `end_m` at the last frame), or `speed_mps` i
 `DEFAULT_SPEED_MPS`): frames are taken while `d(t) ≥ end_m`, so the last one lies at most one
 frame's travel short of `end_m` and never beyond it. Giving both is refused.
 """
+
 from __future__ import annotations
 
 import math
@@ -83,40 +84,84 @@ class FlightOptions:
         for name in ("width", "height"):
             value = getattr(self, name)
             _check(isinstance(value, int) and 16 <= value <= 8192, name, value, "an integer from 16 to 8192 px")
-        _check(_finite(self.end_m) and 0.2 <= self.end_m, "end_m", self.end_m,
-               "a distance ≥ 0.2 m (the generator keeps branches ≥ 0.3 m from its camera)")
-        _check(_finite(self.start_m) and self.end_m < self.start_m <= 10.0, "start_m", self.start_m,
-               f"a distance above end_m = {self.end_m} m and at most 10 m")
+        _check(
+            _finite(self.end_m) and 0.2 <= self.end_m,
+            "end_m",
+            self.end_m,
+            "a distance ≥ 0.2 m (the generator keeps branches ≥ 0.3 m from its camera)",
+        )
+        _check(
+            _finite(self.start_m) and self.end_m < self.start_m <= 10.0,
+            "start_m",
+            self.start_m,
+            f"a distance above end_m = {self.end_m} m and at most 10 m",
+        )
         if self.frames is not None:
-            _check(isinstance(self.frames, int) and 2 <= self.frames <= 100_000, "frames", self.frames,
-                   "an integer from 2 to 100000")
-            _check(self.speed_mps is None, "speed_mps", self.speed_mps,
-                   "None when frames is given (the speed follows from frames, fps and the distances)")
+            _check(
+                isinstance(self.frames, int) and 2 <= self.frames <= 100_000,
+                "frames",
+                self.frames,
+                "an integer from 2 to 100000",
+            )
+            _check(
+                self.speed_mps is None,
+                "speed_mps",
+                self.speed_mps,
+                "None when frames is given (the speed follows from frames, fps and the distances)",
+            )
         if self.speed_mps is not None:
             _check(_finite(self.speed_mps) and self.speed_mps > 0, "speed_mps", self.speed_mps, "a speed > 0 m/s")
-            _check(self.frame_count >= 2, "speed_mps", self.speed_mps,
-                   f"a speed slow enough for 2 frames over {self.start_m - self.end_m:g} m at {self.fps:g} fps")
+            _check(
+                self.frame_count >= 2,
+                "speed_mps",
+                self.speed_mps,
+                f"a speed slow enough for 2 frames over {self.start_m - self.end_m:g} m at {self.fps:g} fps",
+            )
         _check(_finite(self.sway_m) and 0 <= self.sway_m <= 1.0, "sway_m", self.sway_m, "an amplitude in [0, 1] m")
         _check(_finite(self.sway_hz) and 0 < self.sway_hz <= 5.0, "sway_hz", self.sway_hz, "a frequency in (0, 5] Hz")
-        _check(_finite(self.jitter_deg) and 0 <= self.jitter_deg <= 15.0, "jitter_deg", self.jitter_deg,
-               "an amplitude in [0, 15] degrees")
-        _check(_finite(self.exposure) and 0 <= self.exposure <= 0.9, "exposure", self.exposure,
-               "a relative gain amplitude in [0, 0.9]")
-        _check(_finite(self.shutter) and 0 < self.shutter <= 1.0, "shutter", self.shutter,
-               "a fraction of the frame interval in (0, 1]")
+        _check(
+            _finite(self.jitter_deg) and 0 <= self.jitter_deg <= 15.0,
+            "jitter_deg",
+            self.jitter_deg,
+            "an amplitude in [0, 15] degrees",
+        )
+        _check(
+            _finite(self.exposure) and 0 <= self.exposure <= 0.9,
+            "exposure",
+            self.exposure,
+            "a relative gain amplitude in [0, 0.9]",
+        )
+        _check(
+            _finite(self.shutter) and 0 < self.shutter <= 1.0,
+            "shutter",
+            self.shutter,
+            "a fraction of the frame interval in (0, 1]",
+        )
         _check(isinstance(self.seed, int) and self.seed >= 0, "seed", self.seed, "an integer ≥ 0")
         _check(self.supersample in (1, 2, 3, 4), "supersample", self.supersample, "1, 2, 3 or 4 rays per pixel side")
-        _check(_finite(self.noise_std) and 0 <= self.noise_std <= 20, "noise_std", self.noise_std,
-               "a sensor noise in [0, 20] grey levels")
-        _check(_finite(self.cut_offset_m) and 0 <= self.cut_offset_m <= 0.15, "cut_offset_m", self.cut_offset_m,
-               "an offset in [0, 0.15] m from the branch base")
+        _check(
+            _finite(self.noise_std) and 0 <= self.noise_std <= 20,
+            "noise_std",
+            self.noise_std,
+            "a sensor noise in [0, 20] grey levels",
+        )
+        _check(
+            _finite(self.cut_offset_m) and 0 <= self.cut_offset_m <= 0.15,
+            "cut_offset_m",
+            self.cut_offset_m,
+            "an offset in [0, 0.15] m from the branch base",
+        )
         _check(self.threads in (1, 2, 3), "threads", self.threads, "1, 2 or 3")
 
     def synth_options(self) -> SynthOptions:
         """The scene generator's options for this flight (bare tree or sparse leaves, no view gain jitter change)."""
-        return SynthOptions(cut_offset_m=self.cut_offset_m, supersample=self.supersample,
-                            foliage="sparse" if self.foliage else "bare", noise_std=self.noise_std,
-                            threads=self.threads)
+        return SynthOptions(
+            cut_offset_m=self.cut_offset_m,
+            supersample=self.supersample,
+            foliage="sparse" if self.foliage else "bare",
+            noise_std=self.noise_std,
+            threads=self.threads,
+        )
 
     @property
     def speed(self) -> float:
@@ -174,8 +219,9 @@ class ApproachPath:
     and exposure wobbles. Poses are `(rotation, position)`: `X_scene = rotation · X_cam + position`.
     """
 
-    def __init__(self, target_m: np.ndarray, down: np.ndarray, options: FlightOptions,
-                 rng: np.random.Generator) -> None:
+    def __init__(
+        self, target_m: np.ndarray, down: np.ndarray, options: FlightOptions, rng: np.random.Generator
+    ) -> None:
         self.options = options
         self.target = np.asarray(target_m, dtype=np.float64)
         self.approach = unit(self.target)

@@ -4,6 +4,7 @@ A blade lies in the plane through `centre` with unit `normal`; in-plane coordina
 `e1` (−1..1 over the half-length) and across (−1..1 over the half-width) must satisfy
 `|across| ≤ (1 − along²)^0.75`, a leaf outline with pointed ends.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
@@ -44,9 +45,11 @@ class LeafBatch:
         self.half_width = np.array([leaf.half_width for leaf in leaves])
         self.colour = np.array([leaf.colour for leaf in leaves], dtype=np.float64).reshape(-1, 3)
         self.ids = np.array([leaf.instance_id for leaf in leaves], dtype=np.uint16)
-        self.hulls = (self.centre[:, None, :]
-                      + _SQUARE[None, :, 0, None] * (self.half_length[:, None] * self.e1)[:, None, :]
-                      + _SQUARE[None, :, 1, None] * (self.half_width[:, None] * self.e2)[:, None, :])
+        self.hulls = (
+            self.centre[:, None, :]
+            + _SQUARE[None, :, 0, None] * (self.half_length[:, None] * self.e1)[:, None, :]
+            + _SQUARE[None, :, 1, None] * (self.half_width[:, None] * self.e2)[:, None, :]
+        )
         order = np.argsort(self.centre[:, 2], kind="stable")
         for name in ("centre", "normal", "e1", "e2", "half_length", "half_width", "colour", "ids", "hulls"):
             setattr(self, name, getattr(self, name)[order])
@@ -87,8 +90,9 @@ class LeafBatch:
         along, across = self._blade(points - self.centre[part], part)
         normals = self.normal[part]
         footprint = light.footprint_m(points, normals, sample_angle) / (2 * self.half_length[part] / TILE_SIZE)
-        vein = 1.0 + 0.18 * np.exp(-(across / 0.07) ** 2)
-        detail = self.detail.sample((along + 1) * 0.5 * TILE_SIZE + 61.0 * part, (across + 1) * 0.5 * TILE_SIZE,
-                                    footprint)[:, 0]
+        vein = 1.0 + 0.18 * np.exp(-((across / 0.07) ** 2))
+        detail = self.detail.sample(
+            (along + 1) * 0.5 * TILE_SIZE + 61.0 * part, (across + 1) * 0.5 * TILE_SIZE, footprint
+        )[:, 0]
         albedo = self.colour[part] * (vein * detail)[:, None]
         return albedo * light.diffuse(normals, two_sided=True)

@@ -7,6 +7,7 @@ While the shutter is open over the last `shutter` of the interval, the image con
 `0 ≤ s ≤ shutter`: the blurred image is the mean of the sharp image sampled there. Exact for a
 locally uniform motion; at occlusion edges a pixel borrows its own motion for its neighbours.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -18,8 +19,13 @@ from stereo.synth.camera import SynthCamera
 MAX_SAMPLES = 8
 
 
-def image_motion(depth_m: np.ndarray, camera: SynthCamera, view: str, now: tuple[np.ndarray, np.ndarray],
-                 before: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+def image_motion(
+    depth_m: np.ndarray,
+    camera: SynthCamera,
+    view: str,
+    now: tuple[np.ndarray, np.ndarray],
+    before: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
     """Where each pixel's surface point was in the same view one step earlier, minus where it is now.
 
     `depth_m` float64 `H×W` (Z in m, inf on sky) of the 'left' or 'right' `view`; `now` and
@@ -37,8 +43,10 @@ def image_motion(depth_m: np.ndarray, camera: SynthCamera, view: str, now: tuple
     with np.errstate(divide="ignore"):
         inverse_depth = np.where(np.isfinite(depth_m) & (depth_m > 0), 1.0 / depth_m, 0.0).astype(np.float32)
     # X_before / Z_now for the ray (x, y, 1): the sky (1/Z = 0) moves by the rotation alone
-    seen = [np.float32(row[0]) * x + np.float32(row[1]) * y + np.float32(row[2]) + np.float32(move) * inverse_depth
-            for row, move in zip(rotate, shift)]
+    seen = [
+        np.float32(row[0]) * x + np.float32(row[1]) * y + np.float32(row[2]) + np.float32(move) * inverse_depth
+        for row, move in zip(rotate, shift)
+    ]
     ahead = seen[2] > 1e-6
     z = np.where(ahead, seen[2], np.float32(1.0))
     f = np.float32(camera.focal_px)
@@ -61,6 +69,11 @@ def blur_along_motion(image: np.ndarray, motion: np.ndarray, shutter: float) -> 
     grid_y, grid_x = np.mgrid[0:height, 0:width].astype(np.float32)
     total = np.zeros_like(image, dtype=np.float32)
     for s in np.linspace(0.0, shutter, samples, dtype=np.float32):
-        total += cv2.remap(image, grid_x - s * motion[..., 0], grid_y - s * motion[..., 1], cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REPLICATE).reshape(image.shape)
+        total += cv2.remap(
+            image,
+            grid_x - s * motion[..., 0],
+            grid_y - s * motion[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        ).reshape(image.shape)
     return total / np.float32(samples)

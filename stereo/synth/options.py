@@ -1,4 +1,5 @@
 """Options of the synthetic scene generator, validated once, with the defaults the dataset uses."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -42,7 +43,9 @@ class SynthOptions:
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.cut_offset_m <= 0.15:
-            raise ValueError(f"cut_offset_m must lie in [0, 0.15] m (branches are ≥ 0.2 m long), got {self.cut_offset_m}")
+            raise ValueError(
+                f"cut_offset_m must lie in [0, 0.15] m (branches are ≥ 0.2 m long), got {self.cut_offset_m}"
+            )
         if int(self.supersample) != self.supersample or not 1 <= self.supersample <= 4:
             raise ValueError(f"supersample must be an integer from 1 to 4 rays per pixel side, got {self.supersample}")
         if self.pose not in POSES:

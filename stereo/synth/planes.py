@@ -4,6 +4,7 @@ A plane layer is cast over the whole image at once (every ray may reach it). Its
 anchored to metric plane coordinates (u along `eu`, v along `ev`), holes in foliage come from
 the tile's alpha, and a tree row's canopy line is a periodic height profile over u.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator

@@ -1,4 +1,5 @@
 """A picture of synthetic scenes for people: left, right, disparity and instance mask side by side."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence

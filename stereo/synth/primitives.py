@@ -7,6 +7,7 @@ primitive of a batch tests only the samples inside its own image box, and the ba
 per sample, its nearest hit. Each surface colours a hit from the hit point's own surface
 coordinates (see `textures`), which is what makes the two views agree.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -43,8 +44,14 @@ def rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross product of 3-vectors or of `(N, 3)` rows (numpy's `cross` is slow on tiny arrays)."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
 
 
 def norm3(vectors: np.ndarray) -> np.ndarray:

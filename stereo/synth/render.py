@@ -5,6 +5,7 @@ auto-exposed (the same gain for both views), given small per-view gain differenc
 noise. Ground truth: one ray through each left pixel centre gives depth Z (m), the instance id
 of the surface it hits, and disparity `f·B/Z` — exact, not interpolated.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -57,8 +58,9 @@ def scene_batches(scene: SceneDescription, camera: SynthCamera) -> list[Batch]:
     return [ConeBatch(scene.cones, camera), LeafBatch(scene.leaves, scene.leaf_detail), *scene.layers]
 
 
-def rasterise(batches: Sequence[Batch], rays: RayGrid, light: Lighting | None,
-              sky: Sky | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def rasterise(
+    batches: Sequence[Batch], rays: RayGrid, light: Lighting | None, sky: Sky | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Z-buffer the surfaces over a ray grid.
 
     Returns depth (float64 `Hs×Ws`, m, inf where nothing is hit), instance ids (uint16 `Hs×Ws`)
@@ -102,7 +104,9 @@ def auto_gain(image: np.ndarray, target: float) -> float:
     return float(np.clip(target / max(luma, 1e-3), 0.5, 3.0))
 
 
-def develop(images: Sequence[np.ndarray], gain: float, options: SynthOptions, rng: np.random.Generator) -> list[np.ndarray]:
+def develop(
+    images: Sequence[np.ndarray], gain: float, options: SynthOptions, rng: np.random.Generator
+) -> list[np.ndarray]:
     """Linear colour views (float32 `H×W×3`) → uint8 with one `gain`, per-view gain jitter and sensor noise."""
     out = []
     for image in images:
@@ -125,8 +129,7 @@ def with_visibility(branches: Sequence[BranchTruth], ids: np.ndarray) -> list[Br
     done = []
     for branch in branches:
         x, y = (int(round(c)) if np.isfinite(c) else -1 for c in branch.cut_pixel)
-        visible = (branch.cut_point_m[2] > 0 and 0 <= x < width and 0 <= y < height
-                   and int(ids[y, x]) == branch.id)
+        visible = branch.cut_point_m[2] > 0 and 0 <= x < width and 0 <= y < height and int(ids[y, x]) == branch.id
         done.append(dataclasses.replace(branch, cut_visible=visible, mask_pixels=int(counts[branch.id])))
     return done
 
@@ -164,8 +167,11 @@ def render_views(scene: SceneDescription, camera: SynthCamera, supersample: int,
         return depth, ids, _box_filter(colour, supersample)
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        truth = (pool.submit(rasterise, batches, RayGrid.for_view(camera, "left", 1), None, None)
-                 if supersample > 1 else None)
+        truth = (
+            pool.submit(rasterise, batches, RayGrid.for_view(camera, "left", 1), None, None)
+            if supersample > 1
+            else None
+        )
         (left_depth, left_ids, left), (right_depth, _, right) = pool.map(colour_view, ("left", "right"))
         depth, ids, _ = truth.result() if truth is not None else (left_depth, left_ids, None)
     if supersample > 1:
@@ -186,6 +192,17 @@ def render_scene(seed: int, camera: SynthCamera | None = None, **options: object
     views = render_views(scene, camera, opts.supersample, opts.threads)
     left, right = develop([views.left, views.right], auto_gain(views.left, scene.exposure_target), opts, rng)
     depth_m = views.depth.astype(np.float32)
-    return SyntheticScene(left, right, camera.disparity_from_depth(views.depth), depth_m, views.ids,
-                          with_visibility(scene.branches, views.ids), camera, int(seed), scene.pose, scene.foliage,
-                          scene.leaf_shape, opts.cut_offset_m)
+    return SyntheticScene(
+        left,
+        right,
+        camera.disparity_from_depth(views.depth),
+        depth_m,
+        views.ids,
+        with_visibility(scene.branches, views.ids),
+        camera,
+        int(seed),
+        scene.pose,
+        scene.foliage,
+        scene.leaf_shape,
+        opts.cut_offset_m,
+    )

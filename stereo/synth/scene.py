@@ -8,6 +8,7 @@ pruning-target branch is a straight tapered cylinder 0.2–1.5 m long, 5–60 mm
 base, kept 0.3–4 m from the camera and at least half inside the left image, with its cut point
 in view.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -45,8 +46,10 @@ _PITCH_DEG = {"upward": (15.0, 45.0), "parallel": (-10.0, 10.0), "downward": (-4
 _TRUNK_DISTANCE_M = {"upward": (0.8, 3.0), "parallel": (0.5, 2.5), "downward": (0.8, 3.0)}
 _GROUND_BELOW_M = {"upward": (0.5, 1.8), "parallel": (1.0, 2.2), "downward": (1.0, 2.5)}
 _LEAF_COLOURS = {
-    "spring": (0.36, 0.56, 0.17), "summer": (0.17, 0.34, 0.10),
-    "yellow": (0.70, 0.58, 0.14), "orange": (0.72, 0.36, 0.09),
+    "spring": (0.36, 0.56, 0.17),
+    "summer": (0.17, 0.34, 0.10),
+    "yellow": (0.70, 0.58, 0.14),
+    "orange": (0.72, 0.36, 0.09),
 }
 
 
@@ -112,12 +115,17 @@ class _SceneBuilder:
         self.rng, self.camera, self.options = rng, camera, options
         self.tan_half_h = (camera.width / 2) / camera.focal_px
         self.tan_half_v = (camera.height / 2) / camera.focal_px
-        self.pose = options.pose if options.pose != "auto" else str(
-            rng.choice(["upward", "parallel", "downward"], p=[0.35, 0.35, 0.30]))
-        self.foliage = options.foliage if options.foliage != "auto" else str(
-            rng.choice(["bare", "sparse", "dense"], p=[0.4, 0.35, 0.25]))
-        self.leaf_shape = options.leaf_shape if options.leaf_shape != "auto" else str(
-            rng.choice(["broad", "needles"]))
+        self.pose = (
+            options.pose
+            if options.pose != "auto"
+            else str(rng.choice(["upward", "parallel", "downward"], p=[0.35, 0.35, 0.30]))
+        )
+        self.foliage = (
+            options.foliage
+            if options.foliage != "auto"
+            else str(rng.choice(["bare", "sparse", "dense"], p=[0.4, 0.35, 0.25]))
+        )
+        self.leaf_shape = options.leaf_shape if options.leaf_shape != "auto" else str(rng.choice(["broad", "needles"]))
         pitch = np.radians(rng.uniform(*_PITCH_DEG[self.pose]))
         self.frame = _Frame(pitch, np.radians(rng.uniform(-6.0, 6.0)))
         self.cones: list[Cone] = []
@@ -135,8 +143,12 @@ class _SceneBuilder:
             return 0.0
         pix = self.camera.project(points_cam[front])
         mx, my = margin * self.camera.width, margin * self.camera.height
-        inside = ((pix[:, 0] >= mx) & (pix[:, 0] <= self.camera.width - 1 - mx)
-                  & (pix[:, 1] >= my) & (pix[:, 1] <= self.camera.height - 1 - my))
+        inside = (
+            (pix[:, 0] >= mx)
+            & (pix[:, 0] <= self.camera.width - 1 - mx)
+            & (pix[:, 1] >= my)
+            & (pix[:, 1] <= self.camera.height - 1 - my)
+        )
         return float(inside.sum()) / len(z)
 
     def _axis_points(self, base: np.ndarray, axis: np.ndarray, length: float, n: int = 16) -> np.ndarray:
@@ -148,8 +160,16 @@ class _SceneBuilder:
         around = int(np.clip(round(2 * np.pi * radius / 0.12), 1, 12))
         return BarkMaterial(tile, around, 2.5 * 2 * np.pi * radius / around, tint)
 
-    def _cone(self, base_w: np.ndarray, axis_w: np.ndarray, length: float, r0: float, r1: float,
-              material: BarkMaterial, instance_id: int) -> Cone:
+    def _cone(
+        self,
+        base_w: np.ndarray,
+        axis_w: np.ndarray,
+        length: float,
+        r0: float,
+        r1: float,
+        material: BarkMaterial,
+        instance_id: int,
+    ) -> Cone:
         """A cone given in world coordinates, stored in the camera frame."""
         cone = Cone(self.frame.point(base_w), unit(self.frame.direction(axis_w)), length, r0, r1, material, instance_id)
         self.cones.append(cone)
@@ -211,23 +231,30 @@ class _SceneBuilder:
             return False
         return self._in_image_fraction(pts) >= 0.5 and self._in_image_fraction(cut, margin=0.02) == 1.0
 
-    def _draw_branch(self, foot: np.ndarray, trunk_axis: np.ndarray, span: tuple[float, float],
-                     trunk: Cone) -> _DrawnBranch | None:
+    def _draw_branch(
+        self, foot: np.ndarray, trunk_axis: np.ndarray, span: tuple[float, float], trunk: Cone
+    ) -> _DrawnBranch | None:
         """A branch out of `trunk` (drawn from `foot` along world `trunk_axis`) that fits, or None after 40 tries."""
         rng = self.rng
         for _ in range(40):
             s_att = rng.uniform(*span)
             azimuth = rng.uniform(0, 2 * np.pi)
             elevation = np.radians(rng.uniform(-20.0, 60.0))
-            axis = np.array([np.cos(elevation) * np.cos(azimuth), -np.sin(elevation),
-                             np.cos(elevation) * np.sin(azimuth)])
+            axis = np.array(
+                [np.cos(elevation) * np.cos(azimuth), -np.sin(elevation), np.cos(elevation) * np.sin(azimuth)]
+            )
             sin_trunk = float(np.sqrt(np.sum(cross3(axis, trunk_axis) ** 2)))
             radius_here = trunk.radius_at(s_att)
             on_trunk_axis = foot + s_att * trunk_axis
             drawn_from = on_trunk_axis + axis * radius_here / max(sin_trunk, 0.3)
             length = float(np.exp(rng.uniform(np.log(BRANCH_LENGTH_M[0]), np.log(BRANCH_LENGTH_M[1]))))
-            r0 = float(np.exp(rng.uniform(np.log(BRANCH_BASE_RADIUS_M[0]),
-                                          np.log(min(BRANCH_BASE_RADIUS_M[1], 0.6 * radius_here)))))
+            r0 = float(
+                np.exp(
+                    rng.uniform(
+                        np.log(BRANCH_BASE_RADIUS_M[0]), np.log(min(BRANCH_BASE_RADIUS_M[1], 0.6 * radius_here))
+                    )
+                )
+            )
             r1 = max(0.0008, r0 * rng.uniform(0.15, 0.45))
             if self._branch_fits(drawn_from, axis, length, r0):
                 # the frame is a rotation, so the distance is the same in world and camera coordinates
@@ -235,8 +262,16 @@ class _SceneBuilder:
                 return _DrawnBranch(on_trunk_axis + to_bark * axis, drawn_from, axis, length, r0, r1)
         return None
 
-    def _twigs(self, base: np.ndarray, axis: np.ndarray, length: float, radius: RadiusProfile, tile: MipTile,
-               ids: tuple[int, int] = (TWIG_ID, LEAF_ID), depth: int = 0) -> None:
+    def _twigs(
+        self,
+        base: np.ndarray,
+        axis: np.ndarray,
+        length: float,
+        radius: RadiusProfile,
+        tile: MipTile,
+        ids: tuple[int, int] = (TWIG_ID, LEAF_ID),
+        depth: int = 0,
+    ) -> None:
         """Thin twigs (and their leaves) growing from an axis, one level of sub-twigs; `ids`: (twig, leaf) mask ids."""
         rng = self.rng
         count = rng.integers(3, 5 + int(14 * length)) if depth == 0 else rng.integers(0, 4)
@@ -255,8 +290,15 @@ class _SceneBuilder:
             self._cone(start, twig_axis, twig_len, r0, r1, self._bark(tile, r0, tint), ids[0])
             self.leafy_twigs.append((start, twig_axis, twig_len, ids[1]))
             if depth == 0:
-                self._twigs(start, twig_axis, twig_len, lambda q, r0=r0, r1=r1, n=twig_len: r0 + (r1 - r0) * q / n,
-                            tile, ids, depth=1)
+                self._twigs(
+                    start,
+                    twig_axis,
+                    twig_len,
+                    lambda q, r0=r0, r1=r1, n=twig_len: r0 + (r1 - r0) * q / n,
+                    tile,
+                    ids,
+                    depth=1,
+                )
 
     def _grow_leaves(self) -> None:
         """Leaves at random points of every recorded twig: blades, or needle clusters when `leaf_shape` says so."""
@@ -289,8 +331,17 @@ class _SceneBuilder:
         widths = half_length * rng.uniform(0.3, 0.55, n)
         centre_cam, normal_cam, e1_cam = (self.frame.point(v) for v in (centre, normal, e1))
         for i in np.flatnonzero(centre_cam[:, 2] >= 0.2 + half_length):
-            self.leaves.append(Leaf(centre_cam[i], normal_cam[i], e1_cam[i], float(half_length[i]), float(widths[i]),
-                                    colour[i], int(leaf_id[i])))
+            self.leaves.append(
+                Leaf(
+                    centre_cam[i],
+                    normal_cam[i],
+                    e1_cam[i],
+                    float(half_length[i]),
+                    float(widths[i]),
+                    colour[i],
+                    int(leaf_id[i]),
+                )
+            )
 
     def _needle_clusters(self, attach: np.ndarray, axis: np.ndarray, leaf_id: np.ndarray) -> None:
         """A tuft of 5–10 needles at each world point `attach` `(n, 3)`: thin cones 2–6 cm long, 1–1.6 mm
@@ -309,8 +360,15 @@ class _SceneBuilder:
         in_front = self.frame.point(attach)[cluster, 2] >= 0.2 + length
         for i in np.flatnonzero(in_front):
             c = cluster[i]
-            self._cone(attach[c], direction[i], float(length[i]), float(radius[i]), 0.3 * float(radius[i]),
-                       materials[c], int(leaf_id[c]))
+            self._cone(
+                attach[c],
+                direction[i],
+                float(length[i]),
+                float(radius[i]),
+                0.3 * float(radius[i]),
+                materials[c],
+                int(leaf_id[c]),
+            )
 
     def _main_tree(self) -> tuple[list[BranchTruth], float]:
         """Trunk, branches, twigs and leaves of the tree being pruned; returns the truth and ground depth."""
@@ -320,7 +378,9 @@ class _SceneBuilder:
             self.cones, self.leaves, self.leafy_twigs = [], [], []
             foot, trunk_axis, trunk_len, r_ground, r_top, ground_y = self._trunk()
 
-            trunk = self._cone(foot, trunk_axis, trunk_len, r_ground, r_top, self._bark(tile, r_ground, np.ones(3)), TRUNK_ID)
+            trunk = self._cone(
+                foot, trunk_axis, trunk_len, r_ground, r_top, self._bark(tile, r_ground, np.ones(3)), TRUNK_ID
+            )
             self.trunk = (trunk.base, trunk.axis, trunk_len, r_ground, r_top)
             span = self._visible_trunk_span(foot, trunk_axis, trunk_len)
             truths: list[BranchTruth] = []
@@ -334,12 +394,27 @@ class _SceneBuilder:
                 root = foot + (drawn_from - foot) @ trunk_axis * trunk_axis
                 sunk = float(np.sqrt(np.sum((drawn_from - root) ** 2)))
                 slope = (r1 - r0) / length
-                cone = self._cone(drawn_from - sunk * axis, axis, length + sunk, r0 - slope * sunk, r1,
-                                  self._bark(tile, r0, tint), len(truths) + 1)
+                cone = self._cone(
+                    drawn_from - sunk * axis,
+                    axis,
+                    length + sunk,
+                    r0 - slope * sunk,
+                    r1,
+                    self._bark(tile, r0, tint),
+                    len(truths) + 1,
+                )
                 # the truth runs from where the axis leaves the bark to the drawn tip, on the drawn taper
                 beyond_bark = float((drawn_from - base) @ axis)
-                truths.append(self._truth(cone.instance_id, self.frame.point(base), cone.axis,
-                                          length + beyond_bark, r0 - slope * beyond_bark, r1))
+                truths.append(
+                    self._truth(
+                        cone.instance_id,
+                        self.frame.point(base),
+                        cone.axis,
+                        length + beyond_bark,
+                        r0 - slope * beyond_bark,
+                        r1,
+                    )
+                )
                 self._twigs(drawn_from, axis, length, lambda s, r0=r0, r1=r1, n=length: r0 + (r1 - r0) * s / n, tile)
             if len(truths) >= 2:
                 self._crown(foot, trunk_axis, trunk_len, trunk.radius_at, tile)
@@ -347,15 +422,18 @@ class _SceneBuilder:
                 return truths, ground_y
         raise RuntimeError("could not place two branches in view after 10 tree layouts; the camera is too narrow")
 
-    def _crown(self, foot: np.ndarray, trunk_axis: np.ndarray, trunk_len: float, trunk_radius: RadiusProfile,
-               tile: MipTile) -> None:
+    def _crown(
+        self, foot: np.ndarray, trunk_axis: np.ndarray, trunk_len: float, trunk_radius: RadiusProfile, tile: MipTile
+    ) -> None:
         """Branches of the same tree beyond the 4 m working range (mask id 0, like all background)."""
         rng = self.rng
         far = BRANCH_RANGE_M[1] + 0.2
         for _ in range(rng.integers(4, 11)):
             s_att = rng.uniform(1.0, trunk_len - 0.5)
             azimuth, elevation = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(10.0, 70.0))
-            axis = np.array([np.cos(elevation) * np.cos(azimuth), -np.sin(elevation), np.cos(elevation) * np.sin(azimuth)])
+            axis = np.array(
+                [np.cos(elevation) * np.cos(azimuth), -np.sin(elevation), np.cos(elevation) * np.sin(azimuth)]
+            )
             start = foot + s_att * trunk_axis
             length = rng.uniform(1.0, 3.0)
             r0 = min(rng.uniform(0.015, 0.04), 0.6 * trunk_radius(s_att))
@@ -365,14 +443,16 @@ class _SceneBuilder:
             self._cone(start, axis, length, r0, r1, self._bark(tile, r0, np.ones(3)), 0)
             self._twigs(start, axis, length, lambda s, r0=r0, r1=r1, n=length: r0 + (r1 - r0) * s / n, tile, (0, 0))
 
-    def _truth(self, branch_id: int, base: np.ndarray, axis: np.ndarray, length: float, r0: float,
-               r1: float) -> BranchTruth:
+    def _truth(
+        self, branch_id: int, base: np.ndarray, axis: np.ndarray, length: float, r0: float, r1: float
+    ) -> BranchTruth:
         """The truth of a branch given in the camera frame (base on the trunk surface)."""
         cut = base + self.options.cut_offset_m * axis
         pixel = self.camera.project(cut[None, :])[0]
         as_tuple = lambda v: (float(v[0]), float(v[1]), float(v[2]))  # noqa: E731
-        return BranchTruth(branch_id, as_tuple(base), as_tuple(axis), length, r0, r1, as_tuple(cut),
-                           (float(pixel[0]), float(pixel[1])))
+        return BranchTruth(
+            branch_id, as_tuple(base), as_tuple(axis), length, r0, r1, as_tuple(cut), (float(pixel[0]), float(pixel[1]))
+        )
 
     # -- mid-ground trees and background ------------------------------------------------------
     def _background_trees(self, tile: MipTile, ground_y: float) -> None:
@@ -404,9 +484,14 @@ class _SceneBuilder:
         rng = self.rng
         grass = np.array([0.26, 0.36, 0.12]) * rng.uniform(0.7, 1.2)
         soil = np.array([0.36, 0.28, 0.19]) * rng.uniform(0.7, 1.2)
-        return PlaneLayer(self.frame.point(np.array([0.0, ground_y, 0.0])), self.frame.direction(np.array([1.0, 0, 0])),
-                          self.frame.direction(np.array([0.0, 0, 1.0])), MipTile(ground_tile(rng, grass, soil)),
-                          rng.uniform(0.8, 2.0), 0.8)
+        return PlaneLayer(
+            self.frame.point(np.array([0.0, ground_y, 0.0])),
+            self.frame.direction(np.array([1.0, 0, 0])),
+            self.frame.direction(np.array([0.0, 0, 1.0])),
+            MipTile(ground_tile(rng, grass, soil)),
+            rng.uniform(0.8, 2.0),
+            0.8,
+        )
 
     def _crown_line(self, period_m: float, samples: int = 512) -> tuple[np.ndarray, list[tuple[float, float]]]:
         """A row of rounded tree crowns, periodic over `period_m`.
@@ -423,7 +508,7 @@ class _SceneBuilder:
             radius = rng.uniform(1.5, 5.0)
             centre_height = mean_height * rng.uniform(0.75, 1.2) - radius
             offset = np.mod(u - position - radius + period_m / 2, period_m) - period_m / 2
-            dome = centre_height + np.sqrt(np.clip(radius ** 2 - offset ** 2, 0.0, None)) * rng.uniform(0.8, 1.3)
+            dome = centre_height + np.sqrt(np.clip(radius**2 - offset**2, 0.0, None)) * rng.uniform(0.8, 1.3)
             top = np.where(np.abs(offset) < radius, np.maximum(top, dome), top)
             crowns.append(((position + radius) % period_m, centre_height))
             position += radius * rng.uniform(1.0, 1.8)
@@ -449,12 +534,29 @@ class _SceneBuilder:
                     if abs(x) < reach:
                         foot = np.array([x + rng.uniform(-0.3, 0.3), ground_y, distance + rng.uniform(0.2, 1.0)])
                         radius = rng.uniform(0.1, 0.3)
-                        self._cone(foot, unit(UP + rng.normal(0, 0.04, 3)), max(height, 2.0),
-                                   radius, 0.6 * radius, self._bark(bark, radius, tint), 0)
-            layers.append(PlaneLayer(
-                self.frame.point(np.array([0.0, ground_y, distance])), self.frame.direction(np.array([1.0, 0, 0])),
-                self.frame.direction(UP), MipTile(foliage[:, :, :3]), rng.uniform(2.0, 4.0), 0.5,
-                np.ascontiguousarray(foliage[:, :, 3:]), profile, period, floor))
+                        self._cone(
+                            foot,
+                            unit(UP + rng.normal(0, 0.04, 3)),
+                            max(height, 2.0),
+                            radius,
+                            0.6 * radius,
+                            self._bark(bark, radius, tint),
+                            0,
+                        )
+            layers.append(
+                PlaneLayer(
+                    self.frame.point(np.array([0.0, ground_y, distance])),
+                    self.frame.direction(np.array([1.0, 0, 0])),
+                    self.frame.direction(UP),
+                    MipTile(foliage[:, :, :3]),
+                    rng.uniform(2.0, 4.0),
+                    0.5,
+                    np.ascontiguousarray(foliage[:, :, 3:]),
+                    profile,
+                    period,
+                    floor,
+                )
+            )
             distance += rng.uniform(8.0, 20.0)
         return layers
 
@@ -466,9 +568,15 @@ class _SceneBuilder:
             return None
         hue = np.array([0.20, 0.36, 0.12]) * rng.uniform(0.7, 1.3)
         foliage = foliage_tile(rng, tuple(hue), rng.uniform(0.35, 0.7))
-        return PlaneLayer(self.frame.point(np.array([0.0, -rng.uniform(4.0, 9.0), 0.0])),
-                          self.frame.direction(np.array([1.0, 0, 0])), self.frame.direction(np.array([0.0, 0, 1.0])),
-                          MipTile(foliage[:, :, :3]), rng.uniform(1.5, 3.0), 0.6, np.ascontiguousarray(foliage[:, :, 3:]))
+        return PlaneLayer(
+            self.frame.point(np.array([0.0, -rng.uniform(4.0, 9.0), 0.0])),
+            self.frame.direction(np.array([1.0, 0, 0])),
+            self.frame.direction(np.array([0.0, 0, 1.0])),
+            MipTile(foliage[:, :, :3]),
+            rng.uniform(1.5, 3.0),
+            0.6,
+            np.ascontiguousarray(foliage[:, :, 3:]),
+        )
 
     def _sky_and_light(self) -> tuple[Sky, Lighting]:
         """A sunny (65 %) or overcast sky with clouds, and the sun, ambient light and haze that go with it."""
@@ -487,8 +595,12 @@ class _SceneBuilder:
             sun_rgb = np.array([1.0, 0.97, 0.92]) * rng.uniform(0.1, 0.25)
             ambient = np.array([0.75, 0.77, 0.80]) * rng.uniform(0.85, 1.1)
         elevation, azimuth = np.radians(rng.uniform(15.0, 70.0)), rng.uniform(0, 2 * np.pi)
-        sun_world = np.array([np.cos(elevation) * np.sin(azimuth), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth)])
-        sky = Sky(self.frame.world_from_camera, zenith, horizon, cloud_rgb, cloud_tile(rng, cover), rng.uniform(0.05, 0.2))
+        sun_world = np.array(
+            [np.cos(elevation) * np.sin(azimuth), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
+        )
+        sky = Sky(
+            self.frame.world_from_camera, zenith, horizon, cloud_rgb, cloud_tile(rng, cover), rng.uniform(0.05, 0.2)
+        )
         light = Lighting(unit(self.frame.direction(sun_world)), sun_rgb, ambient, horizon, rng.uniform(60.0, 200.0))
         return sky, light
 
@@ -505,9 +617,19 @@ class _SceneBuilder:
         canopy = self._canopy()
         if canopy is not None:
             layers.append(canopy)
-        return SceneDescription(self.pose, self.foliage, self.leaf_shape, tuple(tree_cones + self.cones), tuple(tree_leaves),
-                                tuple(layers), sky, light, tuple(branches), float(self.rng.uniform(0.36, 0.5)),
-                                self.detail)
+        return SceneDescription(
+            self.pose,
+            self.foliage,
+            self.leaf_shape,
+            tuple(tree_cones + self.cones),
+            tuple(tree_leaves),
+            tuple(layers),
+            sky,
+            light,
+            tuple(branches),
+            float(self.rng.uniform(0.36, 0.5)),
+            self.detail,
+        )
 
 
 def build_scene(rng: np.random.Generator, camera: SynthCamera, options: SynthOptions) -> SceneDescription:

@@ -3,6 +3,7 @@
 Its colour depends only on the ray direction, which is the same for both cameras at infinity,
 so the views agree there too.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

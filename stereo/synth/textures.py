@@ -6,6 +6,7 @@ wrap it without seams. A colour is looked up from the hit point's coordinates *o
 so the left and right views see the same texture on the same surface point. Tiles are float32
 `S×S×C` with values in [0, 1]; rows index the second surface coordinate, columns the first.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -27,8 +28,9 @@ BARK_KINDS: dict[str, tuple[tuple[float, float, float], float, bool]] = {
 }
 
 
-def periodic_noise(rng: np.random.Generator, cycles_u: float, cycles_v: float,
-                   size: int = TILE_SIZE, slope: float = 2.0) -> np.ndarray:
+def periodic_noise(
+    rng: np.random.Generator, cycles_u: float, cycles_v: float, size: int = TILE_SIZE, slope: float = 2.0
+) -> np.ndarray:
     """Seamless noise `size×size` (float32, zero mean, unit std) with features of about 1/cycles of the tile.
 
     `cycles_u` sets the feature scale along columns, `cycles_v` along rows (anisotropic when they
@@ -52,7 +54,7 @@ def bark_tile(rng: np.random.Generator, kind: str) -> np.ndarray:
     """RGB bark `S×S×3`: columns run along the branch axis, rows around it (furrows run along the axis)."""
     base, furrow_depth, lenticels = BARK_KINDS[kind]
     base_rgb = np.clip(np.array(base) * rng.uniform(0.85, 1.15) + rng.normal(0, 0.03, 3), 0.05, 0.95)
-    furrows = np.exp(-(periodic_noise(rng, 2.5, 22.0, slope=2.5) / 0.45) ** 2)
+    furrows = np.exp(-((periodic_noise(rng, 2.5, 22.0, slope=2.5) / 0.45) ** 2))
     grain = _unit(periodic_noise(rng, 48.0, 48.0, slope=1.5))
     patches = _unit(periodic_noise(rng, 2.0, 2.0))
     shade = (0.72 + 0.42 * grain) * (1.0 - furrow_depth * furrows)
@@ -77,7 +79,9 @@ def foliage_tile(rng: np.random.Generator, hue: tuple[float, float, float], cove
     return np.concatenate([np.clip(colour, 0, 1), alpha[..., None]], axis=2).astype(np.float32)
 
 
-def ground_tile(rng: np.random.Generator, grass: tuple[float, float, float], soil: tuple[float, float, float]) -> np.ndarray:
+def ground_tile(
+    rng: np.random.Generator, grass: tuple[float, float, float], soil: tuple[float, float, float]
+) -> np.ndarray:
     """RGB ground `S×S×3`: grass and soil patches with fine blades/litter."""
     patches = _unit(periodic_noise(rng, 3.0, 3.0))
     fine = _unit(periodic_noise(rng, 60.0, 60.0, slope=1.2))
@@ -125,7 +129,7 @@ def periodic_blur(tile: np.ndarray, sigma: float) -> np.ndarray:
     blurred = cv2.GaussianBlur(padded, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     if blurred.ndim == 2:
         blurred = blurred[..., None]
-    return np.ascontiguousarray(blurred[pad:pad + tile.shape[0], pad:pad + tile.shape[1]], dtype=np.float32)
+    return np.ascontiguousarray(blurred[pad : pad + tile.shape[0], pad : pad + tile.shape[1]], dtype=np.float32)
 
 
 class MipTile:

@@ -6,6 +6,7 @@ Instance ids in the 16-bit masks: 0 is background (sky, ground, far foliage, mid
 `LEAF_ID` (65533) their leaves or needles. A branch's own pixels are its tapered axis cylinder only, so a
 line fit through them recovers its axis.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -14,6 +14,7 @@ Split files use the authors' line format, `left image/left_N.png left depth/dept
 image/right_N.png`: three root-relative paths with spaces inside the folder names, which a
 reader splits into six tokens and rejoins pairwise. Scene N is `render_scene(scene_seed(S, N))`.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -67,7 +68,7 @@ def split_indices(count: int, seed: int) -> dict[str, list[int]]:
     """
     order = np.random.default_rng(seed).permutation(count)
     n_small = max(1, round(SPLIT_FRACTIONS["val"] * count)) if count >= 3 else 0
-    parts = {"val": order[:n_small], "test": order[n_small:2 * n_small], "train": order[2 * n_small:]}
+    parts = {"val": order[:n_small], "test": order[n_small : 2 * n_small], "train": order[2 * n_small :]}
     return {name: sorted(int(i) for i in parts[name]) for name in SPLIT_FRACTIONS}
 
 
@@ -117,23 +118,30 @@ def scene_record(scene: SyntheticScene, index: int, dataset_seed: int | None) ->
         "foliage": scene.foliage,
         "leaf_shape": scene.leaf_shape,
         "cut_offset_m": scene.cut_offset_m,
-        "instance_ids": {"background": 0, "branches": "1..N (branch id)", "trunk": TRUNK_ID, "twig": TWIG_ID,
-                         "leaf": LEAF_ID},
+        "instance_ids": {
+            "background": 0,
+            "branches": "1..N (branch id)",
+            "trunk": TRUNK_ID,
+            "twig": TWIG_ID,
+            "leaf": LEAF_ID,
+        },
         "files": relative_paths(index),
         "branches": [branch.to_dict() for branch in scene.branches],
     }
 
 
-def write_scene(root: Path, index: int, scene: SyntheticScene, *, dataset_seed: int | None = None,
-                exr_pixel_type: str = "float") -> None:
+def write_scene(
+    root: Path, index: int, scene: SyntheticScene, *, dataset_seed: int | None = None, exr_pixel_type: str = "float"
+) -> None:
     """Write one scene's images, EXR depth (cm), mask and branches JSON under `root` (folders must exist)."""
     paths = relative_paths(index)
     write_rgb(root / paths["left"], scene.left)
     write_rgb(root / paths["right"], scene.right)
     write_exr_depth(root / paths["depth"], depth_to_centimetres(scene.depth_m), pixel_type=exr_pixel_type)
     write_mask(root / paths["mask"], scene.instance_mask)
-    (root / paths["branches"]).write_text(json.dumps(scene_record(scene, index, dataset_seed), indent=1) + "\n",
-                                          encoding="utf-8")
+    (root / paths["branches"]).write_text(
+        json.dumps(scene_record(scene, index, dataset_seed), indent=1) + "\n", encoding="utf-8"
+    )
 
 
 def _render_and_write(job: tuple[Path, int, int, SynthCamera, SynthOptions, str]) -> int:
@@ -153,9 +161,19 @@ def _run_jobs(jobs: list[tuple], workers: int) -> Iterator[int]:
         yield from pool.map(_render_and_write, jobs)
 
 
-def write_dataset(out_dir: str | Path, scenes: int, seed: int, width: int, height: int, *,
-                  camera: SynthCamera | None = None, options: SynthOptions | None = None,
-                  exr_pixel_type: str = "float", workers: int = 1, progress: bool = True) -> DatasetSummary:
+def write_dataset(
+    out_dir: str | Path,
+    scenes: int,
+    seed: int,
+    width: int,
+    height: int,
+    *,
+    camera: SynthCamera | None = None,
+    options: SynthOptions | None = None,
+    exr_pixel_type: str = "float",
+    workers: int = 1,
+    progress: bool = True,
+) -> DatasetSummary:
     """Render `scenes` scenes (ZED Mini rig scaled to `width`×`height` unless `camera` is given) into `out_dir`.
 
     The same arguments give byte-identical files. `exr_pixel_type` 'float' keeps depth exact;
@@ -173,14 +191,21 @@ def write_dataset(out_dir: str | Path, scenes: int, seed: int, width: int, heigh
     for folder in (LEFT_DIR, RIGHT_DIR, DEPTH_DIR, MASK_DIR, BRANCH_DIR):
         (root / folder).mkdir(parents=True, exist_ok=True)
     jobs = [(root, index, seed, camera, options, exr_pixel_type) for index in range(scenes)]
-    for _ in progress_bar(iterable=_run_jobs(jobs, workers), total=scenes, desc="synth scenes", unit="scene",
-                          disable=not progress):
+    for _ in progress_bar(
+        iterable=_run_jobs(jobs, workers), total=scenes, desc="synth scenes", unit="scene", disable=not progress
+    ):
         pass
     splits = split_indices(scenes, seed)
     for name, indices in splits.items():
         (root / SPLIT_FILE.format(name)).write_text("".join(split_line(i) + "\n" for i in indices), encoding="utf-8")
-    meta = {"format": FORMAT, "seed": seed, "scenes": scenes, "camera": camera.to_dict(),
-            "options": dataclasses.asdict(options), "exr_pixel_type": exr_pixel_type,
-            "splits": {name: len(indices) for name, indices in splits.items()}}
+    meta = {
+        "format": FORMAT,
+        "seed": seed,
+        "scenes": scenes,
+        "camera": camera.to_dict(),
+        "options": dataclasses.asdict(options),
+        "exr_pixel_type": exr_pixel_type,
+        "splits": {name: len(indices) for name, indices in splits.items()},
+    }
     (root / "synth.json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
     return DatasetSummary(root, scenes, splits)

@@ -6,6 +6,7 @@ CPU and CUDA generators), and the progress counters (`step`, `epoch`, `batch_in_
 validation EPE, epochs without improvement, metric history). Files are written to a temporary
 name and renamed (`atomic_torch_save`), so a kill at any moment leaves the previous checkpoint whole.
 """
+
 from __future__ import annotations
 
 import random

@@ -7,6 +7,7 @@ itself): the other file is read first and this one's keys override it, which kee
 variants (e.g. the eight-way ablation) short.
 Command-line overrides use the same dotted names (`train.epochs=3`).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -106,8 +107,10 @@ class ExperimentConfig:
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (tuples as lists), for logs and checkpoints."""
         tree = dataclasses.asdict(self)
-        return {name: {k: list(v) if isinstance(v, tuple) else v for k, v in section.items()}
-                for name, section in tree.items()}
+        return {
+            name: {k: list(v) if isinstance(v, tuple) else v for k, v in section.items()}
+            for name, section in tree.items()
+        }
 
 
 def _coerce(value: Any, hint: Any, where: str) -> Any:
@@ -145,7 +148,9 @@ def _section(cls: type, values: dict[str, Any], name: str) -> Any:
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - known)
     if unknown:
-        raise ConfigError(f"unknown key(s) {', '.join(f'{name}.{k}' for k in unknown)}; valid keys: {', '.join(sorted(known))}")
+        raise ConfigError(
+            f"unknown key(s) {', '.join(f'{name}.{k}' for k in unknown)}; valid keys: {', '.join(sorted(known))}"
+        )
     try:
         return cls(**{k: _coerce(v, hints[k], f"{name}.{k}") for k, v in values.items()})
     except ValueError as exc:  # a section's own range checks (e.g. ModelConfig's)
@@ -217,19 +222,28 @@ def validate(config: ExperimentConfig) -> None:
     checks = [
         (data.dataset in DATASET_NAMES, f"data.dataset {data.dataset!r}: expected one of {', '.join(DATASET_NAMES)}"),
         (data.split in ("files", "paper", "group"), f"data.split {data.split!r}: expected files, paper or group"),
-        (data.split != "group" or bool(data.group_pattern), "data.group_pattern: required when data.split = \"group\""),
-        (len(data.crop) == 2 and min(data.crop) > 0 and all(c % 32 == 0 for c in data.crop),
-         f"data.crop {list(data.crop)}: expected [height, width], positive multiples of 32 (≥ 256 for EMCStereo)"),
-        (train.precision in ("fp32", "fp16", "bf16"), f"train.precision {train.precision!r}: expected fp32, fp16 or bf16"),
+        (data.split != "group" or bool(data.group_pattern), 'data.group_pattern: required when data.split = "group"'),
+        (
+            len(data.crop) == 2 and min(data.crop) > 0 and all(c % 32 == 0 for c in data.crop),
+            f"data.crop {list(data.crop)}: expected [height, width], positive multiples of 32 (≥ 256 for EMCStereo)",
+        ),
+        (
+            train.precision in ("fp32", "fp16", "bf16"),
+            f"train.precision {train.precision!r}: expected fp32, fp16 or bf16",
+        ),
         (len(train.loss_weights) == 3, f"train.loss_weights {list(train.loss_weights)}: expected three weights"),
         (0.0 <= train.ema_decay < 1.0, f"train.ema_decay {train.ema_decay}: expected 0 (off) or a decay in (0, 1)"),
-        (train.epochs > 0 and train.batch_size > 0 and train.accumulate > 0,
-         "train.epochs, train.batch_size and train.accumulate must be positive"),
+        (
+            train.epochs > 0 and train.batch_size > 0 and train.accumulate > 0,
+            "train.epochs, train.batch_size and train.accumulate must be positive",
+        ),
         (len(optim.betas) == 2, f"optim.betas {list(optim.betas)}: expected two values"),
         (optim.lr > 0, f"optim.lr {optim.lr}: expected a positive learning rate"),
-        (config.model.max_disp > 0 and config.model.max_disp % 16 == 0,
-         f"model.max_disp {config.model.max_disp}: expected a positive multiple of 16 (the cost volume is "
-         "at 1/4 resolution and the hourglasses halve it twice)"),
+        (
+            config.model.max_disp > 0 and config.model.max_disp % 16 == 0,
+            f"model.max_disp {config.model.max_disp}: expected a positive multiple of 16 (the cost volume is "
+            "at 1/4 resolution and the hourglasses halve it twice)",
+        ),
     ]
     for ok, message in checks:
         if not ok:
@@ -243,6 +257,14 @@ def replace(config: ExperimentConfig, **sections: dict[str, Any]) -> ExperimentC
 
 
 __all__ = [
-    "ConfigError", "DataSection", "ExperimentConfig", "FinetuneSection", "OptimSection",
-    "TrainSection", "build_config", "load_config", "parse_override", "replace",
+    "ConfigError",
+    "DataSection",
+    "ExperimentConfig",
+    "FinetuneSection",
+    "OptimSection",
+    "TrainSection",
+    "build_config",
+    "load_config",
+    "parse_override",
+    "replace",
 ]

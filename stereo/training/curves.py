@@ -1,4 +1,5 @@
 """Training curves drawn with OpenCV (matplotlib is not a dependency): loss and validation EPE per epoch."""
+
 from __future__ import annotations
 
 import math
@@ -14,8 +15,9 @@ _PANEL_W, _PANEL_H, _MARGIN = 480, 320, 50
 _COLOURS = {"train_loss": (31, 119, 180), "val_epe": (214, 39, 40)}
 
 
-def plot_panel(title: str, xs: Sequence[float], ys: Sequence[float], colour: tuple[int, int, int],
-               x_label: str = "epoch") -> np.ndarray:
+def plot_panel(
+    title: str, xs: Sequence[float], ys: Sequence[float], colour: tuple[int, int, int], x_label: str = "epoch"
+) -> np.ndarray:
     """One RGB plot panel: axes, min/max labels, the polyline and its points (`None`/non-finite `ys` skipped)."""
     canvas = np.full((_PANEL_H, _PANEL_W, 3), 255, dtype=np.uint8)
     points = [(x, y) for x, y in zip(xs, ys) if y is not None and math.isfinite(y)]

@@ -1,4 +1,5 @@
 """The training and validation datasets a config's `[data]` section describes."""
+
 from __future__ import annotations
 
 from stereo.datasets import SPLIT_FILE_DATASETS, StereoDataset, open_dataset
@@ -13,9 +14,11 @@ def train_val_datasets(data: DataSection) -> tuple[StereoDataset, StereoDataset]
     if data.split == "files":
         if data.dataset not in SPLIT_FILE_DATASETS:
             raise ConfigError(
-                f"data.split = \"files\" needs split files, which {data.dataset} does not have; use \"paper\" or \"group\""
+                f'data.split = "files" needs split files, which {data.dataset} does not have; use "paper" or "group"'
             )
-        return open_dataset(data.dataset, data.root, data.train_split), open_dataset(data.dataset, data.root, data.val_split)
+        return open_dataset(data.dataset, data.root, data.train_split), open_dataset(
+            data.dataset, data.root, data.val_split
+        )
     full = open_dataset(data.dataset, data.root)
     if data.split == "paper":
         train_idx, val_idx = split_train_val(len(full), data.val_fraction, data.split_seed)

@@ -4,6 +4,7 @@
 the command reads them and passes them here (modules do not read the environment themselves).
 Rank 0 alone logs, validates and writes checkpoints; the others wait at a barrier.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping

@@ -4,6 +4,7 @@ After each optimiser step: shadow ← decay·shadow + (1 − decay)·weight for 
 parameters and buffers; integer buffers (BatchNorm's batch counter) are copied. Validation and
 the best checkpoint use the shadow weights when EMA is on.
 """
+
 from __future__ import annotations
 
 import copy

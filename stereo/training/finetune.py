@@ -6,6 +6,7 @@ cannot do. Freezing takes module-name prefixes (e.g. `backbone`): their paramete
 receiving gradients, are left out of the optimiser, and their BatchNorm layers stay in eval mode
 so their running statistics do not drift.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence

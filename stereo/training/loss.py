@@ -6,6 +6,7 @@ and clamped to ±clamp_factor·max_disp; non-finite prediction pixels are droppe
 whose term is non-finite is skipped, an empty mask gives 0·Σpred (zero with a gradient path), and
 a total above `loss_cap` is rescaled to `loss_cap` with a detached divisor (gradient direction kept).
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence

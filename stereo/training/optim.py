@@ -5,6 +5,7 @@ Decay applies only to trainable tensors with more than one dimension whose name 
 out of the optimiser. The learning-rate factor is (step+1)/warmup for the first `warmup` steps,
 then a cosine from 1 to 0 over the remaining `total − warmup` steps, updated every iteration.
 """
+
 from __future__ import annotations
 
 import math

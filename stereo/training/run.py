@@ -2,6 +2,7 @@
 
 Shared by `emcstereo train` and `emcstereo finetune`, and usable from Python.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -58,8 +59,11 @@ def run_training(
     else:
         val_set = train_val_datasets(config.data)[1] if config.data.root else None
     kwargs = dict(context=context, frozen=frozen, show_progress=show_progress)
-    trainer = (SelfSupervisedTrainer(config, model, train_set, val_set, selfsup=selfsup, **kwargs)
-               if selfsup is not None else Trainer(config, model, train_set, val_set, **kwargs))
+    trainer = (
+        SelfSupervisedTrainer(config, model, train_set, val_set, selfsup=selfsup, **kwargs)
+        if selfsup is not None
+        else Trainer(config, model, train_set, val_set, **kwargs)
+    )
     checkpoint = resolve_resume(config, resume)
     if checkpoint is not None:
         trainer.resume(checkpoint)

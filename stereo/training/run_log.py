@@ -3,6 +3,7 @@
 Only the main process writes. The history lives in the training checkpoint too, so a resumed run
 rewrites complete files.
 """
+
 from __future__ import annotations
 
 import csv
@@ -26,7 +27,9 @@ def open_tensorboard(log_dir: Path) -> Any | None:
 
 def _json_safe(history: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """The history with NaN/Inf floats (e.g. the EPE of a failed validation) as null, which strict JSON allows."""
-    return [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()} for row in history]
+    return [
+        {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()} for row in history
+    ]
 
 
 class RunLog:

@@ -8,6 +8,7 @@ where left–right consistency fails (occlusions): the right disparity, predicte
 on the mirrored pair, warped into the left view must agree with d within max(τ, 5 % of d).
 The three deeply supervised outputs are weighted as in supervised training.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -129,14 +130,18 @@ def self_supervised_loss(
         pred = pred.float()
         warped, mask = warp_right_to_left(right, pred)
         if right_disparity is not None:
-            mask = mask & left_right_consistent(pred.detach(), right_disparity, config.lr_abs_threshold,
-                                                config.lr_rel_threshold)
+            mask = mask & left_right_consistent(
+                pred.detach(), right_disparity, config.lr_abs_threshold, config.lr_rel_threshold
+            )
         mask = mask.float()
         photometric = (photometric_error(left, warped, config.ssim_weight) * mask).sum() / mask.sum().clamp(min=1.0)
         smoothness = edge_aware_smoothness(pred, left)
         total = total + weight * (photometric + config.smoothness_weight * smoothness)
-        stats = {"photometric": float(photometric.detach()), "smoothness": float(smoothness.detach()),
-                 "masked_fraction": float(1.0 - mask.mean())}
+        stats = {
+            "photometric": float(photometric.detach()),
+            "smoothness": float(smoothness.detach()),
+            "masked_fraction": float(1.0 - mask.mean()),
+        }
     return total, stats
 
 
@@ -156,6 +161,12 @@ class SelfSupervisedTrainer(Trainer):
             keep_frozen_in_eval(self.model, self.frozen)
         with autocast_context(self.device, self.config.train.precision):
             predictions = self.net(left, right)
-        loss, _ = self_supervised_loss(predictions, denormalize(left), denormalize(right),
-                                       tuple(self.config.train.loss_weights), self.selfsup, right_disparity)
+        loss, _ = self_supervised_loss(
+            predictions,
+            denormalize(left),
+            denormalize(right),
+            tuple(self.config.train.loss_weights),
+            self.selfsup,
+            right_disparity,
+        )
         return loss, predictions

@@ -12,6 +12,7 @@ Resuming is exact: data order comes from a DistributedSampler seeded by (seed, e
 augmentations from (seed, epoch, index), and the checkpoint holds every state plus the position
 inside the epoch, so k steps + resume equals the same number of steps in one go.
 """
+
 from __future__ import annotations
 
 import math
@@ -73,8 +74,18 @@ class TrainResult:
 
 def _fresh_progress() -> dict[str, Any]:
     """Counters of a run that has not started."""
-    return {"step": 0, "epoch": 0, "batch_in_epoch": 0, "best_epe": math.inf, "best_epoch": -1, "bad_epochs": 0,
-            "skipped_steps": 0, "loss_sum": 0.0, "loss_count": 0, "history": []}
+    return {
+        "step": 0,
+        "epoch": 0,
+        "batch_in_epoch": 0,
+        "best_epe": math.inf,
+        "best_epoch": -1,
+        "bad_epochs": 0,
+        "skipped_steps": 0,
+        "loss_sum": 0.0,
+        "loss_count": 0,
+        "history": [],
+    }
 
 
 class Trainer:
@@ -100,15 +111,25 @@ class Trainer:
         self.val_set = val_set
         self.show_progress = show_progress and context.is_main
         train = config.train
-        self.loss_config = LossConfig(tuple(train.loss_weights), float(config.model.max_disp),
-                                      train.clamp_factor, train.loss_cap)
+        self.loss_config = LossConfig(
+            tuple(train.loss_weights), float(config.model.max_disp), train.clamp_factor, train.loss_cap
+        )
         jitter = AsymmetricColorJitter() if config.data.color_jitter else None
         crop_h, crop_w = config.data.crop
-        self.train_data = Augmented(train_set, TrainTransform(crop_h, crop_w, jitter, float(config.model.max_disp)),
-                                    seed=train.seed)
-        self.sampler = DistributedSampler(self.train_data, num_replicas=context.world_size, rank=context.rank,
-                                          shuffle=True, seed=train.seed, drop_last=context.enabled)
-        batches = len(self.sampler) // train.batch_size if train.drop_last else -(-len(self.sampler) // train.batch_size)
+        self.train_data = Augmented(
+            train_set, TrainTransform(crop_h, crop_w, jitter, float(config.model.max_disp)), seed=train.seed
+        )
+        self.sampler = DistributedSampler(
+            self.train_data,
+            num_replicas=context.world_size,
+            rank=context.rank,
+            shuffle=True,
+            seed=train.seed,
+            drop_last=context.enabled,
+        )
+        batches = (
+            len(self.sampler) // train.batch_size if train.drop_last else -(-len(self.sampler) // train.batch_size)
+        )
         self.steps_per_epoch = batches // train.accumulate
         if self.steps_per_epoch == 0:
             raise ConfigError(
@@ -132,17 +153,29 @@ class Trainer:
         """Continue from a training checkpoint written by this trainer (same config)."""
         payload = load_training_checkpoint(Path(path))
         try:
-            self.progress = restore_training_state(payload, model=self.model, optimizer=self.optimizer,
-                                                   scheduler=self.scheduler, scaler=self.scaler, ema=self.ema)
+            self.progress = restore_training_state(
+                payload,
+                model=self.model,
+                optimizer=self.optimizer,
+                scheduler=self.scheduler,
+                scaler=self.scaler,
+                ema=self.ema,
+            )
         except CheckpointError as exc:
             raise CheckpointError(f"{path}: {exc}") from exc
 
     def save_last(self) -> None:
         """Write `last.pth` with the full state (main process only)."""
         if self.context.is_main:
-            save_training_checkpoint(self.out_dir / LAST_CHECKPOINT, model=self.model, optimizer=self.optimizer,
-                                     scheduler=self.scheduler, scaler=self.scaler, ema=self.ema,
-                                     progress=self.progress)
+            save_training_checkpoint(
+                self.out_dir / LAST_CHECKPOINT,
+                model=self.model,
+                optimizer=self.optimizer,
+                scheduler=self.scheduler,
+                scaler=self.scaler,
+                ema=self.ema,
+                progress=self.progress,
+            )
         self.context.barrier()
 
     def evaluated_model(self) -> nn.Module:
@@ -169,8 +202,9 @@ class Trainer:
         finally:
             self.log.close()
         p = self.progress
-        return TrainResult(p["step"], p["epoch"], p["best_epe"], p["best_epoch"], stopped_early, interrupted,
-                           list(p["history"]))
+        return TrainResult(
+            p["step"], p["epoch"], p["best_epe"], p["best_epoch"], stopped_early, interrupted, list(p["history"])
+        )
 
     def _max_steps_reached(self) -> bool:
         limit = self.config.train.max_steps
@@ -183,16 +217,27 @@ class Trainer:
         batch_size = self.config.train.batch_size
         indices = list(self.sampler)[: self.micro_batches_per_epoch * batch_size]
         start = self.progress["batch_in_epoch"] * batch_size
-        return DataLoader(self.train_data, batch_size=batch_size, sampler=indices[start:], drop_last=True,
-                          num_workers=self.config.data.num_workers, pin_memory=self.device.type == "cuda")
+        return DataLoader(
+            self.train_data,
+            batch_size=batch_size,
+            sampler=indices[start:],
+            drop_last=True,
+            num_workers=self.config.data.num_workers,
+            pin_memory=self.device.type == "cuda",
+        )
 
     def _train_epoch(self, epoch: int) -> bool:
         """Run the rest of `epoch`; False when `max_steps` stopped it before its end."""
         train = self.config.train
         self.net.train()
         keep_frozen_in_eval(self.model, self.frozen)
-        bar = progress_bar(total=self.micro_batches_per_epoch, initial=self.progress["batch_in_epoch"],
-                           desc=f"epoch {epoch + 1}/{train.epochs}", disable=not self.show_progress, leave=False)
+        bar = progress_bar(
+            total=self.micro_batches_per_epoch,
+            initial=self.progress["batch_in_epoch"],
+            desc=f"epoch {epoch + 1}/{train.epochs}",
+            disable=not self.show_progress,
+            leave=False,
+        )
         started = time.perf_counter()
         try:
             for batch in self._epoch_loader(epoch):
@@ -225,7 +270,9 @@ class Trainer:
 
     def _backward(self, batch: dict[str, Any]) -> float | None:
         """Forward, loss and (scaled) backward of one micro-batch; the loss, or None when non-finite."""
-        batch = {k: v.to(self.device, non_blocking=True) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+        batch = {
+            k: v.to(self.device, non_blocking=True) if isinstance(v, torch.Tensor) else v for k, v in batch.items()
+        }
         loss, predictions = self.compute_loss(batch)
         if not bool(torch.isfinite(loss)):
             # Every process must still run backward (DDP all-reduces inside it); this one adds nothing.
@@ -274,16 +321,25 @@ class Trainer:
         """Validate, record the epoch, keep the best checkpoint; True when early stopping triggers."""
         p, train = self.progress, self.config.train
         mean_loss = p["loss_sum"] / p["loss_count"] if p["loss_count"] else math.nan
-        row: dict[str, Any] = {"epoch": p["epoch"] + 1, "step": p["step"],
-                               "train_loss": self.context.all_reduce_mean(mean_loss),
-                               "lr": self.optimizer.param_groups[0]["lr"], "skipped_steps": p["skipped_steps"],
-                               "seconds": round(p.pop("epoch_seconds", 0.0), 3)}
+        row: dict[str, Any] = {
+            "epoch": p["epoch"] + 1,
+            "step": p["step"],
+            "train_loss": self.context.all_reduce_mean(mean_loss),
+            "lr": self.optimizer.param_groups[0]["lr"],
+            "skipped_steps": p["skipped_steps"],
+            "seconds": round(p.pop("epoch_seconds", 0.0), 3),
+        }
         stop = False
         if self.context.is_main and self.val_set is not None:
-            result = evaluate(self.evaluated_model(), self.val_set, device=self.device,
-                              max_disp=self.config.model.max_disp, limit=train.val_max_images,
-                              vis_dir=self.out_dir / "vis" if train.vis_count > 0 else None,
-                              vis_count=train.vis_count)
+            result = evaluate(
+                self.evaluated_model(),
+                self.val_set,
+                device=self.device,
+                max_disp=self.config.model.max_disp,
+                limit=train.val_max_images,
+                vis_dir=self.out_dir / "vis" if train.vis_count > 0 else None,
+                vis_count=train.vis_count,
+            )
             row.update({f"val_{k}": v for k, v in result.mean.items()})
             # A NaN/Inf prediction on any validation image makes the epoch's EPE inf: never the best.
             row.update(val_epe=result.selection_epe, val_failed=len(result.failed))

@@ -1,1 +1,2 @@
-"""Segmenters beyond the first geometric one (3D structure, ONNX models) and `make_segmenter`, which picks one by name."""
+"""The segmenters (`Segmenter` in `segmenter`: the geometric one; 3D structure, learned, ONNX models) and
+`make_segmenter` (`choose`), which picks one by name."""

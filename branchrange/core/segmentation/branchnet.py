@@ -10,6 +10,7 @@ Output: logits `(B, 3, H, W)` for `CLASSES`; H and W must be multiples of `STRID
 Why this size: about 0.2 M parameters (under 1 MB of float32 weights) and one forward pass at
 640×360 within the segmenter's time budget on two CPU cores, trainable on CPU in an hour.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,8 +48,11 @@ def network_input(left: np.ndarray, disparity: np.ndarray, scale: float | None =
 
 def _conv(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
     """3×3 convolution, batch norm, ReLU."""
-    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, padding=dilation, dilation=dilation, bias=False),
-                         nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, 3, stride, padding=dilation, dilation=dilation, bias=False),
+        nn.BatchNorm2d(c_out),
+        nn.ReLU(inplace=True),
+    )
 
 
 class BranchNet(nn.Module):
@@ -58,9 +62,9 @@ class BranchNet(nn.Module):
         super().__init__()
         w = width
         self.width = width
-        self.stem = nn.Sequential(_conv(IN_CHANNELS, w, 2), _conv(w, w))                 # 1/2
-        self.down2 = nn.Sequential(_conv(w, 2 * w, 2), _conv(2 * w, 2 * w))                # 1/4
-        self.down3 = nn.Sequential(_conv(2 * w, 3 * w, 2), _conv(3 * w, 3 * w))            # 1/8
+        self.stem = nn.Sequential(_conv(IN_CHANNELS, w, 2), _conv(w, w))  # 1/2
+        self.down2 = nn.Sequential(_conv(w, 2 * w, 2), _conv(2 * w, 2 * w))  # 1/4
+        self.down3 = nn.Sequential(_conv(2 * w, 3 * w, 2), _conv(3 * w, 3 * w))  # 1/8
         self.down4 = nn.Sequential(_conv(3 * w, 4 * w, 2), _conv(4 * w, 4 * w, dilation=2))  # 1/16
         self.up3 = _conv(7 * w, 3 * w)
         self.up2 = _conv(5 * w, 2 * w)

@@ -11,6 +11,7 @@ Samples are cached as compressed `.npz` files so training, its resumption and th
 held-out scenes never render the same seed twice. Training seeds start at 1; the segmenter
 benchmark's held-out seeds start at 50,000 (`TRAIN_SEED_LIMIT` keeps them apart).
 """
+
 from __future__ import annotations
 
 import os
@@ -41,8 +42,12 @@ def render_sample(seed: int, size: tuple[int, int] = (640, 360), max_disp: int =
 
     scene = render_scene(seed, SynthCamera.zed_mini(*size), leaf_shape="auto", threads=1)
     stereo = make_backend("sgbm", max_disp=max_disp).compute(scene.left, scene.right)
-    return {"left": scene.left, "disparity": stereo.disparity.astype(np.float16),
-            "classes": classes_from_instances(scene.instance_mask), "instances": scene.instance_mask}
+    return {
+        "left": scene.left,
+        "disparity": stereo.disparity.astype(np.float16),
+        "classes": classes_from_instances(scene.instance_mask),
+        "instances": scene.instance_mask,
+    }
 
 
 def cached_sample(folder: Path, seed: int, size: tuple[int, int] = (640, 360)) -> dict[str, np.ndarray]:

@@ -11,6 +11,7 @@ focal lengths and branch widths; gain, contrast, gamma, per-channel colour, grey
 cameras are monochrome), blur and noise cover exposure, white balance, focus and sensor; horizontal
 flips double the geometry. The disparity channel is left as SGBM gives it (holes and all).
 """
+
 from __future__ import annotations
 
 import csv
@@ -83,8 +84,9 @@ def augment(left: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def training_crop(sample: dict[str, np.ndarray], config: BranchNetTrainConfig,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def training_crop(
+    sample: dict[str, np.ndarray], config: BranchNetTrainConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """(input `float32 (5, c, c)`, classes `int64 (c, c)`) of one randomly scaled, augmented, cropped sample."""
     scale = float(rng.uniform(0.5, 1.6))
     height, width = sample["classes"].shape
@@ -100,7 +102,7 @@ def training_crop(sample: dict[str, np.ndarray], config: BranchNetTrainConfig,
         lft = int(np.clip(branch_u[pick] - half + rng.integers(-half // 2, half // 2 + 1), 0, size[0] - config.crop))
     else:
         top, lft = int(rng.integers(0, size[1] - config.crop + 1)), int(rng.integers(0, size[0] - config.crop + 1))
-    window = np.s_[top:top + config.crop, lft:lft + config.crop]
+    window = np.s_[top : top + config.crop, lft : lft + config.crop]
     # the crop's disparity is scaled like its whole frame's, as at run time
     features = network_input(augment(left[window], rng), disparity[window], disparity_scale(disparity))
     target = classes[window].astype(np.int64)
@@ -132,16 +134,23 @@ def export_onnx(model: BranchNet, path: Path) -> str:
     """Write `model` as ONNX (input `image` (1, 5, H, W), dynamic H, W; output `logits`); its SHA-256."""
     model = model.eval().to(memory_format=torch.contiguous_format)
     example = torch.zeros(1, 5, 368, 640)
-    torch.onnx.export(model, example, str(path), input_names=["image"], output_names=["logits"],
-                      dynamic_axes={"image": {2: "height", 3: "width"}, "logits": {2: "height", 3: "width"}},
-                      opset_version=17, dynamo=False)
+    torch.onnx.export(
+        model,
+        example,
+        str(path),
+        input_names=["image"],
+        output_names=["logits"],
+        dynamic_axes={"image": {2: "height", 3: "width"}, "logits": {2: "height", 3: "width"}},
+        opset_version=17,
+        dynamo=False,
+    )
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path, log=print) -> dict:
     """Train, validate and export (see the module docstring); returns the metadata written to `branchnet.json`."""
-    from stereo.training.curves import plot_panel
     from stereo.io import write_rgb
+    from stereo.training.curves import plot_panel
 
     torch.manual_seed(config.seed)
     torch.set_num_threads(config.threads)
@@ -151,14 +160,17 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
     model = BranchNet(config.width).to(memory_format=torch.channels_last)  # ~1.4× faster convolutions on CPU
     optimiser = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=config.lr, total_steps=config.steps,
-                                                   pct_start=0.05, final_div_factor=50)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(
+        optimiser, max_lr=config.lr, total_steps=config.steps, pct_start=0.05, final_div_factor=50
+    )
     weights = torch.tensor(config.class_weights, dtype=torch.float32)
     history: list[dict] = []
     running, start = [], time.perf_counter()
     for step in range(1, config.steps + 1):
-        crops = [training_crop(cached_sample(data_dir, int(rng.choice(train_seeds))), config, rng)
-                 for _ in range(config.batch)]
+        crops = [
+            training_crop(cached_sample(data_dir, int(rng.choice(train_seeds))), config, rng)
+            for _ in range(config.batch)
+        ]
         inputs = torch.from_numpy(np.stack([c[0] for c in crops])).contiguous(memory_format=torch.channels_last)
         targets = torch.from_numpy(np.stack([c[1] for c in crops]))
         loss = F.cross_entropy(model(inputs), targets, weight=weights, ignore_index=IGNORE)
@@ -169,8 +181,12 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
         running.append(float(loss.detach()))
         if step % config.val_every == 0 or step == config.steps:
             iou = class_iou(model, validation)
-            row = {"step": step, "train_loss": float(np.mean(running)), **{f"iou_{k}": v for k, v in iou.items()},
-                   "seconds": round(time.perf_counter() - start, 1)}
+            row = {
+                "step": step,
+                "train_loss": float(np.mean(running)),
+                **{f"iou_{k}": v for k, v in iou.items()},
+                "seconds": round(time.perf_counter() - start, 1),
+            }
             history.append(row)
             running = []
             log(" ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
@@ -179,13 +195,27 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
         writer.writeheader()
         writer.writerows(history)
     steps = [row["step"] for row in history]
-    write_rgb(out_dir / "training_curve.png", np.concatenate([
-        plot_panel("train loss", steps, [r["train_loss"] for r in history], (31, 119, 180), "step"),
-        plot_panel("val IoU branch", steps, [r["iou_branch"] for r in history], (214, 39, 40), "step"),
-        plot_panel("val IoU trunk", steps, [r["iou_trunk"] for r in history], (44, 160, 44), "step")], axis=1))
+    write_rgb(
+        out_dir / "training_curve.png",
+        np.concatenate(
+            [
+                plot_panel("train loss", steps, [r["train_loss"] for r in history], (31, 119, 180), "step"),
+                plot_panel("val IoU branch", steps, [r["iou_branch"] for r in history], (214, 39, 40), "step"),
+                plot_panel("val IoU trunk", steps, [r["iou_trunk"] for r in history], (44, 160, 44), "step"),
+            ],
+            axis=1,
+        ),
+    )
     torch.save(model.state_dict(), out_dir / "branchnet.pt")
     sha256 = export_onnx(model, out_dir / "branchnet.onnx")
-    meta = {"model": "BranchNet", "width": config.width, "classes": list(CLASSES), "onnx_sha256": sha256,
-            "config": asdict(config), "final": history[-1], "torch": torch.__version__}
+    meta = {
+        "model": "BranchNet",
+        "width": config.width,
+        "classes": list(CLASSES),
+        "onnx_sha256": sha256,
+        "config": asdict(config),
+        "final": history[-1],
+        "torch": torch.__version__,
+    }
     (out_dir / "branchnet.json").write_text(json.dumps(meta, indent=1) + "\n")
     return meta

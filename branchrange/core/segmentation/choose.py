@@ -1,9 +1,11 @@
-"""`make_segmenter`: the segmenter a name asks for — 'learned', 'structure', 'geometric' or 'onnx:FILE' (your own model)."""
+"""`make_segmenter`: the segmenter a name asks for — 'learned', 'structure', 'geometric' or 'onnx:FILE'
+(your own model)."""
+
 from __future__ import annotations
 
-from branchrange.core.segmentation.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
+from branchrange.core.segmentation.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
 from branchrange.core.segmentation.structure import StructureSegmenter, StructureSegmenterConfig
 
 #: The names `make_segmenter` accepts, for help texts and error messages.
@@ -17,10 +19,13 @@ def check_segmenter_name(name: str) -> str:
     raise OnnxSegmenterError(f"segmenter {name!r}: expected {SEGMENTER_NAMES}")
 
 
-def make_segmenter(name: str, geometric: GeometricSegmenterConfig = GeometricSegmenterConfig(),
-                   onnx: OnnxSegmenterConfig = OnnxSegmenterConfig(),
-                   structure: StructureSegmenterConfig = StructureSegmenterConfig(),
-                   learned: LearnedSegmenterConfig = LearnedSegmenterConfig()) -> Segmenter:
+def make_segmenter(
+    name: str,
+    geometric: GeometricSegmenterConfig = GeometricSegmenterConfig(),
+    onnx: OnnxSegmenterConfig = OnnxSegmenterConfig(),
+    structure: StructureSegmenterConfig = StructureSegmenterConfig(),
+    learned: LearnedSegmenterConfig = LearnedSegmenterConfig(),
+) -> Segmenter:
     """The segmenter `name` names, built with its settings; `OnnxSegmenterError` for a bad name or model."""
     check_segmenter_name(name)
     if name == "geometric":
@@ -29,4 +34,4 @@ def make_segmenter(name: str, geometric: GeometricSegmenterConfig = GeometricSeg
         return LearnedSegmenter(learned)
     if name == "structure":
         return StructureSegmenter(structure)
-    return OnnxSegmenter(name[len("onnx:"):], onnx)
+    return OnnxSegmenter(name[len("onnx:") :], onnx)

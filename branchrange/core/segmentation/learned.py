@@ -17,6 +17,7 @@ against the SHA-256 recorded beside it (`weights/branchnet.json`, which also hol
 config, seed and validation IoU); `model=` takes another file trained with `branchrange
 train-segmenter`, checked against its own JSON when one sits beside it.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -29,7 +30,7 @@ import numpy as np
 
 from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.core.segmentation.branchnet import CLASSES, padded_to_stride, network_input
+from branchrange.core.segmentation.branchnet import CLASSES, network_input, padded_to_stride
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
 from branchrange.core.segmentation.segmenter import depth_edges
 from branchrange.core.settings_check import Checks, Settings
@@ -81,8 +82,10 @@ def verified_model(path: Path) -> Path:
         expected = json.loads(meta_path.read_text(encoding="utf-8")).get("onnx_sha256")
         found = hashlib.sha256(path.read_bytes()).hexdigest()
         if expected and expected != found:
-            raise OnnxSegmenterError(f"learned segmenter: {path} has SHA-256 {found}, but {meta_path.name} "
-                                     f"records {expected}: the file is damaged or not the one trained")
+            raise OnnxSegmenterError(
+                f"learned segmenter: {path} has SHA-256 {found}, but {meta_path.name} "
+                f"records {expected}: the file is damaged or not the one trained"
+            )
     return path
 
 
@@ -109,8 +112,9 @@ class LearnedSegmenter:
         logits = self.session.run(None, {self._input: features[None]})[0][0, :, :height, :width]
         return _softmax(logits)
 
-    def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
-                confidence: np.ndarray | None = None) -> BranchMasks:
+    def segment(
+        self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
+    ) -> BranchMasks:
         """Branch instances (1..K, each scored) and the trunk (`trunk_id`) of one rectified frame."""
         cfg = self.config
         disparity = np.asarray(disparity, dtype=np.float32)

@@ -15,10 +15,12 @@ Input: `(1, 3, H, W)` float32 RGB in [0, 1] (the Ultralytics convention). A fixe
 letterboxed (aspect kept, grey 114 padding); a dynamic one gets the image padded to a multiple of
 `stride`. Which class ids are branch and which trunk is configuration, not guessed.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -57,16 +59,20 @@ class OnnxSegmenterConfig(Settings):
     trunk_id: int = DEFAULT_TRUNK_ID
 
     section = "segmenter"
-    error = OnnxSegmenterError
+    error: ClassVar[type[ValueError]] = OnnxSegmenterError
 
     def checks(self) -> Checks:
         """The range of every setting; a class id is branch or trunk, not both."""
         overlap = set(self.branch_classes) & set(self.trunk_classes)
         return {
-            "branch_classes": (len(self.branch_classes) > 0 and min(self.branch_classes) >= 0,
-                               "at least one class id ≥ 0"),
-            "trunk_classes": (not overlap and all(c >= 0 for c in self.trunk_classes),
-                              f"class ids ≥ 0 that are not also branch classes (both: {sorted(overlap)})"),
+            "branch_classes": (
+                len(self.branch_classes) > 0 and min(self.branch_classes) >= 0,
+                "at least one class id ≥ 0",
+            ),
+            "trunk_classes": (
+                not overlap and all(c >= 0 for c in self.trunk_classes),
+                f"class ids ≥ 0 that are not also branch classes (both: {sorted(overlap)})",
+            ),
             "score_threshold": (0 <= self.score_threshold <= 1, "a score in [0, 1]"),
             "mask_threshold": (0 < self.mask_threshold < 1, "a probability in (0, 1)"),
             "nms_iou": (0 < self.nms_iou <= 1, "an IoU in (0, 1]"),
@@ -100,7 +106,7 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(x, -50.0, 50.0)))
 
 
-def onnx_session(path: Path, threads: int) -> "onnxruntime.InferenceSession":  # noqa: F821 - optional import
+def onnx_session(path: Path, threads: int) -> onnxruntime.InferenceSession:  # noqa: F821 - optional import
     """An onnxruntime CPU session of the model file `path` with `threads` intra-op threads;
     `OnnxSegmenterError` naming the file when it is missing or unreadable, or onnxruntime is absent."""
     if not path.is_file():
@@ -128,8 +134,9 @@ class OnnxSegmenter:
         self.name = f"onnx:{path.name}"
         inputs = self.session.get_inputs()
         if len(inputs) != 1 or len(inputs[0].shape) != 4:
-            raise OnnxSegmenterError(f"onnx:{path}: expected one image input (1, 3, H, W), got "
-                                     f"{[(i.name, i.shape) for i in inputs]}")
+            raise OnnxSegmenterError(
+                f"onnx:{path}: expected one image input (1, 3, H, W), got {[(i.name, i.shape) for i in inputs]}"
+            )
         self._input = inputs[0].name
         h, w = inputs[0].shape[2:]
         self._fixed_size = (w, h) if isinstance(w, int) and isinstance(h, int) else None
@@ -144,9 +151,11 @@ class OnnxSegmenter:
             return "logits"
         if sorted(ranks) == [3, 4]:
             return "yolo"
-        raise OnnxSegmenterError(f"onnx:{path}: outputs of shapes {shapes} are neither YOLOv8-seg "
-                                 "(detections (1, 4+nc+nm, N) and prototypes (1, nm, h, w)) nor "
-                                 "per-pixel logits (one output (1, C, h, w))")
+        raise OnnxSegmenterError(
+            f"onnx:{path}: outputs of shapes {shapes} are neither YOLOv8-seg "
+            "(detections (1, 4+nc+nm, N) and prototypes (1, nm, h, w)) nor "
+            "per-pixel logits (one output (1, C, h, w))"
+        )
 
     def _prepare(self, left: np.ndarray) -> tuple[np.ndarray, _Letterbox]:
         """The `(1, 3, H, W)` float32 input and where the image sits in it."""
@@ -161,14 +170,18 @@ class OnnxSegmenter:
         new_w, new_h = int(round(width * scale)), int(round(height * scale))
         canvas = np.full((in_h, in_w, 3), 114, dtype=np.uint8)
         pad_x, pad_y = (in_w - new_w) // 2, (in_h - new_h) // 2
-        resized = left if (new_w, new_h) == (width, height) else cv2.resize(left, (new_w, new_h),
-                                                                               interpolation=cv2.INTER_AREA)
-        canvas[pad_y:pad_y + new_h, pad_x:pad_x + new_w] = resized
+        resized = (
+            left
+            if (new_w, new_h) == (width, height)
+            else cv2.resize(left, (new_w, new_h), interpolation=cv2.INTER_AREA)
+        )
+        canvas[pad_y : pad_y + new_h, pad_x : pad_x + new_w] = resized
         tensor = canvas.astype(np.float32).transpose(2, 0, 1)[None] / 255.0
         return np.ascontiguousarray(tensor), _Letterbox(scale, pad_x, pad_y, in_w, in_h)
 
-    def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
-                confidence: np.ndarray | None = None) -> BranchMasks:
+    def segment(
+        self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
+    ) -> BranchMasks:
         """Instances for `left` (`uint8 H×W×3` RGB); disparity and geometry are not used by the model."""
         tensor, box = self._prepare(left)
         outputs = self.session.run(None, {self._input: tensor})
@@ -203,10 +216,12 @@ class OnnxSegmenter:
             keep = scores >= cfg.score_threshold
             return boxes[keep], scores[keep], classes[keep], coeffs[keep]
         if rows <= 4 + n_coeffs:
-            raise OnnxSegmenterError(f"{self.name}: detections of shape {raw.shape} do not hold 4 box values, "
-                                     f"class scores and {n_coeffs} mask coefficients per column")
+            raise OnnxSegmenterError(
+                f"{self.name}: detections of shape {raw.shape} do not hold 4 box values, "
+                f"class scores and {n_coeffs} mask coefficients per column"
+            )
         table = raw.T  # (N, 4 + nc + nm)
-        class_scores = table[:, 4:rows - n_coeffs]
+        class_scores = table[:, 4 : rows - n_coeffs]
         classes = np.argmax(class_scores, axis=1)
         scores = class_scores[np.arange(len(table)), classes]
         keep = scores >= cfg.score_threshold
@@ -220,10 +235,11 @@ class OnnxSegmenter:
             kept = cv2.dnn.NMSBoxes(xywh, scores[idx].astype(float).tolist(), cfg.score_threshold, cfg.nms_iou)
             chosen.extend(int(idx[k]) for k in np.asarray(kept).reshape(-1))
         chosen.sort()
-        return boxes[chosen], scores[chosen], classes[chosen], table[chosen, rows - n_coeffs:]
+        return boxes[chosen], scores[chosen], classes[chosen], table[chosen, rows - n_coeffs :]
 
-    def _from_yolo(self, raw: np.ndarray, prototypes: np.ndarray, box: _Letterbox,
-                   width: int, height: int) -> np.ndarray:
+    def _from_yolo(
+        self, raw: np.ndarray, prototypes: np.ndarray, box: _Letterbox, width: int, height: int
+    ) -> np.ndarray:
         """Instance labels from YOLOv8-seg outputs; higher-scoring instances win overlapping pixels."""
         cfg = self.config
         n_coeffs, proto_h, proto_w = prototypes.shape

@@ -28,6 +28,7 @@ Where it fails (by construction):
   parts can pass as branches; ground that meets the trunk's foot in the image joins the trunk's
   thick part and is reported as trunk with it (the synthetic "parallel" views show it).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -51,14 +52,16 @@ class Segmenter(Protocol):
 
     name: str
 
-    def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
-                confidence: np.ndarray | None = None) -> BranchMasks:
+    def segment(
+        self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
+    ) -> BranchMasks:
         """Instances for `left` (`uint8 H×W×3` RGB) and `disparity` (`float32 H×W` px)."""
         ...
 
 
-def working_foreground(disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None,
-                       cfg: BuiltinSegmenterConfig) -> tuple[np.ndarray, np.ndarray]:
+def working_foreground(
+    disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None, cfg: BuiltinSegmenterConfig
+) -> tuple[np.ndarray, np.ndarray]:
     """(foreground `H×W` bool, depth `H×W` m, inf where invalid) of a built-in segmenter's settings `cfg`:
     valid, at least `min_confidence`, within [`min_range_m`, `max_range_m`], not on a depth edge
     (`depth_edge_ratio`) — what both built-in segmenters start from."""
@@ -106,8 +109,10 @@ class BuiltinSegmenterConfig(Settings):
         far_ok, _ = in_physical_range("distance_m", self.max_range_m)
         return {
             "min_range_m": (near_ok, distances),
-            "max_range_m": (far_ok and self.max_range_m > self.min_range_m,
-                            f"> min_range_m ({self.min_range_m} m), {distances}"),
+            "max_range_m": (
+                far_ok and self.max_range_m > self.min_range_m,
+                f"> min_range_m ({self.min_range_m} m), {distances}",
+            ),
             "max_branch_diameter_m": (self.max_branch_diameter_m > 0, "> 0 m"),
             "min_branch_length_m": (self.min_branch_length_m > 0, "> 0 m"),
             "min_elongation": (self.min_elongation >= 1, "≥ 1 (length / width)"),
@@ -119,7 +124,8 @@ class BuiltinSegmenterConfig(Settings):
 
 @dataclass(frozen=True)
 class GeometricSegmenterConfig(BuiltinSegmenterConfig):
-    """`[segmenter.geometric]`, settings of `GeometricSegmenter`: the shared ones (`BuiltinSegmenterConfig`) at their defaults."""
+    """`[segmenter.geometric]`, settings of `GeometricSegmenter`: the shared ones (`BuiltinSegmenterConfig`)
+    at their defaults."""
 
     section = "segmenter.geometric"
 
@@ -175,8 +181,9 @@ class GeometricSegmenter:
     def __init__(self, config: GeometricSegmenterConfig = GeometricSegmenterConfig()) -> None:
         self.config = config
 
-    def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
-                confidence: np.ndarray | None = None) -> BranchMasks:
+    def segment(
+        self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
+    ) -> BranchMasks:
         """Branch instances (1..K) and the trunk (`trunk_id`) for one rectified frame."""
         cfg = self.config
         disparity = np.asarray(disparity, dtype=np.float32)

@@ -27,6 +27,7 @@ Where it fails: curved branches become several straight pieces (extra cut points
 the viewing direction are not elongated in the image; a branch lying in the ground plane is
 removed with it; leaves that are not green and are elongated can pass as branches.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -46,7 +47,8 @@ from branchrange.core.segmentation.segmenter import (
 
 @dataclass(frozen=True)
 class StructureSegmenterConfig(BuiltinSegmenterConfig):
-    """`[segmenter.structure]`, settings of `StructureSegmenter` (metres unless named otherwise); see the module docstring."""
+    """`[segmenter.structure]`, settings of `StructureSegmenter` (metres unless named otherwise); see the
+    module docstring."""
 
     section = "segmenter.structure"
 
@@ -76,8 +78,9 @@ class StructureSegmenterConfig(BuiltinSegmenterConfig):
         }
 
 
-def _plane_inliers(points: np.ndarray, tolerance: np.ndarray, rng: np.random.Generator,
-                   hypotheses: int = 100, sample: int = 1500) -> np.ndarray:
+def _plane_inliers(
+    points: np.ndarray, tolerance: np.ndarray, rng: np.random.Generator, hypotheses: int = 100, sample: int = 1500
+) -> np.ndarray:
     """Boolean `(N,)`: points within `tolerance` `(N,)` m of the RANSAC plane with most such points."""
     n = len(points)
     pick = rng.choice(n, min(n, sample), replace=False)
@@ -96,8 +99,9 @@ def _plane_inliers(points: np.ndarray, tolerance: np.ndarray, rng: np.random.Gen
     return np.abs(points @ normals[best] - offsets[best]) < tolerance
 
 
-def _straight_pieces(u: np.ndarray, v: np.ndarray, band_px: float, min_px: int,
-                     rng: np.random.Generator, max_pieces: int = 6) -> list[np.ndarray]:
+def _straight_pieces(
+    u: np.ndarray, v: np.ndarray, band_px: float, min_px: int, rng: np.random.Generator, max_pieces: int = 6
+) -> list[np.ndarray]:
     """Index arrays of straight, contiguous runs of the pixels (u, v) `(N,)`, longest consensus first."""
     points = np.stack([u, v], axis=1).astype(np.float64)
     remaining = np.arange(len(points))
@@ -145,7 +149,7 @@ def ridge_pixels(left: np.ndarray, scales_px: tuple[float, ...], min_strength: f
         dxx = cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3)
         dyy = cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3)
         dxy = cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3)
-        half_trace, root = (dxx + dyy) / 2, np.sqrt(((dxx - dyy) / 2) ** 2 + dxy ** 2)
+        half_trace, root = (dxx + dyy) / 2, np.sqrt(((dxx - dyy) / 2) ** 2 + dxy**2)
         big = np.maximum(np.abs(half_trace + root), np.abs(half_trace - root))
         small = np.minimum(np.abs(half_trace + root), np.abs(half_trace - root))
         ridge |= (sigma * sigma * big >= min_strength) & (small <= 0.5 * big)
@@ -160,8 +164,9 @@ class StructureSegmenter:
     def __init__(self, config: StructureSegmenterConfig = StructureSegmenterConfig()) -> None:
         self.config = config
 
-    def _dominant_plane(self, foreground: np.ndarray, depth: np.ndarray, geometry: StereoGeometry,
-                        rng: np.random.Generator) -> np.ndarray:
+    def _dominant_plane(
+        self, foreground: np.ndarray, depth: np.ndarray, geometry: StereoGeometry, rng: np.random.Generator
+    ) -> np.ndarray:
         """Boolean `H×W`: the inliers of a dominant, solid plane (ground, litter, a hedge); none when there is none."""
         cfg = self.config
         none = np.zeros(foreground.shape, dtype=bool)
@@ -169,7 +174,9 @@ class StructureSegmenter:
         if len(u) < 500:
             return none
         z = depth[v, u].astype(np.float64)
-        points = np.stack([(u - geometry.cx) * z / geometry.focal_px, (v - geometry.cy) * z / geometry.focal_px, z], axis=1)
+        points = np.stack(
+            [(u - geometry.cx) * z / geometry.focal_px, (v - geometry.cy) * z / geometry.focal_px, z], axis=1
+        )
         # stereo depth noise grows as Z²: about 0.5 px of disparity
         tolerance = cfg.plane_tolerance_m + 0.5 * z * z / geometry.fb
         inliers = _plane_inliers(points, tolerance, rng)
@@ -200,8 +207,9 @@ class StructureSegmenter:
         to_core = cv2.distanceTransform((~core).astype(np.uint8), cv2.DIST_L2, 5)
         return foreground & (to_core <= radius_px + 1.0)
 
-    def _is_branch(self, u: np.ndarray, v: np.ndarray, disparity: np.ndarray, depth: np.ndarray,
-                   geometry: StereoGeometry) -> bool:
+    def _is_branch(
+        self, u: np.ndarray, v: np.ndarray, disparity: np.ndarray, depth: np.ndarray, geometry: StereoGeometry
+    ) -> bool:
         """Long, elongated and depth-consistent enough to be a stem."""
         cfg = self.config
         length_px, width_px = pixel_elongation(u, v)
@@ -217,16 +225,24 @@ class StructureSegmenter:
             return False
         return fit.inlier_fraction >= cfg.min_depth_consistency
 
-    def _attached(self, pieces: list[tuple[np.ndarray, np.ndarray]], trunk: np.ndarray, depth: np.ndarray,
-                  geometry: StereoGeometry) -> list[tuple[np.ndarray, np.ndarray]]:
+    def _attached(
+        self,
+        pieces: list[tuple[np.ndarray, np.ndarray]],
+        trunk: np.ndarray,
+        depth: np.ndarray,
+        geometry: StereoGeometry,
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
         """The pieces with an end within `max_trunk_gap_m` of the trunk: what a pruner cuts grows
         from the trunk; loose pieces are twigs, leaves, background or noise. (Chaining pieces
         through each other, the branch graph, found 3 % more branches on the synthetic set but
         raised the false cut points from 2.8 to 3.8 per frame with sgbm, at a 0.12 m minimum length.)"""
         to_trunk = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3)
-        return [(pu, pv) for pu, pv in pieces
-                if float(to_trunk[pv, pu].min()) * float(np.median(depth[pv, pu])) / geometry.focal_px
-                <= self.config.max_trunk_gap_m]
+        return [
+            (pu, pv)
+            for pu, pv in pieces
+            if float(to_trunk[pv, pu].min()) * float(np.median(depth[pv, pu])) / geometry.focal_px
+            <= self.config.max_trunk_gap_m
+        ]
 
     def _trunk(self, thick: np.ndarray) -> np.ndarray | None:
         """The largest thick component whose principal axis is within the tilt limit of vertical."""
@@ -244,8 +260,9 @@ class StructureSegmenter:
                 best, best_area = i, area
         return None if best is None else labels == best
 
-    def segment(self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry,
-                confidence: np.ndarray | None = None) -> BranchMasks:
+    def segment(
+        self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
+    ) -> BranchMasks:
         """Branch instances (1..K) and the trunk (`trunk_id`) for one rectified frame."""
         cfg = self.config
         disparity = np.asarray(disparity, dtype=np.float32)
@@ -256,7 +273,9 @@ class StructureSegmenter:
         plane = self._dominant_plane(foreground, depth, geometry, rng)
         # only the plane's solid part leaves the foreground, so a stem just in front of the ground
         # keeps its pixels (rejecting pieces that lie mostly on the plane cost more stems than noise)
-        solid = cv2.morphologyEx(plane.astype(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7)))
+        solid = cv2.morphologyEx(
+            plane.astype(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+        )
         foreground &= ~(cv2.dilate(solid, np.ones((5, 5), np.uint8)).astype(bool) & plane)
         radius_px = cfg.max_branch_diameter_m / 2 * geometry.focal_px / np.where(foreground, depth, np.inf)
         thick = self._thick(foreground, radius_px)
@@ -273,8 +292,10 @@ class StructureSegmenter:
         for i in range(1, count):
             if stats[i, cv2.CC_STAT_AREA] < cfg.min_piece_px:
                 continue
-            x, y, w, h = (int(stats[i, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
-            v, u = np.nonzero(components[y:y + h, x:x + w] == i)
+            x, y, w, h = (
+                int(stats[i, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT)
+            )
+            v, u = np.nonzero(components[y : y + h, x : x + w] == i)
             u, v = u + x, v + y
             band = max(1.5, 1.2 * float(np.max(inside[v, u])))
             for piece in _straight_pieces(u, v, band, cfg.min_piece_px, rng):

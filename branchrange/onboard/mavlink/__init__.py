@@ -3,6 +3,7 @@
 `MavlinkRelay` is the object the daemon and the API use; `frames`, `messages` and `connection`
 are its parts (geometry, encoding, transport), each usable and testable on its own.
 """
+
 from branchrange.onboard.mavlink.frames import CameraMount
 from branchrange.onboard.mavlink.relay import MavlinkRelay
 

@@ -18,6 +18,7 @@ and never more than `setpoint_max_step_m` ahead). PX4: OFFBOARD needs setpoints 
 and while in the mode (`send_rate_hz` ≥ 2 guarantees it); when they stop, `COM_OF_LOSS_T` (s)
 later `COM_OBL_RC_ACT` (e.g. Hold) takes over; `MPC_XY_VEL_MAX` caps the speed.
 """
+
 from __future__ import annotations
 
 import math
@@ -58,13 +59,19 @@ class ApproachPlanner:
         self._last = None
 
     def _target_ready(self, target: Track | None) -> bool:
-        return (target is not None and target.observations >= self.cfg.setpoint_min_observations
-                and target.confidence >= self.cfg.setpoint_min_confidence)
+        return (
+            target is not None
+            and target.observations >= self.cfg.setpoint_min_observations
+            and target.confidence >= self.cfg.setpoint_min_confidence
+        )
 
-    def setpoint(self, target: Track | None, pose: Pose | None, peer: PeerHeartbeat | None,
-                 now: float) -> tuple[np.ndarray, float] | None:
+    def setpoint(
+        self, target: Track | None, pose: Pose | None, peer: PeerHeartbeat | None, now: float
+    ) -> tuple[np.ndarray, float] | None:
         """(setpoint (3,) NED m, yaw rad) for this send, or None (and the rate limit restarts)."""
-        if not (self.cfg.setpoint_enabled and pose is not None and follows_setpoints(peer) and self._target_ready(target)):
+        if not (
+            self.cfg.setpoint_enabled and pose is not None and follows_setpoints(peer) and self._target_ready(target)
+        ):
             self.reset()
             return None
         to_target = target.position_m - pose.position_m

@@ -20,6 +20,7 @@ onboard computer names the peer (system and component id), and the link is lost
 wrong-key messages before they are decoded, so they never count as the peer; they are counted as
 signature failures.
 """
+
 from __future__ import annotations
 
 import os
@@ -63,12 +64,19 @@ def load_signing_key(path: str | Path) -> bytes:
             return bytes.fromhex(text.decode("ascii"))
         except (UnicodeDecodeError, ValueError):
             pass
-    raise SigningKeyError(f"{path}: expected a 32-byte signing key (32 raw bytes or 64 hex digits), "
-                          f"found {len(data)} bytes")
+    raise SigningKeyError(
+        f"{path}: expected a 32-byte signing key (32 raw bytes or 64 hex digits), found {len(data)} bytes"
+    )
 
 
-def open_connection(url: str, *, baud: int = 115200, source_system: int = 1,
-                    source_component: int = 191, signing_key: bytes | None = None) -> Any:
+def open_connection(
+    url: str,
+    *,
+    baud: int = 115200,
+    source_system: int = 1,
+    source_component: int = 191,
+    signing_key: bytes | None = None,
+) -> Any:
     """A pymavlink MAVLink 2 connection for `url` (udpout:/udpin:/tcp:HOST:PORT or a serial path).
 
     Raises OSError/ValueError when it cannot be opened. TCP connects once (no blocking retries)
@@ -77,8 +85,14 @@ def open_connection(url: str, *, baud: int = 115200, source_system: int = 1,
     """
     mavutil = mavutil_v2()
     conn = mavutil.mavlink_connection(
-        url, baud=baud, source_system=source_system, source_component=source_component,
-        dialect=DIALECT, autoreconnect=url.startswith("tcp:"), retries=0)
+        url,
+        baud=baud,
+        source_system=source_system,
+        source_component=source_component,
+        dialect=DIALECT,
+        autoreconnect=url.startswith("tcp:"),
+        retries=0,
+    )
     if signing_key is not None:
         conn.setup_signing(signing_key, sign_outgoing=True, allow_unsigned_callback=None, link_id=0)
     return conn
@@ -109,28 +123,44 @@ class PeerHeartbeat:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON view for /health."""
-        return {"system_id": self.system_id, "component_id": self.component_id, "type": self.mav_type,
-                "autopilot": self.autopilot, "custom_mode": self.custom_mode, "armed": self.armed}
+        return {
+            "system_id": self.system_id,
+            "component_id": self.component_id,
+            "type": self.mav_type,
+            "autopilot": self.autopilot,
+            "custom_mode": self.custom_mode,
+            "armed": self.armed,
+        }
 
 
 def autopilot_heartbeat(msg: Any, at: float) -> PeerHeartbeat | None:
     """A `PeerHeartbeat` when `msg` is a flight controller's HEARTBEAT, else None."""
     if msg.get_type() != "HEARTBEAT" or msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in NOT_AUTOPILOT_TYPES:
         return None
-    return PeerHeartbeat(msg.get_srcSystem(), msg.get_srcComponent(), msg.type, msg.autopilot,
-                         msg.base_mode, msg.custom_mode, at)
+    return PeerHeartbeat(
+        msg.get_srcSystem(), msg.get_srcComponent(), msg.type, msg.autopilot, msg.base_mode, msg.custom_mode, at
+    )
 
 
 class MavlinkLink:
     """A connection that reopens itself: `send` and `poll` report failure, never raise."""
 
-    def __init__(self, url: str, *, baud: int = 115200, source_system: int = 1,
-                 source_component: int = 191, signing_key: bytes | None = None,
-                 reconnect_interval_s: float = 1.0, heartbeat_timeout_s: float = 3.0,
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        url: str,
+        *,
+        baud: int = 115200,
+        source_system: int = 1,
+        source_component: int = 191,
+        signing_key: bytes | None = None,
+        reconnect_interval_s: float = 1.0,
+        heartbeat_timeout_s: float = 3.0,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.url = url
-        self._open_args = dict(baud=baud, source_system=source_system,
-                               source_component=source_component, signing_key=signing_key)
+        self._open_args = dict(
+            baud=baud, source_system=source_system, source_component=source_component, signing_key=signing_key
+        )
         self._signing = signing_key is not None
         self._reconnect_interval_s = reconnect_interval_s
         self._heartbeat_timeout_s = heartbeat_timeout_s
@@ -158,8 +188,11 @@ class MavlinkLink:
 
     def from_peer(self, msg: Any) -> bool:
         """Whether `msg` was sent by the connected autopilot (its system and component id)."""
-        return (self.connected and msg.get_srcSystem() == self.peer.system_id
-                and msg.get_srcComponent() == self.peer.component_id)
+        return (
+            self.connected
+            and msg.get_srcSystem() == self.peer.system_id
+            and msg.get_srcComponent() == self.peer.component_id
+        )
 
     def _ensure_open(self) -> bool:
         """Open the connection if it is closed and the reconnect interval has passed."""
@@ -229,19 +262,30 @@ class MavlinkLink:
         beat = autopilot_heartbeat(msg, self._clock())
         if beat is None:
             return
-        same = self.peer is not None and (beat.system_id, beat.component_id) == (self.peer.system_id, self.peer.component_id)
+        same = self.peer is not None and (beat.system_id, beat.component_id) == (
+            self.peer.system_id,
+            self.peer.component_id,
+        )
         if same or not self.connected:
             self.peer = beat
 
     def state(self) -> dict[str, Any]:
         """Link facts for /health and the status line (plain JSON types)."""
         age = None if self.peer is None else round(self._clock() - self.peer.at, 3)
-        return {"url": self.url, "connected": self.connected, "transport_open": self.transport_open,
-                "signing": self._signing, "peer": None if self.peer is None else self.peer.to_dict(),
-                "reconnects": max(0, self._opens - 1), "sent": self.sent,
-                "send_errors": self.send_errors, "received": self.received,
-                "signature_failures": self.signature_failures,
-                "peer_heartbeat_age_s": age, "last_error": self.last_error}
+        return {
+            "url": self.url,
+            "connected": self.connected,
+            "transport_open": self.transport_open,
+            "signing": self._signing,
+            "peer": None if self.peer is None else self.peer.to_dict(),
+            "reconnects": max(0, self._opens - 1),
+            "sent": self.sent,
+            "send_errors": self.send_errors,
+            "received": self.received,
+            "signature_failures": self.signature_failures,
+            "peer_heartbeat_age_s": age,
+            "last_error": self.last_error,
+        }
 
     def close(self) -> None:
         """Close the connection for good (no reopening after this)."""

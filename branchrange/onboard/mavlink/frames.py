@@ -5,6 +5,7 @@ Body frame: FRD (x forward, y right, z down), metres from the vehicle origin. A 
 straight ahead maps `x_frd = z_cam, y_frd = x_cam, z_frd = y_cam`; the mount's roll/pitch/yaw
 (aerospace Z-Y-X order, degrees) turns that camera, its translation moves its optical centre.
 """
+
 from __future__ import annotations
 
 import math
@@ -53,8 +54,9 @@ class CameraMount:
     translation_m: np.ndarray
 
     @classmethod
-    def from_rpy(cls, rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> "CameraMount":
+    def from_rpy(
+        cls, rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0), xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ) -> CameraMount:
         """A mount from roll/pitch/yaw in degrees (0,0,0 = looking forward) and an offset in metres."""
         return cls(rotation_from_rpy(*rpy_deg), np.asarray(xyz_m, dtype=np.float64))
 

@@ -23,6 +23,7 @@ eight horizontal directions into its fence (AP_Proximity_MAV::handle_distance_se
 unless the target is meant to be an obstacle, DISTANCE_SENSOR carries orientation CUSTOM (100)
 with the mount quaternion: rangefinder consumers and logs still read it, the fence does not.
 """
+
 from __future__ import annotations
 
 import math
@@ -41,10 +42,14 @@ NO_OBSTACLE_ID = 65535
 DEBUG_VECT_NAME = b"CUT"
 #: SET_POSITION_TARGET_LOCAL_NED type_mask: position and yaw used; velocity, acceleration, yaw rate ignored.
 POSITION_AND_YAW_MASK = (
-    mavlink2.POSITION_TARGET_TYPEMASK_VX_IGNORE | mavlink2.POSITION_TARGET_TYPEMASK_VY_IGNORE
-    | mavlink2.POSITION_TARGET_TYPEMASK_VZ_IGNORE | mavlink2.POSITION_TARGET_TYPEMASK_AX_IGNORE
-    | mavlink2.POSITION_TARGET_TYPEMASK_AY_IGNORE | mavlink2.POSITION_TARGET_TYPEMASK_AZ_IGNORE
-    | mavlink2.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
+    mavlink2.POSITION_TARGET_TYPEMASK_VX_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_VY_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+)
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 
 
@@ -69,7 +74,8 @@ def heartbeat(camera_lost: bool) -> mavlink2.MAVLink_heartbeat_message:
     """HEARTBEAT of an onboard computer: status CRITICAL while the camera is lost, else ACTIVE."""
     status = mavlink2.MAV_STATE_CRITICAL if camera_lost else mavlink2.MAV_STATE_ACTIVE
     return mavlink2.MAVLink_heartbeat_message(
-        mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, status, 3)
+        mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, status, 3
+    )
 
 
 def targets_from_result(result: FrameResult | None, mount: CameraMount) -> FrameTargets:
@@ -86,8 +92,9 @@ def obstacles(targets: FrameTargets, cfg: MavlinkConfig, duplicate_radius_m: flo
     for p in targets.candidates:
         if p.confidence < cfg.obstacle_min_confidence:
             continue
-        if targets.target is not None and (p.id == targets.target.id or
-                                           float(np.linalg.norm(p.body_m - targets.target.body_m)) < duplicate_radius_m):
+        if targets.target is not None and (
+            p.id == targets.target.id or float(np.linalg.norm(p.body_m - targets.target.body_m)) < duplicate_radius_m
+        ):
             continue
         chosen.append(p)
     if cfg.target_as_obstacle and targets.target is not None:
@@ -95,8 +102,9 @@ def obstacles(targets: FrameTargets, cfg: MavlinkConfig, duplicate_radius_m: flo
     return chosen
 
 
-def distance_sensor(target: BodyPoint | None, mount: CameraMount, cfg: MavlinkConfig,
-                    time_boot_ms: int) -> mavlink2.MAVLink_distance_sensor_message:
+def distance_sensor(
+    target: BodyPoint | None, mount: CameraMount, cfg: MavlinkConfig, time_boot_ms: int
+) -> mavlink2.MAVLink_distance_sensor_message:
     """DISTANCE_SENSOR for the target (camera → cut point, cm), or "nothing in range"."""
     max_cm = round(cfg.max_distance_m * 100)
     if target is None:
@@ -109,20 +117,38 @@ def distance_sensor(target: BodyPoint | None, mount: CameraMount, cfg: MavlinkCo
         orientation = MAV_SENSOR_ROTATION_CUSTOM
     quaternion = mount.quaternion_wxyz if orientation == MAV_SENSOR_ROTATION_CUSTOM else (0.0, 0.0, 0.0, 0.0)
     return mavlink2.MAVLink_distance_sensor_message(
-        time_boot_ms, round(cfg.min_distance_m * 100), max_cm, current_cm,
-        mavlink2.MAV_DISTANCE_SENSOR_UNKNOWN, cfg.sensor_id, orientation, 255,
-        0.0, 0.0, quaternion, 0)
+        time_boot_ms,
+        round(cfg.min_distance_m * 100),
+        max_cm,
+        current_cm,
+        mavlink2.MAV_DISTANCE_SENSOR_UNKNOWN,
+        cfg.sensor_id,
+        orientation,
+        255,
+        0.0,
+        0.0,
+        quaternion,
+        0,
+    )
 
 
-def obstacles_3d(points: list[BodyPoint], cfg: MavlinkConfig,
-                 time_boot_ms: int) -> list[mavlink2.MAVLink_obstacle_distance_3d_message]:
+def obstacles_3d(
+    points: list[BodyPoint], cfg: MavlinkConfig, time_boot_ms: int
+) -> list[mavlink2.MAVLink_obstacle_distance_3d_message]:
     """OBSTACLE_DISTANCE_3D for every obstacle (body FRD), or the out-of-range "none" point."""
 
     def message(obstacle_id: int, xyz: Any) -> mavlink2.MAVLink_obstacle_distance_3d_message:
         return mavlink2.MAVLink_obstacle_distance_3d_message(
-            time_boot_ms, mavlink2.MAV_DISTANCE_SENSOR_UNKNOWN, mavlink2.MAV_FRAME_BODY_FRD,
-            obstacle_id, float(xyz[0]), float(xyz[1]), float(xyz[2]),
-            cfg.min_distance_m, cfg.max_distance_m)
+            time_boot_ms,
+            mavlink2.MAV_DISTANCE_SENSOR_UNKNOWN,
+            mavlink2.MAV_FRAME_BODY_FRD,
+            obstacle_id,
+            float(xyz[0]),
+            float(xyz[1]),
+            float(xyz[2]),
+            cfg.min_distance_m,
+            cfg.max_distance_m,
+        )
 
     if not points:
         return [message(NO_OBSTACLE_ID, (cfg.max_distance_m + 1.0, 0.0, 0.0))]
@@ -133,29 +159,60 @@ def debug_vect(target: BodyPoint | None, time_boot_ms: int) -> mavlink2.MAVLink_
     """DEBUG_VECT "CUT": the target cut point in body FRD metres, NaN when there is no target."""
     xyz = (math.nan,) * 3 if target is None else target.body_m
     return mavlink2.MAVLink_debug_vect_message(
-        DEBUG_VECT_NAME, time_boot_ms * 1000, float(xyz[0]), float(xyz[1]), float(xyz[2]))
+        DEBUG_VECT_NAME, time_boot_ms * 1000, float(xyz[0]), float(xyz[1]), float(xyz[2])
+    )
 
 
-def frame_messages(targets: FrameTargets, mount: CameraMount, cfg: MavlinkConfig, time_boot_ms: int,
-                   duplicate_radius_m: float) -> list[mavlink2.MAVLink_message]:
+def frame_messages(
+    targets: FrameTargets, mount: CameraMount, cfg: MavlinkConfig, time_boot_ms: int, duplicate_radius_m: float
+) -> list[mavlink2.MAVLink_message]:
     """All messages of one send, sharing `time_boot_ms`, in sending order."""
-    return [distance_sensor(targets.target, mount, cfg, time_boot_ms),
-            *obstacles_3d(obstacles(targets, cfg, duplicate_radius_m), cfg, time_boot_ms),
-            debug_vect(targets.target, time_boot_ms)]
+    return [
+        distance_sensor(targets.target, mount, cfg, time_boot_ms),
+        *obstacles_3d(obstacles(targets, cfg, duplicate_radius_m), cfg, time_boot_ms),
+        debug_vect(targets.target, time_boot_ms),
+    ]
 
 
-def message_interval_request(message_id: int, rate_hz: float, target_system: int,
-                             target_component: int) -> mavlink2.MAVLink_command_long_message:
+def message_interval_request(
+    message_id: int, rate_hz: float, target_system: int, target_component: int
+) -> mavlink2.MAVLink_command_long_message:
     """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL: stream `message_id` at `rate_hz`."""
     return mavlink2.MAVLink_command_long_message(
-        target_system, target_component, MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-        float(message_id), 1e6 / rate_hz, 0.0, 0.0, 0.0, 0.0, 0.0)
+        target_system,
+        target_component,
+        MAV_CMD_SET_MESSAGE_INTERVAL,
+        0,
+        float(message_id),
+        1e6 / rate_hz,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+    )
 
 
-def position_target(setpoint_ned_m: np.ndarray, yaw_rad: float, time_boot_ms: int, target_system: int,
-                    target_component: int) -> mavlink2.MAVLink_set_position_target_local_ned_message:
+def position_target(
+    setpoint_ned_m: np.ndarray, yaw_rad: float, time_boot_ms: int, target_system: int, target_component: int
+) -> mavlink2.MAVLink_set_position_target_local_ned_message:
     """SET_POSITION_TARGET_LOCAL_NED: fly to `setpoint_ned_m` (3,) m facing `yaw_rad`."""
     x, y, z = (float(v) for v in setpoint_ned_m)
     return mavlink2.MAVLink_set_position_target_local_ned_message(
-        time_boot_ms, target_system, target_component, mavlink2.MAV_FRAME_LOCAL_NED,
-        POSITION_AND_YAW_MASK, x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, float(yaw_rad), 0.0)
+        time_boot_ms,
+        target_system,
+        target_component,
+        mavlink2.MAV_FRAME_LOCAL_NED,
+        POSITION_AND_YAW_MASK,
+        x,
+        y,
+        z,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        float(yaw_rad),
+        0.0,
+    )

@@ -23,6 +23,7 @@ for a result captured when there was none, the relay behaves as without vehicle 
 mode: the result's cut points through the mount, valid for `max_result_age_s`); `link_state()`
 says which mode is in use. `targets()` gives the fused tracks for /latest and the results log.
 """
+
 from __future__ import annotations
 
 import logging
@@ -57,8 +58,14 @@ STATE_REQUEST_PERIOD_S = 1.0
 class MavlinkRelay:
     """Sends BranchRange results to a flight controller; see the module docstring for timing."""
 
-    def __init__(self, cfg: MavlinkConfig, mount: CameraMount, *, tracking: TrackingConfig = TrackingConfig(),
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        cfg: MavlinkConfig,
+        mount: CameraMount,
+        *,
+        tracking: TrackingConfig = TrackingConfig(),
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self._cfg = cfg
         self._mount = mount
         self._tracking = tracking
@@ -86,10 +93,16 @@ class MavlinkRelay:
         self._latest_fused = False
         self._mode: str | None = None  # "world" or "camera" from the first send on
         self._last_state_request = -math.inf
-        self._link = MavlinkLink(cfg.url, baud=cfg.baud, source_system=cfg.system_id,
-                                 source_component=cfg.component_id, signing_key=key,
-                                 reconnect_interval_s=cfg.reconnect_interval_s,
-                                 heartbeat_timeout_s=cfg.heartbeat_timeout_s, clock=clock)
+        self._link = MavlinkLink(
+            cfg.url,
+            baud=cfg.baud,
+            source_system=cfg.system_id,
+            source_component=cfg.component_id,
+            signing_key=key,
+            reconnect_interval_s=cfg.reconnect_interval_s,
+            heartbeat_timeout_s=cfg.heartbeat_timeout_s,
+            clock=clock,
+        )
         self._thread = threading.Thread(target=self._run, name="mavlink-relay", daemon=True)
         self._thread.start()
 
@@ -112,9 +125,14 @@ class MavlinkRelay:
                 return False
             cam_to_ned = pose.rotation @ self._mount.camera_to_body
             measurements = [
-                Measurement(b.id, pose.body_to_ned(self._mount.to_body(b.cut_point_m)),
-                            measurement_covariance(b.cut_point_m, cam_to_ned, self._tracking), b.confidence)
-                for b in result.branches]
+                Measurement(
+                    b.id,
+                    pose.body_to_ned(self._mount.to_body(b.cut_point_m)),
+                    measurement_covariance(b.cut_point_m, cam_to_ned, self._tracking),
+                    b.confidence,
+                )
+                for b in result.branches
+            ]
             self._tracks.update(measurements, captured_at, result.target_id)
             return True
 
@@ -124,8 +142,9 @@ class MavlinkRelay:
         pose = self._vehicle.pose_at(self._clock())
         if pose is None:
             return None
-        return (float(pose.position_m[0]), float(pose.position_m[1]), float(pose.position_m[2])), \
-            quaternion_wxyz(pose.rotation)
+        return (float(pose.position_m[0]), float(pose.position_m[1]), float(pose.position_m[2])), quaternion_wxyz(
+            pose.rotation
+        )
 
     def targets(self) -> WorldTargets:
         """The fused tracks for /latest and the results log: local NED metres, 1-σ radius, age, count.
@@ -136,9 +155,11 @@ class MavlinkRelay:
         now = self._clock()
         with self._state_lock:
             target = self._tracks.target(now)
-            return WorldTargets(frame="local_ned" if self._mode == "world" else "camera",
-                                target_track_id=None if target is None else target.track_id,
-                                tracks=tuple(t.summary(now) for t in self._tracks.fresh(now)))
+            return WorldTargets(
+                frame="local_ned" if self._mode == "world" else "camera",
+                target_track_id=None if target is None else target.track_id,
+                tracks=tuple(t.summary(now) for t in self._tracks.fresh(now)),
+            )
 
     def set_camera_lost(self, lost: bool) -> None:
         """Mark the camera lost (HEARTBEAT CRITICAL) or back; a heartbeat goes out at once."""
@@ -155,10 +176,17 @@ class MavlinkRelay:
         with self._state_lock:
             vehicle = self._vehicle.state(now)
             tracks = len(self._tracks.fresh(now))
-        state.update(frames_sent=self.frames_sent, no_target_frames=self.no_target_frames,
-                     camera_lost=self._camera_lost, mode=self._mode or "camera", vehicle_state=vehicle,
-                     tracks=tracks, setpoints_sent=self.setpoints_sent,
-                     message_interval_acks=self.interval_acks, unfused_results=self.unfused_results)
+        state.update(
+            frames_sent=self.frames_sent,
+            no_target_frames=self.no_target_frames,
+            camera_lost=self._camera_lost,
+            mode=self._mode or "camera",
+            vehicle_state=vehicle,
+            tracks=tracks,
+            setpoints_sent=self.setpoints_sent,
+            message_interval_acks=self.interval_acks,
+            unfused_results=self.unfused_results,
+        )
         return state
 
     def close(self) -> None:
@@ -169,7 +197,7 @@ class MavlinkRelay:
         self._thread.join(timeout=5.0)
         self._link.close()
 
-    def __enter__(self) -> "MavlinkRelay":
+    def __enter__(self) -> MavlinkRelay:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -231,11 +259,16 @@ class MavlinkRelay:
             return
         self._last_state_request = now
         peer = self._link.peer
-        self._link.send([messages.message_interval_request(i, self._cfg.state_rate_hz, peer.system_id, peer.component_id)
-                         for i in (ATTITUDE_ID, LOCAL_POSITION_NED_ID)])
+        self._link.send(
+            [
+                messages.message_interval_request(i, self._cfg.state_rate_hz, peer.system_id, peer.component_id)
+                for i in (ATTITUDE_ID, LOCAL_POSITION_NED_ID)
+            ]
+        )
 
-    def _frame_targets(self, latest: tuple[Mapping[str, Any], float] | None, fused: bool,
-                       now: float) -> tuple[messages.FrameTargets, tuple[Any, float] | None]:
+    def _frame_targets(
+        self, latest: tuple[FrameResult, float] | None, fused: bool, now: float
+    ) -> tuple[messages.FrameTargets, tuple[Any, float] | None]:
         """This send's targets in the body frame of `now`, and the approach setpoint (or None)."""
         with self._state_lock:
             pose = self._vehicle.pose_at(now)
@@ -243,8 +276,10 @@ class MavlinkRelay:
             if pose is not None and not fresh_unfused:
                 self._set_mode("world")
                 target = self._tracks.target(now)
-                points = [messages.BodyPoint(t.track_id, pose.ned_to_body(t.position_m), t.confidence)
-                          for t in self._tracks.fresh(now)]
+                points = [
+                    messages.BodyPoint(t.track_id, pose.ned_to_body(t.position_m), t.confidence)
+                    for t in self._tracks.fresh(now)
+                ]
                 body_target = next((p for p in points if target is not None and p.id == target.track_id), None)
                 peer = self._link.peer if self._link.connected else None
                 return messages.FrameTargets(body_target, points), self._approach.setpoint(target, pose, peer, now)
@@ -259,13 +294,16 @@ class MavlinkRelay:
             return
         previous, self._mode = self._mode, mode
         if mode == "world":
-            log.info("vehicle state from the autopilot: targets fused in local NED, sent in the body frame of each send")
+            log.info(
+                "vehicle state from the autopilot: targets fused in local NED, sent in the body frame of each send"
+            )
         else:  # a warning when the pose was lost, news at start-up (the autopilot may not have answered yet)
             (log.warning if previous == "world" else log.info)(
                 "no vehicle state from the autopilot: targets go out in the body frame of their capture, "
-                "without latency compensation")
+                "without latency compensation"
+            )
 
-    def _send_frame(self, latest: tuple[Mapping[str, Any], float] | None, fused: bool, now: float) -> None:
+    def _send_frame(self, latest: tuple[FrameResult, float] | None, fused: bool, now: float) -> None:
         """Send this moment's targets (world tracks, else the newest fresh result, else "no target")."""
         targets, setpoint = self._frame_targets(latest, fused, now)
         time_boot_ms = self._time_boot_ms(now)

@@ -20,6 +20,7 @@ Interpolation: position linearly between the bracketing LOCAL_POSITION_NED sampl
 the shortest rotation between the bracketing ATTITUDE samples; past the newest sample the pose is
 extrapolated with the reported velocity and body rates, for at most `max_extrapolation_s`.
 """
+
 from __future__ import annotations
 
 import bisect
@@ -208,6 +209,9 @@ class VehicleState:
         """Facts for /health: whether a pose is available now, its age, the clock offset."""
         newest = self.newest_sample_time
         offset = self.clock.offset_s
-        return {"available": self.pose_at(now) is not None, "messages": self.messages,
-                "pose_age_s": None if newest is None else round(now - newest, 3),
-                "clock_offset_s": None if offset is None else round(offset, 4)}
+        return {
+            "available": self.pose_at(now) is not None,
+            "messages": self.messages,
+            "pose_age_s": None if newest is None else round(now - newest, 3),
+            "clock_offset_s": None if offset is None else round(offset, 4),
+        }

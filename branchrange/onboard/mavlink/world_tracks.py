@@ -14,6 +14,7 @@ one per frame, the closest pairs first); an unmatched one starts a track with a 
 unseen for `stale_after_s` is not reported as fresh (not sent, not a target) but is kept, so a
 branch hidden for a moment comes back with its id and history; after `forget_after_s` it is dropped.
 """
+
 from __future__ import annotations
 
 import math
@@ -21,9 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from branchrange.core.frame_result import WorldTrack
-
 from branchrange.core.config import TrackingConfig
+from branchrange.core.frame_result import WorldTrack
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,9 @@ def measurement_covariance(point_cam_m: np.ndarray, cam_to_ned: np.ndarray, cfg:
     r = float(np.linalg.norm(point_cam_m))
     u = np.asarray(point_cam_m, dtype=np.float64) / max(r, 1e-6)
     along = np.outer(u, u)
-    cov_cam = (cfg.lateral_sigma_at_1m_m * r) ** 2 * (np.eye(3) - along) + (cfg.depth_sigma_at_1m_m * r * r) ** 2 * along
+    cov_cam = (cfg.lateral_sigma_at_1m_m * r) ** 2 * (np.eye(3) - along) + (
+        cfg.depth_sigma_at_1m_m * r * r
+    ) ** 2 * along
     return cam_to_ned @ cov_cam @ cam_to_ned.T
 
 
@@ -90,9 +92,16 @@ class Track:
         significant digits, seconds to ms (for /latest and the JSONL log)."""
         x, y, z = (round(float(v), 4) for v in self.position_m)
         rows = tuple(tuple(float(f"{v:.3g}") for v in row) for row in self.covariance_m2)
-        return WorldTrack(id=self.track_id, branch_id=self.branch_id, ned_m=(x, y, z), sigma_m=round(self.sigma_m, 4),
-                          covariance_m2=rows, age_s=round(now - self.last_seen, 3),  # type: ignore[arg-type]
-                          observations=self.observations, confidence=round(self.confidence, 3))
+        return WorldTrack(
+            id=self.track_id,
+            branch_id=self.branch_id,
+            ned_m=(x, y, z),
+            sigma_m=round(self.sigma_m, 4),
+            covariance_m2=rows,
+            age_s=round(now - self.last_seen, 3),  # type: ignore[arg-type]
+            observations=self.observations,
+            confidence=round(self.confidence, 3),
+        )
 
 
 class WorldTracks:
@@ -113,8 +122,11 @@ class WorldTracks:
         self._forget(t)
         for track in self.tracks:
             track.predict(t, self.cfg.process_noise_m2_per_s)
-        pairs = sorted((float(np.linalg.norm(z.position_m - tr.position_m)), ti, zi)
-                       for ti, tr in enumerate(self.tracks) for zi, z in enumerate(measurements))
+        pairs = sorted(
+            (float(np.linalg.norm(z.position_m - tr.position_m)), ti, zi)
+            for ti, tr in enumerate(self.tracks)
+            for zi, z in enumerate(measurements)
+        )
         used_tracks: set[int] = set()
         matched: dict[int, int] = {}
         for dist, ti, zi in pairs:
@@ -127,8 +139,15 @@ class WorldTracks:
             matched[zi] = self.tracks[ti].track_id
         for zi, z in enumerate(measurements):
             if zi not in matched:
-                track = Track(self._next_id, z.position_m.copy(), z.covariance_m2.copy(), t, z.branch_id,
-                              confidence_sum=z.confidence, updated_at=t)
+                track = Track(
+                    self._next_id,
+                    z.position_m.copy(),
+                    z.covariance_m2.copy(),
+                    t,
+                    z.branch_id,
+                    confidence_sum=z.confidence,
+                    updated_at=t,
+                )
                 self._next_id += 1
                 self.tracks.append(track)
                 matched[zi] = track.track_id
