@@ -15,7 +15,7 @@ import numpy as np
 
 from branchrange.core.frame_result import FrameResult
 from branchrange.core.pipeline import Pipeline, PipelineConfig
-from stereo.backends import WEIGHTED_BACKENDS, make_backend
+from stereo.backends import WEIGHTED_BACKENDS
 
 
 @dataclass(frozen=True)
@@ -96,9 +96,7 @@ class PipelineEstimator:
         cfg = self._settings(backend, max_disp).stereo
         key = (cfg.backend, cfg.max_disp)
         if key not in self._backends:
-            self._backends[key] = make_backend(
-                cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp, device=cfg.device, precision=cfg.precision
-            )
+            self._backends[key] = cfg.build_backend()
         return self._backends[key]
 
     def segmenter(self, name: str | None = None) -> Any:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,7 +13,7 @@ from branchrange.commands.train_segmenter import training_config
 from branchrange.core.cutpoints import estimate_cut_points
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
-from branchrange.core.pipeline import Pipeline, PipelineConfig
+from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet import BranchNet, network_input
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK, classes_from_instances
 from branchrange.core.segmentation.choose import make_segmenter
@@ -62,8 +63,10 @@ def test_shipped_model_finds_trunk_and_branches_of_a_held_out_scene(scene):
     true_trunk = truth == TRUNK
     assert (trunk & true_trunk).sum() / (trunk | true_trunk).sum() > 0.5
     found_branch = np.isin(masks.labels, masks.branch_ids())
-    # most of what it calls branch is branch (or a twig), and it covers a fair share of the branches
-    assert (found_branch & np.isin(truth, (BRANCH, IGNORE))).sum() / found_branch.sum() > 0.5
+    # most of what it calls branch lies on a branch or twig (within 1 px: stems are 1–4 px wide, and
+    # sgbm's disparity is fattened), and it covers a fair share of the branches
+    woody = cv2.dilate(np.isin(truth, (BRANCH, IGNORE)).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    assert (found_branch & woody).sum() / found_branch.sum() > 0.7
     assert (found_branch & (truth == BRANCH)).sum() / (truth == BRANCH).sum() > 0.3
     assert set(masks.scores) == set(masks.branch_ids()) and all(0.5 <= s <= 1 for s in masks.scores.values())
 
@@ -72,7 +75,7 @@ def test_pipeline_with_learned_segmenter_gives_a_cut_point_near_the_truth(scene)
     rendered, stereo = scene
     cam = rendered.camera
     pipeline = Pipeline(
-        PipelineConfig(tracking=False),
+        untracked_whole_frame(),
         focal_px=cam.focal_px,
         baseline_m=cam.baseline_m,
         principal_point=(cam.cx, cam.cy),

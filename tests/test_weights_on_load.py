@@ -3,6 +3,7 @@ local files of other names load unchecked, and `verify_sha256=False` / `--no-ver
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 from pathlib import Path
@@ -114,3 +115,14 @@ def test_cli_refuses_a_mismatching_release_and_loads_it_with_no_verify_weights(t
     assert not out.exists()
     assert main([*args, "--no-verify-weights"]) == 0
     assert out.is_file()
+
+
+def test_stereo_config_passes_verify_weights_to_the_backend(tmp_path):
+    from branchrange.core.config import StereoConfig
+
+    path = save_checkpoint(small_model(0), tmp_path / RELEASE.filename)
+    config = StereoConfig(backend="emcstereo", weights=str(path), max_disp=16, mode="full")
+    with pytest.raises(WeightsMismatchError, match=RELEASE.sha256):
+        config.build_backend()
+    loaded = dataclasses.replace(config, verify_weights=False).build_backend()
+    assert loaded.max_disparity == 16

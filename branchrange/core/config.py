@@ -46,7 +46,14 @@ from branchrange.core.segmentation.segmenter import GeometricSegmenterConfig, Se
 from branchrange.core.segmentation.structure import StructureSegmenterConfig
 from branchrange.core.settings_check import Checks, Settings, SettingsError, in_physical_range
 from branchrange.core.tracking import TrackerConfig
-from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, PRECISIONS, WEIGHTED_BACKENDS, is_valid_max_disp
+from stereo.backends import (
+    BACKEND_NAMES,
+    MAX_DISP_EXPECTED,
+    PRECISIONS,
+    WEIGHTED_BACKENDS,
+    StereoBackend,
+    is_valid_max_disp,
+)
 
 
 class ConfigError(SettingsError):
@@ -109,7 +116,7 @@ class StereoConfig(Settings):
     one of `stereo.backends.PRECISIONS` (fp16/bf16 need a CUDA `device` and emcstereo). `mode`:
     'roi' matches the frame at low resolution and each branch at full resolution in its box and
     disparity window (`[roi]`, `branchrange.core.roi`) — the real-time onboard default; 'full' matches
-    the whole frame.
+    the whole frame. `verify_weights`: check a registered release's weights against its SHA-256 on load.
     """
 
     section = "stereo"
@@ -121,6 +128,7 @@ class StereoConfig(Settings):
     device: str = "cpu"
     precision: str = "fp32"
     mode: str = "roi"
+    verify_weights: bool = True
 
     def checks(self) -> Checks:
         """The backend, its weights, search range and precision, and the mode."""
@@ -137,6 +145,21 @@ class StereoConfig(Settings):
             "max_disp": (is_valid_max_disp(self.max_disp), MAX_DISP_EXPECTED),
             "precision": (self.precision in PRECISIONS, _one_of(PRECISIONS)),
         }
+
+    def build_backend(self) -> StereoBackend:
+        """The `stereo.backends` backend these settings name (`make_backend`); weights whose file name is a
+        registered release are checked against its SHA-256 unless `verify_weights` is false (a local file
+        that kept a release's name)."""
+        from stereo.backends import make_backend
+
+        return make_backend(
+            self.backend,
+            weights=self.weights_path,
+            max_disp=self.max_disp,
+            device=self.device,
+            precision=self.precision,
+            verify_sha256=self.verify_weights,
+        )
 
     @property
     def weights_path(self) -> str | None:

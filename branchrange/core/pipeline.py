@@ -196,12 +196,7 @@ class Pipeline:
     def backend(self) -> Any:
         """The stereo backend, built from the config on first use."""
         if self._backend is None:
-            from stereo.backends import make_backend
-
-            cfg = self.config.stereo
-            self._backend = make_backend(
-                cfg.backend, weights=cfg.weights_path, max_disp=cfg.max_disp, device=cfg.device, precision=cfg.precision
-            )
+            self._backend = self.config.stereo.build_backend()
         return self._backend
 
     @property

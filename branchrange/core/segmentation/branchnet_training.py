@@ -46,12 +46,12 @@ class BranchNetTrainConfig:
 
     train_seeds: tuple[int, int] = (1, 1201)
     val_seeds: tuple[int, int] = (2801, 2831)
-    steps: int = 5000
+    steps: int = 10000
     batch: int = 8
     crop: int = 192
     lr: float = 3e-3
     weight_decay: float = 1e-4
-    class_weights: tuple[float, float, float] = (1.0, 1.0, 4.0)
+    class_weights: tuple[float, float, float] = (1.0, 1.0, 5.0)
     branch_crop_share: float = 0.6
     width: int = 12
     seed: int = 0
@@ -188,6 +188,7 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
                 "seconds": round(time.perf_counter() - start, 1),
             }
             history.append(row)
+            torch.save(model.state_dict(), out_dir / "branchnet.pt")  # the newest weights, for a look before the end
             running = []
             log(" ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
     with (out_dir / "metrics.csv").open("w", newline="") as handle:
@@ -206,7 +207,6 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
             axis=1,
         ),
     )
-    torch.save(model.state_dict(), out_dir / "branchnet.pt")
     sha256 = export_onnx(model, out_dir / "branchnet.onnx")
     meta = {
         "model": "BranchNet",

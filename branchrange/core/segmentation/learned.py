@@ -37,7 +37,7 @@ from branchrange.core.settings_check import Checks, Settings
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
 SHIPPED_MODEL = Path(__file__).with_name("weights") / "branchnet.onnx"
-_TRUNK, _BRANCH = CLASSES.index("trunk"), CLASSES.index("branch")
+_BACKGROUND, _TRUNK, _BRANCH = (CLASSES.index(name) for name in ("background", "trunk", "branch"))
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,7 @@ class LearnedSegmenterConfig(Settings):
     - `branch_threshold`: branch probability a pixel needs (0..1); the trunk is the arg-max class.
     - `min_area_px`: smaller branch instances are dropped (speckle, twig tips).
     - `depth_edge_ratio`: neighbours whose depths differ by more than this fraction are cut apart.
+    - `max_trunk_gap_m`: with a trunk found, instances farther from it than this are dropped (0 = keep all).
     - `threads`: onnxruntime intra-op threads.
     - `trunk_id`: the id the trunk gets in the returned instances.
     """
@@ -59,6 +60,7 @@ class LearnedSegmenterConfig(Settings):
     branch_threshold: float = 0.5
     min_area_px: int = 12
     depth_edge_ratio: float = 0.06
+    max_trunk_gap_m: float = 0.1
     threads: int = 2
     trunk_id: int = DEFAULT_TRUNK_ID
 
@@ -68,6 +70,7 @@ class LearnedSegmenterConfig(Settings):
             "branch_threshold": (0 < self.branch_threshold < 1, "a probability in (0, 1)"),
             "min_area_px": (self.min_area_px >= 1, "≥ 1 pixel"),
             "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
+            "max_trunk_gap_m": (0 <= self.max_trunk_gap_m <= 10, "0..10 m (0 = keep instances away from the trunk)"),
             "threads": (1 <= self.threads <= 64, "1..64 threads"),
             "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
         }
@@ -89,12 +92,6 @@ def verified_model(path: Path) -> Path:
     return path
 
 
-def _softmax(logits: np.ndarray) -> np.ndarray:
-    """Softmax over axis 0 of `(C, H, W)` logits."""
-    shifted = np.exp(logits - logits.max(axis=0, keepdims=True))
-    return shifted / shifted.sum(axis=0, keepdims=True)
-
-
 class LearnedSegmenter:
     """`Segmenter` over `BranchNet` (see the module docstring)."""
 
@@ -106,11 +103,10 @@ class LearnedSegmenter:
         self.session = onnx_session(self.model_path, config.threads)
         self._input = self.session.get_inputs()[0].name
 
-    def probabilities(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
-        """`float32 (3, H, W)` background / trunk / branch probabilities of a frame."""
+    def logits(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """`float32 (3, H, W)` background / trunk / branch logits of a frame (`CLASSES` order)."""
         features, (height, width) = padded_to_stride(network_input(left, disparity))
-        logits = self.session.run(None, {self._input: features[None]})[0][0, :, :height, :width]
-        return _softmax(logits)
+        return self.session.run(None, {self._input: features[None]})[0][0, :, :height, :width]
 
     def segment(
         self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
@@ -120,22 +116,51 @@ class LearnedSegmenter:
         disparity = np.asarray(disparity, dtype=np.float32)
         if left.shape[:2] != disparity.shape:
             raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
-        probs = self.probabilities(left, disparity)
+        logits = self.logits(left, disparity)
+        # softmax of the branch class alone: 1 / (1 + Σ exp(other − branch)); no full softmax needed
+        branch_p = 1.0 / (
+            1.0
+            + np.exp(np.minimum(logits[_BACKGROUND] - logits[_BRANCH], 50.0))
+            + np.exp(np.minimum(logits[_TRUNK] - logits[_BRANCH], 50.0))
+        )
         labels = np.zeros(disparity.shape, dtype=np.int32)
-        trunk = (probs.argmax(axis=0) == _TRUNK).astype(np.uint8)
-        count, components, stats, _ = cv2.connectedComponentsWithStats(trunk, connectivity=8)
-        if count > 1:
-            labels[components == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))] = cfg.trunk_id
+        trunk = _largest_component((logits[_TRUNK] > logits[_BACKGROUND]) & (logits[_TRUNK] > logits[_BRANCH]))
+        labels[trunk] = cfg.trunk_id
         depth = np.where(valid_disparity(disparity), disparity_to_depth(disparity, geometry), np.inf)
-        branch = (probs[_BRANCH] >= cfg.branch_threshold) & (labels == 0)
+        branch = (branch_p >= cfg.branch_threshold) & ~trunk
         branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
         count, components, stats, _ = cv2.connectedComponentsWithStats(branch.astype(np.uint8), connectivity=8)
         keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= cfg.min_area_px) + 1
+        if trunk.any() and cfg.max_trunk_gap_m > 0 and len(keep):
+            keep = keep[self._near_trunk(components, keep, trunk, depth, geometry)]
         renumber = np.zeros(count, dtype=np.int32)
         renumber[keep] = np.arange(1, len(keep) + 1)
         instances = renumber[components]
         labels = np.where(instances > 0, instances, labels)
-        sums = np.bincount(instances.ravel(), weights=probs[_BRANCH].ravel(), minlength=len(keep) + 1)
+        sums = np.bincount(instances.ravel(), weights=branch_p.ravel(), minlength=len(keep) + 1)
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {int(i): float(sums[i] / sizes[i]) for i in range(1, len(keep) + 1)}
         return BranchMasks(labels, cfg.trunk_id, self.name, scores=scores)
+
+    def _near_trunk(
+        self, components: np.ndarray, ids: np.ndarray, trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry
+    ) -> np.ndarray:
+        """Boolean `(len(ids),)`: components whose nearest pixel lies within `max_trunk_gap_m` of the trunk.
+
+        What a pruner cuts grows from the trunk: a piece far from it is a twig, a fragment of a branch
+        whose base is hidden, a leaf or background — its cut point would be wrong, so it is not reported.
+        """
+        gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3)
+        finite = np.isfinite(depth)
+        gap_m = np.where(finite, gap_px * np.where(finite, depth, 0.0) / geometry.focal_px, np.inf)
+        nearest = np.full(int(components.max()) + 1, np.inf)
+        np.minimum.at(nearest, components.ravel(), gap_m.ravel())
+        return nearest[ids] <= self.config.max_trunk_gap_m
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    """Boolean `H×W`: the largest 8-connected region of `mask` (all False when it is empty)."""
+    count, components, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if count < 2:
+        return np.zeros(mask.shape, dtype=bool)
+    return components == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
