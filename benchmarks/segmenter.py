@@ -35,6 +35,7 @@ import numpy as np
 
 from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
+from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.offline.evaluate_cuts import RECALL_RADIUS_M, CutScores
 
@@ -62,37 +63,6 @@ def cpu_name() -> str:
         f"{model.group(1).strip() if model else 'unknown'}; AVX2 {'yes' if 'avx2' in flag_set else 'no'}, "
         f"AVX-512 {'yes' if 'avx512f' in flag_set else 'no'}; {len(__import__('os').sched_getaffinity(0))} cores"
     )
-
-
-def load_scene(seed: int, cache: Path | None) -> dict:
-    """A rendered scene, its sgbm disparity/confidence and truth, from the cache when present."""
-    path = cache / f"scene_{seed}.npz" if cache is not None else None
-    if path is not None and path.is_file():
-        data = np.load(path, allow_pickle=False)
-        scene = {k: data[k] for k in data.files}
-        scene["truth"] = json.loads(str(scene["truth"]))
-        return scene
-    from stereo.backends import make_backend
-    from stereo.synth import SynthCamera, render_scene
-
-    rendered = render_scene(seed, SynthCamera.zed_mini(*SIZE))
-    stereo = make_backend("sgbm", max_disp=192).compute(rendered.left, rendered.right)
-    cam = rendered.camera
-    truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
-    scene = {
-        "left": rendered.left,
-        "disparity": rendered.disparity,
-        "mask": rendered.instance_mask,
-        "sgbm": stereo.disparity,
-        "sgbm_conf": stereo.confidence,
-        "camera": np.array([cam.focal_px, cam.baseline_m, cam.cx, cam.cy]),
-        "truth": json.dumps(truth),
-    }
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, **scene)
-    scene["truth"] = truth
-    return scene
 
 
 def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]:
@@ -127,7 +97,7 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
     confidences: dict[str, list[tuple[float, bool]]] = {}
     times: dict[str, list[float]] = {}
     for i in range(scenes):
-        scene = load_scene(FIRST_SEED + i, cache)
+        scene = evaluation_scene(FIRST_SEED + i, cache)
         f, b, cx, cy = (float(v) for v in scene["camera"])
         for stereo in ("sgbm", "truth"):
             disparity = scene["sgbm"] if stereo == "sgbm" else scene["disparity"]

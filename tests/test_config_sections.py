@@ -230,15 +230,16 @@ def test_sections_reach_the_pipeline_stages_themselves():
     cfg = load_config(
         None,
         [
-            parse_override("segmenter.structure.max_range_m=3.5"),
+            parse_override("segmenter.learned.max_trunk_gap_m=0.2"),
             parse_override("branch_tracking.gate_m=0.2"),
             parse_override("cutpoints.erode_px=2"),
         ],
     )
     pipeline = Pipeline(pipeline_config(cfg), focal_px=500.0, baseline_m=0.063)
-    assert pipeline.segmenter.config is cfg.segmenter.structure and pipeline.tracker.config.gate_m == 0.2
+    assert pipeline.segmenter.config is cfg.segmenter.learned and pipeline.tracker.config.gate_m == 0.2
     assert pipeline.config.cutpoints is cfg.cutpoints
     assert cfg.segmenter.build("geometric").config is cfg.segmenter.geometric
+    assert cfg.segmenter.build("structure").config is cfg.segmenter.structure
 
 
 def test_one_list_of_backends_and_precisions():

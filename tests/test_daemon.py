@@ -26,6 +26,7 @@ from branchrange.core.config import (
     Config,
     LogConfig,
     MavlinkConfig,
+    SegmenterConfig,
     StereoConfig,
     TrackingConfig,
     pipeline_config,
@@ -279,6 +280,7 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
     cfg = Config(
         camera=CameraConfig(source=f"replay:{recording}"),
         stereo=StereoConfig(max_disp=64),
+        segmenter=SegmenterConfig(model="structure"),  # bars, not a tree: the weight-free segmenter finds them
         mavlink=MavlinkConfig(url=f"tcp:127.0.0.1:{port}", reconnect_interval_s=0.2, send_rate_hz=10.0),
     )
     relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from branchrange.commands.train_segmenter import training_config
+from branchrange.core.confidence import ConfidenceCalibration, fit_calibration
 from branchrange.core.cutpoints import estimate_cut_points
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
@@ -153,7 +154,7 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     )
     lines: list[str] = []
     meta = train_branchnet(config, tmp_path / "run", tmp_path / "data", log=lines.append)
-    assert len(lines) == 2 and "iou_branch" in lines[0]
+    assert len(lines) == 2 and "iou_branch" in lines[0]  # one line per validation
     assert sorted(p.name for p in (tmp_path / "data").iterdir()) == [f"sample_{s:06d}.npz" for s in (1, 2, 3)]
     for name in ("branchnet.onnx", "branchnet.json", "metrics.csv", "training_curve.png", "branchnet.pt"):
         assert (tmp_path / "run" / name).is_file()
@@ -162,3 +163,62 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     masks = segmenter.segment(left, np.full((50, 70), 5.0, np.float32), StereoGeometry.centred(100.0, 0.1, 70, 50))
     assert masks.labels.shape == (50, 70)
     assert meta["config"]["steps"] == 2
+
+
+def test_isotonic_calibration_is_monotone_and_honest():
+    rng = np.random.default_rng(0)
+    raw = rng.uniform(0, 1, 2000)
+    correct = rng.uniform(0, 1, 2000) < raw**2  # a raw confidence that overstates the share correct
+    calibration = fit_calibration(raw, correct)
+    assert list(calibration.raw) == sorted(calibration.raw) and list(calibration.calibrated) == sorted(
+        calibration.calibrated
+    )
+    for value in (0.3, 0.6, 0.9):
+        assert calibration(value) == pytest.approx(value**2, abs=0.08)
+    assert ConfidenceCalibration.from_json_dict(calibration.to_json_dict())(0.5) == pytest.approx(
+        calibration(0.5), abs=1e-3
+    )
+    few = fit_calibration([0.9] * 5, [True] * 5)  # five right answers are not a certainty
+    assert few(0.9) == pytest.approx(6 / 7)
+    with pytest.raises(ValueError, match="ascending"):
+        ConfidenceCalibration((0.2, 0.1), (0.1, 0.2))
+
+
+def test_calibration_in_the_model_json_maps_the_reported_confidence(scene, tmp_path):
+    rendered, stereo = scene
+    cam = rendered.camera
+    geometry = StereoGeometry(cam.focal_px, cam.baseline_m, cam.cx, cam.cy)
+    for name in ("branchnet.onnx", "branchnet.json"):
+        shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
+    meta = json.loads((tmp_path / "branchnet.json").read_text())
+    meta["confidence_calibration"] = {"raw": [0.0, 1.0], "calibrated": [0.0, 0.5]}  # halves every confidence
+    (tmp_path / "branchnet.json").write_text(json.dumps(meta))
+    model = str(tmp_path / "branchnet.onnx")
+    halved = LearnedSegmenter(LearnedSegmenterConfig(model=model)).segment(rendered.left, stereo.disparity, geometry)
+    raw = LearnedSegmenter(LearnedSegmenterConfig(model=model, calibrated=False)).segment(
+        rendered.left, stereo.disparity, geometry
+    )
+    a = estimate_cut_points(raw, stereo.disparity, geometry)
+    b = estimate_cut_points(halved, stereo.disparity, geometry)
+    assert a.branches and [x.mask_id for x in a.branches] == [x.mask_id for x in b.branches]
+    for x, y in zip(a.branches, b.branches, strict=True):
+        assert y.confidence == pytest.approx(0.5 * x.confidence, abs=1e-9)
+
+
+def test_calibrating_a_model_stores_the_fit_beside_it_and_the_segmenter_applies_it(tmp_path):
+    from branchrange.core.segmentation.branchnet_calibration import calibrate_model
+
+    for name in ("branchnet.onnx", "branchnet.json"):
+        shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
+    lines: list[str] = []
+    calibration = calibrate_model(
+        tmp_path / "branchnet.onnx", seeds=(2861, 2864), cache=tmp_path / "cal", log=lines.append
+    )
+    assert calibration is not None and "cut points on scenes 2861–2863" in lines[0]
+    stored = json.loads((tmp_path / "branchnet.json").read_text())["confidence_calibration"]
+    assert stored["seeds"] == [2861, 2864] and stored["cut_points"] > 0
+    assert ConfidenceCalibration.from_json_dict(stored) == ConfidenceCalibration.from_json_dict(
+        calibration.to_json_dict()
+    )
+    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx")))
+    assert segmenter.calibration == ConfidenceCalibration.from_json_dict(stored)

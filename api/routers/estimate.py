@@ -22,6 +22,7 @@ from api.auth import require_token
 from api.estimator import CameraSpec
 from api.limits import decode_image, decode_mask, read_upload
 from api.schemas import ErrorBody, EstimateResult
+from branchrange.core.segmentation.choose import BUILTIN_SEGMENTERS
 from branchrange.core.settings_check import PHYSICAL_RANGES, RangeError, check_calibration, check_physical
 from stereo.backends import BACKEND_NAMES, MAX_DISP_EXPECTED, BackendConfigError, check_max_disp
 from stereo.backends.base import StereoInputError, validate_pair
@@ -209,11 +210,11 @@ async def post_estimate(
         ),
     ] = None,
     segmenter: Annotated[
-        Literal["configured", "structure", "geometric"],
+        Literal[("configured", *BUILTIN_SEGMENTERS)],
         Form(
             description=(
                 "without a mask: 'configured' = the server's [segmenter] model (e.g. its onnx:FILE), "
-                "'structure' or 'geometric' = a built-in one"
+                "'learned', 'structure' or 'geometric' = a built-in one"
             )
         ),
     ] = "configured",

@@ -2,8 +2,8 @@
 
 The camera is either a calibration file (ZED conf, OpenCV YAML/XML, depthai JSON, KITTI; raw
 pairs are rectified unless --rectified) or the focal length and baseline of an already rectified
-pair. Without --mask a segmenter proposes the branches: the built-in 'structure' one (or the older
-'geometric'), or your own ONNX model with --segmenter onnx:FILE.
+pair. Without --mask a segmenter proposes the branches: the built-in 'learned' one (BranchNet; or the
+weight-free 'structure' and 'geometric'), or your own ONNX model with --segmenter onnx:FILE.
 """
 
 from __future__ import annotations
@@ -81,24 +81,26 @@ def whole_frame_stereo(args: argparse.Namespace) -> Any:
 def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: bool) -> None:
     """--segmenter NAME and the class ids of an onnx model, shared by `estimate` and `demo`.
 
-    `optional_value`: a bare `--segmenter` means 'geometric' and leaving it out means no segmenter
-    (demo: the truth mask); otherwise it defaults to 'structure'.
+    `optional_value`: a bare `--segmenter` means the default segmenter and leaving it out means no
+    segmenter (demo: the truth mask); otherwise it defaults to the default segmenter.
     """
-    names = "'structure', 'geometric' or 'onnx:FILE' (YOLOv8-seg or per-pixel-logits ONNX model)"
+    from branchrange.core.segmentation.choose import DEFAULT_SEGMENTER
+    from branchrange.core.segmentation.choose import SEGMENTER_NAMES as names
+
     if optional_value:
         parser.add_argument(
             "--segmenter",
             nargs="?",
-            const="structure",
+            const=DEFAULT_SEGMENTER,
             metavar="NAME",
-            help=f"find branches with a segmenter, not the truth mask: {names}; bare = structure",
+            help=f"find branches with a segmenter, not the truth mask: {names}; bare = {DEFAULT_SEGMENTER}",
         )
     else:
         parser.add_argument(
             "--segmenter",
-            default="structure",
+            default=DEFAULT_SEGMENTER,
             metavar="NAME",
-            help=f"segmenter used without --mask: {names} (default structure)",
+            help=f"segmenter used without --mask: {names} (default {DEFAULT_SEGMENTER})",
         )
     parser.add_argument(
         "--branch-classes",
@@ -121,9 +123,10 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
 def segmenter_settings(args: argparse.Namespace) -> Any:
     """The `[segmenter]` settings of the segmenter options (ValueError on bad ones)."""
     from branchrange.core.config import SegmenterConfig
+    from branchrange.core.segmentation.choose import DEFAULT_SEGMENTER
 
     return SegmenterConfig(
-        model=args.segmenter or "structure",
+        model=args.segmenter or DEFAULT_SEGMENTER,
         branch_classes=tuple(args.branch_classes),
         trunk_classes=tuple(args.trunk_classes),
     )

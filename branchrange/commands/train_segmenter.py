@@ -1,9 +1,11 @@
 """`branchrange train-segmenter --out DIR`: train the learned segmenter (`BranchNet`) on CPU from synthetic scenes.
 
 Renders the scenes it needs into --data (cached: a second run, or a resumed one, renders nothing),
-trains, validates on scenes kept apart, and writes to --out: branchnet.onnx (what `--segmenter
-learned` runs, or `[segmenter] learned_model = "DIR/branchnet.onnx"`), branchnet.json (config, seed,
-SHA-256, validation IoU), metrics.csv, training_curve.png and branchnet.pt (the torch weights).
+trains, validates on scenes kept apart, measures how often its cut points are right to calibrate their
+confidence (scenes 2861–2900, SGBM), and writes to --out: branchnet.onnx (what `--segmenter learned` runs
+with `[segmenter.learned] model = "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256,
+validation IoU, confidence calibration), metrics.csv, training_curve.png and branchnet.pt (the torch
+weights). --calibrate-only re-measures the calibration of the model already in --out.
 
 Reproduce the shipped model exactly:
     branchrange train-segmenter --out runs/branchnet \\
@@ -39,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="override one training setting, e.g. --set steps=200 (JSON values; repeatable)",
     )
+    p.add_argument(
+        "--calibrate-only", action="store_true", help="only (re)calibrate the confidence of --out's branchnet.onnx"
+    )
     p.set_defaults(func=run)
 
 
@@ -68,18 +73,30 @@ def training_config(config_file: Path | None, overrides: list[str]):
 
 
 def run(args: argparse.Namespace) -> int:
-    """Train and report the final validation IoU."""
+    """Train (unless --calibrate-only), calibrate and report the final validation IoU."""
+    from branchrange.core.segmentation.branchnet_calibration import calibrate_model
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
+    def log(line: str) -> None:
+        print(line, flush=True)
+
+    model = args.out / "branchnet.onnx"
+    if args.calibrate_only:
+        if not model.is_file():
+            print(f"branchrange train-segmenter: error: {model} does not exist (train first)", file=sys.stderr)
+            return 2
+        calibrate_model(model, cache=args.data / "calibration", log=log)
+        return 0
     try:
         config = training_config(args.config, args.set)
     except (ValueError, TypeError) as exc:
         print(f"branchrange train-segmenter: error: {exc}", file=sys.stderr)
         return 2
-    meta = train_branchnet(config, args.out, args.data, log=lambda line: print(line, flush=True))
+    meta = train_branchnet(config, args.out, args.data, log=log)
+    calibrate_model(model, cache=args.data / "calibration", log=log)
     final = meta["final"]
     print(
-        f"wrote {args.out / 'branchnet.onnx'} (SHA-256 {meta['onnx_sha256'][:16]}…): validation IoU "
+        f"wrote {model} (SHA-256 {meta['onnx_sha256'][:16]}…): validation IoU "
         f"branch {final['iou_branch']:.3f}, trunk {final['iou_trunk']:.3f}"
     )
     return 0

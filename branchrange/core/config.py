@@ -39,7 +39,12 @@ from typing import Any
 
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.masks import DEFAULT_IGNORED_IDS, DEFAULT_TRUNK_ID
-from branchrange.core.segmentation.choose import SEGMENTER_NAMES, check_segmenter_name, make_segmenter
+from branchrange.core.segmentation.choose import (
+    DEFAULT_SEGMENTER,
+    SEGMENTER_NAMES,
+    check_segmenter_name,
+    make_segmenter,
+)
 from branchrange.core.segmentation.learned import LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterConfig
 from branchrange.core.segmentation.segmenter import GeometricSegmenterConfig, Segmenter
@@ -435,7 +440,7 @@ class SegmenterConfig(OnnxSegmenterConfig):
     section = "segmenter"
     error = ConfigError
 
-    model: str = "structure"
+    model: str = DEFAULT_SEGMENTER
     structure: StructureSegmenterConfig = field(default_factory=StructureSegmenterConfig)
     geometric: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
     learned: LearnedSegmenterConfig = field(default_factory=LearnedSegmenterConfig)

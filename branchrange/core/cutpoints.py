@@ -20,6 +20,7 @@ A branch with too little evidence is dropped with a reason, never invented.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -556,14 +557,15 @@ def estimate_branch(
     trunk: np.ndarray | MaskCrop | None = None,
     trunk_model: TrunkModel | None = None,
     max_disparity: float | None = None,
-    segment_score: float = 1.0,
+    reported_confidence: Callable[[float], float] | None = None,
 ) -> BranchEstimate | DroppedBranch:
     """Cut point of one branch from its boolean `H×W` mask (or `MaskCrop`) and the `H×W` disparity (px).
 
     `confidence` (`H×W` in [0, 1]) is the stereo backend's per-pixel confidence (1 when None),
     `trunk` the boolean trunk mask when known and `trunk_model` its fitted cylinder (the base is
-    then where the axis pierces the bark). `segment_score` (0..1) is the segmenter's belief that
-    the instance is a branch; it scales the cut point's confidence. Returns a `DroppedBranch` with
+    then where the axis pierces the bark). `reported_confidence` maps the cut point's own confidence
+    to the reported one (`BranchMasks.reported_confidence`: the segmenter's belief in the instance
+    and its calibration; None = as it is). Returns a `DroppedBranch` with
     the reason when the evidence does not support a cut point.
     """
     try:
@@ -577,7 +579,7 @@ def estimate_branch(
             None if trunk is None else as_crop(trunk),
             trunk_model,
             max_disparity,
-            segment_score,
+            reported_confidence,
         )
     except GeometryError as exc:  # e.g. the axis runs behind the camera: the depth is inconsistent
         return DroppedBranch(mask_id, f"no consistent branch axis: {exc}")
@@ -593,7 +595,7 @@ def _estimate_branch(
     trunk: MaskCrop | None,
     trunk_model: TrunkModel | None,
     max_disparity: float | None,
-    segment_score: float = 1.0,
+    reported_confidence: Callable[[float], float] | None = None,
 ) -> BranchEstimate | DroppedBranch:
     """`estimate_branch` without the guard against degenerate geometry."""
     cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
@@ -616,7 +618,9 @@ def _estimate_branch(
     rows, cols = cylinder.pixels
     inliers = cylinder.inliers
     stereo_conf = float(np.mean(confidence[rows, cols][inliers])) if confidence is not None else 1.0
-    score = segment_score * _confidence(cylinder, stereo_conf if np.isfinite(stereo_conf) else 0.0, config)
+    score = _confidence(cylinder, stereo_conf if np.isfinite(stereo_conf) else 0.0, config)
+    if reported_confidence is not None:
+        score = reported_confidence(score)
     if score < config.min_confidence:
         return DroppedBranch(mask_id, f"confidence {score:.2f} below {config.min_confidence}")
     return BranchEstimate(
@@ -678,7 +682,7 @@ def estimate_cut_points(
             trunk=trunk,
             trunk_model=trunk_model,
             max_disparity=max_disparity,
-            segment_score=masks.scores.get(mask_id, 1.0),
+            reported_confidence=masks.reported_confidence(mask_id),
         )
         if isinstance(outcome, DroppedBranch):
             result.dropped.append(outcome)

@@ -7,6 +7,7 @@ its 8-connected components, each one branch; a binary mask knows no trunk.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -14,6 +15,8 @@ from typing import Literal
 
 import cv2
 import numpy as np
+
+from branchrange.core.confidence import ConfidenceCalibration
 
 #: The trunk's id in instance masks unless configured otherwise (the synthetic generator's value).
 DEFAULT_TRUNK_ID = 65535
@@ -183,7 +186,8 @@ class BranchMasks:
     `labels` is an `H×W` `int32` image (0 background, `trunk_id` the trunk when not None, values
     in `ignored_ids` neither branch nor trunk, any other value one branch); `source` says where the
     instances came from (e.g. a file name, "geometric"); `scores` maps a branch id to the
-    segmenter's belief (0..1) that it is a branch (absent = 1: a mask file is taken as true). The
+    segmenter's belief (0..1) that it is a branch (absent = 1: a mask file is taken as true), and
+    `calibration` maps the resulting cut-point confidence to a measured share correct. The
     ids, sizes and bounding boxes are indexed once, on first use (`index`): treat `labels` as
     read-only after that.
     """
@@ -193,6 +197,17 @@ class BranchMasks:
     source: str = "array"
     ignored_ids: tuple[int, ...] = ()
     scores: dict[int, float] = field(default_factory=dict)
+    calibration: ConfidenceCalibration | None = None
+
+    def reported_confidence(self, branch_id: int) -> Callable[[float], float] | None:
+        """How a cut point's own confidence becomes the reported one for instance `branch_id`: scaled by
+        the segmenter's score, then through its `calibration`; None when neither applies (a mask file)."""
+        score, calibration = self.scores.get(branch_id, 1.0), self.calibration
+        if score == 1.0 and calibration is None:
+            return None
+        if calibration is None:
+            return lambda raw: score * raw
+        return lambda raw: calibration(score * raw)
 
     @property
     def shape(self) -> tuple[int, int]:

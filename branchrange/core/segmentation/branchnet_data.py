@@ -14,6 +14,7 @@ benchmark's held-out seeds start at 50,000 (`TRAIN_SEED_LIMIT` keeps them apart)
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -62,3 +63,36 @@ def cached_sample(folder: Path, seed: int, size: tuple[int, int] = (640, 360)) -
     np.savez_compressed(partial, **sample)
     partial.replace(path)  # atomic: a killed render never leaves a half-written sample
     return sample
+
+
+def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360)) -> dict:
+    """A scene as the segmenter is scored on it: the default renderer options at `size`, SGBM over 192 px,
+    truth cut points. Keys: left, disparity (exact), mask (renderer ids), sgbm, sgbm_conf, camera
+    (f px, B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached in `cache` when given."""
+    path = cache / f"scene_{seed}.npz" if cache is not None else None
+    if path is not None and path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            scene = {k: data[k] for k in data.files}
+        scene["truth"] = json.loads(str(scene["truth"]))
+        return scene
+    from stereo.backends import make_backend
+    from stereo.synth import SynthCamera, render_scene
+
+    rendered = render_scene(seed, SynthCamera.zed_mini(*size))
+    stereo = make_backend("sgbm", max_disp=192).compute(rendered.left, rendered.right)
+    cam = rendered.camera
+    truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
+    scene = {
+        "left": rendered.left,
+        "disparity": rendered.disparity,
+        "mask": rendered.instance_mask,
+        "sgbm": stereo.disparity,
+        "sgbm_conf": stereo.confidence,
+        "camera": np.array([cam.focal_px, cam.baseline_m, cam.cx, cam.cy]),
+        "truth": json.dumps(truth),
+    }
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, **scene)
+    scene["truth"] = truth
+    return scene

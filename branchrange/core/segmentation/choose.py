@@ -8,13 +8,16 @@ from branchrange.core.segmentation.onnx_model import OnnxSegmenter, OnnxSegmente
 from branchrange.core.segmentation.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
 from branchrange.core.segmentation.structure import StructureSegmenter, StructureSegmenterConfig
 
+#: The segmenters that ship with the package, by name; the first is the default.
+BUILTIN_SEGMENTERS = ("learned", "structure", "geometric")
+DEFAULT_SEGMENTER = BUILTIN_SEGMENTERS[0]
 #: The names `make_segmenter` accepts, for help texts and error messages.
 SEGMENTER_NAMES = "'learned', 'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model)"
 
 
 def check_segmenter_name(name: str) -> str:
     """`name` itself when it has an accepted form (the file is checked when the model is loaded)."""
-    if name in ("learned", "geometric", "structure") or (name.startswith("onnx:") and len(name) > len("onnx:")):
+    if name in BUILTIN_SEGMENTERS or (name.startswith("onnx:") and len(name) > len("onnx:")):
         return name
     raise OnnxSegmenterError(f"segmenter {name!r}: expected {SEGMENTER_NAMES}")
 

@@ -37,6 +37,7 @@ import numpy as np
 
 from branchrange.core.geometry import GeometryError, StereoGeometry, fit_linear_robust
 from branchrange.core.masks import BranchMasks
+from branchrange.core.segmentation.pieces import straight_pieces_of
 from branchrange.core.segmentation.segmenter import (
     BuiltinSegmenterConfig,
     leaf_pixels,
@@ -97,41 +98,6 @@ def _plane_inliers(
     counts = (np.abs(scored @ normals.T - offsets) < tol[:, None]).sum(axis=0)
     best = int(np.argmax(counts))
     return np.abs(points @ normals[best] - offsets[best]) < tolerance
-
-
-def _straight_pieces(
-    u: np.ndarray, v: np.ndarray, band_px: float, min_px: int, rng: np.random.Generator, max_pieces: int = 6
-) -> list[np.ndarray]:
-    """Index arrays of straight, contiguous runs of the pixels (u, v) `(N,)`, longest consensus first."""
-    points = np.stack([u, v], axis=1).astype(np.float64)
-    remaining = np.arange(len(points))
-    pieces: list[np.ndarray] = []
-    gap = max(4.0, 2.0 * band_px)
-    while len(remaining) >= min_px and len(pieces) < max_pieces:
-        pts = points[remaining]
-        pairs = rng.integers(0, len(pts), size=(80, 2))
-        d = pts[pairs[:, 1]] - pts[pairs[:, 0]]
-        length = np.linalg.norm(d, axis=1)
-        ok = length > 2.0
-        if not ok.any():
-            break
-        direction = d[ok] / length[ok, None]
-        normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1)
-        origin = pts[pairs[ok, 0]]
-        dist = np.abs(pts @ normal.T - np.einsum("kc,kc->k", origin, normal))  # (N, K) px from each line
-        best = int(np.argmax((dist < band_px).sum(axis=0)))
-        inliers = np.flatnonzero(dist[:, best] < band_px)
-        along = (pts[inliers] - origin[best]) @ direction[best]
-        order = np.argsort(along)
-        breaks = np.flatnonzero(np.diff(along[order]) > gap)
-        runs = np.split(order, breaks + 1)
-        run = max(runs, key=len)
-        if len(run) < min_px:
-            break
-        chosen = remaining[inliers[run]]
-        pieces.append(chosen)
-        remaining = np.setdiff1d(remaining, chosen, assume_unique=True)
-    return pieces
 
 
 def ridge_pixels(left: np.ndarray, scales_px: tuple[float, ...], min_strength: float) -> np.ndarray:
@@ -285,23 +251,12 @@ class StructureSegmenter:
         thin &= ~leaf_pixels(left, cfg.excess_green)
         if cfg.ridge_strength > 0:
             thin &= ridge_pixels(left, (1.0, 2.5), cfg.ridge_strength)
-        inside = cv2.distanceTransform(thin.astype(np.uint8), cv2.DIST_L2, 3)
         labels = np.zeros(disparity.shape, dtype=np.int32)
-        count, components, stats, _ = cv2.connectedComponentsWithStats(thin.astype(np.uint8), connectivity=8)
-        pieces: list[tuple[np.ndarray, np.ndarray]] = []
-        for i in range(1, count):
-            if stats[i, cv2.CC_STAT_AREA] < cfg.min_piece_px:
-                continue
-            x, y, w, h = (
-                int(stats[i, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT)
-            )
-            v, u = np.nonzero(components[y : y + h, x : x + w] == i)
-            u, v = u + x, v + y
-            band = max(1.5, 1.2 * float(np.max(inside[v, u])))
-            for piece in _straight_pieces(u, v, band, cfg.min_piece_px, rng):
-                pu, pv = u[piece], v[piece]
-                if halo[pv, pu].mean() <= 0.5 and self._is_branch(pu, pv, disparity, depth, geometry):
-                    pieces.append((pu, pv))
+        pieces = [
+            (pu, pv)
+            for pu, pv in straight_pieces_of(thin, cfg.min_piece_px, rng)
+            if halo[pv, pu].mean() <= 0.5 and self._is_branch(pu, pv, disparity, depth, geometry)
+        ]
         trunk = self._trunk(thick)
         if trunk is not None and cfg.max_trunk_gap_m > 0:
             pieces = self._attached(pieces, trunk, depth, geometry)

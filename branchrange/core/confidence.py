@@ -1,0 +1,76 @@
+"""Confidence that predicts correctness: a monotone map from a raw cut-point confidence to the share of
+cut points at that raw value that lie within 5 cm of a true cut point, fitted on held-out scenes.
+
+Why: the raw confidence (segmenter score × fit quality × stereo agreement × evidence) ranks cut points
+well but is not a probability — a raw 0.7 can mean 40 % or 95 % correct depending on the segmenter and
+the stereo stage. A segmenter that has been measured ships its calibration (`LearnedSegmenter`, in its
+model's JSON); the cut-point stage applies it, so "confidence 0.8" means "about 8 in 10 are right".
+The fit is isotonic regression (pool adjacent violators): the only assumption is that a higher raw
+confidence is never worse.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ConfidenceCalibration:
+    """Piecewise-linear monotone map: raw confidence `raw` (ascending knots in [0, 1]) → `calibrated`."""
+
+    raw: tuple[float, ...]
+    calibrated: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        raw, out = np.asarray(self.raw), np.asarray(self.calibrated)
+        if raw.ndim != 1 or raw.shape != out.shape or len(raw) < 1:
+            raise ValueError("a confidence calibration needs equally many (≥ 1) raw and calibrated knots")
+        if np.any(np.diff(raw) < 0) or np.any(np.diff(out) < 0):
+            raise ValueError("confidence calibration knots must be ascending (a monotone map)")
+        if raw.min() < 0 or raw.max() > 1 or out.min() < 0 or out.max() > 1:
+            raise ValueError("confidence calibration knots must lie in [0, 1]")
+
+    def __call__(self, confidence: float) -> float:
+        """The calibrated confidence of a raw one (flat beyond the outer knots)."""
+        return float(np.interp(confidence, self.raw, self.calibrated))
+
+    def to_json_dict(self) -> dict[str, list[float]]:
+        """`{"raw": [...], "calibrated": [...]}` (rounded to 4 decimals)."""
+        return {"raw": [round(x, 4) for x in self.raw], "calibrated": [round(y, 4) for y in self.calibrated]}
+
+    @classmethod
+    def from_json_dict(cls, data: dict) -> ConfidenceCalibration:
+        """The calibration of `to_json_dict`'s form; ValueError naming what is wrong."""
+        try:
+            return cls(tuple(float(x) for x in data["raw"]), tuple(float(y) for y in data["calibrated"]))
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"confidence calibration: expected 'raw' and 'calibrated' lists ({exc})") from None
+
+
+def fit_calibration(raw: Sequence[float], correct: Sequence[bool], min_count: int = 20) -> ConfidenceCalibration:
+    """Isotonic fit of `correct` (0/1) on `raw` confidences; blocks of fewer than `min_count` cut points are
+    pooled with their neighbour so that no knot rests on a handful of samples. Knots sit at each block's
+    mean raw confidence; each block's share is (right + 1) / (count + 2), never a bare 0 or 1."""
+    order = np.argsort(np.asarray(raw, dtype=np.float64), kind="stable")
+    x = np.asarray(raw, dtype=np.float64)[order]
+    y = np.asarray(correct, dtype=np.float64)[order]
+    if len(x) == 0:
+        raise ValueError("no cut points to fit a confidence calibration on")
+    blocks: list[list[float]] = []  # [sum x, sum y, count]
+    for xi, yi in zip(x, y, strict=True):
+        blocks.append([xi, yi, 1.0])
+        while len(blocks) > 1 and (
+            blocks[-2][1] / blocks[-2][2] >= blocks[-1][1] / blocks[-1][2] or blocks[-2][2] < min_count
+        ):
+            sx, sy, n = blocks.pop()
+            blocks[-1] = [blocks[-1][0] + sx, blocks[-1][1] + sy, blocks[-1][2] + n]
+    if len(blocks) > 1 and blocks[-1][2] < min_count:
+        sx, sy, n = blocks.pop()
+        blocks[-1] = [blocks[-1][0] + sx, blocks[-1][1] + sy, blocks[-1][2] + n]
+    knots_x = [float(np.clip(b[0] / b[2], 0.0, 1.0)) for b in blocks]
+    # Laplace's rule of succession per block: 12 of 12 right is "about 93 %", not a certainty
+    knots_y = list(np.maximum.accumulate([(b[1] + 1.0) / (b[2] + 2.0) for b in blocks]))
+    return ConfidenceCalibration(tuple(knots_x), tuple(float(v) for v in knots_y))

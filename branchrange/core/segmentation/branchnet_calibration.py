@@ -1,0 +1,69 @@
+"""Measuring how often the learned segmenter's cut points are right, to calibrate their confidence.
+
+Scenes `CALIBRATION_SEEDS` (never trained on, and apart from the benchmark's held-out seeds from
+50,000) go through the pipeline with SGBM — the onboard stereo stage — and the model's raw
+confidences; each cut point is correct when a true cut point lies within 5 cm. The isotonic fit of
+correct on raw confidence (`branchrange.core.confidence.fit_calibration`) is stored in the model's
+JSON under "confidence_calibration", where `LearnedSegmenter` reads it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from branchrange.core.confidence import ConfidenceCalibration, fit_calibration
+from branchrange.core.segmentation.branchnet_data import evaluation_scene
+
+CALIBRATION_SEEDS = (2861, 2901)
+#: a cut point within this distance of a true one is correct (the evaluation's recall radius)
+CORRECT_WITHIN_M = 0.05
+
+
+def raw_outcomes(model: Path, seeds: tuple[int, int], cache: Path | None) -> list[tuple[float, bool]]:
+    """(raw confidence, within 5 cm of a true cut point) of every cut point on scenes `seeds` [first, last)."""
+    from branchrange.core.pipeline import Pipeline, untracked_whole_frame
+    from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
+
+    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), calibrated=False))
+    outcomes = []
+    for seed in range(*seeds):
+        scene = evaluation_scene(seed, cache)
+        f, b, cx, cy = (float(v) for v in scene["camera"])
+        pipeline = Pipeline(
+            untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
+        )
+        result = pipeline.process_disparity(scene["left"], scene["sgbm"], scene["sgbm_conf"], backend="sgbm")
+        truth = [np.asarray(t["cut_point_m"]) for t in scene["truth"]]
+        for branch in result.branches:
+            estimate = np.asarray(branch.cut_point_m)
+            correct = any(float(np.linalg.norm(estimate - t)) <= CORRECT_WITHIN_M for t in truth)
+            outcomes.append((branch.confidence, correct))
+    return outcomes
+
+
+def calibrate_model(
+    model: Path, seeds: tuple[int, int] = CALIBRATION_SEEDS, cache: Path | None = None, log: Callable = print
+) -> ConfidenceCalibration | None:
+    """Fit the confidence calibration of the ONNX `model` and store it in the JSON beside it; None (and
+    nothing stored) when the model finds no cut point on those scenes."""
+    outcomes = raw_outcomes(model, seeds, cache)
+    if not outcomes:
+        log(f"no cut points on scenes {seeds[0]}–{seeds[1] - 1}: the confidence of {model} stays uncalibrated")
+        return None
+    calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
+    meta_path = model.with_suffix(".json")
+    meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
+    meta["confidence_calibration"] = {
+        **calibration.to_json_dict(),
+        "seeds": list(seeds),
+        "stereo": "sgbm",
+        "cut_points": len(outcomes),
+        "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4) if outcomes else None,
+    }
+    meta_path.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    log(f"confidence calibration from {len(outcomes)} cut points on scenes {seeds[0]}–{seeds[1] - 1}: {calibration}")
+    return calibration

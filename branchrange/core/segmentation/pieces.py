@@ -1,0 +1,70 @@
+"""Splitting thin regions into straight pieces: the two arms of a fork, two crossing stems, two branches
+that touch in the image become separate instances (sequential RANSAC of image lines of the region's own
+width, contiguous runs along each). Used by the structure and learned segmenters.
+
+Why lines: a branch between its base and its first bend is close to straight in the image, and the
+cut-point geometry fits one straight axis per instance — a region holding two branches gives an axis
+between them and a cut point on neither.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import cv2
+import numpy as np
+
+
+def straight_pieces(
+    u: np.ndarray, v: np.ndarray, band_px: float, min_px: int, rng: np.random.Generator, max_pieces: int = 6
+) -> list[np.ndarray]:
+    """Index arrays of straight, contiguous runs of the pixels (u, v) `(N,)`, longest consensus first."""
+    points = np.stack([u, v], axis=1).astype(np.float64)
+    remaining = np.arange(len(points))
+    pieces: list[np.ndarray] = []
+    gap = max(4.0, 2.0 * band_px)
+    while len(remaining) >= min_px and len(pieces) < max_pieces:
+        pts = points[remaining]
+        pairs = rng.integers(0, len(pts), size=(80, 2))
+        d = pts[pairs[:, 1]] - pts[pairs[:, 0]]
+        length = np.linalg.norm(d, axis=1)
+        ok = length > 2.0
+        if not ok.any():
+            break
+        direction = d[ok] / length[ok, None]
+        normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1)
+        origin = pts[pairs[ok, 0]]
+        dist = np.abs(pts @ normal.T - np.einsum("kc,kc->k", origin, normal))  # (N, K) px from each line
+        best = int(np.argmax((dist < band_px).sum(axis=0)))
+        inliers = np.flatnonzero(dist[:, best] < band_px)
+        along = (pts[inliers] - origin[best]) @ direction[best]
+        order = np.argsort(along)
+        breaks = np.flatnonzero(np.diff(along[order]) > gap)
+        runs = np.split(order, breaks + 1)
+        run = max(runs, key=len)
+        if len(run) < min_px:
+            break
+        chosen = remaining[inliers[run]]
+        pieces.append(chosen)
+        remaining = np.setdiff1d(remaining, chosen, assume_unique=True)
+    return pieces
+
+
+def straight_pieces_of(
+    mask: np.ndarray, min_px: int, rng: np.random.Generator
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(u, v) pixel arrays of the straight pieces of every 8-connected region of the boolean `H×W` `mask`
+    with at least `min_px` pixels; each region's line band is 1.2× its largest inscribed radius (≥ 1.5 px)."""
+    inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
+    count, components, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    for i in range(1, count):
+        if stats[i, cv2.CC_STAT_AREA] < min_px:
+            continue
+        x, y, w, h = (
+            int(stats[i, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT)
+        )
+        v, u = np.nonzero(components[y : y + h, x : x + w] == i)
+        u, v = u + x, v + y
+        band = max(1.5, 1.2 * float(np.max(inside[v, u])))
+        for piece in straight_pieces(u, v, band, min_px, rng):
+            yield u[piece], v[piece]
