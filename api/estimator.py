@@ -43,7 +43,8 @@ class Estimator(Protocol):
         segmenter: str | None = None,
     ) -> FrameResult:
         """`branchrange/v1` result for RGB `uint8 H×W×3` images and an optional instance mask `H×W`;
-        `segmenter` 'learned' / 'structure' / 'geometric' asks for a built-in segmenter instead of the server's configured one."""
+        `segmenter` 'learned' / 'structure' / 'geometric' asks for a built-in segmenter instead of the
+        server's configured one."""
         ...
 
     def disparity(
@@ -100,7 +101,8 @@ class PipelineEstimator:
         return self._backends[key]
 
     def segmenter(self, name: str | None = None) -> Any:
-        """The segmenter `name` ('learned', 'structure', 'geometric'; default: the configured one), built on first use and kept."""
+        """The segmenter `name` ('learned', 'structure', 'geometric'; default: the configured one), built on
+        first use and kept."""
         name = name or self.config.segmenter.model
         if name not in self._segmenters:
             self._segmenters[name] = self.config.segmenter.build(name)
