@@ -33,6 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from branchrange.core.confidence import lowest_reliable_threshold, share_correct_above
 from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
@@ -72,22 +73,6 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]
         inside = [ok for c, ok in pairs if lo <= c < hi]
         rows.append((f"{lo:.1f}–{min(hi, 1.0):.1f}", len(inside), float(np.mean(inside)) if inside else float("nan")))
     return rows
-
-
-def share_correct_above(pairs: list[tuple[float, bool]], threshold: float) -> tuple[int, float]:
-    """(cut points with confidence ≥ `threshold`, share of them within 5 cm) of (confidence, within 5 cm) pairs."""
-    kept = [ok for c, ok in pairs if c >= threshold]
-    return len(kept), float(np.mean(kept)) if kept else float("nan")
-
-
-def lowest_reliable_threshold(pairs: list[tuple[float, bool]], share: float = 0.9) -> float | None:
-    """The lowest confidence (steps of 0.05) above which at least `share` of the cut points are correct
-    — the table's answer for a default `min_confidence`; None when no threshold reaches it."""
-    for threshold in np.arange(0.05, 1.0, 0.05):
-        count, correct = share_correct_above(pairs, float(threshold))
-        if count and correct >= share:
-            return round(float(threshold), 2)
-    return None
 
 
 def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dict:

@@ -74,3 +74,30 @@ def fit_calibration(raw: Sequence[float], correct: Sequence[bool], min_count: in
     # Laplace's rule of succession per block: 12 of 12 right is "about 93 %", not a certainty
     knots_y = list(np.maximum.accumulate([(b[1] + 1.0) / (b[2] + 2.0) for b in blocks]))
     return ConfidenceCalibration(tuple(knots_x), tuple(float(v) for v in knots_y))
+
+
+def share_correct_above(outcomes: Sequence[tuple[float, bool]], threshold: float) -> tuple[int, float]:
+    """(cut points with confidence ≥ `threshold`, the share of them that are correct) of (confidence, correct)."""
+    kept = [ok for c, ok in outcomes if c >= threshold]
+    return len(kept), float(np.mean(kept)) if kept else float("nan")
+
+
+def lowest_reliable_threshold(outcomes: Sequence[tuple[float, bool]], share: float = 0.9) -> float | None:
+    """The lowest confidence (steps of 0.05) at and above which at least `share` of the cut points are correct
+    — the default a target needs; None when no threshold reaches it."""
+    for threshold in np.arange(0.05, 1.0, 0.05):
+        count, correct = share_correct_above(outcomes, float(threshold))
+        if count and correct >= share:
+            return round(float(threshold), 2)
+    return None
+
+
+def highest_inclusive_threshold(outcomes: Sequence[tuple[float, bool]], keep: float = 0.98) -> float:
+    """The highest confidence (steps of 0.05) that still keeps at least `keep` of the correct cut points — the
+    default an obstacle needs (a real branch must not be dropped from the map for a shaky estimate)."""
+    right = np.asarray([c for c, ok in outcomes if ok], dtype=np.float64)
+    best = 0.0
+    for threshold in np.arange(0.05, 1.0, 0.05):
+        if len(right) and np.mean(right >= threshold) >= keep:
+            best = round(float(threshold), 2)
+    return best

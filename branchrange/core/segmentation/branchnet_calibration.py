@@ -4,7 +4,9 @@ Scenes `CALIBRATION_SEEDS` (never trained on, and apart from the benchmark's hel
 50,000) go through the pipeline with SGBM — the onboard stereo stage — and the model's raw
 confidences; each cut point is correct when a true cut point lies within 5 cm. The isotonic fit of
 correct on raw confidence (`branchrange.core.confidence.fit_calibration`) is stored in the model's
-JSON under "confidence_calibration", where `LearnedSegmenter` reads it.
+JSON under "confidence_calibration", where `LearnedSegmenter` reads it, with the defaults it implies:
+the lowest calibrated confidence at which ≥ 90 % of cut points are right (a target's minimum) and the
+highest that keeps ≥ 98 % of the right ones (an obstacle's minimum).
 """
 
 from __future__ import annotations
@@ -15,7 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from branchrange.core.confidence import ConfidenceCalibration, fit_calibration
+from branchrange.core.confidence import (
+    ConfidenceCalibration,
+    fit_calibration,
+    highest_inclusive_threshold,
+    lowest_reliable_threshold,
+)
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 
 CALIBRATION_SEEDS = (2861, 2901)
@@ -57,8 +64,11 @@ def calibrate_model(
     calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
     meta_path = model.with_suffix(".json")
     meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
+    calibrated = [(calibration(c), ok) for c, ok in outcomes]
     meta["confidence_calibration"] = {
         **calibration.to_json_dict(),
+        "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
+        "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
         "seeds": list(seeds),
         "stereo": "sgbm",
         "cut_points": len(outcomes),

@@ -157,18 +157,24 @@ class LearnedSegmenter:
         depth = np.where(valid_disparity(disparity), disparity_to_depth(disparity, geometry), np.inf)
         branch = (branch_p >= cfg.branch_threshold) & ~trunk
         branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
+        near_trunk = trunk.any() and cfg.max_trunk_gap_m > 0
+        if near_trunk:  # drop whole regions far from the trunk before the (costlier) splitting
+            gap_m = _trunk_gap_m(trunk, depth, geometry)
+            regions = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)[1]
+            branch &= (_nearest(regions, gap_m) <= cfg.max_trunk_gap_m)[regions] & (regions > 0)
         instances = np.zeros(disparity.shape, dtype=np.int32)
-        pieces = straight_pieces_of(branch, cfg.min_area_px, np.random.default_rng(0)) if cfg.split_straight else None
-        if pieces is None:
-            instances = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)[1]
-        else:
-            for piece_id, (pu, pv) in enumerate(pieces, start=1):
+        if cfg.split_straight:
+            for piece_id, (pu, pv) in enumerate(
+                straight_pieces_of(branch, cfg.min_area_px, np.random.default_rng(0)), 1
+            ):
                 instances[pv, pu] = piece_id
+        else:
+            instances = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)[1]
         count = int(instances.max()) + 1
         sizes = np.bincount(instances.ravel(), minlength=count)
         keep = np.flatnonzero(sizes[1:] >= cfg.min_area_px) + 1
-        if trunk.any() and cfg.max_trunk_gap_m > 0 and len(keep):
-            keep = keep[self._near_trunk(instances, keep, trunk, depth, geometry)]
+        if near_trunk:  # a piece of a region that touches the trunk may itself lie far from it
+            keep = keep[_nearest(instances, gap_m)[keep] <= cfg.max_trunk_gap_m]
         renumber = np.zeros(count, dtype=np.int32)
         renumber[keep] = np.arange(1, len(keep) + 1)
         instances = renumber[instances]
@@ -178,21 +184,6 @@ class LearnedSegmenter:
         scores = {int(i): float(sums[i] / sizes[i]) for i in range(1, len(keep) + 1)}
         return BranchMasks(labels, cfg.trunk_id, self.name, scores=scores, calibration=self.calibration)
 
-    def _near_trunk(
-        self, components: np.ndarray, ids: np.ndarray, trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry
-    ) -> np.ndarray:
-        """Boolean `(len(ids),)`: components whose nearest pixel lies within `max_trunk_gap_m` of the trunk.
-
-        What a pruner cuts grows from the trunk: a piece far from it is a twig, a fragment of a branch
-        whose base is hidden, a leaf or background — its cut point would be wrong, so it is not reported.
-        """
-        gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3)
-        finite = np.isfinite(depth)
-        gap_m = np.where(finite, gap_px * np.where(finite, depth, 0.0) / geometry.focal_px, np.inf)
-        nearest = np.full(int(components.max()) + 1, np.inf)
-        np.minimum.at(nearest, components.ravel(), gap_m.ravel())
-        return nearest[ids] <= self.config.max_trunk_gap_m
-
 
 def _largest_component(mask: np.ndarray) -> np.ndarray:
     """Boolean `H×W`: the largest 8-connected region of `mask` (all False when it is empty)."""
@@ -200,3 +191,23 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
     if count < 2:
         return np.zeros(mask.shape, dtype=bool)
     return components == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+
+
+def _trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
+    """`H×W` metres from each pixel to the trunk in the image, at the pixel's own depth (inf where unknown).
+
+    What a pruner cuts grows from the trunk: a piece far from it is a twig, the far part of a branch
+    whose base is hidden, a leaf or background — its cut point would be wrong, so it is not reported.
+    """
+    gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(depth), gap_px * depth / geometry.focal_px, np.inf)
+
+
+def _nearest(labels: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
+    """`(max label + 1,)`: the smallest `gap_m` over each label's pixels (inf for absent labels and 0)."""
+    rows, cols = np.nonzero(labels)  # only the labelled pixels: a few % of the frame
+    nearest = np.full(int(labels.max()) + 1, np.inf)
+    np.minimum.at(nearest, labels[rows, cols], gap_m[rows, cols])
+    nearest[0] = np.inf
+    return nearest
