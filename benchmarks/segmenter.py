@@ -1,21 +1,22 @@
 """Segmenters without truth masks: cut-point recall, false cut points, speed, reliability; real trees.
 
 Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, never used for
-training here; default options: ground, background trees and far foliage rows, foliage drawn
+training or calibrating the learned segmenter, which use seeds 1–2900; default options: ground, background trees and far foliage rows, foliage drawn
 bare/sparse/dense per scene) at 640×360 (ZED Mini). Per stereo source (sgbm, truth disparity)
 and segmenter (each name given, plus 'truth' = the scene's instance mask), every frame goes
 through `Pipeline.process_disparity`; cut points are matched to the truth as in
 `branchrange.offline.evaluate_cuts` (recall within 5 cm, median 3D error of the matches, false cut
 points per frame = estimates with no truth cut point within 5 cm). Time per frame is the
 segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s cut
-points by confidence bin: the share within 5 cm of a truth cut point.
+points by confidence bin: the share within 5 cm of a truth cut point; beside it, the share correct
+at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct.
 
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
-    python benchmarks/segmenter.py [--scenes 30] [--segmenters geometric] [--json out.json]
+    python benchmarks/segmenter.py [--scenes 30] [--segmenters learned structure] [--json out.json]
                                    [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
 """
 
@@ -226,7 +227,9 @@ def print_tables(synthetic: dict, real: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=30, help="held-out synthetic scenes (default 30)")
-    parser.add_argument("--segmenters", nargs="+", default=["geometric"], help="segmenter names (default geometric)")
+    parser.add_argument(
+        "--segmenters", nargs="+", default=["learned", "structure"], help="segmenter names (default learned structure)"
+    )
     parser.add_argument("--cache", type=Path, help="folder caching rendered scenes and their sgbm disparity")
     parser.add_argument("--overlays", type=Path, help="write real-pair overlays here")
     parser.add_argument("--skip-real", action="store_true", help="leave out the real pairs")
