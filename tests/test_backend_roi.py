@@ -179,7 +179,7 @@ def test_emcstereo_roi_refuses_a_range_beyond_the_model(scene: SyntheticScene, e
 
 
 def test_onnx_backend_refuses_windowed_disparity(scene: SyntheticScene) -> None:
-    pytest.importorskip("onnxruntime", reason="the onnx backend needs onnxruntime (optional extra 'onnx')")
+    pytest.importorskip("onnxruntime", reason="onnxruntime (a dependency of branchrange) is not installed")
     from stereo.backends.onnx import OnnxBackend
 
     # The refusal reads only the graph's size and range; exporting a graph to get them takes ~25 s

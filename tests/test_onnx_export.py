@@ -13,7 +13,7 @@ from stereo.cli import main as emcstereo_main
 from stereo.export import ExportError, export_onnx
 from stereo.io.images import read_rgb
 
-pytest.importorskip("onnxruntime", reason="the onnx backend needs onnxruntime (optional extra 'onnx')")
+pytest.importorskip("onnxruntime", reason="onnxruntime (a dependency of branchrange) is not installed")
 
 #: Small export: 256×256 padded input, 32 px range (8 cost-volume slices), so export takes seconds.
 SIZE, RANGE = 256, 32

@@ -21,7 +21,6 @@ from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import SHIPPED_MODEL, LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 
-pytest.importorskip("onnxruntime", reason="the learned segmenter runs on onnxruntime")
 #: torch's TorchScript exporter builds the ONNX file in the training test; its deprecation notice is not ours
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 HELD_OUT_SEED = 50_007  # benchmark seeds start at 50,000; training never uses them

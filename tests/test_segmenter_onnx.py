@@ -19,7 +19,7 @@ from branchrange.core.segmentation.onnx_model import OnnxSegmenter, OnnxSegmente
 
 #: torch's TorchScript exporter is what builds these tiny graphs; its deprecation notice is not ours
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-pytest.importorskip("onnxruntime", reason="onnx segmenters need onnxruntime (optional extra 'onnx')")
+pytest.importorskip("onnxruntime", reason="onnxruntime (a dependency of branchrange) is not installed")
 
 GEOMETRY = StereoGeometry.centred(100.0, 0.1, 128, 64)
 BRIGHT, DARK = 230, 20
