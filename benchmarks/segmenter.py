@@ -1,9 +1,9 @@
 """Segmenters without truth masks: cut-point recall, false cut points, speed, reliability; real trees.
 
 Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, never used for
-training or calibrating the learned segmenter, which use seeds 1–2900; default options: ground, background trees and far foliage rows, foliage drawn
-bare/sparse/dense per scene) at 640×360 (ZED Mini). Per stereo source (sgbm, truth disparity)
-and segmenter (each name given, plus 'truth' = the scene's instance mask), every frame goes
+training or calibrating the learned segmenter, which use seeds 1–2900; default options: ground,
+background trees and far foliage rows, foliage drawn bare/sparse/dense per scene) at 640×360 (ZED
+Mini). Per stereo source (sgbm, truth disparity) and segmenter (each name given, plus 'truth' = the scene's instance mask), every frame goes
 through `Pipeline.process_disparity`; cut points are matched to the truth as in
 `branchrange.offline.evaluate_cuts` (recall within 5 cm, median 3D error of the matches, false cut
 points per frame = estimates with no truth cut point within 5 cm). Time per frame is the

@@ -34,7 +34,9 @@ class OnnxBackend:
         try:
             import onnxruntime
         except ImportError as exc:
-            raise BackendConfigError("the onnx backend needs onnxruntime (a dependency of branchrange: pip install onnxruntime)") from exc
+            raise BackendConfigError(
+                "the onnx backend needs onnxruntime (a dependency of branchrange: pip install onnxruntime)"
+            ) from exc
         options = onnxruntime.SessionOptions()
         if threads is not None:
             options.intra_op_num_threads = threads

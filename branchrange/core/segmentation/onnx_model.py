@@ -114,7 +114,9 @@ def onnx_session(path: Path, threads: int) -> onnxruntime.InferenceSession:  # n
     try:
         import onnxruntime as ort
     except ImportError:
-        raise OnnxSegmenterError("onnx segmenters need onnxruntime (a dependency of branchrange): pip install onnxruntime") from None
+        raise OnnxSegmenterError(
+            "onnx segmenters need onnxruntime (a dependency of branchrange): pip install onnxruntime"
+        ) from None
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
