@@ -3,13 +3,13 @@
 Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, never used for
 training or calibrating the learned segmenter, which use seeds 1–2900; default options: ground,
 background trees and far foliage rows, foliage drawn bare/sparse/dense per scene) at 640×360 (ZED
-Mini). Per stereo source (sgbm, truth disparity) and segmenter (each name given, plus 'truth' = the scene's instance mask), every frame goes
-through `Pipeline.process_disparity`; cut points are matched to the truth as in
-`branchrange.offline.evaluate_cuts` (recall within 5 cm, median 3D error of the matches, false cut
-points per frame = estimates with no truth cut point within 5 cm). Time per frame is the
-segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s cut
-points by confidence bin: the share within 5 cm of a truth cut point; beside it, the share correct
-at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct.
+Mini). Per stereo source (sgbm, truth disparity) and segmenter (each name given, plus 'truth' = the
+scene's instance mask), every frame goes through `Pipeline.process_disparity`; cut points are matched
+to the truth as in `branchrange.offline.evaluate_cuts` (recall within 5 cm, median 3D error of the
+matches, false cut points per frame = estimates with no truth cut point within 5 cm). Time per frame
+is the segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s
+cut points by confidence bin: the share within 5 cm of a truth cut point; beside it, the share
+correct at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct.
 
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
