@@ -23,6 +23,7 @@ from websockets.sync.client import connect
 
 from branchrange.cli import main as branchrange_main
 from branchrange.core.config import Config, StereoConfig
+from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import FrameResult
 from branchrange.core.frame_results import read_results
 from branchrange.offline.replay import replay_recording
@@ -43,7 +44,9 @@ from camera.sources.rosbag_writer import write_bag
 
 FRAMES = 3
 PERIOD_NS = 100_000_000
-CFG = Config(stereo=StereoConfig(max_disp=64))
+#: plumbing, not accuracy: any branch may be the target (the default asks ≥ 0.8, which few frames of this
+#: small synthetic tree reach with the learned segmenter)
+CFG = Config(stereo=StereoConfig(max_disp=64), cutpoints=CutPointConfig(target_min_confidence=0.3))
 #: Subprotocol of the foxglove-sdk WebSocket server (Foxglove's app speaks it).
 WS_SUBPROTOCOL = "foxglove.sdk.v1"
 
@@ -73,7 +76,7 @@ def runs(tmp_path_factory):
         encoding="bgr8",
     )
     config = root / "replay.toml"
-    config.write_text("[stereo]\nmax_disp = 64\n")
+    config.write_text("[stereo]\nmax_disp = 64\n[cutpoints]\ntarget_min_confidence = 0.3\n")
 
     replay_recording(recording, CFG, root / "rec.jsonl", progress=False)
     status = branchrange_main(
