@@ -221,3 +221,12 @@ def test_calibrating_a_model_stores_the_fit_beside_it_and_the_segmenter_applies_
     )
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx")))
     assert segmenter.calibration == ConfidenceCalibration.from_json_dict(stored)
+
+
+def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
+    from branchrange.core.config import MavlinkConfig
+    from branchrange.core.cutpoints import CutPointConfig
+
+    table = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibration"]
+    assert CutPointConfig().target_min_confidence == table["target_min_confidence"]
+    assert MavlinkConfig().obstacle_min_confidence == table["obstacle_min_confidence"]
