@@ -48,6 +48,7 @@ from autopilot_sim import AutopilotSim, approach_flight, body_target_errors, fli
 from realtime import cpu_name  # noqa: E402
 
 from branchrange.core.config import MavlinkConfig, TrackingConfig  # noqa: E402
+from branchrange.core.frame_result import FrameResult  # noqa: E402
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay  # noqa: E402
 
 FPS = 15.0
@@ -111,7 +112,7 @@ def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str,
     truth = FlightTruth.load(directory)
     trajectory, world_to_ned = flight_from_camera_poses(truth.poses, MOUNT, tuple(START), HEADING_DEG)
     cuts_ned = {c.id: world_to_ned(c.world_m) for c in truth.cut_points}
-    published: list[tuple[float, dict[str, Any]]] = []
+    published: list[tuple[float, FrameResult]] = []
     with AutopilotSim(trajectory, heartbeat_period_s=0.2) as sim:
         sim.start = time.monotonic() + 3600.0  # hover at the first pose until the first frame
         cfg = Config(
@@ -172,7 +173,9 @@ def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str,
             "observations": track.observations,
             "sigma_mm": round(1000 * track.sigma_m, 2),
         }
-    latencies = [res["latency"]["capture_to_publish_ms"] for _, res in published if "latency" in res]
+    latencies = [
+        res.latency.capture_to_publish_ms for _, res in published if res.latency and res.latency.capture_to_publish_ms
+    ]
     return {
         "flight": str(directory),
         "frames_published": len(published),

@@ -242,7 +242,7 @@ def summarise(published: list[FrameResult], daemon: Any, truth: Any, max_age_s: 
         "false_target_rate": round(false_targets / targets, 4) if targets else None,
         "stage_ms": {stage: {"p50": percentile(values, 50)} for stage, values in sorted(stages.items())},
         "handover_ms": {
-            key: {"p50": percentile([r["latency"][key] for r in published], 50)}
+            key: {"p50": percentile([getattr(r.latency, key) for r in published if r.latency is not None], 50)}
             for key in ("capture_to_stereo_ms", "capture_to_geometry_ms", "capture_to_publish_ms")
         },
         "wall_s": round(wall_s, 2),
