@@ -8,6 +8,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from branchrange.commands.train_segmenter import training_config
 from branchrange.core.confidence import ConfidenceCalibration, fit_calibration
@@ -162,6 +163,11 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     masks = segmenter.segment(left, np.full((50, 70), 5.0, np.float32), StereoGeometry.centred(100.0, 0.1, 70, 50))
     assert masks.labels.shape == (50, 70)
     assert meta["config"]["steps"] == 2
+    # the same config on the same cached scenes trains the same weights (what the shipped JSON promises)
+    again = train_branchnet(config, tmp_path / "again", tmp_path / "data", log=lines.append)
+    assert again["onnx_sha256"] == meta["onnx_sha256"]
+    first, second = (torch.load(tmp_path / d / "branchnet.pt") for d in ("run", "again"))
+    assert all(torch.equal(first[k], second[k]) for k in first)
 
 
 def test_isotonic_calibration_is_monotone_and_honest():
