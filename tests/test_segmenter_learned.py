@@ -115,6 +115,10 @@ def test_a_damaged_model_file_is_refused_naming_both_hashes(tmp_path):
         LearnedSegmenter(LearnedSegmenterConfig(model=str(copy)))
     with pytest.raises(OnnxSegmenterError, match="no model file"):
         LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "absent.onnx")))
+    rgb_only = tmp_path / "rgb_only.onnx"  # a per-pixel model of another kind: 3 input channels
+    torch.onnx.export(torch.nn.Conv2d(3, 3, 1), torch.zeros(1, 3, 32, 32), str(rgb_only), dynamo=False)
+    with pytest.raises(OnnxSegmenterError, match="is not a BranchNet"):
+        LearnedSegmenter(LearnedSegmenterConfig(model=str(rgb_only)))
 
 
 def test_shipped_metadata_records_a_reproducible_training_run():

@@ -38,7 +38,7 @@ import numpy as np
 from branchrange.core.confidence import ConfidenceCalibration
 from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.core.segmentation.branchnet import CLASSES, network_input, padded_to_stride
+from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, network_input, padded_to_stride
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
 from branchrange.core.segmentation.pieces import straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
@@ -131,7 +131,14 @@ class LearnedSegmenter:
             except ValueError as exc:
                 raise OnnxSegmenterError(f"learned segmenter: {self.model_path.with_suffix('.json')}: {exc}") from None
         self.session = onnx_session(self.model_path, config.threads)
-        self._input = self.session.get_inputs()[0].name
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        if len(inputs) != 1 or inputs[0].shape[1:2] != [IN_CHANNELS] or outputs[0].shape[1:2] != [len(CLASSES)]:
+            raise OnnxSegmenterError(
+                f"learned segmenter: {self.model_path} is not a BranchNet (expected one input (1, {IN_CHANNELS}, H, W) "
+                f"and logits (1, {len(CLASSES)}, H, W); found inputs {[(i.name, i.shape) for i in inputs]}, "
+                f"outputs {[(o.name, o.shape) for o in outputs]})"
+            )
+        self._input = inputs[0].name
 
     def logits(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
         """`float32 (3, H, W)` background / trunk / branch logits of a frame (`CLASSES` order)."""
