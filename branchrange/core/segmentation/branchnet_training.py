@@ -1,9 +1,10 @@
 """Training `BranchNet` on CPU from synthetic scenes, and exporting it to the ONNX file the segmenter ships.
 
-`train_branchnet(config, out_dir)`: renders (or reads cached) training scenes, trains with random
-crops and strong photometric randomisation, validates on scenes kept apart from training, writes
-`metrics.csv`, `training_curve.png`, `branchnet.onnx` and `branchnet.json` (config, seed, per-class
-IoU, the ONNX file's SHA-256). Same config + same cached scenes → the same weights (torch's CPU
+`train_branchnet(config, out_dir, data_dir)`: renders (or reads cached, in `data_dir`) training scenes,
+trains with random crops and strong photometric randomisation, validates on scenes kept apart from
+training, writes `metrics.csv`, `training_curve.png`, `branchnet.pt` (torch weights), `branchnet.onnx`
+and `branchnet.json` (config, seed, per-class IoU, the ONNX file's SHA-256); the confidence
+calibration is a separate step (`branchnet_calibration`), run by `branchrange train-segmenter`. Same config + same cached scenes → the same weights (torch's CPU
 kernels are deterministic at a fixed thread count).
 
 Why these augmentations: the real trees are not the synthetic ones. Scale (0.5–1.6×) covers other
