@@ -4,8 +4,9 @@
 trains with random crops and strong photometric randomisation, validates on scenes kept apart from
 training, writes `metrics.csv`, `training_curve.png`, `branchnet.pt` (torch weights), `branchnet.onnx`
 and `branchnet.json` (config, seed, per-class IoU, the ONNX file's SHA-256); the confidence
-calibration is a separate step (`branchnet_calibration`), run by `branchrange train-segmenter`. Same config + same cached scenes → the same weights (torch's CPU
-kernels are deterministic at a fixed thread count).
+calibration is a separate step (`branchnet_calibration`), run by `branchrange train-segmenter`. Same
+config + same cached scenes → the same weights (torch's CPU kernels are deterministic at a fixed thread
+count; a test trains twice and compares).
 
 Why these augmentations: the real trees are not the synthetic ones. Scale (0.5–1.6×) covers other
 focal lengths and branch widths; gain, contrast, gamma, per-channel colour, greyscale (some stereo
