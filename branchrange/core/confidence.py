@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +43,7 @@ class ConfidenceCalibration:
         return {"raw": [round(x, 4) for x in self.raw], "calibrated": [round(y, 4) for y in self.calibrated]}
 
     @classmethod
-    def from_json_dict(cls, data: dict) -> ConfidenceCalibration:
+    def from_json_dict(cls, data: dict[str, Any]) -> ConfidenceCalibration:
         """The calibration of `to_json_dict`'s form; ValueError naming what is wrong."""
         try:
             return cls(tuple(float(x) for x in data["raw"]), tuple(float(y) for y in data["calibrated"]))

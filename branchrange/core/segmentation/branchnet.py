@@ -85,7 +85,8 @@ class BranchNet(nn.Module):
         d3 = self.up3(self._up_cat(f4, f3))
         d2 = self.up2(self._up_cat(d3, f2))
         d1 = self.up1(self._up_cat(d2, f1))
-        return self.head(self._up_cat(d1, x))
+        logits: torch.Tensor = self.head(self._up_cat(d1, x))
+        return logits
 
 
 def padded_to_stride(array: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:

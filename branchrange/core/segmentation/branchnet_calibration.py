@@ -53,7 +53,10 @@ def raw_outcomes(model: Path, seeds: tuple[int, int], cache: Path | None) -> lis
 
 
 def calibrate_model(
-    model: Path, seeds: tuple[int, int] = CALIBRATION_SEEDS, cache: Path | None = None, log: Callable = print
+    model: Path,
+    seeds: tuple[int, int] = CALIBRATION_SEEDS,
+    cache: Path | None = None,
+    log: Callable[[str], object] = print,
 ) -> ConfidenceCalibration | None:
     """Fit the confidence calibration of the ONNX `model` and store it in the JSON beside it; None (and
     nothing stored) when the model finds no cut point on those scenes."""

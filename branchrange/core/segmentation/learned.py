@@ -143,7 +143,8 @@ class LearnedSegmenter:
     def logits(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
         """`float32 (3, H, W)` background / trunk / branch logits of a frame (`CLASSES` order)."""
         features, (height, width) = padded_to_stride(network_input(left, disparity))
-        return self.session.run(None, {self._input: features[None]})[0][0, :, :height, :width]
+        logits = self.session.run(None, {self._input: features[None]})[0][0, :, :height, :width]
+        return np.asarray(logits, dtype=np.float32)
 
     def segment(
         self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
@@ -199,7 +200,7 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
     count, components, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if count < 2:
         return np.zeros(mask.shape, dtype=bool)
-    return components == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return np.asarray(components == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])), dtype=bool)
 
 
 def _trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
