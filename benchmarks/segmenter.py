@@ -34,13 +34,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from branchrange.core.confidence import lowest_reliable_threshold, share_correct_above
+from branchrange.core.confidence import cut_point_outcomes, lowest_reliable_threshold, share_correct_above
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.choose import make_segmenter
-from branchrange.offline.evaluate_cuts import RECALL_RADIUS_M, CutScores
+from branchrange.offline.evaluate_cuts import CutScores
 
 ROOT = Path(__file__).resolve().parents[1]
 TREES = ROOT.parent / "shared" / "data" / "trees"
@@ -109,10 +109,12 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
                 acted_on = [x for x in result.branches if x.confidence >= TARGET_MIN_CONFIDENCE]
                 confident.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], acted_on, result.target)
                 times.setdefault(key, []).append(result.timing_ms["masks"])
-                points = [np.asarray(t["cut_point_m"]) for t in scene["truth"]]
-                for est in result.branches:
-                    ok = any(np.linalg.norm(np.asarray(est.cut_point_m) - p) <= RECALL_RADIUS_M for p in points)
-                    confidences.setdefault(key, []).append((est.confidence, ok))
+                confidences.setdefault(key, []).extend(
+                    cut_point_outcomes(
+                        [(b.confidence, b.cut_point_m) for b in result.branches],
+                        [t["cut_point_m"] for t in scene["truth"]],
+                    )
+                )
         print(f"  scene {i + 1}/{scenes}", end="\r", file=sys.stderr)
     out = {}
     for key, s in scores.items():

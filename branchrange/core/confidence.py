@@ -11,11 +11,26 @@ confidence is never worse.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+#: a cut point within this distance (m) of a true one is correct (the evaluation's recall radius)
+CORRECT_WITHIN_M = 0.05
+
+
+def cut_point_outcomes(
+    estimates: Iterable[tuple[float, Sequence[float]]], true_points: Sequence[Sequence[float]]
+) -> list[tuple[float, bool]]:
+    """(confidence, correct) of each (confidence, cut point m) estimate: correct when some true cut point
+    lies within `CORRECT_WITHIN_M` — the pairs the calibration is fitted on and the reliability tables count."""
+    truth = [np.asarray(t, dtype=np.float64) for t in true_points]
+    return [
+        (float(c), any(float(np.linalg.norm(np.asarray(p, dtype=np.float64) - t)) <= CORRECT_WITHIN_M for t in truth))
+        for c, p in estimates
+    ]
 
 
 @dataclass(frozen=True)

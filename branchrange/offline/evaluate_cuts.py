@@ -24,10 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from branchrange.core.confidence import CORRECT_WITHIN_M
 from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, PipelineConfig, untracked_whole_frame
 
-RECALL_RADIUS_M = 0.05
+RECALL_RADIUS_M = CORRECT_WITHIN_M
 MATCH_GATE_M = 0.25
 #: Depth (cm) at or beyond which the set's EXR marks sky (fp16 maximum 65504).
 SKY_CM = 65000.0

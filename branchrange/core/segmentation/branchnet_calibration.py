@@ -19,6 +19,7 @@ import numpy as np
 
 from branchrange.core.confidence import (
     ConfidenceCalibration,
+    cut_point_outcomes,
     fit_calibration,
     highest_inclusive_threshold,
     lowest_reliable_threshold,
@@ -26,8 +27,6 @@ from branchrange.core.confidence import (
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 
 CALIBRATION_SEEDS = (2861, 2901)
-#: a cut point within this distance of a true one is correct (the evaluation's recall radius)
-CORRECT_WITHIN_M = 0.05
 
 
 def raw_outcomes(model: Path, seeds: tuple[int, int], cache: Path | None) -> list[tuple[float, bool]]:
@@ -44,11 +43,9 @@ def raw_outcomes(model: Path, seeds: tuple[int, int], cache: Path | None) -> lis
             untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
         )
         result = pipeline.process_disparity(scene["left"], scene["sgbm"], scene["sgbm_conf"], backend="sgbm")
-        truth = [np.asarray(t["cut_point_m"]) for t in scene["truth"]]
-        for branch in result.branches:
-            estimate = np.asarray(branch.cut_point_m)
-            correct = any(float(np.linalg.norm(estimate - t)) <= CORRECT_WITHIN_M for t in truth)
-            outcomes.append((branch.confidence, correct))
+        outcomes += cut_point_outcomes(
+            [(b.confidence, b.cut_point_m) for b in result.branches], [t["cut_point_m"] for t in scene["truth"]]
+        )
     return outcomes
 
 
