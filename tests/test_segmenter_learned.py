@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 
@@ -9,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from torch.nn import functional as F
 
 from branchrange.commands.train_segmenter import training_config
 from branchrange.core.confidence import ConfidenceCalibration, fit_calibration
@@ -240,3 +242,49 @@ def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
     table = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibration"]
     assert CutPointConfig().target_min_confidence == table["target_min_confidence"]
     assert MavlinkConfig().obstacle_min_confidence == table["obstacle_min_confidence"]
+
+
+def test_instance_balance_weighs_a_small_branch_up_and_plain_weights_match_cross_entropy():
+    from branchrange.core.segmentation.branchnet_training import instance_weights, weighted_cross_entropy
+
+    instances = np.zeros((40, 60), np.uint16)
+    instances[5:35, 5:25] = 1  # a thick limb, 600 px
+    instances[10:12, 30:55] = 2  # a thin stem, 50 px
+    instances[20:30, 30:50] = 3  # a middling branch, 200 px (the median)
+    instances[0:5, 0:60] = 65535  # trunk
+    classes = classes_from_instances(instances)
+    weights = instance_weights(classes, instances, 0.5)
+    assert weights[instances == 65535].tolist() == [1.0] * 300 and weights[0, 0] == 1.0
+    assert np.isclose(weights[10, 40], (200 / 50) ** 0.5) and np.isclose(weights[20, 40], 1.0)
+    assert np.isclose(weights[10, 10], (200 / 600) ** 0.5)
+    assert np.isclose(instance_weights(classes, instances, 2.0)[10, 40], 4.0)  # clipped
+    assert (instance_weights(classes, instances, 0.0) == 1).all()
+    logits = torch.randn(2, 3, 8, 8)
+    targets = torch.randint(0, 3, (2, 8, 8))
+    targets[0, 0, :4] = IGNORE
+    class_weights = torch.tensor([1.0, 1.0, 5.0])
+    plain = F.cross_entropy(logits, targets, weight=class_weights, ignore_index=IGNORE)
+    assert torch.allclose(weighted_cross_entropy(logits, targets, class_weights, torch.ones(2, 8, 8)), plain)
+    doubled = torch.where(targets == BRANCH, 2.0, 1.0)
+    assert not torch.allclose(weighted_cross_entropy(logits, targets, class_weights, doubled), plain)
+
+
+def test_a_second_stage_starts_from_the_given_weights_and_records_their_hash(tmp_path):
+    from branchrange.core.segmentation.branchnet_training import train_branchnet
+
+    settings = ["train_seeds=[1, 2]", "val_seeds=[2, 3]", "batch=1", "crop=64", "width=4", "threads=1"]
+    first = tmp_path / "first"
+    train_branchnet(training_config(None, [*settings, "steps=1"]), first, tmp_path / "data", log=lambda _: None)
+    start = torch.load(first / "branchnet.pt")
+    config = training_config(
+        None, [*settings, "steps=1", "lr=1e-12", "instance_balance=0.5", f'init_weights="{first / "branchnet.pt"}"']
+    )
+    meta = train_branchnet(config, tmp_path / "second", tmp_path / "data", log=lambda _: None)
+    second = torch.load(tmp_path / "second" / "branchnet.pt")
+    learned = [k for k in start if "running" not in k and "num_batches" not in k]  # batch-norm statistics move
+    assert all(torch.allclose(start[k], second[k], atol=1e-6) for k in learned)  # lr ≈ 0: the weights it started from
+    assert meta["init_sha256"] == hashlib.sha256((first / "branchnet.pt").read_bytes()).hexdigest()
+    with pytest.raises(ValueError, match="init_weights"):
+        training_config(None, ['init_weights="no/such.pt"'])
+    with pytest.raises(ValueError, match="instance_balance"):
+        training_config(None, ["instance_balance=-1"])

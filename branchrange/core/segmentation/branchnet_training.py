@@ -42,8 +42,13 @@ class BranchNetTrainConfig:
     - `lr`, `weight_decay`: AdamW with a cosine decay to 2 % of `lr`.
     - `class_weights`: cross-entropy weights of background, trunk, branch (branch pixels are ~1 %).
     - `branch_crop_share`: share of crops centred on a branch pixel (the rest anywhere).
+    - `instance_balance`: branch pixels are weighted by (median branch area / their branch's area) to
+      this power, clipped to 0.5–4×: recall counts branches, not pixels, and a thin stem of 40 px would
+      otherwise weigh as little as one corner of a thick limb (0 = plain class weights).
     - `width`: `BranchNet` channel width; `seed`: crops, augmentation and initial weights;
       `threads`: torch CPU threads; `val_every`: steps between validations.
+    - `init_weights`: a `branchnet.pt` of an earlier run (same width) to start from instead of random
+      weights — a second stage; its SHA-256 is recorded in the metadata ("init_sha256").
     """
 
     train_seeds: tuple[int, int] = (1, 1201)
@@ -55,10 +60,12 @@ class BranchNetTrainConfig:
     weight_decay: float = 1e-4
     class_weights: tuple[float, float, float] = (1.0, 1.0, 5.0)
     branch_crop_share: float = 0.6
+    instance_balance: float = 0.0
     width: int = 12
     seed: int = 0
     threads: int = 2
     val_every: int = 500
+    init_weights: str = ""
 
     def __post_init__(self) -> None:
         for name in ("train_seeds", "val_seeds"):
@@ -69,6 +76,10 @@ class BranchNetTrainConfig:
             raise ValueError("train_seeds and val_seeds overlap")
         if self.steps < 1 or self.batch < 1 or self.crop % 16 or self.crop < 64:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
+        if not 0 <= self.instance_balance <= 2:
+            raise ValueError("instance_balance must lie in [0, 2] (an exponent; 0 = off)")
+        if self.init_weights and not Path(self.init_weights).is_file():
+            raise ValueError(f"init_weights: no file {self.init_weights}")
 
 
 def augment(left: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -86,16 +97,35 @@ def augment(left: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
+def instance_weights(classes: np.ndarray, instances: np.ndarray, power: float) -> np.ndarray:
+    """`float32 H×W` pixel weights: (median branch area / own branch's area) ** `power` on branch pixels,
+    clipped to 0.5–4, and 1 elsewhere (`classes`, `instances` as in a sample; see `instance_balance`)."""
+    weights = np.ones(classes.shape, dtype=np.float32)
+    branch = classes == BRANCH
+    if power == 0 or not branch.any():
+        return weights
+    ids, inverse, areas = np.unique(instances[branch], return_inverse=True, return_counts=True)
+    factor = np.clip((np.median(areas) / areas) ** power, 0.5, 4.0).astype(np.float32)
+    weights[branch] = factor[inverse]
+    return weights
+
+
 def training_crop(
     sample: dict[str, np.ndarray], config: BranchNetTrainConfig, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """(input `float32 (5, c, c)`, classes `int64 (c, c)`) of one randomly scaled, augmented, cropped sample."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(input `float32 (5, c, c)`, classes `int64 (c, c)`, pixel weights `float32 (c, c)`, see
+    `instance_weights`) of one randomly scaled, augmented, cropped sample."""
     scale = float(rng.uniform(0.5, 1.6))
     height, width = sample["classes"].shape
     size = (max(config.crop, round(width * scale)), max(config.crop, round(height * scale)))
     left = cv2.resize(sample["left"], size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
     disparity = cv2.resize(sample["disparity"].astype(np.float32), size, interpolation=cv2.INTER_NEAREST)
     classes = cv2.resize(sample["classes"], size, interpolation=cv2.INTER_NEAREST)
+    weights = cv2.resize(
+        instance_weights(sample["classes"], sample["instances"], config.instance_balance),
+        size,
+        interpolation=cv2.INTER_NEAREST,
+    )
     branch_v, branch_u = np.nonzero(classes == BRANCH)
     half = config.crop // 2
     if len(branch_u) and rng.random() < config.branch_crop_share:
@@ -108,9 +138,23 @@ def training_crop(
     # the crop's disparity is scaled like its whole frame's, as at run time
     features = network_input(augment(left[window], rng), disparity[window], disparity_scale(disparity))
     target = classes[window].astype(np.int64)
+    pixel_weights = weights[window]
     if rng.random() < 0.5:
-        features, target = features[:, :, ::-1], target[:, ::-1]
-    return np.ascontiguousarray(features), np.ascontiguousarray(target)
+        features, target, pixel_weights = features[:, :, ::-1], target[:, ::-1], pixel_weights[:, ::-1]
+    return np.ascontiguousarray(features), np.ascontiguousarray(target), np.ascontiguousarray(pixel_weights)
+
+
+def weighted_cross_entropy(
+    logits: torch.Tensor, targets: torch.Tensor, class_weights: torch.Tensor, pixel_weights: torch.Tensor
+) -> torch.Tensor:
+    """Cross-entropy of `logits` (N, C, H, W) against `targets` (N, H, W; `IGNORE` left out), each pixel
+    weighted by its class weight times its `pixel_weights` (N, H, W), normalised by the weights' sum
+    (with pixel weights of 1 it equals `F.cross_entropy(weight=class_weights)`)."""
+    counted = targets != IGNORE
+    safe = torch.where(counted, targets, torch.zeros_like(targets))
+    per_pixel = F.cross_entropy(logits, safe, reduction="none")
+    weights = class_weights[safe] * pixel_weights * counted
+    return (per_pixel * weights).sum() / weights.sum().clamp_min(1e-12)
 
 
 def class_iou(model: BranchNet, samples: list[dict[str, np.ndarray]]) -> dict[str, float]:
@@ -160,7 +204,12 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     train_seeds = np.arange(*config.train_seeds)
     validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
-    model = BranchNet(config.width).to(memory_format=torch.channels_last)  # ~1.4× faster convolutions on CPU
+    model = BranchNet(config.width)
+    init_sha256 = None
+    if config.init_weights:
+        init_sha256 = hashlib.sha256(Path(config.init_weights).read_bytes()).hexdigest()
+        model.load_state_dict(torch.load(config.init_weights, map_location="cpu", weights_only=True))
+    model = model.to(memory_format=torch.channels_last)  # ~1.4× faster convolutions on CPU
     optimiser = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     schedule = torch.optim.lr_scheduler.OneCycleLR(
         optimiser, max_lr=config.lr, total_steps=config.steps, pct_start=0.05, final_div_factor=50
@@ -175,7 +224,8 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
         ]
         inputs = torch.from_numpy(np.stack([c[0] for c in crops])).contiguous(memory_format=torch.channels_last)
         targets = torch.from_numpy(np.stack([c[1] for c in crops]))
-        loss = F.cross_entropy(model(inputs), targets, weight=weights, ignore_index=IGNORE)
+        pixel_weights = torch.from_numpy(np.stack([c[2] for c in crops]))
+        loss = weighted_cross_entropy(model(inputs), targets, weights, pixel_weights)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
@@ -218,6 +268,7 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
         "config": asdict(config),
         "final": history[-1],
         "torch": torch.__version__,
+        **({"init_sha256": init_sha256} if init_sha256 else {}),
     }
     (out_dir / "branchnet.json").write_text(json.dumps(meta, indent=1) + "\n")
     return meta

@@ -162,9 +162,9 @@ class LearnedSegmenter:
             + np.exp(np.minimum(logits[_TRUNK] - logits[_BRANCH], 50.0))
         )
         labels = np.zeros(disparity.shape, dtype=np.int32)
-        trunk = _largest_component((logits[_TRUNK] > logits[_BACKGROUND]) & (logits[_TRUNK] > logits[_BRANCH]))
-        labels[trunk] = cfg.trunk_id
         depth = np.where(valid_disparity(disparity), disparity_to_depth(disparity, geometry), np.inf)
+        trunk = tree_trunk((logits[_TRUNK] > logits[_BACKGROUND]) & (logits[_TRUNK] > logits[_BRANCH]), depth)
+        labels[trunk] = cfg.trunk_id
         branch = (branch_p >= cfg.branch_threshold) & ~trunk
         branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
         near_trunk = trunk.any() and cfg.max_trunk_gap_m > 0
@@ -195,12 +195,35 @@ class LearnedSegmenter:
         return BranchMasks(labels, cfg.trunk_id, self.name, scores=scores, calibration=self.calibration)
 
 
-def _largest_component(mask: np.ndarray) -> np.ndarray:
-    """Boolean `H×W`: the largest 8-connected region of `mask` (all False when it is empty)."""
+#: a trunk region joins the largest one when it has this share of its pixels and lies at its depth ± this share
+TRUNK_PART_MIN_AREA, TRUNK_PART_DEPTH_TOLERANCE = 0.05, 0.15
+
+
+def tree_trunk(mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Boolean `H×W`: the trunk of the tree being pruned among the trunk pixels `mask`, given the `H×W`
+    depth (m, inf where unknown) — the largest 8-connected region plus the regions of at least
+    `TRUNK_PART_MIN_AREA` of its size whose median depth is within `TRUNK_PART_DEPTH_TOLERANCE` of its
+    own. Why not the largest alone: a branch in front of the trunk cuts its silhouette in two, and the
+    branches growing from the other part would be dropped as far from the trunk."""
     count, components, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if count < 2:
         return np.zeros(mask.shape, dtype=bool)
-    return np.asarray(components == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])), dtype=bool)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    largest = 1 + int(np.argmax(areas))
+    candidates = [largest] + [
+        k for k in range(1, count) if k != largest and areas[k - 1] >= TRUNK_PART_MIN_AREA * areas.max()
+    ]
+    depths = {}
+    for k in candidates:
+        finite = depth[components == k]
+        finite = finite[np.isfinite(finite)]
+        depths[k] = float(np.median(finite)) if finite.size else np.inf
+    keep = np.zeros(count, dtype=bool)
+    keep[largest] = True
+    if np.isfinite(depths[largest]):
+        for k in candidates[1:]:
+            keep[k] = abs(depths[k] - depths[largest]) <= TRUNK_PART_DEPTH_TOLERANCE * depths[largest]
+    return np.asarray(keep[components], dtype=bool)
 
 
 def _trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry) -> np.ndarray:

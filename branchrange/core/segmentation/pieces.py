@@ -14,15 +14,21 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
+#: neighbourhood (px) over which the inscribed radius gives a pixel's local branch width
+LOCAL_WIDTH_PX = 3
+
 
 def straight_pieces(
-    u: np.ndarray, v: np.ndarray, band_px: float, min_px: int, rng: np.random.Generator, max_pieces: int = 6
+    u: np.ndarray, v: np.ndarray, band_px: np.ndarray, min_px: int, rng: np.random.Generator, max_pieces: int = 6
 ) -> list[np.ndarray]:
-    """Index arrays of straight, contiguous runs of the pixels (u, v) `(N,)`, longest consensus first."""
+    """Index arrays of straight, contiguous runs of the pixels (u, v) `(N,)`, longest consensus first.
+
+    `band_px` `(N,)` is the half-width of a line's inlier band when drawn through that pixel; a line through
+    two pixels takes the wider of their bands, so a thin stem beside a thick limb gets its own narrow line
+    rather than being swallowed by the limb's wide one."""
     points = np.stack([u, v], axis=1).astype(np.float64)
     remaining = np.arange(len(points))
     pieces: list[np.ndarray] = []
-    gap = max(4.0, 2.0 * band_px)
     while len(remaining) >= min_px and len(pieces) < max_pieces:
         pts = points[remaining]
         pairs = rng.integers(0, len(pts), size=(80, 2))
@@ -34,9 +40,11 @@ def straight_pieces(
         direction = d[ok] / length[ok, None]
         normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1)
         origin = pts[pairs[ok, 0]]
+        bands = np.maximum(band_px[remaining][pairs[ok, 0]], band_px[remaining][pairs[ok, 1]])  # (K,)
         dist = np.abs(pts @ normal.T - np.einsum("kc,kc->k", origin, normal))  # (N, K) px from each line
-        best = int(np.argmax((dist < band_px).sum(axis=0)))
-        inliers = np.flatnonzero(dist[:, best] < band_px)
+        best = int(np.argmax((dist < bands).sum(axis=0)))
+        inliers = np.flatnonzero(dist[:, best] < bands[best])
+        gap = max(4.0, 2.0 * float(bands[best]))
         along = (pts[inliers] - origin[best]) @ direction[best]
         order = np.argsort(along)
         breaks = np.flatnonzero(np.diff(along[order]) > gap)
@@ -54,8 +62,10 @@ def straight_pieces_of(
     mask: np.ndarray, min_px: int, rng: np.random.Generator
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(u, v) pixel arrays of the straight pieces of every 8-connected region of the boolean `H×W` `mask`
-    with at least `min_px` pixels; each region's line band is 1.2× its largest inscribed radius (≥ 1.5 px)."""
+    with at least `min_px` pixels; a line's band is 1.2× the largest inscribed radius (≥ 1.5 px) within
+    `LOCAL_WIDTH_PX` of the pixels it is drawn through — the local width of the branch there."""
     inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
+    local_radius = cv2.dilate(inside, np.ones((2 * LOCAL_WIDTH_PX + 1,) * 2, np.uint8))
     count, components, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     for i in range(1, count):
         if stats[i, cv2.CC_STAT_AREA] < min_px:
@@ -65,6 +75,6 @@ def straight_pieces_of(
         )
         v, u = np.nonzero(components[y : y + h, x : x + w] == i)
         u, v = u + x, v + y
-        band = max(1.5, 1.2 * float(np.max(inside[v, u])))
+        band = np.maximum(1.5, 1.2 * local_radius[v, u])
         for piece in straight_pieces(u, v, band, min_px, rng):
             yield u[piece], v[piece]

@@ -1,0 +1,45 @@
+"""The learned segmenter's instance stage: which trunk regions are the tree's, and straight pieces."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from branchrange.core.segmentation.learned import tree_trunk
+from branchrange.core.segmentation.pieces import straight_pieces_of
+
+
+def test_a_trunk_cut_in_two_by_a_branch_in_front_stays_one_trunk_and_a_far_tree_does_not_join():
+    trunk = np.zeros((120, 200), dtype=bool)
+    trunk[:, 40:70] = True  # the tree being pruned, 2 m away ...
+    trunk[50:58, :] = False  # ... its silhouette cut by a branch in front of it
+    trunk[:, 150:160] = True  # another tree's trunk, 6 m away
+    depth = np.full(trunk.shape, 2.0)
+    depth[:, 150:160] = 6.0
+    depth[60:, 40:70] = 2.1  # the lower part leans slightly away: within the tolerance
+    kept = tree_trunk(trunk, depth)
+    assert kept[:50, 40:70].all() and kept[58:, 40:70].all()
+    assert not kept[:, 150:160].any()
+    speck = np.zeros_like(trunk)
+    speck[5:7, 100:102] = True  # a few pixels at the trunk's depth are not a trunk part
+    assert not tree_trunk(trunk | speck, depth)[5:7, 100:102].any()
+    assert not tree_trunk(np.zeros_like(trunk), depth).any()
+
+
+def test_two_thin_stems_of_a_fork_beside_a_thick_limb_become_two_pieces():
+    # one region: a limb 17 px thick, and a fork of two 3 px stems leaving it 6° apart. A band as wide as
+    # the limb would take both stems on one line (one axis between them: a cut point on neither).
+    limb, stems = np.zeros((170, 240), np.uint8), [np.zeros((170, 240), np.uint8) for _ in range(2)]
+    cv2.line(limb, (10, 40), (230, 40), 1, thickness=17)
+    cv2.line(stems[0], (40, 48), (220, 120), 1, thickness=3)
+    cv2.line(stems[1], (40, 48), (220, 145), 1, thickness=3)
+    mask = (limb | stems[0] | stems[1]) > 0
+    owners = np.zeros(mask.shape, dtype=int)
+    for k, (u, v) in enumerate(straight_pieces_of(mask, 12, np.random.default_rng(0)), 1):
+        owners[v, u] = k
+    far = np.zeros(mask.shape, dtype=bool)
+    far[:, 120:] = True  # past the fork, where the stems are 12-30 px apart
+    owner = [np.bincount(owners[(s > 0) & far & (limb == 0)]).argmax() for s in stems]
+    assert 0 not in owner and owner[0] != owner[1]
+    for s, k in zip(stems, owner):
+        assert np.mean(owners[(s > 0) & far] == k) > 0.8
