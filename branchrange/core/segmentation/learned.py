@@ -4,12 +4,13 @@ Steps (one frame):
 1. `BranchNet` gives per-pixel background / trunk / branch probabilities from the left image and
    the disparity (`branchrange.core.segmentation.branchnet`);
 2. the trunk is the largest connected trunk region (the tree being pruned; other trunks are
-   background to the cut-point stage);
+   background to the cut-point stage) together with the trunk regions at its depth (`tree_trunk`: a
+   branch in front of the trunk cuts its silhouette in two);
 3. branch pixels are cut apart where the depth jumps (`depth_edge_ratio`, as in the built-in
    segmenters: a stem crossing in front of another becomes two), then each region is split into
-   straight pieces (`pieces.straight_pieces_of`): branches that leave the trunk side by side or
-   cross in the image at one depth are one region, and one axis through two branches gives a cut
-   point on neither; pieces under `min_area_px` are dropped;
+   straight pieces (`pieces.straight_pieces_of`, each line as wide as the branch where it is drawn):
+   branches that leave the trunk side by side or cross in the image at one depth are one region, and
+   one axis through two branches gives a cut point on neither; pieces under `min_area_px` are dropped;
 4. with a trunk found, only pieces within `max_trunk_gap_m` of it are kept: what a pruner cuts grows
    from the trunk (a loose piece is a twig, the far part of a branch, a leaf or background);
 5. each instance's score is the mean branch probability over its pixels — carried in
