@@ -5,8 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from branchrange.core.segmentation.learned import tree_trunk
+from branchrange.core.geometry import StereoGeometry
 from branchrange.core.segmentation.pieces import straight_pieces_of
+from branchrange.core.segmentation.trunk import tree_trunk
+
+GEOMETRY = StereoGeometry.centred(400.0, 0.06, 200, 120)
 
 
 def test_a_trunk_cut_in_two_by_a_branch_in_front_stays_one_trunk_and_a_far_tree_does_not_join():
@@ -17,13 +20,29 @@ def test_a_trunk_cut_in_two_by_a_branch_in_front_stays_one_trunk_and_a_far_tree_
     depth = np.full(trunk.shape, 2.0)
     depth[:, 150:160] = 6.0
     depth[60:, 40:70] = 2.1  # the lower part leans slightly away: within the tolerance
-    kept = tree_trunk(trunk, depth)
+    branches = np.zeros_like(trunk)
+    kept = tree_trunk(trunk, branches, depth, GEOMETRY, 0.1)  # no branches: the largest region and its parts
     assert kept[:50, 40:70].all() and kept[58:, 40:70].all()
     assert not kept[:, 150:160].any()
     speck = np.zeros_like(trunk)
     speck[5:7, 100:102] = True  # a few pixels at the trunk's depth are not a trunk part
-    assert not tree_trunk(trunk | speck, depth)[5:7, 100:102].any()
-    assert not tree_trunk(np.zeros_like(trunk), depth).any()
+    assert not tree_trunk(trunk | speck, branches, depth, GEOMETRY, 0.1)[5:7, 100:102].any()
+    assert not tree_trunk(np.zeros_like(trunk), branches, depth, GEOMETRY, 0.1).any()
+
+
+def test_the_tree_is_the_trunk_region_that_branches_grow_from_not_the_largest():
+    trunk = np.zeros((120, 200), dtype=bool)
+    trunk[:, 10:60] = True  # a wide post, 2 m away, nothing growing from it
+    trunk[:, 140:150] = True  # the tree's trunk, 1.5 m away
+    depth = np.full(trunk.shape, 1.5)
+    depth[:, 10:60] = 2.0
+    branches = np.zeros_like(trunk)
+    branches[40:44, 150:190] = True  # a branch leaving the trunk at its depth
+    kept = tree_trunk(trunk, branches, depth, GEOMETRY, 0.1)
+    assert kept[:, 140:150].all() and not kept[:, 10:60].any()
+    depth[40:44, 150:190] = 3.0  # the same pixels far behind the trunk: they do not grow from it
+    kept = tree_trunk(trunk, branches, depth, GEOMETRY, 0.1)
+    assert kept[:, 10:60].all() and not kept[:, 140:150].any()
 
 
 def test_two_thin_stems_of_a_fork_beside_a_thick_limb_become_two_pieces():

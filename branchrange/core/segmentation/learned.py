@@ -3,8 +3,8 @@
 Steps (one frame):
 1. `BranchNet` gives per-pixel background / trunk / branch probabilities from the left image and
    the disparity (`branchrange.core.segmentation.branchnet`);
-2. the trunk is the largest connected trunk region (the tree being pruned; other trunks are
-   background to the cut-point stage) together with the trunk regions at its depth (`tree_trunk`: a
+2. the trunk is the trunk region that branches grow from, with its other parts at its depth
+   (`trunk.tree_trunk`: other trunks, posts and frames are background to the cut-point stage, and a
    branch in front of the trunk cuts its silhouette in two);
 3. branch pixels are cut apart where the depth jumps (`depth_edge_ratio`, as in the built-in
    segmenters: a stem crossing in front of another becomes two), then each region is split into
@@ -43,6 +43,7 @@ from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, networ
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
 from branchrange.core.segmentation.pieces import straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
+from branchrange.core.segmentation.trunk import tree_trunk, trunk_gap_m
 from branchrange.core.settings_check import Checks, Settings
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
@@ -164,13 +165,14 @@ class LearnedSegmenter:
         )
         labels = np.zeros(disparity.shape, dtype=np.int32)
         depth = np.where(valid_disparity(disparity), disparity_to_depth(disparity, geometry), np.inf)
-        trunk = tree_trunk((logits[_TRUNK] > logits[_BACKGROUND]) & (logits[_TRUNK] > logits[_BRANCH]), depth)
-        labels[trunk] = cfg.trunk_id
-        branch = (branch_p >= cfg.branch_threshold) & ~trunk
+        trunk_px = (logits[_TRUNK] > logits[_BACKGROUND]) & (logits[_TRUNK] > logits[_BRANCH])
+        branch = (branch_p >= cfg.branch_threshold) & ~trunk_px
         branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
+        trunk = tree_trunk(trunk_px, branch, depth, geometry, cfg.max_trunk_gap_m)
+        labels[trunk] = cfg.trunk_id
         near_trunk = trunk.any() and cfg.max_trunk_gap_m > 0
         if near_trunk:  # drop whole regions far from the trunk before the (costlier) splitting
-            gap_m = _trunk_gap_m(trunk, depth, geometry)
+            gap_m = trunk_gap_m(trunk, depth, geometry)
             regions = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)[1]
             branch &= (_nearest(regions, gap_m) <= cfg.max_trunk_gap_m)[regions] & (regions > 0)
         instances = np.zeros(disparity.shape, dtype=np.int32)
@@ -194,48 +196,6 @@ class LearnedSegmenter:
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {int(i): float(sums[i] / sizes[i]) for i in range(1, len(keep) + 1)}
         return BranchMasks(labels, cfg.trunk_id, self.name, scores=scores, calibration=self.calibration)
-
-
-#: a trunk region joins the largest one when it has this share of its pixels and lies at its depth ± this share
-TRUNK_PART_MIN_AREA, TRUNK_PART_DEPTH_TOLERANCE = 0.05, 0.15
-
-
-def tree_trunk(mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """Boolean `H×W`: the trunk of the tree being pruned among the trunk pixels `mask`, given the `H×W`
-    depth (m, inf where unknown) — the largest 8-connected region plus the regions of at least
-    `TRUNK_PART_MIN_AREA` of its size whose median depth is within `TRUNK_PART_DEPTH_TOLERANCE` of its
-    own. Why not the largest alone: a branch in front of the trunk cuts its silhouette in two, and the
-    branches growing from the other part would be dropped as far from the trunk."""
-    count, components, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if count < 2:
-        return np.zeros(mask.shape, dtype=bool)
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    largest = 1 + int(np.argmax(areas))
-    candidates = [largest] + [
-        k for k in range(1, count) if k != largest and areas[k - 1] >= TRUNK_PART_MIN_AREA * areas.max()
-    ]
-    depths = {}
-    for k in candidates:
-        finite = depth[components == k]
-        finite = finite[np.isfinite(finite)]
-        depths[k] = float(np.median(finite)) if finite.size else np.inf
-    keep = np.zeros(count, dtype=bool)
-    keep[largest] = True
-    if np.isfinite(depths[largest]):
-        for k in candidates[1:]:
-            keep[k] = abs(depths[k] - depths[largest]) <= TRUNK_PART_DEPTH_TOLERANCE * depths[largest]
-    return np.asarray(keep[components], dtype=bool)
-
-
-def _trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
-    """`H×W` metres from each pixel to the trunk in the image, at the pixel's own depth (inf where unknown).
-
-    What a pruner cuts grows from the trunk: a piece far from it is a twig, the far part of a branch
-    whose base is hidden, a leaf or background — its cut point would be wrong, so it is not reported.
-    """
-    gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3)
-    with np.errstate(invalid="ignore"):
-        return np.where(np.isfinite(depth), gap_px * depth / geometry.focal_px, np.inf)
 
 
 def _nearest(labels: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
