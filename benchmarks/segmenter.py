@@ -9,7 +9,8 @@ to the truth as in `branchrange.offline.evaluate_cuts` (recall within 5 cm, medi
 matches, false cut points per frame = estimates with no truth cut point within 5 cm). Time per frame
 is the segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s
 cut points by confidence bin: the share within 5 cm of a truth cut point; beside it, the share
-correct at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct.
+correct at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct. Recall is
+also given per branch width class (`width_class`: thin stems are where segmenters lose branches).
 
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
@@ -53,6 +54,21 @@ REAL_MAX_DISP = {"forest_1s": 64, "Jadeplant_Q": 160}
 #: the cut points a robot acts on: the pipeline's default target threshold
 TARGET_MIN_CONFIDENCE = CutPointConfig().target_min_confidence
 BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0001)
+#: branch width classes (px in the 640×360 image) of the recall-by-width table
+WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
+
+
+def width_class(instance_mask: np.ndarray, branch_id: int) -> str:
+    """Width class (`WIDTH_BINS_PX`) of a truth branch: twice the 90th percentile of its pixels' distance to
+    its silhouette's edge, in px — thin stems are where segmenters lose most branches."""
+    own = (instance_mask == branch_id).astype(np.uint8)
+    if not own.any():
+        return "hidden"
+    inside = cv2.distanceTransform(own, cv2.DIST_L2, 3)
+    width = 2.0 * float(np.percentile(inside[own > 0], 90))
+    k = int(np.searchsorted(WIDTH_BINS_PX, width, side="right")) - 1
+    lo, hi = WIDTH_BINS_PX[k], WIDTH_BINS_PX[k + 1]
+    return f"≥{lo:g} px" if np.isinf(hi) else f"{lo:g}–{hi:g} px"
 
 
 def cpu_name() -> str:
@@ -86,9 +102,11 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
     confidences: dict[str, list[tuple[float, bool]]] = {}
     times: dict[str, list[float]] = {}
     confident: dict[str, CutScores] = {}  # only the cut points at or above the target default
+    by_width: dict[str, dict[str, CutScores]] = {}  # recall per branch width class (all cut points matched)
     for i in range(scenes):
         scene = evaluation_scene(FIRST_SEED + i, cache)
         f, b, cx, cy = (float(v) for v in scene["camera"])
+        widths = [width_class(scene["mask"], k + 1) for k in range(len(scene["truth"]))]
         for stereo in ("sgbm", "truth"):
             disparity = scene["sgbm"] if stereo == "sgbm" else scene["disparity"]
             confidence = scene["sgbm_conf"] if stereo == "sgbm" else None
@@ -106,6 +124,11 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
                 scores.setdefault(key, CutScores(stereo, name)).add_frame(
                     scene["truth"], result.branches, result.target
                 )
+                for width in set(widths):
+                    in_class = [t for t, w in zip(scene["truth"], widths) if w == width]
+                    by_width.setdefault(key, {}).setdefault(width, CutScores(stereo, name)).add_frame(
+                        in_class, result.branches
+                    )
                 acted_on = [x for x in result.branches if x.confidence >= TARGET_MIN_CONFIDENCE]
                 confident.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], acted_on, result.target)
                 times.setdefault(key, []).append(result.timing_ms["masks"])
@@ -124,6 +147,7 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
             "false_per_frame": s.false_per_frame,
             "ms_per_frame": float(np.median(times[key])),
             "frames": s.frames,
+            "recall_by_width": {w: {"branches": c.truth, "recall": c.recall} for w, c in sorted(by_width[key].items())},
             "reliability": reliability(confidences[key]),
             "at_0.8": share_correct_above(confidences[key], 0.8),
             "min_confidence_for_90pct": lowest_reliable_threshold(confidences[key]),
@@ -221,6 +245,12 @@ def print_tables(synthetic: dict, real: dict) -> None:
             f"{r['ms_per_frame']:>9.1f}   {acted['recall']:>6.1%} {acted['false_per_frame']:>6.2f} "
             f"{acted['target_within_5cm']:>6.0%}"
         )
+    print("\nrecall within 5 cm by branch width (px at 640×360: branches, recall)")
+    for key, r in synthetic.items():
+        cells = "  ".join(
+            f"{w}: {c['branches']:>3} {c['recall']:>5.0%}" for w, c in r["recall_by_width"].items() if w != "hidden"
+        )
+        print(f"{key:<22} {cells}")
     print("\nreliability (confidence bin: cut points, share within 5 cm)")
     for key, r in synthetic.items():
         cells = "  ".join(
