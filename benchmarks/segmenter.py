@@ -1,7 +1,7 @@
 """Segmenters without truth masks: cut-point recall, false cut points, speed, reliability; real trees.
 
 Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, never used for
-training or calibrating the learned segmenter, which use seeds 1–2900; default options: ground,
+training or calibrating the learned segmenter, which use seeds 1–2980; default options: ground,
 background trees and far foliage rows, foliage drawn bare/sparse/dense per scene) at 640×360 (ZED
 Mini). Per stereo source (sgbm, truth disparity) and segmenter (each name given, plus 'truth' = the
 scene's instance mask), every frame goes through `Pipeline.process_disparity`; cut points are matched

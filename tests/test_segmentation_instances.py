@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from branchrange.core.geometry import StereoGeometry
+from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig, trunk_attachment
 from branchrange.core.segmentation.pieces import straight_pieces_of
 from branchrange.core.segmentation.trunk import tree_trunk
 
@@ -62,3 +64,31 @@ def test_two_thin_stems_of_a_fork_beside_a_thick_limb_become_two_pieces():
     assert 0 not in owner and owner[0] != owner[1]
     for s, k in zip(stems, owner):
         assert np.mean(owners[(s > 0) & far] == k) > 0.8
+
+
+class _ClassMapSegmenter(LearnedSegmenter):
+    """The learned segmenter's instance stage over a given class map (logits ±10), not the network's."""
+
+    classes: np.ndarray
+
+    def logits(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        return np.stack([np.where(self.classes == k, 10.0, -10.0) for k in range(3)]).astype(np.float32)
+
+
+def test_a_piece_that_stops_short_of_the_trunk_scores_lower_than_one_that_touches_it():
+    assert trunk_attachment(np.array([0.0, 0.01, 0.03]), 0.02) == pytest.approx([1.0, 1.0, np.exp(-1.0)])
+    assert (trunk_attachment(np.array([0.05]), 0.0) == 1).all()
+    classes = np.zeros((120, 200), np.uint8)
+    classes[:, 90:110] = 1  # trunk
+    classes[30:34, 110:190] = 2  # a branch leaving it
+    classes[80:84, 118:190] = 2  # a piece stopping 9 px (4.5 cm at 2 m, f 400 px) short of it
+    segmenter = _ClassMapSegmenter(LearnedSegmenterConfig())
+    segmenter.classes = classes
+    disparity = np.full(classes.shape, 400.0 * 0.06 / 2.0, np.float32)  # everything 2 m away
+    masks = segmenter.segment(np.zeros((120, 200, 3), np.uint8), disparity, GEOMETRY)
+    touching, short = (int(np.bincount(masks.labels[rows, 150]).argmax()) for rows in (slice(30, 34), slice(80, 84)))
+    assert masks.scores[touching] == pytest.approx(1.0, abs=1e-6)
+    assert masks.scores[short] == pytest.approx(np.exp(-(0.045 - 0.01) / 0.02), rel=0.15)
+    plain = _ClassMapSegmenter(LearnedSegmenterConfig(attachment_scale_m=0))
+    plain.classes = classes
+    assert plain.segment(np.zeros((120, 200, 3), np.uint8), disparity, GEOMETRY).scores[short] == pytest.approx(1.0)

@@ -2,7 +2,7 @@
 
 Renders the scenes it needs into --data (cached: a second run, or a resumed one, renders nothing),
 trains, validates on scenes kept apart, measures how often its cut points are right to calibrate their
-confidence (scenes 2861–2900, SGBM), and writes to --out: branchnet.onnx (what `--segmenter learned` runs
+confidence (scenes 2861–2980, SGBM), and writes to --out: branchnet.onnx (what `--segmenter learned` runs
 with `[segmenter.learned] model = "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256,
 validation IoU, confidence calibration), metrics.csv, training_curve.png and branchnet.pt (the torch
 weights). --calibrate-only re-measures the calibration of the model already in --out.

@@ -26,7 +26,7 @@ from branchrange.core.confidence import (
 )
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 
-CALIBRATION_SEEDS = (2861, 2901)
+CALIBRATION_SEEDS = (2861, 2981)
 
 
 def raw_outcomes(model: Path, seeds: tuple[int, int], cache: Path | None) -> list[tuple[float, bool]]:
