@@ -224,8 +224,12 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
         ]
         inputs = torch.from_numpy(np.stack([c[0] for c in crops])).contiguous(memory_format=torch.channels_last)
         targets = torch.from_numpy(np.stack([c[1] for c in crops]))
-        pixel_weights = torch.from_numpy(np.stack([c[2] for c in crops]))
-        loss = weighted_cross_entropy(model(inputs), targets, weights, pixel_weights)
+        logits = model(inputs)
+        if config.instance_balance == 0:  # torch's own reduction: bit for bit the first stage as it was trained
+            loss = F.cross_entropy(logits, targets, weight=weights, ignore_index=IGNORE)
+        else:
+            pixel_weights = torch.from_numpy(np.stack([c[2] for c in crops]))
+            loss = weighted_cross_entropy(logits, targets, weights, pixel_weights)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
