@@ -140,6 +140,14 @@ def test_training_config_errors_name_the_key(tmp_path):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(ValueError, match="'config'"):
         training_config(tmp_path / "bad.json", [])
+    staged = tmp_path / "staged.json"
+    staged.write_text(json.dumps({"config": {"steps": 3}, "stages": [{"steps": 1}, {"steps": 2, "lr": 0.001}]}))
+    assert training_config(staged, []).steps == 3
+    assert training_config(staged, [], stage=2).steps == 2 and training_config(staged, [], stage=2).lr == 0.001
+    with pytest.raises(ValueError, match="has 2 stages"):
+        training_config(staged, [], stage=3)
+    with pytest.raises(ValueError, match="--stage needs --config"):
+        training_config(None, [], stage=1)
 
 
 def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
@@ -284,7 +292,7 @@ def test_a_second_stage_starts_from_the_given_weights_and_records_their_hash(tmp
     learned = [k for k in start if "running" not in k and "num_batches" not in k]  # batch-norm statistics move
     assert all(torch.allclose(start[k], second[k], atol=1e-6) for k in learned)  # lr ≈ 0: the weights it started from
     assert meta["init_sha256"] == hashlib.sha256((first / "branchnet.pt").read_bytes()).hexdigest()
-    with pytest.raises(ValueError, match="init_weights"):
-        training_config(None, ['init_weights="no/such.pt"'])
+    with pytest.raises(ValueError, match="train the stage before"):
+        train_branchnet(training_config(None, ['init_weights="no/such.pt"']), tmp_path / "x", tmp_path / "data")
     with pytest.raises(ValueError, match="instance_balance"):
         training_config(None, ["instance_balance=-1"])

@@ -7,9 +7,11 @@ with `[segmenter.learned] model = "DIR/branchnet.onnx"`), branchnet.json (config
 validation IoU, confidence calibration), metrics.csv, training_curve.png and branchnet.pt (the torch
 weights). --calibrate-only re-measures the calibration of the model already in --out.
 
-Reproduce the shipped model exactly:
-    branchrange train-segmenter --out runs/branchnet \\
+Reproduce the shipped model exactly (three stages, each starting from the weights of the one before):
+    branchrange train-segmenter --out runs/branchnet-stage1 --stage 1 \\
         --config branchrange/core/segmentation/weights/branchnet.json
+    branchrange train-segmenter --out runs/branchnet-stage2 --stage 2 --config …/branchnet.json
+    branchrange train-segmenter --out runs/branchnet --stage 3 --config …/branchnet.json
 """
 
 from __future__ import annotations
@@ -35,6 +37,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--config", type=Path, help="a branchnet.json whose 'config' to train with (default: built-in)")
     p.add_argument(
+        "--stage",
+        type=int,
+        help="train stage K of the --config file's 'stages' (the shipped model is 3 stages, each from the last)",
+    )
+    p.add_argument(
         "--set",
         action="append",
         default=[],
@@ -47,16 +54,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def training_config(config_file: Path | None, overrides: list[str]):
-    """`BranchNetTrainConfig` from a branchnet.json's 'config' and KEY=VALUE overrides; ValueError naming the key."""
+def training_config(config_file: Path | None, overrides: list[str], stage: int | None = None):
+    """`BranchNetTrainConfig` from a branchnet.json's 'config' (or its 'stages'[`stage` − 1]) and KEY=VALUE
+    overrides; ValueError naming the key."""
     from branchrange.core.segmentation.branchnet_training import BranchNetTrainConfig
 
     values: dict = {}
+    if stage is not None and config_file is None:
+        raise ValueError("--stage needs --config (a branchnet.json with 'stages')")
     if config_file is not None:
         try:
-            values = dict(json.loads(config_file.read_text(encoding="utf-8"))["config"])
+            meta = json.loads(config_file.read_text(encoding="utf-8"))
+            values = dict(meta["config"] if stage is None else meta["stages"][stage - 1])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"--config {config_file}: not a branchnet.json with a 'config' object ({exc})") from None
+        except IndexError:
+            raise ValueError(f"--stage {stage}: {config_file} has {len(meta['stages'])} stages") from None
+        if stage is not None and stage < 1:
+            raise ValueError(f"--stage {stage}: stages count from 1")
     known = {f.name for f in fields(BranchNetTrainConfig)}
     for item in overrides:
         key, sep, text = item.partition("=")
@@ -88,11 +103,11 @@ def run(args: argparse.Namespace) -> int:
         calibrate_model(model, cache=args.data / "calibration", log=log)
         return 0
     try:
-        config = training_config(args.config, args.set)
+        config = training_config(args.config, args.set, args.stage)
+        meta = train_branchnet(config, args.out, args.data, log=log)
     except (ValueError, TypeError) as exc:
         print(f"branchrange train-segmenter: error: {exc}", file=sys.stderr)
         return 2
-    meta = train_branchnet(config, args.out, args.data, log=log)
     calibrate_model(model, cache=args.data / "calibration", log=log)
     final = meta["final"]
     print(

@@ -78,8 +78,6 @@ class BranchNetTrainConfig:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
         if not 0 <= self.instance_balance <= 2:
             raise ValueError("instance_balance must lie in [0, 2] (an exponent; 0 = off)")
-        if self.init_weights and not Path(self.init_weights).is_file():
-            raise ValueError(f"init_weights: no file {self.init_weights}")
 
 
 def augment(left: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -198,6 +196,8 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     from stereo.io import write_rgb
     from stereo.training.curves import plot_panel
 
+    if config.init_weights and not Path(config.init_weights).is_file():
+        raise ValueError(f"init_weights: no file {config.init_weights} (train the stage before this one first)")
     torch.manual_seed(config.seed)
     torch.set_num_threads(config.threads)
     rng = np.random.default_rng(config.seed)
