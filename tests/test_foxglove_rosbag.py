@@ -44,7 +44,7 @@ from camera.sources.rosbag_writer import write_bag
 
 FRAMES = 3
 PERIOD_NS = 100_000_000
-#: plumbing, not accuracy: any branch may be the target (the default asks ≥ 0.75, which few frames of this
+#: plumbing, not accuracy: any branch may be the target (the default asks ≥ 0.8, which few frames of this
 #: small synthetic tree reach with the learned segmenter)
 CFG = Config(stereo=StereoConfig(max_disp=64), cutpoints=CutPointConfig(target_min_confidence=0.3))
 #: Subprotocol of the foxglove-sdk WebSocket server (Foxglove's app speaks it).

@@ -71,7 +71,9 @@ def test_shipped_model_finds_trunk_and_branches_of_a_held_out_scene(scene):
     woody = cv2.dilate(np.isin(truth, (BRANCH, IGNORE)).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     assert (found_branch & woody).sum() / found_branch.sum() > 0.7
     assert (found_branch & (truth == BRANCH)).sum() / (truth == BRANCH).sum() > 0.3
-    assert set(masks.scores) == set(masks.branch_ids()) and all(0.5 <= s <= 1 for s in masks.scores.values())
+    # a score is the piece's mean branch probability (≥ the 0.5 threshold) times its trunk attachment (≤ 1)
+    assert set(masks.scores) == set(masks.branch_ids()) and all(0 < s <= 1 for s in masks.scores.values())
+    assert max(masks.scores.values()) >= 0.5
 
 
 def test_pipeline_with_learned_segmenter_gives_a_cut_point_near_the_truth(scene):
@@ -130,6 +132,13 @@ def test_shipped_metadata_records_a_reproducible_training_run():
     assert SHIPPED_MODEL.stat().st_size < 5 * 2**20
     assert meta["final"]["iou_branch"] > 0.3 and meta["final"]["iou_trunk"] > 0.6
     assert sum(p.numel() for p in BranchNet(meta["width"]).parameters()) < 1_000_000
+    # the recipe's stages chain: each starts from the weights the one before writes, the last is 'config'
+    stages = [training_config(SHIPPED_MODEL.with_suffix(".json"), [], k) for k in range(1, len(meta["stages"]) + 1)]
+    assert stages[0].init_weights == "" and stages[-1] == config
+    for before, after in zip(stages, stages[1:]):
+        assert after.init_weights.startswith("runs/") and after.init_weights.endswith("/branchnet.pt")
+        assert after.width == before.width and after.train_seeds == before.train_seeds
+    assert sum(stage.steps for stage in stages) <= 30_000  # ≈ 0.2 s a step on 2 cores: within the 2 hours
 
 
 def test_training_config_errors_name_the_key(tmp_path):
