@@ -219,6 +219,12 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
                 "on_not_branch": len(labelled) - on_branch,
                 "unlabelled": len(hits) - len(labelled),
                 "precision": on_branch / len(labelled) if labelled else None,
+                "acted_on": {  # the cut points at or above the target threshold: what a robot would cut
+                    label: sum(
+                        h == label for h, b in zip(hits, result.branches) if b.confidence >= TARGET_MIN_CONFIDENCE
+                    )
+                    for label in ("branch", "not_branch", "unlabelled")
+                },
                 "ms_segmenter": result.timing_ms["masks"],
             }
             if overlays is not None:
@@ -264,12 +270,13 @@ def print_tables(synthetic: dict, real: dict) -> None:
     if real:
         print(
             f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} "
-            f"{'precision':>9} {'ms':>6}"
+            f"{'precision':>9} {'ms':>6}   at confidence ≥ {TARGET_MIN_CONFIDENCE}: branch, not br., unlab."
         )
         for key, r in real.items():
             print(
                 f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_not_branch']:>7} {r['unlabelled']:>6} "
-                f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}"
+                f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}   "
+                f"{r['acted_on']['branch']:>6} {r['acted_on']['not_branch']:>7} {r['acted_on']['unlabelled']:>6}"
             )
 
 

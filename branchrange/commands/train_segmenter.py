@@ -7,11 +7,11 @@ with `[segmenter.learned] model = "DIR/branchnet.onnx"`), branchnet.json (config
 validation IoU, confidence calibration), metrics.csv, training_curve.png and branchnet.pt (the torch
 weights). --calibrate-only re-measures the calibration of the model already in --out.
 
-Reproduce the shipped model exactly (three stages, each starting from the weights of the one before):
+Reproduce the shipped model exactly (two stages, the second starting from the first's weights):
     branchrange train-segmenter --out runs/branchnet-stage1 --stage 1 \\
         --config branchrange/core/segmentation/weights/branchnet.json
-    branchrange train-segmenter --out runs/branchnet-stage2 --stage 2 --config …/branchnet.json
-    branchrange train-segmenter --out runs/branchnet --stage 3 --config …/branchnet.json
+    branchrange train-segmenter --out runs/branchnet --stage 2 \\
+        --config branchrange/core/segmentation/weights/branchnet.json
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--stage",
         type=int,
-        help="train stage K of the --config file's 'stages' (the shipped model is 3 stages, each from the last)",
+        help="train stage K of the --config file's 'stages' (the shipped model has 2, each from the last's weights)",
     )
     p.add_argument(
         "--set",

@@ -31,12 +31,9 @@ def tree_trunk(
     areas = stats[:, cv2.CC_STAT_AREA].copy()
     areas[0] = 0
     candidates = np.flatnonzero(areas >= TRUNK_PART_MIN_AREA * areas.max())
-    depths = np.full(count, np.inf)
-    for k in candidates:
-        finite = depth[components == k]
-        finite = finite[np.isfinite(finite)]
-        depths[k] = float(np.median(finite)) if finite.size else np.inf
-    support = _branch_support(components, depths, branch_px, depth, geometry, max_gap_m)
+    rows, cols = np.nonzero(components)  # the trunk pixels only: a few % of the frame
+    depths = _median_depths(components[rows, cols], depth[rows, cols], candidates, count)
+    support = _branch_support(components, (rows, cols), depths, branch_px, depth, geometry, max_gap_m)
     anchor = int(np.argmax(support)) if support.max() > 0 else int(np.argmax(areas))
     keep = np.zeros(count, dtype=bool)
     keep[anchor] = True
@@ -45,21 +42,39 @@ def tree_trunk(
     return np.asarray(keep[components], dtype=bool)
 
 
+def _median_depths(region: np.ndarray, depth: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:
+    """`(count,)` median finite depth (m) of each candidate region over its pixels (`region`, `depth` `(N,)`);
+    inf for the other regions and for candidates without a valid depth."""
+    medians = np.full(count, np.inf)
+    finite = np.isfinite(depth)
+    region, depth = region[finite], depth[finite]
+    order = np.argsort(region, kind="stable")
+    region, depth = region[order], depth[order]
+    starts = np.searchsorted(region, candidates, side="left")
+    ends = np.searchsorted(region, candidates, side="right")
+    for k, start, end in zip(candidates, starts, ends):
+        if end > start:
+            medians[k] = float(np.median(depth[start:end]))
+    return medians
+
+
 def _branch_support(
     components: np.ndarray,
+    trunk_pixels: tuple[np.ndarray, np.ndarray],
     depths: np.ndarray,
     branch_px: np.ndarray,
     depth: np.ndarray,
     geometry: StereoGeometry,
     max_gap_m: float,
 ) -> np.ndarray:
-    """`(regions,)`: per trunk region (`components` `int32 H×W`, 0 = none; `depths` its median depth, inf
-    when not a candidate), the branch pixels whose nearest trunk pixel is that region's, within
-    `max_gap_m` in the image and within `TRUNK_DEPTH_TOLERANCE` of the region's depth."""
+    """`(regions,)`: per trunk region (`components` `int32 H×W`, 0 = none, with its pixels `trunk_pixels`
+    (rows, cols); `depths` its median depth, inf when not a candidate), the branch pixels whose nearest
+    trunk pixel is that region's, within `max_gap_m` in the image and within `TRUNK_DEPTH_TOLERANCE` of
+    the region's depth."""
     gap_px, nearest = cv2.distanceTransformWithLabels(
         (components == 0).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
     )
-    tv, tu = np.nonzero(components)
+    tv, tu = trunk_pixels
     region_of = np.zeros(int(nearest.max()) + 1, dtype=np.int64)
     region_of[nearest[tv, tu]] = components[tv, tu]
     bv, bu = np.nonzero(branch_px & np.isfinite(depth))
