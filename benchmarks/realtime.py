@@ -142,7 +142,14 @@ def render_default_sequence(path: Path) -> None:
 
 def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace, truth: Any) -> dict[str, Any]:
     """Replay `sequence` in real time through the daemon in one mode; the metrics of the module docstring."""
-    from branchrange.core.config import CameraConfig, Config, LogConfig, MavlinkConfig, StereoConfig
+    from branchrange.core.config import (
+        CameraConfig,
+        LogConfig,
+        MavlinkConfig,
+        StereoConfig,
+        load_config,
+        parse_override,
+    )
     from branchrange.core.frame_results import pipeline_for
     from branchrange.onboard.daemon import Daemon
     from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
@@ -153,7 +160,8 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     if backend == "emcstereo" and not weights:
         weights = str(random_weights(args))
     sink = UdpSink()
-    cfg = Config(
+    cfg = dataclasses.replace(
+        load_config(None, [parse_override(item) for item in args.set]),  # e.g. the segmenter's settings
         camera=CameraConfig(source=f"replay:{sequence}"),
         stereo=StereoConfig(backend=backend, weights=weights, max_disp=args.max_disp, mode=stereo_mode),
         log=LogConfig(status_interval_s=3600.0),
@@ -305,6 +313,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-result-age-s", type=float, default=0.5)
     parser.add_argument("--threads", type=int, default=2, help="OpenCV and torch threads")
     parser.add_argument("--json", type=Path, help="write the report here")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="a config override for every run, e.g. --set segmenter.learned.precision=int8 (repeatable)",
+    )
     args = parser.parse_args(argv)
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     unknown = [m for m in modes if m not in MODES]
@@ -329,6 +344,7 @@ def main(argv: list[str] | None = None) -> int:
         "sequence": str(sequence),
         "max_result_age_s": args.max_result_age_s,
         "max_disp": args.max_disp,
+        "overrides": args.set,
         "modes": {},
     }
     for segmenter in segmenters:

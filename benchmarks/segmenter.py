@@ -17,7 +17,7 @@ with the disparity range the README there gives, a nominal camera (f 700 px, B 0
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
-    python benchmarks/segmenter.py [--scenes 30] [--segmenters learned structure] [--json out.json]
+    python benchmarks/segmenter.py [--scenes 30] [--segmenters learned learned-int8 structure] [--json out.json]
                                    [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
 """
 
@@ -41,6 +41,8 @@ from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.choose import make_segmenter
+from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.offline.evaluate_cuts import CutScores
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,6 +58,13 @@ TARGET_MIN_CONFIDENCE = CutPointConfig().target_min_confidence
 BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0001)
 #: branch width classes (px in the 640×360 image) of the recall-by-width table
 WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
+
+
+def benchmark_segmenter(name: str) -> Segmenter:
+    """`make_segmenter(name)`, and 'learned-int8': the learned segmenter's shipped int8 model."""
+    if name == "learned-int8":
+        return LearnedSegmenter(LearnedSegmenterConfig(precision="int8"))
+    return make_segmenter(name)
 
 
 def width_class(instance_mask: np.ndarray, branch_id: int) -> str:
@@ -97,7 +106,7 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]
 
 def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dict:
     """Scores per 'stereo/segmenter' over `scenes` held-out scenes."""
-    built = {name: make_segmenter(name) for name in segmenters}
+    built = {name: benchmark_segmenter(name) for name in segmenters}
     scores: dict[str, CutScores] = {}
     confidences: dict[str, list[tuple[float, bool]]] = {}
     times: dict[str, list[float]] = {}
@@ -207,7 +216,7 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
         for name in segmenters:
             config = untracked_whole_frame(REAL_MAX_DISP.get(folder.name, 192))
             pipeline = Pipeline(
-                config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=make_segmenter(name)
+                config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=benchmark_segmenter(name)
             )
             result = pipeline.process(left, right)
             hits = [polygon_hits(annotations, b.pixel) for b in result.branches]

@@ -39,6 +39,7 @@ STRINGS = {
     "masks.kind": "binary",
     "segmenter.model": "geometric",
     "segmenter.learned.model": "my_branchnet.onnx",
+    "segmenter.learned.precision": "int8",
     "mavlink.url": "tcp:127.0.0.1:5760",
     "mavlink.signing_key_file": "k.key",
     "api.host": "0.0.0.0",

@@ -18,7 +18,7 @@ from branchrange.core.cutpoints import estimate_cut_points
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-from branchrange.core.segmentation.branchnet import BranchNet, network_input
+from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, network_input
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK, classes_from_instances
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import SHIPPED_MODEL, LearnedSegmenter, LearnedSegmenterConfig
@@ -305,3 +305,46 @@ def test_a_second_stage_starts_from_the_given_weights_and_records_their_hash(tmp
         train_branchnet(training_config(None, ['init_weights="no/such.pt"']), tmp_path / "x", tmp_path / "data")
     with pytest.raises(ValueError, match="instance_balance"):
         training_config(None, ["instance_balance=-1"])
+
+
+def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene):
+    from branchrange.core.segmentation.learned import SHIPPED_MODELS
+
+    rendered, stereo = scene
+    meta = json.loads(SHIPPED_MODELS["int8"].with_suffix(".json").read_text())
+    # the int8 file was made from the fp32 file shipped beside it (re-quantize after retraining)
+    assert meta["quantized_from"]["onnx_sha256"] == hashlib.sha256(SHIPPED_MODEL.read_bytes()).hexdigest()
+    assert "confidence_calibration" in meta and SHIPPED_MODELS["int8"].stat().st_size < SHIPPED_MODEL.stat().st_size
+    fp32, int8 = LearnedSegmenter(), LearnedSegmenter(LearnedSegmenterConfig(precision="int8"))
+    assert int8.model_path == SHIPPED_MODELS["int8"] and int8.calibration is not None
+    classes = [s.logits(rendered.left, stereo.disparity).argmax(0) for s in (fp32, int8)]
+    assert np.mean(classes[0] == classes[1]) > 0.98
+    branch = classes[0] == CLASSES.index("branch")
+    assert np.mean(classes[1][branch] == CLASSES.index("branch")) > 0.8  # the thin class survives int8 too
+
+
+def test_precision_names_a_shipped_model_only():
+    with pytest.raises(OnnxSegmenterError, match="precision"):
+        LearnedSegmenterConfig(precision="int4")
+    with pytest.raises(OnnxSegmenterError, match="precision"):
+        LearnedSegmenterConfig(model="mine.onnx", precision="int8")
+
+
+def test_a_trained_model_quantizes_to_an_int8_copy_that_segments(tmp_path):
+    from branchrange.core.segmentation.branchnet_quantize import int8_path, quantize_branchnet
+    from branchrange.core.segmentation.branchnet_training import train_branchnet
+
+    settings = ["train_seeds=[1, 2]", "val_seeds=[2, 3]", "steps=2", "batch=1", "crop=64", "width=4", "threads=1"]
+    train_branchnet(training_config(None, settings), tmp_path / "run", tmp_path / "data", log=lambda _: None)
+    model = tmp_path / "run" / "branchnet.onnx"
+    meta = quantize_branchnet(model, tmp_path / "data", seeds=(1, 3))
+    quantized = int8_path(model)
+    assert quantized.name == "branchnet_int8.onnx" and not list(tmp_path.glob("run/*prepared*"))
+    assert meta["quantized_from"]["onnx_sha256"] == hashlib.sha256(model.read_bytes()).hexdigest()
+    assert meta["onnx_sha256"] == hashlib.sha256(quantized.read_bytes()).hexdigest()
+    assert "QuantizeLinear" in quantized.read_bytes().decode("latin-1")  # an int8 graph, not a copy
+    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(quantized)))
+    masks = segmenter.segment(
+        np.zeros((50, 70, 3), np.uint8), np.full((50, 70), 5.0, np.float32), StereoGeometry.centred(100.0, 0.1, 70, 50)
+    )
+    assert masks.labels.shape == (50, 70)

@@ -49,6 +49,8 @@ from branchrange.core.settings_check import Checks, Settings
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
 SHIPPED_MODEL = Path(__file__).with_name("weights") / "branchnet.onnx"
+#: the shipped model per `LearnedSegmenterConfig.precision` (int8: `branchnet_quantize`, its own calibration)
+SHIPPED_MODELS = {"fp32": SHIPPED_MODEL, "int8": SHIPPED_MODEL.with_name("branchnet_int8.onnx")}
 _BACKGROUND, _TRUNK, _BRANCH = (CLASSES.index(name) for name in ("background", "trunk", "branch"))
 
 
@@ -56,7 +58,9 @@ _BACKGROUND, _TRUNK, _BRANCH = (CLASSES.index(name) for name in ("background", "
 class LearnedSegmenterConfig(Settings):
     """Settings of `LearnedSegmenter`.
 
-    - `model`: an ONNX `BranchNet` file; empty = the shipped one.
+    - `model`: an ONNX `BranchNet` file; empty = the shipped one of `precision`.
+    - `precision`: which shipped model, "fp32" or "int8" (a statically quantized copy, ~1.4× faster on
+      CPU, same recall on the calibration scenes; `branchnet_quantize`); only with `model` empty.
     - `branch_threshold`: branch probability a pixel needs (0..1); the trunk is the arg-max class.
     - `min_area_px`: smaller branch instances are dropped (speckle, twig tips).
     - `depth_edge_ratio`: neighbours whose depths differ by more than this fraction are cut apart.
@@ -77,6 +81,7 @@ class LearnedSegmenterConfig(Settings):
     error = OnnxSegmenterError
 
     model: str = ""
+    precision: str = "fp32"
     branch_threshold: float = 0.5
     min_area_px: int = 12
     depth_edge_ratio: float = 0.06
@@ -90,6 +95,10 @@ class LearnedSegmenterConfig(Settings):
     def checks(self) -> Checks:
         """Range checks of the settings (`Settings`)."""
         return {
+            "precision": (
+                self.precision in SHIPPED_MODELS and (self.precision == "fp32" or not self.model),
+                "'fp32' or 'int8' (the shipped models; a model file of your own is used as it is)",
+            ),
             "branch_threshold": (0 < self.branch_threshold < 1, "a probability in (0, 1)"),
             "min_area_px": (self.min_area_px >= 1, "≥ 1 pixel"),
             "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
@@ -132,7 +141,7 @@ class LearnedSegmenter:
 
     def __init__(self, config: LearnedSegmenterConfig = LearnedSegmenterConfig()) -> None:
         self.config = config
-        self.model_path = Path(config.model) if config.model else SHIPPED_MODEL
+        self.model_path = Path(config.model) if config.model else SHIPPED_MODELS[config.precision]
         meta = verified_metadata(self.model_path)
         self.calibration: ConfidenceCalibration | None = None
         if config.calibrated and "confidence_calibration" in meta:
