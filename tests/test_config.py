@@ -92,6 +92,7 @@ def test_deploy_examples_load_with_the_values_they_document():
     cpu = load_config(DEPLOY / "onboard_cpu.toml")  # a companion computer without a GPU
     assert (cpu.stereo.backend, cpu.stereo.mode, cpu.stereo.device, cpu.roi.coarse_width) == ("sgbm", "roi", "cpu", 640)
     assert cpu.camera == onboard.camera and cpu.log == onboard.log
+    assert cpu.segmenter.learned.precision == "int8" and onboard.segmenter.learned.precision == "fp32"
     serve = load_config(DEPLOY / "serve.toml")
     assert serve.api.host == "0.0.0.0" and serve.mavlink.enabled is False and serve.api.retry_after_s == 2
     assert serve.stereo.mode == "full"  # accuracy over latency off the vehicle
