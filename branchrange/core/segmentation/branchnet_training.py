@@ -102,7 +102,7 @@ def instance_weights(classes: np.ndarray, instances: np.ndarray, power: float) -
     branch = classes == BRANCH
     if power == 0 or not branch.any():
         return weights
-    ids, inverse, areas = np.unique(instances[branch], return_inverse=True, return_counts=True)
+    _, inverse, areas = np.unique(instances[branch], return_inverse=True, return_counts=True)
     factor = np.clip((np.median(areas) / areas) ** power, 0.5, 4.0).astype(np.float32)
     weights[branch] = factor[inverse]
     return weights

@@ -59,8 +59,8 @@ class LearnedSegmenterConfig(Settings):
     """Settings of `LearnedSegmenter`.
 
     - `model`: an ONNX `BranchNet` file; empty = the shipped one of `precision`.
-    - `precision`: which shipped model, "fp32" or "int8" (a statically quantized copy, ~1.4× faster on
-      CPU, same recall on the calibration scenes; `branchnet_quantize`); only with `model` empty.
+    - `precision`: which shipped model, "fp32" or "int8" (a statically quantized copy: its network ~1.4×,
+      the whole segmenter ~1.2× faster on CPU, same recall; `branchnet_quantize`); only with `model` empty.
     - `branch_threshold`: branch probability a pixel needs (0..1); the trunk is the arg-max class.
     - `min_area_px`: smaller branch instances are dropped (speckle, twig tips).
     - `depth_edge_ratio`: neighbours whose depths differ by more than this fraction are cut apart.
