@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 
@@ -21,6 +21,7 @@ from branchrange.core.cutpoints import (
     DEFAULT_TARGET_POLICY,
     CutPointConfig,
     CutPointResult,
+    TargetPolicy,
     TrunkModel,
     estimate_cut_points,
     select_target,
@@ -40,6 +41,7 @@ from branchrange.core.frame_result import (
 from branchrange.core.geometry import StereoGeometry, offset_disparity, valid_disparity
 from branchrange.core.masks import (
     BranchMasks,
+    MaskKind,
     check_instance_count,
     masks_from_array,
     read_mask,
@@ -166,7 +168,8 @@ class Pipeline:
         if calibration is not None:
             if focal_px is not None or baseline_m is not None:
                 raise PipelineInputError("give either a calibration or focal_px + baseline_m, not both")
-            self._size = tuple(calibration.image_size)  # type: ignore[assignment]
+            width, height = calibration.image_size
+            self._size = (int(width), int(height))
             if rectified or calibration.is_rectified:
                 focal_px, baseline_m = float(calibration.K1[0, 0]), float(calibration.baseline_m)
                 principal_point = (float(calibration.K1[0, 2]), float(calibration.K1[1, 2]))
@@ -229,11 +232,13 @@ class Pipeline:
             return None
         cfg = self.config.masks
         if isinstance(mask, (str, Path)):
-            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cfg.kind, ignored_ids=cfg.ignored_ids)
+            masks = read_mask(mask, trunk_id=cfg.trunk_id, kind=cast(MaskKind, cfg.kind), ignored_ids=cfg.ignored_ids)
         elif isinstance(mask, BranchMasks):
             masks = mask
         else:
-            masks = masks_from_array(mask, trunk_id=cfg.trunk_id, kind=cfg.kind, ignored_ids=cfg.ignored_ids)
+            masks = masks_from_array(
+                mask, trunk_id=cfg.trunk_id, kind=cast(MaskKind, cfg.kind), ignored_ids=cfg.ignored_ids
+            )
         check_instance_count(masks, self.config.cutpoints.max_instances)  # before any other work on such a mask
         if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
             validate_masks(masks, shape)
@@ -368,7 +373,7 @@ class Pipeline:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = lap_ms(timing, "masks", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)
-        if not valid.any():
+        if masks is None or not valid.any():  # no masks only when nothing was valid to segment
             reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
         elif not masks.branch_ids():
             reason = (
@@ -398,8 +403,10 @@ class Pipeline:
         if self.config.cutpoints.tracking:
             self.tracker.update(cut.branches)
         t = lap_ms(timing, "tracking", t)
-        target = select_target(
-            cut.branches, self.config.cutpoints.target_policy, self.config.cutpoints.target_min_confidence
+        target = select_target(  # the policy name was checked where the settings entered
+            cut.branches,
+            cast(TargetPolicy, self.config.cutpoints.target_policy),
+            self.config.cutpoints.target_min_confidence,
         )
         if target is None and cut.branches:
             reason = f"no branch reaches the target confidence {self.config.cutpoints.target_min_confidence}"

@@ -359,7 +359,7 @@ class Daemon:
                     stalls += stamped is None
                     if stalls >= REOPEN_AFTER_STALLS:
                         source, stalls = self._reopen(source), 0
-                    if stamped is None:
+                    if stamped is None or source is None:  # (a frame only ever comes from an open source)
                         continue
                 stalls = self._corrupt_in_a_row = 0
                 self._set_camera_lost(False)
