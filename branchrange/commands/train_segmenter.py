@@ -68,6 +68,8 @@ def training_config(config_file: Path | None, overrides: list[str], stage: int |
     values: dict = {}
     if stage is not None and config_file is None:
         raise ValueError("--stage needs --config (a branchnet.json with 'stages')")
+    if stage is not None and stage < 1:
+        raise ValueError(f"--stage {stage}: stages count from 1")
     if config_file is not None:
         try:
             meta = json.loads(config_file.read_text(encoding="utf-8"))
@@ -76,8 +78,6 @@ def training_config(config_file: Path | None, overrides: list[str], stage: int |
             raise ValueError(f"--config {config_file}: not a branchnet.json with a 'config' object ({exc})") from None
         except IndexError:
             raise ValueError(f"--stage {stage}: {config_file} has {len(meta['stages'])} stages") from None
-        if stage is not None and stage < 1:
-            raise ValueError(f"--stage {stage}: stages count from 1")
     known = {f.name for f in fields(BranchNetTrainConfig)}
     for item in overrides:
         key, sep, text = item.partition("=")

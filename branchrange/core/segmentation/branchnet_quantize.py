@@ -21,6 +21,7 @@ import numpy as np
 
 from branchrange.core.segmentation.branchnet import network_input, padded_to_stride
 from branchrange.core.segmentation.branchnet_data import cached_sample
+from branchrange.core.segmentation.learned import verified_metadata
 
 #: scenes whose frames set the activation ranges (the validation seeds of the training config)
 QUANTIZATION_SEEDS = (2801, 2821)
@@ -38,8 +39,10 @@ def quantize_branchnet(model: Path, data_dir: Path, seeds: tuple[int, int] = QUA
     import onnxruntime.quantization as quantization
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
+    source_meta = verified_metadata(model)  # the file quantized is the one its JSON describes
     out = int8_path(model)
-    inputs = [padded_to_stride(network_input(s["left"], s["disparity"]))[0][None] for s in _samples(data_dir, seeds)]
+    samples = (cached_sample(data_dir, seed) for seed in range(*seeds))
+    inputs = [padded_to_stride(network_input(s["left"], s["disparity"]))[0][None] for s in samples]
 
     class Frames(quantization.CalibrationDataReader):  # type: ignore[misc]
         """The frames, one `{"image": (1, 5, H, W)}` feed at a time."""
@@ -65,9 +68,7 @@ def quantize_branchnet(model: Path, data_dir: Path, seeds: tuple[int, int] = QUA
         )
     finally:
         prepared.unlink(missing_ok=True)
-    source_meta_path = model.with_suffix(".json")
-    source_meta = json.loads(source_meta_path.read_text(encoding="utf-8")) if source_meta_path.is_file() else {}
-    meta = {
+    meta: dict[str, Any] = {
         **{k: source_meta[k] for k in ("model", "width", "classes") if k in source_meta},
         "onnx_sha256": hashlib.sha256(out.read_bytes()).hexdigest(),
         "quantized_from": {"file": model.name, "onnx_sha256": hashlib.sha256(model.read_bytes()).hexdigest()},
@@ -75,10 +76,3 @@ def quantize_branchnet(model: Path, data_dir: Path, seeds: tuple[int, int] = QUA
     }
     out.with_suffix(".json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
     return meta
-
-
-def _samples(data_dir: Path, seeds: tuple[int, int]) -> Iterator[dict[str, np.ndarray]]:
-    """The training samples of scenes `seeds` [first, last) (`cached_sample`), disparity as float32."""
-    for seed in range(*seeds):
-        sample = cached_sample(data_dir, seed)
-        yield {"left": sample["left"], "disparity": sample["disparity"].astype(np.float32)}
