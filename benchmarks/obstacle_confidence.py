@@ -54,6 +54,7 @@ def cut_point_errors(root: Path, limit: int | None, max_disp: int) -> dict[str, 
                 stereo.confidence,
                 mask=frame.mask if masks == "gt" else None,
                 backend="sgbm",
+                right=frame.right,
             )
             for b in result.branches:
                 error = min(float(np.linalg.norm(np.asarray(b.cut_point_m) - t)) for t in truth)

@@ -3,8 +3,11 @@
 Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, never used for
 training or calibrating the learned segmenter, which use seeds 1–2980; default options: ground,
 background trees and far foliage rows, foliage drawn bare/sparse/dense per scene) at 640×360 (ZED
-Mini). Per stereo source (sgbm, truth disparity) and segmenter (each name given, plus 'truth' = the
-scene's instance mask), every frame goes through `Pipeline.process_disparity`; cut points are matched
+Mini). Per stereo source and segmenter (each name given, plus 'truth' = the scene's instance mask),
+every frame goes through `Pipeline.process_disparity`. Stereo sources: 'sgbm' as the pipeline runs it
+(each branch's disparity refined on its own pixels, `branchrange.core.branch_disparity`),
+'sgbm-unrefined' (the same without the right image: the baseline of that step, same run) and 'truth'
+(the renderer's exact disparity); cut points are matched
 to the truth as in `branchrange.offline.evaluate_cuts` (recall within 5 cm, median 3D error of the
 matches, false cut points per frame = estimates with no truth cut point within 5 cm). Time per frame
 is the segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s
@@ -116,9 +119,10 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
         scene = evaluation_scene(FIRST_SEED + i, cache)
         f, b, cx, cy = (float(v) for v in scene["camera"])
         widths = [width_class(scene["mask"], k + 1) for k in range(len(scene["truth"]))]
-        for stereo in ("sgbm", "truth"):
-            disparity = scene["sgbm"] if stereo == "sgbm" else scene["disparity"]
-            confidence = scene["sgbm_conf"] if stereo == "sgbm" else None
+        for stereo in ("sgbm", "sgbm-unrefined", "truth"):
+            disparity = scene["disparity"] if stereo == "truth" else scene["sgbm"]
+            confidence = None if stereo == "truth" else scene["sgbm_conf"]
+            right = scene["right"] if stereo == "sgbm" else None
             for name in [*segmenters, "truth"]:
                 key = f"{stereo}/{name}"
                 pipeline = Pipeline(
@@ -129,7 +133,9 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
                     segmenter=built.get(name),
                 )  # process_disparity: no backend is built
                 mask = scene["mask"] if name == "truth" else None
-                result = pipeline.process_disparity(scene["left"], disparity, confidence, mask=mask, backend=stereo)
+                result = pipeline.process_disparity(
+                    scene["left"], disparity, confidence, mask=mask, backend=stereo, right=right
+                )
                 scores.setdefault(key, CutScores(stereo, name)).add_frame(
                     scene["truth"], result.branches, result.target
                 )
@@ -250,13 +256,13 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
 
 def print_tables(synthetic: dict, real: dict) -> None:
     print(
-        f"{'stereo/segmenter':<22} {'recall≤5cm':>10} {'median err':>10} {'false/frame':>11} {'ms/frame':>9}"
+        f"{'stereo/segmenter':<28} {'recall≤5cm':>10} {'median err':>10} {'false/frame':>11} {'ms/frame':>9}"
         f"   at confidence ≥ {TARGET_MIN_CONFIDENCE}: recall, false/frame, target ≤ 5 cm"
     )
     for key, r in synthetic.items():
         acted = r["at_target_min_confidence"]
         print(
-            f"{key:<22} {r['recall']:>10.1%} {r['median_error_cm']:>8.2f}cm {r['false_per_frame']:>11.2f} "
+            f"{key:<28} {r['recall']:>10.1%} {r['median_error_cm']:>8.2f}cm {r['false_per_frame']:>11.2f} "
             f"{r['ms_per_frame']:>9.1f}   {acted['recall']:>6.1%} {acted['false_per_frame']:>6.2f} "
             f"{acted['target_within_5cm']:>6.0%}"
         )
@@ -265,7 +271,7 @@ def print_tables(synthetic: dict, real: dict) -> None:
         cells = "  ".join(
             f"{w}: {c['branches']:>3} {c['recall']:>5.0%}" for w, c in r["recall_by_width"].items() if w != "hidden"
         )
-        print(f"{key:<22} {cells}")
+        print(f"{key:<28} {cells}")
     print("\nreliability (confidence bin: cut points, share within 5 cm)")
     for key, r in synthetic.items():
         cells = "  ".join(
@@ -273,7 +279,7 @@ def print_tables(synthetic: dict, real: dict) -> None:
         )
         count, share = r["at_0.8"]
         print(
-            f"{key:<22} {cells}   ≥0.8: {count} cut points, {share:.0%} correct; "
+            f"{key:<28} {cells}   ≥0.8: {count} cut points, {share:.0%} correct; "
             f"≥90 % correct from confidence {r['min_confidence_for_90pct']}"
         )
     if real:

@@ -16,6 +16,7 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
+from branchrange.core.branch_disparity import refine_branch_disparity
 from branchrange.core.config import MaskConfig, RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import (
     DEFAULT_TARGET_POLICY,
@@ -118,7 +119,8 @@ class StereoStage:
     `timing_ms`: the stages so far (ms); `compute_ms`: this half's compute time (ms); `regions`: the
     fine passes of `mode = "roi"` (None in whole-frame mode); `pair_check`: the rectification check
     when asked for; `coarse_trunk`: the trunk as the roi mode's coarse pass saw it (its cylinder is
-    fitted from it in the geometry half).
+    fitted from it in the geometry half); `right`: the rectified right image, for the branches' own
+    disparity refinement (`branchrange.core.branch_disparity`; None: no refinement).
     """
 
     left: np.ndarray
@@ -135,6 +137,7 @@ class StereoStage:
     regions: tuple[Region, ...] | None = None
     pair_check: PairCheck | None = None
     coarse_trunk: CoarseTrunk | None = None
+    right: np.ndarray | None = None
 
 
 class Pipeline:
@@ -303,6 +306,7 @@ class Pipeline:
             regions,
             pair_check,
             coarse_trunk=coarse_trunk,
+            right=right,
         )
 
     def process_disparity(
@@ -314,10 +318,13 @@ class Pipeline:
         index: int = 0,
         timestamp_ns: int = 0,
         backend: str = "given",
+        right: np.ndarray | None = None,
     ) -> FrameResult:
         """The stages after stereo on a rectified left image and its `float32 H×W` disparity (px).
 
-        `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid.
+        `confidence` (`H×W` in [0, 1]) defaults to 1 wherever the disparity is valid. `right`: the
+        rectified right image, when given each branch's disparity is refined on its own pixels
+        (`[stereo] refine_branches`).
         """
         start = time.perf_counter()
         left = validate_image(left, "left", PipelineInputError)
@@ -333,6 +340,13 @@ class Pipeline:
             raise PipelineInputError(f"confidence has shape {np.shape(confidence)}, expected {disparity.shape}")
         if self.rectifier is not None and not self.rectifier.calibration.is_rectified:
             raise PipelineInputError("process_disparity needs a rectified frame; this pipeline rectifies raw pairs")
+        if right is not None:
+            right = validate_image(right, "right", PipelineInputError)
+            if right.shape[:2] != left.shape[:2]:
+                raise PipelineInputError(
+                    f"right image is {right.shape[1]}×{right.shape[0]} px but the left "
+                    f"image is {left.shape[1]}×{left.shape[0]} px"
+                )
         geometry = self.geometry_for(left.shape[1], left.shape[0])
         masks = self._masks(mask, left.shape[:2])
         finite_max = (
@@ -350,6 +364,7 @@ class Pipeline:
             max(1, int(np.ceil(finite_max)) + 1),
             {"rectify": 0.0, "stereo": 0.0},
             (time.perf_counter() - start) * 1000.0,
+            right=right,
         )
         return self.geometry_stage(stage)
 
@@ -372,6 +387,11 @@ class Pipeline:
         if masks is None:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = lap_ms(timing, "masks", t)
+        if masks is not None and stage.right is not None and self.config.stereo.refine_branches:
+            disparity, _ = refine_branch_disparity(
+                left, stage.right, disparity, masks, doffs_px=self.doffs_px, max_disparity=max_disparity
+            )
+            t = lap_ms(timing, "refine", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)
         if masks is None or not valid.any():  # no masks only when nothing was valid to segment
             reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"

@@ -235,7 +235,12 @@ def evaluate_cuts(
             for masks in mask_modes:
                 start = time.perf_counter()
                 result = pipeline.process_disparity(
-                    frame.left, disparity, confidence, mask=frame.mask if masks == "gt" else None, backend=stereo
+                    frame.left,
+                    disparity,
+                    confidence,
+                    mask=frame.mask if masks == "gt" else None,
+                    backend=stereo,
+                    right=None if stereo == "gt" else frame.right,  # a matcher's disparity is refined as on board
                 )
                 estimated = [b for b in result.branches if b.confidence >= min_confidence]
                 entry = scores[(stereo, masks)]

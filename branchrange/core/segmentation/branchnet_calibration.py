@@ -1,8 +1,9 @@
 """Measuring how often the learned segmenter's cut points are right, to calibrate their confidence.
 
 Scenes `CALIBRATION_SEEDS` (never trained on, and apart from the benchmark's held-out seeds from
-50,000) go through the pipeline with SGBM — the onboard stereo stage — and the model's raw
-confidences; each cut point is correct when a true cut point lies within 5 cm. The isotonic fit of
+50,000) go through the pipeline with SGBM — the onboard stereo stage, each branch refined on its own
+pixels (`branchrange.core.branch_disparity`) as on board — and the model's raw confidences; each cut
+point is correct when a true cut point lies within 5 cm. The isotonic fit of
 correct on raw confidence (`branchrange.core.confidence.fit_calibration`) is stored in the model's
 JSON under "confidence_calibration", where `LearnedSegmenter` reads it, with the defaults it implies:
 the lowest calibrated confidence at which ≥ 90 % of cut points are right (a target's minimum) and the
@@ -42,7 +43,9 @@ def raw_outcomes(model: Path, seeds: tuple[int, int], cache: Path | None) -> lis
         pipeline = Pipeline(
             untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
         )
-        result = pipeline.process_disparity(scene["left"], scene["sgbm"], scene["sgbm_conf"], backend="sgbm")
+        result = pipeline.process_disparity(
+            scene["left"], scene["sgbm"], scene["sgbm_conf"], backend="sgbm", right=scene["right"]
+        )
         outcomes += cut_point_outcomes(
             [(b.confidence, b.cut_point_m) for b in result.branches], [t["cut_point_m"] for t in scene["truth"]]
         )

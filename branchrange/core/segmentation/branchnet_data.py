@@ -67,14 +67,16 @@ def cached_sample(folder: Path, seed: int, size: tuple[int, int] = (640, 360)) -
 
 def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360)) -> dict:
     """A scene as the segmenter is scored on it: the default renderer options at `size`, SGBM over 192 px,
-    truth cut points. Keys: left, disparity (exact), mask (renderer ids), sgbm, sgbm_conf, camera
-    (f px, B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached in `cache` when given."""
+    truth cut points. Keys: left, right, disparity (exact), mask (renderer ids), sgbm, sgbm_conf, camera
+    (f px, B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached in `cache` when given
+    (a cached scene from before the right image was kept is rendered again)."""
     path = cache / f"scene_{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
             scene = {k: data[k] for k in data.files}
-        scene["truth"] = json.loads(str(scene["truth"]))
-        return scene
+        if "right" in scene:
+            scene["truth"] = json.loads(str(scene["truth"]))
+            return scene
     from stereo.backends import make_backend
     from stereo.synth import SynthCamera, render_scene
 
@@ -84,6 +86,7 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
     scene = {
         "left": rendered.left,
+        "right": rendered.right,
         "disparity": rendered.disparity,
         "mask": rendered.instance_mask,
         "sgbm": stereo.disparity,
