@@ -49,8 +49,6 @@ class BranchNetTrainConfig:
       `threads`: torch CPU threads; `val_every`: steps between validations.
     - `init_weights`: a `branchnet.pt` of an earlier run (same width) to start from instead of random
       weights — a second stage; its SHA-256 is recorded in the metadata ("init_sha256").
-    - `scale_range`: [low, high) of the random rescaling of each training frame. Below ~0.8 the
-      stems under 3 px wide (half the branches) shrink under one pixel and their labels flicker.
     """
 
     train_seeds: tuple[int, int] = (1, 1201)
@@ -68,7 +66,6 @@ class BranchNetTrainConfig:
     threads: int = 2
     val_every: int = 500
     init_weights: str = ""
-    scale_range: tuple[float, float] = (0.5, 1.6)
 
     def __post_init__(self) -> None:
         for name in ("train_seeds", "val_seeds"):
@@ -79,8 +76,6 @@ class BranchNetTrainConfig:
             raise ValueError("train_seeds and val_seeds overlap")
         if self.steps < 1 or self.batch < 1 or self.crop % 16 or self.crop < 64:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
-        if not 0.1 <= self.scale_range[0] < self.scale_range[1] <= 4:
-            raise ValueError("scale_range must be [low, high) with 0.1 ≤ low < high ≤ 4")
         if not 0 <= self.instance_balance <= 2:
             raise ValueError("instance_balance must lie in [0, 2] (an exponent; 0 = off)")
 
@@ -118,7 +113,7 @@ def training_crop(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(input `float32 (5, c, c)`, classes `int64 (c, c)`, pixel weights `float32 (c, c)`, see
     `instance_weights`) of one randomly scaled, augmented, cropped sample."""
-    scale = float(rng.uniform(*config.scale_range))
+    scale = float(rng.uniform(0.5, 1.6))
     height, width = sample["classes"].shape
     size = (max(config.crop, round(width * scale)), max(config.crop, round(height * scale)))
     left = cv2.resize(sample["left"], size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
