@@ -95,21 +95,21 @@ def test_holes_in_a_branch_stay_holes() -> None:
     assert np.array_equal(refined == 0, disparity == 0)
 
 
-def test_a_stem_along_the_rows_is_left_alone() -> None:
-    """A stem lying along the image rows has no texture across them to match (the aperture problem):
-    its disparity must stay what the block matcher said, not drift."""
-    left, right = _render_pair(HORIZONTAL, 20.3)
-    labels = _stem_mask(HORIZONTAL)
-    disparity = np.where(labels == 1, 19.5, BACKGROUND_DISPARITY).astype(np.float32)
-    refined, shifts = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"))
-    assert shifts == []
-    assert np.array_equal(refined, disparity)
-
-
-def test_a_branch_without_valid_disparity_is_left_alone() -> None:
-    left, right = _render_pair(VERTICAL, 20.3)
-    labels = _stem_mask(VERTICAL)
-    disparity = np.where(labels == 1, 0.0, BACKGROUND_DISPARITY).astype(np.float32)
+@pytest.mark.parametrize(
+    ("stem", "stem_disparity"),
+    [
+        # along the image rows with no texture across them (the aperture problem): nothing to match,
+        # its disparity must stay what the block matcher said, not drift to the backdrop's
+        (HORIZONTAL, 19.5),
+        # no valid disparity at all: no line to start from
+        (VERTICAL, 0.0),
+    ],
+    ids=["stem along the rows", "no valid disparity"],
+)
+def test_a_branch_without_evidence_is_left_alone(stem: dict, stem_disparity: float) -> None:
+    left, right = _render_pair(stem, 20.3)
+    labels = _stem_mask(stem)
+    disparity = np.where(labels == 1, stem_disparity, BACKGROUND_DISPARITY).astype(np.float32)
     refined, shifts = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"))
     assert shifts == []
     assert np.array_equal(refined, disparity)
