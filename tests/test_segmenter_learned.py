@@ -131,7 +131,7 @@ def test_shipped_metadata_records_a_reproducible_training_run():
     assert config.seed == meta["config"]["seed"] and config.train_seeds[1] <= config.val_seeds[0]
     assert SHIPPED_MODEL.stat().st_size < 5 * 2**20
     assert meta["final"]["iou_branch"] > 0.3 and meta["final"]["iou_trunk"] > 0.6
-    assert sum(p.numel() for p in BranchNet(meta["width"]).parameters()) < 1_000_000
+    assert sum(p.numel() for p in BranchNet(meta["width"], meta.get("fine_width", 0)).parameters()) < 1_000_000
     # the recipe's stages chain: each starts from the weights the one before writes, the last is 'config'
     stages = [training_config(SHIPPED_MODEL.with_suffix(".json"), [], k) for k in range(1, len(meta["stages"]) + 1)]
     assert stages[0].init_weights == "" and stages[-1] == config
@@ -305,6 +305,20 @@ def test_a_second_stage_starts_from_the_given_weights_and_records_their_hash(tmp
         train_branchnet(training_config(None, ['init_weights="no/such.pt"']), tmp_path / "x", tmp_path / "data")
     with pytest.raises(ValueError, match="instance_balance"):
         training_config(None, ["instance_balance=-1"])
+    # a stage that adds the full-resolution branch keeps every other tensor, and the new ones start fresh
+    lines: list[str] = []
+    finer = training_config(
+        None, [*settings, "steps=1", "lr=1e-12", "fine_width=3", f'init_weights="{first / "branchnet.pt"}"']
+    )
+    meta = train_branchnet(finer, tmp_path / "finer", tmp_path / "data", log=lines.append)
+    grown = torch.load(tmp_path / "finer" / "branchnet.pt")
+    assert meta["fine_width"] == 3 and any(k.startswith("fine.") for k in grown)
+    assert all(torch.allclose(start[k], grown[k], atol=1e-6) for k in learned if not k.startswith("head.0.0"))
+    assert grown["head.0.0.weight"].shape[1] == 4 + 3  # width + fine_width channels into the head
+    assert any("start fresh" in line and "fine.0.0.weight" in line for line in lines)
+    with pytest.raises(ValueError, match="not a BranchNet of width 8"):
+        wider = [*settings[:4], "width=8", "threads=1", "steps=1", f'init_weights="{first / "branchnet.pt"}"']
+        train_branchnet(training_config(None, wider), tmp_path / "wider", tmp_path / "data", log=lambda _: None)
 
 
 def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene):

@@ -4,7 +4,10 @@ Input: 5 channels at the frame's size — RGB, disparity divided by its 95th per
 network sees the scene's relative depth whatever the camera's focal length and baseline), and
 the disparity's validity. The encoder starts at half resolution (strided stem) and goes to 1/16,
 where a dilated convolution gives the context that tells a trunk from a branch; a light head at
-full resolution sees the input again, so branches 1–2 px wide keep their pixels.
+full resolution sees the input again, so branches 1–2 px wide keep their pixels. With `fine_width` > 0
+the head sees, instead of the raw input, `fine_width` features of two full-resolution convolutions of
+it: a stem 2 px wide is one pixel at the encoder's first scale, and the raw pixels alone left the head
+too little to tell a thin stem from the bark or leaves behind it.
 Output: logits `(B, 3, H, W)` for `CLASSES`; H and W must be multiples of `STRIDE` (pad first).
 
 Why this size: about 0.2 M parameters (under 1 MB of float32 weights) and one forward pass at
@@ -56,12 +59,13 @@ def _conv(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> nn.Seque
 
 
 class BranchNet(nn.Module):
-    """Per-pixel background / trunk / branch logits (see the module docstring); `width` scales the channels."""
+    """Per-pixel background / trunk / branch logits (see the module docstring); `width` scales the channels,
+    `fine_width` (0: none) is the full-resolution feature branch's."""
 
-    def __init__(self, width: int = 16) -> None:
+    def __init__(self, width: int = 16, fine_width: int = 0) -> None:
         super().__init__()
         w = width
-        self.width = width
+        self.width, self.fine_width = width, fine_width
         self.stem = nn.Sequential(_conv(IN_CHANNELS, w, 2), _conv(w, w))  # 1/2
         self.down2 = nn.Sequential(_conv(w, 2 * w, 2), _conv(2 * w, 2 * w))  # 1/4
         self.down3 = nn.Sequential(_conv(2 * w, 3 * w, 2), _conv(3 * w, 3 * w))  # 1/8
@@ -69,7 +73,8 @@ class BranchNet(nn.Module):
         self.up3 = _conv(7 * w, 3 * w)
         self.up2 = _conv(5 * w, 2 * w)
         self.up1 = _conv(3 * w, w)
-        self.head = nn.Sequential(_conv(w + IN_CHANNELS, w // 2), nn.Conv2d(w // 2, len(CLASSES), 1))
+        self.fine = nn.Sequential(_conv(IN_CHANNELS, fine_width), _conv(fine_width, fine_width)) if fine_width else None
+        self.head = nn.Sequential(_conv(w + (fine_width or IN_CHANNELS), w // 2), nn.Conv2d(w // 2, len(CLASSES), 1))
 
     @staticmethod
     def _up_cat(coarse: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
@@ -85,7 +90,8 @@ class BranchNet(nn.Module):
         d3 = self.up3(self._up_cat(f4, f3))
         d2 = self.up2(self._up_cat(d3, f2))
         d1 = self.up1(self._up_cat(d2, f1))
-        logits: torch.Tensor = self.head(self._up_cat(d1, x))
+        full_resolution = x if self.fine is None else self.fine(x)
+        logits: torch.Tensor = self.head(self._up_cat(d1, full_resolution))
         return logits
 
 

@@ -48,7 +48,11 @@ class BranchNetTrainConfig:
     - `width`: `BranchNet` channel width; `seed`: crops, augmentation and initial weights;
       `threads`: torch CPU threads; `val_every`: steps between validations.
     - `init_weights`: a `branchnet.pt` of an earlier run (same width) to start from instead of random
-      weights — a second stage; its SHA-256 is recorded in the metadata ("init_sha256").
+      weights — a second stage; its SHA-256 is recorded in the metadata ("init_sha256"). Tensors whose
+      name and shape match are taken; the rest (a full-resolution branch a stage adds, and the head that
+      reads it) start from their random initial values.
+    - `fine_width`: channels of `BranchNet`'s full-resolution feature branch (0: none, the head reads
+      the raw input).
     """
 
     train_seeds: tuple[int, int] = (1, 1201)
@@ -66,6 +70,7 @@ class BranchNetTrainConfig:
     threads: int = 2
     val_every: int = 500
     init_weights: str = ""
+    fine_width: int = 0
 
     def __post_init__(self) -> None:
         for name in ("train_seeds", "val_seeds"):
@@ -76,6 +81,8 @@ class BranchNetTrainConfig:
             raise ValueError("train_seeds and val_seeds overlap")
         if self.steps < 1 or self.batch < 1 or self.crop % 16 or self.crop < 64:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
+        if not 0 <= self.fine_width <= 64:
+            raise ValueError("fine_width must lie in [0, 64] (0 = no full-resolution branch)")
         if not 0 <= self.instance_balance <= 2:
             raise ValueError("instance_balance must lie in [0, 2] (an exponent; 0 = off)")
 
@@ -142,6 +149,19 @@ def training_crop(
     return np.ascontiguousarray(features), np.ascontiguousarray(target), np.ascontiguousarray(pixel_weights)
 
 
+def load_matching_weights(model: BranchNet, state: dict[str, torch.Tensor]) -> list[str]:
+    """Load the tensors of `state` whose name and shape match `model`'s; the names of those left at their
+    initial values (sorted). ValueError when `state` is of another width (not an earlier stage of this model)."""
+    own = model.state_dict()
+    stem = "stem.0.0.weight"  # (width, inputs, 3, 3)
+    if stem not in state or state[stem].shape != own[stem].shape:
+        found = tuple(state[stem].shape) if stem in state else "none"
+        raise ValueError(f"init_weights: not a BranchNet of width {model.width} (its stem is {found})")
+    matching = {name: value for name, value in state.items() if name in own and own[name].shape == value.shape}
+    model.load_state_dict(matching, strict=False)
+    return sorted(set(own) - set(matching))
+
+
 def weighted_cross_entropy(
     logits: torch.Tensor, targets: torch.Tensor, class_weights: torch.Tensor, pixel_weights: torch.Tensor
 ) -> torch.Tensor:
@@ -204,11 +224,13 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     train_seeds = np.arange(*config.train_seeds)
     validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
-    model = BranchNet(config.width)
+    model = BranchNet(config.width, config.fine_width)
     init_sha256 = None
     if config.init_weights:
         init_sha256 = hashlib.sha256(Path(config.init_weights).read_bytes()).hexdigest()
-        model.load_state_dict(torch.load(config.init_weights, map_location="cpu", weights_only=True))
+        fresh = load_matching_weights(model, torch.load(config.init_weights, map_location="cpu", weights_only=True))
+        if fresh:
+            log(f"from {config.init_weights}: all but {len(fresh)} tensors ({', '.join(fresh)}), which start fresh")
     model = model.to(memory_format=torch.channels_last)  # ~1.4× faster convolutions on CPU
     optimiser = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     schedule = torch.optim.lr_scheduler.OneCycleLR(
@@ -267,6 +289,7 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     meta = {
         "model": "BranchNet",
         "width": config.width,
+        "fine_width": config.fine_width,
         "classes": list(CLASSES),
         "onnx_sha256": sha256,
         "config": asdict(config),
