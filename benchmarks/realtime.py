@@ -146,7 +146,6 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
         CameraConfig,
         LogConfig,
         MavlinkConfig,
-        StereoConfig,
         load_config,
         parse_override,
     )
@@ -160,10 +159,13 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     if backend == "emcstereo" and not weights:
         weights = str(random_weights(args))
     sink = UdpSink()
+    loaded = load_config(None, [parse_override(item) for item in args.set])  # e.g. the segmenter's settings
     cfg = dataclasses.replace(
-        load_config(None, [parse_override(item) for item in args.set]),  # e.g. the segmenter's settings
+        loaded,
         camera=CameraConfig(source=f"replay:{sequence}"),
-        stereo=StereoConfig(backend=backend, weights=weights, max_disp=args.max_disp, mode=stereo_mode),
+        stereo=dataclasses.replace(
+            loaded.stereo, backend=backend, weights=weights, max_disp=args.max_disp, mode=stereo_mode
+        ),
         log=LogConfig(status_interval_s=3600.0),
         mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sink.port}", max_result_age_s=args.max_result_age_s),
     )

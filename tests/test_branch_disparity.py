@@ -190,7 +190,7 @@ def test_the_pipeline_refines_only_with_a_right_image_and_the_setting_on(rendere
     refined, refined_disparity = run(True, scene.right)
     plain, plain_disparity = run(False, scene.right)
     without_right, without_right_disparity = run(True, None)
-    assert "refine" in refined.timing_ms and "refine" not in plain.timing_ms
+    assert "branch_disparity" in refined.timing_ms and "branch_disparity" not in plain.timing_ms
     assert np.array_equal(plain_disparity, without_right_disparity)
     assert not np.array_equal(refined_disparity, plain_disparity)
     assert len(plain.branches) == len(without_right.branches)

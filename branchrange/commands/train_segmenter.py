@@ -8,11 +8,14 @@ validation IoU, confidence calibration), metrics.csv, training_curve.png and bra
 weights). --calibrate-only re-measures the calibration of the model already in --out; --int8 also writes
 branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchnet_quantize`).
 
-Reproduce the shipped model exactly (two stages, the second starting from the first's weights):
+Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
+the full-resolution feature branch):
     branchrange train-segmenter --out runs/branchnet-stage1 --stage 1 \\
         --config branchrange/core/segmentation/weights/branchnet.json
-    branchrange train-segmenter --out runs/branchnet --stage 2 \\
+    branchrange train-segmenter --out runs/branchnet-stage2 --stage 2 \\
         --config branchrange/core/segmentation/weights/branchnet.json
+    branchrange train-segmenter --out runs/branchnet --stage 3 \\
+        --config branchrange/core/segmentation/weights/branchnet.json --int8
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--stage",
         type=int,
-        help="train stage K of the --config file's 'stages' (the shipped model has 2, each from the last's weights)",
+        help="train stage K of the --config file's 'stages' (the shipped model has 3, each from the last's weights)",
     )
     p.add_argument(
         "--set",

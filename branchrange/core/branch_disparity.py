@@ -83,10 +83,10 @@ def _sample_rows(image: np.ndarray, x: np.ndarray, rows: np.ndarray) -> tuple[np
     return a + fraction * (b - a), b - a, inside
 
 
-def _capped_cost(residual: np.ndarray, inside: np.ndarray) -> float:
-    """Mean capped squared residual over the samples inside the image (the cap for those outside)."""
+def _capped_cost(residual: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """Mean capped squared residual over the last axis, samples outside the image counting as the cap."""
     squared = np.where(inside, np.minimum(residual * residual, RESIDUAL_CAP**2), RESIDUAL_CAP**2)
-    return float(np.mean(squared))
+    return np.mean(squared, axis=-1)
 
 
 def refine_line(
@@ -106,35 +106,38 @@ def refine_line(
     pixels carry too little horizontal texture or the best offset lies at the edge of the search.
     """
 
-    def residual(a: float, b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        values, gradient, inside = _sample_rows(right_grey, cols - (a + b * s), rows)
+    def residual(a: np.ndarray | float, b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        values, gradient, inside = _sample_rows(right_grey, cols - (np.asarray(a)[..., None] + b * s), rows)
         return values - left_values, gradient, inside
 
     offsets = np.arange(-SEARCH_PX, SEARCH_PX + 1e-9, SEARCH_STEP_PX)
-    costs = [_capped_cost(*residual(intercept + offset, slope)[::2]) for offset in offsets]
+    costs = _capped_cost(*residual(intercept + offsets, slope)[::2])  # (offsets,): all lines in one pass
     best = int(np.argmin(costs))
     if best in (0, len(offsets) - 1):
         return None  # no minimum inside the search: the initial line is far off or the match ambiguous
-    cost_before = costs[int(np.argmin(np.abs(offsets)))]
+    cost_before = float(costs[int(np.argmin(np.abs(offsets)))])
     a, b = intercept + float(offsets[best]), slope
     for _ in range(ITERATIONS):
         r, gradient, inside = residual(a, b)
         weight = (inside & (np.abs(r) < RESIDUAL_CAP)).astype(np.float64)
-        if np.sum(weight * gradient * gradient) < MIN_MEAN_GRADIENT_SQ * max(1.0, weight.sum()):
+        g_w = gradient * weight
+        h_aa, h_ab, h_bb = g_w @ gradient, g_w @ (gradient * s), g_w @ (gradient * s * s)
+        if h_aa < MIN_MEAN_GRADIENT_SQ * max(1.0, weight.sum()):
             return None  # a stem along the rows: nothing to match across
-        jacobian = -np.stack([gradient, gradient * s], axis=1)
-        normal = (jacobian * weight[:, None]).T @ jacobian
-        if np.linalg.cond(normal) > 1e8:  # a branch too short for a slope: keep the initial one
-            step = np.array([-(weight * jacobian[:, 0]) @ r / normal[0, 0], 0.0])
+        # Gauss–Newton on r(a, b) with dr/da = −g, dr/db = −g·s: solve [h_aa h_ab; h_ab h_bb] · step = [Σ g·r, Σ g·s·r]
+        j_a, j_b = g_w @ r, g_w @ (r * s)
+        determinant = h_aa * h_bb - h_ab * h_ab
+        if determinant <= 1e-8 * h_aa * h_bb:  # a branch too short for a slope: keep the initial one
+            step = np.array([j_a / h_aa, 0.0])
         else:
-            step = -np.linalg.solve(normal, (jacobian * weight[:, None]).T @ r)
+            step = np.array([h_bb * j_a - h_ab * j_b, h_aa * j_b - h_ab * j_a]) / determinant
         step = np.clip(step, -0.5, 0.5)  # a linearisation holds for about half a pixel
         a, b = a + float(step[0]), b + float(step[1])
         if abs(step[0]) < CONVERGED_PX:
             break
     if abs(a - intercept) > SEARCH_PX:
         return None
-    cost_after = _capped_cost(*residual(a, b)[::2])
+    cost_after = float(_capped_cost(*residual(a, b)[::2]))
     if cost_after > cost_before:
         return None
     return a, b, cost_before, cost_after
@@ -156,7 +159,7 @@ def refine_branch_disparity(
     corrected copy of `disparity` and the shifts applied, one per refined branch.
     """
     left_grey, right_grey = grey(left), grey(right)
-    horizontal_step = cv2.Sobel(left_grey, cv2.CV_32F, 1, 0, ksize=1)  # (I[u+1] − I[u−1])
+    last_column = left_grey.shape[1] - 1
     refined = np.array(disparity, dtype=np.float32, copy=True)
     shifts = []
     for mask_id in masks.branch_ids():
@@ -168,7 +171,8 @@ def refine_branch_disparity(
         valid = valid_disparity(values, max_disparity)
         if rows.size < MIN_PIXELS or np.count_nonzero(valid) < MIN_PIXELS:
             continue
-        if np.mean(np.abs(horizontal_step[rows, cols]) > TEXTURE_STEP) < MIN_TEXTURED_SHARE:
+        horizontal_step = left_grey[rows, np.minimum(cols + 1, last_column)] - left_grey[rows, np.maximum(cols - 1, 0)]
+        if np.mean(np.abs(horizontal_step) > TEXTURE_STEP) < MIN_TEXTURED_SHARE:
             continue
         s = image_axis(crop).s
         try:

@@ -391,7 +391,7 @@ class Pipeline:
             disparity, _ = refine_branch_disparity(
                 left, stage.right, disparity, masks, doffs_px=self.doffs_px, max_disparity=max_disparity
             )
-            t = lap_ms(timing, "refine", t)
+            t = lap_ms(timing, "branch_disparity", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)
         if masks is None or not valid.any():  # no masks only when nothing was valid to segment
             reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
