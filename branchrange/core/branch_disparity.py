@@ -86,7 +86,8 @@ def _sample_rows(image: np.ndarray, x: np.ndarray, rows: np.ndarray) -> tuple[np
 def _capped_cost(residual: np.ndarray, inside: np.ndarray) -> np.ndarray:
     """Mean capped squared residual over the last axis, samples outside the image counting as the cap."""
     squared = np.where(inside, np.minimum(residual * residual, RESIDUAL_CAP**2), RESIDUAL_CAP**2)
-    return np.mean(squared, axis=-1)
+    cost: np.ndarray = np.mean(squared, axis=-1)
+    return cost
 
 
 def refine_line(
