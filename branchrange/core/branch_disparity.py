@@ -160,11 +160,14 @@ def refine_branch_disparity(
     between the views is `disparity − doffs_px`); `masks`: the frame's instances. Returns the
     corrected copy of `disparity` and the shifts applied, one per refined branch.
     """
+    refined = np.array(disparity, dtype=np.float32, copy=True)
+    shifts: list[BranchShift] = []
+    branch_ids = masks.branch_ids()
+    if not branch_ids:
+        return refined, shifts
     left_grey, right_grey = grey(left), grey(right)
     last_column = left_grey.shape[1] - 1
-    refined = np.array(disparity, dtype=np.float32, copy=True)
-    shifts = []
-    for mask_id in masks.branch_ids():
+    for mask_id in branch_ids:
         crop = masks.crop(mask_id)
         if crop is None:
             continue
