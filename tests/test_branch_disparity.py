@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from branchrange.core.branch_disparity import refine_branch_disparity
+from branchrange.core.frame_result import FrameResult
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
 from branchrange.core.pipeline import Pipeline, PipelineInputError, untracked_whole_frame
 from stereo.backends import make_backend
@@ -136,15 +137,24 @@ def rendered_scene() -> dict:
     return {"scene": scene, "sgbm": stereo, "labels": labels, "branches": branch_ids > 0}
 
 
-def _cut_point_errors(rendered: dict, refine: bool) -> np.ndarray:
-    """Distances (m) from each visible true cut point to the pipeline's cut point of the same branch."""
+def _run_pipeline(rendered: dict, refine: bool, right: np.ndarray | None) -> tuple[FrameResult, np.ndarray]:
+    """The rendered scene's SGBM disparity and true masks through the pipeline (`refine_branches` as
+    given, the right image or None): its result and the disparity its cut points were fitted on."""
     scene, sgbm = rendered["scene"], rendered["sgbm"]
     config = untracked_whole_frame()
     config = replace(config, stereo=replace(config.stereo, refine_branches=refine))
     pipeline = Pipeline(config, focal_px=scene.camera.focal_px, baseline_m=scene.camera.baseline_m)
     result = pipeline.process_disparity(
-        scene.left, sgbm.disparity, sgbm.confidence, mask=rendered["labels"], right=scene.right
+        scene.left, sgbm.disparity, sgbm.confidence, mask=rendered["labels"], right=right
     )
+    assert pipeline.last is not None
+    return result, pipeline.last.disparity
+
+
+def _cut_point_errors(rendered: dict, refine: bool) -> np.ndarray:
+    """Distances (m) from each visible true cut point to the pipeline's cut point of the same branch."""
+    scene = rendered["scene"]
+    result, _ = _run_pipeline(rendered, refine, scene.right)
     truth = {index + 1: branch for index, branch in enumerate(scene.branches)}
     return np.array(
         [
@@ -175,21 +185,10 @@ def test_refinement_leaves_the_trunk_and_the_backdrop_alone(rendered_scene: dict
 
 
 def test_the_pipeline_refines_only_with_a_right_image_and_the_setting_on(rendered_scene: dict) -> None:
-    scene, sgbm = rendered_scene["scene"], rendered_scene["sgbm"]
-    camera = scene.camera
-
-    def run(refine: bool, right: np.ndarray | None):
-        config = untracked_whole_frame()
-        config = replace(config, stereo=replace(config.stereo, refine_branches=refine))
-        pipeline = Pipeline(config, focal_px=camera.focal_px, baseline_m=camera.baseline_m)
-        result = pipeline.process_disparity(
-            scene.left, sgbm.disparity, sgbm.confidence, mask=rendered_scene["labels"], right=right
-        )
-        return result, pipeline.last.disparity
-
-    refined, refined_disparity = run(True, scene.right)
-    plain, plain_disparity = run(False, scene.right)
-    without_right, without_right_disparity = run(True, None)
+    right = rendered_scene["scene"].right
+    refined, refined_disparity = _run_pipeline(rendered_scene, True, right)
+    plain, plain_disparity = _run_pipeline(rendered_scene, False, right)
+    without_right, without_right_disparity = _run_pipeline(rendered_scene, True, None)
     assert "branch_disparity" in refined.timing_ms and "branch_disparity" not in plain.timing_ms
     assert np.array_equal(plain_disparity, without_right_disparity)
     assert not np.array_equal(refined_disparity, plain_disparity)
