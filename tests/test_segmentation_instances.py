@@ -9,7 +9,7 @@ import pytest
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig, trunk_attachment
 from branchrange.core.segmentation.pieces import straight_pieces_of
-from branchrange.core.segmentation.trunk import tree_trunk
+from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk
 
 GEOMETRY = StereoGeometry.centred(400.0, 0.06, 200, 120)
 
@@ -92,3 +92,53 @@ def test_a_piece_that_stops_short_of_the_trunk_scores_lower_than_one_that_touche
     plain = _ClassMapSegmenter(LearnedSegmenterConfig(attachment_scale_m=0))
     plain.classes = classes
     assert plain.segment(np.zeros((120, 200, 3), np.uint8), disparity, GEOMETRY).scores[short] == pytest.approx(1.0)
+
+
+def _bark_with_stems_before_it() -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """(trunk-class mask, disparity px, {name: boolean mask}) of a trunk 0.2 m in radius 2 m away (80 px wide at
+    f 400 px, its bulge 0.2 m nearer in the middle) with SGBM-like noise, a vertical and a horizontal 3 px stem
+    and a round leaf 1.6 m away in front of it — all called trunk, as the network calls a stem on bark."""
+    f, b, radius = GEOMETRY.focal_px, GEOMETRY.baseline_m, 0.2
+    columns = np.arange(200) - 100.0
+    across = np.clip(columns * 2.0 / f, -radius, radius)
+    bark_depth = 2.0 - np.sqrt(radius**2 - across**2)  # m, nearest at the trunk's middle
+    disparity = np.broadcast_to(f * b / bark_depth, (120, 200)).astype(np.float32).copy()
+    disparity += np.random.default_rng(3).normal(0.0, 0.1, disparity.shape).astype(np.float32)
+    trunk = np.zeros((120, 200), dtype=bool)
+    trunk[:, 62:139] = True
+    shapes = {name: np.zeros_like(trunk) for name in ("vertical", "horizontal", "leaf")}
+    shapes["vertical"][10:110, 90:93] = True
+    shapes["horizontal"][70:73, 64:137] = True
+    cv2.circle(shapes["leaf"].view(np.uint8), (120, 30), 5, 1, thickness=-1)
+    for shape in shapes.values():
+        disparity[shape] = f * b / 1.6
+    return trunk, disparity, shapes
+
+
+def test_a_stem_before_the_bark_is_told_from_it_by_depth_and_the_trunks_own_bulge_is_not():
+    trunk, disparity, shapes = _bark_with_stems_before_it()
+    front = in_front_of_trunk(trunk, disparity, 0.03, 12)
+    for name in ("vertical", "horizontal"):
+        inner = shapes[name].copy()
+        inner[:, :66] = inner[:, 135:] = False  # at the silhouette's edge one side of bark is missing
+        assert np.mean(front[inner]) > 0.9, name
+    assert not front[shapes["leaf"]].any()  # round: a leaf, not a stem
+    bark = trunk & ~shapes["vertical"] & ~shapes["horizontal"] & ~shapes["leaf"]
+    assert not front[bark].any()  # 10 % nearer in the middle than at the edges, but smoothly
+    assert not in_front_of_trunk(trunk, disparity, 0.5, 12).any()  # the stems are 25 % nearer, not 50
+    assert not in_front_of_trunk(trunk, np.zeros_like(disparity), 0.03, 12).any()  # no depth, no evidence
+
+
+def test_the_learned_instance_stage_makes_a_stem_called_trunk_a_branch_when_it_is_before_the_bark():
+    trunk, disparity, shapes = _bark_with_stems_before_it()
+    segmenter = _ClassMapSegmenter(LearnedSegmenterConfig())
+    segmenter.classes = np.where(trunk, 1, 0).astype(np.uint8)
+    masks = segmenter.segment(np.zeros((120, 200, 3), np.uint8), disparity, GEOMETRY)
+    stem = masks.labels[20:60, 90:93]
+    assert (stem > 0).all() and (stem != masks.trunk_id).all() and len(np.unique(stem)) == 1
+    assert np.mean(masks.labels[:, 100:130] == masks.trunk_id) > 0.9  # the bark stays the trunk
+    off = _ClassMapSegmenter(LearnedSegmenterConfig(front_of_trunk_ratio=0))
+    off.classes = segmenter.classes
+    assert (
+        off.segment(np.zeros((120, 200, 3), np.uint8), disparity, GEOMETRY).labels[20:60, 90:93] == masks.trunk_id
+    ).all()
