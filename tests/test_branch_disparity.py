@@ -67,12 +67,14 @@ HORIZONTAL = {"kind": "horizontal", "y0": 60, "width": 3, "x0": 40, "x1": 160}
 
 @pytest.mark.parametrize("bias", [-0.8, -0.3, 0.5, 2.2])
 def test_a_thin_stem_gets_its_own_subpixel_disparity(bias: float) -> None:
-    """A 3 px stem at 20.3 px before a backdrop at 6 px, given a disparity `bias` px off (as a block
-    matcher pulled by the backdrop gives it), is moved to within 0.1 px of the truth."""
+    """A 3 px stem at 20.3 px before a backdrop at 6 px, given a disparity `bias` px off and scattered by
+    ±0.3 px (as a block matcher pulled by the backdrop gives it), gets the refined line: every pixel
+    within 0.1 px of the truth."""
     truth = 20.3
     left, right = _render_pair(VERTICAL, truth)
     labels = _stem_mask(VERTICAL)
-    disparity = np.where(labels == 1, truth + bias, BACKGROUND_DISPARITY).astype(np.float32)
+    scatter = np.random.default_rng(5).uniform(-0.3, 0.3, labels.shape)
+    disparity = np.where(labels == 1, truth + bias + scatter, BACKGROUND_DISPARITY).astype(np.float32)
     rows, cols = np.nonzero(labels == 1)
     disparity[rows[::7], cols[::7]] = 0.0  # holes stay holes
     masks = BranchMasks(labels, None, "test")
@@ -80,7 +82,7 @@ def test_a_thin_stem_gets_its_own_subpixel_disparity(bias: float) -> None:
     stem = labels == 1
     assert len(shifts) == 1 and shifts[0].mask_id == 1
     assert shifts[0].cost_after < shifts[0].cost_before
-    assert abs(float(np.median(refined[stem & (disparity > 0)])) - truth) < 0.1
+    assert np.abs(refined[stem & (disparity > 0)] - truth).max() < 0.1  # the line, not the scatter shifted
     assert np.array_equal(refined[~stem], disparity[~stem])  # the backdrop is not a branch: untouched
     assert np.array_equal(refined == 0, disparity == 0)
 
