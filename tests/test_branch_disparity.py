@@ -76,15 +76,26 @@ def test_a_thin_stem_gets_its_own_subpixel_disparity(bias: float) -> None:
     scatter = np.random.default_rng(5).uniform(-0.3, 0.3, labels.shape)
     disparity = np.where(labels == 1, truth + bias + scatter, BACKGROUND_DISPARITY).astype(np.float32)
     rows, cols = np.nonzero(labels == 1)
+    outliers = np.zeros(labels.shape, dtype=bool)
+    outliers[rows[3::11], cols[3::11]] = True
+    disparity[outliers] += 1.5  # mismatches, beyond the line's agreement
     disparity[rows[::7], cols[::7]] = 0.0  # holes stay holes
     masks = BranchMasks(labels, None, "test")
-    refined, shifts = refine_branch_disparity(left, right, disparity, masks)
+    confidence = np.ones_like(disparity)
+    out = refine_branch_disparity(left, right, disparity, masks, confidence)
+    refined, shifts = out.disparity, out.shifts
     stem = labels == 1
     assert len(shifts) == 1 and shifts[0].mask_id == 1
     assert shifts[0].cost_after < shifts[0].cost_before
     assert np.abs(refined[stem & (disparity > 0)] - truth).max() < 0.1  # the line, not the scatter shifted
     assert np.array_equal(refined[~stem], disparity[~stem])  # the backdrop is not a branch: untouched
     assert np.array_equal(refined == 0, disparity == 0)
+    # the scatter the line replaced still lowers the confidence: ±0.3 px → 0.85..1, mismatches → 0; not the bias
+    agreeing = stem & ~outliers & (disparity > 0)
+    assert out.confidence is not None and (out.confidence[agreeing] >= 0.8).all()
+    assert float(np.mean(out.confidence[agreeing])) == pytest.approx(0.925, abs=0.03)
+    assert (out.confidence[outliers & (disparity > 0)] == 0).all()
+    assert (out.confidence[~stem] == 1).all() and (confidence == 1).all()  # elsewhere, and the input, untouched
 
 
 def test_holes_in_a_branch_stay_holes() -> None:
@@ -93,7 +104,8 @@ def test_holes_in_a_branch_stay_holes() -> None:
     labels = _stem_mask(VERTICAL)
     disparity = np.where(labels == 1, 19.8, BACKGROUND_DISPARITY).astype(np.float32)
     disparity[VERTICAL["y0"] : VERTICAL["y0"] + 30, :] = 0.0
-    refined, shifts = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"))
+    out = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"))
+    refined, shifts = out.disparity, out.shifts
     assert len(shifts) == 1
     assert np.array_equal(refined == 0, disparity == 0)
 
@@ -113,7 +125,8 @@ def test_a_branch_without_evidence_is_left_alone(stem: dict, stem_disparity: flo
     left, right = _render_pair(stem, 20.3)
     labels = _stem_mask(stem)
     disparity = np.where(labels == 1, stem_disparity, BACKGROUND_DISPARITY).astype(np.float32)
-    refined, shifts = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"))
+    out = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"))
+    refined, shifts = out.disparity, out.shifts
     assert shifts == []
     assert np.array_equal(refined, disparity)
 
@@ -124,7 +137,9 @@ def test_the_disparity_offset_is_taken_out_before_matching() -> None:
     left, right = _render_pair(VERTICAL, truth)
     labels = _stem_mask(VERTICAL)
     disparity = np.where(labels == 1, truth - 0.6 + doffs, BACKGROUND_DISPARITY + doffs).astype(np.float32)
-    refined, _ = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"), doffs_px=doffs)
+    refined = refine_branch_disparity(
+        left, right, disparity, BranchMasks(labels, None, "test"), doffs_px=doffs
+    ).disparity
     assert abs(float(np.median(refined[labels == 1])) - (truth + doffs)) < 0.1
 
 
@@ -180,7 +195,8 @@ def test_refinement_leaves_the_trunk_and_the_backdrop_alone(rendered_scene: dict
     scene, sgbm = rendered_scene["scene"], rendered_scene["sgbm"]
     masks = BranchMasks(rendered_scene["labels"], DEFAULT_TRUNK_ID, "truth")
     disparity = np.where(np.isfinite(sgbm.disparity), sgbm.disparity, 0).astype(np.float32)
-    refined, shifts = refine_branch_disparity(scene.left, scene.right, disparity, masks, max_disparity=192)
+    out = refine_branch_disparity(scene.left, scene.right, disparity, masks, max_disparity=192)
+    refined, shifts = out.disparity, out.shifts
     assert len(shifts) >= 3
     not_branch = ~rendered_scene["branches"]
     assert np.array_equal(refined[not_branch], disparity[not_branch])

@@ -388,9 +388,10 @@ class Pipeline:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = lap_ms(timing, "masks", t)
         if masks is not None and stage.right is not None and self.config.stereo.refine_branches:
-            disparity, _ = refine_branch_disparity(
-                left, stage.right, disparity, masks, doffs_px=self.doffs_px, max_disparity=max_disparity
+            refined = refine_branch_disparity(
+                left, stage.right, disparity, masks, confidence, doffs_px=self.doffs_px, max_disparity=max_disparity
             )
+            disparity, confidence = refined.disparity, refined.confidence
             t = lap_ms(timing, "branch_disparity", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)
         if masks is None or not valid.any():  # no masks only when nothing was valid to segment
