@@ -391,6 +391,7 @@ class Pipeline:
             refined = refine_branch_disparity(
                 left, stage.right, disparity, masks, confidence, doffs_px=self.doffs_px, max_disparity=max_disparity
             )
+            assert refined.confidence is not None, "given a confidence, the refinement returns one"
             disparity, confidence = refined.disparity, refined.confidence
             t = lap_ms(timing, "branch_disparity", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)

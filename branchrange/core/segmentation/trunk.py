@@ -156,7 +156,7 @@ def _elongated_regions(mask: np.ndarray, min_area_px: int) -> np.ndarray:
         return mask
     inscribed = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     v, u = np.nonzero(regions)
-    region = regions[v, u]
+    region = np.asarray(regions[v, u], dtype=np.intp)
     area = np.bincount(region, minlength=count)
     radius = np.zeros(count, dtype=np.float32)
     np.maximum.at(radius, region, inscribed[v, u])
