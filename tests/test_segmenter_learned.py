@@ -212,51 +212,69 @@ def test_isotonic_calibration_is_monotone_and_honest():
         ConfidenceCalibration((0.2, 0.1), (0.1, 0.2))
 
 
-def test_calibration_in_the_model_json_maps_the_reported_confidence(scene, tmp_path):
+def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_network_width(scene, tmp_path):
     rendered, stereo = scene
     cam = rendered.camera
     geometry = StereoGeometry(cam.focal_px, cam.baseline_m, cam.cx, cam.cy)
     for name in ("branchnet.onnx", "branchnet.json"):
         shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
     meta = json.loads((tmp_path / "branchnet.json").read_text())
-    meta["confidence_calibration"] = {"raw": [0.0, 1.0], "calibrated": [0.0, 0.5]}  # halves every confidence
-    (tmp_path / "branchnet.json").write_text(json.dumps(meta))
+    meta.pop("confidence_calibrations")
+    halving = {"raw": [0.0, 1.0], "calibrated": [0.0, 0.5]}  # halves every confidence
     model = str(tmp_path / "branchnet.onnx")
-    halved = LearnedSegmenter(LearnedSegmenterConfig(model=model)).segment(rendered.left, stereo.disparity, geometry)
-    raw = LearnedSegmenter(LearnedSegmenterConfig(model=model, calibrated=False)).segment(
-        rendered.left, stereo.disparity, geometry
+
+    def confidences(table_key: str, table: object, **settings: object) -> list[float]:
+        (tmp_path / "branchnet.json").write_text(json.dumps({**meta, table_key: table}))
+        masks = LearnedSegmenter(LearnedSegmenterConfig(model=model, **settings)).segment(  # type: ignore[arg-type]
+            rendered.left, stereo.disparity, geometry
+        )
+        return [b.confidence for b in estimate_cut_points(masks, stereo.disparity, geometry).branches]
+
+    width = LearnedSegmenterConfig().network_width
+    raw = confidences("confidence_calibrations", [], calibrated=False)
+    assert raw
+    assert confidences("confidence_calibrations", [{**halving, "network_width": width}]) == pytest.approx(
+        [0.5 * c for c in raw], abs=1e-9
     )
-    a = estimate_cut_points(raw, stereo.disparity, geometry)
-    b = estimate_cut_points(halved, stereo.disparity, geometry)
-    assert a.branches and [x.mask_id for x in a.branches] == [x.mask_id for x in b.branches]
-    for x, y in zip(a.branches, b.branches, strict=True):
-        assert y.confidence == pytest.approx(0.5 * x.confidence, abs=1e-9)
+    assert confidences("confidence_calibrations", [{**halving, "network_width": 640}]) == pytest.approx(
+        raw
+    )  # other width
+    # a JSON from before widths were recorded: its one table was measured on the 640-wide scenes as they are
+    before = confidences("confidence_calibrations", [], calibrated=False, network_width=640)
+    assert confidences("confidence_calibration", halving, network_width=640) == pytest.approx([0.5 * c for c in before])
+    with pytest.raises(OnnxSegmenterError, match="network_width"):
+        confidences("confidence_calibrations", [halving])
 
 
-def test_calibrating_a_model_stores_the_fit_beside_it_and_the_segmenter_applies_it(tmp_path):
-    from branchrange.core.segmentation.branchnet_calibration import calibrate_model
+def test_calibrating_a_model_stores_a_fit_per_network_width_and_the_segmenter_applies_it(tmp_path):
+    from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_WIDTHS, calibrate_model
 
     for name in ("branchnet.onnx", "branchnet.json"):
         shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
     lines: list[str] = []
-    calibration = calibrate_model(
+    calibrations = calibrate_model(
         tmp_path / "branchnet.onnx", seeds=(2861, 2864), cache=tmp_path / "cal", log=lines.append
     )
-    assert calibration is not None and "cut points on scenes 2861–2863" in lines[0]
-    stored = json.loads((tmp_path / "branchnet.json").read_text())["confidence_calibration"]
-    assert stored["seeds"] == [2861, 2864] and stored["cut_points"] > 0
-    assert ConfidenceCalibration.from_json_dict(stored) == ConfidenceCalibration.from_json_dict(
-        calibration.to_json_dict()
-    )
+    assert set(calibrations) == set(CALIBRATION_WIDTHS) == {640, 1280}
+    assert "network width 640" in lines[0] and "cut points on scenes 2861–2863" in lines[0]
+    meta = json.loads((tmp_path / "branchnet.json").read_text())
+    assert "confidence_calibration" not in meta  # the single table of before is replaced
+    stored = {t["network_width"]: t for t in meta["confidence_calibrations"]}
+    for width, calibration in calibrations.items():
+        assert stored[width]["seeds"] == [2861, 2864] and stored[width]["cut_points"] > 0
+        assert ConfidenceCalibration.from_json_dict(stored[width]) == ConfidenceCalibration.from_json_dict(
+            calibration.to_json_dict()  # as written: rounded
+        )
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx")))
-    assert segmenter.calibration == ConfidenceCalibration.from_json_dict(stored)
+    assert segmenter.calibrations == {w: ConfidenceCalibration.from_json_dict(t) for w, t in stored.items()}
 
 
 def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
     from branchrange.core.config import MavlinkConfig
     from branchrange.core.cutpoints import CutPointConfig
 
-    table = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibration"]
+    tables = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibrations"]
+    table = next(t for t in tables if t["network_width"] == LearnedSegmenterConfig().network_width)
     assert CutPointConfig().target_min_confidence == table["target_min_confidence"]
     assert MavlinkConfig().obstacle_min_confidence == table["obstacle_min_confidence"]
 
@@ -328,9 +346,12 @@ def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene
     meta = json.loads(SHIPPED_MODELS["int8"].with_suffix(".json").read_text())
     # the int8 file was made from the fp32 file shipped beside it (re-quantize after retraining)
     assert meta["quantized_from"]["onnx_sha256"] == hashlib.sha256(SHIPPED_MODEL.read_bytes()).hexdigest()
-    assert "confidence_calibration" in meta and SHIPPED_MODELS["int8"].stat().st_size < SHIPPED_MODEL.stat().st_size
+    assert (
+        len(meta["confidence_calibrations"]) == 2
+        and SHIPPED_MODELS["int8"].stat().st_size < SHIPPED_MODEL.stat().st_size
+    )
     fp32, int8 = LearnedSegmenter(), LearnedSegmenter(LearnedSegmenterConfig(precision="int8"))
-    assert int8.model_path == SHIPPED_MODELS["int8"] and int8.calibration is not None
+    assert int8.model_path == SHIPPED_MODELS["int8"] and set(int8.calibrations) == {640, 1280}
     classes = [s.logits(rendered.left, stereo.disparity).argmax(0) for s in (fp32, int8)]
     assert np.mean(classes[0] == classes[1]) > 0.98
     branch = classes[0] == CLASSES.index("branch")

@@ -2,9 +2,10 @@
 
 Renders the scenes it needs into --data (cached: a second run, or a resumed one, renders nothing),
 trains, validates on scenes kept apart, measures how often its cut points are right to calibrate their
-confidence (scenes 2861–2980, SGBM), and writes to --out: branchnet.onnx (what `--segmenter learned` runs
-with `[segmenter.learned] model = "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256,
-validation IoU, confidence calibration), metrics.csv, training_curve.png and branchnet.pt (the torch
+confidence (scenes 2861–2980, SGBM, the network seeing them at widths 640 and 1280), and writes to
+--out: branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
+"DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256, validation IoU, confidence
+calibrations), metrics.csv, training_curve.png and branchnet.pt (the torch
 weights). --calibrate-only re-measures the calibration of the model already in --out; --int8 also writes
 branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchnet_quantize`).
 

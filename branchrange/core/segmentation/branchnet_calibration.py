@@ -5,9 +5,11 @@ Scenes `CALIBRATION_SEEDS` (never trained on, and apart from the benchmark's hel
 pixels (`branchrange.core.branch_disparity`) as on board — and the model's raw confidences; each cut
 point is correct when a true cut point lies within 5 cm. The isotonic fit of
 correct on raw confidence (`branchrange.core.confidence.fit_calibration`) is stored in the model's
-JSON under "confidence_calibration", where `LearnedSegmenter` reads it, with the defaults it implies:
-the lowest calibrated confidence at which ≥ 90 % of cut points are right (a target's minimum) and the
-highest that keeps ≥ 98 % of the right ones (an obstacle's minimum).
+JSON under "confidence_calibrations", one table per width the network saw the 640×360 scenes at
+(`LearnedSegmenterConfig.network_width`: the scores, and so what a raw confidence means, change with
+it), where `LearnedSegmenter` reads it, with the defaults each implies: the lowest calibrated
+confidence at which ≥ 90 % of cut points are right (a target's minimum) and the highest that keeps
+≥ 98 % of the right ones (an obstacle's minimum).
 """
 
 from __future__ import annotations
@@ -28,14 +30,20 @@ from branchrange.core.confidence import (
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 
 CALIBRATION_SEEDS = (2861, 2981)
+#: the network widths (px) calibrated: the scenes' own (onboard) and twice it (the default)
+CALIBRATION_WIDTHS = (640, 1280)
 
 
-def raw_outcomes(model: Path, seeds: tuple[int, int], cache: Path | None) -> list[tuple[float, bool]]:
-    """(raw confidence, within 5 cm of a true cut point) of every cut point on scenes `seeds` [first, last)."""
+def raw_outcomes(
+    model: Path, seeds: tuple[int, int], cache: Path | None, network_width: int
+) -> list[tuple[float, bool]]:
+    """(raw confidence, within 5 cm of a true cut point) of every cut point on scenes `seeds` [first, last),
+    the network seeing them at `network_width` px."""
     from branchrange.core.pipeline import Pipeline, untracked_whole_frame
     from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 
-    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), calibrated=False))
+    config = LearnedSegmenterConfig(model=str(model), calibrated=False, network_width=network_width)
+    segmenter = LearnedSegmenter(config)
     outcomes = []
     for seed in range(*seeds):
         scene = evaluation_scene(seed, cache)
@@ -57,26 +65,39 @@ def calibrate_model(
     seeds: tuple[int, int] = CALIBRATION_SEEDS,
     cache: Path | None = None,
     log: Callable[[str], object] = print,
-) -> ConfidenceCalibration | None:
-    """Fit the confidence calibration of the ONNX `model` and store it in the JSON beside it; None (and
-    nothing stored) when the model finds no cut point on those scenes."""
-    outcomes = raw_outcomes(model, seeds, cache)
-    if not outcomes:
-        log(f"no cut points on scenes {seeds[0]}–{seeds[1] - 1}: the confidence of {model} stays uncalibrated")
-        return None
-    calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
+    widths: tuple[int, ...] = CALIBRATION_WIDTHS,
+) -> dict[int, ConfidenceCalibration]:
+    """Fit the confidence calibration of the ONNX `model` at each network width of `widths` and store them
+    in the JSON beside it ("confidence_calibrations", replacing what was there); a width at which the
+    model finds no cut point on those scenes gets none (its confidences stay raw)."""
+    tables, calibrations = [], {}
+    for width in widths:
+        outcomes = raw_outcomes(model, seeds, cache, width)
+        if not outcomes:
+            log(f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} at width {width}: that width stays uncalibrated")
+            continue
+        calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
+        calibrated = [(calibration(c), ok) for c, ok in outcomes]
+        tables.append(
+            {
+                "network_width": width,
+                **calibration.to_json_dict(),
+                "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
+                "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
+                "seeds": list(seeds),
+                "stereo": "sgbm",
+                "cut_points": len(outcomes),
+                "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4),
+            }
+        )
+        calibrations[width] = calibration
+        log(
+            f"confidence calibration at network width {width} from {len(outcomes)} cut points on scenes "
+            f"{seeds[0]}–{seeds[1] - 1}: {calibration}"
+        )
     meta_path = model.with_suffix(".json")
     meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
-    calibrated = [(calibration(c), ok) for c, ok in outcomes]
-    meta["confidence_calibration"] = {
-        **calibration.to_json_dict(),
-        "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
-        "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
-        "seeds": list(seeds),
-        "stereo": "sgbm",
-        "cut_points": len(outcomes),
-        "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4) if outcomes else None,
-    }
+    meta.pop("confidence_calibration", None)  # the single table of before widths were recorded
+    meta["confidence_calibrations"] = tables
     meta_path.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-    log(f"confidence calibration from {len(outcomes)} cut points on scenes {seeds[0]}–{seeds[1] - 1}: {calibration}")
-    return calibration
+    return calibrations
