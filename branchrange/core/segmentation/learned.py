@@ -212,8 +212,10 @@ class LearnedSegmenter:
 
     def logits(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
         """`float32 (3, H, W)` background / trunk / branch logits of a frame (`CLASSES` order), `H×W` the
-        frame's size; the network sees it resized to `network_width` (the disparity's values need no
-        scaling: the network divides them by their 95th percentile)."""
+        frame's size. The network sees it resized to `network_width` (the disparity's values need no
+        scaling: the network divides them by their 95th percentile); its class probabilities are then
+        resampled to the frame's pixels — a frame pixel's share of stem, averaged over the ones the
+        network saw — and returned as log-probabilities (logits of the same softmax)."""
         height, width = disparity.shape
         seen = self.seen_width(width)
         if seen != width:
@@ -223,9 +225,13 @@ class LearnedSegmenter:
             disparity = cv2.resize(np.asarray(disparity, dtype=np.float32), size, interpolation=cv2.INTER_NEAREST)
         features, (rows, cols) = padded_to_stride(network_input(left, disparity))
         logits = np.asarray(self.session.run(None, {self._input: features[None]})[0][0, :, :rows, :cols])
-        if seen != width:  # averaged back: a stem's evidence is shared by the frame pixels it covers
+        if seen != width:
+            # probabilities, not logits, are averaged: a 1 px stem seen 2 px wide then keeps its share
+            # of each frame pixel (held out, recall at confidence ≥ 0.8 28 against 24 % with logits)
+            exp = np.exp(logits - logits.max(axis=0))
             back = cv2.INTER_AREA if larger else cv2.INTER_LINEAR
-            logits = np.stack([cv2.resize(channel, (width, height), interpolation=back) for channel in logits])
+            probability = [cv2.resize(p, (width, height), interpolation=back) for p in exp / exp.sum(axis=0)]
+            logits = np.log(np.maximum(np.stack(probability), 1e-6))
         return np.asarray(logits, dtype=np.float32)
 
     def segment(
