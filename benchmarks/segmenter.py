@@ -4,8 +4,8 @@ Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, ne
 training or calibrating the learned segmenter, which use seeds 1–2980; default options: ground,
 background trees and far foliage rows, foliage drawn bare/sparse/dense per scene) at 640×360 (ZED
 Mini). Per stereo source and segmenter (each name given — 'learned' runs its network at its default
-width, 1280 px; 'learned@640' at the frame's own; '-int8' the quantized copy — plus 'truth' = the
-scene's instance mask),
+width, 640 px, the frame's own; 'learned@1280' at twice it; '-int8' the quantized copy — plus
+'truth' = the scene's instance mask),
 every frame goes through `Pipeline.process_disparity`. Stereo sources: 'sgbm' as the pipeline runs it
 (each branch's disparity refined on its own pixels, `branchrange.core.branch_disparity`),
 'sgbm-unrefined' (the same without the right image: the baseline of that step, same run) and 'truth'
@@ -22,7 +22,7 @@ with the disparity range the README there gives, a nominal camera (f 700 px, B 0
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
-    python benchmarks/segmenter.py [--scenes 30] [--segmenters learned learned@640 learned-int8 structure]
+    python benchmarks/segmenter.py [--scenes 30] [--segmenters learned learned@1280 learned-int8 structure]
                                    [--json out.json] [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
 """
 
@@ -68,7 +68,7 @@ WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
 
 def benchmark_segmenter(name: str) -> Segmenter:
     """`make_segmenter(name)`, and the learned segmenter's variants: 'learned-int8' (its shipped int8 model)
-    and a network width after '@' (e.g. 'learned@640', 'learned-int8@640'; `network_width`)."""
+    and a network width after '@' (e.g. 'learned@1280', 'learned-int8@1280'; `network_width`)."""
     base, _, width = name.partition("@")
     if base in ("learned", "learned-int8") and (width or base != "learned"):
         config = LearnedSegmenterConfig(precision="int8" if base == "learned-int8" else "fp32")

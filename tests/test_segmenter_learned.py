@@ -236,12 +236,13 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
     assert confidences("confidence_calibrations", [{**halving, "network_width": width}]) == pytest.approx(
         [0.5 * c for c in raw], abs=1e-9
     )
-    assert confidences("confidence_calibrations", [{**halving, "network_width": 640}]) == pytest.approx(
-        raw
-    )  # other width
+    other = [{**halving, "network_width": 2 * width}]  # measured at another width: not this one's
+    assert confidences("confidence_calibrations", other) == pytest.approx(raw)
     # a JSON from before widths were recorded: its one table was measured on the 640-wide scenes as they are
-    before = confidences("confidence_calibrations", [], calibrated=False, network_width=640)
-    assert confidences("confidence_calibration", halving, network_width=640) == pytest.approx([0.5 * c for c in before])
+    assert confidences("confidence_calibration", halving, network_width=640) == pytest.approx([0.5 * c for c in raw])
+    assert confidences("confidence_calibration", halving, network_width=1280) == pytest.approx(
+        confidences("confidence_calibrations", [], calibrated=False, network_width=1280)
+    )
     with pytest.raises(OnnxSegmenterError, match="network_width"):
         confidences("confidence_calibrations", [halving])
 

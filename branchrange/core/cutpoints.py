@@ -73,7 +73,7 @@ class CutPointConfig(Settings):
       mask, refused before any geometry runs rather than holding the estimator for minutes).
     - `target_policy`: how `select_target` picks the target, one of `TARGET_POLICIES`;
       `target_min_confidence`: a branch below it is never the target. 0.8: with the default learned
-      segmenter (network width 1280; at 640, onboard, too) and SGBM, the lowest (calibrated) confidence at
+      segmenter (network width 640; at 1280 too) and SGBM, the lowest (calibrated) confidence at
       and above which ≥ 90 % of cut points lie within 5 cm of a true one (its calibration scenes;
       `benchmarks/segmenter.py` checks it held out).
     - `tracking`: keep branch ids stable across frames (`branchrange.core.tracking`, tuned in

@@ -71,11 +71,14 @@ class LearnedSegmenterConfig(Settings):
     - `precision`: which shipped model, "fp32" or "int8" (a statically quantized copy: its network ~1.4×,
       the whole segmenter ~1.2× faster on CPU, same recall; `branchnet_quantize`); only with `model` empty.
     - `network_width`: the width (px) the network sees a frame at — the frame is resized to it, aspect
-      kept, and the class scores back to the frame's size; 0 = the frame's own width. Stems 1–3 px
-      wide in a 640×360 frame are what the network misses most; at 1280 they are 2–6 px, inside the
-      0.5–1.6× scales it was trained at. On 30 held-out 640×360 scenes 1280 against 640: recall within
-      5 cm 67 against 58 % with SGBM, 87 against 76 % with exact disparity, for ~2.5× the time (150 against
-      53 ms on two threads). Onboard, where the frame rate counts, 640 (`deploy/onboard.toml`).
+      kept, and the class probabilities back to the frame's size; 0 = the frame's own width. 640 by
+      default: the roi mode's coarse frame as it is, what the onboard loop affords (8 fresh Hz on
+      2 cores; 2.9 Hz and a p95 latency over 0.5 s at 1280). Stems 1–3 px wide in a 640×360 frame are
+      what the network misses most; at 1280 they are 2–6 px, inside the 0.5–1.6× scales it was trained
+      at: on 30 held-out 640×360 scenes recall within 5 cm is 67 against 58 % with SGBM and 86 against
+      76 % with exact disparity, for 3.5× the time (217 against 62 ms on one thread) and fewer cut points
+      confident enough to be a target (24 against 29 % of the branches) — the choice off the vehicle
+      (`deploy/serve.toml`).
     - `branch_threshold`: branch probability a pixel needs (0..1); the trunk is the arg-max class.
     - `min_area_px`: smaller branch instances are dropped (speckle, twig tips).
     - `depth_edge_ratio`: neighbours whose depths differ by more than this fraction are cut apart.
@@ -103,7 +106,7 @@ class LearnedSegmenterConfig(Settings):
 
     model: str = ""
     precision: str = "fp32"
-    network_width: int = 1280
+    network_width: int = 640
     branch_threshold: float = 0.5
     min_area_px: int = 12
     depth_edge_ratio: float = 0.06
