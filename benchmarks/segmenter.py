@@ -4,7 +4,7 @@ Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, ne
 training or calibrating the learned segmenter, which use seeds 1–2980; default options: ground,
 background trees and far foliage rows, foliage drawn bare/sparse/dense per scene) at 640×360 (ZED
 Mini). Per stereo source and segmenter (each name given — 'learned' runs its network at its default
-width, 640 px, the frame's own; 'learned@1280' at twice it; '-int8' the quantized copy — plus
+width, the frame's own (640 px here); 'learned@1280' at twice it; '-int8' the quantized copy — plus
 'truth' = the scene's instance mask),
 every frame goes through `Pipeline.process_disparity`. Stereo sources: 'sgbm' as the pipeline runs it
 (each branch's disparity refined on its own pixels, `branchrange.core.branch_disparity`),

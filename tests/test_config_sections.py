@@ -26,7 +26,8 @@ from branchrange.core.pipeline import Pipeline
 from stereo.backends import BACKEND_NAMES, PRECISIONS, BackendConfigError, SGBMBackend
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
-#: Non-default values for the string options (each must pass its section's checks).
+#: Non-default values for the string options, and for numbers whose neighbours of the default are all refused
+#: (each must pass its section's checks).
 STRINGS = {
     "camera.source": "oak",
     "camera.calibration": "cal.conf",
@@ -40,6 +41,7 @@ STRINGS = {
     "segmenter.model": "geometric",
     "segmenter.learned.model": "my_branchnet.onnx",
     "segmenter.learned.precision": "int8",
+    "segmenter.learned.network_width": 1280,  # 0 (the frame's own) or 160..4096
     "mavlink.url": "tcp:127.0.0.1:5760",
     "mavlink.signing_key_file": "k.key",
     "api.host": "0.0.0.0",

@@ -230,18 +230,21 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
         )
         return [b.confidence for b in estimate_cut_points(masks, stereo.disparity, geometry).branches]
 
-    width = LearnedSegmenterConfig().network_width
-    raw = confidences("confidence_calibrations", [], calibrated=False)
-    assert raw
-    assert confidences("confidence_calibrations", [{**halving, "network_width": width}]) == pytest.approx(
-        [0.5 * c for c in raw], abs=1e-9
-    )
-    other = [{**halving, "network_width": 2 * width}]  # measured at another width: not this one's
-    assert confidences("confidence_calibrations", other) == pytest.approx(raw)
-    # a JSON from before widths were recorded: its one table was measured on the 640-wide scenes as they are
-    assert confidences("confidence_calibration", halving, network_width=640) == pytest.approx([0.5 * c for c in raw])
+    raw = {
+        width: confidences("confidence_calibrations", [], calibrated=False, network_width=width) for width in (0, 1280)
+    }
+    assert raw[0] and raw[0] != raw[1280]  # the frame's own width (640) and twice it: other scores
+    identity = {"raw": [0.0, 1.0], "calibrated": [0.0, 1.0]}
+    tables = [{**halving, "network_width": 640}, {**identity, "network_width": 1280}]
+    assert confidences("confidence_calibrations", tables) == pytest.approx([0.5 * c for c in raw[0]], abs=1e-9)
+    assert confidences("confidence_calibrations", tables, network_width=1280) == pytest.approx(raw[1280])
+    nearest = LearnedSegmenter(LearnedSegmenterConfig(model=model))  # its JSON holds `tables` now
+    assert nearest.calibration_at(1100)(0.8) == pytest.approx(0.8) and nearest.calibration_at(850)(0.8) == 0.4
+    # a JSON from before widths were recorded: its one table was measured on the 640-wide scenes as they are,
+    # and it is the nearest there is at any width
+    assert confidences("confidence_calibration", halving) == pytest.approx([0.5 * c for c in raw[0]])
     assert confidences("confidence_calibration", halving, network_width=1280) == pytest.approx(
-        confidences("confidence_calibrations", [], calibrated=False, network_width=1280)
+        [0.5 * c for c in raw[1280]]
     )
     with pytest.raises(OnnxSegmenterError, match="network_width"):
         confidences("confidence_calibrations", [halving])
@@ -275,7 +278,7 @@ def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
     from branchrange.core.cutpoints import CutPointConfig
 
     tables = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibrations"]
-    table = next(t for t in tables if t["network_width"] == LearnedSegmenterConfig().network_width)
+    table = next(t for t in tables if t["network_width"] == 640)  # default: the onboard coarse frame's own width
     assert CutPointConfig().target_min_confidence == table["target_min_confidence"]
     assert MavlinkConfig().obstacle_min_confidence == table["obstacle_min_confidence"]
 

@@ -30,7 +30,7 @@ from branchrange.core.confidence import (
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 
 CALIBRATION_SEEDS = (2861, 2981)
-#: the network widths (px) calibrated: the scenes' own (the default) and twice it (off the vehicle)
+#: the network widths (px) calibrated: the scenes' own (as onboard) and twice it (off the vehicle)
 CALIBRATION_WIDTHS = (640, 1280)
 
 

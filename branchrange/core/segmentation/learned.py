@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,12 +72,12 @@ class LearnedSegmenterConfig(Settings):
     - `precision`: which shipped model, "fp32" or "int8" (a statically quantized copy: its network ~1.4×,
       the whole segmenter ~1.2× faster on CPU, same recall; `branchnet_quantize`); only with `model` empty.
     - `network_width`: the width (px) the network sees a frame at — the frame is resized to it, aspect
-      kept, and the class probabilities back to the frame's size; 0 = the frame's own width. 640 by
-      default: the roi mode's coarse frame as it is, what the onboard loop affords (8 fresh Hz on
+      kept, and the class probabilities back to the frame's size; 0 (the default) = the frame's own
+      width: the roi mode's 640×360 coarse frame as it is, what the onboard loop affords (8 fresh Hz on
       2 cores; 2.9 Hz and a p95 latency over 0.5 s at 1280). Stems 1–3 px wide in a 640×360 frame are
       what the network misses most; at 1280 they are 2–6 px, inside the 0.5–1.6× scales it was trained
       at: on 30 held-out 640×360 scenes recall within 5 cm is 67 against 58 % with SGBM and 86 against
-      76 % with exact disparity, for 3.5× the time (217 against 62 ms on one thread) and fewer cut points
+      76 % with exact disparity, for 3.5× the time (211 against 61 ms on one thread) and fewer cut points
       confident enough to be a target (24 against 29 % of the branches) — the choice off the vehicle
       (`deploy/serve.toml`).
     - `branch_threshold`: branch probability a pixel needs (0..1); the trunk is the arg-max class.
@@ -92,8 +93,8 @@ class LearnedSegmenterConfig(Settings):
     - `split_straight`: split each branch region into straight pieces (`pieces.straight_pieces_of`), so
       branches that touch or cross in the image become separate instances; else 8-connected regions.
     - `calibrated`: report cut-point confidences through the model's measured calibration at the width
-      the network sees the frame at (its JSON's "confidence_calibrations"), so that a confidence is the
-      share of such cut points that are right; at a width with no calibration the confidences are raw.
+      the network sees the frame at (its JSON's "confidence_calibrations"; the nearest width measured,
+      by ratio), so that a confidence is the share of such cut points that are right.
     - `threads`: onnxruntime intra-op threads. 1 by default: onboard the segmenter runs in the stereo
       thread while the geometry thread works on the other core (roi-sgbm on the synthetic flight:
       9.9–10.7 fresh Hz with 1 thread, 8.5–9.2 with 2); alone it costs 62 / 53 ms (1 / 2 threads) on a
@@ -106,7 +107,7 @@ class LearnedSegmenterConfig(Settings):
 
     model: str = ""
     precision: str = "fp32"
-    network_width: int = 640
+    network_width: int = 0
     branch_threshold: float = 0.5
     min_area_px: int = 12
     depth_edge_ratio: float = 0.06
@@ -209,6 +210,12 @@ class LearnedSegmenter:
             )
         self._input = inputs[0].name
 
+    def calibration_at(self, seen_width: int) -> ConfidenceCalibration | None:
+        """The calibration measured at the width nearest (by ratio) `seen_width` px; None without any."""
+        if not self.calibrations:
+            return None
+        return self.calibrations[min(self.calibrations, key=lambda width: abs(math.log(width / seen_width)))]
+
     def seen_width(self, frame_width: int) -> int:
         """The width (px) the network sees a frame `frame_width` px wide at (`network_width`)."""
         return self.config.network_width or frame_width
@@ -291,7 +298,7 @@ class LearnedSegmenter:
         sums = np.bincount(instances.ravel(), weights=branch_p.ravel(), minlength=len(keep) + 1)
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {i: float(sums[i] / sizes[i] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
-        calibration = self.calibrations.get(self.seen_width(disparity.shape[1]))
+        calibration = self.calibration_at(self.seen_width(disparity.shape[1]))
         return BranchMasks(labels, cfg.trunk_id, self.name, scores=scores, calibration=calibration)
 
 
