@@ -66,12 +66,10 @@ AGREEMENT_PX = 1.0
 
 @dataclass(frozen=True)
 class RefinedBranches:
-    """What `refine_branch_disparity` returns: the corrected `disparity` (`float32 H×W` px), the given
-    stereo `confidence` (`float32 H×W`) with each refined pixel scaled by its `line_agreement` (None when
-    none was given), and the `shifts` applied, one per refined branch."""
+    """What `refine_branch_disparity` returns: the corrected `disparity` (`float32 H×W` px) and the
+    `shifts` applied, one per refined branch."""
 
     disparity: np.ndarray
-    confidence: np.ndarray | None
     shifts: list[BranchShift]
 
 
@@ -190,14 +188,16 @@ def refine_branch_disparity(
     `left`, `right`: the rectified pair (`uint8 H×W×3` RGB or `H×W` grey); `disparity`: `float32
     H×W` px with 0 where invalid, `doffs_px` already added (Middlebury's offset: the pixel shift
     between the views is `disparity − doffs_px`); `masks`: the frame's instances; `confidence`: the
-    stereo confidence `H×W` in [0, 1], or None. The inputs are not modified.
+    stereo confidence `float32 H×W` in [0, 1], or None — scaled **in place** at each refined pixel by its
+    `line_agreement`: it is the caller's working copy, and a second full-frame array would cost more
+    than the refinement itself (at HD720 its fresh pages took 5 ms against 5 ms for all the rest).
+    `disparity` is not modified.
     """
     refined = np.array(disparity, dtype=np.float32, copy=True)
-    trust = None if confidence is None else np.array(confidence, dtype=np.float32, copy=True)
     shifts: list[BranchShift] = []
     branch_ids = masks.branch_ids()
     if not branch_ids:
-        return RefinedBranches(refined, trust, shifts)
+        return RefinedBranches(refined, shifts)
     left_grey, right_grey = grey(left), grey(right)
     last_column = left_grey.shape[1] - 1
     for mask_id in branch_ids:
@@ -231,9 +231,9 @@ def refine_branch_disparity(
         a, b, cost_before, cost_after = line
         on_line = a + doffs_px + b * s[valid]
         refined[rows[valid], cols[valid]] = np.maximum(on_line, 1e-3)
-        if trust is not None:  # the scatter about the matcher's own line: its bias is what was corrected
+        if confidence is not None:  # the scatter about the matcher's own line: its bias is what was corrected
             scatter = values[valid] - (initial.intercept + initial.slope * s[valid])
-            trust[rows[valid], cols[valid]] *= line_agreement(scatter).astype(np.float32)
+            confidence[rows[valid], cols[valid]] *= line_agreement(scatter).astype(np.float32)
         offset, slope = a + doffs_px - initial.intercept, b - initial.slope
         shifts.append(BranchShift(mask_id, offset, slope, cost_before, cost_after))
-    return RefinedBranches(refined, trust, shifts)
+    return RefinedBranches(refined, shifts)

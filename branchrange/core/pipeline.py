@@ -388,11 +388,9 @@ class Pipeline:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = lap_ms(timing, "masks", t)
         if masks is not None and stage.right is not None and self.config.stereo.refine_branches:
-            refined = refine_branch_disparity(
+            disparity = refine_branch_disparity(  # lowers `confidence` (this frame's own) where SGBM scattered
                 left, stage.right, disparity, masks, confidence, doffs_px=self.doffs_px, max_disparity=max_disparity
-            )
-            assert refined.confidence is not None, "given a confidence, the refinement returns one"
-            disparity, confidence = refined.disparity, refined.confidence
+            ).disparity
             t = lap_ms(timing, "branch_disparity", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)
         if masks is None or not valid.any():  # no masks only when nothing was valid to segment
