@@ -141,8 +141,8 @@ def in_front_of_trunk(trunk: np.ndarray, disparity: np.ndarray, ratio: float, mi
             total = cv2.filter2D(values, -1, kernel, borderType=cv2.BORDER_CONSTANT)
             count = cv2.filter2D(weight, -1, kernel, borderType=cv2.BORDER_CONSTANT)
             bark.append(np.where(count >= FRONT_MIN_SIDE_PIXELS, total / np.maximum(count, 1.0), np.inf))
-        deeper_side = np.maximum(bark[0], bark[1])  # the nearer of the two sides' bark: both must be behind
-        nearer |= values > deeper_side + np.maximum(ratio * deeper_side, FRONT_MIN_DISPARITY_PX)
+        nearer_side = np.maximum(bark[0], bark[1])  # the larger disparity: the pixel must be before both sides
+        nearer |= values > nearer_side + np.maximum(ratio * nearer_side, FRONT_MIN_DISPARITY_PX)
     front[window] = nearer & known[window]
     return _elongated_regions(front, min_area_px)
 
