@@ -212,6 +212,29 @@ def test_isotonic_calibration_is_monotone_and_honest():
         ConfidenceCalibration((0.2, 0.1), (0.1, 0.2))
 
 
+def test_the_network_sees_the_frame_at_network_width_and_answers_at_the_frame_size(scene):
+    rendered, stereo = scene
+    seen: list[tuple[int, ...]] = []
+
+    def recording(run):  # onnxruntime's run, noting the input's shape
+        def run_and_note(names, feeds):
+            seen.append(next(iter(feeds.values())).shape)
+            return run(names, feeds)
+
+        return run_and_note
+
+    branch = classes_from_instances(rendered.instance_mask) == BRANCH
+    for width in (0, 320, 1280):
+        segmenter = LearnedSegmenter(LearnedSegmenterConfig(network_width=width))
+        segmenter.session.run = recording(segmenter.session.run)  # type: ignore[method-assign]
+        logits = segmenter.logits(rendered.left, stereo.disparity)
+        assert logits.shape == (3, 360, 640) and np.isfinite(logits).all()
+        assert np.mean(logits.argmax(0)[branch] == CLASSES.index("branch")) > 0.4, width
+    assert [shape[2:] for shape in seen] == [(368, 640), (192, 320), (720, 1280)]  # padded to ×16
+    with pytest.raises(OnnxSegmenterError, match="network_width"):
+        LearnedSegmenterConfig(network_width=100)
+
+
 def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_network_width(scene, tmp_path):
     rendered, stereo = scene
     cam = rendered.camera
