@@ -35,7 +35,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -70,10 +69,10 @@ def benchmark_segmenter(name: str) -> Segmenter:
     """`make_segmenter(name)`, and the learned segmenter's variants: 'learned-int8' (its shipped int8 model)
     and a network width after '@' (e.g. 'learned@1280', 'learned-int8@1280'; `network_width`)."""
     base, _, width = name.partition("@")
-    if base in ("learned", "learned-int8") and (width or base != "learned"):
-        config = LearnedSegmenterConfig(precision="int8" if base == "learned-int8" else "fp32")
-        return LearnedSegmenter(replace(config, network_width=int(width)) if width else config)
-    return make_segmenter(name)
+    if base not in ("learned", "learned-int8") or name == "learned":
+        return make_segmenter(name)
+    precision = "int8" if base == "learned-int8" else "fp32"
+    return LearnedSegmenter(LearnedSegmenterConfig(precision=precision, network_width=int(width or 0)))
 
 
 def width_class(instance_mask: np.ndarray, branch_id: int) -> str:
