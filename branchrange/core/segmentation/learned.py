@@ -87,7 +87,8 @@ class LearnedSegmenterConfig(Settings):
       (and 0.3 px) are a stem in front of the trunk, a branch candidate (`trunk.in_front_of_trunk`; 0 = off).
       At 0.03, recall within 5 cm with exact disparity +4.3 points on calibration scenes 2861–2940 and
       +5.0 held out, where 12 % of the branches had been called trunk; with SGBM +0.5 and 0 (on bark SGBM
-      rarely shows a 2 px stem nearer) for ~0.5 more false cut points a frame, all low-confidence.
+      rarely shows a 2 px stem nearer) for ~0.5 more false cut points a frame, all low-confidence — so
+      the deploy files, whose segmenter sees SGBM (the roi mode's coarse pass), set 0.
     - `max_trunk_gap_m`: with a trunk found, instances farther from it than this are dropped (0 = keep all).
     - `attachment_scale_m`: a kept piece that stops short of the trunk by more than `TOUCHING_TRUNK_M`
       has its score multiplied by exp(−(gap − `TOUCHING_TRUNK_M`) / this) (`trunk_attachment`; 0 = off).
