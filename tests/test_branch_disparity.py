@@ -99,7 +99,8 @@ def test_a_thin_stem_gets_its_own_subpixel_disparity(bias: float) -> None:
 
 
 def test_holes_in_a_branch_stay_holes() -> None:
-    """Pixels without a valid disparity are not given one: the cut point's evidence is unchanged in kind."""
+    """Where the block matcher's own line is refined, pixels without a valid disparity are not given one:
+    the cut point's evidence is unchanged in kind."""
     left, right = _render_pair(VERTICAL, 20.3)
     labels = _stem_mask(VERTICAL)
     disparity = np.where(labels == 1, 19.8, BACKGROUND_DISPARITY).astype(np.float32)
@@ -110,25 +111,57 @@ def test_holes_in_a_branch_stay_holes() -> None:
     assert np.array_equal(refined == 0, disparity == 0)
 
 
-@pytest.mark.parametrize(
-    ("stem", "stem_disparity"),
-    [
-        # along the image rows with no texture across them (the aperture problem): nothing to match,
-        # its disparity must stay what the block matcher said, not drift to the backdrop's
-        (HORIZONTAL, 19.5),
-        # no valid disparity at all: no line to start from
-        (VERTICAL, 0.0),
-    ],
-    ids=["stem along the rows", "no valid disparity"],
-)
-def test_a_branch_without_evidence_is_left_alone(stem: dict, stem_disparity: float) -> None:
-    left, right = _render_pair(stem, 20.3)
-    labels = _stem_mask(stem)
-    disparity = np.where(labels == 1, stem_disparity, BACKGROUND_DISPARITY).astype(np.float32)
+def test_a_stem_along_the_rows_is_left_alone() -> None:
+    """No texture across the rows (the aperture problem): nothing to match, so its disparity stays what
+    the block matcher said, not drifting to the backdrop's or to any other shift."""
+    left, right = _render_pair(HORIZONTAL, 20.3)
+    labels = _stem_mask(HORIZONTAL)
+    disparity = np.where(labels == 1, 19.5, BACKGROUND_DISPARITY).astype(np.float32)
     out = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"))
-    refined, shifts = out.disparity, out.shifts
-    assert shifts == []
-    assert np.array_equal(refined, disparity)
+    assert out.shifts == []
+    assert np.array_equal(out.disparity, disparity)
+
+
+@pytest.mark.parametrize(
+    "given",
+    [0.0, BACKGROUND_DISPARITY, 20.3 + 9.0],
+    ids=["all holes", "the backdrop's disparity", "9 px too near"],
+)
+def test_a_stem_the_matcher_missed_is_found_over_the_whole_range(given: float) -> None:
+    """A block matcher whose window saw the backdrop gives a thin stem holes or the backdrop's disparity,
+    beyond any search around its own values. The whole-range search finds the stem's match: every stem
+    pixel, holes included, takes the line within 0.1 px of the truth, with a confidence from how distinct
+    the match is (one stem, no rival: full)."""
+    truth = 20.3
+    left, right = _render_pair(VERTICAL, truth)
+    labels = _stem_mask(VERTICAL)
+    stem = labels == 1
+    disparity = np.where(stem, given, BACKGROUND_DISPARITY).astype(np.float32)
+    given_confidence = np.where(disparity > 0, 0.9, 0.0).astype(np.float32)
+    confidence = given_confidence.copy()
+    out = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"), confidence)
+    assert len(out.shifts) == 1 and out.shifts[0].searched
+    assert np.abs(out.disparity[stem] - truth).max() < 0.1
+    assert np.array_equal(out.disparity[~stem], disparity[~stem])
+    assert (confidence[stem] == 1.0).all()
+    assert np.array_equal(confidence[~stem], given_confidence[~stem])
+
+
+def test_an_ambiguous_match_is_found_with_no_confidence() -> None:
+    """The right view shows the stem twice (an exact twin, backdrop and all, 20 px farther along the row):
+    both shifts match it equally well, so the searched line, whichever it is, carries no confidence."""
+    left, right = _render_pair(VERTICAL, 20.3)
+    band = slice(VERTICAL["x0"] - 26, VERTICAL["x0"] - 11)  # the right view's stem (at 99.7–102.7) ± 5 px
+    right[:, band.start - 20 : band.stop - 20] = right[:, band]
+    labels = _stem_mask(VERTICAL)
+    stem = labels == 1
+    disparity = np.where(stem, 0.0, BACKGROUND_DISPARITY).astype(np.float32)
+    confidence = np.where(disparity > 0, 0.9, 0.0).astype(np.float32)
+    out = refine_branch_disparity(left, right, disparity, BranchMasks(labels, None, "test"), confidence)
+    assert len(out.shifts) == 1 and out.shifts[0].searched
+    found = float(np.median(out.disparity[stem]))
+    assert min(abs(found - 20.3), abs(found - 40.3)) < 0.2
+    assert confidence[stem].max() < 0.1
 
 
 def test_the_disparity_offset_is_taken_out_before_matching() -> None:
