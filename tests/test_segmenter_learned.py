@@ -13,7 +13,12 @@ import torch
 from torch.nn import functional as F
 
 from branchrange.commands.train_segmenter import training_config
-from branchrange.core.confidence import ConfidenceCalibration, fit_calibration
+from branchrange.core.confidence import (
+    ConfidenceCalibration,
+    fit_calibration,
+    highest_inclusive_threshold,
+    lowest_reliable_threshold,
+)
 from branchrange.core.cutpoints import estimate_cut_points
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
@@ -210,6 +215,19 @@ def test_isotonic_calibration_is_monotone_and_honest():
     assert few(0.9) == pytest.approx(6 / 7)
     with pytest.raises(ValueError, match="ascending"):
         ConfidenceCalibration((0.2, 0.1), (0.1, 0.2))
+
+
+def test_default_thresholds_come_in_hundredths_from_the_outcomes():
+    """A block of cut points at exactly 0.80 of which only 60 % are right sits just under the confident ones
+    above it: the target threshold is the lowest hundredth above the block (0.81), not the next 0.05 step
+    (0.85), which would also drop the 19 right ones at 0.82; the obstacle threshold is the highest that
+    keeps ≥ 98 % of the right ones (the block's 30 included)."""
+    outcomes = [(0.8, i < 30) for i in range(50)]
+    outcomes += [(0.82, i < 19) for i in range(20)] + [(0.9, i < 95) for i in range(100)]
+    outcomes += [(0.3, i < 2) for i in range(10)] + [(0.05, False)] * 10
+    assert lowest_reliable_threshold(outcomes, 0.9) == 0.81  # ≥ 0.81: 114 of 120 right; ≥ 0.80: 144 of 170
+    assert lowest_reliable_threshold([(0.5, False)] * 3) is None
+    assert highest_inclusive_threshold(outcomes, 0.98) == 0.8  # keeps 144 of the 146 right; 0.81 only 114
 
 
 def test_the_network_sees_the_frame_at_network_width_and_answers_at_the_frame_size(scene):

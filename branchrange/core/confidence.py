@@ -98,22 +98,30 @@ def share_correct_above(outcomes: Sequence[tuple[float, bool]], threshold: float
     return len(kept), float(np.mean(kept)) if kept else float("nan")
 
 
+#: the thresholds the defaults are chosen from: 0.01, 0.02, … 0.99. Why this fine: an isotonic block holds
+#: dozens of cut points at one calibrated value, and in steps of 0.05 the step from a block at 0.80 to 0.85
+#: dropped a third of the confident cut points (the shipped model on scenes 2861–2980: 0.81 keeps 242 at
+#: 90.5 % right, 0.85 only 201 at 91.5 %)
+THRESHOLD_STEP = 0.01
+_THRESHOLDS = np.round(np.arange(THRESHOLD_STEP, 1.0, THRESHOLD_STEP), 2)
+
+
 def lowest_reliable_threshold(outcomes: Sequence[tuple[float, bool]], share: float = 0.9) -> float | None:
-    """The lowest confidence (steps of 0.05) at and above which at least `share` of the cut points are correct
-    — the default a target needs; None when no threshold reaches it."""
-    for threshold in np.arange(0.05, 1.0, 0.05):
+    """The lowest confidence (steps of `THRESHOLD_STEP`) at and above which at least `share` of the cut points
+    are correct — the default a target needs; None when no threshold reaches it."""
+    for threshold in _THRESHOLDS:
         count, correct = share_correct_above(outcomes, float(threshold))
         if count and correct >= share:
-            return round(float(threshold), 2)
+            return float(threshold)
     return None
 
 
 def highest_inclusive_threshold(outcomes: Sequence[tuple[float, bool]], keep: float = 0.98) -> float:
-    """The highest confidence (steps of 0.05) that still keeps at least `keep` of the correct cut points — the
-    default an obstacle needs (a real branch must not be dropped from the map for a shaky estimate)."""
+    """The highest confidence (steps of `THRESHOLD_STEP`) that still keeps at least `keep` of the correct cut
+    points — the default an obstacle needs (a real branch must not be dropped from the map for a shaky estimate)."""
     right = np.asarray([c for c, ok in outcomes if ok], dtype=np.float64)
     best = 0.0
-    for threshold in np.arange(0.05, 1.0, 0.05):
+    for threshold in _THRESHOLDS:
         if len(right) and np.mean(right >= threshold) >= keep:
-            best = round(float(threshold), 2)
+            best = float(threshold)
     return best
