@@ -4,8 +4,9 @@ Synthetic part: held-out scenes of `stereo.synth.render_scene` (seeds 50000+, ne
 training or calibrating the learned segmenter, which use seeds 1–2980; default options: ground,
 background trees and far foliage rows, foliage drawn bare/sparse/dense per scene) at 640×360 (ZED
 Mini). Per stereo source and segmenter (each name given — 'learned' runs its network at its default
-width, the frame's own (640 px here); 'learned@1280' at twice it; '-int8' the quantized copy — plus
-'truth' = the scene's instance mask),
+width, the frame's own (640 px here), with the default second look at the trunk band; 'learned/0' one
+look; 'learned@1280' one look at twice the width; '-int8' the quantized copy — plus 'truth' = the
+scene's instance mask),
 every frame goes through `Pipeline.process_disparity`. Stereo sources: 'sgbm' as the pipeline runs it
 (each branch's disparity refined on its own pixels, `branchrange.core.branch_disparity`),
 'sgbm-unrefined' (the same without the right image: the baseline of that step, same run) and 'truth'
@@ -66,13 +67,20 @@ WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
 
 
 def benchmark_segmenter(name: str) -> Segmenter:
-    """`make_segmenter(name)`, and the learned segmenter's variants: 'learned-int8' (its shipped int8 model)
-    and a network width after '@' (e.g. 'learned@1280', 'learned-int8@1280'; `network_width`)."""
-    base, _, width = name.partition("@")
+    """`make_segmenter(name)`, and the learned segmenter's variants: 'learned-int8' (its shipped int8 model),
+    a network width after '@' (e.g. 'learned@1280'; `network_width`) and a trunk band after '/' (e.g.
+    'learned/0': one look; `trunk_band_px`). Without a '/', the default band at the frame's own width and
+    none at another width (a second look at twice 1280 is not a setting anyone runs)."""
+    rest, _, band = name.partition("/")
+    base, _, width = rest.partition("@")
     if base not in ("learned", "learned-int8") or name == "learned":
         return make_segmenter(name)
     precision = "int8" if base == "learned-int8" else "fp32"
-    return LearnedSegmenter(LearnedSegmenterConfig(precision=precision, network_width=int(width or 0)))
+    default_band = LearnedSegmenterConfig().trunk_band_px if not width else 0
+    config = LearnedSegmenterConfig(
+        precision=precision, network_width=int(width or 0), trunk_band_px=int(band) if band else default_band
+    )
+    return LearnedSegmenter(config)
 
 
 def width_class(instance_mask: np.ndarray, branch_id: int) -> str:

@@ -98,6 +98,22 @@ def test_deploy_examples_load_with_the_values_they_document():
     assert serve.stereo.mode == "full"  # accuracy over latency off the vehicle
 
 
+@pytest.mark.parametrize("name", ["onboard.toml", "onboard_cpu.toml", "serve.toml"])
+def test_each_deploy_file_acts_on_the_target_threshold_its_segmenter_was_calibrated_to(name):
+    """A file that changes how the learned segmenter looks (precision, network width, trunk band) changes what a
+    reported confidence means: its target threshold is the one the model's table gives for that setting."""
+    import json
+
+    from branchrange.core.segmentation.learned import SCENE_WIDTH, SHIPPED_MODELS
+
+    cfg = load_config(DEPLOY / name)
+    learned = cfg.segmenter.learned
+    tables = json.loads(SHIPPED_MODELS[learned.precision].with_suffix(".json").read_text())["confidence_calibrations"]
+    setting = (learned.network_width or SCENE_WIDTH, learned.trunk_band_px)
+    table = next(t for t in tables if (t["network_width"], t["trunk_band_px"]) == setting)
+    assert cfg.cutpoints.target_min_confidence == table["target_min_confidence"]
+
+
 def test_deploy_files_agree_on_paths_names_and_devices():
     """The systemd unit, the container recipe, the udev rules and onboard.toml name the same things."""
     unit = configparser.ConfigParser(interpolation=None, strict=False)

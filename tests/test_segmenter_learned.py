@@ -243,7 +243,7 @@ def test_the_network_sees_the_frame_at_network_width_and_answers_at_the_frame_si
 
     branch = classes_from_instances(rendered.instance_mask) == BRANCH
     for width in (0, 320, 1280):
-        segmenter = LearnedSegmenter(LearnedSegmenterConfig(network_width=width))
+        segmenter = LearnedSegmenter(LearnedSegmenterConfig(network_width=width, trunk_band_px=0))
         segmenter.session.run = recording(segmenter.session.run)  # type: ignore[method-assign]
         logits = segmenter.logits(rendered.left, stereo.disparity)
         assert logits.shape == (3, 360, 640) and np.isfinite(logits).all()
@@ -251,6 +251,55 @@ def test_the_network_sees_the_frame_at_network_width_and_answers_at_the_frame_si
     assert [shape[2:] for shape in seen] == [(368, 640), (192, 320), (720, 1280)]  # padded to ×16
     with pytest.raises(OnnxSegmenterError, match="network_width"):
         LearnedSegmenterConfig(network_width=100)
+
+
+def softmax(logits: np.ndarray) -> np.ndarray:
+    """Class probabilities `(C, H, W)` of logits `(C, H, W)`."""
+    exp = np.exp(logits - logits.max(axis=0))
+    return np.asarray(exp / exp.sum(axis=0))
+
+
+def test_the_trunk_band_is_seen_again_twice_as_large_and_averaged_with_the_first_look_there(scene):
+    """The columns around the trunk are looked at a second time at twice the size; outside them the first look
+    stands. Inside, the class probabilities are the mean of the first look's and of the network's answer for
+    that crop alone, and they find more of the thin stems."""
+    rendered, stereo = scene
+    seen: list[tuple[int, ...]] = []
+    once = LearnedSegmenter(LearnedSegmenterConfig(trunk_band_px=0))
+    twice = LearnedSegmenter(LearnedSegmenterConfig(trunk_band_px=40))
+    run = twice.session.run
+
+    def run_and_note(names, feeds):  # onnxruntime's run, noting the input's shape
+        seen.append(next(iter(feeds.values())).shape)
+        return run(names, feeds)
+
+    twice.session.run = run_and_note  # type: ignore[method-assign]
+    first = once.logits(rendered.left, stereo.disparity)
+    both = twice.logits(rendered.left, stereo.disparity)
+    band = twice.trunk_band(first)
+    assert band is not None and once.trunk_band(first) is None
+    start, stop = band
+    trunk = (first.argmax(0) == CLASSES.index("trunk")).sum(axis=0) >= 5
+    columns = np.flatnonzero(trunk)
+    assert start % 16 == 0 and start <= max(0, columns[0] - 40) and stop >= min(640, columns[-1] + 41)
+    assert [shape[2:] for shape in seen] == [(368, 640), (720, 2 * (stop - start))]
+    assert np.array_equal(both[:, :, :start], first[:, :, :start]) and np.array_equal(
+        both[:, :, stop:], first[:, :, stop:]
+    )
+    alone = LearnedSegmenter(LearnedSegmenterConfig(network_width=2 * (stop - start), trunk_band_px=0))
+    crop = (slice(None), slice(start, stop))
+    second = alone.logits(rendered.left[crop], stereo.disparity[crop])
+    mean = 0.5 * (softmax(first[:, :, start:stop]) + softmax(second))
+    assert np.allclose(np.exp(both[:, :, start:stop]), mean, atol=1e-4)
+    branch = classes_from_instances(rendered.instance_mask) == BRANCH
+    branch[:, :start], branch[:, stop:] = False, False
+    found = [np.mean(logits.argmax(0)[branch] == CLASSES.index("branch")) for logits in (first, both)]
+    assert found[1] > found[0]
+    no_trunk = first.copy()
+    no_trunk[CLASSES.index("trunk")] = -50.0
+    assert twice.trunk_band(no_trunk) is None
+    with pytest.raises(OnnxSegmenterError, match="trunk_band_px"):
+        LearnedSegmenterConfig(trunk_band_px=-1)
 
 
 def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_network_width(scene, tmp_path):
@@ -266,9 +315,8 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
 
     def confidences(table_key: str, table: object, **settings: object) -> list[float]:
         (tmp_path / "branchnet.json").write_text(json.dumps({**meta, table_key: table}))
-        masks = LearnedSegmenter(LearnedSegmenterConfig(model=model, **settings)).segment(  # type: ignore[arg-type]
-            rendered.left, stereo.disparity, geometry
-        )
+        config = LearnedSegmenterConfig(model=model, **{"trunk_band_px": 0, **settings})  # type: ignore[arg-type]
+        masks = LearnedSegmenter(config).segment(rendered.left, stereo.disparity, geometry)
         return [b.confidence for b in estimate_cut_points(masks, stereo.disparity, geometry).branches]
 
     raw = {
@@ -289,10 +337,15 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
     )
     with pytest.raises(OnnxSegmenterError, match="network_width"):
         confidences("confidence_calibrations", [halving])
+    # tables measured at one width with and without the trunk band: each setting takes its own
+    banded = confidences("confidence_calibrations", [], calibrated=False, trunk_band_px=40)
+    by_band = [{**halving, "network_width": 640, "trunk_band_px": 40}, {**identity, "network_width": 640}]
+    assert confidences("confidence_calibrations", by_band, trunk_band_px=40) == pytest.approx([0.5 * c for c in banded])
+    assert confidences("confidence_calibrations", by_band) == pytest.approx(raw[0])
 
 
-def test_calibrating_a_model_stores_a_fit_per_network_width_and_the_segmenter_applies_it(tmp_path):
-    from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_WIDTHS, calibrate_model
+def test_calibrating_a_model_stores_a_fit_per_setting_and_the_segmenter_applies_it(tmp_path):
+    from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SETTINGS, calibrate_model
 
     for name in ("branchnet.onnx", "branchnet.json"):
         shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
@@ -300,18 +353,22 @@ def test_calibrating_a_model_stores_a_fit_per_network_width_and_the_segmenter_ap
     calibrations = calibrate_model(
         tmp_path / "branchnet.onnx", seeds=(2861, 2864), cache=tmp_path / "cal", log=lines.append
     )
-    assert set(calibrations) == set(CALIBRATION_WIDTHS) == {640, 1280}
-    assert "network width 640" in lines[0] and "cut points on scenes 2861–2863" in lines[0]
+    assert set(calibrations) == set(CALIBRATION_SETTINGS) == {(640, 40), (640, 0), (1280, 0)}
+    assert "network width 640, trunk band 40 px" in lines[0] and "cut points on scenes 2861–2863" in lines[0]
     meta = json.loads((tmp_path / "branchnet.json").read_text())
     assert "confidence_calibration" not in meta  # the single table of before is replaced
-    stored = {t["network_width"]: t for t in meta["confidence_calibrations"]}
-    for width, calibration in calibrations.items():
-        assert stored[width]["seeds"] == [2861, 2864] and stored[width]["cut_points"] > 0
-        assert ConfidenceCalibration.from_json_dict(stored[width]) == ConfidenceCalibration.from_json_dict(
+    stored = {(t["network_width"], t["trunk_band_px"]): t for t in meta["confidence_calibrations"]}
+    for setting, calibration in calibrations.items():
+        assert stored[setting]["seeds"] == [2861, 2864] and stored[setting]["cut_points"] > 0
+        assert ConfidenceCalibration.from_json_dict(stored[setting]) == ConfidenceCalibration.from_json_dict(
             calibration.to_json_dict()  # as written: rounded
         )
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx")))
-    assert segmenter.calibrations == {w: ConfidenceCalibration.from_json_dict(t) for w, t in stored.items()}
+    assert segmenter.calibrations == {k: ConfidenceCalibration.from_json_dict(t) for k, t in stored.items()}
+    one_look = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx"), trunk_band_px=0))
+    assert segmenter.calibration_at(640) == segmenter.calibrations[(640, 40)]
+    assert one_look.calibration_at(640) == segmenter.calibrations[(640, 0)]
+    assert segmenter.calibration_at(1280) == segmenter.calibrations[(1280, 0)]  # the width decides first
 
 
 def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
@@ -319,7 +376,8 @@ def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
     from branchrange.core.cutpoints import CutPointConfig
 
     tables = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibrations"]
-    table = next(t for t in tables if t["network_width"] == 640)  # default: the onboard coarse frame's own width
+    defaults = LearnedSegmenterConfig()
+    table = next(t for t in tables if (t["network_width"], t["trunk_band_px"]) == (640, defaults.trunk_band_px))
     assert CutPointConfig().target_min_confidence == table["target_min_confidence"]
     assert MavlinkConfig().obstacle_min_confidence == table["obstacle_min_confidence"]
 
@@ -392,11 +450,11 @@ def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene
     # the int8 file was made from the fp32 file shipped beside it (re-quantize after retraining)
     assert meta["quantized_from"]["onnx_sha256"] == hashlib.sha256(SHIPPED_MODEL.read_bytes()).hexdigest()
     assert (
-        len(meta["confidence_calibrations"]) == 2
+        len(meta["confidence_calibrations"]) == 3
         and SHIPPED_MODELS["int8"].stat().st_size < SHIPPED_MODEL.stat().st_size
     )
     fp32, int8 = LearnedSegmenter(), LearnedSegmenter(LearnedSegmenterConfig(precision="int8"))
-    assert int8.model_path == SHIPPED_MODELS["int8"] and set(int8.calibrations) == {640, 1280}
+    assert int8.model_path == SHIPPED_MODELS["int8"] and set(int8.calibrations) == {(640, 40), (640, 0), (1280, 0)}
     classes = [s.logits(rendered.left, stereo.disparity).argmax(0) for s in (fp32, int8)]
     assert np.mean(classes[0] == classes[1]) > 0.98
     branch = classes[0] == CLASSES.index("branch")

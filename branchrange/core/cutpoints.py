@@ -72,10 +72,10 @@ class CutPointConfig(Settings):
     - `max_instances`: most branch instances a frame may hold; more → `MaskError` (HTTP 422: a bad
       mask, refused before any geometry runs rather than holding the estimator for minutes).
     - `target_policy`: how `select_target` picks the target, one of `TARGET_POLICIES`;
-      `target_min_confidence`: a branch below it is never the target. 0.81: with the default learned
-      segmenter (network width 640; its table at 1280 says 0.86) and SGBM, the lowest (calibrated)
-      confidence, in hundredths, at and above which ≥ 90 % of cut points lie within 5 cm of a true one
-      (its calibration scenes; `benchmarks/segmenter.py` checks it held out).
+      `target_min_confidence`: a branch below it is never the target. 0.78: with the default learned
+      segmenter (network width 640, trunk band 40 px; its tables say 0.81 for one look, 0.86 at 1280) and
+      SGBM, the lowest (calibrated) confidence, in hundredths, at and above which ≥ 90 % of cut points lie
+      within 5 cm of a true one (its calibration scenes; `benchmarks/segmenter.py` checks it held out).
     - `tracking`: keep branch ids stable across frames (`branchrange.core.tracking`, tuned in
       `[branch_tracking]`; the daemon and replay want it, a single pair does not).
     """
@@ -95,7 +95,7 @@ class CutPointConfig(Settings):
     surface_correction: bool = True
     max_instances: int = 256
     target_policy: str = DEFAULT_TARGET_POLICY
-    target_min_confidence: float = 0.81
+    target_min_confidence: float = 0.78
     tracking: bool = True
 
     def checks(self) -> Checks:

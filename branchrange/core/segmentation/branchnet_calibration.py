@@ -30,19 +30,23 @@ from branchrange.core.confidence import (
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 
 CALIBRATION_SEEDS = (2861, 2981)
-#: the network widths (px) calibrated: the scenes' own (as onboard) and twice it (off the vehicle)
-CALIBRATION_WIDTHS = (640, 1280)
+#: how the network is calibrated seeing the scenes, (network width px, trunk band px): the default (the
+#: scenes' own width, the trunk band looked at twice as large), one look as the onboard loop affords, and
+#: twice the width in one look
+CALIBRATION_SETTINGS = ((640, 40), (640, 0), (1280, 0))
 
 
 def raw_outcomes(
-    model: Path, seeds: tuple[int, int], cache: Path | None, network_width: int
+    model: Path, seeds: tuple[int, int], cache: Path | None, network_width: int, trunk_band_px: int = 0
 ) -> list[tuple[float, bool]]:
     """(raw confidence, within 5 cm of a true cut point) of every cut point on scenes `seeds` [first, last),
-    the network seeing them at `network_width` px."""
+    the network seeing them at `network_width` px (and the trunk band, `trunk_band_px`)."""
     from branchrange.core.pipeline import Pipeline, untracked_whole_frame
     from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 
-    config = LearnedSegmenterConfig(model=str(model), calibrated=False, network_width=network_width)
+    config = LearnedSegmenterConfig(
+        model=str(model), calibrated=False, network_width=network_width, trunk_band_px=trunk_band_px
+    )
     segmenter = LearnedSegmenter(config)
     outcomes = []
     for seed in range(*seeds):
@@ -65,22 +69,26 @@ def calibrate_model(
     seeds: tuple[int, int] = CALIBRATION_SEEDS,
     cache: Path | None = None,
     log: Callable[[str], object] = print,
-    widths: tuple[int, ...] = CALIBRATION_WIDTHS,
-) -> dict[int, ConfidenceCalibration]:
-    """Fit the confidence calibration of the ONNX `model` at each network width of `widths` and store them
-    in the JSON beside it ("confidence_calibrations", replacing what was there); a width at which the
-    model finds no cut point on those scenes gets none (its confidences stay raw)."""
+    settings: tuple[tuple[int, int], ...] = CALIBRATION_SETTINGS,
+) -> dict[tuple[int, int], ConfidenceCalibration]:
+    """Fit the confidence calibration of the ONNX `model` for each (network width, trunk band) of `settings`
+    and store them in the JSON beside it ("confidence_calibrations", replacing what was there); a setting
+    with which the model finds no cut point on those scenes gets none (its confidences stay raw)."""
     tables, calibrations = [], {}
-    for width in widths:
-        outcomes = raw_outcomes(model, seeds, cache, width)
+    for width, band in settings:
+        outcomes = raw_outcomes(model, seeds, cache, width, band)
         if not outcomes:
-            log(f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} at width {width}: that width stays uncalibrated")
+            log(
+                f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} at width {width}, trunk band {band} px: "
+                "that setting stays uncalibrated"
+            )
             continue
         calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
         calibrated = [(calibration(c), ok) for c, ok in outcomes]
         tables.append(
             {
                 "network_width": width,
+                "trunk_band_px": band,
                 **calibration.to_json_dict(),
                 "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
                 "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
@@ -90,10 +98,10 @@ def calibrate_model(
                 "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4),
             }
         )
-        calibrations[width] = calibration
+        calibrations[(width, band)] = calibration
         log(
-            f"confidence calibration at network width {width} from {len(outcomes)} cut points on scenes "
-            f"{seeds[0]}–{seeds[1] - 1}: {calibration}"
+            f"confidence calibration at network width {width}, trunk band {band} px, from {len(outcomes)} cut "
+            f"points on scenes {seeds[0]}–{seeds[1] - 1}: {calibration}"
         )
     meta_path = model.with_suffix(".json")
     meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
