@@ -258,7 +258,7 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
             if overlays is not None:
                 masks = pipeline.last.masks
                 draw_overlay(
-                    overlays / f"{folder.name}_{name}.png",
+                    overlays / f"{folder.name}_{name.replace('/', '_band')}.png",
                     left,
                     annotations,
                     masks.labels if masks is not None else None,
