@@ -21,8 +21,8 @@ Steps (one frame):
    stops short of the trunk (`trunk_attachment`) — carried in
    `BranchMasks.scores` and multiplied into its cut point's confidence, so a doubtful instance
    never produces a confident cut point; that product goes through the model's measured
-   calibration at the width (and trunk band) the network saw the frame at (`branchnet_calibration`), so a reported
-   confidence is the share of such cut points that lie within 5 cm of a true one (SGBM, held-out
+   calibration at the width and trunk band the network saw the frame with (`branchnet_calibration`), so
+   a reported confidence is the share of such cut points that lie within 5 cm of a true one (SGBM, held-out
    synthetic scenes).
 
 The weights file ships inside the package (`weights/branchnet.onnx`, under 1 MB) and is checked
@@ -103,8 +103,9 @@ class LearnedSegmenterConfig(Settings):
       recall within 5 cm on calibration scenes 2861–2980 60.4 → 62.9 % and false cut points 6.40 → 5.78
       a frame, held out 59.4 → 67.2 % and 5.17 → 4.57 — the recall of the whole frame seen at 1280, with
       fewer false cut points, for ~60 % of its time: the band is on average a third of the frame's width,
-      and the second look costs ~62 ms on one thread (131 against 69 ms a 640×360 frame; 88 against 50
-      ms on two). The onboard deploy files set 0: the real-time loop cannot spare it.
+      and the second look costs ~70 ms on one thread (134–140 against 65–68 ms a 640×360 frame; 88
+      against 50 ms on two). The onboard deploy files set 0: the real-time loop cannot spare it (5.6
+      against 8.1 fresh Hz on the synthetic HD720 flight).
     - `max_trunk_gap_m`: with a trunk found, instances farther from it than this are dropped (0 = keep all).
     - `attachment_scale_m`: a kept piece that stops short of the trunk by more than `TOUCHING_TRUNK_M`
       has its score multiplied by exp(−(gap − `TOUCHING_TRUNK_M`) / this) (`trunk_attachment`; 0 = off).
@@ -256,7 +257,9 @@ class LearnedSegmenter:
         frame's size. The network sees it resized to `network_width` (the disparity's values need no
         scaling: the network divides them by their 95th percentile); its class probabilities are then
         resampled to the frame's pixels — a frame pixel's share of stem, averaged over the ones the
-        network saw — and returned as log-probabilities (logits of the same softmax)."""
+        network saw — and returned as log-probabilities (logits of the same softmax). In the `trunk_band`
+        the network looks once more at `TRUNK_BAND_ZOOM` times that size, and there the log of the two
+        looks' mean probabilities is returned."""
         seen = self.seen_width(disparity.shape[1])
         logits = self._logits_seen_at(left, disparity, seen)
         band = self.trunk_band(logits)
@@ -269,7 +272,9 @@ class LearnedSegmenter:
 
     def trunk_band(self, logits: np.ndarray) -> tuple[int, int] | None:
         """Columns [first, last) within `trunk_band_px` of the columns the `(3, H, W)` logits call trunk
-        (≥ `TRUNK_COLUMN_MIN_PX` of their pixels); None when the setting is 0 or no column holds the trunk."""
+        (≥ `TRUNK_COLUMN_MIN_PX` of their pixels), widened to multiples of `STRIDE` (the network's grid; on
+        the held-out scenes, with the second look replacing the first, 71.1 % recall against 67.2 % for the
+        band as it fell); None when the setting is 0 or no column holds the trunk."""
         if not self.config.trunk_band_px:
             return None
         trunk = (logits[_TRUNK] > logits[_BACKGROUND]) & (logits[_TRUNK] > logits[_BRANCH])
