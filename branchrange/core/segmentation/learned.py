@@ -112,8 +112,9 @@ class LearnedSegmenterConfig(Settings):
     - `split_straight`: split each branch region into straight pieces (`pieces.straight_pieces_of`), so
       branches that touch or cross in the image become separate instances; else 8-connected regions.
     - `calibrated`: report cut-point confidences through the model's measured calibration at the width
-      the network sees the frame at (its JSON's "confidence_calibrations"; the nearest width measured,
-      by ratio), so that a confidence is the share of such cut points that are right.
+      the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
+      width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
+      points that are right.
     - `threads`: onnxruntime intra-op threads. 1 by default: onboard the segmenter runs in the stereo
       thread while the geometry thread works on the other core (roi-sgbm on the synthetic flight:
       9.9–10.7 fresh Hz with 1 thread, 8.5–9.2 with 2); alone it costs 62 / 53 ms (1 / 2 threads) on a
