@@ -101,9 +101,10 @@ class LearnedSegmenterConfig(Settings):
       class probabilities are averaged (`log_mean_probability`; 0 = one look). What a pruner cuts grows
       from the trunk, and the stems 1–3 px wide the first look misses most are there. At 40, with SGBM:
       recall within 5 cm on calibration scenes 2861–2980 60.4 → 62.9 % and false cut points 6.40 → 5.78
-      a frame, held out 59.4 → 67.2 % and 5.17 → 4.57 — the recall of the whole frame seen at 1280, with
-      fewer false cut points, for ~60 % of its time: the band is on average a third of the frame's width,
-      and the second look costs ~70 ms on one thread (134–140 against 65–68 ms a 640×360 frame; 88
+      a frame, held out 59.4 → 67.2 % and 5.17 → 4.57 (on 60 held-out scenes 59.8 → 64.1 % and 5.68 →
+      5.22) — about the recall of the whole frame seen at 1280 (66.3 % on the 60), with fewer false cut
+      points, for ~60 % of its time: the band is on average a third of the frame's width, and the second
+      look costs ~70 ms on one thread (134–140 against 65–68 ms a 640×360 frame; 88
       against 50 ms on two). The onboard deploy files set 0: the real-time loop cannot spare it (5.6
       against 8.1 fresh Hz on the synthetic HD720 flight).
     - `max_trunk_gap_m`: with a trunk found, instances farther from it than this are dropped (0 = keep all).
