@@ -342,6 +342,8 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
     by_band = [{**halving, "network_width": 640, "trunk_band_px": 40}, {**identity, "network_width": 640}]
     assert confidences("confidence_calibrations", by_band, trunk_band_px=40) == pytest.approx([0.5 * c for c in banded])
     assert confidences("confidence_calibrations", by_band) == pytest.approx(raw[0])
+    with pytest.raises(OnnxSegmenterError, match="trunk_band_px"):
+        confidences("confidence_calibrations", [{**halving, "network_width": 640, "trunk_band_px": "40"}])
 
 
 def test_calibrating_a_model_stores_a_fit_per_setting_and_the_segmenter_applies_it(tmp_path):
