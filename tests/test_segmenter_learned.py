@@ -26,7 +26,13 @@ from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, network_input
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK, classes_from_instances
 from branchrange.core.segmentation.choose import make_segmenter
-from branchrange.core.segmentation.learned import SHIPPED_MODEL, LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.core.segmentation.learned import (
+    MAX_NETWORK_WIDTH,
+    SHIPPED_MODEL,
+    LearnedSegmenter,
+    LearnedSegmenterConfig,
+    band_seen_width,
+)
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 
 #: torch's TorchScript exporter builds the ONNX file in the training test; its deprecation notice is not ours
@@ -295,6 +301,9 @@ def test_the_trunk_band_is_seen_again_twice_as_large_and_averaged_with_the_first
     branch[:, :start], branch[:, stop:] = False, False
     found = [np.mean(logits.argmax(0)[branch] == CLASSES.index("branch")) for logits in (first, both)]
     assert found[1] > found[0]
+    assert band_seen_width(stop - start, 1.0) == 2 * (stop - start)
+    assert band_seen_width(160, 2.0) == 640  # after a first look at twice the frame's width, four times
+    assert band_seen_width(2208, 1.0) == MAX_NETWORK_WIDTH  # a whole 2208 px frame: capped, not 4416 px
     no_trunk = first.copy()
     no_trunk[CLASSES.index("trunk")] = -50.0
     assert twice.trunk_band(no_trunk) is None

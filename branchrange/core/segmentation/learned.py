@@ -267,7 +267,7 @@ class LearnedSegmenter:
         band = self.trunk_band(logits)
         if band is not None:  # the columns around the trunk once more, larger: both looks' probabilities averaged
             first, last = band
-            zoomed = round(TRUNK_BAND_ZOOM * (last - first) * seen / disparity.shape[1])
+            zoomed = band_seen_width(last - first, seen / disparity.shape[1])
             second = self._logits_seen_at(left[:, first:last], disparity[:, first:last], zoomed)
             logits[:, :, first:last] = log_mean_probability(logits[:, :, first:last], second)
         return logits
@@ -366,6 +366,13 @@ class LearnedSegmenter:
 
 #: a piece whose pixels come this close to the trunk (m) touches it: SGBM fattens edges by a pixel or two
 TOUCHING_TRUNK_M = 0.01
+
+
+def band_seen_width(band_px: int, first_scale: float) -> int:
+    """The width (px) the second look sees a band `band_px` frame px wide at: `TRUNK_BAND_ZOOM` times the
+    first look's scale (`first_scale` = its seen width / the frame's), at most `MAX_NETWORK_WIDTH` — a
+    2208 px ZED frame whose trunk spans it would otherwise ask for a 4416 px look, seconds and gigabytes."""
+    return max(1, min(round(TRUNK_BAND_ZOOM * band_px * first_scale), MAX_NETWORK_WIDTH))
 
 
 def log_mean_probability(first: np.ndarray, second: np.ndarray) -> np.ndarray:
