@@ -79,7 +79,7 @@ ITERATIONS, CONVERGED_PX = 10, 1e-3
 RESIDUAL_CAP = 20.0
 #: mean squared horizontal gradient (grey levels² per px²) below which a branch has nothing to match
 MIN_MEAN_GRADIENT_SQ = 4.0
-#: fewest valid pixels (and pixels in all) for a refinement
+#: fewest pixels for a refinement, and fewest with a valid disparity for the block matcher's line
 MIN_PIXELS = 6
 #: band (px) of the robust initial line through the given disparity
 INITIAL_BAND_PX = 1.0

@@ -388,7 +388,7 @@ class Pipeline:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = lap_ms(timing, "masks", t)
         if masks is not None and stage.right is not None and self.config.stereo.refine_branches:
-            disparity = refine_branch_disparity(  # lowers `confidence` (this frame's own) where SGBM scattered
+            disparity = refine_branch_disparity(  # rewrites `confidence` (this frame's own) on refined branches
                 left, stage.right, disparity, masks, confidence, doffs_px=self.doffs_px, max_disparity=max_disparity
             ).disparity
             t = lap_ms(timing, "branch_disparity", t)
