@@ -120,8 +120,8 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]
     return rows
 
 
-def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dict:
-    """Scores per 'stereo/segmenter' over `scenes` held-out scenes."""
+def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None, hardware: bool = False) -> dict:
+    """Scores per 'stereo/segmenter' over `scenes` held-out scenes (with orchard hardware when `hardware`)."""
     built = {name: benchmark_segmenter(name) for name in segmenters}
     scores: dict[str, CutScores] = {}
     confidences: dict[str, list[tuple[float, bool]]] = {}
@@ -129,7 +129,7 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None) -> dic
     confident: dict[str, CutScores] = {}  # only the cut points at or above the target default
     by_width: dict[str, dict[str, CutScores]] = {}  # recall per branch width class (all cut points matched)
     for i in range(scenes):
-        scene = evaluation_scene(FIRST_SEED + i, cache)
+        scene = evaluation_scene(FIRST_SEED + i, cache, hardware=hardware)
         f, b, cx, cy = (float(v) for v in scene["camera"])
         widths = [width_class(scene["mask"], k + 1) for k in range(len(scene["truth"]))]
         for stereo in ("sgbm", "sgbm-unrefined", "truth"):
@@ -316,21 +316,28 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--cache", type=Path, help="folder caching rendered scenes and their sgbm disparity")
     parser.add_argument("--overlays", type=Path, help="write real-pair overlays here")
+    parser.add_argument(
+        "--hardware",
+        action="store_true",
+        help="the synthetic scenes with orchard hardware around the tree (wires, posts, stakes, painted rods)",
+    )
     parser.add_argument("--skip-real", action="store_true", help="leave out the real pairs")
     parser.add_argument("--json", type=Path, help="write all numbers here")
     args = parser.parse_args(argv)
     print(f"CPU: {cpu_name()} (shared machine: absolute times are noisy)")
     start = time.perf_counter()
-    synthetic = run_synthetic(args.segmenters, args.scenes, args.cache)
+    synthetic = run_synthetic(args.segmenters, args.scenes, args.cache, args.hardware)
     real = {} if args.skip_real else run_real(args.segmenters, args.overlays)
     print_tables(synthetic, real)
     print(
-        f"\n{args.scenes} scenes at {SIZE[0]}×{SIZE[1]}, seeds {FIRST_SEED}–{FIRST_SEED + args.scenes - 1}; "
+        f"\n{args.scenes} scenes at {SIZE[0]}×{SIZE[1]}{' with orchard hardware' if args.hardware else ''}, "
+        f"seeds {FIRST_SEED}–{FIRST_SEED + args.scenes - 1}; "
         f"{time.perf_counter() - start:.0f} s"
     )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"cpu": cpu_name(), "synthetic": synthetic, "real": real}, indent=1) + "\n")
+        numbers = {"cpu": cpu_name(), "orchard_hardware": args.hardware, "synthetic": synthetic, "real": real}
+        args.json.write_text(json.dumps(numbers, indent=1) + "\n")
     return 0
 
 

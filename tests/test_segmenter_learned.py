@@ -204,6 +204,21 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     assert all(torch.equal(first[k], second[k]) for k in first)
 
 
+def test_a_hardware_stage_also_trains_on_scenes_with_orchard_hardware(tmp_path):
+    from branchrange.core.segmentation.branchnet_training import train_branchnet
+
+    settings = ["train_seeds=[1, 2]", "val_seeds=[2, 3]", "batch=3", "crop=64", "width=4", "threads=1", "steps=2"]
+    train_branchnet(training_config(None, [*settings, "hardware_seeds=[5, 7]"]), tmp_path / "run", tmp_path / "data")
+    drawn = {p.name for p in (tmp_path / "data").iterdir()}
+    assert drawn & {"sample_hw_000005.npz", "sample_hw_000006.npz"} and "sample_000001.npz" in drawn
+    hardware = np.load(tmp_path / "data" / sorted(drawn & {"sample_hw_000005.npz", "sample_hw_000006.npz"})[0])
+    assert hardware["classes"].shape == (360, 640) and (hardware["classes"] == BRANCH).any()
+    with pytest.raises(ValueError, match="hardware_seeds and val_seeds overlap"):
+        training_config(None, ["hardware_seeds=[2, 5]", "val_seeds=[3, 4]", "train_seeds=[10, 20]"])
+    with pytest.raises(ValueError, match="hardware_seeds must be"):
+        training_config(None, ["hardware_seeds=[5, 5]"])
+
+
 def test_isotonic_calibration_is_monotone_and_honest():
     rng = np.random.default_rng(0)
     raw = rng.uniform(0, 1, 2000)

@@ -180,6 +180,7 @@ def test_synth_command_writes_dataset_and_preview(tmp_path, capsys):
             "96x64",
             "--leaf-shape",
             "needles",
+            "--orchard-hardware",
             "--preview",
             str(preview),
             "--quiet",
@@ -189,7 +190,8 @@ def test_synth_command_writes_dataset_and_preview(tmp_path, capsys):
     assert "wrote 2 scenes" in capsys.readouterr().out
     assert (tmp_path / "set" / "left image" / "left_1.png").is_file()
     assert json.loads((tmp_path / "set" / "branches" / "branches_1.json").read_text())["leaf_shape"] == "needles"
-    assert json.loads((tmp_path / "set" / "synth.json").read_text())["options"]["leaf_shape"] == "needles"
+    options = json.loads((tmp_path / "set" / "synth.json").read_text())["options"]
+    assert options["leaf_shape"] == "needles" and options["orchard_hardware"] is True
     picture = read_rgb(preview)
     assert picture.shape == (2 * 64, 4 * 96, 3)
 

@@ -45,6 +45,7 @@ def _options(args: argparse.Namespace) -> SynthOptions:
             leaf_shape=args.leaf_shape,
             noise_std=args.noise,
             background_trees=not args.no_background_trees,
+            orchard_hardware=args.orchard_hardware,
         )
     except ValueError as exc:
         raise SystemExit(f"emcstereo synth: {exc}") from exc
@@ -135,6 +136,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--noise", type=float, default=1.0, help="sensor noise std in grey levels (default 1)")
     parser.add_argument("--no-background-trees", action="store_true", help="leave out mid-ground trees")
+    parser.add_argument(
+        "--orchard-hardware",
+        action="store_true",
+        help="add trellis wires, posts, a stake and painted rods around the tree (background, not targets)",
+    )
     parser.add_argument("--exr-half", action="store_true", help="store depth as fp16 like the UE5 originals")
     parser.add_argument("--workers", type=int, default=1, help="render in this many processes (default 1)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

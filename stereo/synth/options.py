@@ -25,6 +25,9 @@ class SynthOptions:
       cylinders fanning out from the twigs), or 'auto' to draw one per scene. The default
       'broad' draws nothing extra, so scenes of a seed stay as they were before the option.
     - `background_trees`: mid-ground trees 4.5–9 m away (mask id 0, not pruning targets).
+    - `orchard_hardware`: also draw trellis wires, posts, a stake and painted rods around the tree
+      (`stereo.synth.hardware`; background, mask id 0): straight man-made things at the tree's depth that
+      a pruner must not cut. Off by default, so the scenes of a seed stay as they were before the option.
     - `noise_std`: sensor noise, standard deviation in 8-bit grey levels, drawn per view.
     - `view_gain_jitter`: largest relative gain difference per colour channel between the views.
     - `threads`: render the left, right and ground-truth passes in this many threads (the
@@ -37,6 +40,7 @@ class SynthOptions:
     foliage: str = "auto"
     leaf_shape: str = "broad"
     background_trees: bool = True
+    orchard_hardware: bool = False
     noise_std: float = 1.0
     view_gain_jitter: float = 0.02
     threads: int = 2

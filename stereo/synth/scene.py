@@ -19,6 +19,7 @@ import numpy as np
 
 from stereo.synth.camera import SynthCamera
 from stereo.synth.cones import BarkMaterial, Cone
+from stereo.synth.hardware import orchard_hardware
 from stereo.synth.leaves import Leaf
 from stereo.synth.options import SynthOptions
 from stereo.synth.planes import PlaneLayer
@@ -382,6 +383,7 @@ class _SceneBuilder:
                 foot, trunk_axis, trunk_len, r_ground, r_top, self._bark(tile, r_ground, np.ones(3)), TRUNK_ID
             )
             self.trunk = (trunk.base, trunk.axis, trunk_len, r_ground, r_top)
+            self.trunk_foot = foot
             span = self._visible_trunk_span(foot, trunk_axis, trunk_len)
             truths: list[BranchTruth] = []
             for _ in range(rng.integers(4, 11)):
@@ -617,6 +619,9 @@ class _SceneBuilder:
         canopy = self._canopy()
         if canopy is not None:
             layers.append(canopy)
+        exposure_target = float(self.rng.uniform(0.36, 0.5))
+        if self.options.orchard_hardware:  # drawn last: without it a seed's scene is what it always was
+            self._hardware(ground_y)
         return SceneDescription(
             self.pose,
             self.foliage,
@@ -627,9 +632,15 @@ class _SceneBuilder:
             sky,
             light,
             tuple(branches),
-            float(self.rng.uniform(0.36, 0.5)),
+            exposure_target,
             self.detail,
         )
+
+    def _hardware(self, ground_y: float) -> None:
+        """Trellis wires, posts, a stake and rods around the tree (`stereo.synth.hardware`), as background cones."""
+        for piece in orchard_hardware(self.rng, self.trunk_foot, ground_y, self.frame.right):
+            material = BarkMaterial(MipTile(piece.tile), 1, max(0.3, 2 * np.pi * piece.radius))
+            self._cone(piece.base, piece.axis, piece.length, piece.radius, piece.radius, material, 0)
 
 
 def build_scene(rng: np.random.Generator, camera: SynthCamera, options: SynthOptions) -> SceneDescription:

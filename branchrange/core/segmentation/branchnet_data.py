@@ -36,12 +36,15 @@ def classes_from_instances(instances: np.ndarray) -> np.ndarray:
     return classes
 
 
-def render_sample(seed: int, size: tuple[int, int] = (640, 360), max_disp: int = 128) -> dict[str, np.ndarray]:
-    """One training sample (see the module docstring) of scene `seed` at `size` (width, height) px."""
+def render_sample(
+    seed: int, size: tuple[int, int] = (640, 360), max_disp: int = 128, hardware: bool = False
+) -> dict[str, np.ndarray]:
+    """One training sample (see the module docstring) of scene `seed` at `size` (width, height) px; `hardware`:
+    with orchard hardware around the tree (`SynthOptions.orchard_hardware`: wires, posts, stakes, rods)."""
     from stereo.backends import make_backend
     from stereo.synth import SynthCamera, render_scene
 
-    scene = render_scene(seed, SynthCamera.zed_mini(*size), leaf_shape="auto", threads=1)
+    scene = render_scene(seed, SynthCamera.zed_mini(*size), leaf_shape="auto", threads=1, orchard_hardware=hardware)
     stereo = make_backend("sgbm", max_disp=max_disp).compute(scene.left, scene.right)
     return {
         "left": scene.left,
@@ -51,13 +54,16 @@ def render_sample(seed: int, size: tuple[int, int] = (640, 360), max_disp: int =
     }
 
 
-def cached_sample(folder: Path, seed: int, size: tuple[int, int] = (640, 360)) -> dict[str, np.ndarray]:
-    """The sample of `seed` from `folder`, rendered and stored there first when absent."""
-    path = folder / f"sample_{seed:06d}.npz"
+def cached_sample(
+    folder: Path, seed: int, size: tuple[int, int] = (640, 360), hardware: bool = False
+) -> dict[str, np.ndarray]:
+    """The sample of `seed` (with orchard hardware when `hardware`) from `folder`, rendered and stored there first
+    when absent."""
+    path = folder / f"sample_{'hw_' if hardware else ''}{seed:06d}.npz"
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
-    sample = render_sample(seed, size)
+    sample = render_sample(seed, size, hardware=hardware)
     folder.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")  # two renderers of one seed never share a file
     np.savez_compressed(partial, **sample)
@@ -65,12 +71,12 @@ def cached_sample(folder: Path, seed: int, size: tuple[int, int] = (640, 360)) -
     return sample
 
 
-def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360)) -> dict:
-    """A scene as the segmenter is scored on it: the default renderer options at `size`, SGBM over 192 px,
-    truth cut points. Keys: left, right, disparity (exact), mask (renderer ids), sgbm, sgbm_conf, camera
-    (f px, B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached in `cache` when given
-    (a cached scene from before the right image was kept is rendered again)."""
-    path = cache / f"scene_{seed}.npz" if cache is not None else None
+def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360), hardware: bool = False) -> dict:
+    """A scene as the segmenter is scored on it: the default renderer options at `size` (plus orchard hardware
+    when `hardware`), SGBM over 192 px, truth cut points. Keys: left, right, disparity (exact), mask (renderer
+    ids), sgbm, sgbm_conf, camera (f px, B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached
+    in `cache` when given (a cached scene from before the right image was kept is rendered again)."""
+    path = cache / f"scene_{'hw_' if hardware else ''}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
             scene = {k: data[k] for k in data.files}
@@ -80,7 +86,7 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     from stereo.backends import make_backend
     from stereo.synth import SynthCamera, render_scene
 
-    rendered = render_scene(seed, SynthCamera.zed_mini(*size))
+    rendered = render_scene(seed, SynthCamera.zed_mini(*size), orchard_hardware=hardware)
     stereo = make_backend("sgbm", max_disp=192).compute(rendered.left, rendered.right)
     cam = rendered.camera
     truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]

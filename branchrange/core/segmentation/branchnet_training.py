@@ -51,6 +51,9 @@ class BranchNetTrainConfig:
       weights — a second stage; its SHA-256 is recorded in the metadata ("init_sha256"). Tensors whose
       name and shape match are taken; the rest (a full-resolution branch a stage adds, and the head that
       reads it) start from their random initial values.
+    - `hardware_seeds`: [first, last) scene seeds rendered with orchard hardware (wires, posts, stakes, painted
+      rods: `stereo.synth.hardware`), drawn from like the training seeds — a stage that teaches the network
+      that a straight thin cylinder near the trunk is not always a branch; (0, 0) = none.
     - `fine_width`: channels of `BranchNet`'s full-resolution feature branch (0: none, the head reads
       the raw input).
     """
@@ -71,14 +74,22 @@ class BranchNetTrainConfig:
     val_every: int = 500
     init_weights: str = ""
     fine_width: int = 0
+    hardware_seeds: tuple[int, int] = (0, 0)
 
     def __post_init__(self) -> None:
-        for name in ("train_seeds", "val_seeds"):
+        ranges = (
+            ("train_seeds", "val_seeds", "hardware_seeds")
+            if self.hardware_seeds != (0, 0)
+            else ("train_seeds", "val_seeds")
+        )
+        for name in ranges:
             first, last = getattr(self, name)
             if not 0 < first < last <= TRAIN_SEED_LIMIT:
                 raise ValueError(f"{name} must be [first, last) with 0 < first < last ≤ {TRAIN_SEED_LIMIT}")
-        if max(self.train_seeds[0], self.val_seeds[0]) < min(self.train_seeds[1], self.val_seeds[1]):
-            raise ValueError("train_seeds and val_seeds overlap")
+        for name in ranges[::2]:
+            seeds = getattr(self, name)
+            if max(seeds[0], self.val_seeds[0]) < min(seeds[1], self.val_seeds[1]):
+                raise ValueError(f"{name} and val_seeds overlap")
         if self.steps < 1 or self.batch < 1 or self.crop % 16 or self.crop < 64:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
         if not 0 <= self.fine_width <= 64:
@@ -222,7 +233,8 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     torch.set_num_threads(config.threads)
     rng = np.random.default_rng(config.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
-    train_seeds = np.arange(*config.train_seeds)
+    train_seeds = [(int(s), False) for s in range(*config.train_seeds)]
+    train_seeds += [(int(s), True) for s in range(*config.hardware_seeds)]
     validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
     model = BranchNet(config.width, config.fine_width)
     init_sha256 = None
@@ -240,10 +252,10 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     history: list[dict] = []
     running, start = [], time.perf_counter()
     for step in range(1, config.steps + 1):
-        crops = [
-            training_crop(cached_sample(data_dir, int(rng.choice(train_seeds))), config, rng)
-            for _ in range(config.batch)
-        ]
+        crops = []
+        for _ in range(config.batch):
+            seed, hardware = train_seeds[int(rng.choice(len(train_seeds)))]  # the draws of np.arange's choice
+            crops.append(training_crop(cached_sample(data_dir, seed, hardware=hardware), config, rng))
         inputs = torch.from_numpy(np.stack([c[0] for c in crops])).contiguous(memory_format=torch.channels_last)
         targets = torch.from_numpy(np.stack([c[1] for c in crops]))
         logits = model(inputs)
