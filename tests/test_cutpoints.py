@@ -145,6 +145,18 @@ def test_out_of_range_cut_points_are_dropped():
     assert not result.branches and "working range" in result.dropped[0].reason
 
 
+def test_a_fragment_shorter_than_the_cut_offset_is_dropped_not_extrapolated():
+    short, _, _ = branch_with_trunk(length=0.03)  # the cut 5 cm out would lie in the air past its end
+    result = estimate(short)
+    assert not result.branches and "beyond the visible branch" in result.dropped[0].reason
+    assert len(estimate(short, config=CutPointConfig(max_cut_beyond_tip_m=0.05)).branches) == 1
+    scene, base, d = branch_with_trunk(length=0.07)  # the cut lies on the branch
+    [b] = estimate(scene).branches
+    assert np.linalg.norm(b.cut_point_m - (base + OFFSET * d)) < 0.01
+    with pytest.raises(CutPointConfigError, match="max_cut_beyond_tip_m"):
+        CutPointConfig(max_cut_beyond_tip_m=-0.01)
+
+
 def test_config_errors_name_the_key():
     with pytest.raises(CutPointConfigError, match=r"cutpoints\.min_points = 1: expected ≥ 3 points"):
         CutPointConfig(min_points=1)
