@@ -208,7 +208,9 @@ def test_obstacles_leave_out_low_confidence_and_the_target_under_any_id():
     other = BodyPoint(6, np.array([1.6, 0.4, 0.0]), 0.7)
     frame = FrameTargets(target, [target, twin, twig, other])
     cfg = MavlinkConfig()
-    assert cfg.obstacle_min_confidence == 0.13  # keeps 98 % of correct cut points (the learned segmenter's table)
+    assert (
+        twig.confidence < cfg.obstacle_min_confidence < other.confidence
+    )  # the default: the learned segmenter's table
     assert [p.id for p in obstacles(frame, cfg, TRACKING.gate_m)] == [6]
     with_target = MavlinkConfig(target_as_obstacle=True, obstacle_min_confidence=0.0)
     assert [p.id for p in obstacles(frame, with_target, TRACKING.gate_m)] == [4, 5, 6]
