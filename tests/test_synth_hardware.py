@@ -35,13 +35,15 @@ def test_without_the_option_a_seeds_scene_is_what_it_was():
 def test_every_run_has_a_wire_and_nothing_comes_near_the_lens(seed):
     rng = np.random.default_rng(seed)
     foot = np.array([rng.uniform(-1, 1), rng.uniform(1.0, 2.5), rng.uniform(0.5, 3.0)])
-    pieces = orchard_hardware(rng, foot, float(foot[1]), np.array([1.0, 0.0, 0.0]))
+    pieces = orchard_hardware(rng, foot, 0.15, float(foot[1]), np.array([1.0, 0.0, 0.0]))
     assert any(p.kind == "wire" for p in pieces)
     for p in pieces:
         assert np.isclose(np.linalg.norm(p.axis), 1.0) and p.length > 0 and 0 < p.radius < 0.08
         along = p.base[None, :] + np.linspace(0, p.length, 16)[:, None] * p.axis[None, :]
         if p.kind != "wire":
             assert norm3(along).min() >= MIN_RANGE_M
+        if p.kind == "stake":  # beside the trunk, outside its bark
+            assert 0.15 + 0.02 <= np.hypot(*(p.base - foot)[[0, 2]]) <= 0.15 + 0.15
 
 
 def test_surfaces_are_near_uniform_unlike_bark():

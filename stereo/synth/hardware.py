@@ -69,11 +69,13 @@ def surface_tile(rng: np.random.Generator, colour: tuple[float, float, float]) -
 def orchard_hardware(
     rng: np.random.Generator,
     trunk_foot: np.ndarray,
+    trunk_radius: float,
     ground_y: float,
     right: np.ndarray,
 ) -> list[HardwarePiece]:
-    """Random hardware around a tree whose trunk stands at world `trunk_foot` (m) on the ground `ground_y` m
-    below the camera; `right` is the camera's right direction in the world (the row runs roughly along it).
+    """Random hardware around a tree whose trunk (radius `trunk_radius` m at the ground) stands at world
+    `trunk_foot` (m, its axis) on the ground `ground_y` m below the camera; `right` is the camera's right
+    direction in the world (the row runs roughly along it).
 
     Always 1–4 trellis wires through the trunk's depth; then, each with its own chance, 1–2 posts in the row,
     a stake beside the trunk, and 1–3 rods at any angle within 0.8 m of the trunk (frames, pipes, guards).
@@ -105,7 +107,7 @@ def orchard_hardware(
             piece("post", foot, axis, height + rng.uniform(0.2, 0.8), rng.uniform(0.03, 0.07))
     if rng.random() < 0.5:
         side = unit(rng.normal(0.0, 1.0, 3) * np.array([1.0, 0.0, 1.0]))
-        foot = trunk_foot + rng.uniform(0.06, 0.2) * side
+        foot = trunk_foot + (trunk_radius + rng.uniform(0.02, 0.15)) * side  # outside the bark
         axis = unit(np.array([rng.normal(0, 0.05), -1.0, rng.normal(0, 0.05)]))
         piece("stake", foot, axis, rng.uniform(1.2, 2.5), rng.uniform(0.005, 0.014))
     if rng.random() < 0.6:

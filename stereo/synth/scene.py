@@ -638,7 +638,8 @@ class _SceneBuilder:
 
     def _hardware(self, ground_y: float) -> None:
         """Trellis wires, posts, a stake and rods around the tree (`stereo.synth.hardware`), as background cones."""
-        for piece in orchard_hardware(self.rng, self.trunk_foot, ground_y, self.frame.right):
+        r_ground = self.trunk[3]
+        for piece in orchard_hardware(self.rng, self.trunk_foot, r_ground, ground_y, self.frame.right):
             material = BarkMaterial(MipTile(piece.tile), 1, max(0.3, 2 * np.pi * piece.radius))
             self._cone(piece.base, piece.axis, piece.length, piece.radius, piece.radius, material, 0)
 

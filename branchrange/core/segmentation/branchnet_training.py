@@ -77,18 +77,14 @@ class BranchNetTrainConfig:
     hardware_seeds: tuple[int, int] = (0, 0)
 
     def __post_init__(self) -> None:
-        ranges = (
-            ("train_seeds", "val_seeds", "hardware_seeds")
-            if self.hardware_seeds != (0, 0)
-            else ("train_seeds", "val_seeds")
-        )
-        for name in ranges:
+        drawn_from = ["train_seeds"] + (["hardware_seeds"] if self.hardware_seeds != (0, 0) else [])
+        for name in [*drawn_from, "val_seeds"]:
             first, last = getattr(self, name)
             if not 0 < first < last <= TRAIN_SEED_LIMIT:
                 raise ValueError(f"{name} must be [first, last) with 0 < first < last ≤ {TRAIN_SEED_LIMIT}")
-        for name in ranges[::2]:
-            seeds = getattr(self, name)
-            if max(seeds[0], self.val_seeds[0]) < min(seeds[1], self.val_seeds[1]):
+        for name in drawn_from:  # validation scenes are never trained on
+            first, last = getattr(self, name)
+            if max(first, self.val_seeds[0]) < min(last, self.val_seeds[1]):
                 raise ValueError(f"{name} and val_seeds overlap")
         if self.steps < 1 or self.batch < 1 or self.crop % 16 or self.crop < 64:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
