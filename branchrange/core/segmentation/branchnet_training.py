@@ -229,8 +229,8 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     torch.set_num_threads(config.threads)
     rng = np.random.default_rng(config.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
-    train_seeds = [(int(s), False) for s in range(*config.train_seeds)]
-    train_seeds += [(int(s), True) for s in range(*config.hardware_seeds)]
+    train_seeds = [(s, False) for s in range(*config.train_seeds)]
+    train_seeds += [(s, True) for s in range(*config.hardware_seeds)]
     validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
     model = BranchNet(config.width, config.fine_width)
     init_sha256 = None
