@@ -32,6 +32,24 @@ def test_a_trunk_cut_in_two_by_a_branch_in_front_stays_one_trunk_and_a_far_tree_
     assert not tree_trunk(np.zeros_like(trunk), branches, depth, GEOMETRY, 0.1).any()
 
 
+def test_a_post_beside_the_trunk_at_its_depth_is_not_a_trunk_part_but_the_trunk_below_a_branch_is():
+    trunk = np.zeros((120, 200), dtype=bool)
+    trunk[:, 40:56] = True  # the tree, 2 m away ...
+    trunk[50:58, 40:56] = False  # ... cut by a branch in front: its upper part continues the line
+    trunk[:, 100:110] = True  # an orchard post at the same depth, 44 px beside it
+    depth = np.full(trunk.shape, 2.0)
+    branches = np.zeros_like(trunk)
+    branches[30:34, 56:90] = True  # a branch growing from the upper part: that part is the tree's
+    kept = tree_trunk(trunk, branches, depth, GEOMETRY, 0.1)
+    assert kept[:50, 40:56].all() and kept[58:, 40:56].all()
+    assert not kept[:, 100:110].any()
+    leaning = np.zeros_like(trunk)  # a leaning trunk cut in two: its parts are beside each other in columns
+    cv2.line(leaning.view(np.uint8), (20, 119), (140, 0), 1, thickness=12)
+    leaning[55:63, :] = False
+    kept = tree_trunk(leaning, np.zeros_like(trunk), depth, GEOMETRY, 0.1)
+    assert kept[leaning].all()
+
+
 def test_the_tree_is_the_trunk_region_that_branches_grow_from_not_the_largest():
     trunk = np.zeros((120, 200), dtype=bool)
     trunk[:, 10:60] = True  # a wide post, 2 m away, nothing growing from it
