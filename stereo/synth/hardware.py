@@ -86,11 +86,13 @@ def orchard_hardware(
     pieces: list[HardwarePiece] = []
 
     def piece(kind: str, base: np.ndarray, axis: np.ndarray, length: float, radius: float) -> None:
-        along = base[None, :] + np.linspace(0.0, length, 16)[:, None] * unit(axis)[None, :]
-        if kind != "wire" and norm3(along).min() < MIN_RANGE_M + radius:
-            return
+        direction = unit(axis)
+        if kind != "wire":  # wires run past the camera by design; anything else stays clear of the lens
+            along = base[None, :] + np.linspace(0.0, length, 16)[:, None] * direction[None, :]
+            if norm3(along).min() < MIN_RANGE_M + radius:
+                return
         surface = HARDWARE_COLOURS[str(rng.choice(_SURFACES[kind]))]
-        pieces.append(HardwarePiece(kind, base, unit(axis), float(length), float(radius), surface_tile(rng, surface)))
+        pieces.append(HardwarePiece(kind, base, direction, float(length), float(radius), surface_tile(rng, surface)))
 
     height = rng.uniform(0.4, 0.9)
     for _ in range(rng.integers(1, 5)):  # wires at rising heights, just before or behind the trunk
