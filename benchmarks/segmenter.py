@@ -18,12 +18,18 @@ cut points by confidence bin: the share within 5 cm of a truth cut point; beside
 correct at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct. Recall is
 also given per branch width class (`width_class`: thin stems are where segmenters lose branches).
 
+How sure the figures are: recall and false cut points a frame carry a 95 % interval from a bootstrap
+over scenes (`CutScores.interval`; a scene's branches succeed or fail together), and each
+segmenter's recall minus the first listed one's with the same stereo is given paired over the same
+scenes (`recall_difference_interval`). On 30 scenes a single recall is uncertain by about ± 6
+points, so a change smaller than that shows only in the paired figure; hence 60 scenes by default.
+
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
-    python benchmarks/segmenter.py [--scenes 30] [--segmenters learned learned@1280 learned-int8 structure]
+    python benchmarks/segmenter.py [--scenes 60] [--segmenters learned learned@1280 learned-int8 structure]
                                    [--json out.json] [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
 """
 
@@ -49,7 +55,7 @@ from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.segmenter import Segmenter
-from branchrange.offline.evaluate_cuts import CutScores
+from branchrange.offline.evaluate_cuts import CutScores, recall_difference_interval
 
 ROOT = Path(__file__).resolve().parents[1]
 TREES = ROOT.parent / "shared" / "data" / "trees"
@@ -169,8 +175,21 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None, hardwa
         print(f"  scene {i + 1}/{scenes}", end="\r", file=sys.stderr)
     out = {}
     for key, s in scores.items():
+        stereo, name = key.split("/", 1)
+        baseline = scores[f"{stereo}/{segmenters[0]}"]
+        interval = s.interval()
         out[key] = {
             "recall": s.recall,
+            "recall_ci95": interval["recall"],
+            "false_per_frame_ci95": interval["false_per_frame"],
+            # paired over the same scenes: what the scenes share (which are hard) cancels
+            "recall_minus_first": None
+            if s is baseline
+            else {
+                "first": segmenters[0],
+                "difference": s.recall - baseline.recall,
+                "ci95": recall_difference_interval(s, baseline),
+            },
             "median_error_cm": 100 * s.error_quantile(0.5),
             "false_per_frame": s.false_per_frame,
             "ms_per_frame": float(np.median(times[key])),
@@ -269,16 +288,24 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
 
 def print_tables(synthetic: dict, real: dict) -> None:
     print(
-        f"{'stereo/segmenter':<28} {'recall≤5cm':>10} {'median err':>10} {'false/frame':>11} {'ms/frame':>9}"
+        f"{'stereo/segmenter':<28} {'recall≤5cm [95 % interval]':>26} {'median err':>10} "
+        f"{'false/frame [95 %]':>19} {'ms/frame':>9}"
         f"   at confidence ≥ {TARGET_MIN_CONFIDENCE}: recall, false/frame, target ≤ 5 cm"
     )
     for key, r in synthetic.items():
         acted = r["at_target_min_confidence"]
+        (low, high), (f_low, f_high) = r["recall_ci95"], r["false_per_frame_ci95"]
         print(
-            f"{key:<28} {r['recall']:>10.1%} {r['median_error_cm']:>8.2f}cm {r['false_per_frame']:>11.2f} "
-            f"{r['ms_per_frame']:>9.1f}   {acted['recall']:>6.1%} {acted['false_per_frame']:>6.2f} "
-            f"{acted['target_within_5cm']:>6.0%}"
+            f"{key:<28} {r['recall']:>10.1%} [{low:5.1%}–{high:5.1%}] {r['median_error_cm']:>8.2f}cm "
+            f"{r['false_per_frame']:>6.2f} [{f_low:4.2f}–{f_high:4.2f}] {r['ms_per_frame']:>9.1f}   "
+            f"{acted['recall']:>6.1%} {acted['false_per_frame']:>6.2f} {acted['target_within_5cm']:>6.0%}"
         )
+    paired = {key: r["recall_minus_first"] for key, r in synthetic.items() if r["recall_minus_first"]}
+    if paired:
+        print("\nrecall minus the first segmenter's with the same stereo, paired over the same scenes [95 % interval]")
+        for key, d in paired.items():
+            low, high = d["ci95"]
+            print(f"{key:<28} {d['difference']:>+7.1%} [{low:+6.1%} … {high:+6.1%}]  (vs {d['first']})")
     print("\nrecall within 5 cm by branch width (px at 640×360: branches, recall)")
     for key, r in synthetic.items():
         cells = "  ".join(
@@ -310,7 +337,7 @@ def print_tables(synthetic: dict, real: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenes", type=int, default=30, help="held-out synthetic scenes (default 30)")
+    parser.add_argument("--scenes", type=int, default=60, help="held-out synthetic scenes (default 60)")
     parser.add_argument(
         "--segmenters", nargs="+", default=["learned", "structure"], help="segmenter names (default learned structure)"
     )

@@ -12,7 +12,7 @@ from result_factory import branch
 
 from branchrange.cli import main
 from branchrange.core.frame_result import SCHEMA_PATH
-from branchrange.offline.evaluate_cuts import CutScores, evaluate_cuts
+from branchrange.offline.evaluate_cuts import CutScores, evaluate_cuts, recall_difference_interval
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
 from stereo.io import write_rgb
@@ -238,6 +238,44 @@ def test_evaluate_cuts_scores_a_target_far_from_every_truth_as_a_miss():
     scores.add_frame(truth, [far], target=far)
     scores.add_frame(truth, [], target=None)
     assert (scores.targets, scores.targets_within, scores.target_accuracy) == (2, 1, 0.5)
+
+
+def test_scores_carry_a_bootstrap_interval_over_frames():
+    truth = [{"cut_point_m": [0.0, 0.0, 1.0], "cut_visible": True}, {"cut_point_m": [0.3, 0.0, 1.0]}]
+    hit, miss = branch(0, [0.0, 0.0, 1.01]), branch(1, [0.3, 0.0, 1.2])
+    steady = CutScores("gt", "gt")
+    for _ in range(6):
+        steady.add_frame(truth, [hit, miss])  # every frame alike: 1 of 2 found, 1 false
+    assert steady.frame_counts == [(1, 2, 1)] * 6
+    assert steady.interval() == {"recall": (0.5, 0.5), "false_per_frame": (1.0, 1.0)}
+    mixed = CutScores("gt", "gt")
+    for k in range(20):  # half the frames find both branches, half find none and report two false ones
+        mixed.add_frame(truth, [hit, branch(1, [0.3, 0.0, 1.0])] if k % 2 else [miss, branch(2, [1.0, 1.0, 3.0])])
+    (low, high), (f_low, f_high) = mixed.interval()["recall"], mixed.interval()["false_per_frame"]
+    assert low < mixed.recall == 0.5 < high and f_low < mixed.false_per_frame == 1.0 < f_high
+    assert 0.2 < low and high < 0.8  # 20 frames: about ± 0.22
+    assert mixed.interval() == mixed.interval()  # seeded: a run repeats
+    assert mixed.interval(level=0.5)["recall"][1] < high
+    lone = CutScores("gt", "gt")
+    lone.add_frame(truth, [hit])
+    assert all(np.isnan(v) for bounds in lone.interval().values() for v in bounds)
+
+
+def test_a_paired_difference_tells_apart_what_the_single_intervals_cannot():
+    truth = [{"cut_point_m": [x, 0.0, 1.0]} for x in (0.0, 0.3, 0.6, 0.9)]
+    found = [branch(k, t["cut_point_m"]) for k, t in enumerate(truth)]
+    better, worse = CutScores("gt", "a"), CutScores("gt", "b")
+    for k in range(30):  # scenes from easy to hard; the better one finds one branch more in every fourth
+        easy = found[: 1 + k % 4]
+        better.add_frame(truth, easy + found[len(easy) : len(easy) + (k % 4 == 0)])
+        worse.add_frame(truth, easy)
+    assert better.interval()["recall"][0] < worse.interval()["recall"][1]  # the single intervals overlap
+    low, high = recall_difference_interval(better, worse)
+    assert 0 < low <= better.recall - worse.recall <= high
+    other = CutScores("gt", "c")
+    other.add_frame(truth[:1], [])
+    with pytest.raises(ValueError, match="same frames"):
+        recall_difference_interval(better, other)
 
 
 def test_evaluate_cuts_command_prints_the_table(tiny_set, tmp_path, capsys):

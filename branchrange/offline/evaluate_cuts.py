@@ -120,6 +120,8 @@ class CutScores:
     targets: int = 0
     targets_within: int = 0
     seconds: float = 0.0
+    #: per frame: (truth branches found within 5 cm, visible truth branches, false cut points)
+    frame_counts: list[tuple[int, int, int]] = field(default_factory=list)
 
     @property
     def recall(self) -> float:
@@ -149,6 +151,7 @@ class CutScores:
         """Match one frame's estimates (and its `target` branch, if any) to its truth (the set's branch
         records: `cut_point_m`, optional `cut_visible`) and accumulate the scores."""
         self.frames += 1
+        recalled_before = self.recalled
         true_points = [np.asarray(b["cut_point_m"], dtype=np.float64) for b in truth]
         if target is not None:
             self.targets += 1
@@ -176,8 +179,53 @@ class CutScores:
                     100.0 * abs(float(np.linalg.norm(guesses[gi])) - true_range) / true_range
                 )
             close_matches += distance <= RECALL_RADIUS_M
-        self.truth += sum(1 for b in truth if b.get("cut_visible", True))
+        visible = sum(1 for b in truth if b.get("cut_visible", True))
+        self.frame_counts.append((self.recalled - recalled_before, visible, len(guesses) - close_matches))
+        self.truth += visible
         self.false_cut_points += len(guesses) - close_matches
+
+    def interval(self, level: float = 0.95, resamples: int = 2000, seed: int = 0) -> dict[str, tuple[float, float]]:
+        """`level` intervals of `recall` and `false_per_frame` from a bootstrap over frames: the frames are
+        drawn again with replacement `resamples` times (seeded, so a run repeats), and the statistic's
+        central `level` range over the draws is returned. Why frames and not branches: one scene's branches
+        succeed or fail together (its stereo, its light, its trunk), so a binomial interval over branches
+        would be too narrow. NaN bounds with fewer than two frames."""
+        counts = np.asarray(self.frame_counts, dtype=np.float64).reshape(-1, 3)
+        if len(counts) < 2:
+            return {"recall": (float("nan"),) * 2, "false_per_frame": (float("nan"),) * 2}
+        sums = counts[_frame_draws(len(counts), resamples, seed)].sum(axis=1)  # (resamples, 3)
+        return {
+            "recall": _central(sums[:, 0] / np.maximum(sums[:, 1], 1.0), level),
+            "false_per_frame": _central(sums[:, 2] / len(counts), level),
+        }
+
+
+def recall_difference_interval(
+    scores: CutScores, baseline: CutScores, level: float = 0.95, resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """`level` interval of `scores.recall − baseline.recall` when both scored the same frames in the same
+    order: the frames are drawn again together (paired), so what the frames share — which scenes are
+    hard — cancels, and a difference too small to show in either interval alone can still be told apart."""
+    mine = np.asarray(scores.frame_counts, dtype=np.float64).reshape(-1, 3)
+    theirs = np.asarray(baseline.frame_counts, dtype=np.float64).reshape(-1, 3)
+    if len(mine) != len(theirs) or not np.array_equal(mine[:, 1], theirs[:, 1]):
+        raise ValueError("recall_difference_interval: the two scores did not see the same frames")
+    if len(mine) < 2:
+        return (float("nan"), float("nan"))
+    draws = _frame_draws(len(mine), resamples, seed)
+    visible = np.maximum(mine[draws, 1].sum(axis=1), 1.0)
+    return _central((mine[draws, 0].sum(axis=1) - theirs[draws, 0].sum(axis=1)) / visible, level)
+
+
+def _frame_draws(frames: int, resamples: int, seed: int) -> np.ndarray:
+    """`(resamples, frames)` frame indices drawn with replacement, seeded."""
+    return np.random.default_rng(seed).integers(0, frames, size=(resamples, frames))
+
+
+def _central(values: np.ndarray, level: float) -> tuple[float, float]:
+    """The central `level` range (low, high) of `values`."""
+    low, high = np.percentile(values, [50.0 * (1.0 - level), 50.0 * (1.0 + level)])
+    return float(low), float(high)
 
 
 def _disparities(frame: SynthFrame, stereo: str, backend) -> tuple[np.ndarray, np.ndarray | None]:
