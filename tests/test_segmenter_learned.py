@@ -487,6 +487,21 @@ def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene
     assert np.mean(classes[1][branch] == CLASSES.index("branch")) > 0.8  # the thin class survives int8 too
 
 
+def test_the_fp32_model_runs_without_the_blocked_layout_and_gives_the_same_logits(scene):
+    import onnxruntime as ort
+
+    from branchrange.core.segmentation.onnx_model import onnx_session
+
+    rendered, stereo = scene
+    fp32, int8 = LearnedSegmenter(), LearnedSegmenter(LearnedSegmenterConfig(precision="int8"))
+    level = ort.GraphOptimizationLevel
+    assert fp32.session.get_session_options().graph_optimization_level == level.ORT_ENABLE_EXTENDED
+    assert int8.session.get_session_options().graph_optimization_level == level.ORT_ENABLE_ALL
+    first = fp32.logits(rendered.left, stereo.disparity)
+    fp32.session = onnx_session(fp32.model_path, 1, blocked_layout=True)
+    np.testing.assert_allclose(fp32.logits(rendered.left, stereo.disparity), first, atol=1e-4)
+
+
 def test_precision_names_a_shipped_model_only():
     with pytest.raises(OnnxSegmenterError, match="precision"):
         LearnedSegmenterConfig(precision="int4")

@@ -232,7 +232,8 @@ class LearnedSegmenter:
             self.calibrations = calibrations_by_setting(meta) if config.calibrated else {}
         except ValueError as exc:
             raise OnnxSegmenterError(f"learned segmenter: {self.model_path.with_suffix('.json')}: {exc}") from None
-        self.session = onnx_session(self.model_path, config.threads)
+        # the int8 copy (metadata "quantization") gains from onnxruntime's blocked layout, fp32 loses (see there)
+        self.session = onnx_session(self.model_path, config.threads, blocked_layout="quantization" in meta)
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         if len(inputs) != 1 or inputs[0].shape[1:2] != [IN_CHANNELS] or outputs[0].shape[1:2] != [len(CLASSES)]:
             raise OnnxSegmenterError(

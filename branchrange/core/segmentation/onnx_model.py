@@ -106,9 +106,15 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(x, -50.0, 50.0)))
 
 
-def onnx_session(path: Path, threads: int) -> onnxruntime.InferenceSession:  # noqa: F821 - optional import
+def onnx_session(path: Path, threads: int, blocked_layout: bool = True) -> onnxruntime.InferenceSession:  # noqa: F821 - optional import
     """An onnxruntime CPU session of the model file `path` with `threads` intra-op threads;
-    `OnnxSegmenterError` naming the file when it is missing or unreadable, or onnxruntime is absent."""
+    `OnnxSegmenterError` naming the file when it is missing or unreadable, or onnxruntime is absent.
+
+    `blocked_layout` False stops one graph optimisation: the NCHWc layout (channels in blocks of 8 or 16
+    for the AVX2 / AVX-512 convolution kernels). A network of few channels at full resolution pays more
+    for reordering its tensors between the blocked convolutions and the resizes and concatenations
+    around them than the kernels save: BranchNet in fp32 segments 7 % faster without it, with identical
+    labels (`benchmarks/segmenter.py` frames, 1 and 2 threads), while its int8 copy is 15 % slower."""
     if not path.is_file():
         raise OnnxSegmenterError(f"onnx:{path}: no such model file (expected an .onnx file)")
     try:
@@ -120,6 +126,8 @@ def onnx_session(path: Path, threads: int) -> onnxruntime.InferenceSession:  # n
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
+    if not blocked_layout:
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
     try:
         return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable model
