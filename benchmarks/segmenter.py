@@ -24,12 +24,16 @@ segmenter's recall minus the first listed one's with the same stereo is given pa
 scenes (`recall_difference_interval`). On 30 scenes a single recall is uncertain by about ± 6
 points, so a change smaller than that shows only in the paired figure; hence 60 scenes by default.
 
+Changed light (`--light dusk glare haze warm high_gain`, `branchrange.offline.light`): each change adds
+the stereo mode 'sgbm-<change>' — both images under that light, SGBM computed again — with its recall
+minus the same segmenter's in the scenes' own light, paired.
+
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
-    python benchmarks/segmenter.py [--scenes 60] [--segmenters learned learned@1280 learned-int8 structure]
+    python benchmarks/segmenter.py [--scenes 60] [--segmenters learned learned@1280 learned-int8 structure] [--light dusk]
                                    [--json out.json] [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
 """
 
@@ -56,6 +60,8 @@ from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.offline.evaluate_cuts import CutScores, recall_difference_interval
+from branchrange.offline.light import LIGHT_CHANGES, changed_light
+from stereo.backends import make_backend
 
 ROOT = Path(__file__).resolve().parents[1]
 TREES = ROOT.parent / "shared" / "data" / "trees"
@@ -126,9 +132,14 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]
     return rows
 
 
-def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None, hardware: bool = False) -> dict:
-    """Scores per 'stereo/segmenter' over `scenes` held-out scenes (with orchard hardware when `hardware`)."""
+def run_synthetic(
+    segmenters: list[str], scenes: int, cache: Path | None, hardware: bool = False, light: Sequence[str] = ()
+) -> dict:
+    """Scores per 'stereo/segmenter' over `scenes` held-out scenes (with orchard hardware when `hardware`); each
+    change of `light` (`branchrange.offline.light`) adds the stereo mode 'sgbm-<change>': both images under
+    that light, SGBM computed again, the pipeline as with 'sgbm'."""
     built = {name: benchmark_segmenter(name) for name in segmenters}
+    sgbm = make_backend("sgbm", max_disp=192) if light else None  # as `evaluation_scene` computes it
     scores: dict[str, CutScores] = {}
     confidences: dict[str, list[tuple[float, bool]]] = {}
     times: dict[str, list[float]] = {}
@@ -138,10 +149,17 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None, hardwa
         scene = evaluation_scene(FIRST_SEED + i, cache, hardware=hardware)
         f, b, cx, cy = (float(v) for v in scene["camera"])
         widths = [width_class(scene["mask"], k + 1) for k in range(len(scene["truth"]))]
-        for stereo in ("sgbm", "sgbm-unrefined", "truth"):
-            disparity = scene["disparity"] if stereo == "truth" else scene["sgbm"]
-            confidence = None if stereo == "truth" else scene["sgbm_conf"]
-            right = scene["right"] if stereo == "sgbm" else None
+        views = {
+            "sgbm": (scene["left"], scene["sgbm"], scene["sgbm_conf"], scene["right"]),
+            "sgbm-unrefined": (scene["left"], scene["sgbm"], scene["sgbm_conf"], None),
+            "truth": (scene["left"], scene["disparity"], None, None),
+        }
+        rng = np.random.default_rng(FIRST_SEED + i)  # the noise of a change of light repeats per scene
+        for change in light:
+            left, right = (changed_light(scene[side], change, rng) for side in ("left", "right"))
+            stereo_result = sgbm.compute(left, right)
+            views[f"sgbm-{change}"] = (left, stereo_result.disparity, stereo_result.confidence, right)
+        for stereo, (left, disparity, confidence, right) in views.items():
             for name in [*segmenters, "truth"]:
                 key = f"{stereo}/{name}"
                 pipeline = Pipeline(
@@ -152,9 +170,7 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None, hardwa
                     segmenter=built.get(name),
                 )  # process_disparity: no backend is built
                 mask = scene["mask"] if name == "truth" else None
-                result = pipeline.process_disparity(
-                    scene["left"], disparity, confidence, mask=mask, backend=stereo, right=right
-                )
+                result = pipeline.process_disparity(left, disparity, confidence, mask=mask, backend=stereo, right=right)
                 scores.setdefault(key, CutScores(stereo, name)).add_frame(
                     scene["truth"], result.branches, result.target
                 )
@@ -178,9 +194,16 @@ def run_synthetic(segmenters: list[str], scenes: int, cache: Path | None, hardwa
         stereo, name = key.split("/", 1)
         baseline = scores[f"{stereo}/{segmenters[0]}"]
         interval = s.interval()
+        normal_light = scores[f"sgbm/{name}"] if stereo.startswith("sgbm-") and stereo != "sgbm-unrefined" else None
         out[key] = {
             "recall": s.recall,
             "recall_ci95": interval["recall"],
+            "recall_minus_normal_light": None
+            if normal_light is None
+            else {
+                "difference": s.recall - normal_light.recall,
+                "ci95": recall_difference_interval(s, normal_light),
+            },
             "false_per_frame_ci95": interval["false_per_frame"],
             # paired over the same scenes: what the scenes share (which are hard) cancels
             "recall_minus_first": None
@@ -300,6 +323,14 @@ def print_tables(synthetic: dict, real: dict) -> None:
             f"{r['false_per_frame']:>6.2f} [{f_low:4.2f}–{f_high:4.2f}] {r['ms_per_frame']:>9.1f}   "
             f"{acted['recall']:>6.1%} {acted['false_per_frame']:>6.2f} {acted['target_within_5cm']:>6.0%}"
         )
+    lit = {key: r["recall_minus_normal_light"] for key, r in synthetic.items() if r["recall_minus_normal_light"]}
+    if lit:
+        print(
+            "\nrecall under changed light minus the same segmenter's in the scenes' own light, paired [95 % interval]"
+        )
+        for key, d in lit.items():
+            low, high = d["ci95"]
+            print(f"{key:<28} {d['difference']:>+7.1%} [{low:+6.1%} … {high:+6.1%}]")
     paired = {key: r["recall_minus_first"] for key, r in synthetic.items() if r["recall_minus_first"]}
     if paired:
         print("\nrecall minus the first segmenter's with the same stereo, paired over the same scenes [95 % interval]")
@@ -348,12 +379,19 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the synthetic scenes with orchard hardware around the tree (wires, posts, stakes, painted rods)",
     )
+    parser.add_argument(
+        "--light",
+        nargs="+",
+        default=[],
+        choices=list(LIGHT_CHANGES),
+        help="also score the scenes under these changes of light (both images; stereo 'sgbm-<change>')",
+    )
     parser.add_argument("--skip-real", action="store_true", help="leave out the real pairs")
     parser.add_argument("--json", type=Path, help="write all numbers here")
     args = parser.parse_args(argv)
     print(f"CPU: {cpu_name()} (shared machine: absolute times are noisy)")
     start = time.perf_counter()
-    synthetic = run_synthetic(args.segmenters, args.scenes, args.cache, args.hardware)
+    synthetic = run_synthetic(args.segmenters, args.scenes, args.cache, args.hardware, args.light)
     real = {} if args.skip_real else run_real(args.segmenters, args.overlays)
     print_tables(synthetic, real)
     print(
