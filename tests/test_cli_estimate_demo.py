@@ -225,6 +225,8 @@ def test_evaluate_cuts_scores_ground_truth_geometry(tiny_set):
     [gt_gt] = evaluate_cuts(tiny_set, ["gt"], ["gt"])
     assert gt_gt.frames == 2 and gt_gt.truth >= 3
     assert gt_gt.recall >= 0.75
+    low, high = gt_gt.interval()["recall"]
+    assert low <= gt_gt.recall <= high
     assert gt_gt.error_quantile(0.5) < 0.015
     assert gt_gt.false_per_frame <= 1.0
     assert gt_gt.targets == 2 and gt_gt.target_accuracy == 1.0

@@ -1,8 +1,9 @@
 """`branchrange evaluate-cuts DIR`: cut-point accuracy over a synthetic set from `emcstereo synth`.
 
-Prints one table row per (stereo, masks) combination: recall within 5 cm, median and 90th-percentile
-3D cut-point error, median distance error in % of the range, false cut points per frame, and how
-often the frame's target lies within 5 cm of a true cut point. Stereo
+Prints one table row per (stereo, masks) combination: recall within 5 cm (with its 95 % interval from a
+bootstrap over the frames), median and 90th-percentile 3D cut-point error, median distance error in % of
+the range, false cut points per frame, and how often the frame's target lies within 5 cm of a true cut
+point. Stereo
 'gt' uses the set's exact disparity (the geometry's own error); 'emcstereo' needs --weights.
 """
 

@@ -300,14 +300,16 @@ def evaluate_cuts(
 def format_table(scores: Sequence[CutScores]) -> str:
     """The scores as a fixed-width text table, one row per (stereo, masks)."""
     header = (
-        f"{'stereo':<10} {'masks':<10} {'frames':>6} {'branches':>8} {'recall@5cm':>10} "
+        f"{'stereo':<10} {'masks':<10} {'frames':>6} {'branches':>8} {'recall@5cm':>10} {'[95 % over frames]':>18} "
         f"{'median 3D':>10} {'p90 3D':>8} {'med dist err':>12} {'false/frame':>11} {'target@5cm':>10} "
         f"{'s/frame':>8}"
     )
     lines = [header, "-" * len(header)]
     for s in scores:
+        low, high = s.interval()["recall"]
         lines.append(
             f"{s.stereo:<10} {s.masks:<10} {s.frames:>6} {s.truth:>8} {100 * s.recall:>9.1f}% "
+            f"{f'[{100 * low:.1f}–{100 * high:.1f}%]':>18} "
             f"{100 * s.error_quantile(0.5):>8.2f}cm {100 * s.error_quantile(0.9):>6.2f}cm "
             f"{s.median_distance_error_pct:>11.2f}% {s.false_per_frame:>11.2f} "
             f"{100 * s.target_accuracy:>9.1f}% {s.seconds / max(s.frames, 1):>8.2f}"
@@ -324,6 +326,7 @@ def scores_as_dict(scores: Sequence[CutScores]) -> list[dict]:
             "frames": s.frames,
             "branches": s.truth,
             "recall": s.recall,
+            "recall_ci95": s.interval()["recall"],
             "median_error_m": s.error_quantile(0.5),
             "p90_error_m": s.error_quantile(0.9),
             "median_distance_error_pct": s.median_distance_error_pct,
