@@ -33,8 +33,9 @@ with the disparity range the README there gives, a nominal camera (f 700 px, B 0
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
-    python benchmarks/segmenter.py [--scenes 60] [--segmenters learned learned@1280 learned-int8 structure] [--light dusk]
-                                   [--json out.json] [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
+    python benchmarks/segmenter.py [--scenes 60] [--segmenters learned learned@1280 learned-int8 structure]
+                                   [--light dusk ...] [--json out.json] [--overlays benchmarks/segmenter_overlays]
+                                   [--cache out/segbench]
 """
 
 from __future__ import annotations
