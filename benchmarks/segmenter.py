@@ -56,7 +56,7 @@ from branchrange.core.confidence import cut_point_outcomes, lowest_reliable_thre
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-from branchrange.core.segmentation.branchnet_data import evaluation_scene
+from branchrange.core.segmentation.branchnet_data import EVALUATION_MAX_DISP, evaluation_scene
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.segmenter import Segmenter
@@ -140,7 +140,7 @@ def run_synthetic(
     change of `light` (`branchrange.offline.light`) adds the stereo mode 'sgbm-<change>': both images under
     that light, SGBM computed again, the pipeline as with 'sgbm'."""
     built = {name: benchmark_segmenter(name) for name in segmenters}
-    sgbm = make_backend("sgbm", max_disp=192) if light else None  # as `evaluation_scene` computes it
+    sgbm = make_backend("sgbm", max_disp=EVALUATION_MAX_DISP) if light else None  # as `evaluation_scene` does
     scores: dict[str, CutScores] = {}
     confidences: dict[str, list[tuple[float, bool]]] = {}
     times: dict[str, list[float]] = {}

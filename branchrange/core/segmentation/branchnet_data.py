@@ -71,11 +71,16 @@ def cached_sample(
     return sample
 
 
+#: the SGBM disparity range (px at 640×360) of the scenes the segmenter is scored and calibrated on
+EVALUATION_MAX_DISP = 192
+
+
 def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360), hardware: bool = False) -> dict:
     """A scene as the segmenter is scored on it: the default renderer options at `size` (plus orchard hardware
-    when `hardware`), SGBM over 192 px, truth cut points. Keys: left, right, disparity (exact), mask (renderer
-    ids), sgbm, sgbm_conf, camera (f px, B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached
-    in `cache` when given (a cached scene from before the right image was kept is rendered again)."""
+    when `hardware`), SGBM over `EVALUATION_MAX_DISP` px, truth cut points. Keys: left, right, disparity
+    (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px, B m, cx, cy), truth (list of {"cut_point_m",
+    "cut_visible"}). Cached in `cache` when given (a cached scene from before the right image was kept is
+    rendered again)."""
     path = cache / f"scene_{'hw_' if hardware else ''}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
@@ -87,7 +92,7 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     from stereo.synth import SynthCamera, render_scene
 
     rendered = render_scene(seed, SynthCamera.zed_mini(*size), orchard_hardware=hardware)
-    stereo = make_backend("sgbm", max_disp=192).compute(rendered.left, rendered.right)
+    stereo = make_backend("sgbm", max_disp=EVALUATION_MAX_DISP).compute(rendered.left, rendered.right)
     cam = rendered.camera
     truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
     scene = {
