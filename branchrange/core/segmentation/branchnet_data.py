@@ -59,7 +59,7 @@ def cached_sample(
 ) -> dict[str, np.ndarray]:
     """The sample of `seed` (with orchard hardware when `hardware`) from `folder`, rendered and stored there first
     when absent."""
-    path = folder / f"sample_{'hw_' if hardware else ''}{seed:06d}.npz"
+    path = folder / f"sample_{_hardware_tag(hardware)}{seed:06d}.npz"
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
@@ -69,6 +69,11 @@ def cached_sample(
     np.savez_compressed(partial, **sample)
     partial.replace(path)  # atomic: a killed render never leaves a half-written sample
     return sample
+
+
+def _hardware_tag(hardware: bool) -> str:
+    """The part of a cached file's name that keeps scenes with orchard hardware apart from plain ones."""
+    return "hw_" if hardware else ""
 
 
 #: the SGBM disparity range (px at 640×360) of the scenes the segmenter is scored and calibrated on
@@ -81,7 +86,7 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px, B m, cx, cy), truth (list of {"cut_point_m",
     "cut_visible"}). Cached in `cache` when given (a cached scene from before the right image was kept is
     rendered again)."""
-    path = cache / f"scene_{'hw_' if hardware else ''}{seed}.npz" if cache is not None else None
+    path = cache / f"scene_{_hardware_tag(hardware)}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
             scene = {k: data[k] for k in data.files}
