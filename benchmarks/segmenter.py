@@ -24,8 +24,8 @@ segmenter's recall minus the first listed one's with the same stereo is given pa
 scenes (`recall_difference_interval`). On 30 scenes a single recall is uncertain by about ± 6
 points, so a change smaller than that shows only in the paired figure; hence 60 scenes by default.
 
-Changed light (`--light dusk glare haze warm high_gain`, `branchrange.offline.light`): each change adds
-the stereo mode 'sgbm-<change>' — both images under that light, SGBM computed again — with its recall
+Changed light (`--light dusk glare haze warm high_gain`, `branchrange.core.segmentation.light_changes`): each
+change adds the stereo mode 'sgbm-<change>' — both images under that light, SGBM computed again — with its recall
 minus the same segmenter's in the scenes' own light, paired.
 
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
@@ -52,17 +52,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from branchrange.core.confidence import cut_point_outcomes, lowest_reliable_threshold, share_correct_above
+from branchrange.core.confidence import (
+    cut_point_outcomes,
+    expected_calibration_error,
+    lowest_reliable_threshold,
+    share_correct_above,
+)
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import Branch
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-from branchrange.core.segmentation.branchnet_data import EVALUATION_MAX_DISP, evaluation_scene
+from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
 from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.offline.evaluate_cuts import CutScores, recall_difference_interval
-from branchrange.offline.light import LIGHT_CHANGES, changed_light
-from stereo.backends import make_backend
 
 ROOT = Path(__file__).resolve().parents[1]
 TREES = ROOT.parent / "shared" / "data" / "trees"
@@ -81,17 +85,22 @@ WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
 
 def benchmark_segmenter(name: str) -> Segmenter:
     """`make_segmenter(name)`, and the learned segmenter's variants: 'learned-int8' (its shipped int8 model),
-    a network width after '@' (e.g. 'learned@1280'; `network_width`) and a trunk band after '/' (e.g.
-    'learned/0': one look; `trunk_band_px`). Without a '/', the default band at the frame's own width and
-    none at another width (a second look at twice 1280 is not a setting anyone runs)."""
-    rest, _, band = name.partition("/")
+    a network width after '@' (e.g. 'learned@1280'; `network_width`), a trunk band after '/' (e.g.
+    'learned/0': one look; `trunk_band_px`) and a final '~normal' for every frame read through the
+    normal-light calibration (`light_calibration` off). Without a '/', the default band at the frame's own
+    width and none at another width (a second look at twice 1280 is not a setting anyone runs)."""
+    setting, one_calibration, _ = name.partition("~normal")
+    rest, _, band = setting.partition("/")
     base, _, width = rest.partition("@")
     if base not in ("learned", "learned-int8") or name == "learned":
         return make_segmenter(name)
     precision = "int8" if base == "learned-int8" else "fp32"
     default_band = LearnedSegmenterConfig().trunk_band_px if not width else 0
     config = LearnedSegmenterConfig(
-        precision=precision, network_width=int(width or 0), trunk_band_px=int(band) if band else default_band
+        precision=precision,
+        network_width=int(width or 0),
+        trunk_band_px=int(band) if band else default_band,
+        light_calibration=not one_calibration,
     )
     return LearnedSegmenter(config)
 
@@ -133,14 +142,20 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]
     return rows
 
 
+def needed_for_target(pipeline: Pipeline) -> float:
+    """The confidence a cut point of the pipeline's last frame needed to be a target: the default's, or more
+    where the frame's light asked more (`BranchMasks.target_min_confidence`; above 1: none could be)."""
+    masks = None if pipeline.last is None else pipeline.last.masks
+    return max(TARGET_MIN_CONFIDENCE, 0.0 if masks is None else masks.target_min_confidence)
+
+
 def run_synthetic(
     segmenters: list[str], scenes: int, cache: Path | None, hardware: bool = False, light: Sequence[str] = ()
 ) -> dict:
     """Scores per 'stereo/segmenter' over `scenes` held-out scenes (with orchard hardware when `hardware`); each
-    change of `light` (`branchrange.offline.light`) adds the stereo mode 'sgbm-<change>': both images under
-    that light, SGBM computed again, the pipeline as with 'sgbm'."""
+    change of `light` (`branchnet_data.scene_in_light`) adds the stereo mode 'sgbm-<change>': both images
+    under that light, SGBM computed again, the pipeline as with 'sgbm'."""
     built = {name: benchmark_segmenter(name) for name in segmenters}
-    sgbm = make_backend("sgbm", max_disp=EVALUATION_MAX_DISP) if light else None  # as `evaluation_scene` does
     scores: dict[str, CutScores] = {}
     confidences: dict[str, list[tuple[float, bool]]] = {}
     times: dict[str, list[float]] = {}
@@ -155,11 +170,9 @@ def run_synthetic(
             "sgbm-unrefined": (scene["left"], scene["sgbm"], scene["sgbm_conf"], None),
             "truth": (scene["left"], scene["disparity"], None, None),
         }
-        rng = np.random.default_rng(FIRST_SEED + i)  # the noise of a change of light repeats per scene
         for change in light:
-            left, right = (changed_light(scene[side], change, rng) for side in ("left", "right"))
-            stereo_result = sgbm.compute(left, right)
-            views[f"sgbm-{change}"] = (left, stereo_result.disparity, stereo_result.confidence, right)
+            lit = scene_in_light(scene, FIRST_SEED + i, change, cache, hardware=hardware)
+            views[f"sgbm-{change}"] = (lit["left"], lit["sgbm"], lit["sgbm_conf"], lit["right"])
         for stereo, (left, disparity, confidence, right) in views.items():
             for name in [*segmenters, "truth"]:
                 key = f"{stereo}/{name}"
@@ -180,7 +193,7 @@ def run_synthetic(
                     by_width.setdefault(key, {}).setdefault(width, CutScores(stereo, name)).add_frame(
                         in_class, result.branches
                     )
-                acted_on = [x for x in result.branches if x.confidence >= TARGET_MIN_CONFIDENCE]
+                acted_on = [x for x in result.branches if x.confidence >= needed_for_target(pipeline)]
                 confident.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], acted_on, result.target)
                 times.setdefault(key, []).append(result.timing_ms["masks"])
                 confidences.setdefault(key, []).extend(
@@ -222,6 +235,7 @@ def run_synthetic(
             "reliability": reliability(confidences[key]),
             "at_0.8": share_correct_above(confidences[key], 0.8),
             "min_confidence_for_90pct": lowest_reliable_threshold(confidences[key]),
+            "calibration_error": expected_calibration_error(confidences[key]),
             "at_target_min_confidence": {
                 "threshold": TARGET_MIN_CONFIDENCE,
                 "recall": confident[key].recall,
@@ -292,7 +306,7 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
                 "precision": on_branch / len(labelled) if labelled else None,
                 "acted_on": {  # the cut points at or above the target threshold: what a robot would cut
                     label: sum(
-                        h == label for h, b in zip(hits, result.branches) if b.confidence >= TARGET_MIN_CONFIDENCE
+                        h == label for h, b in zip(hits, result.branches) if b.confidence >= needed_for_target(pipeline)
                     )
                     for label in ("branch", "not_branch", "unlabelled")
                 },
@@ -352,7 +366,8 @@ def print_tables(synthetic: dict, real: dict) -> None:
         count, share = r["at_0.8"]
         print(
             f"{key:<28} {cells}   ≥0.8: {count} cut points, {share:.0%} correct; "
-            f"≥90 % correct from confidence {r['min_confidence_for_90pct']}"
+            f"≥90 % correct from confidence {r['min_confidence_for_90pct']}; "
+            f"calibration error {r['calibration_error']:.3f}"
         )
     if real:
         print(

@@ -527,3 +527,30 @@ def test_a_failing_observer_is_logged_and_never_stops_the_daemon(recording, capl
     assert daemon.run(max_frames=3) == 3
     assert len(seen) == 3 and daemon.rejected == 0
     assert sum("viewer gone" in r.getMessage() for r in caplog.records) == 3
+
+
+def test_a_change_of_light_is_logged_when_it_happens(tmp_path, caplog):
+    """Dusk falls for three frames: the daemon warns once that the light is dark (its confidences are read
+    through the dark-light calibration), and says so again when normal light returns."""
+    caplog.set_level(logging.INFO, logger="branchrange.daemon")
+    scene = tree_scene()
+    out = tmp_path / "dusk"
+    cam = scene.camera
+    with Recorder(
+        out, calibration=from_rectified(cam.focal_px, cam.cx, cam.cy, cam.baseline_m, (cam.width, cam.height))
+    ) as rec:
+        for i, gain in enumerate([1.0, 0.3, 0.3, 0.3, 1.0]):
+            left, right = ((view * gain).astype(np.uint8) for view in (scene.left, scene.right))
+            rec.write(StereoFrame(left, right, i * 600_000_000, i))
+    cfg = Config(camera=CameraConfig(source=f"replay:{out}"), stereo=StereoConfig(max_disp=64))
+    assert cfg.segmenter.model == "learned"
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: ReplaySource(out, pace="recorded"),
+        pipeline=pipeline_for(cfg, ReplaySource(out).calibration),
+    )
+    daemon.run()
+    said = [(r.levelno, r.getMessage()) for r in caplog.records if "light " in r.getMessage()]
+    assert [level for level, _ in said] == [logging.INFO, logging.WARNING, logging.INFO], said
+    assert said[0][1].startswith("frame 0: light normal (median grey")
+    assert "light dark (median grey" in said[1][1] and "calibration measured in dark light" in said[1][1]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from branchrange.offline.light import LIGHT_CHANGES, changed_light
+from branchrange.core.segmentation.light_changes import LIGHT_CHANGES, changed_light
 
 
 @pytest.fixture

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import shutil
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -15,12 +17,14 @@ from torch.nn import functional as F
 from branchrange.commands.train_segmenter import training_config
 from branchrange.core.confidence import (
     ConfidenceCalibration,
+    expected_calibration_error,
     fit_calibration,
     highest_inclusive_threshold,
     lowest_reliable_threshold,
 )
 from branchrange.core.cutpoints import estimate_cut_points
 from branchrange.core.geometry import StereoGeometry
+from branchrange.core.light_check import LIGHTS
 from branchrange.core.masks import BranchMasks
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, network_input
@@ -232,6 +236,12 @@ def test_isotonic_calibration_is_monotone_and_honest():
     assert ConfidenceCalibration.from_json_dict(calibration.to_json_dict())(0.5) == pytest.approx(
         calibration(0.5), abs=1e-3
     )
+    # the calibration error: large for the raw confidence, small once calibrated, 0 for a perfect one
+    outcomes = list(zip(raw, correct))
+    assert expected_calibration_error(outcomes) > 0.1
+    assert expected_calibration_error([(calibration(c), ok) for c, ok in outcomes]) < 0.03
+    assert expected_calibration_error([(0.25, True), (0.25, False), (0.25, False), (0.25, False)]) == 0.0
+    assert expected_calibration_error([(1.0, False)]) == 1.0 and math.isnan(expected_calibration_error([]))
     few = fit_calibration([0.9] * 5, [True] * 5)  # five right answers are not a certainty
     assert few(0.9) == pytest.approx(6 / 7)
     with pytest.raises(ValueError, match="ascending"):
@@ -352,7 +362,8 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
     assert confidences("confidence_calibrations", tables) == pytest.approx([0.5 * c for c in raw[0]], abs=1e-9)
     assert confidences("confidence_calibrations", tables, network_width=1280) == pytest.approx(raw[1280])
     nearest = LearnedSegmenter(LearnedSegmenterConfig(model=model))  # its JSON holds `tables` now
-    assert nearest.calibration_at(1100)(0.8) == pytest.approx(0.8) and nearest.calibration_at(850)(0.8) == 0.4
+    assert nearest.calibration_at(1100).calibration(0.8) == pytest.approx(0.8)
+    assert nearest.calibration_at(850).calibration(0.8) == 0.4
     # a JSON from before widths were recorded: its one table was measured on the 640-wide scenes as they are,
     # and it is the nearest there is at any width
     assert confidences("confidence_calibration", halving) == pytest.approx([0.5 * c for c in raw[0]])
@@ -370,31 +381,99 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
         confidences("confidence_calibrations", [{**halving, "network_width": 640, "trunk_band_px": "40"}])
 
 
-def test_calibrating_a_model_stores_a_fit_per_setting_and_the_segmenter_applies_it(tmp_path):
+def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmenter_applies_it(tmp_path):
     from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SETTINGS, calibrate_model
 
     for name in ("branchnet.onnx", "branchnet.json"):
         shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
     lines: list[str] = []
+    model = tmp_path / "branchnet.onnx"
     calibrations = calibrate_model(
-        tmp_path / "branchnet.onnx", seeds=(2861, 2864), cache=tmp_path / "cal", log=lines.append
+        model, seeds=(2861, 2864), cache=tmp_path / "cal", log=lines.append, light_changes=("dusk",), min_cut_points=1
     )
-    assert set(calibrations) == set(CALIBRATION_SETTINGS) == {(640, 40), (640, 0), (1280, 0)}
-    assert "network width 640, trunk band 40 px" in lines[0] and "cut points on scenes 2861–2863" in lines[0]
+    # each scene also at dusk, which measures as dark light: a table per setting and light (one of the scenes,
+    # leaves to its edges, measures as noisy in its own light)
+    assert set(calibrations) == {(*s, light) for s in CALIBRATION_SETTINGS for light in ("normal", "dark", "noisy")}
+    assert set(CALIBRATION_SETTINGS) == {(640, 40), (640, 0), (1280, 0)}
+    assert "network width 640, trunk band 40 px, normal light" in lines[0] and "scenes 2861–2863" in lines[0]
+    assert sorted(p.name for p in (tmp_path / "cal").glob("light_*.npz")) == [
+        f"light_dusk_{s}.npz" for s in range(2861, 2864)
+    ]
     meta = json.loads((tmp_path / "branchnet.json").read_text())
     assert "confidence_calibration" not in meta  # the single table of before is replaced
-    stored = {(t["network_width"], t["trunk_band_px"]): t for t in meta["confidence_calibrations"]}
+    stored = {(t["network_width"], t["trunk_band_px"], t["light"]): t for t in meta["confidence_calibrations"]}
     for setting, calibration in calibrations.items():
         assert stored[setting]["seeds"] == [2861, 2864] and stored[setting]["cut_points"] > 0
+        assert stored[setting]["light_changes"] == ["dusk"]
         assert ConfidenceCalibration.from_json_dict(stored[setting]) == ConfidenceCalibration.from_json_dict(
             calibration.to_json_dict()  # as written: rounded
         )
-    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx")))
-    assert segmenter.calibrations == {k: ConfidenceCalibration.from_json_dict(t) for k, t in stored.items()}
-    one_look = LearnedSegmenter(LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx"), trunk_band_px=0))
-    assert segmenter.calibration_at(640) == segmenter.calibrations[(640, 40)]
-    assert one_look.calibration_at(640) == segmenter.calibrations[(640, 0)]
-    assert segmenter.calibration_at(1280) == segmenter.calibrations[(1280, 0)]  # the width decides first
+    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model)))
+    assert {k: c.calibration for k, c in segmenter.calibrations.items()} == {
+        k: ConfidenceCalibration.from_json_dict(t) for k, t in stored.items()
+    }
+    one_look = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), trunk_band_px=0))
+    assert segmenter.calibration_at(640) == segmenter.calibrations[(640, 40, "normal")]
+    assert segmenter.calibration_at(640, "dark") == segmenter.calibrations[(640, 40, "dark")]
+    assert segmenter.calibration_at(640, "bright") == segmenter.calibrations[(640, 40, "normal")]  # none measured
+    assert one_look.calibration_at(640) == segmenter.calibrations[(640, 0, "normal")]
+    assert segmenter.calibration_at(1280) == segmenter.calibrations[(1280, 0, "normal")]  # the width decides first
+    # too few cut points in a light: no table of its own
+    lines.clear()
+    calibrate_model(
+        model,
+        seeds=(2861, 2862),
+        cache=tmp_path / "cal",
+        log=lines.append,
+        settings=((640, 0),),
+        light_changes=("dusk",),
+    )
+    assert any("dark light at width 640, trunk band 0 px: only" in line and "no table" in line for line in lines)
+    assert {t["light"] for t in json.loads((tmp_path / "branchnet.json").read_text())["confidence_calibrations"]} == {
+        "normal"
+    }
+
+
+def test_a_frame_is_read_through_the_calibration_of_its_light_and_dark_light_gives_no_target(scene, tmp_path):
+    rendered, stereo = scene
+    cam = rendered.camera
+    for name in ("branchnet.onnx", "branchnet.json"):
+        shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
+    meta = json.loads((tmp_path / "branchnet.json").read_text())
+    identity = {"raw": [0.0, 1.0], "calibrated": [0.0, 1.0], "network_width": 640, "trunk_band_px": 0}
+    tables = [
+        {**identity, "target_min_confidence": 0.5},
+        {**identity, "light": "dark", "calibrated": [0.0, 0.5], "target_min_confidence": None},
+        {**identity, "light": "bright", "target_min_confidence": 1.0},
+    ]
+    (tmp_path / "branchnet.json").write_text(json.dumps({**meta, "confidence_calibrations": tables}))
+
+    def run(left, light_calibration=True):
+        config = LearnedSegmenterConfig(model=str(tmp_path / "branchnet.onnx"), trunk_band_px=0)
+        segmenter = LearnedSegmenter(replace(config, light_calibration=light_calibration))
+        settings = untracked_whole_frame()  # a low target minimum of its own: what the light asks decides
+        settings = replace(settings, cutpoints=replace(settings.cutpoints, target_min_confidence=0.1))
+        pipeline = Pipeline(settings, focal_px=cam.focal_px, baseline_m=cam.baseline_m, segmenter=segmenter)
+        return pipeline.process_disparity(left, stereo.disparity, stereo.confidence), pipeline.last.masks
+
+    normal, normal_masks = run(rendered.left)
+    assert normal_masks.light.light == "normal" and normal_masks.target_min_confidence == 0.0
+    assert normal.masks.light.light == "normal" and normal.target is not None  # the settings' 0.1 stands
+    dusk_left = (rendered.left * 0.3).astype(np.uint8)  # same disparity: only the reading of confidences changes
+    dusk, dusk_masks = run(dusk_left)
+    assert dusk.masks.light.light == "dark" and dusk.masks.light.median_grey < 55
+    assert dusk_masks.calibration == ConfidenceCalibration((0.0, 1.0), (0.0, 0.5))
+    assert dusk_masks.target_min_confidence == math.inf and dusk.branches and dusk.target is None
+    assert dusk.reason.startswith("no target in dark light (median grey") and "≥ 90 % right" in dusk.reason
+    assert max(b.confidence for b in dusk.branches) <= 0.5
+    bright, _ = run(np.clip(rendered.left.astype(int) * 2 + 40, 0, 255).astype(np.uint8))
+    assert bright.masks.light.light == "bright"
+    assert bright.branches and bright.target is None  # 1.0 asked: no cut point is that sure
+    assert "no branch reaches the target confidence 1.0 that bright light needs (median grey" in bright.reason
+    # switched off: every frame through the normal table, no light measured, the settings' minimum alone
+    off, off_masks = run(dusk_left, light_calibration=False)
+    assert off.masks.light is None and off_masks.target_min_confidence == 0.0
+    assert [b.confidence for b in off.branches] != [b.confidence for b in dusk.branches]
 
 
 def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
@@ -403,7 +482,8 @@ def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
 
     tables = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibrations"]
     defaults = LearnedSegmenterConfig()
-    table = next(t for t in tables if (t["network_width"], t["trunk_band_px"]) == (640, defaults.trunk_band_px))
+    setting = (640, defaults.trunk_band_px, "normal")
+    table = next(t for t in tables if (t["network_width"], t["trunk_band_px"], t.get("light")) == setting)
     assert CutPointConfig().target_min_confidence == table["target_min_confidence"]
     assert MavlinkConfig().obstacle_min_confidence == table["obstacle_min_confidence"]
 
@@ -475,12 +555,12 @@ def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene
     meta = json.loads(SHIPPED_MODELS["int8"].with_suffix(".json").read_text())
     # the int8 file was made from the fp32 file shipped beside it (re-quantize after retraining)
     assert meta["quantized_from"]["onnx_sha256"] == hashlib.sha256(SHIPPED_MODEL.read_bytes()).hexdigest()
-    assert (
-        len(meta["confidence_calibrations"]) == 3
-        and SHIPPED_MODELS["int8"].stat().st_size < SHIPPED_MODEL.stat().st_size
-    )
+    assert SHIPPED_MODELS["int8"].stat().st_size < SHIPPED_MODEL.stat().st_size
     fp32, int8 = LearnedSegmenter(), LearnedSegmenter(LearnedSegmenterConfig(precision="int8"))
-    assert int8.model_path == SHIPPED_MODELS["int8"] and set(int8.calibrations) == {(640, 40), (640, 0), (1280, 0)}
+    # its own calibration: each setting in each light
+    assert int8.model_path == SHIPPED_MODELS["int8"] and set(int8.calibrations) == {
+        (*setting, light) for setting in ((640, 40), (640, 0), (1280, 0)) for light in LIGHTS
+    }
     classes = [s.logits(rendered.left, stereo.disparity).argmax(0) for s in (fp32, int8)]
     assert np.mean(classes[0] == classes[1]) > 0.98
     branch = classes[0] == CLASSES.index("branch")

@@ -222,6 +222,8 @@ def run(args: argparse.Namespace) -> int:
         result = pipeline.process(left, right, mask=args.mask)
         if result.pair_check is not None and result.pair_check.status == "warning":
             print(f"branchrange estimate: warning: {result.pair_check.message}", file=sys.stderr)
+        if result.masks.light is not None and result.masks.light.light != "normal":
+            print(f"branchrange estimate: warning: {result.masks.light.message}", file=sys.stderr)
         if args.mask is not None and result.masks.instances == 0:
             raise ValueError(
                 f"{args.mask}: the mask holds no branch instance (expected ids other than 0 "

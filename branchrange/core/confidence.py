@@ -98,6 +98,22 @@ def share_correct_above(outcomes: Sequence[tuple[float, bool]], threshold: float
     return len(kept), float(np.mean(kept)) if kept else float("nan")
 
 
+def expected_calibration_error(outcomes: Sequence[tuple[float, bool]], bins: int = 10) -> float:
+    """How far confidences are from the share correct: the mean over cut points of |mean confidence − share
+    correct| within each of `bins` equal confidence bins (0 for a perfectly honest confidence); NaN without any.
+    Unlike the share correct above one threshold it weighs every cut point, the ones an obstacle map keeps too."""
+    if not outcomes:
+        return float("nan")
+    confidence = np.asarray([c for c, _ in outcomes], dtype=np.float64)
+    correct = np.asarray([ok for _, ok in outcomes], dtype=np.float64)
+    which = np.minimum((confidence * bins).astype(int), bins - 1)
+    gap = 0.0
+    for b in np.unique(which):
+        inside = which == b
+        gap += inside.sum() * abs(confidence[inside].mean() - correct[inside].mean())
+    return float(gap / len(outcomes))
+
+
 #: the thresholds the defaults are chosen from: 0.01, 0.02, … 0.99. Why this fine: an isotonic block holds
 #: dozens of cut points at one calibrated value, and in steps of 0.05 the step from a block at 0.80 to 0.85
 #: dropped a third of the confident cut points (the shipped model on scenes 2861–2980: 0.81 keeps 242 at

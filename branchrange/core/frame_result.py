@@ -28,6 +28,7 @@ from branchrange.core.geometry import StereoGeometry
 
 if TYPE_CHECKING:
     from branchrange.core.cutpoints import BranchEstimate, DroppedBranch
+    from branchrange.core.light_check import LightReading
     from branchrange.core.pair_check import PairCheck
     from branchrange.core.roi import Region
 
@@ -94,12 +95,38 @@ class StereoInfo(JsonPart):
 
 @with_config(_STRICT)
 @dataclass(frozen=True)
+class LightInfo(JsonPart):
+    """The frame's light, as the learned segmenter measured it to read its confidences by
+    (`branchrange.core.light_check`)."""
+
+    light: Annotated[
+        Literal["normal", "dark", "bright", "noisy"],
+        Field(description="the class of light whose calibration the confidences went through"),
+    ]
+    median_grey: Annotated[float, Field(ge=0, le=255, description="median grey level of the left image")]
+    noise_grey: Annotated[NonNegFloat, Field(description="sensor noise σ over the flattest blocks, grey levels")]
+    message: Annotated[str, Field(description="what was measured and what it means for the confidences")]
+
+    @classmethod
+    def from_reading(cls, reading: LightReading) -> LightInfo:
+        """The written form of a `light_check.LightReading` (grey levels to 0.1)."""
+        return cls(
+            reading.light,  # type: ignore[arg-type]
+            round(reading.median_grey, 1),
+            round(reading.noise_grey, 2),
+            reading.message,
+        )
+
+
+@with_config(_STRICT)
+@dataclass(frozen=True)
 class MasksInfo(JsonPart):
     """Where the branch masks came from."""
 
     source: Annotated[str, Field(description="'file', 'array', a mask file's path or the segmenter's name")]
     instances: Annotated[int, Field(ge=0, description="branch instances in the mask")]
     trunk: Annotated[bool | None, Field(description="whether a trunk was known")] = None
+    light: LightInfo | None = None
 
 
 @with_config(_STRICT)

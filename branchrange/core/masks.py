@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from branchrange.core.confidence import ConfidenceCalibration
+from branchrange.core.light_check import LightReading
 
 #: The trunk's id in instance masks unless configured otherwise (the synthetic generator's value).
 DEFAULT_TRUNK_ID = 65535
@@ -187,7 +188,10 @@ class BranchMasks:
     in `ignored_ids` neither branch nor trunk, any other value one branch); `source` says where the
     instances came from (e.g. a file name, "geometric"); `scores` maps a branch id to the
     segmenter's belief (0..1) that it is a branch (absent = 1: a mask file is taken as true), and
-    `calibration` maps the resulting cut-point confidence to a measured share correct. The
+    `calibration` maps the resulting cut-point confidence to a measured share correct. `light` is the
+    frame's measured light when the segmenter read its confidences by it, and `target_min_confidence` the
+    least confidence a target needs in that light by its calibration, beyond the settings' own (0: none
+    beyond them; `math.inf`: no confidence in that light was reliable enough for a target). The
     ids, sizes and bounding boxes are indexed once, on first use (`index`): treat `labels` as
     read-only after that.
     """
@@ -198,6 +202,8 @@ class BranchMasks:
     ignored_ids: tuple[int, ...] = ()
     scores: dict[int, float] = field(default_factory=dict)
     calibration: ConfidenceCalibration | None = None
+    light: LightReading | None = None
+    target_min_confidence: float = 0.0
 
     def reported_confidence(self, branch_id: int) -> Callable[[float], float] | None:
         """How a cut point's own confidence becomes the reported one for instance `branch_id`: scaled by

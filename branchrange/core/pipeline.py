@@ -9,6 +9,7 @@ and the tracker's state. `process_disparity` runs the stages after stereo on a g
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -33,6 +34,7 @@ from branchrange.core.frame_result import (
     DroppedInstance,
     Frame,
     FrameResult,
+    LightInfo,
     MasksInfo,
     PairCheckInfo,
     RoiInfo,
@@ -423,13 +425,13 @@ class Pipeline:
         if self.config.cutpoints.tracking:
             self.tracker.update(cut.branches)
         t = lap_ms(timing, "tracking", t)
+        needed = self.config.cutpoints.target_min_confidence
+        light_needs = 0.0 if masks is None else masks.target_min_confidence  # the frame's light may ask more
         target = select_target(  # the policy name was checked where the settings entered
-            cut.branches,
-            cast(TargetPolicy, self.config.cutpoints.target_policy),
-            self.config.cutpoints.target_min_confidence,
+            cut.branches, cast(TargetPolicy, self.config.cutpoints.target_policy), max(needed, light_needs)
         )
         if target is None and cut.branches:
-            reason = f"no branch reaches the target confidence {self.config.cutpoints.target_min_confidence}"
+            reason = no_target_reason(needed, masks)
         timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
         return FrameResult(
             frame=Frame(stage.index, stage.timestamp_ns, int(left.shape[1]), int(left.shape[0])),
@@ -438,7 +440,12 @@ class Pipeline:
             timing_ms=timing,
             masks=MasksInfo("none", 0, False)
             if masks is None
-            else MasksInfo(masks.source, len(masks.branch_ids()), masks.trunk() is not None),
+            else MasksInfo(
+                masks.source,
+                len(masks.branch_ids()),
+                masks.trunk() is not None,
+                None if masks.light is None else LightInfo.from_reading(masks.light),
+            ),
             branches=tuple(Branch.from_estimate(b) for b in sorted(cut.branches, key=lambda b: b.id)),
             dropped=tuple(DroppedInstance.from_dropped(d) for d in cut.dropped),
             target_id=None if target is None else int(target.id),
@@ -446,3 +453,18 @@ class Pipeline:
             roi=None if stage.regions is None else RoiInfo(tuple(RoiRegion.from_region(r) for r in stage.regions)),
             pair_check=None if stage.pair_check is None else PairCheckInfo.from_check(stage.pair_check),
         )
+
+
+def no_target_reason(needed: float, masks: BranchMasks | None) -> str:
+    """Why no cut point became the target: none reached the settings' minimum `needed`, or none what the
+    frame's light asks (`BranchMasks.target_min_confidence`, from the calibration measured in that light)."""
+    light_needs = 0.0 if masks is None else masks.target_min_confidence
+    if masks is None or masks.light is None or light_needs <= needed:
+        return f"no branch reaches the target confidence {needed}"
+    light = masks.light
+    if math.isinf(light_needs):
+        return (
+            f"no target in {light.light} light ({light.measured}): when the segmenter was calibrated, no confidence "
+            "in that light was ≥ 90 % right"
+        )
+    return f"no branch reaches the target confidence {light_needs} that {light.light} light needs ({light.measured})"

@@ -22,7 +22,9 @@ Each result carries `latency` (ms from capture to the stereo stage, to the geome
 publishing), besides the per-stage `timing_ms`. A result already older than
 `mavlink.max_result_age_s` when published is counted (`late`) and goes out as "no target". After
 the first `WARMUP_FRAMES` frames the daemon logs, once, whether its measured capture → publish
-time can meet `max_result_age_s`, and what to change when it cannot. A status line (fps, latency,
+time can meet `max_result_age_s`, and what to change when it cannot. When the learned segmenter
+measures the light of a frame in another class than the last (`branchrange.core.light_check`: dark,
+bright, noisy, normal), the log says so: a warning out of normal light. A status line (fps, latency,
 drops, camera, link) every `log.status_interval_s`. `stop()` (the SIGTERM/SIGINT handler calls
 it) ends the loop within one stall timeout.
 """
@@ -124,6 +126,7 @@ class Daemon:
         self._speed_reported = False
         self._pair_checked = False
         self._speed_warned = False
+        self._light: str | None = None  # the class of light of the last result that measured it
 
     @property
     def skipped(self) -> int:
@@ -231,6 +234,7 @@ class Daemon:
             self.relay.publish(result, captured_at=item.captured_at)
             result = replace(result, targets=self.relay.targets())  # fused in local NED, for the log and /latest
         self._check_age(age)
+        self._note_light(result)
         if self._results is not None:
             self._results.write(result_line(result))
         self._latest = result
@@ -283,6 +287,15 @@ class Daemon:
             1000 * limit,
             advice,
         )
+
+    def _note_light(self, result: FrameResult) -> None:
+        """Log when the measured light changes class (`branchrange.core.light_check`): out of normal light the
+        confidences are read through another calibration, and in dark or noisy light no target is given."""
+        light = result.masks.light
+        if light is None or light.light == self._light:
+            return
+        self._light = light.light
+        (log.info if light.light == "normal" else log.warning)("frame %d: %s", result.frame.index, light.message)
 
     def _check_age(self, age_s: float) -> None:
         """Count a result that was stale on publishing; after a warm-up that was fast enough, warn on the

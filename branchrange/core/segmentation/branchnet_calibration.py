@@ -3,19 +3,23 @@
 Scenes `CALIBRATION_SEEDS` (never trained on, and apart from the benchmark's held-out seeds from
 50,000) go through the pipeline with SGBM — the onboard stereo stage, each branch refined on its own
 pixels (`branchrange.core.branch_disparity`) as on board — and the model's raw confidences; each cut
-point is correct when a true cut point lies within 5 cm. The isotonic fit of
-correct on raw confidence (`branchrange.core.confidence.fit_calibration`) is stored in the model's
-JSON under "confidence_calibrations", one table per width the network saw the 640×360 scenes at
+point is correct when a true cut point lies within 5 cm. Each scene is also seen under the changes of
+light of `CALIBRATION_LIGHT_CHANGES` (SGBM computed again), and every frame counts toward the class of
+light it measures as (`branchrange.core.light_check`): what is right depends on the light (at dusk the
+same raw confidence is right far less often), and the segmenter reads a frame's confidences through the
+table of its own light. The isotonic fit of correct on raw confidence
+(`branchrange.core.confidence.fit_calibration`) is stored in the model's JSON under
+"confidence_calibrations", one table per width the network saw the 640×360 scenes at
 (`LearnedSegmenterConfig.network_width`: the scores, and so what a raw confidence means, change with
-it), where `LearnedSegmenter` reads it, with the defaults each implies: the lowest calibrated
-confidence at which ≥ 90 % of cut points are right (a target's minimum) and the highest that keeps
-≥ 98 % of the right ones (an obstacle's minimum).
+it), trunk band and light, where `LearnedSegmenter` reads it, with the defaults each implies: the lowest
+calibrated confidence at which ≥ 90 % of cut points are right (a target's minimum; null when none is)
+and the highest that keeps ≥ 98 % of the right ones (an obstacle's minimum).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -27,20 +31,34 @@ from branchrange.core.confidence import (
     highest_inclusive_threshold,
     lowest_reliable_threshold,
 )
-from branchrange.core.segmentation.branchnet_data import evaluation_scene
+from branchrange.core.light_check import measure_light
+from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
+from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
 
 CALIBRATION_SEEDS = (2861, 2981)
 #: how the network is calibrated seeing the scenes, (network width px, trunk band px): the default (the
 #: scenes' own width, the trunk band looked at twice as large), one look as the onboard loop affords, and
 #: twice the width in one look
 CALIBRATION_SETTINGS = ((640, 40), (640, 0), (1280, 0))
+#: the scenes are also calibrated under each of these changes of light (`light_changes`); every frame, in
+#: its own light or changed, counts toward the class of light it measures as (`light_check.measure_light`)
+CALIBRATION_LIGHT_CHANGES = tuple(LIGHT_CHANGES)
+#: a class of light with fewer cut points than this gets no table of its own (it is read as "normal")
+MIN_CUT_POINTS_PER_LIGHT = 200
 
 
 def raw_outcomes(
-    model: Path, seeds: tuple[int, int], cache: Path | None, network_width: int, trunk_band_px: int = 0
-) -> list[tuple[float, bool]]:
+    model: Path,
+    seeds: tuple[int, int],
+    cache: Path | None,
+    network_width: int,
+    trunk_band_px: int = 0,
+    light_changes: Sequence[str] = (),
+) -> dict[str, list[tuple[float, bool]]]:
     """(raw confidence, within 5 cm of a true cut point) of every cut point on scenes `seeds` [first, last),
-    the network seeing them at `network_width` px (and the trunk band, `trunk_band_px`)."""
+    the network seeing them at `network_width` px (and the trunk band, `trunk_band_px`), by the class of
+    light each frame measures as (`light_check.LIGHTS`); each scene in its own light and under each of
+    `light_changes` (`branchnet_data.scene_in_light`)."""
     from branchrange.core.pipeline import Pipeline, untracked_whole_frame
     from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 
@@ -48,19 +66,22 @@ def raw_outcomes(
         model=str(model), calibrated=False, network_width=network_width, trunk_band_px=trunk_band_px
     )
     segmenter = LearnedSegmenter(config)
-    outcomes = []
+    outcomes: dict[str, list[tuple[float, bool]]] = {}
     for seed in range(*seeds):
         scene = evaluation_scene(seed, cache)
         f, b, cx, cy = (float(v) for v in scene["camera"])
-        pipeline = Pipeline(
-            untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
-        )
-        result = pipeline.process_disparity(
-            scene["left"], scene["sgbm"], scene["sgbm_conf"], backend="sgbm", right=scene["right"]
-        )
-        outcomes += cut_point_outcomes(
-            [(b.confidence, b.cut_point_m) for b in result.branches], [t["cut_point_m"] for t in scene["truth"]]
-        )
+        for lit in [scene, *(scene_in_light(scene, seed, change, cache) for change in light_changes)]:
+            pipeline = Pipeline(
+                untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
+            )
+            result = pipeline.process_disparity(
+                lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
+            )
+            outcomes.setdefault(measure_light(lit["left"]).light, []).extend(
+                cut_point_outcomes(
+                    [(b.confidence, b.cut_point_m) for b in result.branches], [t["cut_point_m"] for t in scene["truth"]]
+                )
+            )
     return outcomes
 
 
@@ -70,39 +91,50 @@ def calibrate_model(
     cache: Path | None = None,
     log: Callable[[str], object] = print,
     settings: tuple[tuple[int, int], ...] = CALIBRATION_SETTINGS,
-) -> dict[tuple[int, int], ConfidenceCalibration]:
+    light_changes: Sequence[str] = CALIBRATION_LIGHT_CHANGES,
+    min_cut_points: int = MIN_CUT_POINTS_PER_LIGHT,
+) -> dict[tuple[int, int, str], ConfidenceCalibration]:
     """Fit the confidence calibration of the ONNX `model` for each (network width, trunk band) of `settings`
-    and store them in the JSON beside it ("confidence_calibrations", replacing what was there); a setting
-    with which the model finds no cut point on those scenes gets none (its confidences stay raw)."""
+    and each class of light with at least `min_cut_points` cut points (the scenes in their own light and under
+    `light_changes`), and store them in the JSON beside it ("confidence_calibrations", replacing what was
+    there). Each table records the least calibrated confidence at which ≥ 90 % of its cut points are right
+    ("target_min_confidence", null when none is) and the highest that keeps ≥ 98 % of the right ones. A
+    setting with which the model finds no cut point in normal light gets none (its confidences stay raw)."""
     tables, calibrations = [], {}
     for width, band in settings:
-        outcomes = raw_outcomes(model, seeds, cache, width, band)
-        if not outcomes:
+        by_light = raw_outcomes(model, seeds, cache, width, band, light_changes)
+        if not by_light.get("normal"):
             log(
-                f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} at width {width}, trunk band {band} px: "
-                "that setting stays uncalibrated"
+                f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} in normal light at width {width}, trunk band "
+                f"{band} px: that setting stays uncalibrated"
             )
             continue
-        calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
-        calibrated = [(calibration(c), ok) for c, ok in outcomes]
-        tables.append(
-            {
-                "network_width": width,
-                "trunk_band_px": band,
-                **calibration.to_json_dict(),
-                "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
-                "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
-                "seeds": list(seeds),
-                "stereo": "sgbm",
-                "cut_points": len(outcomes),
-                "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4),
-            }
-        )
-        calibrations[(width, band)] = calibration
-        log(
-            f"confidence calibration at network width {width}, trunk band {band} px, from {len(outcomes)} cut "
-            f"points on scenes {seeds[0]}–{seeds[1] - 1}: {calibration}"
-        )
+        for light, outcomes in by_light.items():
+            if light != "normal" and len(outcomes) < min_cut_points:
+                log(f"{light} light at width {width}, trunk band {band} px: only {len(outcomes)} cut points, no table")
+                continue
+            calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
+            calibrated = [(calibration(c), ok) for c, ok in outcomes]
+            tables.append(
+                {
+                    "network_width": width,
+                    "trunk_band_px": band,
+                    "light": light,
+                    **calibration.to_json_dict(),
+                    "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
+                    "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
+                    "seeds": list(seeds),
+                    "light_changes": list(light_changes),
+                    "stereo": "sgbm",
+                    "cut_points": len(outcomes),
+                    "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4),
+                }
+            )
+            calibrations[(width, band, light)] = calibration
+            log(
+                f"confidence calibration at network width {width}, trunk band {band} px, {light} light, from "
+                f"{len(outcomes)} cut points on scenes {seeds[0]}–{seeds[1] - 1}: {calibration}"
+            )
     meta_path = model.with_suffix(".json")
     meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
     meta.pop("confidence_calibration", None)  # the single table of before widths were recorded

@@ -115,3 +115,25 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
         np.savez_compressed(path, **scene)
     scene["truth"] = truth
     return scene
+
+
+def scene_in_light(scene: dict, seed: int, change: str, cache: Path | None, hardware: bool = False) -> dict:
+    """`evaluation_scene(seed, ...)`'s `scene` under the named change of light (`light_changes.LIGHT_CHANGES`):
+    both images changed alike (the noise seeded by the seed and the change's name, so a run repeats), SGBM over
+    `EVALUATION_MAX_DISP` px computed again; the other keys as they were. Cached in `cache` when given."""
+    from branchrange.core.segmentation.light_changes import changed_light
+
+    path = cache / f"light_{change}_{_hardware_tag(hardware)}{seed}.npz" if cache is not None else None
+    if path is not None and path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            return {**scene, **{k: data[k] for k in data.files}}
+    from stereo.backends import make_backend
+
+    rng = np.random.default_rng([seed, *change.encode()])
+    left, right = (changed_light(scene[side], change, rng) for side in ("left", "right"))
+    stereo = make_backend("sgbm", max_disp=EVALUATION_MAX_DISP).compute(left, right)
+    changed = {"left": left, "right": right, "sgbm": stereo.disparity, "sgbm_conf": stereo.confidence}
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, **changed)
+    return {**scene, **changed}

@@ -21,9 +21,11 @@ Steps (one frame):
    stops short of the trunk (`trunk_attachment`) — carried in
    `BranchMasks.scores` and multiplied into its cut point's confidence, so a doubtful instance
    never produces a confident cut point; that product goes through the model's measured
-   calibration at the width and trunk band the network saw the frame with (`branchnet_calibration`), so
-   a reported confidence is the share of such cut points that lie within 5 cm of a true one (SGBM, held-out
-   synthetic scenes).
+   calibration at the width and trunk band the network saw the frame with and in the frame's light
+   (`branchnet_calibration`, `branchrange.core.light_check`), so a reported confidence is the share of such
+   cut points that lie within 5 cm of a true one (SGBM, held-out synthetic scenes); where that light's
+   calibration found a higher least confidence for ≥ 90 % right targets, or none, the masks carry it
+   (`BranchMasks.target_min_confidence`).
 
 The weights file ships inside the package (`weights/branchnet.onnx`, under 1 MB) and is checked
 against the SHA-256 recorded beside it (`weights/branchnet.json`, which also holds the training
@@ -44,9 +46,10 @@ import cv2
 import numpy as np
 
 from branchrange.core.confidence import ConfidenceCalibration
-from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
+from branchrange.core.geometry import StereoGeometry, disparity_to_depth
+from branchrange.core.light_check import LIGHTS, measure_light
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input, padded_to_stride
+from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
 from branchrange.core.segmentation.pieces import straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
@@ -118,6 +121,11 @@ class LearnedSegmenterConfig(Settings):
       the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
       width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
       points that are right.
+    - `light_calibration`: measure each frame's light (`light_check.measure_light`: dark, bright, noisy or
+      normal) and read its confidences through the calibration measured in that light, with that light's
+      least target confidence (none in dark or noisy light: there no confidence was ≥ 90 % right; held out,
+      at confidence ≥ 0.8 at dusk 79 % were right with the normal-light calibration); off = every frame
+      through the normal-light calibration, as before lights were measured.
     - `threads`: onnxruntime intra-op threads. 1 by default: onboard the segmenter runs in the stereo
       thread while the geometry thread works on the other core (roi-sgbm on the synthetic flight:
       9.9–10.7 fresh Hz with 1 thread, 8.5–9.2 with 2); alone it costs 62 / 53 ms (1 / 2 threads) on a
@@ -140,6 +148,7 @@ class LearnedSegmenterConfig(Settings):
     attachment_scale_m: float = 0.02
     split_straight: bool = True
     calibrated: bool = True
+    light_calibration: bool = True
     threads: int = 1
     trunk_id: int = DEFAULT_TRUNK_ID
 
@@ -197,11 +206,26 @@ def verified_metadata(path: Path) -> dict[str, Any]:
     return meta
 
 
-def calibrations_by_setting(meta: dict[str, Any]) -> dict[tuple[int, int], ConfidenceCalibration]:
+#: how a confidence calibration was measured: (network width px, trunk band px, class of light in `LIGHTS`)
+Setting = tuple[int, int, str]
+
+
+@dataclass(frozen=True)
+class MeasuredCalibration:
+    """One table of a model JSON's "confidence_calibrations": the map of raw to calibrated confidence, the
+    light it was measured in (`LIGHTS`) and the least calibrated confidence at which ≥ 90 % of its cut points
+    were right (`math.inf` when none was: JSON null; 0 when the table does not say)."""
+
+    calibration: ConfidenceCalibration
+    light: str
+    target_min_confidence: float
+
+
+def calibrations_by_setting(meta: dict[str, Any]) -> dict[Setting, MeasuredCalibration]:
     """A model JSON's confidence calibrations keyed by how the network saw the calibration scenes: (width
-    px, `trunk_band_px`) ("confidence_calibrations": [{..., "network_width": W, "trunk_band_px": B}]; B
-    absent = 0, one look; an older single "confidence_calibration" counts as (`SCENE_WIDTH`, 0));
-    ValueError naming what is wrong."""
+    px, `trunk_band_px`, light) ("confidence_calibrations": [{..., "network_width": W, "trunk_band_px": B,
+    "light": L}]; B absent = 0, one look; L absent = "normal"; an older single "confidence_calibration"
+    counts as (`SCENE_WIDTH`, 0, "normal")); ValueError naming what is wrong."""
     tables = meta.get("confidence_calibrations")
     if tables is None:
         old = meta.get("confidence_calibration")
@@ -214,8 +238,15 @@ def calibrations_by_setting(meta: dict[str, Any]) -> dict[tuple[int, int], Confi
             raise ValueError("every confidence calibration needs an integer 'network_width' (px)")
         if not isinstance(table.get("trunk_band_px", 0), int):
             raise ValueError("a confidence calibration's 'trunk_band_px' must be an integer (px)")
-        setting = (table["network_width"], table.get("trunk_band_px", 0))
-        calibrations[setting] = ConfidenceCalibration.from_json_dict(table)
+        light = table.get("light", "normal")
+        if light not in LIGHTS:
+            raise ValueError(f"a confidence calibration's 'light' must be one of {', '.join(LIGHTS)}, not {light!r}")
+        minimum = table.get("target_min_confidence", 0.0)
+        if minimum is not None and not (isinstance(minimum, (int, float)) and 0 <= minimum <= 1):
+            raise ValueError("a confidence calibration's 'target_min_confidence' must be null or a number in [0, 1]")
+        calibrations[(table["network_width"], table.get("trunk_band_px", 0), light)] = MeasuredCalibration(
+            ConfidenceCalibration.from_json_dict(table), light, math.inf if minimum is None else float(minimum)
+        )
     return calibrations
 
 
@@ -243,15 +274,18 @@ class LearnedSegmenter:
             )
         self._input = inputs[0].name
 
-    def calibration_at(self, seen_width: int) -> ConfidenceCalibration | None:
+    def calibration_at(self, seen_width: int, light: str = "normal") -> MeasuredCalibration | None:
         """The calibration measured at the width nearest (by ratio) `seen_width` px — with the trunk band nearest
-        this segmenter's `trunk_band_px` where several were measured there; None without any."""
+        this segmenter's `trunk_band_px` where several were measured there — in `light`, or in normal light
+        when none was measured in it; None without any."""
         if not self.calibrations:
             return None
         band = self.config.trunk_band_px
-        return self.calibrations[
-            min(self.calibrations, key=lambda s: (abs(math.log(s[0] / seen_width)), abs(s[1] - band)))
-        ]
+        width, band = min(
+            {s[:2] for s in self.calibrations}, key=lambda s: (abs(math.log(s[0] / seen_width)), abs(s[1] - band))
+        )
+        in_light = {s[2]: c for s, c in self.calibrations.items() if s[:2] == (width, band)}
+        return in_light.get(light) or in_light.get("normal") or next(iter(in_light.values()))
 
     def seen_width(self, frame_width: int) -> int:
         """The width (px) the network sees a frame `frame_width` px wide at (`network_width`)."""
@@ -298,7 +332,8 @@ class LearnedSegmenter:
             larger = seen > width
             left = cv2.resize(left, size, interpolation=cv2.INTER_LINEAR if larger else cv2.INTER_AREA)
             disparity = cv2.resize(np.asarray(disparity, dtype=np.float32), size, interpolation=cv2.INTER_NEAREST)
-        features, (rows, cols) = padded_to_stride(network_input(left, disparity))
+        rows, cols = disparity.shape
+        features = network_input(left, disparity, stride=STRIDE)
         logits = np.asarray(self.session.run(None, {self._input: features[None]})[0][0, :, :rows, :cols])
         if seen != width:
             # probabilities, not logits, are averaged: a 1 px stem seen 2 px wide then keeps its share
@@ -324,7 +359,7 @@ class LearnedSegmenter:
             + np.exp(np.minimum(logits[_TRUNK] - logits[_BRANCH], 50.0))
         )
         labels = np.zeros(disparity.shape, dtype=np.int32)
-        depth = np.where(valid_disparity(disparity), disparity_to_depth(disparity, geometry), np.inf)
+        depth = disparity_to_depth(disparity, geometry)  # inf where invalid
         trunk_px = (logits[_TRUNK] > logits[_BACKGROUND]) & (logits[_TRUNK] > logits[_BRANCH])
         branch = (branch_p >= cfg.branch_threshold) & ~trunk_px
         branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
@@ -335,10 +370,14 @@ class LearnedSegmenter:
             branch |= before_trunk
         labels[trunk] = cfg.trunk_id
         near_trunk = trunk.any() and cfg.max_trunk_gap_m > 0
+        pixels = np.flatnonzero(branch)  # the branch pixels as flat indices: a few % of the frame
         if near_trunk:  # drop whole regions far from the trunk before the (costlier) splitting
-            gap_m = trunk_gap_m(trunk, depth, geometry)
-            regions = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)[1]
-            branch &= (_nearest(regions, gap_m) <= cfg.max_trunk_gap_m)[regions] & (regions > 0)
+            gap_m = trunk_gap_m(trunk, depth, geometry, pixels)
+            region_count, regions = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)
+            region = regions.ravel()[pixels]
+            near = _nearest(region, gap_m, region_count)[region] <= cfg.max_trunk_gap_m
+            branch.flat[pixels[~near]] = False
+            pixels, gap_m = pixels[near], gap_m[near]
         instances = np.zeros(disparity.shape, dtype=np.int32)
         if cfg.split_straight:
             for piece_id, (pu, pv) in enumerate(
@@ -347,23 +386,38 @@ class LearnedSegmenter:
                 instances[pv, pu] = piece_id
         else:
             instances = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)[1]
-        count = int(instances.max()) + 1
-        sizes = np.bincount(instances.ravel(), minlength=count)
+        instance = instances.ravel()[pixels]  # every instance pixel is a branch pixel
+        count = int(instance.max(initial=0)) + 1
+        sizes = np.bincount(instance, minlength=count)
         keep = np.flatnonzero(sizes[1:] >= cfg.min_area_px) + 1
         attachment = np.ones(count)
         if near_trunk:  # a piece of a region that touches the trunk may itself lie far from it
-            gaps = _nearest(instances, gap_m)
+            gaps = _nearest(instance, gap_m, count)
             keep = keep[gaps[keep] <= cfg.max_trunk_gap_m]
             attachment[keep] = trunk_attachment(gaps[keep], cfg.attachment_scale_m)
         renumber = np.zeros(count, dtype=np.int32)
         renumber[keep] = np.arange(1, len(keep) + 1)
-        instances = renumber[instances]
-        labels = np.where(instances > 0, instances, labels)
+        instance = renumber[instance]
+        instances.ravel()[pixels] = instance  # zero elsewhere already
+        kept = instance > 0
+        labels.ravel()[pixels[kept]] = instance[kept]
         sums = np.bincount(instances.ravel(), weights=branch_p.ravel(), minlength=len(keep) + 1)
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {i: float(sums[i] / sizes[i] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
-        calibration = self.calibration_at(self.seen_width(disparity.shape[1]))
-        return BranchMasks(labels, cfg.trunk_id, self.name, scores=scores, calibration=calibration)
+        light = measure_light(left) if cfg.light_calibration else None
+        measured = self.calibration_at(self.seen_width(disparity.shape[1]), "normal" if light is None else light.light)
+        return BranchMasks(
+            labels,
+            cfg.trunk_id,
+            self.name,
+            scores=scores,
+            calibration=None if measured is None else measured.calibration,
+            light=light,
+            # in normal light the settings' own minimum stands (its default is that table's)
+            target_min_confidence=0.0
+            if measured is None or measured.light == "normal"
+            else measured.target_min_confidence,
+        )
 
 
 #: a piece whose pixels come this close to the trunk (m) touches it: SGBM fattens edges by a pixel or two
@@ -408,10 +462,10 @@ def trunk_attachment(gaps_m: np.ndarray, scale_m: float) -> np.ndarray:
     return np.asarray(np.exp(-np.maximum(0.0, gaps_m - TOUCHING_TRUNK_M) / scale_m), dtype=np.float64)
 
 
-def _nearest(labels: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
-    """`(max label + 1,)`: the smallest `gap_m` over each label's pixels (inf for absent labels and 0)."""
-    rows, cols = np.nonzero(labels)  # only the labelled pixels: a few % of the frame
-    nearest = np.full(int(labels.max()) + 1, np.inf)
-    np.minimum.at(nearest, labels[rows, cols], gap_m[rows, cols])
+def _nearest(labels: np.ndarray, gap_m: np.ndarray, count: int) -> np.ndarray:
+    """`(count,)`: the smallest `gap_m` `(N,)` (m) over the pixels of each label, given the pixels' labels
+    `(N,)` in 0..count − 1 (inf for absent labels and 0)."""
+    nearest = np.full(count, np.inf)
+    np.minimum.at(nearest, labels, gap_m)
     nearest[0] = np.inf
     return nearest

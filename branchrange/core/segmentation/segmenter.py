@@ -134,18 +134,16 @@ def depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
     """Boolean `H×W`: pixels whose depth differs from a 4-neighbour's by more than `ratio` (relative)."""
     edges = np.zeros(depth.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
-        for axis in (0, 1):
-            a = depth.take(np.arange(depth.shape[axis] - 1), axis=axis)
-            b = depth.take(np.arange(1, depth.shape[axis]), axis=axis)
+        # each pixel and its neighbour below, then to the right: views, no copies
+        for a, b, edges_a, edges_b in (
+            (depth[:-1], depth[1:], edges[:-1], edges[1:]),
+            (depth[:, :-1], depth[:, 1:], edges[:, :-1], edges[:, 1:]),
+        ):
             jump = np.abs(a - b) > ratio * np.minimum(a, b)
             # mark the farther pixel of the pair: the nearer one keeps its full silhouette
             far_is_a = a > b
-            if axis == 0:
-                edges[:-1][jump & far_is_a] = True
-                edges[1:][jump & ~far_is_a] = True
-            else:
-                edges[:, :-1][jump & far_is_a] = True
-                edges[:, 1:][jump & ~far_is_a] = True
+            edges_a |= jump & far_is_a
+            edges_b |= jump & ~far_is_a
     return edges
 
 

@@ -50,25 +50,30 @@ def tree_trunk(
     """Boolean `H×W`: the tree's trunk (see the module docstring) among the boolean `H×W` `trunk_px`,
     given the branch pixels `branch_px`, the depth (m, `H×W`, inf where unknown) and how far from the
     trunk (m, in the image at the branch's depth) a branch may start, `max_gap_m`."""
-    count, components, stats, _ = cv2.connectedComponentsWithStats(trunk_px.astype(np.uint8), connectivity=8)
+    # connectedComponentsWithStats costs ~10× more: its statistics cover the background too
+    count, components = cv2.connectedComponents(trunk_px.astype(np.uint8), connectivity=8)
     if count < 2:
         return np.zeros(trunk_px.shape, dtype=bool)
-    areas = stats[:, cv2.CC_STAT_AREA].copy()
-    areas[0] = 0
+    pixels = np.flatnonzero(components)  # the trunk pixels only (a few % of the frame), as flat indices
+    region = components.ravel()[pixels]
+    areas = np.bincount(region, minlength=count)
     candidates = np.flatnonzero(areas >= TRUNK_PART_MIN_AREA * areas.max())
-    rows, cols = np.nonzero(components)  # the trunk pixels only: a few % of the frame
-    region = components[rows, cols]
-    depths = _median_per_region(region, depth[rows, cols], candidates, count)
-    support = _branch_support(components, (rows, cols), depths, branch_px, depth, geometry, max_gap_m)
+    depths = _median_per_region(region, depth.ravel()[pixels], candidates, count)
+    support = _branch_support(components, pixels, region, depths, branch_px, depth, geometry, max_gap_m)
     anchor = int(np.argmax(support)) if support.max() > 0 else int(np.argmax(areas))
     keep = np.zeros(count, dtype=bool)
     if np.isfinite(depths[anchor]):
         keep[candidates] = np.abs(depths[candidates] - depths[anchor]) <= TRUNK_DEPTH_TOLERANCE * depths[anchor]
-        on_axis = _on_anchor_axis((rows, cols), region, anchor, candidates, count)
-        if on_axis is not None:
-            keep &= on_axis
+        keep[anchor] = False
+        if keep.any():  # the anchor's axis only judges other regions at its depth: most frames have none
+            rows, cols = np.divmod(pixels, components.shape[1])
+            on_axis = _on_anchor_axis((rows, cols), region, anchor, np.flatnonzero(keep), count)
+            if on_axis is not None:
+                keep &= on_axis
     keep[anchor] = True
-    return np.asarray(keep[components], dtype=bool)
+    trunk = np.zeros(trunk_px.shape, dtype=bool)
+    trunk.ravel()[pixels] = keep[region]
+    return trunk
 
 
 def _median_per_region(region: np.ndarray, values: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:
@@ -111,42 +116,43 @@ def _on_anchor_axis(
 
 def _branch_support(
     components: np.ndarray,
-    trunk_pixels: tuple[np.ndarray, np.ndarray],
+    trunk_pixels: np.ndarray,
+    trunk_region: np.ndarray,
     depths: np.ndarray,
     branch_px: np.ndarray,
     depth: np.ndarray,
     geometry: StereoGeometry,
     max_gap_m: float,
 ) -> np.ndarray:
-    """`(regions,)`: per trunk region (`components` `int32 H×W`, 0 = none, with its pixels `trunk_pixels`
-    (rows, cols); `depths` its median depth, inf when not a candidate), the branch pixels whose nearest
-    trunk pixel is that region's, within `max_gap_m` in the image and within `TRUNK_DEPTH_TOLERANCE` of
-    the region's depth."""
+    """`(regions,)`: per trunk region (`components` `int32 H×W`, 0 = none; `trunk_pixels` `(N,)` the flat
+    indices of its nonzero pixels, `trunk_region` `(N,)` their regions; `depths` each region's median depth,
+    inf when not a candidate), the branch pixels whose nearest trunk pixel is that region's, within
+    `max_gap_m` in the image and within `TRUNK_DEPTH_TOLERANCE` of the region's depth."""
     gap_px, nearest = cv2.distanceTransformWithLabels(
         (components == 0).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
     )
-    tv, tu = trunk_pixels
     region_of = np.zeros(int(nearest.max()) + 1, dtype=np.int64)
-    region_of[nearest[tv, tu]] = components[tv, tu]
-    bv, bu = np.nonzero(branch_px & np.isfinite(depth))
-    region = region_of[nearest[bv, bu]]
-    z = depth[bv, bu]
-    close = gap_px[bv, bu] * z / geometry.focal_px <= max_gap_m
+    region_of[nearest.ravel()[trunk_pixels]] = trunk_region
+    branch = np.flatnonzero(branch_px & np.isfinite(depth))
+    region = region_of[nearest.ravel()[branch]]
+    z = depth.ravel()[branch]
+    close = gap_px.ravel()[branch] * z / geometry.focal_px <= max_gap_m
     with np.errstate(invalid="ignore"):  # regions that are not candidates have no depth: never the same
         same_depth = np.abs(depths[region] - z) <= TRUNK_DEPTH_TOLERANCE * depths[region]
     return np.bincount(region[close & same_depth & np.isfinite(depths[region])], minlength=len(depths))
 
 
-def trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
-    """`H×W` metres from each pixel to the boolean `H×W` `trunk` in the image, at the pixel's own depth
-    (`H×W` m; inf where unknown).
+def trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry, pixels: np.ndarray) -> np.ndarray:
+    """`(N,)` metres from the pixels at the flat indices `pixels` `(N,)` to the boolean `H×W` `trunk` in the
+    image, at the pixel's own depth (`H×W` m; inf where unknown).
 
     What a pruner cuts grows from the trunk: a piece far from it is a twig, the far part of a branch
     whose base is hidden, a leaf or background — its cut point would be wrong, so it is not reported.
     """
-    gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3)
+    gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3).ravel()[pixels]
+    z = depth.ravel()[pixels]
     with np.errstate(invalid="ignore"):
-        return np.where(np.isfinite(depth), gap_px * depth / geometry.focal_px, np.inf)
+        return np.where(np.isfinite(z), gap_px * z / geometry.focal_px, np.inf)
 
 
 def in_front_of_trunk(trunk: np.ndarray, disparity: np.ndarray, ratio: float, min_area_px: int) -> np.ndarray:
@@ -163,9 +169,9 @@ def in_front_of_trunk(trunk: np.ndarray, disparity: np.ndarray, ratio: float, mi
     if not known.any():
         return front
     near, far = FRONT_SIDE_PX
-    rows, cols = np.nonzero(known)
-    top, left = max(0, int(rows.min()) - far), max(0, int(cols.min()) - far)
-    window = (slice(top, int(rows.max()) + far + 1), slice(left, int(cols.max()) + far + 1))
+    rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+    top, left = max(0, int(rows[0]) - far), max(0, int(cols[0]) - far)
+    window = (slice(top, int(rows[-1]) + far + 1), slice(left, int(cols[-1]) + far + 1))
     weight = known[window].astype(np.float32)
     values = np.where(known[window], disparity[window], 0.0).astype(np.float32)
     side = np.zeros(2 * far + 1, dtype=np.float32)
@@ -180,8 +186,9 @@ def in_front_of_trunk(trunk: np.ndarray, disparity: np.ndarray, ratio: float, mi
             bark.append(np.where(count >= FRONT_MIN_SIDE_PIXELS, total / np.maximum(count, 1.0), np.inf))
         nearer_side = np.maximum(bark[0], bark[1])  # the larger disparity: the pixel must be before both sides
         nearer |= values > nearer_side + np.maximum(ratio * nearer_side, FRONT_MIN_DISPARITY_PX)
-    front[window] = nearer & known[window]
-    return _elongated_regions(front, min_area_px)
+    # the window's margin keeps `known`'s regions and their inscribed discs whole: judged there, not frame-wide
+    front[window] = _elongated_regions(nearer & known[window], min_area_px)
+    return front
 
 
 def _elongated_regions(mask: np.ndarray, min_area_px: int) -> np.ndarray:
@@ -192,11 +199,11 @@ def _elongated_regions(mask: np.ndarray, min_area_px: int) -> np.ndarray:
     if count < 2:
         return mask
     inscribed = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    v, u = np.nonzero(regions)
-    region = np.asarray(regions[v, u], dtype=np.intp)
+    pixels = np.flatnonzero(regions)
+    region = np.asarray(regions.ravel()[pixels], dtype=np.intp)
     area = np.bincount(region, minlength=count)
     radius = np.zeros(count, dtype=np.float32)
-    np.maximum.at(radius, region, inscribed[v, u])
+    np.maximum.at(radius, region, inscribed.ravel()[pixels])
     keep = (area >= min_area_px) & (area >= FRONT_MIN_ELONGATION * np.pi * radius**2)
     keep[0] = False
     return np.asarray(keep[regions], dtype=bool)
