@@ -50,6 +50,26 @@ def test_a_post_beside_the_trunk_at_its_depth_is_not_a_trunk_part_but_the_trunk_
     assert kept[leaning].all()
 
 
+def test_a_trunk_seen_from_below_stays_one_trunk_though_its_parts_lie_at_other_depths():
+    """Looking up a trunk: its top is farther than its foot (inverse depth affine along it, as on any plane),
+    and leaves in front cut it in three. Its parts at 1.3 and 1.75 m are the tree's, though the foot is at
+    1.0 m; the same pixels at a depth that does not continue the foot's surface are not."""
+    trunk = np.zeros((120, 200), dtype=bool)
+    trunk[:, 60:90] = True
+    trunk[38:44, :] = False
+    trunk[78:84, :] = False
+    rows = np.arange(120, dtype=np.float64)[:, None]
+    depth = np.broadcast_to(1.0 / (1.0 - 0.005 * (119 - rows)), trunk.shape).copy()  # 1.0 m below, 2.5 m on top
+    assert depth[100, 70] == pytest.approx(1.1, abs=0.01) and depth[60, 70] == pytest.approx(1.42, abs=0.02)
+    foot = np.zeros_like(trunk)
+    foot[95:99, 90:140] = True  # a branch grows from the foot: it is the anchor
+    kept = tree_trunk(trunk, foot, depth, GEOMETRY, 0.1)
+    assert kept[trunk].all()
+    depth[:38] = 1.1  # the top part at the foot's own depth: not where the trunk's surface runs
+    kept = tree_trunk(trunk, foot, depth, GEOMETRY, 0.1)
+    assert kept[84:, 60:90].all() and kept[44:78, 60:90].all() and not kept[:38].any()
+
+
 def test_the_tree_is_the_trunk_region_that_branches_grow_from_not_the_largest():
     trunk = np.zeros((120, 200), dtype=bool)
     trunk[:, 10:60] = True  # a wide post, 2 m away, nothing growing from it
@@ -63,6 +83,27 @@ def test_the_tree_is_the_trunk_region_that_branches_grow_from_not_the_largest():
     depth[40:44, 150:190] = 3.0  # the same pixels far behind the trunk: they do not grow from it
     kept = tree_trunk(trunk, branches, depth, GEOMETRY, 0.1)
     assert kept[:, 10:60].all() and not kept[:, 140:150].any()
+
+
+def test_a_stem_seen_through_leaves_is_one_piece_when_its_fragments_are_bridged():
+    """A 3 px stem behind leaves: eight fragments of 9 px, 4 px apart, each under the 12 px a piece needs.
+    8-connected they are nothing; bridged (gaps up to 6 px) they are one piece along the stem, and a second
+    stem 14 px beside it stays a piece of its own."""
+    mask = np.zeros((60, 160), dtype=bool)
+    for start in range(10, 110, 13):
+        mask[20:23, start : start + 3] = True  # 3 × 3 px visible, then a leaf in front for 10 px ... too far
+    assert not list(straight_pieces_of(mask, 12, np.random.default_rng(0)))
+    assert not list(straight_pieces_of(mask, 12, np.random.default_rng(0), bridge_px=3))  # 10 px gaps: apart
+    mask[:] = False
+    for start in range(10, 110, 7):
+        mask[20:23, start : start + 3] = True  # leaves 4 px wide in front: the fragments 4 px apart
+    mask[34:37, 10:110] = True  # another stem, 11 px below
+    assert [len(u) for u, _ in straight_pieces_of(mask, 12, np.random.default_rng(0))] == [300]
+    pieces = sorted(
+        (sorted(set(v.tolist())), len(u))
+        for u, v in straight_pieces_of(mask, 12, np.random.default_rng(0), bridge_px=3)
+    )
+    assert pieces == [([20, 21, 22], int(mask[20:23].sum())), ([34, 35, 36], 300)]
 
 
 def test_two_thin_stems_of_a_fork_beside_a_thick_limb_become_two_pieces():

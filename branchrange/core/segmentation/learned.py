@@ -51,7 +51,7 @@ from branchrange.core.light_check import LIGHTS, measure_light
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
 from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
-from branchrange.core.segmentation.pieces import straight_pieces_of
+from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
 from branchrange.core.settings_check import Checks, Settings
@@ -117,6 +117,12 @@ class LearnedSegmenterConfig(Settings):
       has its score multiplied by exp(−(gap − `TOUCHING_TRUNK_M`) / this) (`trunk_attachment`; 0 = off).
     - `split_straight`: split each branch region into straight pieces (`pieces.straight_pieces_of`), so
       branches that touch or cross in the image become separate instances; else 8-connected regions.
+    - `bridge_px`: branch pixels up to 2× this many px apart belong to one region (`pieces.bridged_regions`), for
+      the trunk-gap filter and the straight pieces, whose runs may skip as much: a stem seen through leaves
+      shows as fragments, each under `min_area_px`, that only together make a piece. At 3, held out (60
+      scenes) recall within 5 cm 63.0 → 64.4 % with SGBM and 83.2 → 85.1 % with exact disparity (both within
+      noise, paired), false cut points 4.53 → 4.30 and 2.98 → 2.78 a frame; calibration scenes 63.3 → 63.0 and
+      82.2 → 82.6 %, 4.58 → 4.35 and 3.32 → 2.86. At 6 fewer false cut points still (3.92), recall −0.5.
     - `calibrated`: report cut-point confidences through the model's measured calibration at the width
       the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
       width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
@@ -147,6 +153,7 @@ class LearnedSegmenterConfig(Settings):
     max_trunk_gap_m: float = 0.1
     attachment_scale_m: float = 0.02
     split_straight: bool = True
+    bridge_px: int = 3
     calibrated: bool = True
     light_calibration: bool = True
     threads: int = 1
@@ -174,6 +181,7 @@ class LearnedSegmenterConfig(Settings):
                 0 <= self.trunk_band_px <= MAX_TRUNK_BAND_PX,
                 f"0..{MAX_TRUNK_BAND_PX} px (0 = the network looks once)",
             ),
+            "bridge_px": (0 <= self.bridge_px <= 20, "0..20 px (0 = regions as 8-connected)"),
             "max_trunk_gap_m": (0 <= self.max_trunk_gap_m <= 10, "0..10 m (0 = keep instances away from the trunk)"),
             "attachment_scale_m": (
                 0 <= self.attachment_scale_m <= 1,
@@ -373,7 +381,7 @@ class LearnedSegmenter:
         pixels = np.flatnonzero(branch)  # the branch pixels as flat indices: a few % of the frame
         if near_trunk:  # drop whole regions far from the trunk before the (costlier) splitting
             gap_m = trunk_gap_m(trunk, depth, geometry, pixels)
-            region_count, regions = cv2.connectedComponents(branch.astype(np.uint8), connectivity=8)
+            region_count, regions = bridged_regions(branch, cfg.bridge_px)
             region = regions.ravel()[pixels]
             near = _nearest(region, gap_m, region_count)[region] <= cfg.max_trunk_gap_m
             branch.flat[pixels[~near]] = False
@@ -381,7 +389,7 @@ class LearnedSegmenter:
         instances = np.zeros(disparity.shape, dtype=np.int32)
         if cfg.split_straight:
             for piece_id, (pu, pv) in enumerate(
-                straight_pieces_of(branch, cfg.min_area_px, np.random.default_rng(0)), 1
+                straight_pieces_of(branch, cfg.min_area_px, np.random.default_rng(0), cfg.bridge_px), 1
             ):
                 instances[pv, pu] = piece_id
         else:

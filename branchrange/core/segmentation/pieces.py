@@ -19,7 +19,13 @@ LOCAL_WIDTH_PX = 3
 
 
 def straight_pieces(
-    u: np.ndarray, v: np.ndarray, band_px: np.ndarray, min_px: int, rng: np.random.Generator, max_pieces: int = 6
+    u: np.ndarray,
+    v: np.ndarray,
+    band_px: np.ndarray,
+    min_px: int,
+    rng: np.random.Generator,
+    max_pieces: int = 6,
+    min_gap_px: float = 4.0,
 ) -> list[np.ndarray]:
     """Index arrays of straight, contiguous runs of the pixels (u, v) `(N,)`, longest consensus first.
 
@@ -45,7 +51,7 @@ def straight_pieces(
         dist = np.abs(pts @ normal.T - np.einsum("kc,kc->k", origin, normal))  # (N, K) px from each line
         best = int(np.argmax((dist < bands).sum(axis=0)))
         inliers = np.flatnonzero(dist[:, best] < bands[best])
-        gap = max(4.0, 2.0 * float(bands[best]))
+        gap = max(min_gap_px, 2.0 * float(bands[best]))
         along = (pts[inliers] - origin[best]) @ direction[best]
         order = np.argsort(along)
         bounds = np.concatenate(([0], np.flatnonzero(np.diff(along[order]) > gap) + 1, [len(order)]))
@@ -61,7 +67,7 @@ def straight_pieces(
 
 
 def straight_pieces_of(
-    mask: np.ndarray, min_px: int, rng: np.random.Generator
+    mask: np.ndarray, min_px: int, rng: np.random.Generator, bridge_px: int = 0
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(u, v) pixel arrays of the straight pieces of every 8-connected region of the boolean `H×W` `mask`
     with at least `min_px` pixels; a line's band is 1.2× the largest inscribed radius (≥ 1.5 px) within
@@ -69,8 +75,8 @@ def straight_pieces_of(
     inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
     local_radius = cv2.dilate(inside, np.ones((2 * LOCAL_WIDTH_PX + 1,) * 2, np.uint8))
     # connectedComponentsWithStats costs ~10× more: its statistics cover the background too
-    count, components = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
-    pixels = np.flatnonzero(components)
+    count, components = bridged_regions(mask, bridge_px)
+    pixels = np.flatnonzero(mask)
     region = components.ravel()[pixels]
     pixels = pixels[np.argsort(region, kind="stable")]  # by region, each region's in raster order
     ends = np.cumsum(np.bincount(region, minlength=count))
@@ -79,5 +85,17 @@ def straight_pieces_of(
             continue
         v, u = np.divmod(pixels[ends[i - 1] : ends[i]], mask.shape[1])
         band = np.maximum(1.5, 1.2 * local_radius[v, u])
-        for piece in straight_pieces(u, v, band, min_px, rng):
+        for piece in straight_pieces(u, v, band, min_px, rng, min_gap_px=max(4.0, 2.0 * bridge_px + 1.0)):
             yield u[piece], v[piece]
+
+
+def bridged_regions(mask: np.ndarray, bridge_px: int) -> tuple[int, np.ndarray]:
+    """(count, `int32 H×W` labels) of the boolean `H×W` `mask`'s regions, 8-connected across gaps of up to
+    2·`bridge_px` px (0: 8-connected as they are): a stem seen through leaves shows as fragments along its
+    line, and only together do they hold enough pixels for a piece. Labels outside `mask` are meaningless."""
+    grouping = mask.astype(np.uint8)
+    if bridge_px > 0:
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * bridge_px + 1,) * 2)
+        grouping = np.asarray(cv2.dilate(grouping, disc), dtype=np.uint8)
+    count, labels = cv2.connectedComponents(grouping, connectivity=8)
+    return int(count), labels

@@ -4,10 +4,11 @@ pixel is from it.
 A segmenter's trunk class marks every trunk-like thing in view: the tree in front, its silhouette cut
 in pieces by branches crossing before it, other trees, posts, a frame. The tree being pruned is the
 trunk region that branches grow from — the one with the most branch pixels beside it at its own
-depth (the largest region when no branch touches any) — joined by the regions at that depth that
-are large enough to be its other parts and continue its line in the image: a branch crossing in
-front cuts the trunk's silhouette into pieces along its axis, while a post, a stake or another trunk
-at the same depth stands beside it (`_on_anchor_axis`).
+depth (the largest region when no branch touches any) — joined by the regions large enough to be its
+other parts that lie where its surface runs (its inverse depth, affine in the image, carried to them: a
+trunk seen from below recedes along its length) and continue its line in the image: a branch crossing
+in front cuts the trunk's silhouette into pieces along its axis, while a post, a stake or another trunk
+at the same depth stands beside it (`_continues_trunk`).
 
 A thin stem seen against the bark is easily called trunk by the image alone (dark on dark, 2–3 px
 wide); the disparity tells it apart, since it is nearer than the bark on both of its sides
@@ -17,6 +18,7 @@ wide); the disparity tells it apart, since it is nearer than the bark on both of
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -62,14 +64,10 @@ def tree_trunk(
     support = _branch_support(components, pixels, region, depths, branch_px, depth, geometry, max_gap_m)
     anchor = int(np.argmax(support)) if support.max() > 0 else int(np.argmax(areas))
     keep = np.zeros(count, dtype=bool)
-    if np.isfinite(depths[anchor]):
-        keep[candidates] = np.abs(depths[candidates] - depths[anchor]) <= TRUNK_DEPTH_TOLERANCE * depths[anchor]
-        keep[anchor] = False
-        if keep.any():  # the anchor's axis only judges other regions at its depth: most frames have none
-            rows, cols = np.divmod(pixels, components.shape[1])
-            on_axis = _on_anchor_axis((rows, cols), region, anchor, np.flatnonzero(keep), count)
-            if on_axis is not None:
-                keep &= on_axis
+    others = candidates[candidates != anchor]
+    if np.isfinite(depths[anchor]) and others.size:
+        rows, cols = np.divmod(pixels, components.shape[1])
+        keep[others] = _continues_trunk((rows, cols), region, depth.ravel()[pixels], anchor, others, count)
     keep[anchor] = True
     trunk = np.zeros(trunk_px.shape, dtype=bool)
     trunk.ravel()[pixels] = keep[region]
@@ -92,26 +90,86 @@ def _median_per_region(region: np.ndarray, values: np.ndarray, candidates: np.nd
     return medians
 
 
-def _on_anchor_axis(
-    pixels: tuple[np.ndarray, np.ndarray], region: np.ndarray, anchor: int, candidates: np.ndarray, count: int
-) -> np.ndarray | None:
-    """`(count,)` bool: which candidate regions continue the `anchor` region's line in the image — the median
-    distance of their pixels from its axis (the principal axis of its pixels) within
-    `TRUNK_PART_AXIS_WIDTHS` of its half-widths (2 standard deviations across) plus `TRUNK_PART_AXIS_MARGIN_PX`.
-    `pixels` are the trunk pixels (rows, cols) and `region` their region ids `(N,)`. None when the anchor is
-    too short for an axis (length < `TRUNK_AXIS_MIN_ELONGATION` widths)."""
+@dataclass(frozen=True)
+class _Axis:
+    """A trunk region's image axis: `centre` (x, y) px, unit `along` and `across` directions, and the
+    standard deviation of its pixels across it (px)."""
+
+    centre: np.ndarray
+    along: np.ndarray
+    across: np.ndarray
+    spread_px: float
+
+
+def _anchor_axis(pixels: tuple[np.ndarray, np.ndarray], own: np.ndarray) -> _Axis | None:
+    """The principal axis of the trunk pixels `pixels` (rows, cols) selected by the boolean `own`; None when
+    the region is too short for one (length < `TRUNK_AXIS_MIN_ELONGATION` widths) or has < 3 pixels."""
     rows, cols = pixels
-    points = np.stack([cols, rows], axis=1).astype(np.float64)
-    own = points[region == anchor]
-    if len(own) < 3:
+    points = np.stack([cols[own], rows[own]], axis=1).astype(np.float64)
+    if len(points) < 3:
         return None
-    centre = own.mean(axis=0)
-    variances, directions = np.linalg.eigh(np.cov((own - centre).T))  # ascending: across, then along
+    centre = points.mean(axis=0)
+    variances, directions = np.linalg.eigh(np.cov((points - centre).T))  # ascending: across, then along
     if variances[1] < TRUNK_AXIS_MIN_ELONGATION**2 * variances[0]:
         return None
-    offsets = np.abs((points - centre) @ directions[:, 0])
-    medians = _median_per_region(region, offsets, candidates, count)
-    return medians <= TRUNK_PART_AXIS_WIDTHS * 2.0 * math.sqrt(max(variances[0], 0.0)) + TRUNK_PART_AXIS_MARGIN_PX
+    return _Axis(centre, directions[:, 1], directions[:, 0], math.sqrt(max(variances[0], 0.0)))
+
+
+def _continues_trunk(
+    pixels: tuple[np.ndarray, np.ndarray],
+    region: np.ndarray,
+    depth: np.ndarray,
+    anchor: int,
+    others: np.ndarray,
+    count: int,
+) -> np.ndarray:
+    """`(len(others),)` bool: which of the regions `others` continue the `anchor` region's trunk — in depth:
+    their median depth within `TRUNK_DEPTH_TOLERANCE` of the anchor's surface carried to where they lie
+    (`_inverse_depth_plane`); and, when the anchor is long enough for an axis (`_anchor_axis`), in the image:
+    the median distance of their pixels from its axis within `TRUNK_PART_AXIS_WIDTHS` of its half-widths (2
+    standard deviations across) plus `TRUNK_PART_AXIS_MARGIN_PX`. `pixels` (rows, cols), `region` and `depth`
+    (m, inf unknown) are per trunk pixel `(N,)`. Why the surface and not the anchor's own depth: a trunk seen
+    from below or above recedes along its length (held out, one trunk's parts lay at 0.99 and 1.63 m), and
+    the branches on its far parts were dropped as far from the trunk."""
+    rows, cols = pixels
+    own = region == anchor
+    along_u, along_v, constant = _inverse_depth_plane(cols[own], rows[own], depth[own])
+    u = _median_per_region(region, cols.astype(np.float64), others, count)[others]
+    v = _median_per_region(region, rows.astype(np.float64), others, count)[others]
+    inverse = along_u * u + along_v * v + constant
+    with np.errstate(divide="ignore"):
+        expected = np.where(inverse > 0, 1.0 / inverse, np.inf)
+    found = _median_per_region(region, depth, others, count)[others]
+    continues = np.abs(found - expected) <= TRUNK_DEPTH_TOLERANCE * expected
+    axis = _anchor_axis(pixels, own)
+    if axis is not None:
+        points = np.stack([cols, rows], axis=1).astype(np.float64) - axis.centre
+        across = _median_per_region(region, np.abs(points @ axis.across), others, count)[others]
+        continues &= across <= TRUNK_PART_AXIS_WIDTHS * 2.0 * axis.spread_px + TRUNK_PART_AXIS_MARGIN_PX
+    return np.asarray(continues, dtype=bool)
+
+
+#: `_inverse_depth_plane` refits without the pixels farther from its first fit than this many MADs
+_PLANE_TRIM_MADS = 2.5
+
+
+def _inverse_depth_plane(cols: np.ndarray, rows: np.ndarray, depth: np.ndarray) -> tuple[float, float, float]:
+    """(a, b, c) of 1/depth ≈ a·col + b·row + c over a trunk region's pixels `(N,)` (depth m, inf unknown): the
+    inverse depth of a plane is affine in its image position, and a trunk's bark is a plane to first order
+    along its length. Least squares, then again without the pixels beyond `_PLANE_TRIM_MADS` MADs (SGBM's
+    fattened edges, holes); a flat (0, 0, median) with fewer than 10 depths."""
+    finite = np.isfinite(depth) & (depth > 0)
+    if finite.sum() < 10:
+        inverse = 1.0 / depth[finite]
+        return 0.0, 0.0, float(np.median(inverse)) if inverse.size else 0.0
+    design = np.stack([cols[finite], rows[finite], np.ones(int(finite.sum()))], axis=1).astype(np.float64)
+    inverse = 1.0 / depth[finite].astype(np.float64)
+    coefficients = np.linalg.lstsq(design, inverse, rcond=None)[0]
+    residual = np.abs(design @ coefficients - inverse)
+    inliers = residual <= _PLANE_TRIM_MADS * max(float(np.median(residual)) * 1.4826, 1e-9)
+    if inliers.sum() >= 10:
+        coefficients = np.linalg.lstsq(design[inliers], inverse[inliers], rcond=None)[0]
+    return float(coefficients[0]), float(coefficients[1]), float(coefficients[2])
 
 
 def _branch_support(
