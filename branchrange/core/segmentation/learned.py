@@ -119,10 +119,11 @@ class LearnedSegmenterConfig(Settings):
       branches that touch or cross in the image become separate instances; else 8-connected regions.
     - `bridge_px`: branch pixels up to 2× this many px apart belong to one region (`pieces.bridged_regions`), for
       the trunk-gap filter and the straight pieces, whose runs may skip as much: a stem seen through leaves
-      shows as fragments, each under `min_area_px`, that only together make a piece. At 3, held out (60
-      scenes) recall within 5 cm 63.0 → 64.4 % with SGBM and 83.2 → 85.1 % with exact disparity (both within
-      noise, paired), false cut points 4.53 → 4.30 and 2.98 → 2.78 a frame; calibration scenes 63.3 → 63.0 and
-      82.2 → 82.6 %, 4.58 → 4.35 and 3.32 → 2.86. At 6 fewer false cut points still (3.92), recall −0.5.
+      shows as fragments, each under `min_area_px`, that only together make a piece. 0 (off) by default: at
+      3, on 60 held-out scenes (trunk band 40) recall within 5 cm 63.0 → 64.4 % with SGBM and 83.2 → 85.1 %
+      with exact disparity (both within noise, paired) and false cut points 4.53 → 4.30 and 2.98 → 2.78 a
+      frame, with one look no change (58.7 → 58.2 %, 4.33 → 4.43) — but in the real-time loop on the
+      synthetic HD720 approach flight (one look) the share of frames with a target fell from 0.52 to 0.25.
     - `calibrated`: report cut-point confidences through the model's measured calibration at the width
       the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
       width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
@@ -153,7 +154,7 @@ class LearnedSegmenterConfig(Settings):
     max_trunk_gap_m: float = 0.1
     attachment_scale_m: float = 0.02
     split_straight: bool = True
-    bridge_px: int = 3
+    bridge_px: int = 0
     calibrated: bool = True
     light_calibration: bool = True
     threads: int = 1
