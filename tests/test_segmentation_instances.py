@@ -106,6 +106,16 @@ def test_a_stem_seen_through_leaves_is_one_piece_when_its_fragments_are_bridged(
     assert pieces == [([20, 21, 22], int(mask[20:23].sum())), ([34, 35, 36], 300)]
 
 
+def test_fragments_are_bridged_only_where_the_network_sees_the_stems_enlarged():
+    def bridge(**settings: int) -> int:
+        return LearnedSegmenter(LearnedSegmenterConfig(**settings)).bridge_px(640)
+
+    assert bridge() == 3  # the default looks twice
+    assert bridge(trunk_band_px=0) == 0  # one look at the frame's own width: the onboard files
+    assert bridge(trunk_band_px=0, network_width=1280) == 3 and bridge(trunk_band_px=0, network_width=640) == 0
+    assert bridge(bridge_px=5) == 5 and bridge(bridge_px=0) == 0
+
+
 def test_two_thin_stems_of_a_fork_beside_a_thick_limb_become_two_pieces():
     # one region: a limb 17 px thick, and a fork of two 3 px stems leaving it 6° apart. A band as wide as
     # the limb would take both stems on one line (one axis between them: a cut point on neither).

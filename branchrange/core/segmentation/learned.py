@@ -119,11 +119,15 @@ class LearnedSegmenterConfig(Settings):
       branches that touch or cross in the image become separate instances; else 8-connected regions.
     - `bridge_px`: branch pixels up to 2× this many px apart belong to one region (`pieces.bridged_regions`), for
       the trunk-gap filter and the straight pieces, whose runs may skip as much: a stem seen through leaves
-      shows as fragments, each under `min_area_px`, that only together make a piece. 0 (off) by default: at
-      3, on 60 held-out scenes (trunk band 40) recall within 5 cm 63.0 → 64.4 % with SGBM and 83.2 → 85.1 %
-      with exact disparity (both within noise, paired) and false cut points 4.53 → 4.30 and 2.98 → 2.78 a
-      frame, with one look no change (58.7 → 58.2 %, 4.33 → 4.43) — but in the real-time loop on the
-      synthetic HD720 approach flight (one look) the share of frames with a target fell from 0.52 to 0.25.
+      shows as fragments, each under `min_area_px`, that only together make a piece. At 3 against 0, on 60
+      held-out scenes: with the trunk band recall within 5 cm 63.0 → 64.4 % with SGBM and 83.2 → 85.1 % with
+      exact disparity, false cut points 4.53 → 4.30 and 2.98 → 2.78 a frame; seen at 1280 65.8 → 70.1 %; on
+      the real Jadeplant pair 1 → 4 cut points on branches, none on not-branch. With one look no change
+      (58.7 → 58.2 %), and in the real-time loop on the synthetic HD720 approach flight (one look) the frames
+      with a target fell from 0.52 to 0.25: so it applies only where the network sees the stems enlarged (a
+      second look at the trunk band, or `network_width` above the frame's; `LearnedSegmenter.bridge_px`),
+      the setting where the fragments it finds are real stems, and never with one look at the frame's width
+      (the onboard deploy files).
     - `calibrated`: report cut-point confidences through the model's measured calibration at the width
       the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
       width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
@@ -154,7 +158,7 @@ class LearnedSegmenterConfig(Settings):
     max_trunk_gap_m: float = 0.1
     attachment_scale_m: float = 0.02
     split_straight: bool = True
-    bridge_px: int = 0
+    bridge_px: int = 3
     calibrated: bool = True
     light_calibration: bool = True
     threads: int = 1
@@ -296,6 +300,12 @@ class LearnedSegmenter:
         in_light = {s[2]: c for s, c in self.calibrations.items() if s[:2] == (width, band)}
         return in_light.get(light) or in_light.get("normal") or next(iter(in_light.values()))
 
+    def bridge_px(self, frame_width: int) -> int:
+        """`bridge_px` when the network looks at the stems enlarged — a second look at the trunk band, or the
+        frame seen wider than it is — else 0 (see `LearnedSegmenterConfig.bridge_px`)."""
+        enlarged = self.config.trunk_band_px > 0 or self.seen_width(frame_width) > frame_width
+        return self.config.bridge_px if enlarged else 0
+
     def seen_width(self, frame_width: int) -> int:
         """The width (px) the network sees a frame `frame_width` px wide at (`network_width`)."""
         return self.config.network_width or frame_width
@@ -373,6 +383,7 @@ class LearnedSegmenter:
         branch = (branch_p >= cfg.branch_threshold) & ~trunk_px
         branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
         trunk = tree_trunk(trunk_px, branch, depth, geometry, cfg.max_trunk_gap_m)
+        bridge_px = self.bridge_px(disparity.shape[1])
         if cfg.front_of_trunk_ratio > 0:
             before_trunk = in_front_of_trunk(trunk, disparity, cfg.front_of_trunk_ratio, cfg.min_area_px)
             trunk &= ~before_trunk
@@ -382,7 +393,7 @@ class LearnedSegmenter:
         pixels = np.flatnonzero(branch)  # the branch pixels as flat indices: a few % of the frame
         if near_trunk:  # drop whole regions far from the trunk before the (costlier) splitting
             gap_m = trunk_gap_m(trunk, depth, geometry, pixels)
-            region_count, regions = bridged_regions(branch, cfg.bridge_px)
+            region_count, regions = bridged_regions(branch, bridge_px)
             region = regions.ravel()[pixels]
             near = _nearest(region, gap_m, region_count)[region] <= cfg.max_trunk_gap_m
             branch.flat[pixels[~near]] = False
@@ -390,7 +401,7 @@ class LearnedSegmenter:
         instances = np.zeros(disparity.shape, dtype=np.int32)
         if cfg.split_straight:
             for piece_id, (pu, pv) in enumerate(
-                straight_pieces_of(branch, cfg.min_area_px, np.random.default_rng(0), cfg.bridge_px), 1
+                straight_pieces_of(branch, cfg.min_area_px, np.random.default_rng(0), bridge_px), 1
             ):
                 instances[pv, pu] = piece_id
         else:
