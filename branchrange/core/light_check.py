@@ -2,18 +2,19 @@
 
 The learned segmenter's confidence is a measured share of right cut points, and what is right depends
 on the light: at dusk SGBM has a third of the signal, in haze a third of the contrast, at high gain
-the noise shows the network stems that are not there. Calibrated under the renderer's own light, a
-cut point at confidence ≥ 0.8 was right 92 % of the time there but only 79–89 % under those changes
-(`benchmarks/RESULTS.md`, "Changed light"). So a frame's light is measured here, sorted into one of
-`LIGHTS`, and the segmenter reads its confidences through the calibration measured in that light.
+the noise shows the network stems that are not there. Calibrated under the renderer's own light only,
+the confidence strayed from the share of right cut points twice as far at dusk and at high gain as in
+that light (`benchmarks/RESULTS.md`, "Confidence read in the frame's own light"). So a frame's light is
+measured here, sorted into one of `LIGHTS`, and the segmenter reads its confidences through the
+calibration measured in that light.
 
 The measures (on the grey left image, `uint8`):
 - `median_grey`: its median grey level (0..255).
 - `noise_grey`: the sensor noise σ in grey levels: Immerkær's estimate (the mean absolute response of a
   Laplacian-difference kernel that cancels planes, × √(π/2) / 6) in each `NOISE_BLOCK_PX` block, and the
   `NOISE_PERCENTILE`th percentile over the blocks with no pixel at 0 or 255 (there the noise is clipped
-  away). Texture raises a block's
-  estimate, never lowers it, so the flattest blocks (sky, smooth bark, blur) read the noise itself.
+  away). Texture raises a block's estimate, never lowers it, so the flattest blocks (sky, smooth bark,
+  blur) read the noise itself.
 
 The classes, in this order of precedence, with bounds between the light of the synthetic calibration
 scenes and the changes of light that hurt (`light_changes`; measured on the 180 calibration and held-out
@@ -69,7 +70,7 @@ class LightReading:
 
 
 def measure_light(image: np.ndarray) -> LightReading:
-    """The `LightReading` of a `uint8 H×W×3` (RGB) or `H×W` grey image; ~2 ms at 640×360."""
+    """The `LightReading` of a `uint8 H×W×3` (RGB) or `H×W` grey image; ~1.2 ms at 640×360."""
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim not in (2, 3):
         raise ValueError(f"measure_light expects a uint8 H×W or H×W×3 image, got {image.dtype} {image.shape}")
