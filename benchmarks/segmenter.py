@@ -60,7 +60,7 @@ from branchrange.core.confidence import (
 )
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import Branch
-from branchrange.core.pipeline import Pipeline, untracked_whole_frame
+from branchrange.core.pipeline import Pipeline, target_minimum, untracked_whole_frame
 from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
@@ -143,10 +143,8 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float]]
 
 
 def needed_for_target(pipeline: Pipeline) -> float:
-    """The confidence a cut point of the pipeline's last frame needed to be a target: the default's, or more
-    where the frame's light asked more (`BranchMasks.target_min_confidence`; above 1: none could be)."""
-    masks = None if pipeline.last is None else pipeline.last.masks
-    return max(TARGET_MIN_CONFIDENCE, 0.0 if masks is None else masks.target_min_confidence)
+    """The confidence a cut point of the pipeline's last frame needed to be a target (`pipeline.target_minimum`)."""
+    return target_minimum(TARGET_MIN_CONFIDENCE, None if pipeline.last is None else pipeline.last.masks)
 
 
 def run_synthetic(

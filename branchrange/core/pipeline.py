@@ -426,9 +426,8 @@ class Pipeline:
             self.tracker.update(cut.branches)
         t = lap_ms(timing, "tracking", t)
         needed = self.config.cutpoints.target_min_confidence
-        light_needs = 0.0 if masks is None else masks.target_min_confidence  # the frame's light may ask more
         target = select_target(  # the policy name was checked where the settings entered
-            cut.branches, cast(TargetPolicy, self.config.cutpoints.target_policy), max(needed, light_needs)
+            cut.branches, cast(TargetPolicy, self.config.cutpoints.target_policy), target_minimum(needed, masks)
         )
         if target is None and cut.branches:
             reason = no_target_reason(needed, masks)
@@ -455,10 +454,16 @@ class Pipeline:
         )
 
 
+def target_minimum(needed: float, masks: BranchMasks | None) -> float:
+    """The confidence a cut point needs to be the target: the settings' minimum `needed`, or more where the
+    frame's light asks more (`BranchMasks.target_min_confidence`; `math.inf`: no target in that light)."""
+    return max(needed, 0.0 if masks is None else masks.target_min_confidence)
+
+
 def no_target_reason(needed: float, masks: BranchMasks | None) -> str:
     """Why no cut point became the target: none reached the settings' minimum `needed`, or none what the
     frame's light asks (`BranchMasks.target_min_confidence`, from the calibration measured in that light)."""
-    light_needs = 0.0 if masks is None else masks.target_min_confidence
+    light_needs = target_minimum(needed, masks)
     if masks is None or masks.light is None or light_needs <= needed:
         return f"no branch reaches the target confidence {needed}"
     light = masks.light

@@ -31,7 +31,6 @@ from branchrange.core.confidence import (
     highest_inclusive_threshold,
     lowest_reliable_threshold,
 )
-from branchrange.core.light_check import measure_light
 from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
 
@@ -77,7 +76,8 @@ def raw_outcomes(
             result = pipeline.process_disparity(
                 lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
             )
-            outcomes.setdefault(measure_light(lit["left"]).light, []).extend(
+            light = pipeline.last.masks.light if pipeline.last and pipeline.last.masks else None
+            outcomes.setdefault("normal" if light is None else light.light, []).extend(
                 cut_point_outcomes(
                     [(b.confidence, b.cut_point_m) for b in result.branches], [t["cut_point_m"] for t in scene["truth"]]
                 )

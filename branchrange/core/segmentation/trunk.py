@@ -67,7 +67,7 @@ def tree_trunk(
     others = candidates[candidates != anchor]
     if np.isfinite(depths[anchor]) and others.size:
         rows, cols = np.divmod(pixels, components.shape[1])
-        keep[others] = _continues_trunk((rows, cols), region, depth.ravel()[pixels], anchor, others, count)
+        keep[others] = _continues_trunk((rows, cols), region, depth.ravel()[pixels], depths, anchor, others, count)
     keep[anchor] = True
     trunk = np.zeros(trunk_px.shape, dtype=bool)
     trunk.ravel()[pixels] = keep[region]
@@ -119,18 +119,20 @@ def _continues_trunk(
     pixels: tuple[np.ndarray, np.ndarray],
     region: np.ndarray,
     depth: np.ndarray,
+    region_depths: np.ndarray,
     anchor: int,
     others: np.ndarray,
     count: int,
 ) -> np.ndarray:
     """`(len(others),)` bool: which of the regions `others` continue the `anchor` region's trunk — in depth:
-    their median depth within `TRUNK_DEPTH_TOLERANCE` of the anchor's surface carried to where they lie
-    (`_inverse_depth_plane`); and, when the anchor is long enough for an axis (`_anchor_axis`), in the image:
-    the median distance of their pixels from its axis within `TRUNK_PART_AXIS_WIDTHS` of its half-widths (2
-    standard deviations across) plus `TRUNK_PART_AXIS_MARGIN_PX`. `pixels` (rows, cols), `region` and `depth`
-    (m, inf unknown) are per trunk pixel `(N,)`. Why the surface and not the anchor's own depth: a trunk seen
-    from below or above recedes along its length (held out, one trunk's parts lay at 0.99 and 1.63 m), and
-    the branches on its far parts were dropped as far from the trunk."""
+    their median depth (`region_depths` `(count,)`) within `TRUNK_DEPTH_TOLERANCE` of the anchor's surface
+    carried to where they lie (`_inverse_depth_plane`); and, when the anchor is long enough for an axis
+    (`_anchor_axis`), in the image: the median distance of their pixels from its axis within
+    `TRUNK_PART_AXIS_WIDTHS` of its half-widths (2 standard deviations across) plus
+    `TRUNK_PART_AXIS_MARGIN_PX`. `pixels` (rows, cols), `region` and `depth` (m, inf unknown) are per trunk
+    pixel `(N,)`. Why the surface and not the anchor's own depth: a trunk seen from below or above recedes
+    along its length (held out, one trunk's parts lay at 0.99 and 1.63 m), and the branches on its far parts
+    were dropped as far from the trunk."""
     rows, cols = pixels
     own = region == anchor
     along_u, along_v, constant = _inverse_depth_plane(cols[own], rows[own], depth[own])
@@ -139,8 +141,7 @@ def _continues_trunk(
     inverse = along_u * u + along_v * v + constant
     with np.errstate(divide="ignore"):
         expected = np.where(inverse > 0, 1.0 / inverse, np.inf)
-    found = _median_per_region(region, depth, others, count)[others]
-    continues = np.abs(found - expected) <= TRUNK_DEPTH_TOLERANCE * expected
+    continues = np.abs(region_depths[others] - expected) <= TRUNK_DEPTH_TOLERANCE * expected
     axis = _anchor_axis(pixels, own)
     if axis is not None:
         points = np.stack([cols, rows], axis=1).astype(np.float64) - axis.centre
