@@ -60,7 +60,7 @@ from branchrange.core.confidence import (
 )
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import Branch
-from branchrange.core.pipeline import Pipeline, target_minimum, untracked_whole_frame
+from branchrange.core.pipeline import Pipeline, target_minimum, untracked_whole_frame, with_exact_disparity
 from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
@@ -175,7 +175,7 @@ def run_synthetic(
             for name in [*segmenters, "truth"]:
                 key = f"{stereo}/{name}"
                 pipeline = Pipeline(
-                    untracked_whole_frame(),
+                    with_exact_disparity(untracked_whole_frame()) if stereo == "truth" else untracked_whole_frame(),
                     focal_px=f,
                     baseline_m=b,
                     principal_point=(cx, cy),

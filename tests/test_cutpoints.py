@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from branch_geometry_fixtures import GEOMETRY, TRUNK_LABEL, Cylinder, branch_with_trunk, ray_cast, unit
@@ -11,10 +13,12 @@ from branchrange.core.cutpoints import (
     CutPointConfig,
     CutPointConfigError,
     DroppedBranch,
+    depth_precision_score,
     estimate_cut_points,
     select_target,
 )
 from branchrange.core.frame_result import Branch, DroppedInstance
+from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import masks_from_array
 
 OFFSET = CutPointConfig().cut_offset_m
@@ -110,6 +114,27 @@ def test_stereo_confidence_scales_the_branch_confidence():
     sure = estimate(scene, confidence=np.ones_like(scene.disparity)).branches[0]
     unsure = estimate(scene, confidence=np.full_like(scene.disparity, 0.5)).branches[0]
     assert unsure.confidence == pytest.approx(0.5 * sure.confidence, rel=1e-6)
+
+
+def test_the_depth_precision_at_the_cut_scales_the_confidence():
+    scene, _, _ = branch_with_trunk()
+    exact = estimate(scene, config=CutPointConfig(cut_disparity_noise_px=0.0)).branches[0]
+    matched = estimate(scene, config=CutPointConfig(cut_disparity_noise_px=0.3)).branches[0]
+    sigma_z = exact.cut_point_m[2] ** 2 * 0.3 / GEOMETRY.fb  # first-order error of Z = f·B / d
+    expected = math.erf(0.05 / (math.sqrt(2.0) * sigma_z))
+    assert 0.0 < expected < 0.99  # the fixture's cut point is far enough for the factor to show
+    assert matched.confidence == pytest.approx(expected * exact.confidence, rel=1e-6)
+
+
+def test_a_far_cut_point_or_a_short_baseline_is_less_sure():
+    config = CutPointConfig()
+    near, far = (depth_precision_score(z, GEOMETRY, config) for z in (1.0, 3.0))
+    assert 0.0 < far < near <= 1.0
+    wide = StereoGeometry(GEOMETRY.focal_px, 4 * GEOMETRY.baseline_m, GEOMETRY.cx, GEOMETRY.cy)
+    assert depth_precision_score(3.0, wide, config) > far
+    assert depth_precision_score(3.0, GEOMETRY, CutPointConfig(cut_disparity_noise_px=0.0)) == 1.0
+    with pytest.raises(CutPointConfigError, match="cut_tolerance_m"):
+        CutPointConfig(cut_tolerance_m=0.0)
 
 
 def test_all_invalid_disparity_drops_the_branch_with_a_reason():

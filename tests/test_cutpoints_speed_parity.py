@@ -13,6 +13,9 @@ branch ids and every drop reason must match exactly. The crops keep the pixel or
 arithmetic of every discrete decision (RANSAC counts, erosion, edge tensor) and all float
 inputs of the fits bit for bit; what differs is the last bit of a few vectorised ray
 normalisations, ~1e-16 relative.
+
+The reference predates the depth's precision in the confidence, so the cases run without it
+(`cut_disparity_noise_px` 0: `REFERENCE_CONFIG`; at 930314a, pin with `CutPointConfig()`).
 """
 
 from __future__ import annotations
@@ -33,6 +36,9 @@ from branchrange.core.masks import masks_from_array
 REFERENCE = Path(__file__).parent / "data" / "cutpoints_reference.json"
 #: The synthetic generator's rig at 640×360.
 WIDE = StereoGeometry(focal_px=320.0, baseline_m=0.063, cx=319.5, cy=179.5)
+
+#: the reference's settings: it predates the depth's precision in the confidence (`cut_disparity_noise_px`)
+REFERENCE_CONFIG = CutPointConfig(cut_disparity_noise_px=0.0)
 
 Case = tuple[np.ndarray, np.ndarray, StereoGeometry, dict]  # labels, disparity, geometry, estimate kwargs
 
@@ -154,7 +160,7 @@ def run_case(name: str) -> dict:
     options = dict(options)
     mask_args = {key: options.pop(key) for key in ("trunk_id", "kind") if key in options}
     masks = masks_from_array(labels, **mask_args)
-    result = estimate_cut_points(masks, disparity, geometry, CutPointConfig(), **options)
+    result = estimate_cut_points(masks, disparity, geometry, REFERENCE_CONFIG, **options)
     return {
         "branches": [
             {

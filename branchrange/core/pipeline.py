@@ -101,6 +101,12 @@ def untracked_whole_frame(max_disp: int = 192, target_policy: str = DEFAULT_TARG
     )
 
 
+def with_exact_disparity(config: PipelineConfig) -> PipelineConfig:
+    """`config` for a disparity known exactly (a renderer's): the cut points' confidence then leaves out a
+    disparity error (`CutPointConfig.cut_disparity_noise_px` 0), which is a matcher's."""
+    return replace(config, cutpoints=replace(config.cutpoints, cut_disparity_noise_px=0.0))
+
+
 @dataclass(frozen=True)
 class FrameArtifacts:
     """What the last frame left behind, for overlays and debugging: the rectified left image

@@ -26,7 +26,7 @@ import numpy as np
 
 from branchrange.core.confidence import CORRECT_WITHIN_M
 from branchrange.core.frame_result import Branch
-from branchrange.core.pipeline import Pipeline, PipelineConfig, untracked_whole_frame
+from branchrange.core.pipeline import Pipeline, PipelineConfig, untracked_whole_frame, with_exact_disparity
 
 RECALL_RADIUS_M = CORRECT_WITHIN_M
 MATCH_GATE_M = 0.25
@@ -273,10 +273,13 @@ def evaluate_cuts(
     scores = {(s, m): CutScores(s, m) for s in stereo_modes for m in mask_modes}
     for index in indices:
         frame = read_frame(root, index)
-        pipeline = Pipeline(
-            config, focal_px=frame.focal_px, baseline_m=frame.baseline_m, principal_point=frame.principal_point
-        )
         for stereo in stereo_modes:
+            pipeline = Pipeline(
+                with_exact_disparity(config) if stereo == "gt" else config,
+                focal_px=frame.focal_px,
+                baseline_m=frame.baseline_m,
+                principal_point=frame.principal_point,
+            )
             start = time.perf_counter()
             disparity, confidence = _disparities(frame, stereo, backends.get(stereo))
             stereo_seconds = time.perf_counter() - start
