@@ -81,8 +81,8 @@ class CutPointConfig(Settings):
     - `max_instances`: most branch instances a frame may hold; more → `MaskError` (HTTP 422: a bad
       mask, refused before any geometry runs rather than holding the estimator for minutes).
     - `target_policy`: how `select_target` picks the target, one of `TARGET_POLICIES`;
-      `target_min_confidence`: a branch below it is never the target. 0.78: with the default learned
-      segmenter (network width 640, trunk band 40 px; its tables say 0.83 for one look, 0.84 at 1280) and
+      `target_min_confidence`: a branch below it is never the target. 0.76: with the default learned
+      segmenter (network width 640, trunk band 40 px; its tables say 0.72 for one look, 0.74 at 1280) and
       SGBM, the lowest (calibrated) confidence, in hundredths, at and above which ≥ 90 % of cut points lie
       within 5 cm of a true one (its calibration scenes in normal light; `benchmarks/segmenter.py` checks it
       held out). Out of normal light the learned segmenter may ask more (`BranchMasks.target_min_confidence`).
@@ -113,7 +113,7 @@ class CutPointConfig(Settings):
     surface_correction: bool = True
     max_instances: int = 256
     target_policy: str = DEFAULT_TARGET_POLICY
-    target_min_confidence: float = 0.78
+    target_min_confidence: float = 0.76
     tracking: bool = True
     max_cut_beyond_tip_m: float = 0.01
 
