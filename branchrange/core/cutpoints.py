@@ -70,11 +70,12 @@ class CutPointConfig(Settings):
       depth lies within `cut_tolerance_m` of the truth when its disparity is off by a Gaussian of σ =
       `cut_disparity_noise_px` (`depth_precision_score`; 0 = left out). Why: a depth error grows with Z²
       (Z = f·B/d), and without it a far cut point was as confident as a near one. Learned segmenter, SGBM,
-      calibration scenes 2861–2980: of the cut points in the top quarter of confidence, 95–97 % were within
-      5 cm below 2 m and 67–82 % beyond. 0.15 px is the cut point's own disparity error there (its 3D error
-      × f·B / Z² has a median of 0.12–0.16 px between 1 and 3 m, where depth dominates it) and the value
-      that ranks the cut points best there (area under the ROC curve 0.812 → 0.833 with the trunk band,
-      0.819 → 0.834 without); the table of a camera whose cut points are surer (a finer matcher) has a lower one.
+      calibration and held-out scenes: of the cut points in the top quarter of confidence, 92–98 % were
+      within 5 cm nearer than 1.5 m, 68–86 % at 2–3 m, 44–47 % beyond (`benchmarks/depth_precision.py`).
+      0.15 px is the cut point's own disparity error there (its 3D error × f·B / Z² has a median of
+      0.12–0.16 px between 1 and 3 m, where depth dominates it) and the value that ranks the calibration
+      scenes' cut points best (area under the ROC curve 0.812 → 0.828 with the trunk band, 0.825 → 0.836
+      with one look); a finer matcher's cut points want a lower one.
     - `min_inlier_band_m`: the inlier band's floor.
     - `min_range_m`, `max_range_m`: the working range; cut points outside it are dropped.
     - `surface_correction`: move the line from the visible surface onto the axis (cross-sections).
