@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ from benchmarks.segmenter import FIRST_SEED, cpu_name
 from branchrange.core.confidence import CORRECT_WITHIN_M, fit_calibration
 from branchrange.core.cutpoints import CutPointConfig, depth_precision_score
 from branchrange.core.geometry import StereoGeometry
-from branchrange.core.pipeline import Pipeline, untracked_whole_frame
+from branchrange.core.pipeline import Pipeline, untracked_whole_frame, with_exact_disparity
 from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
@@ -43,8 +42,7 @@ DISTANCE_BINS_M = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 5.0)
 def cut_points(trunk_band_px: int, seeds: range, cache: Path | None) -> np.ndarray:
     """`(N, 5)` per cut point: raw confidence without the depth factor, depth Z (m), f (px), B (m), right (0/1)."""
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(calibrated=False, trunk_band_px=trunk_band_px))
-    config = untracked_whole_frame()
-    config = replace(config, cutpoints=replace(config.cutpoints, cut_disparity_noise_px=0.0))
+    config = with_exact_disparity(untracked_whole_frame())  # the factor left out: σ_d 0, as for exact disparity
     rows = []
     for seed in seeds:
         scene = evaluation_scene(seed, cache)
