@@ -21,8 +21,10 @@ also given per branch width class (`width_class`: thin stems are where segmenter
 How sure the figures are: recall and false cut points a frame carry a 95 % interval from a bootstrap
 over scenes (`CutScores.interval`; a scene's branches succeed or fail together), and each
 segmenter's recall minus the first listed one's with the same stereo is given paired over the same
-scenes (`recall_difference_interval`). On 30 scenes a single recall is uncertain by about ± 6
-points, so a change smaller than that shows only in the paired figure; hence 60 scenes by default.
+scenes (`recall_difference_interval`). On 60 scenes a single recall is uncertain by about ± 6
+points and the first 60 read 1–3 points easier than the next 180 (benchmarks/RESULTS.md); on 240 about
+± 3.3, and the share right at ≥ 0.8 about ± 2.5: hence 240 scenes by default (a change smaller than
+that shows only in the paired figure; `--scenes 60` for a quicker look).
 
 Changed light (`--light dusk glare haze warm high_gain`, `branchrange.core.segmentation.light_changes`): each
 change adds the stereo mode 'sgbm-<change>' — both images under that light, SGBM computed again — with its recall
@@ -33,7 +35,7 @@ with the disparity range the README there gives, a nominal camera (f 700 px, B 0
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
-    python benchmarks/segmenter.py [--scenes 60] [--segmenters learned learned@1280 learned-int8 structure]
+    python benchmarks/segmenter.py [--scenes 240] [--segmenters learned learned@1280 learned-int8 structure]
                                    [--light dusk ...] [--json out.json] [--overlays benchmarks/segmenter_overlays]
                                    [--cache out/segbench]
 """
@@ -382,7 +384,7 @@ def print_tables(synthetic: dict, real: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenes", type=int, default=60, help="held-out synthetic scenes (default 60)")
+    parser.add_argument("--scenes", type=int, default=240, help="held-out synthetic scenes (default 240)")
     parser.add_argument(
         "--segmenters", nargs="+", default=["learned", "structure"], help="segmenter names (default learned structure)"
     )

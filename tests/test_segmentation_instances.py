@@ -70,6 +70,23 @@ def test_a_trunk_seen_from_below_stays_one_trunk_though_its_parts_lie_at_other_d
     assert kept[84:, 60:90].all() and kept[44:78, 60:90].all() and not kept[:38].any()
 
 
+def test_a_region_where_the_trunks_surface_runs_off_to_infinity_does_not_join():
+    """The anchor's depth rises steeply down it (1 → 8 m over 50 rows: a bad fit, as SGBM's on a textureless
+    trunk can give), so its surface carried to the region below lies beyond infinity: that region says
+    nothing about the trunk, whatever its depth, and stays out."""
+    trunk = np.zeros((120, 200), dtype=bool)
+    trunk[:50, 40:60] = True
+    trunk[100:, 40:60] = True  # on the anchor's line, 2 m away
+    rows = np.arange(120, dtype=np.float64)[:, None]
+    inverse = np.broadcast_to(1.0 - 0.0175 * rows, trunk.shape)
+    depth = np.where(inverse > 0.1, 1.0 / np.maximum(inverse, 0.1), 2.0)
+    assert depth[0, 50] == 1.0 and depth[49, 50] == pytest.approx(7.0, rel=0.05) and depth[110, 50] == 2.0
+    kept = tree_trunk(trunk, np.zeros_like(trunk), depth, GEOMETRY, 0.1)
+    assert kept[:50, 40:60].all() and not kept[100:, 40:60].any()
+    depth[100:] = np.inf  # nor without any depth
+    assert not tree_trunk(trunk, np.zeros_like(trunk), depth, GEOMETRY, 0.1)[100:, 40:60].any()
+
+
 def test_the_tree_is_the_trunk_region_that_branches_grow_from_not_the_largest():
     trunk = np.zeros((120, 200), dtype=bool)
     trunk[:, 10:60] = True  # a wide post, 2 m away, nothing growing from it

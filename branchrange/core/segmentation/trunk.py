@@ -141,7 +141,12 @@ def _continues_trunk(
     inverse = along_u * u + along_v * v + constant
     with np.errstate(divide="ignore"):
         expected = np.where(inverse > 0, 1.0 / inverse, np.inf)
-    continues = np.abs(region_depths[others] - expected) <= TRUNK_DEPTH_TOLERANCE * expected
+    depths = region_depths[others]
+    # where the fitted surface runs off to infinity (a steep fit carried far) or a region has no depth there is
+    # nothing to compare: such a region does not join (inf ≤ tolerance · inf would have joined it)
+    judged = np.isfinite(expected) & np.isfinite(depths)
+    continues = np.zeros(len(others), dtype=bool)
+    continues[judged] = np.abs(depths[judged] - expected[judged]) <= TRUNK_DEPTH_TOLERANCE * expected[judged]
     axis = _anchor_axis(pixels, own)
     if axis is not None:
         points = np.stack([cols, rows], axis=1).astype(np.float64) - axis.centre
