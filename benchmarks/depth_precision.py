@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.segmenter import FIRST_SEED, cpu_name
-from branchrange.core.confidence import CORRECT_WITHIN_M, fit_calibration
+from branchrange.core.confidence import cut_point_outcomes, fit_calibration
 from branchrange.core.cutpoints import CutPointConfig, depth_precision_score
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame, with_exact_disparity
@@ -51,10 +51,13 @@ def cut_points(trunk_band_px: int, seeds: range, cache: Path | None) -> np.ndarr
         result = pipeline.process_disparity(
             scene["left"], scene["sgbm"], scene["sgbm_conf"], backend="sgbm", right=scene["right"]
         )
-        truth = np.array([t["cut_point_m"] for t in scene["truth"]], dtype=np.float64).reshape(-1, 3)
-        for branch in result.branches:
-            error = np.linalg.norm(truth - np.asarray(branch.cut_point_m), axis=1).min(initial=np.inf)
-            rows.append((branch.confidence, branch.cut_point_m[2], f, b, float(error <= CORRECT_WITHIN_M)))
+        outcomes = cut_point_outcomes(
+            [(branch.confidence, branch.cut_point_m) for branch in result.branches],
+            [t["cut_point_m"] for t in scene["truth"]],
+        )
+        rows += [
+            (raw, branch.cut_point_m[2], f, b, float(right)) for (raw, right), branch in zip(outcomes, result.branches)
+        ]
     return np.array(rows, dtype=np.float64).reshape(-1, 5)
 
 

@@ -271,6 +271,7 @@ def evaluate_cuts(
 
             backends[mode] = make_backend(mode, weights=weights if mode == "emcstereo" else None, max_disp=max_disp)
     scores = {(s, m): CutScores(s, m) for s in stereo_modes for m in mask_modes}
+    segmenter = config.segmenter.build()  # once: a learned one loads and checks its model file
     for index in indices:
         frame = read_frame(root, index)
         for stereo in stereo_modes:
@@ -279,6 +280,7 @@ def evaluate_cuts(
                 focal_px=frame.focal_px,
                 baseline_m=frame.baseline_m,
                 principal_point=frame.principal_point,
+                segmenter=segmenter,
             )
             start = time.perf_counter()
             disparity, confidence = _disparities(frame, stereo, backends.get(stereo))
