@@ -152,6 +152,43 @@ def test_two_thin_stems_of_a_fork_beside_a_thick_limb_become_two_pieces():
         assert np.mean(owners[(s > 0) & far] == k) > 0.8
 
 
+def _crossing_stem_before_a_limb() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(mask, disparity px, limb pixels, stem pixels) `H×W`: a limb 11 px thick at 20 px disparity and a
+    3 px stem leaving the same trunk edge (column 10) 4° off it, nearer (24 px) and in front where they
+    overlap — one region in the image, two lines in depth."""
+    limb, stem = np.zeros((120, 260), np.uint8), np.zeros((120, 260), np.uint8)
+    cv2.line(limb, (10, 60), (250, 60), 1, thickness=11)
+    cv2.line(stem, (10, 62), (250, 45), 1, thickness=3)
+    disparity = np.zeros(limb.shape, np.float32)
+    disparity[limb > 0] = 20.0
+    disparity[stem > 0] = 24.0  # drawn last: in front
+    return (limb | stem) > 0, disparity, (limb > 0) & (stem == 0), stem > 0
+
+
+def _owners(mask: np.ndarray, **depth: object) -> np.ndarray:
+    owners = np.zeros(mask.shape, dtype=int)
+    for k, (u, v) in enumerate(straight_pieces_of(mask, 12, np.random.default_rng(0), **depth), 1):  # type: ignore[arg-type]
+        owners[v, u] = k
+    return owners
+
+
+def test_a_stem_crossing_a_limb_at_another_depth_keeps_its_base_when_pieces_follow_the_disparity():
+    mask, disparity, limb, stem = _crossing_stem_before_a_limb()
+    base = stem.copy()
+    base[:, 60:] = False  # the stem's first 50 px from the trunk, inside the limb's band
+    image_only = _owners(mask)
+    # the image alone: the limb's line takes the stem's base, so no piece holds the stem from the trunk
+    assert np.mean(image_only[base] == np.bincount(image_only[limb]).argmax()) > 0.5
+    followed = _owners(mask, disparity=disparity, disparity_ratio=0.04)
+    stem_piece = np.bincount(followed[stem]).argmax()
+    assert stem_piece > 0 and np.mean(followed[stem] == stem_piece) > 0.9 and np.mean(followed[base] == stem_piece) > 0.9
+    assert np.mean(followed[limb] == stem_piece) < 0.02  # and the limb's piece is the limb
+    # unknown disparity (0) follows any line: the image alone decides, as without a disparity
+    unknown = np.where(stem, 0.0, disparity).astype(np.float32)
+    assert np.array_equal(_owners(mask, disparity=unknown, disparity_ratio=0.04), image_only)
+    assert np.array_equal(_owners(mask, disparity=disparity, disparity_ratio=0.0), image_only)
+
+
 class _ClassMapSegmenter(LearnedSegmenter):
     """The learned segmenter's instance stage over a given class map (logits ±10), not the network's."""
 

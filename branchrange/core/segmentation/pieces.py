@@ -5,6 +5,12 @@ width, contiguous runs along each). Used by the structure and learned segmenters
 Why lines: a branch between its base and its first bend is close to straight in the image, and the
 cut-point geometry fits one straight axis per instance — a region holding two branches gives an axis
 between them and a cut point on neither.
+
+Given the disparity, a line is also a line in depth: for a straight branch the disparity is affine along
+its image line (a 3D line maps to a line in (u, v, 1/Z)), so a line's inliers must lie near the disparity
+drawn between its two sample pixels. A thin stem that crosses a thicker branch in the image, or leaves the
+trunk beside it at a shallow angle, lies within the thicker one's band but at another depth; without the
+test the thicker one's line takes the stem's base and the stem's cut point is lost.
 """
 
 from __future__ import annotations
@@ -16,6 +22,9 @@ import numpy as np
 
 #: neighbourhood (px) over which the inscribed radius gives a pixel's local branch width
 LOCAL_WIDTH_PX = 3
+#: a line's inlier lies within this many px of the line's disparity, or its relative share, whichever is
+#: larger (SGBM's noise on textured surfaces is ~0.25 px)
+PIECE_MIN_DISPARITY_PX = 0.3
 
 
 def straight_pieces(
@@ -26,12 +35,17 @@ def straight_pieces(
     rng: np.random.Generator,
     max_pieces: int = 6,
     min_gap_px: float = 4.0,
+    disparity: np.ndarray | None = None,
+    disparity_ratio: float = 0.0,
 ) -> list[np.ndarray]:
     """Index arrays of straight, contiguous runs of the pixels (u, v) `(N,)`, longest consensus first.
 
     `band_px` `(N,)` is the half-width of a line's inlier band when drawn through that pixel; a line through
     two pixels takes the wider of their bands, so a thin stem beside a thick limb gets its own narrow line
-    rather than being swallowed by the limb's wide one."""
+    rather than being swallowed by the limb's wide one. With `disparity` `(N,)` (px, NaN where unknown) and
+    `disparity_ratio` > 0, an inlier must also lie within max(`disparity_ratio` × the line's disparity,
+    `PIECE_MIN_DISPARITY_PX`) of the disparity affine along the line between its two sample pixels (see the
+    module docstring); pixels or samples without a disparity pass that test."""
     points = np.stack([u, v], axis=1).astype(np.float64)
     remaining = np.arange(len(points))
     pieces: list[np.ndarray] = []
@@ -48,9 +62,13 @@ def straight_pieces(
         origin = pts[pairs[ok, 0]]
         remaining_band = band_px[remaining]
         bands = np.maximum(remaining_band[pairs[ok, 0]], remaining_band[pairs[ok, 1]])  # (K,)
-        dist = np.abs(pts @ normal.T - np.einsum("kc,kc->k", origin, normal))  # (N, K) px from each line
-        best = int(np.argmax((dist < bands).sum(axis=0)))
-        inliers = np.flatnonzero(dist[:, best] < bands[best])
+        inside = np.abs(pts @ normal.T - np.einsum("kc,kc->k", origin, normal)) < bands  # (N, K) in each band
+        if disparity is not None and disparity_ratio > 0:
+            inside &= _on_disparity_line(
+                pts, disparity[remaining], pairs[ok], origin, direction, length[ok], disparity_ratio
+            )
+        best = int(np.argmax(inside.sum(axis=0)))
+        inliers = np.flatnonzero(inside[:, best])
         gap = max(min_gap_px, 2.0 * float(bands[best]))
         along = (pts[inliers] - origin[best]) @ direction[best]
         order = np.argsort(along)
@@ -66,12 +84,41 @@ def straight_pieces(
     return pieces
 
 
+def _on_disparity_line(
+    points: np.ndarray,
+    disparity: np.ndarray,
+    pairs: np.ndarray,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    length: np.ndarray,
+    ratio: float,
+) -> np.ndarray:
+    """Boolean `(N, K)`: whether each of the `(N, 2)` `points` (disparity `(N,)` px, NaN unknown) lies near
+    the disparity of each of K candidate lines — affine along the line from its sample pair's (`pairs`
+    `(K, 2)` indices into the points) disparities, the line running from `origin` `(K, 2)` along the unit
+    `direction` `(K, 2)` to the second sample `length` `(K,)` px away — within max(`ratio` × the line's
+    disparity, `PIECE_MIN_DISPARITY_PX`). Unknown disparities, a point's or a sample's, pass."""
+    first, second = disparity[pairs[:, 0]], disparity[pairs[:, 1]]
+    along = (points @ direction.T - np.einsum("kc,kc->k", origin, direction)) / length  # (N, K), 0..1 between
+    expected = first + along * (second - first)
+    with np.errstate(invalid="ignore"):  # NaN compares False: an unknown disparity is checked below
+        near = np.abs(disparity[:, None] - expected) <= np.maximum(PIECE_MIN_DISPARITY_PX, ratio * np.abs(expected))
+    return near | np.isnan(disparity)[:, None] | np.isnan(expected)
+
+
 def straight_pieces_of(
-    mask: np.ndarray, min_px: int, rng: np.random.Generator, bridge_px: int = 0
+    mask: np.ndarray,
+    min_px: int,
+    rng: np.random.Generator,
+    bridge_px: int = 0,
+    disparity: np.ndarray | None = None,
+    disparity_ratio: float = 0.0,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(u, v) pixel arrays of the straight pieces of every 8-connected region of the boolean `H×W` `mask`
     with at least `min_px` pixels; a line's band is 1.2× the largest inscribed radius (≥ 1.5 px) within
-    `LOCAL_WIDTH_PX` of the pixels it is drawn through — the local width of the branch there."""
+    `LOCAL_WIDTH_PX` of the pixels it is drawn through — the local width of the branch there. With the
+    `H×W` `disparity` (px; ≤ 0 or NaN unknown) and `disparity_ratio` > 0, a line's pixels also follow its
+    disparity (`straight_pieces`)."""
     inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
     local_radius = cv2.dilate(inside, np.ones((2 * LOCAL_WIDTH_PX + 1,) * 2, np.uint8))
     # connectedComponentsWithStats costs ~10× more: its statistics cover the background too
@@ -85,7 +132,11 @@ def straight_pieces_of(
             continue
         v, u = np.divmod(pixels[ends[i - 1] : ends[i]], mask.shape[1])
         band = np.maximum(1.5, 1.2 * local_radius[v, u])
-        for piece in straight_pieces(u, v, band, min_px, rng, min_gap_px=max(4.0, 2.0 * bridge_px + 1.0)):
+        known = None if disparity is None else np.where(disparity[v, u] > 0, disparity[v, u], np.nan)
+        gap = max(4.0, 2.0 * bridge_px + 1.0)
+        for piece in straight_pieces(
+            u, v, band, min_px, rng, min_gap_px=gap, disparity=known, disparity_ratio=disparity_ratio
+        ):
             yield u[piece], v[piece]
 
 
