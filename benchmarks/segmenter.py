@@ -81,6 +81,8 @@ REAL_MAX_DISP = {"forest_1s": 64, "Jadeplant_Q": 160}
 #: the cut points a robot acts on: the pipeline's default target threshold
 TARGET_MIN_CONFIDENCE = CutPointConfig().target_min_confidence
 BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0001)
+#: `piece_disparity_ratio` of the '+depth' variants: the best on the calibration scenes (benchmarks/RESULTS.md)
+DEPTH_PIECES_RATIO = 0.04
 #: branch width classes (px in the 640×360 image) of the recall-by-width table
 WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
 
@@ -88,10 +90,12 @@ WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
 def benchmark_segmenter(name: str) -> Segmenter:
     """`make_segmenter(name)`, and the learned segmenter's variants: 'learned-int8' (its shipped int8 model),
     a network width after '@' (e.g. 'learned@1280'; `network_width`), a trunk band after '/' (e.g.
-    'learned/0': one look; `trunk_band_px`) and a final '~normal' for every frame read through the
+    'learned/0': one look; `trunk_band_px`), then '+depth' for straight pieces that follow the disparity
+    (`piece_disparity_ratio` = `DEPTH_PIECES_RATIO`) and a final '~normal' for every frame read through the
     normal-light calibration (`light_calibration` off). Without a '/', the default band at the frame's own
     width and none at another width (a second look at twice 1280 is not a setting anyone runs)."""
     setting, one_calibration, _ = name.partition("~normal")
+    setting, by_depth, _ = setting.partition("+depth")
     rest, _, band = setting.partition("/")
     base, _, width = rest.partition("@")
     if base not in ("learned", "learned-int8") or name == "learned":
@@ -102,6 +106,7 @@ def benchmark_segmenter(name: str) -> Segmenter:
         precision=precision,
         network_width=int(width or 0),
         trunk_band_px=int(band) if band else default_band,
+        piece_disparity_ratio=DEPTH_PIECES_RATIO if by_depth else 0.0,
         light_calibration=not one_calibration,
     )
     return LearnedSegmenter(config)

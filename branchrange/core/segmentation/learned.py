@@ -130,12 +130,16 @@ class LearnedSegmenterConfig(Settings):
       (the onboard deploy files).
     - `piece_disparity_ratio`: a straight piece's pixels must also follow its line in depth: within this share
       of the line's disparity (at least `pieces.PIECE_MIN_DISPARITY_PX`) of the disparity affine along the
-      line between its two sample pixels (`pieces.straight_pieces`; 0 = the image alone). A thin stem crossing
-      a thicker branch in the image, or leaving the trunk beside it at a shallow angle, lies at another depth;
-      without the test the thicker one's line takes the stem's base. At 0.04, paired on calibration scenes
-      2861–2980: recall within 5 cm with exact disparity 82.6 → 86.0 % (surely), with SGBM 63.0 → 64.2 %
-      (within noise) for 0.95 more false cut points a frame; 0.02–0.06 and floors of 0.2–1 px did no better
-      (benchmarks/RESULTS.md).
+      line between its two sample pixels (`pieces.straight_pieces`; 0, the default, = the image alone). A thin
+      stem crossing a thicker branch in the image, or leaving the trunk beside it at a shallow angle, lies at
+      another depth; without the test the thicker one's line takes the stem's base. Off by default because it
+      finds more branches but not more that a robot may act on. At 0.04 (the best of 0.02–0.15 with floors of
+      0.2–2 px on calibration scenes 2861–2980), held out on 240 scenes: recall within 5 cm with exact
+      disparity 82.0 → 84.0 % (surely; at 1280 84.7 → 87.2 %), with SGBM 65.3 → 65.9 % (within noise) for
+      0.8 more false cut points a frame; yet after recalibration the cut points at confidence ≥ 0.8 that are
+      right fell from 449 to 390 with SGBM, the onboard one-look threshold rose from 0.72 to 0.80, and with
+      exact disparity the targets within 5 cm fell from 94 to 89 % (benchmarks/RESULTS.md). Worth trying with
+      a stereo better than SGBM's, after recalibrating the model with it on.
     - `calibrated`: report cut-point confidences through the model's measured calibration at the width
       the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
       width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
@@ -168,7 +172,7 @@ class LearnedSegmenterConfig(Settings):
     attachment_scale_m: float = 0.02
     split_straight: bool = True
     bridge_px: int = 3
-    piece_disparity_ratio: float = 0.04
+    piece_disparity_ratio: float = 0.0
     calibrated: bool = True
     light_calibration: bool = True
     threads: int = 1
