@@ -103,7 +103,7 @@ def _on_disparity_line(
     expected = first + along * (second - first)
     with np.errstate(invalid="ignore"):  # NaN compares False: an unknown disparity is checked below
         near = np.abs(disparity[:, None] - expected) <= np.maximum(PIECE_MIN_DISPARITY_PX, ratio * np.abs(expected))
-    return near | np.isnan(disparity)[:, None] | np.isnan(expected)
+    return np.asarray(near | np.isnan(disparity)[:, None] | np.isnan(expected))
 
 
 def straight_pieces_of(
