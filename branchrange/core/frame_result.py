@@ -100,7 +100,7 @@ class LightInfo(JsonPart):
     (`branchrange.core.light_check`)."""
 
     light: Annotated[
-        Literal["normal", "dark", "bright", "hazy", "noisy"],
+        Literal["normal", "dark", "bright", "noisy"],
         Field(description="the class of light whose calibration the confidences went through"),
     ]
     median_grey: Annotated[float, Field(ge=0, le=255, description="median grey level of the left image")]

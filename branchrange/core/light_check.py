@@ -10,8 +10,6 @@ calibration measured in that light.
 
 The measures (on the grey left image, `uint8`):
 - `median_grey`: its median grey level (0..255).
-- `spread_grey`: the range between its 2nd and 98th percentile grey levels: a veil of haze lifts the
-  blacks and leaves a third of the contrast, where glare keeps it.
 - `noise_grey`: the sensor noise σ in grey levels: Immerkær's estimate (the mean absolute response of a
   Laplacian-difference kernel that cancels planes, × √(π/2) / 6) in each `NOISE_BLOCK_PX` block, and the
   `NOISE_PERCENTILE`th percentile over the blocks with no pixel at 0 or 255 (there the noise is clipped
@@ -22,11 +20,7 @@ The classes, in this order of precedence, with bounds between the light of the s
 scenes and the changes of light that hurt (`light_changes`; measured on the 180 calibration and held-out
 scenes, 1st–99th percentile):
 - "dark": median grey < `DARK_BELOW` (the scenes' own light: 76–134; dusk: 22–40);
-- "hazy": median grey > `BRIGHT_ABOVE` and spread < `HAZY_SPREAD_BELOW` (haze: spread 27–103 on the
-  calibration scenes, 112 of the 119 bright ones under 100; glare: 102–233, none under 100); held out, 55 of
-  59 hazed frames and 2 of 57 glared ones. Read through the bright table, haze frames were the least honest:
-  of their cut points at confidence ≥ 0.8, 86 % were right where glare's were 92–94 %;
-- "bright": median grey > `BRIGHT_ABOVE` otherwise (glare: 135–239, haze: 146–173);
+- "bright": median grey > `BRIGHT_ABOVE` (glare: 135–239, haze: 146–173);
 - "noisy": noise > `NOISY_ABOVE` grey levels (high gain, σ 6: all 180 read 3.6–8.2; in their own light
   175 of the 180 read 0.6–3.0, the rest are wholly textured frames, leaves or bark to the edges);
 - "normal": otherwise.
@@ -41,10 +35,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-LIGHTS = ("normal", "dark", "bright", "hazy", "noisy")
+LIGHTS = ("normal", "dark", "bright", "noisy")
 DARK_BELOW = 55.0
 BRIGHT_ABOVE = 142.0
-HAZY_SPREAD_BELOW = 100.0
 NOISY_ABOVE = 3.0
 NOISE_BLOCK_PX = 16
 NOISE_PERCENTILE = 5.0
@@ -54,19 +47,16 @@ _NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32
 
 @dataclass(frozen=True)
 class LightReading:
-    """A frame's light: `median_grey` (0..255), `noise_grey` (σ, grey levels), `spread_grey` (2nd to 98th
-    percentile, grey levels) and its class in `LIGHTS`."""
+    """A frame's light: `median_grey` (0..255), `noise_grey` (σ, grey levels) and its class in `LIGHTS`."""
 
     median_grey: float
     noise_grey: float
     light: str
-    spread_grey: float
 
     @property
     def measured(self) -> str:
-        """What was measured, in words: "median grey 104, spread 150, noise σ 0.8 grey levels"."""
-        spread, noise = f"spread {self.spread_grey:.0f}", f"noise σ {self.noise_grey:.1f} grey levels"
-        return f"median grey {self.median_grey:.0f}, {spread}, {noise}"
+        """What was measured, in words: "median grey 104, noise σ 0.8 grey levels"."""
+        return f"median grey {self.median_grey:.0f}, noise σ {self.noise_grey:.1f} grey levels"
 
     @property
     def message(self) -> str:
@@ -85,13 +75,10 @@ def measure_light(image: np.ndarray) -> LightReading:
     if image.dtype != np.uint8 or image.ndim not in (2, 3):
         raise ValueError(f"measure_light expects a uint8 H×W or H×W×3 image, got {image.dtype} {image.shape}")
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    # percentiles from the histogram: a sort of the frame's pixels costs ten times more
-    cumulative = np.cumsum(np.bincount(grey.ravel(), minlength=256))
-    low, median, high = (
-        float(np.searchsorted(cumulative, rank)) for rank in (0.02 * grey.size, (grey.size + 1) / 2, 0.98 * grey.size)
-    )
+    # the median from the histogram: a sort of the frame's pixels costs ten times more
+    median = float(np.searchsorted(np.cumsum(np.bincount(grey.ravel(), minlength=256)), (grey.size + 1) / 2))
     noise = noise_sigma(grey)
-    return LightReading(median, noise, light_class(median, noise, high - low), high - low)
+    return LightReading(median, noise, light_class(median, noise))
 
 
 def noise_sigma(grey: np.ndarray) -> float:
@@ -109,12 +96,12 @@ def noise_sigma(grey: np.ndarray) -> float:
     return float(np.percentile(per_block[seen], NOISE_PERCENTILE)) if seen.any() else 0.0
 
 
-def light_class(median_grey: float, noise_grey: float, spread_grey: float) -> str:
-    """The class in `LIGHTS` of a frame's median grey level, noise σ and spread (module docstring)."""
+def light_class(median_grey: float, noise_grey: float) -> str:
+    """The class in `LIGHTS` of a frame's median grey level and noise σ (module docstring)."""
     if median_grey < DARK_BELOW:
         return "dark"
     if median_grey > BRIGHT_ABOVE:
-        return "hazy" if spread_grey < HAZY_SPREAD_BELOW else "bright"
+        return "bright"
     if noise_grey > NOISY_ABOVE:
         return "noisy"
     return "normal"

@@ -24,7 +24,7 @@ publishing), besides the per-stage `timing_ms`. A result already older than
 the first `WARMUP_FRAMES` frames the daemon logs, once, whether its measured capture → publish
 time can meet `max_result_age_s`, and what to change when it cannot. When the learned segmenter
 measures the light of a frame in another class than the last (`branchrange.core.light_check`: dark,
-bright, hazy, noisy, normal), the log says so: a warning out of normal light. A status line (fps, latency,
+bright, noisy, normal), the log says so: a warning out of normal light. A status line (fps, latency,
 drops, camera, link) every `log.status_interval_s`. `stop()` (the SIGTERM/SIGINT handler calls
 it) ends the loop within one stall timeout.
 """

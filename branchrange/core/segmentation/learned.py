@@ -144,8 +144,8 @@ class LearnedSegmenterConfig(Settings):
       the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
       width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
       points that are right.
-    - `light_calibration`: measure each frame's light (`light_check.measure_light`: dark, bright, hazy,
-      noisy or normal) and read its confidences through the calibration measured in that light, with that light's
+    - `light_calibration`: measure each frame's light (`light_check.measure_light`: dark, bright, noisy or
+      normal) and read its confidences through the calibration measured in that light, with that light's
       least target confidence (a table where none was ≥ 90 % right gives no target in that light; since the
       depth's precision entered the confidence every shipped table has one). Held out, calibration error at
       dusk 0.108 → 0.056 and at high gain 0.096 → 0.019 against the normal-light table (benchmarks/RESULTS.md);
