@@ -165,9 +165,13 @@ def _crossing_stem_before_a_limb() -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return (limb | stem) > 0, disparity, (limb > 0) & (stem == 0), stem > 0
 
 
-def _owners(mask: np.ndarray, **depth: object) -> np.ndarray:
+def _owners(mask: np.ndarray, disparity: np.ndarray | None = None, disparity_ratio: float = 0.0) -> np.ndarray:
+    """`H×W` piece number (1..) of each pixel of `mask` (0 outside every piece)."""
     owners = np.zeros(mask.shape, dtype=int)
-    for k, (u, v) in enumerate(straight_pieces_of(mask, 12, np.random.default_rng(0), **depth), 1):  # type: ignore[arg-type]
+    pieces = straight_pieces_of(
+        mask, 12, np.random.default_rng(0), disparity=disparity, disparity_ratio=disparity_ratio
+    )
+    for k, (u, v) in enumerate(pieces, 1):
         owners[v, u] = k
     return owners
 

@@ -132,7 +132,11 @@ def straight_pieces_of(
             continue
         v, u = np.divmod(pixels[ends[i - 1] : ends[i]], mask.shape[1])
         band = np.maximum(1.5, 1.2 * local_radius[v, u])
-        known = None if disparity is None else np.where(disparity[v, u] > 0, disparity[v, u], np.nan)
+        known = (
+            None
+            if disparity is None or disparity_ratio <= 0
+            else np.where(disparity[v, u] > 0, disparity[v, u], np.nan)
+        )
         gap = max(4.0, 2.0 * bridge_px + 1.0)
         for piece in straight_pieces(
             u, v, band, min_px, rng, min_gap_px=gap, disparity=known, disparity_ratio=disparity_ratio
