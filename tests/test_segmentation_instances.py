@@ -188,9 +188,10 @@ def test_a_stem_crossing_a_limb_at_another_depth_keeps_its_base_when_pieces_foll
     assert stem_piece > 0 and np.mean(followed[stem] == stem_piece) > 0.9
     assert np.mean(followed[base] == stem_piece) > 0.9  # from the trunk on
     assert np.mean(followed[limb] == stem_piece) < 0.02  # and the limb's piece is the limb
-    # unknown disparity (0) follows any line: the image alone decides, as without a disparity
-    unknown = np.where(stem, 0.0, disparity).astype(np.float32)
-    assert np.array_equal(_owners(mask, disparity=unknown, disparity_ratio=0.04), image_only)
+    # unknown disparity (0, NaN or inf) follows any line: the image alone decides, as without a disparity
+    for missing in (0.0, np.nan, np.inf):
+        unknown = np.where(stem, missing, disparity).astype(np.float32)
+        assert np.array_equal(_owners(mask, disparity=unknown, disparity_ratio=0.04), image_only)
     assert np.array_equal(_owners(mask, disparity=disparity, disparity_ratio=0.0), image_only)
 
 

@@ -117,7 +117,7 @@ def straight_pieces_of(
     """(u, v) pixel arrays of the straight pieces of every 8-connected region of the boolean `H×W` `mask`
     with at least `min_px` pixels; a line's band is 1.2× the largest inscribed radius (≥ 1.5 px) within
     `LOCAL_WIDTH_PX` of the pixels it is drawn through — the local width of the branch there. With the
-    `H×W` `disparity` (px; ≤ 0 or NaN unknown) and `disparity_ratio` > 0, a line's pixels also follow its
+    `H×W` `disparity` (px; ≤ 0 or not finite = unknown) and `disparity_ratio` > 0, a line's pixels also follow its
     disparity (`straight_pieces`)."""
     inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
     local_radius = cv2.dilate(inside, np.ones((2 * LOCAL_WIDTH_PX + 1,) * 2, np.uint8))
@@ -132,11 +132,10 @@ def straight_pieces_of(
             continue
         v, u = np.divmod(pixels[ends[i - 1] : ends[i]], mask.shape[1])
         band = np.maximum(1.5, 1.2 * local_radius[v, u])
-        known = (
-            None
-            if disparity is None or disparity_ratio <= 0
-            else np.where(disparity[v, u] > 0, disparity[v, u], np.nan)
-        )
+        known = None
+        if disparity is not None and disparity_ratio > 0:
+            own = disparity[v, u]
+            known = np.where(np.isfinite(own) & (own > 0), own, np.nan)
         gap = max(4.0, 2.0 * bridge_px + 1.0)
         for piece in straight_pieces(
             u, v, band, min_px, rng, min_gap_px=gap, disparity=known, disparity_ratio=disparity_ratio
