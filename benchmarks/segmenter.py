@@ -49,6 +49,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -60,9 +61,16 @@ from branchrange.core.confidence import (
     lowest_reliable_threshold,
     share_correct_above,
 )
+from branchrange.core.config import load_config, pipeline_config
 from branchrange.core.cutpoints import CutPointConfig
-from branchrange.core.frame_result import Branch
-from branchrange.core.pipeline import Pipeline, target_minimum, untracked_whole_frame, with_exact_disparity
+from branchrange.core.frame_result import Branch, FrameResult
+from branchrange.core.pipeline import (
+    Pipeline,
+    PipelineConfig,
+    target_minimum,
+    untracked_whole_frame,
+    with_exact_disparity,
+)
 from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
@@ -74,6 +82,10 @@ ROOT = Path(__file__).resolve().parents[1]
 TREES = ROOT.parent / "shared" / "data" / "trees"
 FIRST_SEED = 50_000
 SIZE = (640, 360)
+#: the pipeline as it flies: ZED Mini at HD720, a coarse SGBM pass at 640×360 that the segmenter sees, then
+#: each branch matched again at full resolution in its own box and disparity window (`stereo.mode = "roi"`)
+HD720 = (1280, 720)
+ONBOARD_CONFIG = ROOT / "deploy" / "onboard_cpu.toml"
 #: nominal rectified camera for the real pairs (no calibration exists; see their README)
 REAL_FOCAL_PX, REAL_BASELINE_M = 700.0, 0.06
 #: sgbm disparity range per real scene, from the ranges in ../shared/data/trees/README.md
@@ -112,14 +124,15 @@ def benchmark_segmenter(name: str) -> Segmenter:
     return LearnedSegmenter(config)
 
 
-def width_class(instance_mask: np.ndarray, branch_id: int) -> str:
+def width_class(instance_mask: np.ndarray, branch_id: int, px_scale: float = 1.0) -> str:
     """Width class (`WIDTH_BINS_PX`) of a truth branch: twice the 90th percentile of its pixels' distance to
-    its silhouette's edge, in px — thin stems are where segmenters lose most branches."""
+    its silhouette's edge, in px at 640×360 (`instance_mask`'s px × `px_scale`) — thin stems are where
+    segmenters lose most branches."""
     own = (instance_mask == branch_id).astype(np.uint8)
     if not own.any():
         return "hidden"
     inside = cv2.distanceTransform(own, cv2.DIST_L2, 3)
-    width = 2.0 * float(np.percentile(inside[own > 0], 90))
+    width = 2.0 * px_scale * float(np.percentile(inside[own > 0], 90))
     k = int(np.searchsorted(WIDTH_BINS_PX, width, side="right")) - 1
     lo, hi = WIDTH_BINS_PX[k], WIDTH_BINS_PX[k + 1]
     return f"≥{lo:g} px" if np.isinf(hi) else f"{lo:g}–{hi:g} px"
@@ -154,18 +167,77 @@ def needed_for_target(pipeline: Pipeline) -> float:
     return target_minimum(TARGET_MIN_CONFIDENCE, None if pipeline.last is None else pipeline.last.masks)
 
 
+class Tallies:
+    """Everything `run_synthetic` counts, per 'stereo/segmenter' key, frame by frame."""
+
+    def __init__(self) -> None:
+        self.scores: dict[str, CutScores] = {}
+        self.confidences: dict[str, list[tuple[float, bool]]] = {}
+        self.times: dict[str, list[float]] = {}
+        self.confident: dict[str, CutScores] = {}  # only the cut points at or above the target default
+        self.by_width: dict[str, dict[str, CutScores]] = {}  # recall per branch width class (all cut points)
+
+    def add(self, key: str, truth: list[dict], widths: list[str], result: FrameResult, pipeline: Pipeline) -> None:
+        """One frame's `result` of `pipeline` against its `truth` cut points (with their width classes)."""
+        stereo, name = key.split("/", 1)
+        self.scores.setdefault(key, CutScores(stereo, name)).add_frame(truth, result.branches, result.target)
+        for width in set(widths):
+            in_class = [t for t, w in zip(truth, widths) if w == width]
+            self.by_width.setdefault(key, {}).setdefault(width, CutScores(stereo, name)).add_frame(
+                in_class, result.branches
+            )
+        acted_on = [x for x in result.branches if x.confidence >= needed_for_target(pipeline)]
+        self.confident.setdefault(key, CutScores(stereo, name)).add_frame(truth, acted_on, result.target)
+        self.times.setdefault(key, []).append(segmenter_ms(result))
+        self.confidences.setdefault(key, []).extend(
+            cut_point_outcomes(
+                [(b.confidence, b.cut_point_m) for b in result.branches], [t["cut_point_m"] for t in truth]
+            )
+        )
+
+
+def segmenter_ms(result: FrameResult) -> float:
+    """The segmenter's time in `result` (ms): in the roi mode it runs in the stereo stage on the coarse pass
+    ('segment'), otherwise in the geometry stage ('masks')."""
+    return result.timing_ms.get("segment", result.timing_ms["masks"])
+
+
+def onboard_roi() -> PipelineConfig:
+    """The benchmark's pipeline settings with the stereo of `ONBOARD_CONFIG`: the roi mode at HD720."""
+    flown = pipeline_config(load_config(ONBOARD_CONFIG))
+    return replace(untracked_whole_frame(), stereo=flown.stereo, roi=flown.roi)
+
+
+def score_hd720(seed: int, cache: Path | None, hardware: bool, built: dict[str, Segmenter], tallies: Tallies) -> None:
+    """Scene `seed` rendered at HD720 through `onboard_roi` for each segmenter of `built` and truth masks:
+    the segmenter sees the 640×360 coarse pass, the cut points come from each branch matched again at 1280×720."""
+    scene = evaluation_scene(seed, cache, size=HD720, hardware=hardware)
+    f, b, cx, cy = (float(v) for v in scene["camera"])
+    scale = SIZE[0] / HD720[0]
+    widths = [width_class(scene["mask"], k + 1, scale) for k in range(len(scene["truth"]))]
+    for name in [*built, "truth"]:
+        pipeline = Pipeline(
+            onboard_roi(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=built.get(name)
+        )
+        mask = scene["mask"] if name == "truth" else None
+        result = pipeline.process(scene["left"], scene["right"], mask=mask)
+        tallies.add(f"roi-hd720/{name}", scene["truth"], widths, result, pipeline)
+
+
 def run_synthetic(
-    segmenters: list[str], scenes: int, cache: Path | None, hardware: bool = False, light: Sequence[str] = ()
+    segmenters: list[str],
+    scenes: int,
+    cache: Path | None,
+    hardware: bool = False,
+    light: Sequence[str] = (),
+    hd720: bool = False,
 ) -> dict:
     """Scores per 'stereo/segmenter' over `scenes` held-out scenes (with orchard hardware when `hardware`); each
     change of `light` (`branchnet_data.scene_in_light`) adds the stereo mode 'sgbm-<change>': both images
-    under that light, SGBM computed again, the pipeline as with 'sgbm'."""
+    under that light, SGBM computed again, the pipeline as with 'sgbm'. `hd720` adds 'roi-hd720': the scene
+    rendered at 1280×720 through the pipeline as it flies (`onboard_roi`)."""
     built = {name: benchmark_segmenter(name) for name in segmenters}
-    scores: dict[str, CutScores] = {}
-    confidences: dict[str, list[tuple[float, bool]]] = {}
-    times: dict[str, list[float]] = {}
-    confident: dict[str, CutScores] = {}  # only the cut points at or above the target default
-    by_width: dict[str, dict[str, CutScores]] = {}  # recall per branch width class (all cut points matched)
+    tallies = Tallies()
     for i in range(scenes):
         scene = evaluation_scene(FIRST_SEED + i, cache, hardware=hardware)
         f, b, cx, cy = (float(v) for v in scene["camera"])
@@ -180,7 +252,6 @@ def run_synthetic(
             views[f"sgbm-{change}"] = (lit["left"], lit["sgbm"], lit["sgbm_conf"], lit["right"])
         for stereo, (left, disparity, confidence, right) in views.items():
             for name in [*segmenters, "truth"]:
-                key = f"{stereo}/{name}"
                 pipeline = Pipeline(
                     with_exact_disparity(untracked_whole_frame()) if stereo == "truth" else untracked_whole_frame(),
                     focal_px=f,
@@ -190,30 +261,18 @@ def run_synthetic(
                 )  # process_disparity: no backend is built
                 mask = scene["mask"] if name == "truth" else None
                 result = pipeline.process_disparity(left, disparity, confidence, mask=mask, backend=stereo, right=right)
-                scores.setdefault(key, CutScores(stereo, name)).add_frame(
-                    scene["truth"], result.branches, result.target
-                )
-                for width in set(widths):
-                    in_class = [t for t, w in zip(scene["truth"], widths) if w == width]
-                    by_width.setdefault(key, {}).setdefault(width, CutScores(stereo, name)).add_frame(
-                        in_class, result.branches
-                    )
-                acted_on = [x for x in result.branches if x.confidence >= needed_for_target(pipeline)]
-                confident.setdefault(key, CutScores(stereo, name)).add_frame(scene["truth"], acted_on, result.target)
-                times.setdefault(key, []).append(result.timing_ms["masks"])
-                confidences.setdefault(key, []).extend(
-                    cut_point_outcomes(
-                        [(b.confidence, b.cut_point_m) for b in result.branches],
-                        [t["cut_point_m"] for t in scene["truth"]],
-                    )
-                )
+                tallies.add(f"{stereo}/{name}", scene["truth"], widths, result, pipeline)
+        if hd720:
+            score_hd720(FIRST_SEED + i, cache, hardware, built, tallies)
         print(f"  scene {i + 1}/{scenes}", end="\r", file=sys.stderr)
     out = {}
-    for key, s in scores.items():
+    for key, s in tallies.scores.items():
         stereo, name = key.split("/", 1)
-        baseline = scores[f"{stereo}/{segmenters[0]}"]
+        baseline = tallies.scores[f"{stereo}/{segmenters[0]}"]
         interval = s.interval()
-        normal_light = scores[f"sgbm/{name}"] if stereo.startswith("sgbm-") and stereo != "sgbm-unrefined" else None
+        normal_light = (
+            tallies.scores[f"sgbm/{name}"] if stereo.startswith("sgbm-") and stereo != "sgbm-unrefined" else None
+        )
         out[key] = {
             "recall": s.recall,
             "recall_ci95": interval["recall"],
@@ -234,18 +293,20 @@ def run_synthetic(
             },
             "median_error_cm": 100 * s.error_quantile(0.5),
             "false_per_frame": s.false_per_frame,
-            "ms_per_frame": float(np.median(times[key])),
+            "ms_per_frame": float(np.median(tallies.times[key])),
             "frames": s.frames,
-            "recall_by_width": {w: {"branches": c.truth, "recall": c.recall} for w, c in sorted(by_width[key].items())},
-            "reliability": reliability(confidences[key]),
-            "at_0.8": share_correct_above(confidences[key], 0.8),
-            "min_confidence_for_90pct": lowest_reliable_threshold(confidences[key]),
-            "calibration_error": expected_calibration_error(confidences[key]),
+            "recall_by_width": {
+                w: {"branches": c.truth, "recall": c.recall} for w, c in sorted(tallies.by_width[key].items())
+            },
+            "reliability": reliability(tallies.confidences[key]),
+            "at_0.8": share_correct_above(tallies.confidences[key], 0.8),
+            "min_confidence_for_90pct": lowest_reliable_threshold(tallies.confidences[key]),
+            "calibration_error": expected_calibration_error(tallies.confidences[key]),
             "at_target_min_confidence": {
                 "threshold": TARGET_MIN_CONFIDENCE,
-                "recall": confident[key].recall,
-                "false_per_frame": confident[key].false_per_frame,
-                "target_within_5cm": confident[key].target_accuracy,
+                "recall": tallies.confident[key].recall,
+                "false_per_frame": tallies.confident[key].false_per_frame,
+                "target_within_5cm": tallies.confident[key].target_accuracy,
             },
         }
     return out
@@ -407,12 +468,17 @@ def main(argv: list[str] | None = None) -> int:
         choices=list(LIGHT_CHANGES),
         help="also score the scenes under these changes of light (both images; stereo 'sgbm-<change>')",
     )
+    parser.add_argument(
+        "--hd720",
+        action="store_true",
+        help="also score the scenes rendered at 1280×720 through the onboard pipeline (stereo 'roi-hd720')",
+    )
     parser.add_argument("--skip-real", action="store_true", help="leave out the real pairs")
     parser.add_argument("--json", type=Path, help="write all numbers here")
     args = parser.parse_args(argv)
     print(f"CPU: {cpu_name()} (shared machine: absolute times are noisy)")
     start = time.perf_counter()
-    synthetic = run_synthetic(args.segmenters, args.scenes, args.cache, args.hardware, args.light)
+    synthetic = run_synthetic(args.segmenters, args.scenes, args.cache, args.hardware, args.light, args.hd720)
     real = {} if args.skip_real else run_real(args.segmenters, args.overlays)
     print_tables(synthetic, real)
     print(

@@ -47,6 +47,18 @@ def test_plan_gives_each_branch_a_region_and_keeps_the_nearest():
     assert regions[-1].box == (68, 8, 76, 32)  # branch 7 at x 70..73, y 10..29, grown by 2 px
 
 
+def test_by_default_every_instance_a_learned_segmenter_gives_gets_a_fine_pass():
+    # the learned segmenter gives up to ~40 instances on a frame (fragments and doubtful pieces too): an instance
+    # without a region is dropped, so the default bound must not be what decides which branches are kept
+    labels = np.zeros((80, 400), np.int32)
+    coarse_disp = np.zeros((40, 200), np.float32)
+    for k, x in enumerate(range(0, 400, 10), start=1):
+        labels[10:70, x : x + 4] = k
+        coarse_disp[5:35, x // 2 : x // 2 + 2] = 10.0 + 0.1 * k
+    regions = plan_regions(BranchMasks(labels, None), labels[::2, ::2], coarse_disp, 2, RoiConfig(), 128)
+    assert len(regions) == 40
+
+
 def test_refined_labels_follow_the_fine_disparity_inside_the_window():
     coarse = np.zeros((10, 20), np.int32)
     coarse[3:6, 5:8] = 1

@@ -185,7 +185,10 @@ class RoiConfig(Settings):
       silhouette's edges need context).
     - `window_margin_px`: how far the disparity window grows beyond the instance's coarse range.
     - `max_regions`: only the nearest this many branches (by coarse disparity) get a fine pass
-      (the trunk keeps its coarse disparity).
+      (the trunk keeps its coarse disparity); the others are dropped. A bound on a pathological frame,
+      not a budget: an SGBM region costs ~1–2 ms, and the learned segmenter gives more than 12 instances
+      (fragments and doubtful pieces too) in a quarter of the calibration frames and up to 38 — with 12
+      (the setting until 2026-11-26) the pipeline at HD720 lost 10 points of recall (benchmarks/RESULTS.md).
     - `network_regions`: with a network backend (emcstereo), only the nearest this many regions —
       the target's candidates — are matched by the network, the others by SGBM (a network region
       costs about 0.4 s at 200×200 px on 2 CPU cores); 0: every region by the network.
@@ -197,7 +200,7 @@ class RoiConfig(Settings):
     coarse_width: int = 640
     box_margin_px: int = 16
     window_margin_px: int = 8
-    max_regions: int = 12
+    max_regions: int = 48
     network_regions: int = 1
 
     def checks(self) -> Checks:

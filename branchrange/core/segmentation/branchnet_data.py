@@ -82,11 +82,15 @@ EVALUATION_MAX_DISP = 192
 
 def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360), hardware: bool = False) -> dict:
     """A scene as the segmenter is scored on it: the default renderer options at `size` (plus orchard hardware
-    when `hardware`), SGBM over `EVALUATION_MAX_DISP` px, truth cut points. Keys: left, right, disparity
-    (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px, B m, cx, cy), truth (list of {"cut_point_m",
-    "cut_visible"}). Cached in `cache` when given (a cached scene from before the right image was kept is
-    rendered again)."""
-    path = cache / f"scene_{_hardware_tag(hardware)}{seed}.npz" if cache is not None else None
+    when `hardware`), SGBM over `EVALUATION_MAX_DISP` px at 640 px wide (as many more as the frame is wider),
+    truth cut points. Keys: left, right, disparity (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px,
+    B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached in `cache` when given (a cached scene
+    from before the right image was kept is rendered again).
+
+    The same seed at another size is the same scene in most cases but not all: the renderer's random draws
+    depend on what is visible in pixels, so about one seed in five places its branches elsewhere."""
+    size_tag = "" if tuple(size) == (640, 360) else f"{size[0]}x{size[1]}_"
+    path = cache / f"scene_{_hardware_tag(hardware)}{size_tag}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
             scene = {k: data[k] for k in data.files}
@@ -97,7 +101,8 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     from stereo.synth import SynthCamera, render_scene
 
     rendered = render_scene(seed, SynthCamera.zed_mini(*size), orchard_hardware=hardware)
-    stereo = make_backend("sgbm", max_disp=EVALUATION_MAX_DISP).compute(rendered.left, rendered.right)
+    max_disp = EVALUATION_MAX_DISP * max(1, round(size[0] / 640))
+    stereo = make_backend("sgbm", max_disp=max_disp).compute(rendered.left, rendered.right)
     cam = rendered.camera
     truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
     scene = {
