@@ -30,14 +30,19 @@ Changed light (`--light dusk glare haze warm high_gain`, `branchrange.core.segme
 change adds the stereo mode 'sgbm-<change>' — both images under that light, SGBM computed again — with its recall
 minus the same segmenter's in the scenes' own light, paired.
 
+The pipeline as it flies (`--hd720`): the same seeds rendered at 1280×720 (the ZED Mini's HD720) go through
+the roi mode with `deploy/onboard_cpu.toml`'s stereo settings — the segmenter sees the 640×360 coarse pass, each
+branch is matched again at full resolution — as stereo mode 'roi-hd720', scored against the HD720 scene's own
+truth (about one seed in four places its branches differently at that size, so it is not paired with 'sgbm').
+
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
 polygon; overlays (polygons, instances, cut points) are written to --overlays.
 
     python benchmarks/segmenter.py [--scenes 240] [--segmenters learned learned@1280 learned-int8 structure]
-                                   [--light dusk ...] [--json out.json] [--overlays benchmarks/segmenter_overlays]
-                                   [--cache out/segbench]
+                                   [--light dusk ...] [--hd720] [--json out.json]
+                                   [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
 """
 
 from __future__ import annotations
