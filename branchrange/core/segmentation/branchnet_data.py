@@ -88,7 +88,8 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     from before the right image was kept is rendered again).
 
     The same seed at another size is the same scene in most cases but not all: the renderer's random draws
-    depend on what is visible in pixels, so about one seed in four (55 of the 240 held-out ones) places its branches elsewhere."""
+    depend on what is visible in pixels, so about one seed in four (55 of the 240 held-out ones) places its
+    branches elsewhere."""
     size_tag = "" if tuple(size) == (640, 360) else f"{size[0]}x{size[1]}_"
     path = cache / f"scene_{_hardware_tag(hardware)}{size_tag}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
