@@ -213,17 +213,17 @@ def onboard_roi() -> PipelineConfig:
     return replace(untracked_whole_frame(), stereo=flown.stereo, roi=flown.roi)
 
 
-def score_hd720(seed: int, cache: Path | None, hardware: bool, built: dict[str, Segmenter], tallies: Tallies) -> None:
-    """Scene `seed` rendered at HD720 through `onboard_roi` for each segmenter of `built` and truth masks:
+def score_hd720(
+    seed: int, cache: Path | None, hardware: bool, built: dict[str, Segmenter], config: PipelineConfig, tallies: Tallies
+) -> None:
+    """Scene `seed` rendered at HD720 through `config` (`onboard_roi`) for each segmenter of `built` and truth masks:
     the segmenter sees the 640×360 coarse pass, the cut points come from each branch matched again at 1280×720."""
     scene = evaluation_scene(seed, cache, size=HD720, hardware=hardware)
     f, b, cx, cy = (float(v) for v in scene["camera"])
     scale = SIZE[0] / HD720[0]
     widths = [width_class(scene["mask"], k + 1, scale) for k in range(len(scene["truth"]))]
     for name in [*built, "truth"]:
-        pipeline = Pipeline(
-            onboard_roi(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=built.get(name)
-        )
+        pipeline = Pipeline(config, focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=built.get(name))
         mask = scene["mask"] if name == "truth" else None
         result = pipeline.process(scene["left"], scene["right"], mask=mask)
         tallies.add(f"roi-hd720/{name}", scene["truth"], widths, result, pipeline)
@@ -242,6 +242,7 @@ def run_synthetic(
     under that light, SGBM computed again, the pipeline as with 'sgbm'. `hd720` adds 'roi-hd720': the scene
     rendered at 1280×720 through the pipeline as it flies (`onboard_roi`)."""
     built = {name: benchmark_segmenter(name) for name in segmenters}
+    flown = onboard_roi() if hd720 else None
     tallies = Tallies()
     for i in range(scenes):
         scene = evaluation_scene(FIRST_SEED + i, cache, hardware=hardware)
@@ -267,8 +268,8 @@ def run_synthetic(
                 mask = scene["mask"] if name == "truth" else None
                 result = pipeline.process_disparity(left, disparity, confidence, mask=mask, backend=stereo, right=right)
                 tallies.add(f"{stereo}/{name}", scene["truth"], widths, result, pipeline)
-        if hd720:
-            score_hd720(FIRST_SEED + i, cache, hardware, built, tallies)
+        if flown is not None:
+            score_hd720(FIRST_SEED + i, cache, hardware, built, flown, tallies)
         print(f"  scene {i + 1}/{scenes}", end="\r", file=sys.stderr)
     out = {}
     for key, s in tallies.scores.items():

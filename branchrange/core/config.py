@@ -188,7 +188,7 @@ class RoiConfig(Settings):
       (the trunk keeps its coarse disparity); the others are dropped. A bound on a pathological frame,
       not a budget: an SGBM region costs ~1–2 ms, and the learned segmenter gives more than 12 instances
       (fragments and doubtful pieces too) in a quarter of the calibration frames and up to 38 — with 12
-      (the setting until 2026-11-26) the pipeline at HD720 lost 10 points of recall (benchmarks/RESULTS.md).
+      (the setting until 2026-11-26) the pipeline at HD720 lost 7–12 points of recall (benchmarks/RESULTS.md).
     - `network_regions`: with a network backend (emcstereo), only the nearest this many regions —
       the target's candidates — are matched by the network, the others by SGBM (a network region
       costs about 0.4 s at 200×200 px on 2 CPU cores); 0: every region by the network.
