@@ -76,22 +76,33 @@ def _hardware_tag(hardware: bool) -> str:
     return "hw_" if hardware else ""
 
 
+def _size_tag(width: int, height: int) -> str:
+    """The part of a cached file's name that keeps scenes of another size than 640×360 apart."""
+    return "" if (width, height) == (640, 360) else f"{width}x{height}_"
+
+
 #: the SGBM disparity range (px at 640×360) of the scenes the segmenter is scored and calibrated on
 EVALUATION_MAX_DISP = 192
 
 
+def evaluation_max_disp(width: int) -> int:
+    """The SGBM disparity range (px) of an evaluation scene `width` px wide: `EVALUATION_MAX_DISP` at 640 px,
+    as many times more as the frame is wider."""
+    return EVALUATION_MAX_DISP * max(1, round(width / 640))
+
+
 def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360), hardware: bool = False) -> dict:
     """A scene as the segmenter is scored on it: the default renderer options at `size` (plus orchard hardware
-    when `hardware`), SGBM over `EVALUATION_MAX_DISP` px at 640 px wide (as many more as the frame is wider),
-    truth cut points. Keys: left, right, disparity (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px,
-    B m, cx, cy), truth (list of {"cut_point_m", "cut_visible"}). Cached in `cache` when given (a cached scene
-    from before the right image was kept is rendered again).
+    when `hardware`), SGBM over `evaluation_max_disp(width)` px, truth cut points. Keys: left, right, disparity
+    (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px, B m, cx, cy), truth (list of {"cut_point_m",
+    "cut_visible"}). Cached in `cache` when given (a cached scene from before the right image was kept is
+    rendered again).
 
     The same seed at another size is the same scene in most cases but not all: the renderer's random draws
     depend on what is visible in pixels, so about one seed in four (55 of the 240 held-out ones) places its
     branches elsewhere."""
-    size_tag = "" if tuple(size) == (640, 360) else f"{size[0]}x{size[1]}_"
-    path = cache / f"scene_{_hardware_tag(hardware)}{size_tag}{seed}.npz" if cache is not None else None
+    tag = _hardware_tag(hardware) + _size_tag(size[0], size[1])
+    path = cache / f"scene_{tag}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
             scene = {k: data[k] for k in data.files}
@@ -102,8 +113,7 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     from stereo.synth import SynthCamera, render_scene
 
     rendered = render_scene(seed, SynthCamera.zed_mini(*size), orchard_hardware=hardware)
-    max_disp = EVALUATION_MAX_DISP * max(1, round(size[0] / 640))
-    stereo = make_backend("sgbm", max_disp=max_disp).compute(rendered.left, rendered.right)
+    stereo = make_backend("sgbm", max_disp=evaluation_max_disp(size[0])).compute(rendered.left, rendered.right)
     cam = rendered.camera
     truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]
     scene = {
@@ -126,10 +136,12 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
 def scene_in_light(scene: dict, seed: int, change: str, cache: Path | None, hardware: bool = False) -> dict:
     """`evaluation_scene(seed, ...)`'s `scene` under the named change of light (`light_changes.LIGHT_CHANGES`):
     both images changed alike (the noise seeded by the seed and the change's name, so a run repeats), SGBM over
-    `EVALUATION_MAX_DISP` px computed again; the other keys as they were. Cached in `cache` when given."""
+    `evaluation_max_disp(width)` px computed again; the other keys as they were. Cached in `cache` when given."""
     from branchrange.core.segmentation.light_changes import changed_light
 
-    path = cache / f"light_{change}_{_hardware_tag(hardware)}{seed}.npz" if cache is not None else None
+    height, width = scene["left"].shape[:2]
+    tag = _hardware_tag(hardware) + _size_tag(width, height)
+    path = cache / f"light_{change}_{tag}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return {**scene, **{k: data[k] for k in data.files}}
@@ -137,7 +149,7 @@ def scene_in_light(scene: dict, seed: int, change: str, cache: Path | None, hard
 
     rng = np.random.default_rng([seed, *change.encode()])
     left, right = (changed_light(scene[side], change, rng) for side in ("left", "right"))
-    stereo = make_backend("sgbm", max_disp=EVALUATION_MAX_DISP).compute(left, right)
+    stereo = make_backend("sgbm", max_disp=evaluation_max_disp(width)).compute(left, right)
     changed = {"left": left, "right": right, "sgbm": stereo.disparity, "sgbm_conf": stereo.confidence}
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
