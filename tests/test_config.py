@@ -100,10 +100,8 @@ def test_deploy_examples_load_with_the_values_they_document():
 
 @pytest.mark.parametrize("name", ["onboard.toml", "onboard_cpu.toml", "serve.toml"])
 def test_each_deploy_file_acts_on_the_target_threshold_its_segmenter_was_calibrated_to(name):
-    """A file that changes how the learned segmenter looks (precision, network width, trunk band) or where the
-    cut points' depth comes from (the roi mode at HD720: a disparity twice as fine as the frame the segmenter
-    sees) changes what a reported confidence means: its target threshold is the one the model's table gives
-    for that setting, in normal light."""
+    """A file that changes how the learned segmenter looks (precision, network width, trunk band) changes what a
+    reported confidence means: its target threshold is the one the model's table gives for that setting."""
     import json
 
     from branchrange.core.segmentation.learned import SCENE_WIDTH, SHIPPED_MODELS
@@ -111,12 +109,8 @@ def test_each_deploy_file_acts_on_the_target_threshold_its_segmenter_was_calibra
     cfg = load_config(DEPLOY / name)
     learned = cfg.segmenter.learned
     tables = json.loads(SHIPPED_MODELS[learned.precision].with_suffix(".json").read_text())["confidence_calibrations"]
-    hd720 = cfg.camera.source.endswith(":HD720")
-    depth_factor = 1280 // cfg.roi.coarse_width if cfg.stereo.mode == "roi" and hd720 else 1
-    setting = (learned.network_width or SCENE_WIDTH, learned.trunk_band_px, "normal", depth_factor)
-    table = next(
-        t for t in tables if (t["network_width"], t["trunk_band_px"], t["light"], t.get("depth_factor", 1)) == setting
-    )
+    setting = (learned.network_width or SCENE_WIDTH, learned.trunk_band_px)
+    table = next(t for t in tables if (t["network_width"], t["trunk_band_px"]) == setting)
     assert cfg.cutpoints.target_min_confidence == table["target_min_confidence"]
 
 

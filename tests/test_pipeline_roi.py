@@ -17,13 +17,12 @@ from synth_recording import tree_scene, truth_of
 from branchrange.core.config import RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.pipeline import Pipeline, PipelineConfig
-from branchrange.core.segmentation.segmenter import Segmenter
 
 UNTRACKED = CutPointConfig(tracking=False)
 ROI = RoiConfig(coarse_width=240)  # 480×270 frames: a coarse pass at 240×135 (scale 2), as HD720 → 640×360
 
 
-def _pipeline(mode: str, segmenter_name: str = "structure", segmenter: Segmenter | None = None) -> Pipeline:
+def _pipeline(mode: str, segmenter_name: str = "structure") -> Pipeline:
     scene = tree_scene()
     cam = scene.camera
     return Pipeline(
@@ -36,7 +35,6 @@ def _pipeline(mode: str, segmenter_name: str = "structure", segmenter: Segmenter
         focal_px=cam.focal_px,
         baseline_m=cam.baseline_m,
         principal_point=(cam.cx, cam.cy),
-        segmenter=segmenter,
     )
 
 
@@ -96,36 +94,6 @@ def test_roi_mode_with_the_builtin_segmenter_gives_full_resolution_silhouettes()
     branch = (masks.labels > 0) & (masks.labels != masks.trunk_id)
     assert branch.any() and np.all(disparity[branch] > 0)  # every branch pixel has a fine disparity
     assert result.roi.regions
-
-
-def test_roi_mode_reads_confidences_through_the_calibration_measured_with_the_finer_depth():
-    from dataclasses import replace
-
-    from branchrange.core.confidence import ConfidenceCalibration
-    from branchrange.core.segmentation.choose import make_segmenter
-
-    zero = ConfidenceCalibration((0.0, 1.0), (0.0, 0.0))  # what the whole-frame table would say: nothing is right
-    identity = ConfidenceCalibration((0.0, 1.0), (0.0, 1.0))  # what the one measured with the roi mode's depth says
-
-    class Calibrated:
-        """The geometric segmenter, its masks carrying both calibrations as the learned segmenter's do."""
-
-        name = "calibrated"
-
-        def __init__(self) -> None:
-            self.inner = make_segmenter("geometric")
-
-        def segment(self, left, disparity, geometry, confidence=None):
-            masks = self.inner.segment(left, disparity, geometry, confidence)
-            return replace(masks, calibration=zero, depth_calibrations={2: (identity, 0.0)})
-
-    scene = tree_scene()
-    confidences = {}
-    for mode in ("full", "roi"):
-        result = _pipeline(mode, segmenter=Calibrated()).process(scene.left, scene.right)
-        confidences[mode] = [b.confidence for b in result.branches]
-    assert confidences["full"] and max(confidences["full"]) == 0.0  # whole frame: the masks' own calibration
-    assert confidences["roi"] and max(confidences["roi"]) > 0.0  # scale 2: the one measured at twice the depth
 
 
 def test_a_backend_without_windowed_matching_is_refused_in_roi_mode():

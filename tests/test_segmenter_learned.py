@@ -388,33 +388,20 @@ def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmente
         shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
     lines: list[str] = []
     model = tmp_path / "branchnet.onnx"
-    whole_frame = tuple(s for s in CALIBRATION_SETTINGS if s[2] == 1)  # the roi mode's: the test below
     calibrations = calibrate_model(
-        model,
-        seeds=(2861, 2864),
-        cache=tmp_path / "cal",
-        log=lines.append,
-        settings=whole_frame,
-        light_changes=("dusk",),
-        min_cut_points=1,
+        model, seeds=(2861, 2864), cache=tmp_path / "cal", log=lines.append, light_changes=("dusk",), min_cut_points=1
     )
     # each scene also at dusk, which measures as dark light: a table per setting and light (one of the scenes,
     # leaves to its edges, measures as noisy in its own light)
-    assert set(calibrations) == {
-        (width, band, light, 1) for width, band, _ in whole_frame for light in ("normal", "dark", "noisy")
-    }
-    assert set(CALIBRATION_SETTINGS) == {(640, 40, 1), (640, 0, 1), (1280, 0, 1), (640, 0, 2)}
-    assert "network width 640, trunk band 40 px, depth factor 1, normal light" in lines[0]
-    assert "scenes 2861–2863" in lines[0]
+    assert set(calibrations) == {(*s, light) for s in CALIBRATION_SETTINGS for light in ("normal", "dark", "noisy")}
+    assert set(CALIBRATION_SETTINGS) == {(640, 40), (640, 0), (1280, 0)}
+    assert "network width 640, trunk band 40 px, normal light" in lines[0] and "scenes 2861–2863" in lines[0]
     assert sorted(p.name for p in (tmp_path / "cal").glob("light_*.npz")) == [
         f"light_dusk_{s}.npz" for s in range(2861, 2864)
     ]
     meta = json.loads((tmp_path / "branchnet.json").read_text())
     assert "confidence_calibration" not in meta  # the single table of before is replaced
-    stored = {
-        (t["network_width"], t["trunk_band_px"], t["light"], t["depth_factor"]): t
-        for t in meta["confidence_calibrations"]
-    }
+    stored = {(t["network_width"], t["trunk_band_px"], t["light"]): t for t in meta["confidence_calibrations"]}
     for setting, calibration in calibrations.items():
         assert stored[setting]["seeds"] == [2861, 2864] and stored[setting]["cut_points"] > 0
         assert stored[setting]["light_changes"] == ["dusk"]
@@ -426,12 +413,11 @@ def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmente
         k: ConfidenceCalibration.from_json_dict(t) for k, t in stored.items()
     }
     one_look = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), trunk_band_px=0))
-    assert segmenter.calibration_at(640) == segmenter.calibrations[(640, 40, "normal", 1)]
-    assert segmenter.calibration_at(640, "dark") == segmenter.calibrations[(640, 40, "dark", 1)]
-    assert segmenter.calibration_at(640, "bright") == segmenter.calibrations[(640, 40, "normal", 1)]  # none measured
-    assert one_look.calibration_at(640) == segmenter.calibrations[(640, 0, "normal", 1)]
-    assert segmenter.calibration_at(1280) == segmenter.calibrations[(1280, 0, "normal", 1)]  # the width decides first
-    assert segmenter.calibration_at(640, depth_factor=2) is None and segmenter.depth_factors == []
+    assert segmenter.calibration_at(640) == segmenter.calibrations[(640, 40, "normal")]
+    assert segmenter.calibration_at(640, "dark") == segmenter.calibrations[(640, 40, "dark")]
+    assert segmenter.calibration_at(640, "bright") == segmenter.calibrations[(640, 40, "normal")]  # none measured
+    assert one_look.calibration_at(640) == segmenter.calibrations[(640, 0, "normal")]
+    assert segmenter.calibration_at(1280) == segmenter.calibrations[(1280, 0, "normal")]  # the width decides first
     # too few cut points in a light: no table of its own
     lines.clear()
     calibrate_model(
@@ -439,53 +425,13 @@ def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmente
         seeds=(2861, 2862),
         cache=tmp_path / "cal",
         log=lines.append,
-        settings=((640, 0, 1),),
+        settings=((640, 0),),
         light_changes=("dusk",),
     )
-    assert any("dark light at width 640, trunk band 0 px, depth factor 1: only" in line for line in lines)
-    assert any("no table" in line for line in lines)
+    assert any("dark light at width 640, trunk band 0 px: only" in line and "no table" in line for line in lines)
     assert {t["light"] for t in json.loads((tmp_path / "branchnet.json").read_text())["confidence_calibrations"]} == {
         "normal"
     }
-
-
-def test_a_calibration_through_the_roi_mode_at_twice_the_size_is_what_its_masks_carry_for_a_finer_depth(tmp_path):
-    from branchrange.core.geometry import StereoGeometry
-    from branchrange.core.segmentation.branchnet_calibration import calibrate_model
-    from branchrange.core.segmentation.branchnet_data import evaluation_scene
-
-    for name in ("branchnet.onnx", "branchnet.json"):
-        shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
-    model = tmp_path / "branchnet.onnx"
-    lines: list[str] = []
-    calibrations = calibrate_model(
-        model,
-        seeds=(2861, 2863),
-        cache=tmp_path / "cal",
-        log=lines.append,
-        settings=((640, 0, 1), (640, 0, 2)),
-        light_changes=(),
-    )
-    assert (640, 0, "normal", 2) in calibrations and (640, 0, "normal", 1) in calibrations
-    # the factor-2 scenes were rendered at 1280×720 and cached apart from the 640×360 ones
-    assert sorted(p.name for p in (tmp_path / "cal").glob("scene_*.npz")) == [
-        "scene_1280x720_2861.npz",
-        "scene_1280x720_2862.npz",
-        "scene_2861.npz",
-        "scene_2862.npz",
-    ]
-    tables = json.loads((tmp_path / "branchnet.json").read_text())["confidence_calibrations"]
-    assert {(t["depth_factor"], t["stereo"]) for t in tables} == {(1, "sgbm"), (2, "sgbm-roi")}
-    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), trunk_band_px=0))
-    assert segmenter.depth_factors == [2]
-    scene = evaluation_scene(2861, tmp_path / "cal")
-    f, b, cx, cy = (float(v) for v in scene["camera"])
-    masks = segmenter.segment(scene["left"], scene["sgbm"], StereoGeometry(f, b, cx, cy))
-    # too few cut points for a table per light: the normal one, as stored (rounded)
-    stored = {(t["light"], t["depth_factor"]): ConfidenceCalibration.from_json_dict(t) for t in tables}
-    assert masks.calibration == stored[("normal", 1)]
-    assert masks.for_finer_depth(2).calibration == stored[("normal", 2)]
-    assert masks.for_finer_depth(3) is masks  # no table measured that way: the whole-frame one stands
 
 
 def test_a_frame_is_read_through_the_calibration_of_its_light_and_dark_light_gives_no_target(scene, tmp_path):
@@ -603,7 +549,6 @@ def test_a_second_stage_starts_from_the_given_weights_and_records_their_hash(tmp
 
 
 def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene):
-    from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SETTINGS
     from branchrange.core.segmentation.learned import SHIPPED_MODELS
 
     rendered, stereo = scene
@@ -614,7 +559,7 @@ def test_the_shipped_int8_model_is_the_fp32_one_quantized_and_labels_alike(scene
     fp32, int8 = LearnedSegmenter(), LearnedSegmenter(LearnedSegmenterConfig(precision="int8"))
     # its own calibration: each setting in each light
     assert int8.model_path == SHIPPED_MODELS["int8"] and set(int8.calibrations) == {
-        (width, band, light, factor) for width, band, factor in CALIBRATION_SETTINGS for light in LIGHTS
+        (*setting, light) for setting in ((640, 40), (640, 0), (1280, 0)) for light in LIGHTS
     }
     classes = [s.logits(rendered.left, stereo.disparity).argmax(0) for s in (fp32, int8)]
     assert np.mean(classes[0] == classes[1]) > 0.98

@@ -8,7 +8,7 @@ its 8-connected components, each one branch; a binary mask knows no trunk.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
@@ -191,10 +191,7 @@ class BranchMasks:
     `calibration` maps the resulting cut-point confidence to a measured share correct. `light` is the
     frame's measured light when the segmenter read its confidences by it, and `target_min_confidence` the
     least confidence a target needs in that light by its calibration, beyond the settings' own (0: none
-    beyond them; `math.inf`: no confidence in that light was reliable enough for a target).
-    `depth_calibrations` maps a factor k to the (calibration, target minimum) measured when the cut points'
-    disparity is k times finer than the frame the instances were found in — the roi mode, which segments a
-    coarse frame and matches each branch at full resolution (`for_finer_depth`). The
+    beyond them; `math.inf`: no confidence in that light was reliable enough for a target). The
     ids, sizes and bounding boxes are indexed once, on first use (`index`): treat `labels` as
     read-only after that.
     """
@@ -207,15 +204,6 @@ class BranchMasks:
     calibration: ConfidenceCalibration | None = None
     light: LightReading | None = None
     target_min_confidence: float = 0.0
-    depth_calibrations: dict[int, tuple[ConfidenceCalibration, float]] = field(default_factory=dict)
-
-    def for_finer_depth(self, factor: int) -> BranchMasks:
-        """These masks read as when their cut points come from a disparity `factor` times finer than their own
-        frame: with the calibration and target minimum measured that way, or as they are when none was."""
-        if factor not in self.depth_calibrations:
-            return self
-        calibration, target_min_confidence = self.depth_calibrations[factor]
-        return replace(self, calibration=calibration, target_min_confidence=target_min_confidence)
 
     def reported_confidence(self, branch_id: int) -> Callable[[float], float] | None:
         """How a cut point's own confidence becomes the reported one for instance `branch_id`: scaled by

@@ -254,8 +254,7 @@ class CoarseToFine:
             )
             coarse_labels = found.labels
             labels_full = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
-            # the cut points come from the fine pass: confidences read as measured with a disparity `scale`× finer
-            instances = replace(found, labels=labels_full).for_finer_depth(scale)
+            instances = replace(found, labels=labels_full)
         else:
             instances = masks
             coarse_labels = masks.labels[scale // 2 :: scale, scale // 2 :: scale][: small[1], : small[0]]

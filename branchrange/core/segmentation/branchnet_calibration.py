@@ -14,22 +14,13 @@ table of its own light. The isotonic fit of correct on raw confidence
 it), trunk band and light, where `LearnedSegmenter` reads it, with the defaults each implies: the lowest
 calibrated confidence at which ≥ 90 % of cut points are right (a target's minimum; null when none is)
 and the highest that keeps ≥ 98 % of the right ones (an obstacle's minimum).
-
-The onboard deploy files run the roi mode at HD720: the segmenter sees the 640×360 coarse pass, and each
-branch is matched again at 1280×720, so its depth is twice as fine. One setting (`CALIBRATION_SETTINGS`,
-"depth_factor" 2) is measured that way, on the same seeds rendered at 1280×720 (55 of the benchmark's 240
-held-out seeds place their branches differently at that size; the calibration seeds are used as they come).
-Why: read through the whole-frame table, the int8 model's one-look cut points at its threshold 0.75 were
-right 88.8 % of the time there (held out), under the 90 % the threshold promises.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,20 +34,11 @@ from branchrange.core.confidence import (
 from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
 
-if TYPE_CHECKING:
-    from branchrange.core.pipeline import PipelineConfig
-
 CALIBRATION_SEEDS = (2861, 2981)
-#: how the network is calibrated seeing the scenes, (network width px, trunk band px, depth factor): the default
-#: (the scenes' own width, the trunk band looked at twice as large), one look as the onboard loop affords, and
-#: twice the width in one look, each cut point from the 640×360 disparity (factor 1); and one look in the roi
-#: mode at HD720 as the onboard deploy files run it (factor 2: the scenes rendered at 1280×720, the segmenter
-#: seeing the 640×360 coarse pass, each branch matched at full resolution), where the depth is twice as fine
-#: and what a raw confidence means changes with it
-CALIBRATION_SETTINGS = ((640, 40, 1), (640, 0, 1), (1280, 0, 1), (640, 0, 2))
-#: the roi mode's full-resolution disparity range (px) at a depth factor above 1: the onboard deploy files' 128 px
-#: at HD720 (0.32 m with the ZED Mini)
-ROI_MAX_DISP = 128
+#: how the network is calibrated seeing the scenes, (network width px, trunk band px): the default (the
+#: scenes' own width, the trunk band looked at twice as large), one look as the onboard loop affords, and
+#: twice the width in one look
+CALIBRATION_SETTINGS = ((640, 40), (640, 0), (1280, 0))
 #: the scenes are also calibrated under each of these changes of light (`light_changes`); every frame, in
 #: its own light or changed, counts toward the class of light it measures as (`light_check.measure_light`)
 CALIBRATION_LIGHT_CHANGES = tuple(LIGHT_CHANGES)
@@ -71,39 +53,29 @@ def raw_outcomes(
     network_width: int,
     trunk_band_px: int = 0,
     light_changes: Sequence[str] = (),
-    depth_factor: int = 1,
 ) -> dict[str, list[tuple[float, bool]]]:
     """(raw confidence, within 5 cm of a true cut point) of every cut point on scenes `seeds` [first, last),
     the network seeing them at `network_width` px (and the trunk band, `trunk_band_px`), by the class of
     light each frame measures as (`light_check.LIGHTS`); each scene in its own light and under each of
-    `light_changes` (`branchnet_data.scene_in_light`). With a `depth_factor` k above 1 the scenes are rendered
-    k times larger and go through the roi mode (`roi_config`): the segmenter sees them at 640×360, the cut
-    points come from each branch matched at full resolution."""
+    `light_changes` (`branchnet_data.scene_in_light`)."""
     from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-    from branchrange.core.segmentation.learned import SCENE_WIDTH, LearnedSegmenter, LearnedSegmenterConfig
+    from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 
-    segmenter = LearnedSegmenter(
-        LearnedSegmenterConfig(
-            model=str(model), calibrated=False, network_width=network_width, trunk_band_px=trunk_band_px
-        )
+    config = LearnedSegmenterConfig(
+        model=str(model), calibrated=False, network_width=network_width, trunk_band_px=trunk_band_px
     )
+    segmenter = LearnedSegmenter(config)
     outcomes: dict[str, list[tuple[float, bool]]] = {}
-    settings = untracked_whole_frame() if depth_factor == 1 else roi_config(SCENE_WIDTH)
-    size = (SCENE_WIDTH * depth_factor, SCENE_WIDTH * depth_factor * 9 // 16)
     for seed in range(*seeds):
-        scene = evaluation_scene(seed, cache, size=size)
+        scene = evaluation_scene(seed, cache)
         f, b, cx, cy = (float(v) for v in scene["camera"])
-        # the roi mode matches each pair itself (the changed light's whole-frame SGBM is not used) and a 1280×720
-        # scene's files are large: its changes of light are made again rather than cached
-        light_cache = cache if depth_factor == 1 else None
-        for lit in [scene, *(scene_in_light(scene, seed, change, light_cache) for change in light_changes)]:
-            pipeline = Pipeline(settings, focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter)
-            if depth_factor == 1:
-                result = pipeline.process_disparity(
-                    lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
-                )
-            else:
-                result = pipeline.process(lit["left"], lit["right"])
+        for lit in [scene, *(scene_in_light(scene, seed, change, cache) for change in light_changes)]:
+            pipeline = Pipeline(
+                untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
+            )
+            result = pipeline.process_disparity(
+                lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
+            )
             light = pipeline.last.masks.light if pipeline.last and pipeline.last.masks else None
             outcomes.setdefault("normal" if light is None else light.light, []).extend(
                 cut_point_outcomes(
@@ -113,44 +85,33 @@ def raw_outcomes(
     return outcomes
 
 
-def roi_config(coarse_width: int) -> PipelineConfig:
-    """The pipeline settings a depth factor above 1 is calibrated with: untracked, the roi mode with SGBM over
-    `ROI_MAX_DISP` px at full resolution and a coarse pass `coarse_width` px wide."""
-    from branchrange.core.config import RoiConfig, StereoConfig
-    from branchrange.core.pipeline import untracked_whole_frame
-
-    base = untracked_whole_frame()
-    return replace(
-        base, stereo=StereoConfig(mode="roi", max_disp=ROI_MAX_DISP), roi=RoiConfig(coarse_width=coarse_width)
-    )
-
-
 def calibrate_model(
     model: Path,
     seeds: tuple[int, int] = CALIBRATION_SEEDS,
     cache: Path | None = None,
     log: Callable[[str], object] = print,
-    settings: tuple[tuple[int, int, int], ...] = CALIBRATION_SETTINGS,
+    settings: tuple[tuple[int, int], ...] = CALIBRATION_SETTINGS,
     light_changes: Sequence[str] = CALIBRATION_LIGHT_CHANGES,
     min_cut_points: int = MIN_CUT_POINTS_PER_LIGHT,
-) -> dict[tuple[int, int, str, int], ConfidenceCalibration]:
-    """Fit the confidence calibration of the ONNX `model` for each (network width, trunk band, depth factor) of
-    `settings`
+) -> dict[tuple[int, int, str], ConfidenceCalibration]:
+    """Fit the confidence calibration of the ONNX `model` for each (network width, trunk band) of `settings`
     and each class of light with at least `min_cut_points` cut points (the scenes in their own light and under
     `light_changes`), and store them in the JSON beside it ("confidence_calibrations", replacing what was
     there). Each table records the least calibrated confidence at which ≥ 90 % of its cut points are right
     ("target_min_confidence", null when none is) and the highest that keeps ≥ 98 % of the right ones. A
     setting with which the model finds no cut point in normal light gets none (its confidences stay raw)."""
     tables, calibrations = [], {}
-    for width, band, factor in settings:
-        by_light = raw_outcomes(model, seeds, cache, width, band, light_changes, factor)
-        setting = f"width {width}, trunk band {band} px, depth factor {factor}"
+    for width, band in settings:
+        by_light = raw_outcomes(model, seeds, cache, width, band, light_changes)
         if not by_light.get("normal"):
-            log(f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} in normal light at {setting}: stays uncalibrated")
+            log(
+                f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} in normal light at width {width}, trunk band "
+                f"{band} px: that setting stays uncalibrated"
+            )
             continue
         for light, outcomes in by_light.items():
             if light != "normal" and len(outcomes) < min_cut_points:
-                log(f"{light} light at {setting}: only {len(outcomes)} cut points, no table")
+                log(f"{light} light at width {width}, trunk band {band} px: only {len(outcomes)} cut points, no table")
                 continue
             calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes])
             calibrated = [(calibration(c), ok) for c, ok in outcomes]
@@ -159,20 +120,19 @@ def calibrate_model(
                     "network_width": width,
                     "trunk_band_px": band,
                     "light": light,
-                    "depth_factor": factor,
                     **calibration.to_json_dict(),
                     "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
                     "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
                     "seeds": list(seeds),
                     "light_changes": list(light_changes),
-                    "stereo": "sgbm" if factor == 1 else "sgbm-roi",
+                    "stereo": "sgbm",
                     "cut_points": len(outcomes),
                     "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4),
                 }
             )
-            calibrations[(width, band, light, factor)] = calibration
+            calibrations[(width, band, light)] = calibration
             log(
-                f"confidence calibration at network {setting}, {light} light, from "
+                f"confidence calibration at network width {width}, trunk band {band} px, {light} light, from "
                 f"{len(outcomes)} cut points on scenes {seeds[0]}–{seeds[1] - 1}: {calibration}"
             )
     meta_path = model.with_suffix(".json")

@@ -25,9 +25,7 @@ Steps (one frame):
    (`branchnet_calibration`, `branchrange.core.light_check`), so a reported confidence is the share of such
    cut points that lie within 5 cm of a true one (SGBM, held-out synthetic scenes); where that light's
    calibration found a higher least confidence for ≥ 90 % right targets, or none, the masks carry it
-   (`BranchMasks.target_min_confidence`). The masks also carry the tables measured in the roi mode at HD720
-   (`BranchMasks.depth_calibrations`), which the roi mode reads instead: there each branch is matched at twice
-   the resolution the segmenter saw, and the same raw confidence is right more often.
+   (`BranchMasks.target_min_confidence`).
 
 The weights file ships inside the package (`weights/branchnet.onnx`, under 1 MB) and is checked
 against the SHA-256 recorded beside it (`weights/branchnet.json`, which also holds the training
@@ -144,8 +142,8 @@ class LearnedSegmenterConfig(Settings):
       a stereo better than SGBM's, after recalibrating the model with it on.
     - `calibrated`: report cut-point confidences through the model's measured calibration at the width
       the network sees the frame at and its trunk band (its JSON's "confidence_calibrations"; the nearest
-      width measured, by ratio, then the nearest band) and, in the roi mode, with its finer depth where one
-      was measured (`Setting`), so that a confidence is the share of such cut points that are right.
+      width measured, by ratio, then the nearest band), so that a confidence is the share of such cut
+      points that are right.
     - `light_calibration`: measure each frame's light (`light_check.measure_light`: dark, bright, noisy or
       normal) and read its confidences through the calibration measured in that light, with that light's
       least target confidence (a table where none was ≥ 90 % right gives no target in that light; since the
@@ -239,10 +237,8 @@ def verified_metadata(path: Path) -> dict[str, Any]:
     return meta
 
 
-#: how a confidence calibration was measured: (network width px, trunk band px, class of light in `LIGHTS`, depth
-#: factor: how many times finer than the frame the segmenter saw the cut points' disparity was — 1 whole-frame,
-#: 2 the roi mode at HD720, which segments the 640×360 coarse pass and matches each branch at 1280×720)
-Setting = tuple[int, int, str, int]
+#: how a confidence calibration was measured: (network width px, trunk band px, class of light in `LIGHTS`)
+Setting = tuple[int, int, str]
 
 
 @dataclass(frozen=True)
@@ -257,11 +253,10 @@ class MeasuredCalibration:
 
 
 def calibrations_by_setting(meta: dict[str, Any]) -> dict[Setting, MeasuredCalibration]:
-    """A model JSON's confidence calibrations keyed by how the network saw the calibration scenes and where
-    the cut points' depth came from: (width px, `trunk_band_px`, light, depth factor) ("confidence_calibrations":
-    [{..., "network_width": W, "trunk_band_px": B, "light": L, "depth_factor": K}]; B absent = 0, one look; L
-    absent = "normal"; K absent = 1, whole-frame; an older single "confidence_calibration" counts as
-    (`SCENE_WIDTH`, 0, "normal", 1)); ValueError naming what is wrong."""
+    """A model JSON's confidence calibrations keyed by how the network saw the calibration scenes: (width
+    px, `trunk_band_px`, light) ("confidence_calibrations": [{..., "network_width": W, "trunk_band_px": B,
+    "light": L}]; B absent = 0, one look; L absent = "normal"; an older single "confidence_calibration"
+    counts as (`SCENE_WIDTH`, 0, "normal")); ValueError naming what is wrong."""
     tables = meta.get("confidence_calibrations")
     if tables is None:
         old = meta.get("confidence_calibration")
@@ -277,13 +272,10 @@ def calibrations_by_setting(meta: dict[str, Any]) -> dict[Setting, MeasuredCalib
         light = table.get("light", "normal")
         if light not in LIGHTS:
             raise ValueError(f"a confidence calibration's 'light' must be one of {', '.join(LIGHTS)}, not {light!r}")
-        factor = table.get("depth_factor", 1)
-        if not isinstance(factor, int) or factor < 1:
-            raise ValueError("a confidence calibration's 'depth_factor' must be an integer ≥ 1")
         minimum = table.get("target_min_confidence", 0.0)
         if minimum is not None and not (isinstance(minimum, (int, float)) and 0 <= minimum <= 1):
             raise ValueError("a confidence calibration's 'target_min_confidence' must be null or a number in [0, 1]")
-        calibrations[(table["network_width"], table.get("trunk_band_px", 0), light, factor)] = MeasuredCalibration(
+        calibrations[(table["network_width"], table.get("trunk_band_px", 0), light)] = MeasuredCalibration(
             ConfidenceCalibration.from_json_dict(table), light, math.inf if minimum is None else float(minimum)
         )
     return calibrations
@@ -302,8 +294,6 @@ class LearnedSegmenter:
             self.calibrations = calibrations_by_setting(meta) if config.calibrated else {}
         except ValueError as exc:
             raise OnnxSegmenterError(f"learned segmenter: {self.model_path.with_suffix('.json')}: {exc}") from None
-        #: the depth factors above 1 that the model's calibration was also measured at (`Setting`)
-        self.depth_factors = sorted({setting[3] for setting in self.calibrations} - {1})
         # the int8 copy (metadata "quantization") gains from onnxruntime's blocked layout, fp32 loses (see there)
         self.session = onnx_session(self.model_path, config.threads, blocked_layout="quantization" in meta)
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
@@ -315,19 +305,17 @@ class LearnedSegmenter:
             )
         self._input = inputs[0].name
 
-    def calibration_at(
-        self, seen_width: int, light: str = "normal", depth_factor: int = 1
-    ) -> MeasuredCalibration | None:
+    def calibration_at(self, seen_width: int, light: str = "normal") -> MeasuredCalibration | None:
         """The calibration measured at the width nearest (by ratio) `seen_width` px — with the trunk band nearest
         this segmenter's `trunk_band_px` where several were measured there — in `light`, or in normal light
-        when none was measured in it, with the cut points' disparity `depth_factor` times finer than the frame
-        (`Setting`); None without any such table (for a factor above 1: the whole-frame one stands)."""
-        measured = {s: c for s, c in self.calibrations.items() if s[3] == depth_factor}
-        if not measured:
+        when none was measured in it; None without any."""
+        if not self.calibrations:
             return None
         band = self.config.trunk_band_px
-        width, band = min({s[:2] for s in measured}, key=lambda s: (abs(math.log(s[0] / seen_width)), abs(s[1] - band)))
-        in_light = {s[2]: c for s, c in measured.items() if s[:2] == (width, band)}
+        width, band = min(
+            {s[:2] for s in self.calibrations}, key=lambda s: (abs(math.log(s[0] / seen_width)), abs(s[1] - band))
+        )
+        in_light = {s[2]: c for s, c in self.calibrations.items() if s[:2] == (width, band)}
         return in_light.get(light) or in_light.get("normal") or next(iter(in_light.values()))
 
     def bridge_px(self, frame_width: int) -> int:
@@ -463,9 +451,7 @@ class LearnedSegmenter:
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {i: float(sums[i] / sizes[i] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
         light = measure_light(left) if cfg.light_calibration else None
-        seen, light_class = self.seen_width(disparity.shape[1]), "normal" if light is None else light.light
-        measured = self.calibration_at(seen, light_class)
-        finer = {k: self.calibration_at(seen, light_class, k) for k in self.depth_factors}
+        measured = self.calibration_at(self.seen_width(disparity.shape[1]), "normal" if light is None else light.light)
         return BranchMasks(
             labels,
             cfg.trunk_id,
@@ -473,15 +459,11 @@ class LearnedSegmenter:
             scores=scores,
             calibration=None if measured is None else measured.calibration,
             light=light,
-            target_min_confidence=light_minimum(measured),
-            depth_calibrations={k: (m.calibration, light_minimum(m)) for k, m in finer.items() if m is not None},
+            # in normal light the settings' own minimum stands (its default is that table's)
+            target_min_confidence=0.0
+            if measured is None or measured.light == "normal"
+            else measured.target_min_confidence,
         )
-
-
-def light_minimum(measured: MeasuredCalibration | None) -> float:
-    """The least confidence a target needs by `measured`'s light beyond the settings' own: 0 in normal light
-    (the settings' own minimum stands; its default is that table's) or without a calibration."""
-    return 0.0 if measured is None or measured.light == "normal" else measured.target_min_confidence
 
 
 #: a piece whose pixels come this close to the trunk (m) touches it: SGBM fattens edges by a pixel or two
