@@ -59,6 +59,21 @@ def test_classes_from_instances_maps_renderer_ids():
     assert classes_from_instances(instances).tolist() == [[0, BRANCH, BRANCH, 0, IGNORE, TRUNK]]
 
 
+def test_evaluation_scenes_of_another_size_are_cached_apart_and_matched_over_a_range_as_wide(tmp_path):
+    from branchrange.core.segmentation.branchnet_data import evaluation_max_disp, evaluation_scene, scene_in_light
+
+    assert (evaluation_max_disp(640), evaluation_max_disp(1280)) == (192, 384)  # the same depths at twice the width
+    small = evaluation_scene(7, tmp_path, size=(320, 180))
+    usual = evaluation_scene(7, tmp_path)
+    assert small["left"].shape == (180, 320, 3) and usual["left"].shape == (360, 640, 3)
+    scene_in_light(small, 7, "dusk", tmp_path)
+    scene_in_light(usual, 7, "dusk", tmp_path)
+    names = sorted(p.name for p in tmp_path.glob("*.npz"))
+    assert names == ["light_dusk_320x180_7.npz", "light_dusk_7.npz", "scene_320x180_7.npz", "scene_7.npz"]
+    again = scene_in_light(evaluation_scene(7, tmp_path, size=(320, 180)), 7, "dusk", tmp_path)  # from the cache
+    assert again["left"].shape == (180, 320, 3)
+
+
 def test_network_input_is_scale_free_in_disparity():
     left = np.full((32, 48, 3), 128, np.uint8)
     disparity = np.linspace(1, 40, 32 * 48, dtype=np.float32).reshape(32, 48)
