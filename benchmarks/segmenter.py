@@ -191,7 +191,8 @@ class Tallies:
             self.by_width.setdefault(key, {}).setdefault(width, CutScores(stereo, name)).add_frame(
                 in_class, result.branches
             )
-        acted_on = [x for x in result.branches if x.confidence >= needed_for_target(pipeline)]
+        needed = needed_for_target(pipeline)
+        acted_on = [x for x in result.branches if x.confidence >= needed]
         self.confident.setdefault(key, CutScores(stereo, name)).add_frame(truth, acted_on, result.target)
         self.times.setdefault(key, []).append(segmenter_ms(result))
         self.confidences.setdefault(key, []).extend(
