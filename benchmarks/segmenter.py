@@ -32,8 +32,10 @@ minus the same segmenter's in the scenes' own light, paired.
 
 The pipeline as it flies (`--hd720`): the same seeds rendered at 1280×720 (the ZED Mini's HD720) go through
 the roi mode with `deploy/onboard_cpu.toml`'s stereo settings — the segmenter sees the 640×360 coarse pass, each
-branch is matched again at full resolution — as stereo mode 'roi-hd720', scored against the HD720 scene's own
-truth (about one seed in four places its branches differently at that size, so it is not paired with 'sgbm').
+branch is matched again at full resolution — as stereo mode 'roi-hd720', and whole-frame as a ground station
+takes such a pair ('full-hd720': SGBM at 1280×720, the segmenter seeing the frame at its own width); scored
+against the HD720 scene's own truth (about one seed in four places its branches differently at that size, so
+neither is paired with 'sgbm').
 
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
@@ -217,17 +219,26 @@ def onboard_roi() -> PipelineConfig:
 def score_hd720(
     seed: int, cache: Path | None, hardware: bool, built: dict[str, Segmenter], config: PipelineConfig, tallies: Tallies
 ) -> None:
-    """Scene `seed` rendered at HD720 through `config` (`onboard_roi`) for each segmenter of `built` and truth masks:
-    the segmenter sees the 640×360 coarse pass, the cut points come from each branch matched again at 1280×720."""
+    """Scene `seed` rendered at HD720, for each segmenter of `built` and truth masks, two ways: 'roi-hd720' through
+    `config` (`onboard_roi`: the segmenter sees the 640×360 coarse pass, the cut points come from each branch
+    matched again at 1280×720) and 'full-hd720' as a ground station takes an HD720 pair (`deploy/serve.toml`'s
+    mode): whole-frame SGBM at 1280×720, the segmenter seeing the frame at its own width."""
     scene = evaluation_scene(seed, cache, size=HD720, hardware=hardware)
     f, b, cx, cy = (float(v) for v in scene["camera"])
     scale = SIZE[0] / HD720[0]
     widths = [width_class(scene["mask"], k + 1, scale) for k in range(len(scene["truth"]))]
     for name in [*built, "truth"]:
-        pipeline = Pipeline(config, focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=built.get(name))
         mask = scene["mask"] if name == "truth" else None
-        result = pipeline.process(scene["left"], scene["right"], mask=mask)
-        tallies.add(f"roi-hd720/{name}", scene["truth"], widths, result, pipeline)
+        flown = Pipeline(config, focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=built.get(name))
+        result = flown.process(scene["left"], scene["right"], mask=mask)
+        tallies.add(f"roi-hd720/{name}", scene["truth"], widths, result, flown)
+        ground = Pipeline(
+            untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=built.get(name)
+        )
+        result = ground.process_disparity(
+            scene["left"], scene["sgbm"], scene["sgbm_conf"], mask=mask, backend="sgbm", right=scene["right"]
+        )
+        tallies.add(f"full-hd720/{name}", scene["truth"], widths, result, ground)
 
 
 def run_synthetic(
@@ -240,8 +251,8 @@ def run_synthetic(
 ) -> dict:
     """Scores per 'stereo/segmenter' over `scenes` held-out scenes (with orchard hardware when `hardware`); each
     change of `light` (`branchnet_data.scene_in_light`) adds the stereo mode 'sgbm-<change>': both images
-    under that light, SGBM computed again, the pipeline as with 'sgbm'. `hd720` adds 'roi-hd720': the scene
-    rendered at 1280×720 through the pipeline as it flies (`onboard_roi`)."""
+    under that light, SGBM computed again, the pipeline as with 'sgbm'. `hd720` adds 'roi-hd720' and 'full-hd720': the
+    scene rendered at 1280×720 through the pipeline as it flies (`onboard_roi`) and whole-frame (`score_hd720`)."""
     built = {name: benchmark_segmenter(name) for name in segmenters}
     flown = onboard_roi() if hd720 else None
     tallies = Tallies()
