@@ -206,8 +206,10 @@ class Tallies:
 
 def segmenter_ms(result: FrameResult) -> float:
     """The segmenter's time in `result` (ms): in the roi mode it runs in the stereo stage on the coarse pass
-    ('segment'), otherwise in the geometry stage ('masks')."""
-    return result.timing_ms.get("segment", result.timing_ms["masks"])
+    ('segment') and, with `[roi] full_resolution_instances`, its instance step again after the fine pass
+    ('instances'); otherwise in the geometry stage ('masks')."""
+    timing = result.timing_ms
+    return timing["segment"] + timing.get("instances", 0.0) if "segment" in timing else timing["masks"]
 
 
 def onboard_roi() -> PipelineConfig:

@@ -164,3 +164,45 @@ def test_the_trunk_cylinder_comes_from_the_coarse_pass_in_metres():
     near = full.cylinder.axis.at(0.0)  # a point on the true-disparity axis: its distance from the coarse axis
     foot = coarse.cylinder.axis.at(coarse.cylinder.axis.parameters(near[None])[0])
     assert np.linalg.norm(near - foot) < 0.01
+
+
+def test_the_learned_segmenters_instances_are_found_again_at_full_resolution_from_one_network_look():
+    """`[roi] full_resolution_instances`: the network looks at the coarse frame only, as without it; the instance
+    step runs on its class probabilities twice — at coarse size to plan the regions, then at full size on the
+    regions' fine disparity — and the second answer is the frame's masks. Off: one coarse answer brought up
+    (`refine_labels`)."""
+    from dataclasses import replace
+
+    scene = tree_scene()
+    looks_by_setting = {}
+    for on in (True, False):
+        pipeline = _pipeline("roi", "learned")
+        pipeline.config = replace(pipeline.config, roi=replace(ROI, full_resolution_instances=on))
+        segmenter = pipeline.segmenter
+        looks, steps = [], []
+        run, instances = segmenter.session.run, segmenter.instances
+
+        def run_and_note(names, feeds, run=run, looks=looks):
+            looks.append(next(iter(feeds.values())).shape)
+            return run(names, feeds)
+
+        def instances_and_note(logits, left, disparity, geometry, instances=instances, steps=steps):
+            found = instances(logits, left, disparity, geometry)
+            steps.append((id(logits), disparity.shape, found))
+            return found
+
+        segmenter.session.run, segmenter.instances = run_and_note, instances_and_note
+        result = pipeline.process(scene.left, scene.right)
+        assert looks[0][2:] == (144, 240)  # the coarse frame, padded to the network's stride
+        looks_by_setting[on] = looks
+        if on:
+            assert [shape for _, shape, _ in steps] == [(135, 240), (270, 480)]
+            assert steps[0][0] == steps[1][0]  # the same look's probabilities both times
+            final = steps[1][2]
+            assert np.array_equal(pipeline.last.masks.labels, final.labels) and final.branch_ids()
+            assert "instances" in result.timing_ms and "refine" not in result.timing_ms
+            assert {b.mask_id for b in result.branches} <= set(final.branch_ids())
+        else:
+            assert [shape for _, shape, _ in steps] == [(135, 240)]  # through `segment`, at coarse size
+            assert "refine" in result.timing_ms and "instances" not in result.timing_ms
+    assert looks_by_setting[True] == looks_by_setting[False]  # the network's work is the same

@@ -192,6 +192,12 @@ class RoiConfig(Settings):
     - `network_regions`: with a network backend (emcstereo), only the nearest this many regions —
       the target's candidates — are matched by the network, the others by SGBM (a network region
       costs about 0.4 s at 200×200 px on 2 CPU cores); 0: every region by the network.
+    - `full_resolution_instances`: with the learned segmenter, once the regions are matched its instance
+      step runs again at full resolution (`LearnedSegmenter.instances`: the coarse look's class
+      probabilities brought to full resolution, each branch's fine disparity, the coarse one around it),
+      so branches are cut apart at full-resolution depth jumps and their silhouettes are full-resolution
+      ones; off = the coarse instances brought up (`roi.refine_labels`). The network still runs once, on the
+      coarse frame. See `benchmarks/RESULTS.md` for what it finds and costs.
     """
 
     section = "roi"
@@ -202,6 +208,7 @@ class RoiConfig(Settings):
     window_margin_px: int = 8
     max_regions: int = 48
     network_regions: int = 1
+    full_resolution_instances: bool = True
 
     def checks(self) -> Checks:
         """The range of every setting."""

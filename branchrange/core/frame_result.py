@@ -191,7 +191,13 @@ class DroppedInstance(JsonPart):
 class RoiRegion(JsonPart):
     """One full-resolution region matched in stereo mode 'roi'."""
 
-    id: Annotated[int, Field(description="instance id in this frame's mask")]
+    id: Annotated[
+        int,
+        Field(
+            description="the instance it was planned for: its id in this frame's mask, or with the learned "
+            "segmenter (roi.full_resolution_instances) in the coarse pass, whose instances are found again"
+        ),
+    ]
     box: Annotated[
         tuple[NonNegInt, NonNegInt, NonNegInt, NonNegInt], Field(description="[x0, y0, x1, y1] pixels, exclusive ends")
     ]

@@ -190,6 +190,24 @@ def trunk_from_coarse(
     confidence[grid][trunk] = coarse.confidence[:rows, :cols][trunk]
 
 
+def finest_disparity(fine: np.ndarray, coarse: np.ndarray, scale: int) -> np.ndarray:
+    """`float32 H×W` px: the fine disparity where the regions found one, elsewhere the coarse disparity (`h×w`
+    px at coarse scale) brought to full resolution (nearest, × `scale`) — what the instance step sees when
+    it runs again at full resolution: each branch's own matching, and the trunk and background around it."""
+    height, width = fine.shape
+    coarse_full = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_NEAREST) * np.float32(scale)
+    return np.where(fine > 0, fine, coarse_full).astype(np.float32)
+
+
+def coarse_trunk(
+    coarse_labels: np.ndarray, trunk_id: int | None, disparity: np.ndarray, geometry: StereoGeometry, max_disparity: int
+) -> CoarseTrunk | None:
+    """The trunk of `coarse_labels` (`int32 h×w`, its id `trunk_id`) as a `CoarseTrunk` on the coarse `disparity`
+    with the coarse camera `geometry`; None without one."""
+    crop = BranchMasks(coarse_labels, trunk_id).trunk_crop() if trunk_id is not None else None
+    return None if crop is None else CoarseTrunk(crop, disparity, geometry, max_disparity)
+
+
 class CoarseToFine:
     """The `roi` mode's stereo: see the module docstring.
 
@@ -248,10 +266,14 @@ class CoarseToFine:
             left_small, right_small = left, right
         coarse = self._sgbm(coarse_max).compute(left_small, right_small)
         t = lap_ms(timing, "coarse_stereo", t)
+        coarse_logits = None  # the network's look at the coarse frame, when its instances are found again
         if masks is None:
-            found = self.segmenter.segment(
-                left_small, coarse.disparity, scaled_geometry(geometry, scale), coarse.confidence
-            )
+            small_geometry = scaled_geometry(geometry, scale)
+            if self.config.full_resolution_instances and scale > 1 and hasattr(self.segmenter, "instances"):
+                coarse_logits = self.segmenter.logits(left_small, coarse.disparity)
+                found = self.segmenter.instances(coarse_logits, left_small, coarse.disparity, small_geometry)
+            else:
+                found = self.segmenter.segment(left_small, coarse.disparity, small_geometry, coarse.confidence)
             coarse_labels = found.labels
             labels_full = cv2.resize(coarse_labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
             instances = replace(found, labels=labels_full)
@@ -260,18 +282,9 @@ class CoarseToFine:
             coarse_labels = masks.labels[scale // 2 :: scale, scale // 2 :: scale][: small[1], : small[0]]
             labels_full = masks.labels
         t = lap_ms(timing, "segment", t)
-        trunk_crop = (
-            BranchMasks(coarse_labels, instances.trunk_id).trunk_crop() if instances.trunk_id is not None else None
-        )
-        trunk = (
-            None
-            if trunk_crop is None
-            else CoarseTrunk(trunk_crop, coarse.disparity, scaled_geometry(geometry, scale), coarse_max)
-        )
         regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
-        trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
         matchers = self._matchers(regions)
         regions = [replace(region, backend=backend.name) for region, backend in zip(regions, matchers)]
         for region, backend in zip(regions, matchers):
@@ -282,9 +295,26 @@ class CoarseToFine:
             disparity[y0:y1, x0:x1][take] = result.disparity[take]
             confidence[y0:y1, x0:x1][take] = result.confidence[take]
         t = lap_ms(timing, "roi_stereo", t)
-        if masks is None:
+        if coarse_logits is not None:
+            instances = self.segmenter.instances(
+                coarse_logits, left, finest_disparity(disparity, coarse.disparity, scale), geometry
+            )
+            labels_full = instances.labels
+            coarse_labels = labels_full[scale // 2 :: scale, scale // 2 :: scale][: small[1], : small[0]]
+            lap_ms(timing, "instances", t)
+        elif masks is None:
             instances = replace(
                 instances, labels=refine_labels(labels_full, scale, disparity, regions, instances.trunk_id)
             )
             lap_ms(timing, "refine", t)
-        return CoarseToFineResult(disparity, confidence, instances, regions, trunk, timing)
+        trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
+        return CoarseToFineResult(
+            disparity,
+            confidence,
+            instances,
+            regions,
+            coarse_trunk(
+                coarse_labels, instances.trunk_id, coarse.disparity, scaled_geometry(geometry, scale), coarse_max
+            ),
+            timing,
+        )

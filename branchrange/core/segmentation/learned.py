@@ -372,23 +372,31 @@ class LearnedSegmenter:
         rows, cols = disparity.shape
         features = network_input(left, disparity, stride=STRIDE)
         logits = np.asarray(self.session.run(None, {self._input: features[None]})[0][0, :, :rows, :cols])
-        if seen != width:
-            # probabilities, not logits, are averaged: a 1 px stem seen 2 px wide then keeps its share
-            # of each frame pixel (held out, recall at confidence ≥ 0.8 28 against 24 % with logits)
-            back = cv2.INTER_AREA if larger else cv2.INTER_LINEAR
-            probability = [cv2.resize(p, (width, height), interpolation=back) for p in class_probabilities(logits)]
-            logits = np.log(np.maximum(np.stack(probability), PROBABILITY_FLOOR))
-        return np.asarray(logits, dtype=np.float32)
+        return resampled_logits(logits, (width, height))
 
     def segment(
         self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
     ) -> BranchMasks:
         """Branch instances (1..K, each scored) and the trunk (`trunk_id`) of one rectified frame."""
-        cfg = self.config
         disparity = np.asarray(disparity, dtype=np.float32)
         if left.shape[:2] != disparity.shape:
             raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
-        logits = self.logits(left, disparity)
+        return self.instances(self.logits(left, disparity), left, disparity, geometry)
+
+    def instances(
+        self, logits: np.ndarray, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry
+    ) -> BranchMasks:
+        """`segment` given the network's `logits` (`float32 (3, h, w)`, this method's `logits`) of the frame
+        `left` (`uint8 H×W×3`) with `disparity` (`float32 H×W` px) — or of that frame shrunk s = W / w times:
+        the roi mode's coarse look, whose instances are found again at full resolution on the fine disparity
+        (`RoiConfig.full_resolution_instances`). The class probabilities are then resampled to the frame's
+        pixels, `min_area_px` and the bridged gap grow s times (a thin stem's area grows with its length),
+        and the confidences are read through the table of the width the network saw."""
+        cfg = self.config
+        width = logits.shape[2]  # the frame's, or the coarse look's
+        scale = disparity.shape[1] / width
+        if logits.shape[1:] != disparity.shape:
+            logits = resampled_logits(logits, (disparity.shape[1], disparity.shape[0]))
         # softmax of the branch class alone: 1 / (1 + Σ exp(other − branch)); no full softmax needed
         branch_p = 1.0 / (
             1.0
@@ -401,9 +409,10 @@ class LearnedSegmenter:
         branch = (branch_p >= cfg.branch_threshold) & ~trunk_px
         branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
         trunk = tree_trunk(trunk_px, branch, depth, geometry, cfg.max_trunk_gap_m)
-        bridge_px = self.bridge_px(disparity.shape[1])
+        bridge_px = round(self.bridge_px(width) * scale)
+        min_area_px = round(cfg.min_area_px * scale)
         if cfg.front_of_trunk_ratio > 0:
-            before_trunk = in_front_of_trunk(trunk, disparity, cfg.front_of_trunk_ratio, cfg.min_area_px)
+            before_trunk = in_front_of_trunk(trunk, disparity, cfg.front_of_trunk_ratio, min_area_px)
             trunk &= ~before_trunk
             branch |= before_trunk
         labels[trunk] = cfg.trunk_id
@@ -421,7 +430,7 @@ class LearnedSegmenter:
             for piece_id, (pu, pv) in enumerate(
                 straight_pieces_of(
                     branch,
-                    cfg.min_area_px,
+                    min_area_px,
                     np.random.default_rng(0),
                     bridge_px,
                     disparity=disparity,
@@ -435,7 +444,7 @@ class LearnedSegmenter:
         instance = instances.ravel()[pixels]  # every instance pixel is a branch pixel
         count = int(instance.max(initial=0)) + 1
         sizes = np.bincount(instance, minlength=count)
-        keep = np.flatnonzero(sizes[1:] >= cfg.min_area_px) + 1
+        keep = np.flatnonzero(sizes[1:] >= min_area_px) + 1
         attachment = np.ones(count)
         if near_trunk:  # a piece of a region that touches the trunk may itself lie far from it
             gaps = _nearest(instance, gap_m, count)
@@ -451,7 +460,7 @@ class LearnedSegmenter:
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {i: float(sums[i] / sizes[i] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
         light = measure_light(left) if cfg.light_calibration else None
-        measured = self.calibration_at(self.seen_width(disparity.shape[1]), "normal" if light is None else light.light)
+        measured = self.calibration_at(self.seen_width(width), "normal" if light is None else light.light)
         return BranchMasks(
             labels,
             cfg.trunk_id,
@@ -493,6 +502,18 @@ def class_probabilities(logits: np.ndarray) -> np.ndarray:
     """`(C, H, W)` softmax over the class axis of logits `(C, H, W)`."""
     exp = np.exp(logits - logits.max(axis=0))
     return np.asarray(exp / exp.sum(axis=0))
+
+
+def resampled_logits(logits: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """`float32 (C, H, W)` log class probabilities of logits `(C, h, w)` resampled to `size` = (W, H) (the
+    same array type when the size is theirs already). Probabilities, not logits, are resampled: a 1 px stem
+    seen 2 px wide then keeps its share of each frame pixel (held out, recall at confidence ≥ 0.8 28 against
+    24 % with logits); shrinking averages them (area), enlarging interpolates them (bilinear)."""
+    if (logits.shape[2], logits.shape[1]) == size:
+        return np.asarray(logits, dtype=np.float32)
+    interpolation = cv2.INTER_AREA if size[0] < logits.shape[2] else cv2.INTER_LINEAR
+    probability = [cv2.resize(p, size, interpolation=interpolation) for p in class_probabilities(logits)]
+    return np.asarray(np.log(np.maximum(np.stack(probability), PROBABILITY_FLOOR)), dtype=np.float32)
 
 
 def trunk_attachment(gaps_m: np.ndarray, scale_m: float) -> np.ndarray:
