@@ -391,10 +391,11 @@ class LearnedSegmenter:
         the roi mode's coarse look, whose instances are found again at full resolution on the fine disparity
         (`RoiConfig.full_resolution_instances`). The class probabilities are then resampled to the frame's
         pixels, `min_area_px` and the bridged gap grow s times (a thin stem's area grows with its length),
-        and the confidences are read through the table of the width the network saw."""
+        and the light and the confidences are read as at the width the network saw (its tables' classes of
+        light were measured there: shrinking a frame averages its noise down)."""
         cfg = self.config
-        width = logits.shape[2]  # the frame's, or the coarse look's
-        scale = disparity.shape[1] / width
+        size = (logits.shape[2], logits.shape[1])  # the frame's, or the coarse look's (W, H)
+        width, scale = size[0], disparity.shape[1] / size[0]
         if logits.shape[1:] != disparity.shape:
             logits = resampled_logits(logits, (disparity.shape[1], disparity.shape[0]))
         # softmax of the branch class alone: 1 / (1 + Σ exp(other − branch)); no full softmax needed
@@ -459,7 +460,9 @@ class LearnedSegmenter:
         sums = np.bincount(instances.ravel(), weights=branch_p.ravel(), minlength=len(keep) + 1)
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {i: float(sums[i] / sizes[i] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
-        light = measure_light(left) if cfg.light_calibration else None
+        # the light of the frame the network saw: the calibrations' classes of light were measured at that size
+        seen_left = left if scale == 1 else cv2.resize(left, size, interpolation=cv2.INTER_AREA)
+        light = measure_light(seen_left) if cfg.light_calibration else None
         measured = self.calibration_at(self.seen_width(width), "normal" if light is None else light.light)
         return BranchMasks(
             labels,
