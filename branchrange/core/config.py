@@ -197,7 +197,10 @@ class RoiConfig(Settings):
       probabilities brought to full resolution, each branch's fine disparity, the coarse one around it),
       so branches are cut apart at full-resolution depth jumps and their silhouettes are full-resolution
       ones; off = the coarse instances brought up (`roi.refine_labels`). The network still runs once, on the
-      coarse frame. See `benchmarks/RESULTS.md` for what it finds and costs.
+      coarse frame. On 240 held-out scenes at HD720 recall within 5 cm 65 → 68 % looking once and 70 → 76 %
+      with the default second look; on the synthetic HD720 flight (2 cores, one look) a target in 97–100
+      instead of 80–85 % of the frames, for ~42 ms a frame on the stereo thread: 5.6–6.1 instead of 8.7–9.6
+      fresh results a second (benchmarks/RESULTS.md).
     """
 
     section = "roi"
