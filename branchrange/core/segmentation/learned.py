@@ -386,7 +386,7 @@ class LearnedSegmenter:
     def instances(
         self, logits: np.ndarray, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry
     ) -> BranchMasks:
-        """`segment` given the network's `logits` (`float32 (3, h, w)`, this method's `logits`) of the frame
+        """`segment` given the network's class logits (`float32 (3, h, w)`, as `logits` returns them) of the frame
         `left` (`uint8 H×W×3`) with `disparity` (`float32 H×W` px) — or of that frame shrunk s = W / w times:
         the roi mode's coarse look, whose instances are found again at full resolution on the fine disparity
         (`RoiConfig.full_resolution_instances`). The class probabilities are then resampled to the frame's
