@@ -186,8 +186,8 @@ def test_the_learned_segmenters_instances_are_found_again_at_full_resolution_fro
             looks.append(next(iter(feeds.values())).shape)
             return run(names, feeds)
 
-        def instances_and_note(logits, left, disparity, geometry, instances=instances, steps=steps):
-            found = instances(logits, left, disparity, geometry)
+        def instances_and_note(logits, left, disparity, geometry, light=None, instances=instances, steps=steps):
+            found = instances(logits, left, disparity, geometry, light)
             steps.append((id(logits), disparity.shape, found))
             return found
 

@@ -297,7 +297,7 @@ class CoarseToFine:
         t = lap_ms(timing, "roi_stereo", t)
         if coarse_logits is not None:
             instances = self.segmenter.instances(
-                coarse_logits, left, finest_disparity(disparity, coarse.disparity, scale), geometry
+                coarse_logits, left, finest_disparity(disparity, coarse.disparity, scale), geometry, instances.light
             )
             labels_full = instances.labels
             coarse_labels = labels_full[scale // 2 :: scale, scale // 2 :: scale][: small[1], : small[0]]

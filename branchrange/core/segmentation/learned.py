@@ -47,7 +47,7 @@ import numpy as np
 
 from branchrange.core.confidence import ConfidenceCalibration
 from branchrange.core.geometry import StereoGeometry, disparity_to_depth
-from branchrange.core.light_check import LIGHTS, measure_light
+from branchrange.core.light_check import LIGHTS, LightReading, measure_light
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
 from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
@@ -384,7 +384,12 @@ class LearnedSegmenter:
         return self.instances(self.logits(left, disparity), left, disparity, geometry)
 
     def instances(
-        self, logits: np.ndarray, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry
+        self,
+        logits: np.ndarray,
+        left: np.ndarray,
+        disparity: np.ndarray,
+        geometry: StereoGeometry,
+        light: LightReading | None = None,
     ) -> BranchMasks:
         """`segment` given the network's class logits (`float32 (3, h, w)`, as `logits` returns them) of the frame
         `left` (`uint8 H×W×3`) with `disparity` (`float32 H×W` px) — or of that frame shrunk s = W / w times:
@@ -392,7 +397,8 @@ class LearnedSegmenter:
         (`RoiConfig.full_resolution_instances`). The class probabilities are then resampled to the frame's
         pixels, `min_area_px` and the bridged gap grow s times (a thin stem's area grows with its length),
         and the light and the confidences are read as at the width the network saw (its tables' classes of
-        light were measured there: shrinking a frame averages its noise down)."""
+        light were measured there: shrinking a frame averages its noise down). `light`: that frame's light
+        when already measured (the coarse step's), else it is measured here."""
         cfg = self.config
         size = (logits.shape[2], logits.shape[1])  # the frame's, or the coarse look's (W, H)
         width, scale = size[0], disparity.shape[1] / size[0]
@@ -460,9 +466,10 @@ class LearnedSegmenter:
         sums = np.bincount(instances.ravel(), weights=branch_p.ravel(), minlength=len(keep) + 1)
         sizes = np.bincount(instances.ravel(), minlength=len(keep) + 1)
         scores = {i: float(sums[i] / sizes[i] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
-        # the light of the frame the network saw: the calibrations' classes of light were measured at that size
-        seen_left = left if scale == 1 else cv2.resize(left, size, interpolation=cv2.INTER_AREA)
-        light = measure_light(seen_left) if cfg.light_calibration else None
+        if not cfg.light_calibration:
+            light = None
+        elif light is None:  # on the frame the network saw, where the tables' classes of light were measured
+            light = measure_light(left if scale == 1 else cv2.resize(left, size, interpolation=cv2.INTER_AREA))
         measured = self.calibration_at(self.seen_width(width), "normal" if light is None else light.light)
         return BranchMasks(
             labels,
