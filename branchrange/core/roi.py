@@ -190,6 +190,12 @@ def trunk_from_coarse(
     confidence[grid][trunk] = coarse.confidence[:rows, :cols][trunk]
 
 
+def on_coarse_grid(labels: np.ndarray, scale: int, size: tuple[int, int]) -> np.ndarray:
+    """Full-resolution `labels` (`H×W`) read at the coarse pass's pixel centres (every `scale`-th pixel, offset
+    `scale // 2`), cut to the coarse frame's `size` = (w, h)."""
+    return labels[scale // 2 :: scale, scale // 2 :: scale][: size[1], : size[0]]
+
+
 def finest_disparity(fine: np.ndarray, coarse: np.ndarray, scale: int) -> np.ndarray:
     """`float32 H×W` px: the fine disparity where the regions found one, elsewhere the coarse disparity (`h×w`
     px at coarse scale) brought to full resolution (nearest, × `scale`) — what the instance step sees when
@@ -267,8 +273,8 @@ class CoarseToFine:
         coarse = self._sgbm(coarse_max).compute(left_small, right_small)
         t = lap_ms(timing, "coarse_stereo", t)
         coarse_logits = None  # the network's look at the coarse frame, when its instances are found again
+        small_geometry = scaled_geometry(geometry, scale)
         if masks is None:
-            small_geometry = scaled_geometry(geometry, scale)
             if self.config.full_resolution_instances and scale > 1 and hasattr(self.segmenter, "instances"):
                 coarse_logits = self.segmenter.logits(left_small, coarse.disparity)
                 found = self.segmenter.instances(coarse_logits, left_small, coarse.disparity, small_geometry)
@@ -279,7 +285,7 @@ class CoarseToFine:
             instances = replace(found, labels=labels_full)
         else:
             instances = masks
-            coarse_labels = masks.labels[scale // 2 :: scale, scale // 2 :: scale][: small[1], : small[0]]
+            coarse_labels = on_coarse_grid(masks.labels, scale, small)
             labels_full = masks.labels
         t = lap_ms(timing, "segment", t)
         regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
@@ -300,7 +306,7 @@ class CoarseToFine:
                 coarse_logits, left, finest_disparity(disparity, coarse.disparity, scale), geometry, instances.light
             )
             labels_full = instances.labels
-            coarse_labels = labels_full[scale // 2 :: scale, scale // 2 :: scale][: small[1], : small[0]]
+            coarse_labels = on_coarse_grid(labels_full, scale, small)
             lap_ms(timing, "instances", t)
         elif masks is None:
             instances = replace(
@@ -313,8 +319,6 @@ class CoarseToFine:
             confidence,
             instances,
             regions,
-            coarse_trunk(
-                coarse_labels, instances.trunk_id, coarse.disparity, scaled_geometry(geometry, scale), coarse_max
-            ),
+            coarse_trunk(coarse_labels, instances.trunk_id, coarse.disparity, small_geometry, coarse_max),
             timing,
         )
