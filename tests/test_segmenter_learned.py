@@ -36,6 +36,8 @@ from branchrange.core.segmentation.learned import (
     LearnedSegmenter,
     LearnedSegmenterConfig,
     band_seen_width,
+    resampled_logits,
+    trunk_and_branch_probabilities,
 )
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 
@@ -297,6 +299,21 @@ def test_the_network_sees_the_frame_at_network_width_and_answers_at_the_frame_si
     assert [shape[2:] for shape in seen] == [(368, 640), (192, 320), (720, 1280)]  # padded to ×16
     with pytest.raises(OnnxSegmenterError, match="network_width"):
         LearnedSegmenterConfig(network_width=100)
+
+
+def test_trunk_and_branch_probabilities_are_the_softmax_resampled_and_classes_still_sum_to_one():
+    """What the instance step reads at full resolution: the same arg-max and branch share as the log-probabilities
+    `resampled_logits` gives, at the frame's own size and enlarged or shrunk."""
+    logits = np.random.default_rng(3).normal(0.0, 3.0, (3, 36, 64)).astype(np.float32)
+    for size in ((64, 36), (128, 72), (32, 18)):
+        trunk, branch = trunk_and_branch_probabilities(logits, size)
+        assert trunk.shape == branch.shape == (size[1], size[0]) and trunk.dtype == np.float32
+        assert (trunk >= 0).all() and (branch >= 0).all() and (trunk + branch <= 1 + 1e-5).all()
+        expected = softmax(resampled_logits(logits, size))
+        np.testing.assert_allclose(branch, expected[CLASSES.index("branch")], atol=1e-5)
+        background = 1.0 - trunk - branch
+        is_trunk = (trunk > background) & (trunk > branch)
+        assert np.mean(is_trunk == (expected.argmax(0) == CLASSES.index("trunk"))) > 0.999
 
 
 def softmax(logits: np.ndarray) -> np.ndarray:
