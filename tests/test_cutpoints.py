@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from branch_geometry_fixtures import GEOMETRY, TRUNK_LABEL, Cylinder, branch_with_trunk, ray_cast, unit
 
+from branchrange.core.confidence import visible_length_factor
 from branchrange.core.cutpoints import (
     BranchEstimate,
     CutPointConfig,
@@ -234,3 +236,22 @@ def test_dropped_and_estimates_serialise_to_plain_json_types():
     assert all(type(v) is float for v in entry["cut_point_m"]) and isinstance(entry["cut_point_m"], list)
     assert entry["distance_m"] == round(b.distance_m, 5) and type(entry["points"]) is int
     assert DroppedInstance.from_dropped(DroppedBranch(3, "why")).to_json_dict() == {"mask_id": 3, "reason": "why"}
+
+
+@pytest.mark.parametrize("length", [0.12, 0.45])
+def test_a_segmenters_visible_length_scale_scores_the_branch_by_how_long_it_is_seen(length):
+    """`BranchMasks.visible_length_scale_m` (the learned segmenter's, measured with its calibration): the cut
+    point's confidence is scaled by L / (L + scale) of the branch's visible length L — a short piece is more
+    often a fragment. A mask file (scale 0, no score) is reported as it is."""
+    scene, _, _ = branch_with_trunk(length=length)
+    plain = masks_from_array(scene.labels, trunk_id=TRUNK_LABEL, kind="instance")
+    assert plain.reported_confidence(1) is None
+    [as_is] = estimate_cut_points(plain, scene.disparity, GEOMETRY).branches
+    scored = replace(plain, visible_length_scale_m=0.1)
+    [by_length] = estimate_cut_points(scored, scene.disparity, GEOMETRY).branches
+    np.testing.assert_allclose(by_length.cut_point_m, as_is.cut_point_m)
+    # the visible part runs from the trunk's surface to the tip: the cylinder's length, less what the ray cast hides
+    ratio = by_length.confidence / as_is.confidence
+    assert ratio == pytest.approx(visible_length_factor(length, 0.1), rel=0.08)
+    assert visible_length_factor(length, 0.0) == 1.0
+    assert visible_length_factor(0.05, 0.1) < visible_length_factor(0.2, 0.1) < visible_length_factor(1.0, 0.1) < 1

@@ -271,7 +271,7 @@ class MavlinkConfig(Settings):
     state_rate_hz: float = 30.0
     heartbeat_timeout_s: float = 3.0
     pose_timeout_s: float = 0.5
-    obstacle_min_confidence: float = 0.24
+    obstacle_min_confidence: float = 0.2
     setpoint_enabled: bool = False
     setpoint_standoff_m: float = 0.6
     setpoint_max_step_m: float = 1.0

@@ -114,7 +114,7 @@ class CutPointConfig(Settings):
     surface_correction: bool = True
     max_instances: int = 256
     target_policy: str = DEFAULT_TARGET_POLICY
-    target_min_confidence: float = 0.76
+    target_min_confidence: float = 0.65
     tracking: bool = True
     max_cut_beyond_tip_m: float = 0.01
 
@@ -597,16 +597,16 @@ def estimate_branch(
     trunk: np.ndarray | MaskCrop | None = None,
     trunk_model: TrunkModel | None = None,
     max_disparity: float | None = None,
-    reported_confidence: Callable[[float], float] | None = None,
+    reported_confidence: Callable[[float, float], float] | None = None,
 ) -> BranchEstimate | DroppedBranch:
     """Cut point of one branch from its boolean `H×W` mask (or `MaskCrop`) and the `H×W` disparity (px).
 
     `confidence` (`H×W` in [0, 1]) is the stereo backend's per-pixel confidence (1 when None),
     `trunk` the boolean trunk mask when known and `trunk_model` its fitted cylinder (the base is
     then where the axis pierces the bark). `reported_confidence` maps the cut point's own confidence
-    to the reported one (`BranchMasks.reported_confidence`: the segmenter's belief in the instance
-    and its calibration; None = as it is). Returns a `DroppedBranch` with
-    the reason when the evidence does not support a cut point.
+    and the branch's visible length (m, base to tip) to the reported one (`BranchMasks.reported_confidence`:
+    the segmenter's belief in the instance, how long it is seen, and its calibration; None = as it is).
+    Returns a `DroppedBranch` with the reason when the evidence does not support a cut point.
     """
     try:
         return _estimate_branch(
@@ -635,7 +635,7 @@ def _estimate_branch(
     trunk: MaskCrop | None,
     trunk_model: TrunkModel | None,
     max_disparity: float | None,
-    reported_confidence: Callable[[float], float] | None = None,
+    reported_confidence: Callable[[float, float], float] | None = None,
 ) -> BranchEstimate | DroppedBranch:
     """`estimate_branch` without the guard against degenerate geometry."""
     cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
@@ -667,7 +667,7 @@ def _estimate_branch(
     stereo_conf = float(np.mean(confidence[rows, cols][inliers])) if confidence is not None else 1.0
     score = _confidence(cylinder, stereo_conf if np.isfinite(stereo_conf) else 0.0, float(cut_m[2]), geometry, config)
     if reported_confidence is not None:
-        score = reported_confidence(score)
+        score = reported_confidence(score, visible_m)
     if score < config.min_confidence:
         return DroppedBranch(mask_id, f"confidence {score:.2f} below {config.min_confidence}")
     return BranchEstimate(

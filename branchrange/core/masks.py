@@ -16,7 +16,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from branchrange.core.confidence import ConfidenceCalibration
+from branchrange.core.confidence import ConfidenceCalibration, visible_length_factor
 from branchrange.core.light_check import LightReading
 
 #: The trunk's id in instance masks unless configured otherwise (the synthetic generator's value).
@@ -191,7 +191,9 @@ class BranchMasks:
     `calibration` maps the resulting cut-point confidence to a measured share correct. `light` is the
     frame's measured light when the segmenter read its confidences by it, and `target_min_confidence` the
     least confidence a target needs in that light by its calibration, beyond the settings' own (0: none
-    beyond them; `math.inf`: no confidence in that light was reliable enough for a target). The
+    beyond them; `math.inf`: no confidence in that light was reliable enough for a target).
+    `visible_length_scale_m` (> 0): a cut point's confidence is also scaled by how long its branch is seen
+    (`visible_length_factor`), as the segmenter's calibration was measured with it; 0: not. The
     ids, sizes and bounding boxes are indexed once, on first use (`index`): treat `labels` as
     read-only after that.
     """
@@ -204,16 +206,21 @@ class BranchMasks:
     calibration: ConfidenceCalibration | None = None
     light: LightReading | None = None
     target_min_confidence: float = 0.0
+    visible_length_scale_m: float = 0.0
 
-    def reported_confidence(self, branch_id: int) -> Callable[[float], float] | None:
-        """How a cut point's own confidence becomes the reported one for instance `branch_id`: scaled by
-        the segmenter's score, then through its `calibration`; None when neither applies (a mask file)."""
-        score, calibration = self.scores.get(branch_id, 1.0), self.calibration
-        if score == 1.0 and calibration is None:
+    def reported_confidence(self, branch_id: int) -> Callable[[float, float], float] | None:
+        """How a cut point's own confidence and its branch's visible length (m) become the reported confidence
+        for instance `branch_id`: scaled by the segmenter's score and by `visible_length_factor`, then through its
+        `calibration`; None when none applies (a mask file)."""
+        score, calibration, scale_m = self.scores.get(branch_id, 1.0), self.calibration, self.visible_length_scale_m
+        if score == 1.0 and calibration is None and scale_m == 0:
             return None
-        if calibration is None:
-            return lambda raw: score * raw
-        return lambda raw: calibration(score * raw)
+
+        def reported(raw: float, visible_m: float) -> float:
+            scaled = score * raw * visible_length_factor(visible_m, scale_m)
+            return scaled if calibration is None else calibration(scaled)
+
+        return reported
 
     @property
     def shape(self) -> tuple[int, int]:
