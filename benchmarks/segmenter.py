@@ -15,8 +15,10 @@ to the truth as in `branchrange.offline.evaluate_cuts` (recall within 5 cm, medi
 matches, false cut points per frame = estimates with no truth cut point within 5 cm). Time per frame
 is the segmenter's own (`timing_ms.masks`). The reliability table pools each (stereo, segmenter)'s
 cut points by confidence bin: the share within 5 cm of a truth cut point; beside it, the share
-correct at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct. Recall is
-also given per branch width class (`width_class`: thin stems are where segmenters lose branches).
+correct at confidence ≥ 0.8 and the lowest confidence from which ≥ 90 % are correct; recall and false cut
+points are also counted with only the cut points at or above each of `CONFIDENCE_FLOORS` (what a robot acting
+at that threshold sees). Recall is also given per branch width class (`width_class`: thin stems are where
+segmenters lose branches).
 
 How sure the figures are: recall and false cut points a frame carry a 95 % interval from a bootstrap
 over scenes (`CutScores.interval`; a scene's branches succeed or fail together), and each
@@ -100,6 +102,9 @@ REAL_MAX_DISP = {"forest_1s": 64, "Jadeplant_Q": 160}
 #: the cut points a robot acts on: the pipeline's default target threshold
 TARGET_MIN_CONFIDENCE = CutPointConfig().target_min_confidence
 BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0001)
+#: confidence floors at which recall and false cut points are also counted (only the cut points at or above each):
+#: where obstacles are fenced (0.3), a middle one, the onboard target threshold (0.72) and the issue's 0.8
+CONFIDENCE_FLOORS = (0.3, 0.5, 0.72, 0.8)
 #: `piece_disparity_ratio` of the '+depth' variants: the best on the calibration scenes (benchmarks/RESULTS.md)
 DEPTH_PIECES_RATIO = 0.04
 #: branch width classes (px in the 640×360 image) of the recall-by-width table
@@ -183,6 +188,7 @@ class Tallies:
         self.times: dict[str, list[float]] = {}
         self.confident: dict[str, CutScores] = {}  # only the cut points at or above the target default
         self.by_width: dict[str, dict[str, CutScores]] = {}  # recall per branch width class (all cut points)
+        self.floors: dict[str, dict[float, CutScores]] = {}  # only the cut points at or above each confidence floor
 
     def add(self, key: str, truth: list[dict], widths: list[str], result: FrameResult, pipeline: Pipeline) -> None:
         """One frame's `result` of `pipeline` against its `truth` cut points (with their width classes)."""
@@ -192,6 +198,10 @@ class Tallies:
             in_class = [t for t, w in zip(truth, widths) if w == width]
             self.by_width.setdefault(key, {}).setdefault(width, CutScores(stereo, name)).add_frame(
                 in_class, result.branches
+            )
+        for floor in CONFIDENCE_FLOORS:
+            self.floors.setdefault(key, {}).setdefault(floor, CutScores(stereo, name)).add_frame(
+                truth, [x for x in result.branches if x.confidence >= floor]
             )
         needed = needed_for_target(pipeline)
         acted_on = [x for x in result.branches if x.confidence >= needed]
@@ -322,6 +332,10 @@ def run_synthetic(
             "at_0.8": share_correct_above(tallies.confidences[key], 0.8),
             "min_confidence_for_90pct": lowest_reliable_threshold(tallies.confidences[key]),
             "calibration_error": expected_calibration_error(tallies.confidences[key]),
+            "at_confidence_floors": {
+                str(floor): {"recall": c.recall, "false_per_frame": c.false_per_frame}
+                for floor, c in tallies.floors[key].items()
+            },
             "at_target_min_confidence": {
                 "threshold": TARGET_MIN_CONFIDENCE,
                 "recall": tallies.confident[key].recall,
@@ -438,6 +452,13 @@ def print_tables(synthetic: dict, real: dict) -> None:
         for key, d in paired.items():
             low, high = d["ci95"]
             print(f"{key:<28} {d['difference']:>+7.1%} [{low:+6.1%} … {high:+6.1%}]  (vs {d['first']})")
+    print("\ncounting only the cut points at or above a confidence floor (recall, false cut points a frame)")
+    for key, r in synthetic.items():
+        cells = "  ".join(
+            f"≥ {floor}: {c['recall']:>5.1%} {c['false_per_frame']:>5.2f}"
+            for floor, c in r["at_confidence_floors"].items()
+        )
+        print(f"{key:<28} {cells}")
     print("\nrecall within 5 cm by branch width (px at 640×360: branches, recall)")
     for key, r in synthetic.items():
         cells = "  ".join(

@@ -82,11 +82,12 @@ class CutPointConfig(Settings):
     - `max_instances`: most branch instances a frame may hold; more → `MaskError` (HTTP 422: a bad
       mask, refused before any geometry runs rather than holding the estimator for minutes).
     - `target_policy`: how `select_target` picks the target, one of `TARGET_POLICIES`;
-      `target_min_confidence`: a branch below it is never the target. 0.76: with the default learned
-      segmenter (network width 640, trunk band 40 px; its tables say 0.72 for one look, 0.74 at 1280) and
+      `target_min_confidence`: a branch below it is never the target. 0.65: with the default learned
+      segmenter (network width 640, trunk band 40 px; its tables say 0.72 for one look, 0.65 at 1280) and
       SGBM, the lowest (calibrated) confidence, in hundredths, at and above which ≥ 90 % of cut points lie
       within 5 cm of a true one (its calibration scenes in normal light; `benchmarks/segmenter.py` checks it
-      held out). Out of normal light the learned segmenter may ask more (`BranchMasks.target_min_confidence`).
+      held out: there 87 % at 640×360, 93 % in the roi mode at HD720; split in halves, the calibration scenes
+      place this threshold up to 0.08 apart). Out of normal light the learned segmenter may ask more (`BranchMasks.target_min_confidence`).
     - `max_cut_beyond_tip_m`: a branch whose visible part ends more than this short of its cut point (base +
       `cut_offset_m`) is dropped: that cut point lies in the air past the mask's end, a guess along the axis
       of a fragment (a stem seen between two leaves, a sliver along a board's edge). With the learned
