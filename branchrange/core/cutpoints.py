@@ -87,7 +87,8 @@ class CutPointConfig(Settings):
       SGBM, the lowest (calibrated) confidence, in hundredths, at and above which ≥ 90 % of cut points lie
       within 5 cm of a true one (its calibration scenes in normal light; `benchmarks/segmenter.py` checks it
       held out: there 87 % at 640×360, 93 % in the roi mode at HD720; split in halves, the calibration scenes
-      place this threshold up to 0.08 apart). Out of normal light the learned segmenter may ask more (`BranchMasks.target_min_confidence`).
+      place this threshold up to 0.08 apart). Out of normal light the learned segmenter may ask more
+      (`BranchMasks.target_min_confidence`).
     - `max_cut_beyond_tip_m`: a branch whose visible part ends more than this short of its cut point (base +
       `cut_offset_m`) is dropped: that cut point lies in the air past the mask's end, a guess along the axis
       of a fragment (a stem seen between two leaves, a sliver along a board's edge). With the learned
