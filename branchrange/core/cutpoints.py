@@ -86,8 +86,8 @@ class CutPointConfig(Settings):
       segmenter (network width 640, trunk band 40 px; its tables say 0.72 for one look, 0.65 at 1280) and
       SGBM, the lowest (calibrated) confidence, in hundredths, at and above which ≥ 90 % of cut points lie
       within 5 cm of a true one (its calibration scenes in normal light; `benchmarks/segmenter.py` checks it
-      held out: there 87 % at 640×360, 93 % in the roi mode at HD720; split in halves, the calibration scenes
-      place this threshold up to 0.08 apart). Out of normal light the learned segmenter may ask more
+      held out: there 87 % at 640×360, 93 % in the roi mode at HD720; fitted on either half of the calibration
+      scenes it reads 0.82 or 0.67). Out of normal light the learned segmenter may ask more
       (`BranchMasks.target_min_confidence`).
     - `max_cut_beyond_tip_m`: a branch whose visible part ends more than this short of its cut point (base +
       `cut_offset_m`) is dropped: that cut point lies in the air past the mask's end, a guess along the axis
