@@ -225,6 +225,25 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     assert all(torch.equal(first[k], second[k]) for k in first)
 
 
+def test_a_stage_trained_with_no_calibrate_writes_its_model_without_calibrating(tmp_path, monkeypatch, capsys):
+    """`train-segmenter --no-calibrate`: an intermediate stage, whose model only starts the next, skips the
+    confidence calibration (~5 min of the reproduction's 2 hours); it and --calibrate-only exclude each other."""
+    from branchrange.cli import main
+    from branchrange.core.segmentation import branchnet_calibration
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("calibrate_model must not run with --no-calibrate")
+
+    monkeypatch.setattr(branchnet_calibration, "calibrate_model", refuse)
+    settings = ["train_seeds=[1, 3]", "val_seeds=[3, 4]", "steps=1", "batch=2", "crop=64", "width=4", "threads=1"]
+    argv = ["train-segmenter", "--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--no-calibrate"]
+    assert main([*argv, *(a for s in settings for a in ("--set", s))]) == 0
+    meta = json.loads((tmp_path / "run" / "branchnet.json").read_text())
+    assert "confidence_calibrations" not in meta and "wrote" in capsys.readouterr().out
+    assert main([*argv, "--calibrate-only"]) == 2
+    assert "exclude each other" in capsys.readouterr().err
+
+
 def test_a_hardware_stage_also_trains_on_scenes_with_orchard_hardware(tmp_path):
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
