@@ -462,14 +462,13 @@ class LearnedSegmenter:
             gaps = _nearest(instance, gap_m, count)
             keep = keep[gaps[keep] <= cfg.max_trunk_gap_m]
             attachment[keep] = trunk_attachment(gaps[keep], cfg.attachment_scale_m)
+        sums = np.bincount(instance, weights=branch_p.ravel()[pixels], minlength=count)
+        scores = {i: float(sums[k] / sizes[k] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
         renumber = np.zeros(count, dtype=np.int32)
         renumber[keep] = np.arange(1, len(keep) + 1)
         instance = renumber[instance]  # 0: dropped
         kept = instance > 0
         labels.ravel()[pixels[kept]] = instance[kept]
-        sums = np.bincount(instance, weights=branch_p.ravel()[pixels], minlength=len(keep) + 1)
-        sizes = np.bincount(instance, minlength=len(keep) + 1)
-        scores = {i: float(sums[i] / sizes[i] * attachment[k]) for i, k in enumerate(keep.tolist(), 1)}
         if not cfg.light_calibration:
             light = None
         elif light is None:  # on the frame the network saw, where the tables' classes of light were measured
