@@ -7,6 +7,7 @@ import json
 import math
 import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -244,6 +245,21 @@ def test_a_stage_trained_with_no_calibrate_writes_its_model_without_calibrating(
     assert "exclude each other" in capsys.readouterr().err
 
 
+def test_train_segmenter_calibrates_in_the_workers_it_is_given_and_refuses_none(tmp_path, monkeypatch, capsys):
+    from branchrange.cli import main
+    from branchrange.core.segmentation import branchnet_calibration
+
+    calls: list[tuple[Path, int]] = []
+    monkeypatch.setattr(
+        branchnet_calibration, "calibrate_model", lambda model, **kwargs: calls.append((model, kwargs["workers"]))
+    )
+    (tmp_path / "branchnet.onnx").write_bytes(b"a model")
+    argv = ["train-segmenter", "--out", str(tmp_path), "--calibrate-only"]
+    assert main([*argv, "--workers", "3"]) == 0 and calls == [(tmp_path / "branchnet.onnx", 3)]
+    assert main([*argv, "--workers", "0"]) == 2 and len(calls) == 1
+    assert "--workers 0: at least 1" in capsys.readouterr().err
+
+
 def test_a_hardware_stage_also_trains_on_scenes_with_orchard_hardware(tmp_path):
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
@@ -459,6 +475,24 @@ def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmente
         assert ConfidenceCalibration.from_json_dict(stored[setting]) == ConfidenceCalibration.from_json_dict(
             calibration.to_json_dict()  # as written: rounded
         )
+    # measured in two processes (scenes 2861 and 2862–2863): the same tables
+    parallel = tmp_path / "parallel"
+    parallel.mkdir()
+    for name in ("branchnet.onnx", "branchnet.json"):
+        shutil.copy(SHIPPED_MODEL.with_name(name), parallel / name)
+    calibrate_model(
+        parallel / "branchnet.onnx",
+        seeds=(2861, 2864),
+        cache=tmp_path / "cal",
+        log=lambda line: None,
+        light_changes=("dusk",),
+        min_cut_points=1,
+        workers=2,
+    )
+    assert (
+        json.loads((parallel / "branchnet.json").read_text())["confidence_calibrations"]
+        == (meta["confidence_calibrations"])
+    )
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model)))
     assert {k: c.calibration for k, c in segmenter.calibrations.items()} == {
         k: ConfidenceCalibration.from_json_dict(t) for k, t in stored.items()
@@ -483,6 +517,21 @@ def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmente
     assert {t["light"] for t in json.loads((tmp_path / "branchnet.json").read_text())["confidence_calibrations"]} == {
         "normal"
     }
+
+
+@pytest.mark.parametrize(
+    ("seeds", "parts", "ranges"),
+    [
+        ((2861, 3101), 2, [(2861, 2981), (2981, 3101)]),
+        ((2861, 2864), 2, [(2861, 2862), (2862, 2864)]),
+        ((2861, 2863), 4, [(2861, 2862), (2862, 2863)]),  # never an empty range
+        ((2861, 2871), 1, [(2861, 2871)]),
+    ],
+)
+def test_the_calibration_scenes_split_into_contiguous_ranges_in_order(seeds, parts, ranges):
+    from branchrange.core.segmentation.branchnet_calibration import seed_ranges
+
+    assert seed_ranges(seeds, parts) == ranges
 
 
 def test_a_frame_is_read_through_the_calibration_of_its_light_and_dark_light_gives_no_target(scene, tmp_path):

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -61,6 +62,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--int8",
         action="store_true",
         help="also write branchnet_int8.onnx, a statically quantized copy (~1.4× faster on CPU), and calibrate it",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes the confidence calibration measures its scenes in (default: one per core)",
     )
     p.add_argument(
         "--no-calibrate",
@@ -112,6 +119,13 @@ def run(args: argparse.Namespace) -> int:
         print(line, flush=True)
 
     model = args.out / "branchnet.onnx"
+
+    def calibrate(path: Path) -> None:
+        calibrate_model(path, cache=args.data / "calibration", log=log, workers=args.workers)
+
+    if args.workers < 1:
+        print(f"branchrange train-segmenter: error: --workers {args.workers}: at least 1", file=sys.stderr)
+        return 2
     if args.calibrate_only and args.no_calibrate:
         print(
             "branchrange train-segmenter: error: --calibrate-only and --no-calibrate exclude each other",
@@ -122,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         if not model.is_file():
             print(f"branchrange train-segmenter: error: {model} does not exist (train first)", file=sys.stderr)
             return 2
-        calibrate_model(model, cache=args.data / "calibration", log=log)
+        calibrate(model)
     else:
         try:
             config = training_config(args.config, args.set, args.stage)
@@ -131,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"branchrange train-segmenter: error: {exc}", file=sys.stderr)
             return 2
         if not args.no_calibrate:
-            calibrate_model(model, cache=args.data / "calibration", log=log)
+            calibrate(model)
         final = meta["final"]
         print(
             f"wrote {model} (SHA-256 {meta['onnx_sha256'][:16]}…): validation IoU "
@@ -142,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
 
         quantized = quantize_branchnet(model, args.data)
         if not args.no_calibrate:
-            calibrate_model(int8_path(model), cache=args.data / "calibration", log=log)
+            calibrate(int8_path(model))
         print(
             f"wrote {int8_path(model)} (SHA-256 {quantized['onnx_sha256'][:16]}…)"
             + ("" if args.no_calibrate else ", calibrated")

@@ -19,9 +19,12 @@ and the highest that keeps ≥ 98 % of the right ones (an obstacle's minimum).
 from __future__ import annotations
 
 import json
+import multiprocessing
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from branchrange.core.confidence import (
@@ -46,43 +49,93 @@ CALIBRATION_LIGHT_CHANGES = tuple(LIGHT_CHANGES)
 MIN_CUT_POINTS_PER_LIGHT = 200
 
 
+#: (confidence, within 5 cm of a true cut point) of every cut point, by the class of light its frame measured as
+OutcomesByLight = dict[str, list[tuple[float, bool]]]
+
+
 def raw_outcomes(
     model: Path,
     seeds: tuple[int, int],
     cache: Path | None,
-    network_width: int,
-    trunk_band_px: int = 0,
+    settings: Sequence[tuple[int, int]],
     light_changes: Sequence[str] = (),
-) -> dict[str, list[tuple[float, bool]]]:
-    """(raw confidence, within 5 cm of a true cut point) of every cut point on scenes `seeds` [first, last),
-    the network seeing them at `network_width` px (and the trunk band, `trunk_band_px`), by the class of
-    light each frame measures as (`light_check.LIGHTS`); each scene in its own light and under each of
-    `light_changes` (`branchnet_data.scene_in_light`)."""
+) -> dict[tuple[int, int], OutcomesByLight]:
+    """Per (network width px, trunk band px) of `settings`: (raw confidence, within 5 cm of a true cut point) of
+    every cut point on scenes `seeds` [first, last), by the class of light each frame measures as
+    (`light_check.LIGHTS`); each scene in its own light and under each of `light_changes`
+    (`branchnet_data.scene_in_light`), in seed order. Each scene is loaded once for all settings."""
     from branchrange.core.pipeline import Pipeline, untracked_whole_frame
     from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 
-    config = LearnedSegmenterConfig(
-        model=str(model), calibrated=False, network_width=network_width, trunk_band_px=trunk_band_px
-    )
-    segmenter = LearnedSegmenter(config)
-    outcomes: dict[str, list[tuple[float, bool]]] = {}
+    segmenters = {
+        (width, band): LearnedSegmenter(
+            LearnedSegmenterConfig(model=str(model), calibrated=False, network_width=width, trunk_band_px=band)
+        )
+        for width, band in settings
+    }
+    outcomes: dict[tuple[int, int], OutcomesByLight] = {setting: {} for setting in segmenters}
     for seed in range(*seeds):
         scene = evaluation_scene(seed, cache)
-        f, b, cx, cy = (float(v) for v in scene["camera"])
+        f, baseline, cx, cy = (float(v) for v in scene["camera"])
+        truth = [t["cut_point_m"] for t in scene["truth"]]
         for lit in [scene, *(scene_in_light(scene, seed, change, cache) for change in light_changes)]:
-            pipeline = Pipeline(
-                untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
-            )
-            result = pipeline.process_disparity(
-                lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
-            )
-            light = pipeline.last.masks.light if pipeline.last and pipeline.last.masks else None
-            outcomes.setdefault("normal" if light is None else light.light, []).extend(
-                cut_point_outcomes(
-                    [(b.confidence, b.cut_point_m) for b in result.branches], [t["cut_point_m"] for t in scene["truth"]]
+            for setting, segmenter in segmenters.items():
+                pipeline = Pipeline(
+                    untracked_whole_frame(),
+                    focal_px=f,
+                    baseline_m=baseline,
+                    principal_point=(cx, cy),
+                    segmenter=segmenter,
                 )
-            )
+                result = pipeline.process_disparity(
+                    lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
+                )
+                light = pipeline.last.masks.light if pipeline.last and pipeline.last.masks else None
+                outcomes[setting].setdefault("normal" if light is None else light.light, []).extend(
+                    cut_point_outcomes([(b.confidence, b.cut_point_m) for b in result.branches], truth)
+                )
     return outcomes
+
+
+def seed_ranges(seeds: tuple[int, int], parts: int) -> list[tuple[int, int]]:
+    """[first, last) split into at most `parts` contiguous ranges of near-equal size, in order (none empty)."""
+    first, last = seeds
+    bounds = np.linspace(first, last, max(1, min(parts, last - first)) + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+def outcomes_in_workers(
+    model: Path,
+    seeds: tuple[int, int],
+    cache: Path | None,
+    settings: Sequence[tuple[int, int]],
+    light_changes: Sequence[str],
+    workers: int,
+) -> dict[tuple[int, int], OutcomesByLight]:
+    """`raw_outcomes` with the scenes split into `workers` contiguous ranges, each measured in its own process
+    (1 = in this one), and joined in seed order: the same lists as one process makes, so the same fit.
+
+    Why processes: a scene takes ~150 ms per setting and light, 240 scenes × 6 lights × 3 settings ~11 min in
+    one process; the segmenter runs onnxruntime on one thread and numpy holds the GIL between its calls, so
+    only processes use a second core. Each renders its own scenes: no two write one cache file."""
+    ranges = seed_ranges(seeds, workers)
+    if len(ranges) == 1:
+        return raw_outcomes(model, seeds, cache, settings, light_changes)
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds onnxruntime's threads
+    with ProcessPoolExecutor(len(ranges), mp_context=context, initializer=_one_opencv_thread) as pool:
+        futures = [pool.submit(raw_outcomes, model, r, cache, settings, light_changes) for r in ranges]
+        parts = [future.result() for future in futures]
+    joined: dict[tuple[int, int], OutcomesByLight] = {(width, band): {} for width, band in settings}
+    for part in parts:
+        for setting, by_light in part.items():
+            for light, outcomes in by_light.items():
+                joined[setting].setdefault(light, []).extend(outcomes)
+    return joined
+
+
+def _one_opencv_thread() -> None:
+    """A worker's OpenCV runs on one thread: the workers share the cores."""
+    cv2.setNumThreads(1)
 
 
 def calibrate_model(
@@ -93,16 +146,19 @@ def calibrate_model(
     settings: tuple[tuple[int, int], ...] = CALIBRATION_SETTINGS,
     light_changes: Sequence[str] = CALIBRATION_LIGHT_CHANGES,
     min_cut_points: int = MIN_CUT_POINTS_PER_LIGHT,
+    workers: int = 1,
 ) -> dict[tuple[int, int, str], ConfidenceCalibration]:
     """Fit the confidence calibration of the ONNX `model` for each (network width, trunk band) of `settings`
     and each class of light with at least `min_cut_points` cut points (the scenes in their own light and under
     `light_changes`), and store them in the JSON beside it ("confidence_calibrations", replacing what was
     there). Each table records the least calibrated confidence at which ≥ 90 % of its cut points are right
     ("target_min_confidence", null when none is) and the highest that keeps ≥ 98 % of the right ones. A
-    setting with which the model finds no cut point in normal light gets none (its confidences stay raw)."""
+    setting with which the model finds no cut point in normal light gets none (its confidences stay raw). The
+    scenes are measured in `workers` processes (`outcomes_in_workers`); the tables do not depend on how many."""
     tables, calibrations = [], {}
+    measured = outcomes_in_workers(model, seeds, cache, settings, light_changes, workers)
     for width, band in settings:
-        by_light = raw_outcomes(model, seeds, cache, width, band, light_changes)
+        by_light = measured[(width, band)]
         if not by_light.get("normal"):
             log(
                 f"no cut points on scenes {seeds[0]}–{seeds[1] - 1} in normal light at width {width}, trunk band "

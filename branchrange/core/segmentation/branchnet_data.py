@@ -64,11 +64,18 @@ def cached_sample(
         with np.load(path, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
     sample = render_sample(seed, size, hardware=hardware)
-    folder.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")  # two renderers of one seed never share a file
-    np.savez_compressed(partial, **sample)
-    partial.replace(path)  # atomic: a killed render never leaves a half-written sample
+    save_atomically(path, sample)
     return sample
+
+
+def save_atomically(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """`arrays` as a compressed `.npz` at `path` (its folder made), written under a name of this process's own
+    and then renamed: a killed render never leaves a half-written file, and two processes rendering one seed
+    (a benchmark beside a calibration) never write into one file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez_compressed(partial, **arrays)
+    partial.replace(path)
 
 
 def _hardware_tag(hardware: bool) -> str:
@@ -127,8 +134,7 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
         "truth": json.dumps(truth),
     }
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, **scene)
+        save_atomically(path, scene)
     scene["truth"] = truth
     return scene
 
@@ -152,6 +158,5 @@ def scene_in_light(scene: dict, seed: int, change: str, cache: Path | None, hard
     stereo = make_backend("sgbm", max_disp=evaluation_max_disp(width)).compute(left, right)
     changed = {"left": left, "right": right, "sgbm": stereo.disparity, "sgbm_conf": stereo.confidence}
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, **changed)
+        save_atomically(path, changed)
     return {**scene, **changed}
