@@ -2,9 +2,10 @@
 
 A cut point is right when it lies within 5 cm of a true one, and a matcher's depth error grows with Z²
 (Z = f·B / d), so the same fit is less sure far away. This benchmark takes every cut point of the learned
-segmenter with SGBM (the default setting, and one look as on board) on the calibration scenes (2861–2980)
-and on held-out scenes (50000 on), with the factor left out and no calibration: the raw confidence, the cut
-point's depth and whether it is right. Then, for each σ_d of `--sigmas`, the score is that raw confidence
+segmenter with SGBM (the default setting, and one look as on board) on the calibration scenes
+(`CALIBRATION_SEEDS`; the recorded JSON is from 2861–2980, before they were 240) and on held-out scenes
+(50000 on), with the factor left out and no calibration: the raw confidence, the cut point's depth and
+whether it is right. Then, for each σ_d of `--sigmas`, the score is that raw confidence
 times `cutpoints.depth_precision_score` at the cut point's depth, an isotonic map is fitted on the
 calibration scenes (as `branchnet_calibration` does) and read on the held-out ones. It prints:
 - the share right by distance, over both sets, for all cut points and for the top quarter of raw

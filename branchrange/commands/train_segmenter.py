@@ -2,7 +2,7 @@
 
 Renders the scenes it needs into --data (cached: a second run, or a resumed one, renders nothing),
 trains, validates on scenes kept apart, measures how often its cut points are right to calibrate their
-confidence (scenes 2861–2980, SGBM, per `branchnet_calibration.CALIBRATION_SETTINGS`: at 640 px with and
+confidence (scenes 2861–3100, SGBM, per `branchnet_calibration.CALIBRATION_SETTINGS`: at 640 px with and
 without the second look at the trunk band, and at 1280 px), and writes to
 --out: branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
 "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256, validation IoU, confidence

@@ -241,7 +241,7 @@ class MavlinkConfig(Settings):
     `request_vehicle_state` is off; the link counts as connected only while the autopilot's
     HEARTBEAT arrives, lost after `heartbeat_timeout_s`; a pose older than `pose_timeout_s` is not
     used (targets then go out in the camera frame of their capture, as without vehicle state).
-    `obstacle_min_confidence`: cut points below it are not sent as obstacles. 0.2: with the default
+    `obstacle_min_confidence`: cut points below it are not sent as obstacles. 0.18: with the default
     learned segmenter and SGBM, the highest (calibrated) confidence, in hundredths, that keeps ≥ 98 % of
     the correct cut points (its calibration scenes in normal light) — a real branch must not vanish from the
     obstacle map.
@@ -271,7 +271,7 @@ class MavlinkConfig(Settings):
     state_rate_hz: float = 30.0
     heartbeat_timeout_s: float = 3.0
     pose_timeout_s: float = 0.5
-    obstacle_min_confidence: float = 0.2
+    obstacle_min_confidence: float = 0.18
     setpoint_enabled: bool = False
     setpoint_standoff_m: float = 0.6
     setpoint_max_step_m: float = 1.0

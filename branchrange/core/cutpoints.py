@@ -82,13 +82,13 @@ class CutPointConfig(Settings):
     - `max_instances`: most branch instances a frame may hold; more → `MaskError` (HTTP 422: a bad
       mask, refused before any geometry runs rather than holding the estimator for minutes).
     - `target_policy`: how `select_target` picks the target, one of `TARGET_POLICIES`;
-      `target_min_confidence`: a branch below it is never the target. 0.65: with the default learned
-      segmenter (network width 640, trunk band 40 px; its tables say 0.72 for one look, 0.65 at 1280) and
+      `target_min_confidence`: a branch below it is never the target. 0.7: with the default learned
+      segmenter (network width 640, trunk band 40 px; its tables say 0.72 for one look, 0.7 at 1280) and
       SGBM, the lowest (calibrated) confidence, in hundredths, at and above which ≥ 90 % of cut points lie
-      within 5 cm of a true one (its calibration scenes in normal light; `benchmarks/segmenter.py` checks it
-      held out: there 87 % at 640×360, 93 % in the roi mode at HD720; fitted on either half of the calibration
-      scenes it reads 0.82 or 0.67). Out of normal light the learned segmenter may ask more
-      (`BranchMasks.target_min_confidence`).
+      within 5 cm of a true one (its 240 calibration scenes in normal light; `benchmarks/segmenter.py`
+      checks it held out: there 87 % of targets right at 640×360 (89 % at ≥ 0.8; 90 % from 0.83), 93 % in the
+      roi mode at HD720; fitted on either half of the calibration scenes it reads 0.65 or 0.76). Out of normal
+      light the learned segmenter may ask more (`BranchMasks.target_min_confidence`).
     - `max_cut_beyond_tip_m`: a branch whose visible part ends more than this short of its cut point (base +
       `cut_offset_m`) is dropped: that cut point lies in the air past the mask's end, a guess along the axis
       of a fragment (a stem seen between two leaves, a sliver along a board's edge). With the learned
@@ -116,7 +116,7 @@ class CutPointConfig(Settings):
     surface_correction: bool = True
     max_instances: int = 256
     target_policy: str = DEFAULT_TARGET_POLICY
-    target_min_confidence: float = 0.65
+    target_min_confidence: float = 0.7
     tracking: bool = True
     max_cut_beyond_tip_m: float = 0.01
 

@@ -37,7 +37,9 @@ from branchrange.core.confidence import (
 from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
 
-CALIBRATION_SEEDS = (2861, 2981)
+#: 240 scenes: fitted on either half, the default's ≥ 90 %-right threshold reads 0.65 or 0.76 (0.70 on all; one look
+#: 0.72 or 0.73); in one process per core (`outcomes_in_workers`) they take about what 120 took in one
+CALIBRATION_SEEDS = (2861, 3101)
 #: how the network is calibrated seeing the scenes, (network width px, trunk band px): the default (the
 #: scenes' own width, the trunk band looked at twice as large), one look as the onboard loop affords, and
 #: twice the width in one look
