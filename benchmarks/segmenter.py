@@ -172,9 +172,10 @@ def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float, 
     pairs: an honest confidence has the two last alike in every bin."""
     rows = []
     for lo, hi in zip(BINS[:-1], BINS[1:]):
-        inside = [(c, ok) for c, ok in pairs if lo <= c < hi]
-        share, mean = (float(np.mean([x[i] for x in inside])) if inside else float("nan") for i in (1, 0))
-        rows.append((f"{lo:.1f}–{min(hi, 1.0):.1f}", len(inside), share, mean))
+        confidences = [c for c, _ in pairs if lo <= c < hi]
+        correct = [ok for c, ok in pairs if lo <= c < hi]
+        share, mean = (float(np.mean(v)) if v else float("nan") for v in (correct, confidences))
+        rows.append((f"{lo:.1f}–{min(hi, 1.0):.1f}", len(correct), share, mean))
     return rows
 
 

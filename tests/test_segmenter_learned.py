@@ -260,6 +260,17 @@ def test_train_segmenter_calibrates_in_the_workers_it_is_given_and_refuses_none(
     assert "--workers 0: at least 1" in capsys.readouterr().err
 
 
+def test_calibrating_a_damaged_model_in_two_processes_is_an_error_message_not_a_traceback(tmp_path, capsys):
+    from branchrange.cli import main
+
+    (tmp_path / "branchnet.onnx").write_bytes(b"not an onnx file")
+    argv = ["train-segmenter", "--out", str(tmp_path), "--data", str(tmp_path / "data"), "--calibrate-only"]
+    assert main([*argv, "--workers", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "train-segmenter: error: onnx:" in err and "not a model onnxruntime can load" in err
+    assert "Traceback" not in err
+
+
 def test_a_hardware_stage_also_trains_on_scenes_with_orchard_hardware(tmp_path):
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
@@ -273,6 +284,10 @@ def test_a_hardware_stage_also_trains_on_scenes_with_orchard_hardware(tmp_path):
         training_config(None, ["hardware_seeds=[2, 5]", "val_seeds=[3, 4]", "train_seeds=[10, 20]"])
     with pytest.raises(ValueError, match="hardware_seeds must be"):
         training_config(None, ["hardware_seeds=[5, 5]"])
+    with pytest.raises(ValueError, match="hardware_seeds overlap the calibration scenes 2861–3100"):
+        training_config(None, ["hardware_seeds=[3001, 3601]"])  # the calibration scenes' second half
+    with pytest.raises(ValueError, match="train_seeds overlap the calibration scenes"):
+        training_config(None, ["train_seeds=[2840, 2900]"])
 
 
 def test_isotonic_calibration_is_monotone_and_honest():

@@ -111,39 +111,49 @@ def training_config(config_file: Path | None, overrides: list[str], stage: int |
 
 
 def run(args: argparse.Namespace) -> int:
-    """Train (unless --calibrate-only), calibrate and report the final validation IoU."""
+    """Check the arguments, then train (unless --calibrate-only), calibrate and report the final validation IoU;
+    a model file that cannot be run (`OnnxSegmenterError`) is an error message and exit 2, not a traceback."""
+    from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
+
+    model = args.out / "branchnet.onnx"
+    if args.workers < 1:
+        return _refuse(f"--workers {args.workers}: at least 1")
+    if args.calibrate_only and args.no_calibrate:
+        return _refuse("--calibrate-only and --no-calibrate exclude each other")
+    if args.calibrate_only and not model.is_file():
+        return _refuse(f"{model} does not exist (train first)")
+    try:
+        return _train_and_calibrate(args, model)
+    except OnnxSegmenterError as exc:
+        return _refuse(str(exc))
+
+
+def _refuse(message: str) -> int:
+    """Print `message` as the command's error and return its exit status, 2."""
+    print(f"branchrange train-segmenter: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
+    """`run` once the arguments are checked: train `model` (unless --calibrate-only), calibrate it (unless
+    --no-calibrate) in --workers processes, and the int8 copy with --int8."""
     from branchrange.core.segmentation.branchnet_calibration import calibrate_model
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
     def log(line: str) -> None:
         print(line, flush=True)
 
-    model = args.out / "branchnet.onnx"
-
     def calibrate(path: Path) -> None:
         calibrate_model(path, cache=args.data / "calibration", log=log, workers=args.workers)
 
-    if args.workers < 1:
-        print(f"branchrange train-segmenter: error: --workers {args.workers}: at least 1", file=sys.stderr)
-        return 2
-    if args.calibrate_only and args.no_calibrate:
-        print(
-            "branchrange train-segmenter: error: --calibrate-only and --no-calibrate exclude each other",
-            file=sys.stderr,
-        )
-        return 2
     if args.calibrate_only:
-        if not model.is_file():
-            print(f"branchrange train-segmenter: error: {model} does not exist (train first)", file=sys.stderr)
-            return 2
         calibrate(model)
     else:
         try:
             config = training_config(args.config, args.set, args.stage)
             meta = train_branchnet(config, args.out, args.data, log=log)
         except (ValueError, TypeError) as exc:
-            print(f"branchrange train-segmenter: error: {exc}", file=sys.stderr)
-            return 2
+            return _refuse(str(exc))
         if not args.no_calibrate:
             calibrate(model)
         final = meta["final"]

@@ -29,6 +29,7 @@ import torch
 from torch.nn import functional as F
 
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
+from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample
 
 
@@ -37,7 +38,8 @@ class BranchNetTrainConfig:
     """How `BranchNet` is trained (seeds are `stereo.synth` scene seeds).
 
     - `train_seeds`, `val_seeds`: [first, last) scene seeds for training and validation; both below
-      `TRAIN_SEED_LIMIT`, disjoint.
+      `TRAIN_SEED_LIMIT`, disjoint, and the seeds trained on apart from the calibration's
+      (`branchnet_calibration.CALIBRATION_SEEDS`).
     - `steps`, `batch`, `crop`: optimiser steps, crops per step, crop side in px.
     - `lr`, `weight_decay`: AdamW with a cosine decay to 2 % of `lr`.
     - `class_weights`: cross-entropy weights of background, trunk, branch (branch pixels are ~1 %).
@@ -82,10 +84,15 @@ class BranchNetTrainConfig:
             first, last = getattr(self, name)
             if not 0 < first < last <= TRAIN_SEED_LIMIT:
                 raise ValueError(f"{name} must be [first, last) with 0 < first < last ≤ {TRAIN_SEED_LIMIT}")
-        for name in drawn_from:  # validation scenes are never trained on
+        for name in drawn_from:  # validation and calibration scenes are never trained on
             first, last = getattr(self, name)
             if max(first, self.val_seeds[0]) < min(last, self.val_seeds[1]):
                 raise ValueError(f"{name} and val_seeds overlap")
+            if max(first, CALIBRATION_SEEDS[0]) < min(last, CALIBRATION_SEEDS[1]):
+                raise ValueError(
+                    f"{name} overlap the calibration scenes {CALIBRATION_SEEDS[0]}–{CALIBRATION_SEEDS[1] - 1} "
+                    "(a confidence measured on scenes trained on would be optimistic)"
+                )
         if self.steps < 1 or self.batch < 1 or self.crop % 16 or self.crop < 64:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
         if not 0 <= self.fine_width <= 64:
