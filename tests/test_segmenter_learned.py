@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -258,6 +259,13 @@ def test_train_segmenter_calibrates_in_the_workers_it_is_given_and_refuses_none(
     assert main([*argv, "--workers", "3"]) == 0 and calls == [(tmp_path / "branchnet.onnx", 3)]
     assert main([*argv, "--workers", "0"]) == 2 and len(calls) == 1
     assert "--workers 0: at least 1" in capsys.readouterr().err
+    # the default: one process per core this process may run on (a container's cpuset), else per core
+    from branchrange.commands import train_segmenter
+
+    assert train_segmenter.usable_cores() == len(os.sched_getaffinity(0))
+    monkeypatch.delattr(os, "sched_getaffinity")
+    monkeypatch.setattr(os, "cpu_count", lambda: 6)
+    assert train_segmenter.usable_cores() == 6
 
 
 def test_calibrating_a_damaged_model_in_two_processes_is_an_error_message_not_a_traceback(tmp_path, capsys):

@@ -66,8 +66,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--workers",
         type=int,
-        default=os.cpu_count() or 1,
-        help="processes the confidence calibration measures its scenes in (default: one per core)",
+        default=usable_cores(),
+        help="processes the confidence calibration measures its scenes in (default: one per core it may use)",
     )
     p.add_argument(
         "--no-calibrate",
@@ -75,6 +75,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train only, no confidence calibration: for a stage whose model only starts the next one (~5 min saved)",
     )
     p.set_defaults(func=run)
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, as a container's cpuset limits it), else all."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity else os.cpu_count() or 1
 
 
 def training_config(config_file: Path | None, overrides: list[str], stage: int | None = None):
