@@ -72,7 +72,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--no-calibrate",
         action="store_true",
-        help="train only, no confidence calibration: for a stage whose model only starts the next one (~5 min saved)",
+        help="train only, no confidence calibration: for a stage whose model only starts the next (~6–10 min saved)",
     )
     p.set_defaults(func=run)
 

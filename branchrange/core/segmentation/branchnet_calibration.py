@@ -80,15 +80,14 @@ def raw_outcomes(
         scene = evaluation_scene(seed, cache)
         f, baseline, cx, cy = (float(v) for v in scene["camera"])
         truth = [t["cut_point_m"] for t in scene["truth"]]
+        pipelines = {  # untracked: each frame is measured on its own; one per setting for the scene's camera
+            setting: Pipeline(
+                untracked_whole_frame(), focal_px=f, baseline_m=baseline, principal_point=(cx, cy), segmenter=segmenter
+            )
+            for setting, segmenter in segmenters.items()
+        }
         for lit in [scene, *(scene_in_light(scene, seed, change, cache) for change in light_changes)]:
-            for setting, segmenter in segmenters.items():
-                pipeline = Pipeline(
-                    untracked_whole_frame(),
-                    focal_px=f,
-                    baseline_m=baseline,
-                    principal_point=(cx, cy),
-                    segmenter=segmenter,
-                )
+            for setting, pipeline in pipelines.items():
                 result = pipeline.process_disparity(
                     lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
                 )
