@@ -211,7 +211,8 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     )
     lines: list[str] = []
     meta = train_branchnet(config, tmp_path / "run", tmp_path / "data", log=lines.append)
-    assert len(lines) == 2 and "iou_branch" in lines[0]  # one line per validation
+    assert lines[0] == f"rendered 3 scenes into {tmp_path / 'data'} (1 processes)"
+    assert len(lines) == 3 and "iou_branch" in lines[1]  # then one line per validation
     assert sorted(p.name for p in (tmp_path / "data").iterdir()) == [f"sample_{s:06d}.npz" for s in (1, 2, 3)]
     for name in ("branchnet.onnx", "branchnet.json", "metrics.csv", "training_curve.png", "branchnet.pt"):
         assert (tmp_path / "run" / name).is_file()
@@ -223,8 +224,29 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     # the same config on the same cached scenes trains the same weights (what the shipped JSON promises)
     again = train_branchnet(config, tmp_path / "again", tmp_path / "data", log=lines.append)
     assert again["onnx_sha256"] == meta["onnx_sha256"]
+    assert len(lines) == 5  # the scenes were cached: nothing rendered again
     first, second = (torch.load(tmp_path / d / "branchnet.pt") for d in ("run", "again"))
     assert all(torch.equal(first[k], second[k]) for k in first)
+
+
+def test_training_scenes_rendered_in_two_processes_are_the_ones_one_process_renders(tmp_path):
+    from branchrange.core.segmentation.branchnet_data import render_samples, sample_path
+
+    seeds = [(11, False), (12, False), (13, True)]
+    assert render_samples(tmp_path / "two", seeds, workers=2) == 3
+    assert render_samples(tmp_path / "one", seeds[:2], workers=1) == 2
+    assert render_samples(tmp_path / "one", seeds, workers=1) == 1  # only the one not cached yet
+    assert render_samples(tmp_path / "two", seeds, workers=2) == 0
+    for seed, hardware in seeds:
+        with np.load(sample_path(tmp_path / "one", seed, hardware)) as one:
+            with np.load(sample_path(tmp_path / "two", seed, hardware)) as two:
+                assert sorted(one.files) == sorted(two.files) == ["classes", "disparity", "instances", "left"]
+                assert all(np.array_equal(one[key], two[key]) for key in one.files)
+    assert sorted(p.name for p in (tmp_path / "two").iterdir()) == [
+        "sample_000011.npz",
+        "sample_000012.npz",
+        "sample_hw_000013.npz",
+    ]  # no partial files left behind
 
 
 def test_a_stage_trained_with_no_calibrate_writes_its_model_without_calibrating(tmp_path, monkeypatch, capsys):

@@ -67,7 +67,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--workers",
         type=int,
         default=usable_cores(),
-        help="processes the confidence calibration measures its scenes in (default: one per core it may use)",
+        help="processes the training scenes are rendered in and the confidence calibration measures its scenes in "
+        "(default: one per core it may use)",
     )
     p.add_argument(
         "--no-calibrate",
@@ -157,7 +158,7 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
     else:
         try:
             config = training_config(args.config, args.set, args.stage)
-            meta = train_branchnet(config, args.out, args.data, log=log)
+            meta = train_branchnet(config, args.out, args.data, log=log, workers=args.workers)
         except (ValueError, TypeError) as exc:
             return _refuse(str(exc))
         if not args.no_calibrate:

@@ -19,12 +19,9 @@ and the highest that keeps ≥ 98 % of the right ones (an obstacle's minimum).
 from __future__ import annotations
 
 import json
-import multiprocessing
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from branchrange.core.confidence import (
@@ -34,7 +31,7 @@ from branchrange.core.confidence import (
     highest_inclusive_threshold,
     lowest_reliable_threshold,
 )
-from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
+from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light, spawned_pool
 from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
 
 #: 240 scenes: fitted on either half, the default's ≥ 90 %-right threshold reads 0.65 or 0.76 (0.70 on all; one look
@@ -122,8 +119,7 @@ def outcomes_in_workers(
     ranges = seed_ranges(seeds, workers)
     if len(ranges) == 1:
         return raw_outcomes(model, seeds, cache, settings, light_changes)
-    context = multiprocessing.get_context("spawn")  # no fork of a process that holds onnxruntime's threads
-    with ProcessPoolExecutor(len(ranges), mp_context=context, initializer=_one_opencv_thread) as pool:
+    with spawned_pool(len(ranges)) as pool:
         futures = [pool.submit(raw_outcomes, model, r, cache, settings, light_changes) for r in ranges]
         parts = [future.result() for future in futures]
     joined: dict[tuple[int, int], OutcomesByLight] = {(width, band): {} for width, band in settings}
@@ -132,11 +128,6 @@ def outcomes_in_workers(
             for light, outcomes in by_light.items():
                 joined[setting].setdefault(light, []).extend(outcomes)
     return joined
-
-
-def _one_opencv_thread() -> None:
-    """A worker's OpenCV runs on one thread: the workers share the cores."""
-    cv2.setNumThreads(1)
 
 
 def calibrate_model(

@@ -30,7 +30,7 @@ from torch.nn import functional as F
 
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
 from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
-from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample
+from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample, render_samples
 
 
 @dataclass(frozen=True)
@@ -225,8 +225,9 @@ def export_onnx(model: BranchNet, path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path, log=print) -> dict:
-    """Train, validate and export (see the module docstring); returns the metadata written to `branchnet.json`."""
+def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path, log=print, workers: int = 1) -> dict:
+    """Train, validate and export (see the module docstring); returns the metadata written to `branchnet.json`.
+    The scenes not yet in `data_dir` are rendered first, in `workers` processes (`render_samples`)."""
     from stereo.io import write_rgb
     from stereo.training.curves import plot_panel
 
@@ -238,6 +239,9 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     train_seeds = [(s, False) for s in range(*config.train_seeds)]
     train_seeds += [(s, True) for s in range(*config.hardware_seeds)]
+    rendered = render_samples(data_dir, [*train_seeds, *((s, False) for s in range(*config.val_seeds))], workers)
+    if rendered:
+        log(f"rendered {rendered} scenes into {data_dir} ({workers} processes)")
     validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
     model = BranchNet(config.width, config.fine_width)
     init_sha256 = None
