@@ -75,6 +75,7 @@ from branchrange.core.confidence import (
 from branchrange.core.config import load_config, pipeline_config
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import Branch, FrameResult
+from branchrange.core.masks import BranchMasks
 from branchrange.core.pipeline import (
     Pipeline,
     PipelineConfig,
@@ -82,6 +83,7 @@ from branchrange.core.pipeline import (
     untracked_whole_frame,
     with_exact_disparity,
 )
+from branchrange.core.segmentation.branchnet import CLASSES
 from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
@@ -359,13 +361,118 @@ def run_synthetic(
     return out
 
 
-def polygon_hits(annotations: dict, pixel: tuple[float, float]) -> str:
-    """'branch', 'not_branch' or 'unlabelled' for a left-image pixel (x, y)."""
-    for region in annotations["regions"]:
+def polygon_at(annotations: dict, pixel: tuple[float, float]) -> int | None:
+    """Index of the annotated region holding a left-image pixel (x, y); None when it lies in none (regions never
+    overlap, `../shared/data/trees/README.md`)."""
+    for index, region in enumerate(annotations["regions"]):
         contour = np.asarray(region["polygon"], dtype=np.float32).reshape(-1, 1, 2)
         if cv2.pointPolygonTest(contour, (float(pixel[0]), float(pixel[1])), False) >= 0:
-            return region["label"]
-    return "unlabelled"
+            return index
+    return None
+
+
+def polygon_hits(annotations: dict, pixel: tuple[float, float]) -> str:
+    """'branch', 'not_branch' or 'unlabelled' for a left-image pixel (x, y)."""
+    index = polygon_at(annotations, pixel)
+    return "unlabelled" if index is None else annotations["regions"][index]["label"]
+
+
+def real_pair_scores(annotations: dict, branches: Sequence[Branch], target_min_confidence: float) -> dict:
+    """A result's cut points on a hand-labelled real pair (`../shared/data/trees/README.md`, "How to score"):
+    how many lie on branch polygons, on not-branch ones and on none, the issue's precision, and — because a
+    pruner reads them differently — how many of those on branch polygons lie on a trunk (a main stem: the
+    issue's precision counts them, a robot must not cut there), how many of the branches holding the
+    annotation's cut candidates got a cut point, and the counts among the cut points at or above
+    `target_min_confidence` (what a robot would act on)."""
+    regions = annotations["regions"]
+    at = [polygon_at(annotations, b.pixel) for b in branches]
+    hits = ["unlabelled" if i is None else regions[i]["label"] for i in at]
+    labelled = [h for h in hits if h != "unlabelled"]
+    on_branch = hits.count("branch")
+    candidates = {c["region"] for c in annotations.get("cut_candidates", [])}
+    return {
+        "cut_points": len(hits),
+        "on_branch": on_branch,
+        "on_trunk": sum(
+            i is not None and regions[i]["label"] == "branch" and regions[i]["kind"] == "trunk" for i in at
+        ),
+        "on_not_branch": len(labelled) - on_branch,
+        "unlabelled": len(hits) - len(labelled),
+        "precision": on_branch / len(labelled) if labelled else None,
+        "candidate_branches": len(candidates),
+        "candidate_branches_reached": len(candidates & set(at)),
+        "acted_on": {
+            label: sum(h == label for h, b in zip(hits, branches) if b.confidence >= target_min_confidence)
+            for label in ("branch", "not_branch", "unlabelled")
+        },
+    }
+
+
+#: the learned network's class indices (`CLASSES`)
+TRUNK_CLASS, BRANCH_CLASS = CLASSES.index("trunk"), CLASSES.index("branch")
+
+
+def network_classes(pipeline: Pipeline) -> np.ndarray | None:
+    """`H×W` arg-max class (`CLASSES` index) of the learned network on the pipeline's last frame, as the
+    segmenter saw it (its looks, at its width); None for other segmenters."""
+    segmenter, last = pipeline.segmenter, pipeline.last
+    if not isinstance(segmenter, LearnedSegmenter) or last is None:
+        return None
+    return segmenter.logits(last.left, last.disparity).argmax(axis=0)
+
+
+def region_pixels(
+    annotations: dict, masks: BranchMasks, disparity: np.ndarray, network_classes: np.ndarray | None
+) -> list[dict]:
+    """Per annotated region: its label, kind, pixel count, median valid disparity (px: how near it is against
+    the other regions — the pairs have no calibration), the shares of its pixels the segmenter's final masks
+    give to a branch instance ("as_branch") and to the trunk ("as_trunk"), and, given the learned network's
+    arg-max classes (`CLASSES` indices, `H×W`), the shares it called branch and trunk before the instance step
+    ("network_branch", "network_trunk"): whether a stem was not seen, or seen and then dropped."""
+    height, width = masks.labels.shape
+    trunk = masks.labels == masks.trunk_id if masks.trunk_id is not None else np.zeros((height, width), bool)
+    branch = (masks.labels > 0) & ~trunk
+    out = []
+    for index, region in enumerate(annotations["regions"]):
+        inside = np.zeros((height, width), np.uint8)
+        # vertices at 1/16 px (`shift` 4); the annotations' origin is the top-left pixel's centre, as OpenCV's
+        points = np.round(np.asarray(region["polygon"], dtype=np.float64) * 16).astype(np.int32)
+        cv2.fillPoly(inside, [points], 1, lineType=cv2.LINE_8, shift=4)
+        pixels = inside.astype(bool)
+        count = max(1, int(np.count_nonzero(pixels)))
+        valid = disparity[pixels & (disparity > 0)]
+        row = {
+            "region": index,
+            "label": region["label"],
+            "kind": region["kind"],
+            "pixels": int(np.count_nonzero(pixels)),
+            "median_disparity_px": round(float(np.median(valid)), 1) if valid.size else None,
+            "as_branch": np.count_nonzero(pixels & branch) / count,
+            "as_trunk": np.count_nonzero(pixels & trunk) / count,
+        }
+        if network_classes is not None:
+            row["network_branch"] = np.count_nonzero(pixels & (network_classes == BRANCH_CLASS)) / count
+            row["network_trunk"] = np.count_nonzero(pixels & (network_classes == TRUNK_CLASS)) / count
+        out.append(row)
+    return out
+
+
+def shares_by_kind(regions: list[dict]) -> dict[str, dict[str, float]]:
+    """`region_pixels` rows pooled by kind of region, each share weighted by the region's pixels."""
+    pooled: dict[str, dict[str, float]] = {}
+    for row in regions:
+        kind = pooled.setdefault(row["kind"], {"pixels": 0})
+        kind["pixels"] += row["pixels"]
+        for key in ("as_branch", "as_trunk", "network_branch", "network_trunk"):
+            if key in row:
+                kind[key] = kind.get(key, 0.0) + row[key] * row["pixels"]
+    return {
+        kind: {
+            key: (value if key == "pixels" else round(value / max(1, totals["pixels"]), 3))
+            for key, value in totals.items()
+        }
+        for kind, totals in pooled.items()
+    }
 
 
 def draw_overlay(
@@ -408,25 +515,19 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
                 config, focal_px=REAL_FOCAL_PX, baseline_m=REAL_BASELINE_M, segmenter=benchmark_segmenter(name)
             )
             result = pipeline.process(left, right)
-            hits = [polygon_hits(annotations, b.pixel) for b in result.branches]
-            labelled = [h for h in hits if h != "unlabelled"]
-            on_branch = sum(h == "branch" for h in hits)
+            masks = pipeline.last.masks
+            regions = (
+                None
+                if masks is None
+                else region_pixels(annotations, masks, pipeline.last.disparity, network_classes(pipeline))
+            )
             out[f"{folder.name}/{name}"] = {
-                "cut_points": len(hits),
-                "on_branch": on_branch,
-                "on_not_branch": len(labelled) - on_branch,
-                "unlabelled": len(hits) - len(labelled),
-                "precision": on_branch / len(labelled) if labelled else None,
-                "acted_on": {  # the cut points at or above the target threshold: what a robot would cut
-                    label: sum(
-                        h == label for h, b in zip(hits, result.branches) if b.confidence >= needed_for_target(pipeline)
-                    )
-                    for label in ("branch", "not_branch", "unlabelled")
-                },
+                **real_pair_scores(annotations, result.branches, needed_for_target(pipeline)),
+                "pixels_by_kind": None if regions is None else shares_by_kind(regions),
+                "pixels_by_region": regions,
                 "ms_segmenter": result.timing_ms["masks"],
             }
             if overlays is not None:
-                masks = pipeline.last.masks
                 draw_overlay(
                     overlays / f"{folder.name}_{name.replace('/', '_band')}.png",
                     left,
@@ -493,15 +594,27 @@ def print_tables(synthetic: dict, real: dict) -> None:
         )
     if real:
         print(
-            f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'not br.':>7} {'unlab.':>6} "
-            f"{'precision':>9} {'ms':>6}   at confidence ≥ {TARGET_MIN_CONFIDENCE}: branch, not br., unlab."
+            f"\n{'real pair/segmenter':<28} {'cuts':>5} {'branch':>6} {'(trunk)':>7} {'not br.':>7} {'unlab.':>6} "
+            f"{'precision':>9} {'cand.':>5} {'ms':>6}   at its target confidence: branch, not br., unlab."
         )
         for key, r in real.items():
             print(
-                f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_not_branch']:>7} {r['unlabelled']:>6} "
-                f"{'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} {r['ms_segmenter']:>6.0f}   "
+                f"{key:<28} {r['cut_points']:>5} {r['on_branch']:>6} {r['on_trunk']:>7} {r['on_not_branch']:>7} "
+                f"{r['unlabelled']:>6} {'-' if r['precision'] is None else format(r['precision'], '.2f'):>9} "
+                f"{r['candidate_branches_reached']:>2}/{r['candidate_branches']:<2} {r['ms_segmenter']:>6.0f}   "
                 f"{r['acted_on']['branch']:>6} {r['acted_on']['not_branch']:>7} {r['acted_on']['unlabelled']:>6}"
             )
+        print(
+            "\nshare of each kind of annotated region's pixels in a branch instance / the trunk "
+            "(in brackets the learned network's arg-max before the instance step: branch / trunk)"
+        )
+        for key, r in real.items():
+            cells = "  ".join(
+                f"{kind}: {c['as_branch']:>4.0%} / {c['as_trunk']:>4.0%}"
+                + (f" ({c['network_branch']:>4.0%} / {c['network_trunk']:>4.0%})" if "network_branch" in c else "")
+                for kind, c in (r["pixels_by_kind"] or {}).items()
+            )
+            print(f"{key:<28} {cells}")
 
 
 def main(argv: list[str] | None = None) -> int:
