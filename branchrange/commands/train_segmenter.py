@@ -1,17 +1,18 @@
 """`branchrange train-segmenter --out DIR`: train the learned segmenter (`BranchNet`) on CPU from synthetic scenes.
 
-Renders the scenes it needs into --data (cached: a second run, or a resumed one, renders nothing),
-trains, validates on scenes kept apart, measures how often its cut points are right to calibrate their
-confidence (scenes 2861–3100, SGBM, per `branchnet_calibration.CALIBRATION_SETTINGS`: at 640 px with and
-without the second look at the trunk band, and at 1280 px), and writes to
---out: branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
+Renders the scenes it needs into --data first, in --workers processes (cached: a second run, or a resumed
+one, renders nothing), trains, validates on scenes kept apart, measures how often its cut points are right
+to calibrate their confidence (scenes 2861–3100, SGBM, per `branchnet_calibration.CALIBRATION_SETTINGS`: at
+640 px with and without the second look at the trunk band, and at 1280 px), and writes to --out:
+branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
 "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256, validation IoU, confidence
 calibrations), metrics.csv, training_curve.png and branchnet.pt (the torch
 weights). --calibrate-only re-measures the calibration of the model already in --out; --int8 also writes
 branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchnet_quantize`).
 
 Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
-the full-resolution feature branch; the first two need no calibration, `--no-calibrate`):
+the full-resolution feature branch; the first two need no calibration, `--no-calibrate`; 103 min on 2 cores
+from nothing cached, bit for bit the shipped files: `benchmarks/segmenter_recipe.py` runs and checks them):
     branchrange train-segmenter --out runs/branchnet-stage1 --stage 1 --no-calibrate \\
         --config branchrange/core/segmentation/weights/branchnet.json
     branchrange train-segmenter --out runs/branchnet-stage2 --stage 2 --no-calibrate \\

@@ -241,7 +241,7 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     train_seeds += [(s, True) for s in range(*config.hardware_seeds)]
     rendered = render_samples(data_dir, [*train_seeds, *((s, False) for s in range(*config.val_seeds))], workers)
     if rendered:
-        log(f"rendered {rendered} scenes into {data_dir} ({workers} processes)")
+        log(f"rendered {rendered} scenes into {data_dir} ({workers} process{'es' if workers > 1 else ''})")
     validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
     model = BranchNet(config.width, config.fine_width)
     init_sha256 = None
