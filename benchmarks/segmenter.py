@@ -44,7 +44,9 @@ neither is paired with 'sgbm').
 Real part: `../shared/data/trees/*` (rectified pairs, hand polygons of branch / not-branch), sgbm
 with the disparity range the README there gives, a nominal camera (f 700 px, B 0.06 m) since no
 calibration exists: precision = cut points inside a branch polygon / cut points inside any
-polygon; overlays (polygons, instances, cut points) are written to --overlays.
+polygon; also how many of those lie on a trunk polygon (a main stem, which a pruner must not cut), how many of
+the branches holding the annotation's cut candidates got one, and per annotated region where its pixels went
+(`region_pixels`); overlays (polygons, instances, cut points) are written to --overlays.
 
     python benchmarks/segmenter.py [--scenes 240] [--segmenters learned learned@1280 learned-int8 structure]
                                    [--light dusk ...] [--hd720] [--json out.json]
@@ -413,8 +415,10 @@ TRUNK_CLASS, BRANCH_CLASS = CLASSES.index("trunk"), CLASSES.index("branch")
 
 
 def network_classes(pipeline: Pipeline) -> np.ndarray | None:
-    """`H×W` arg-max class (`CLASSES` index) of the learned network on the pipeline's last frame, as the
-    segmenter saw it (its looks, at its width); None for other segmenters."""
+    """`H×W` arg-max class (`CLASSES` index) of the learned network on the pipeline's last frame, with the
+    segmenter's looks at its width; None for other segmenters. The disparity is the frame's final one: where
+    `[stereo] refine_branches` refined the branch instances' own pixels, the network's input differs there
+    from the one it segmented (a diagnostic, not the segmentation itself)."""
     segmenter, last = pipeline.segmenter, pipeline.last
     if not isinstance(segmenter, LearnedSegmenter) or last is None:
         return None
