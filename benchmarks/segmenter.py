@@ -443,13 +443,14 @@ def region_pixels(
         points = np.round(np.asarray(region["polygon"], dtype=np.float64) * 16).astype(np.int32)
         cv2.fillPoly(inside, [points], 1, lineType=cv2.LINE_8, shift=4)
         pixels = inside.astype(bool)
-        count = max(1, int(np.count_nonzero(pixels)))
+        size = int(np.count_nonzero(pixels))
+        count = max(1, size)  # the divisor of the shares: a polygon thinner than a pixel has none
         valid = disparity[pixels & (disparity > 0)]
         row = {
             "region": index,
             "label": region["label"],
             "kind": region["kind"],
-            "pixels": int(np.count_nonzero(pixels)),
+            "pixels": size,
             "median_disparity_px": round(float(np.median(valid)), 1) if valid.size else None,
             "as_branch": np.count_nonzero(pixels & branch) / count,
             "as_trunk": np.count_nonzero(pixels & trunk) / count,

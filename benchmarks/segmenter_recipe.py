@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
+import functools
 import json
 import shutil
 import subprocess
@@ -31,6 +31,8 @@ CURVES = ROOT / "benchmarks" / "branchnet_training"
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from segmenter import cpu_name  # noqa: E402 - the benchmarks folder is not a package
+
+from stereo.weights import sha256_of  # noqa: E402
 
 #: how a stage's log lines start (`train-segmenter`): after rendering the scenes it lacked, at each validation,
 #: and after writing a model (the fp32 one once calibrated, then the int8 copy)
@@ -86,11 +88,6 @@ def run_timed(name: str, argv: list[str], log) -> dict[str, float]:
     return times
 
 
-def sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def curve_without_seconds(path: Path) -> list[dict[str, str]]:
     """The rows of a metrics.csv without the "seconds" column (wall time differs between runs)."""
     with path.open(newline="") as handle:
@@ -110,9 +107,11 @@ def checks(stages: list[tuple[str, list[str], Path]]) -> dict[str, bool]:
         for k, (name, _, folder) in enumerate(stages, 1)
     }
     if len(stages) > 1:
-        result["weights the last stage starts from"] = sha256(stages[-2][2] / "branchnet.pt") == shipped["init_sha256"]
-    result["branchnet.onnx"] = sha256(out / "branchnet.onnx") == shipped["onnx_sha256"]
-    result["branchnet_int8.onnx"] = sha256(out / "branchnet_int8.onnx") == shipped_int8["onnx_sha256"]
+        result["weights the last stage starts from"] = (
+            sha256_of(stages[-2][2] / "branchnet.pt") == shipped["init_sha256"]
+        )
+    result["branchnet.onnx"] = sha256_of(out / "branchnet.onnx") == shipped["onnx_sha256"]
+    result["branchnet_int8.onnx"] = sha256_of(out / "branchnet_int8.onnx") == shipped_int8["onnx_sha256"]
     result["confidence tables (fp32)"] = made["confidence_calibrations"] == shipped["confidence_calibrations"]
     result["confidence tables (int8)"] = made_int8["confidence_calibrations"] == shipped_int8["confidence_calibrations"]
     return result
@@ -135,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"{folder} exists: move it away first (the recipe writes there)")
     shutil.rmtree(args.data, ignore_errors=True)
     started = time.strftime("%Y-%m-%d %H:%M:%S")
-    parts = {name: run_timed(name, command, print) for name, command, _ in stages}
+    echo = functools.partial(print, flush=True)  # the stages' lines as they come, also into a file
+    parts = {name: run_timed(name, command, echo) for name, command, _ in stages}
     verdicts = checks(stages)
     total = sum(p["wall_s"] for p in parts.values())
     print(f"\nsegmenter recipe on {cpu_name()}, started {started}")
