@@ -2,8 +2,8 @@
 
 Runs the stages of `branchrange/core/segmentation/weights/branchnet.json` ("stages") as README gives them
 (`branchrange train-segmenter --stage K`; every stage but the last with `--no-calibrate`, the last with
-`--int8`), from nothing cached: the scenes are rendered into a fresh `--data` folder, so the wall time is what
-a new machine spends. Prints each part's wall time (rendering, each stage's training, the calibrations and the
+`--int8`), from nothing cached: the scenes are rendered into a new or empty `--data` folder, so the wall time
+is what a new machine spends. Prints each part's wall time (rendering, each stage's training, the calibrations and the
 int8 copy) and whether what it wrote is the shipped model: each stage's validation curve (metrics.csv without
 its seconds) against `benchmarks/branchnet_training/stageK/metrics.csv`, the weights the last stage starts from
 against the shipped "init_sha256", the ONNX files' SHA-256 and the confidence tables against the shipped JSON.
@@ -19,7 +19,6 @@ import argparse
 import csv
 import functools
 import json
-import shutil
 import subprocess
 import sys
 import time
@@ -123,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         "--data",
         type=Path,
         default=ROOT / "runs" / "recipe-data",
-        help="scene cache for the run; emptied first, so rendering is timed (default runs/recipe-data)",
+        help="scene cache for the run; must be empty or absent, so rendering is timed (default runs/recipe-data)",
     )
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
@@ -132,7 +131,10 @@ def main(argv: list[str] | None = None) -> int:
     for _, _, folder in stages:
         if folder.exists():
             raise SystemExit(f"{folder} exists: move it away first (the recipe writes there)")
-    shutil.rmtree(args.data, ignore_errors=True)
+    if args.data.exists() and any(args.data.iterdir()):  # never delete a cache someone may still want
+        raise SystemExit(
+            f"--data {args.data} is not empty: give an empty or new folder (rendering is part of the time)"
+        )
     started = time.strftime("%Y-%m-%d %H:%M:%S")
     echo = functools.partial(print, flush=True)  # the stages' lines as they come, also into a file
     parts = {name: run_timed(name, command, echo) for name, command, _ in stages}
