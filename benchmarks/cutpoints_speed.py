@@ -19,7 +19,7 @@ on `PYTHONPATH`; the current tree runs in an identical subprocess. Baseline and 
 (ms per frame) with the process's CPU time (median), the speed-up (median over median, of the wall
 clock and of the CPU time: on a loaded machine the CPU time is the steadier) and the largest
 cut-point difference (m)
-between the two on the same frame. Prints the CPU (`lscpu` model name, AVX2 / AVX-512) and the
+between the two on the same frame. Prints the CPU (model, AVX2 / AVX-512, cores; `machine.py`) and the
 load average: the machine may be shared, so read the same-run ratios, not the absolute times.
 
     .venv/bin/python benchmarks/cutpoints_speed.py --repeats 7 --json cutpoints_speed.json
@@ -37,27 +37,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from machine import cpu_description, cpu_name  # a script's own folder is on its import path
+
 ROOT = Path(__file__).resolve().parents[1]
 CASES = ("hd720_3", "hd720_5", "hd720_10", "canvas_1440p_10", "ids_65000", "ids_65000_capped")
 #: The share of the 65,000 ids the baseline runs (its time is scaled by the inverse).
 BASELINE_ID_SHARE = 0.01
-
-
-def cpu_description() -> dict:
-    """`lscpu` model name, whether AVX2 / AVX-512 are present, and the 1-minute load average."""
-    try:
-        lines = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout.splitlines()
-        model = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("Model name")), "unknown")
-    except (OSError, subprocess.CalledProcessError):
-        model = "unknown (no lscpu)"
-    flags = Path("/proc/cpuinfo").read_text(encoding="utf-8") if Path("/proc/cpuinfo").exists() else ""
-    return {
-        "model": model,
-        "cores": os.cpu_count(),
-        "avx2": " avx2" in flags,
-        "avx512": " avx512f" in flags,
-        "load_average_1min": round(os.getloadavg()[0], 2),
-    }
 
 
 def write_frames(folder: Path) -> None:
@@ -186,10 +171,7 @@ def summarise(current: list[dict], baseline: list[dict]) -> dict:
 
 def print_table(rows: dict, cpu: dict, baseline: str) -> None:
     """The table: one line per case."""
-    print(
-        f"CPU: {cpu['model']} ({cpu['cores']} cores, AVX2 {'yes' if cpu['avx2'] else 'no'}, "
-        f"AVX-512 {'yes' if cpu['avx512'] else 'no'}); load average {cpu['load_average_1min']} at the start"
-    )
+    print(f"CPU: {cpu_name()}; load average {cpu['load_average_1min']} at the start")
     print(f"baseline: branchrange at {baseline}; ms per frame: wall clock median (min) | CPU median\n")
     print(f"{'case':<17}{'branches':>9}{'baseline ms':>34}{'current ms':>28}{'speed-up':>14}{'max Δ cut m':>13}  note")
     for case, row in rows.items():

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.segmenter import FIRST_SEED, cpu_name
+from benchmarks.machine import cpu_name
+from benchmarks.segmenter import FIRST_SEED
 from branchrange.core.confidence import cut_point_outcomes, fit_calibration
 from branchrange.core.cutpoints import CutPointConfig, depth_precision_score
 from branchrange.core.geometry import StereoGeometry

@@ -4,6 +4,7 @@ Every configuration runs in its own child process, so that each peak RSS is that
 alone; a float32 matmul timed on the same number of threads, in the same run, is the baseline.
 Prints one table and the full model's efficiency at 384×1248: model GFLOP / latency / matmul rate.
 The `cores` column (CPU time / wall time) shows how much of the requested threads a run really got.
+The table is headed by the CPU (`machine.py`); `--json FILE` also writes every configuration's result.
 
     .venv/bin/python benchmarks/inference.py                      # 256×512 and 384×1248, 1+3 runs
     .venv/bin/python benchmarks/inference.py --sizes 256x512 --repeats 1 --warmup 0   # quick look
@@ -26,9 +27,11 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from machine import cpu_name  # a script's own folder is on its import path
 
 if TYPE_CHECKING:  # imported in the child processes only, so the parent starts without torch
     import torch
@@ -329,6 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         help="comma-separated disparity ranges for the network runners (default 192)",
     )
     parser.add_argument("--matmul-size", type=int, default=2048)
+    parser.add_argument("--json", type=Path, help="also write every configuration's result here")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -338,6 +342,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown or args.repeats < 1 or args.warmup < 0 or args.threads < 1:
         parser.error(f"need known runners {sorted(RUNNERS)} (got {unknown}), repeats ≥ 1, warmup ≥ 0, threads ≥ 1")
 
+    print(f"CPU: {cpu_name()}")
     print(
         f"{'backend':<10} {'size':>9} {'threads':>7} {'max_disp':>8} {'median ms':>10} {'min ms':>9} "
         f"{'network ms':>10} {'cores':>6} {'peak MiB':>9}  rate"
@@ -354,15 +359,25 @@ def main(argv: list[str] | None = None) -> int:
         for c, r in results.items()
         if c.runner in ("emcstereo", "plain") and (c.height, c.width) == EFFICIENCY_SIZE and c.max_disp == 192
     ]
+    efficiencies = {}
     for runner, result in measured:
         latency = statistics.median(result.latencies_s)
-        efficiency = FULL_MODEL_GFLOP_384x1248 / latency / rate
+        efficiency = efficiencies[runner] = FULL_MODEL_GFLOP_384x1248 / latency / rate
         print(
             f"efficiency at 384x1248 ({runner}): {FULL_MODEL_GFLOP_384x1248} GFLOP / {latency:.2f} s / "
             f"{rate:.1f} GFLOP/s (faster matmul, {args.threads} threads) = {efficiency:.1%}"
         )
     if not measured:
         print("\nefficiency: needs emcstereo at 384x1248 with max_disp 192 among the configurations")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        report = {
+            "cpu": cpu_name(),
+            "results": [{"config": asdict(c), "result": asdict(r)} for c, r in results.items()],
+            "baseline_gflops_per_s": rate,
+            "efficiency_384x1248": efficiencies,
+        }
+        args.json.write_text(json.dumps(report, indent=2), encoding="utf-8")
     return 0
 
 

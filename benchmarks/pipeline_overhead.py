@@ -3,9 +3,10 @@
 One synthetic 1280×720 scene (stereo.synth) goes through `branchrange.core.pipeline.Pipeline` with a
 raw ZED calibration (so rectification runs), the emcstereo backend (fast path, random weights)
 and the scene's instance mask; the JSON serialisation of the result is timed too. Prints each
-stage's median milliseconds and `(everything − network) / network`; the target is ≤ 10 %.
+stage's median milliseconds and `(everything − network) / network`; the target is ≤ 10 %. `--json` also
+writes them, with the CPU (`machine.py`) and the settings.
 
-    .venv/bin/python benchmarks/pipeline_overhead.py --repeats 3
+    .venv/bin/python benchmarks/pipeline_overhead.py --repeats 3 [--json out/pipeline_overhead.json]
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import statistics
 import sys
 import time
 from pathlib import Path
+
+from machine import cpu_name  # a script's own folder is on its import path
 
 CALIBRATION = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "calibration" / "zed" / "SN1010.conf"
 
@@ -39,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--json", type=Path, help="also write the medians here")
     args = parser.parse_args(argv)
 
     import torch
@@ -64,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = rows[1:]
     stages = sorted({key for row in rows for key in row})
     medians = {key: statistics.median(row.get(key, 0.0) for row in rows) for key in stages}
+    print(f"CPU: {cpu_name()}; {args.threads} threads, median of {args.repeats} runs after a warm-up")
     for key in stages:
         print(f"{key:<12} {medians[key]:10.1f} ms")
     around = medians["wall"] - medians["network"]
@@ -71,6 +76,16 @@ def main(argv: list[str] | None = None) -> int:
         f"around the network (wall − network, incl. serialisation): {around:.1f} ms = "
         f"{around / medians['network']:.1%} of the network's {medians['network']:.0f} ms"
     )
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        report = {
+            "cpu": cpu_name(),
+            "threads": args.threads,
+            "repeats": args.repeats,
+            "median_ms": medians,
+            "around_network_share": around / medians["network"],
+        }
+        args.json.write_text(json.dumps(report, indent=2), encoding="utf-8")
     return 0
 
 

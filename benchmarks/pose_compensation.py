@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 
 from autopilot_sim import AutopilotSim, approach_flight, body_target_errors, flight_from_camera_poses, fly_frames  # noqa: E402
-from realtime import cpu_name  # noqa: E402
+from machine import cpu_name  # noqa: E402
 
 from branchrange.core.config import MavlinkConfig, TrackingConfig  # noqa: E402
 from branchrange.core.frame_result import FrameResult  # noqa: E402

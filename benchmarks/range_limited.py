@@ -5,20 +5,23 @@ shrinks the cost volume and the 3D work. This prints, per range, the median late
 path at one image size and the accuracy of the given weights on held-out synthetic scenes and on
 the real pairs of ../shared/data/stereo: over all valid pixels (gt < 192: what a shorter range
 gives up) and over the pixels inside the range (gt < 64: what it changes where it can still see).
-The 192 row is the baseline measured in the same run.
+The 192 row is the baseline measured in the same run. `--json` also writes the rows, with the CPU
+(`machine.py`) and the settings.
 
-    python benchmarks/range_limited.py --weights runs/x/best.pth [--scenes 4] [--size 384x1248]
+    python benchmarks/range_limited.py --weights runs/x/best.pth [--scenes 4] [--size 384x1248] [--json F]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from machine import cpu_name  # a script's own folder is on its import path
 
 from stereo.backends import make_backend
 from stereo.datasets.middlebury import MiddleburyDataset
@@ -63,7 +66,7 @@ def score(predictions: list[np.ndarray], pairs, limit: float) -> dict[str, float
     for prediction, (_, _, truth) in zip(predictions, pairs):
         averager.update(prediction, truth)
     mean = averager.mean()
-    return {"epe": mean["epe"], "bad3": mean["bad_3"]}
+    return {"epe": float(mean["epe"]), "bad3": float(mean["bad_3"])}
 
 
 def latency_s(backend, height: int, width: int, repeats: int) -> float:
@@ -89,13 +92,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default="384x1248", help="latency size HxW")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--json", type=Path, help="also write the rows here")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.scene_size.split("x"))
     lat_h, lat_w = (int(v) for v in args.size.split("x"))
     sets = {"synthetic": synthetic_pairs(args.scenes, args.scene_seed, width, height), "real": real_pairs()}
     print(
-        f"weights {args.weights}; {args.threads} threads; latency at {lat_h}×{lat_w}; "
+        f"CPU: {cpu_name()}; weights {args.weights}; {args.threads} threads; latency at {lat_h}×{lat_w}; "
         f"synthetic {args.scenes} scenes {width}×{height}; real {len(sets['real'])} pairs"
     )
     header = f"{'max_disp':>8} {'latency s':>9} {'×192':>6}"
@@ -103,22 +107,29 @@ def main(argv: list[str] | None = None) -> int:
         header += f" | {name} EPE<192 {'Bad3<192':>8} EPE<{WORKING_RANGE} Bad3<{WORKING_RANGE}"
     print(header)
     baseline = None
+    rows: list[dict] = []
     for max_disp in RANGES:
         backend = make_backend("emcstereo", weights=args.weights, max_disp=max_disp)
         seconds = latency_s(backend, lat_h, lat_w, args.repeats)
         baseline = baseline or seconds
         row = f"{max_disp:>8} {seconds:>9.2f} {seconds / baseline:>6.2f}"
-        for pairs in sets.values():
+        rows.append({"max_disp": max_disp, "latency_s": seconds, "latency_vs_192": seconds / baseline})
+        for name, pairs in sets.items():
             if not pairs:
                 row += " |" + " " * 40 + "n/a"
                 continue
             predictions = [backend.compute(left, right).disparity for left, right, _ in pairs]
             everything, working = score(predictions, pairs, 192), score(predictions, pairs, WORKING_RANGE)
+            rows[-1][name] = {"below_192": everything, f"below_{WORKING_RANGE}": working}
             row += (
                 f" | {everything['epe']:>13.3f} {everything['bad3']:>8.3f}"
                 f" {working['epe']:>6.3f} {working['bad3']:>7.3f}"
             )
         print(row, flush=True)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        report = {"cpu": cpu_name(), "settings": vars(args) | {"json": str(args.json)}, "rows": rows}
+        args.json.write_text(json.dumps(report, indent=2), encoding="utf-8")
     return 0
 
 

@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from machine import cpu_name  # a script's own folder is on its import path
 
 if TYPE_CHECKING:
     from branchrange.core.frame_result import FrameResult
@@ -60,22 +61,6 @@ MODES = {  # mode → ([stereo] backend, mode)
     "roi-emcstereo": ("emcstereo", "roi"),
 }
 FALSE_TARGET_M = 0.10
-
-
-def cpu_name() -> str:
-    """CPU model and its widest vector extension, e.g. 'AMD EPYC (AVX2)'."""
-    model, flags = "unknown CPU", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name" and model == "unknown CPU":
-                model = value.strip()
-            elif key.strip() == "flags" and not flags:
-                flags = set(value.split())
-    except OSError:
-        pass
-    vector = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
-    return f"{model} ({vector})"
 
 
 class WithoutMasks:

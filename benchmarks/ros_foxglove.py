@@ -22,7 +22,7 @@ import threading
 import time
 from pathlib import Path
 
-from realtime import cpu_name
+from machine import cpu_name  # a script's own folder is on its import path
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -57,8 +57,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
-import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -67,6 +65,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from machine import cpu_name  # a script's own folder is on its import path
 
 from branchrange.core.confidence import (
     cut_point_outcomes,
@@ -154,21 +153,6 @@ def width_class(instance_mask: np.ndarray, branch_id: int, px_scale: float = 1.0
     k = int(np.searchsorted(WIDTH_BINS_PX, width, side="right")) - 1
     lo, hi = WIDTH_BINS_PX[k], WIDTH_BINS_PX[k + 1]
     return f"≥{lo:g} px" if np.isinf(hi) else f"{lo:g}–{hi:g} px"
-
-
-def cpu_name() -> str:
-    """`lscpu` model name and whether AVX2 / AVX-512 are present."""
-    try:
-        text = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown CPU"
-    model = re.search(r"Model name:\s*(.+)", text)
-    flags = re.search(r"Flags:\s*(.+)", text)
-    flag_set = set(flags.group(1).split()) if flags else set()
-    return (
-        f"{model.group(1).strip() if model else 'unknown'}; AVX2 {'yes' if 'avx2' in flag_set else 'no'}, "
-        f"AVX-512 {'yes' if 'avx512f' in flag_set else 'no'}; {len(__import__('os').sched_getaffinity(0))} cores"
-    )
 
 
 def reliability(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, float, float]]:

@@ -29,7 +29,7 @@ WEIGHTS = ROOT / "branchrange" / "core" / "segmentation" / "weights"
 CURVES = ROOT / "benchmarks" / "branchnet_training"
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from segmenter import cpu_name  # noqa: E402 - the benchmarks folder is not a package
+from machine import cpu_name  # noqa: E402 - the benchmarks folder is not a package
 
 from stereo.weights import sha256_of  # noqa: E402
 

@@ -27,13 +27,13 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
+from machine import cpu_name  # a script's own folder is on its import path
 
 from stereo.backends import SGBMBackend
 from stereo.io import read_middlebury2001_disparity, read_middlebury2001_info, read_pfm, read_rgb
@@ -51,21 +51,6 @@ ROI_BOX = (480, 240, 800, 480)  # 320×240 at the HD720 frame's centre
 ROI_WINDOW = 32
 
 Method = Callable[[np.ndarray, np.ndarray], np.ndarray]
-
-
-def cpu_name() -> str:
-    """`lscpu`'s model name with the AVX2 / AVX-512 flags of /proc/cpuinfo."""
-    try:
-        lines = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout.splitlines()
-        model = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("Model name")), "unknown CPU")
-    except (OSError, subprocess.CalledProcessError):
-        model = "unknown CPU"
-    try:
-        flags = set(Path("/proc/cpuinfo").read_text().split())
-    except OSError:
-        flags = set()
-    extensions = [name for name, flag in (("AVX2", "avx2"), ("AVX-512", "avx512f")) if flag in flags]
-    return f"{model} ({', '.join(extensions) or 'no AVX2'}), {os.cpu_count()} logical cores"
 
 
 def plain_opencv(max_disp: int, grey: bool, min_disp: int = 0) -> Method:

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from realtime import cpu_name  # benchmarks/ is the script's directory, so on sys.path
+from machine import cpu_name  # benchmarks/ is the script's directory, so on sys.path
 
 from stereo.synth import SynthCamera, render_scene
 from stereo.synth.flight import FlightRenderer
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
     rows = measure(width, height, list(range(args.seeds)), args.repeats)
     load_after = os.getloadavg()
-    cpu = f"{cpu_name()}, {os.cpu_count()} logical CPUs"
+    cpu = cpu_name()
     print(f"{args.size}, {cpu}; load average {load_before[0]:.1f} before, {load_after[0]:.1f} after")
     print(f"{'foliage':<8} {'what':<36} {'wall s':>7} {'max s':>7} {'CPU s':>7} {'wall ×':>7} {'CPU ×':>7}")
     for row in rows:

@@ -3,18 +3,21 @@
 Renders a synthetic set, scores the untrained model on held-out scenes, trains with the real
 Trainer for `--steps` steps, scores again, and (with `--selfsup-steps`) fine-tunes the trained
 model self-supervised on the held-out pairs with their ground truth withheld, scoring once more.
-Prints one table row per stage with held-out EPE / D1 / Bad-3 and seconds per iteration.
+Prints one table row per stage with held-out EPE / D1 / Bad-3 and seconds per iteration, under the CPU
+(`machine.py`); `--json` also writes them.
 
-    python benchmarks/train_synthetic.py --steps 100 --selfsup-steps 50 --threads 1
+    python benchmarks/train_synthetic.py --steps 100 --selfsup-steps 50 --threads 1 [--json F]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
 import torch
+from machine import cpu_name  # a script's own folder is on its import path
 
 from stereo import EMCStereo
 from stereo.datasets import SyntheticDataset
@@ -82,6 +85,7 @@ def main() -> None:
     parser.add_argument("--precision", default="fp32")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch's default)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--json", type=Path, help="also write the rows here")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -97,12 +101,19 @@ def main() -> None:
 
     seed_everything(0)
     model = EMCStereo(max_disp=args.max_disp)
+    print(f"CPU: {cpu_name()}")
     print(
         f"device {device}, threads {torch.get_num_threads()}, {args.train_scenes} train / {args.heldout_scenes} "
         f"held-out scenes {args.size[0]}×{args.size[1]}, crop {args.crop[0]}×{args.crop[1]}, max_disp {args.max_disp}"
     )
     print(f"{'stage':<28}{'EPE':>8}{'D1':>8}{'Bad-3':>8}{'s/iter':>8}")
-    print(row("untrained", score(model.to(device)), None), flush=True)
+    rows: list[dict] = []
+
+    def report(stage: str, metrics: dict, seconds_per_step: float | None) -> None:
+        print(row(stage, metrics, seconds_per_step), flush=True)
+        rows.append({"stage": stage, **{k: float(v) for k, v in metrics.items()}, "s_per_step": seconds_per_step})
+
+    report("untrained", score(model.to(device)), None)
     started = time.perf_counter()
     trainer = Trainer(
         recipe(root, args.out / "supervised", args, args.steps, args.lr, len(train_set)),
@@ -114,7 +125,7 @@ def main() -> None:
     )
     result = trainer.fit()
     per_step = (time.perf_counter() - started) / max(1, result.steps)
-    print(row(f"supervised {result.steps} steps", score(model), per_step), flush=True)
+    report(f"supervised {result.steps} steps", score(model), per_step)
     if args.selfsup_steps:
         config = recipe(root, args.out / "selfsup", args, args.selfsup_steps, args.lr / 5, len(held_out))
         config = build_config({**config.to_dict(), "data": {**config.to_dict()["data"], "color_jitter": False}})
@@ -129,7 +140,11 @@ def main() -> None:
             show_progress=False,
         ).fit()
         per_step = (time.perf_counter() - started) / max(1, ss.steps)
-        print(row(f"+ self-supervised {ss.steps} steps", score(model), per_step), flush=True)
+        report(f"+ self-supervised {ss.steps} steps", score(model), per_step)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+        args.json.write_text(json.dumps({"cpu": cpu_name(), "settings": settings, "rows": rows}, indent=2))
 
 
 if __name__ == "__main__":
