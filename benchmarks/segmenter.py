@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from collections.abc import Sequence
@@ -112,31 +113,34 @@ BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0001)
 CONFIDENCE_FLOORS = (0.3, 0.5, 0.72, 0.8)
 #: `piece_disparity_ratio` of the '+depth' variants: the best on the calibration scenes (benchmarks/RESULTS.md)
 DEPTH_PIECES_RATIO = 0.04
+#: the names of the learned segmenter's variants (`benchmark_segmenter`)
+LEARNED_VARIANT = re.compile(
+    r"learned(?P<int8>-int8)?(?:@(?P<width>\d+))?(?:/(?P<band>\d+))?(?P<depth>\+depth)?(?P<normal>~normal)?"
+)
 #: branch width classes (px in the 640×360 image) of the recall-by-width table
 WIDTH_BINS_PX = (0.0, 3.0, 5.0, 8.0, np.inf)
 
 
 def benchmark_segmenter(name: str) -> Segmenter:
-    """`make_segmenter(name)`, and the learned segmenter's variants: 'learned-int8' (its shipped int8 model),
-    a network width after '@' (e.g. 'learned@1280'; `network_width`), a trunk band after '/' (e.g.
-    'learned/0': one look; `trunk_band_px`), then '+depth' for straight pieces that follow the disparity
-    (`piece_disparity_ratio` = `DEPTH_PIECES_RATIO`) and a final '~normal' for every frame read through the
-    normal-light calibration (`light_calibration` off). Without a '/', the default band at the frame's own
-    width and none at another width (a second look at twice 1280 is not a setting anyone runs)."""
-    setting, one_calibration, _ = name.partition("~normal")
-    setting, by_depth, _ = setting.partition("+depth")
-    rest, _, band = setting.partition("/")
-    base, _, width = rest.partition("@")
-    if base not in ("learned", "learned-int8") or name == "learned":
+    """`make_segmenter(name)`, and the learned segmenter's variants (`LEARNED_VARIANT`, parts in this order):
+    'learned-int8' (its shipped int8 model), a network width after '@' (e.g. 'learned@1280'; `network_width`),
+    a trunk band after '/' (e.g. 'learned/0': one look; `trunk_band_px`), then '+depth' for straight pieces that
+    follow the disparity (`piece_disparity_ratio` = `DEPTH_PIECES_RATIO`) and a final '~normal' for every frame
+    read through the normal-light calibration (`light_calibration` off). Without a '/', the default band at the
+    frame's own width and none at another width (a second look at twice 1280 is not a setting anyone runs).
+    ValueError for a learned variant out of that grammar (a part misplaced would otherwise be dropped)."""
+    if name == "learned" or not name.startswith("learned"):
         return make_segmenter(name)
-    precision = "int8" if base == "learned-int8" else "fp32"
-    default_band = LearnedSegmenterConfig().trunk_band_px if not width else 0
+    variant = LEARNED_VARIANT.fullmatch(name)
+    if variant is None:
+        raise ValueError(f"segmenter {name!r}: expected learned[-int8][@WIDTH][/BAND][+depth][~normal]")
+    width, band = variant["width"], variant["band"]
     config = LearnedSegmenterConfig(
-        precision=precision,
+        precision="int8" if variant["int8"] else "fp32",
         network_width=int(width or 0),
-        trunk_band_px=int(band) if band else default_band,
-        piece_disparity_ratio=DEPTH_PIECES_RATIO if by_depth else 0.0,
-        light_calibration=not one_calibration,
+        trunk_band_px=int(band) if band else LearnedSegmenterConfig().trunk_band_px if not width else 0,
+        piece_disparity_ratio=DEPTH_PIECES_RATIO if variant["depth"] else 0.0,
+        light_calibration=not variant["normal"],
     )
     return LearnedSegmenter(config)
 
@@ -419,7 +423,7 @@ def region_pixels(
     ("network_branch", "network_trunk"): whether a stem was not seen, or seen and then dropped."""
     height, width = masks.labels.shape
     trunk = masks.labels == masks.trunk_id if masks.trunk_id is not None else np.zeros((height, width), bool)
-    branch = (masks.labels > 0) & ~trunk
+    branch = (masks.labels > 0) & ~trunk & ~np.isin(masks.labels, masks.ignored_ids)
     out = []
     for index, region in enumerate(annotations["regions"]):
         inside = np.zeros((height, width), np.uint8)
@@ -465,17 +469,18 @@ def shares_by_kind(regions: list[dict]) -> dict[str, dict[str, float]]:
 
 
 def draw_overlay(
-    path: Path, left: np.ndarray, annotations: dict, labels: np.ndarray | None, branches: Sequence[Branch]
+    path: Path, left: np.ndarray, annotations: dict, masks: BranchMasks | None, branches: Sequence[Branch]
 ) -> None:
-    """Left image with instances tinted, polygons (green branch, red not-branch) and cut points."""
+    """Left image with instances tinted (the trunk cyan), polygons (green branch, red not-branch) and cut points."""
     image = cv2.cvtColor(left, cv2.COLOR_RGB2BGR).astype(np.float32)
-    if labels is not None:
+    if masks is not None:
         rng = np.random.default_rng(1)
-        for value in np.unique(labels):
-            if value == 0:
+        for value in np.unique(masks.labels):
+            if value == 0 or value in masks.ignored_ids:
                 continue
-            colour = (255, 255, 0) if value >= 65533 else rng.integers(60, 255, 3)
-            image[labels == value] = 0.5 * image[labels == value] + 0.5 * np.asarray(colour, np.float32)
+            colour = (255, 255, 0) if value == masks.trunk_id else rng.integers(60, 255, 3)
+            tinted = masks.labels == value
+            image[tinted] = 0.5 * image[tinted] + 0.5 * np.asarray(colour, np.float32)
     image = image.astype(np.uint8)
     for region in annotations["regions"]:
         colour = (0, 200, 0) if region["label"] == "branch" else (0, 0, 220)
@@ -521,7 +526,7 @@ def run_real(segmenters: list[str], overlays: Path | None) -> dict:
                     overlays / f"{folder.name}_{name.replace('/', '_band')}.png",
                     left,
                     annotations,
-                    masks.labels if masks is not None else None,
+                    masks,
                     result.branches,
                 )
     return out

@@ -11,7 +11,6 @@ different model, measured again. Needs the `onnx` package (the training extra), 
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np
 from branchrange.core.segmentation.branchnet import network_input, padded_to_stride
 from branchrange.core.segmentation.branchnet_data import cached_sample
 from branchrange.core.segmentation.learned import verified_metadata
+from stereo.weights import sha256_of
 
 #: scenes whose frames set the activation ranges (the validation seeds of the training config)
 QUANTIZATION_SEEDS = (2801, 2821)
@@ -70,8 +70,8 @@ def quantize_branchnet(model: Path, data_dir: Path, seeds: tuple[int, int] = QUA
         prepared.unlink(missing_ok=True)
     meta: dict[str, Any] = {
         **{k: source_meta[k] for k in ("model", "width", "classes") if k in source_meta},
-        "onnx_sha256": hashlib.sha256(out.read_bytes()).hexdigest(),
-        "quantized_from": {"file": model.name, "onnx_sha256": hashlib.sha256(model.read_bytes()).hexdigest()},
+        "onnx_sha256": sha256_of(out),
+        "quantized_from": {"file": model.name, "onnx_sha256": sha256_of(model)},
         "quantization": {"seeds": list(seeds), "weights": "int8 per channel", "activations": "uint8", "format": "QDQ"},
     }
     out.with_suffix(".json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")

@@ -17,7 +17,6 @@ flips double the geometry. The disparity channel is left as SGBM gives it (holes
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -31,6 +30,7 @@ from torch.nn import functional as F
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
 from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample, render_samples
+from stereo.weights import sha256_of
 
 
 @dataclass(frozen=True)
@@ -222,7 +222,7 @@ def export_onnx(model: BranchNet, path: Path) -> str:
         opset_version=17,
         dynamo=False,
     )
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    return sha256_of(path)
 
 
 def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path, log=print, workers: int = 1) -> dict:
@@ -246,7 +246,7 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     model = BranchNet(config.width, config.fine_width)
     init_sha256 = None
     if config.init_weights:
-        init_sha256 = hashlib.sha256(Path(config.init_weights).read_bytes()).hexdigest()
+        init_sha256 = sha256_of(Path(config.init_weights))
         fresh = load_matching_weights(model, torch.load(config.init_weights, map_location="cpu", weights_only=True))
         if fresh:
             log(f"from {config.init_weights}: all but {len(fresh)} tensors ({', '.join(fresh)}), which start fresh")

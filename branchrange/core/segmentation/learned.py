@@ -35,7 +35,6 @@ train-segmenter`, checked against its own JSON when one sits beside it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from dataclasses import dataclass
@@ -55,6 +54,7 @@ from branchrange.core.segmentation.pieces import bridged_regions, straight_piece
 from branchrange.core.segmentation.segmenter import depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
 from branchrange.core.settings_check import Checks, Settings
+from stereo.weights import sha256_of
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
 SHIPPED_MODEL = Path(__file__).with_name("weights") / "branchnet.onnx"
@@ -240,7 +240,7 @@ def verified_metadata(path: Path) -> dict[str, Any]:
     except (OSError, ValueError, TypeError) as exc:
         raise OnnxSegmenterError(f"learned segmenter: {meta_path} is not a readable JSON object ({exc})") from None
     expected = meta.get("onnx_sha256")
-    found = hashlib.sha256(path.read_bytes()).hexdigest()
+    found = sha256_of(path)
     if expected and expected != found:
         raise OnnxSegmenterError(
             f"learned segmenter: {path} has SHA-256 {found}, but {meta_path.name} "
