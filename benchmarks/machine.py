@@ -13,6 +13,8 @@ import os
 import platform
 from pathlib import Path
 
+from branchrange.commands.train_segmenter import usable_cores
+
 CPUINFO = Path("/proc/cpuinfo")
 
 
@@ -31,16 +33,12 @@ def cpu_description(cpuinfo: Path = CPUINFO) -> dict:
     except OSError:
         pass
     try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    try:
         load: float | None = round(os.getloadavg()[0], 2)
     except (AttributeError, OSError):
         load = None
     return {
         "model": model or platform.processor() or "unknown CPU",
-        "cores": cores,
+        "cores": usable_cores(),
         "avx2": None if flags is None else "avx2" in flags,
         "avx512": None if flags is None else "avx512f" in flags,
         "load_average_1min": load,

@@ -422,8 +422,10 @@ def region_pixels(
     arg-max classes (`CLASSES` indices, `H×W`), the shares it called branch and trunk before the instance step
     ("network_branch", "network_trunk"): whether a stem was not seen, or seen and then dropped."""
     height, width = masks.labels.shape
-    trunk = masks.labels == masks.trunk_id if masks.trunk_id is not None else np.zeros((height, width), bool)
-    branch = (masks.labels > 0) & ~trunk & ~np.isin(masks.labels, masks.ignored_ids)
+    trunk = masks.trunk()
+    if trunk is None:
+        trunk = np.zeros((height, width), bool)
+    branch = np.isin(masks.labels, masks.branch_ids())
     out = []
     for index, region in enumerate(annotations["regions"]):
         inside = np.zeros((height, width), np.uint8)
