@@ -142,7 +142,7 @@ OPTIONS = option_keys()
 
 def test_the_file_has_every_option_of_the_pipeline_sections():
     keys = {key for key, _, _ in OPTIONS}
-    assert len([k for k in keys if k.startswith("cutpoints.")]) == 17  # all of CutPointConfig
+    assert len([k for k in keys if k.startswith("cutpoints.")]) == 18  # all of CutPointConfig
     assert {
         "segmenter.structure.plane_min_share",
         "segmenter.geometric.excess_green",

@@ -127,3 +127,21 @@ def test_unreachable_tcp_link_reports_down_without_raising():
         state = relay.link_state()
     assert state["connected"] is False and state["frames_sent"] == 0
     assert "tcp:127.0.0.1:1" in state["last_error"] and state["send_errors"] > 0
+
+
+def test_no_target_goes_out_while_the_camera_is_lost_however_fresh_the_result(peer):
+    with relay_for(peer, send_rate_hz=10.0) as relay:
+        relay.set_camera_lost(True)
+        relay.publish(RESULT)  # a fresh result captured just now, e.g. the frame before the camera fell
+        got = peer.collect(0.5)
+        relay.set_camera_lost(False)
+        relay.publish(RESULT)
+        back = peer.collect(
+            0.5, until=lambda r: any(d.msg.current_distance == 142 for d in of_type(r, "DISTANCE_SENSOR"))
+        )
+    dists = of_type(got, "DISTANCE_SENSOR")
+    assert dists and all(d.msg.current_distance == 1001 for d in dists)
+    assert all(math.isnan(v.msg.x) for v in of_type(got, "DEBUG_VECT"))
+    # the other branches are still obstacles: the camera's last view of them is not a target, but they are there
+    assert {o.msg.obstacle_id for o in of_type(got, "OBSTACLE_DISTANCE_3D")} >= {3, 7}
+    assert any(d.msg.current_distance == 142 for d in of_type(back, "DISTANCE_SENSOR"))

@@ -149,53 +149,90 @@ def test_a_flight_json_is_flown_with_the_camera_where_its_poses_put_it(tmp_path)
 # ---- NED tracks (no network) -----------------------------------------------------------------------
 
 
-def measure(track_set: WorldTracks, rng, t: float, points_ned, target_branch=0):
-    """One frame seen from a camera 1.5 m south of the points, looking north (camera → NED rotation)."""
+def measure(track_set: WorldTracks, rng, t: float, points_ned, camera_ned=(-1.5, 0.0, 0.0)):
+    """One frame seen from a camera at `camera_ned` (default 1.5 m south of the points), looking north."""
     cam_to_ned = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # forward camera, level, north
-    camera_ned = np.array([-1.5, 0.0, 0.0])
+    camera_ned = np.asarray(camera_ned, dtype=float)
     zs = []
     for i, p in enumerate(points_ned):
         cam = cam_to_ned.T @ (p - camera_ned)
         z_cam = noisy(cam, rng, TRACKING)
         zs.append(
-            Measurement(i, cam_to_ned @ z_cam + camera_ned, measurement_covariance(z_cam, cam_to_ned, TRACKING), 0.8)
+            Measurement(
+                i, cam_to_ned @ z_cam + camera_ned, measurement_covariance(z_cam, cam_to_ned, TRACKING), 0.8, camera_ned
+            )
         )
-    return track_set.update(zs, t, target_branch)
+    return track_set.update(zs, t)
 
 
-def test_ten_observations_fuse_within_two_centimetres_and_the_sigma_falls():
+def test_ten_observations_fuse_within_two_centimetres():
     truth = np.zeros(3)
-    errors, sigmas = [], []
+    errors = []
     for seed in range(20):
         rng = np.random.default_rng(seed)
         tracks = WorldTracks(TRACKING)
         for k in range(10):
             measure(tracks, rng, k / FPS, [truth])
-            if seed == 0:
-                sigmas.append(tracks.tracks[0].sigma_m)
         (track,) = tracks.tracks
         assert track.observations == 10
         errors.append(float(np.linalg.norm(track.position_m - truth)))
     assert max(errors) < 0.02 and float(np.median(errors)) < 0.01, errors
-    assert sigmas[0] == pytest.approx(TRACKING.depth_sigma_at_1m_m * 1.5**2, rel=0.01)
-    assert sigmas[-1] == pytest.approx(sigmas[0] / math.sqrt(10), rel=0.05)  # equal measurements: σ/√n
 
 
-def test_a_hidden_branch_keeps_its_track_goes_stale_and_is_forgotten():
+def test_a_hover_does_not_shrink_sigma_below_the_shared_bias():
+    # 20 views from one spot share one stereo bias: σ may fall only to √bias_share of one view's
+    tracks = WorldTracks(TRACKING)
+    rng = np.random.default_rng(0)
+    sigmas = []
+    for k in range(20):
+        measure(tracks, rng, k / FPS, [np.zeros(3)])
+        sigmas.append(tracks.tracks[0].sigma_m)
+    one_view = TRACKING.depth_sigma_at_1m_m * 1.5**2
+    assert sigmas[0] == pytest.approx(one_view, rel=0.01)
+    rho = TRACKING.bias_share
+    # (each view's covariance is computed at its own noisy range, hence the 5 %)
+    assert sigmas[-1] == pytest.approx(one_view * math.sqrt((1 - rho) / 20 + rho), rel=0.05)
+    assert min(sigmas) >= one_view * math.sqrt(rho) * 0.95
+    assert tracks.tracks[0].views == [tracks.tracks[0].views[0]]
+
+
+def test_views_from_distinct_viewpoints_average_the_bias_down():
+    # the camera backs off by 10 % a frame (range changes beyond same_view_range_ratio): every view is new;
+    # no process noise, so that the covariance is the views' alone
+    tracks = WorldTracks(TrackingConfig(process_noise_m2_per_s=0.0))
+    rng = np.random.default_rng(0)
+    for k in range(10):
+        measure(tracks, rng, k / FPS, [np.zeros(3)], camera_ned=(-1.0 * 1.1**k, 0.0, 0.0))
+    (track,) = tracks.tracks
+    assert len(track.views) == 10
+    ranges = 1.1 ** np.arange(10)
+    variances = (TRACKING.depth_sigma_at_1m_m * ranges**2) ** 2  # along the line of sight, as fused
+    rho = TRACKING.bias_share
+    expected = (1 - rho) / np.sum(1 / variances) + rho * variances[0] / 10
+    assert track.sigma_m == pytest.approx(math.sqrt(expected), rel=0.05)
+    assert track.sigma_m < 0.7 * math.sqrt(rho) * TRACKING.depth_sigma_at_1m_m  # below a hover's floor at 1 m
+
+
+def test_a_hidden_branch_keeps_its_track_stops_being_the_target_goes_stale_and_is_forgotten():
     rng = np.random.default_rng(3)
     tracks = WorldTracks(TRACKING)
     a, b = np.zeros(3), np.array([0.0, 0.3, 0.0])
     ids = [measure(tracks, rng, k / FPS, [a, b]) for k in range(5)]
     assert all(m == ids[0] for m in ids) and tracks.target_id == ids[0][0]
     t_last = 4 / FPS
-    # branch 0 (the target) hidden for 0.6 s: still the fresh target, then back under its own id
-    assert tracks.target(t_last + 0.6) is not None
-    back = measure(tracks, rng, t_last + 0.6, [a, b], target_branch=None)
+    # branch 0 (the target) hidden: the target while its newest view is younger than max_result_age_s only,
+    # an obstacle (fresh) for longer, and the target again under its own id when seen again
+    max_age = tracks.rule.max_age_s
+    assert tracks.target(t_last + max_age - 0.01) is not None
+    assert tracks.target(t_last + max_age + 0.01) is None
+    assert {t.track_id for t in tracks.fresh(t_last + 0.6)} == set(ids[0].values())
+    back = measure(tracks, rng, t_last + 0.6, [a, b])
     assert back == ids[0] and tracks.tracks[0].observations == 6
+    assert tracks.target(t_last + 0.6) is tracks.tracks[0]
     assert tracks.target(t_last + 0.6 + TRACKING.stale_after_s + 0.01) is None  # stale: not the target any more
     assert tracks.fresh(t_last + 0.6 + TRACKING.stale_after_s + 0.01) == []
-    measure(tracks, rng, t_last + 0.6 + TRACKING.forget_after_s + 0.1, [b], target_branch=None)
-    assert [t.track_id for t in tracks.tracks] == [2]  # both old tracks forgotten; b starts a new one
+    tracks.update([], t_last + 0.6 + TRACKING.forget_after_s + 0.1)
+    assert tracks.tracks == []  # both forgotten
 
 
 # ---- obstacle hygiene and the approach planner (no network) ---------------------------------------

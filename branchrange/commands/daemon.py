@@ -86,7 +86,13 @@ def run(args: argparse.Namespace) -> int:
         first = open_camera()
         pipeline = pipeline_for(cfg, first.calibration)
         if cfg.mavlink.enabled:
-            relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking)
+            relay = MavlinkRelay(
+                cfg.mavlink,
+                mount,
+                tracking=cfg.tracking,
+                target_policy=cfg.cutpoints.target_policy,
+                target_min_confidence=cfg.cutpoints.target_min_confidence,
+            )
         if targets is not None:
             sink = FoxgloveSink(targets, mount=mount, newest_only=True)
             if relay is not None:

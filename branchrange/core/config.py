@@ -325,6 +325,18 @@ class TrackingConfig(Settings):
     that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count from the
     capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU
     companion) by a frame or two: 1.5 s.
+
+    Honest covariance: `bias_share` of each cut point's variance is a stereo bias shared by views from
+    (nearly) the same viewpoint — within `same_view_deg` of line of sight and `same_view_range_ratio`
+    of range — and averages down only over distinct viewpoints, so a hover does not shrink σ below
+    the bias at that range (0.5: assumed, half of a view's error shared; `benchmarks/approach.py`
+    reports σ against the actual error).
+
+    The target (`world_tracks.TargetRule`): a track needs `target_min_observations` consistent cut
+    points in a row (each within `consistency_m` of the track) and a recency-weighted confidence
+    (weights halve every `confidence_half_life_s`) ≥ `cutpoints.target_min_confidence`, and its newest
+    cut point must be captured within `mavlink.max_result_age_s`; the current target is kept unless
+    another ranks better by `target_switch_margin` (a share of its score under `cutpoints.target_policy`).
     """
 
     section = "tracking"
@@ -336,6 +348,13 @@ class TrackingConfig(Settings):
     process_noise_m2_per_s: float = 1e-5
     stale_after_s: float = 1.5
     forget_after_s: float = 5.0
+    bias_share: float = 0.5
+    same_view_deg: float = 2.0
+    same_view_range_ratio: float = 0.05
+    target_min_observations: int = 3
+    consistency_m: float = 0.05
+    confidence_half_life_s: float = 0.4
+    target_switch_margin: float = 0.2
 
     def checks(self) -> Checks:
         """The range of every setting."""
@@ -349,6 +368,13 @@ class TrackingConfig(Settings):
                 self.forget_after_s >= self.stale_after_s,
                 f"seconds >= tracking.stale_after_s ({self.stale_after_s})",
             ),
+            "bias_share": (0 <= self.bias_share <= 0.95, "a share in [0, 0.95]"),
+            "same_view_deg": (0 <= self.same_view_deg < 90, "degrees in [0, 90)"),
+            "same_view_range_ratio": (0 <= self.same_view_range_ratio < 1, "a ratio in [0, 1)"),
+            "target_min_observations": (self.target_min_observations >= 1, "≥ 1 observation"),
+            "consistency_m": (self.consistency_m > 0, "metres > 0"),
+            "confidence_half_life_s": (self.confidence_half_life_s > 0, "seconds > 0"),
+            "target_switch_margin": (0 <= self.target_switch_margin < 1, "a share in [0, 1)"),
         }
 
 

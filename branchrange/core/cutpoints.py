@@ -26,6 +26,7 @@ from typing import Literal
 
 import numpy as np
 
+from branchrange.core.branch_base import base_cut_by_image_border, base_hidden_by_occluder
 from branchrange.core.cylinder_section import cross_section_from_rays, radius_from_silhouette, section_rays
 from branchrange.core.geometry import (
     GeometryError,
@@ -95,6 +96,11 @@ class CutPointConfig(Settings):
       segmenter and SGBM such cut points were 5 % right (6 of 110 on calibration scenes 2861–2920); at
       0.01 m, false cut points a frame 6.45 → 5.03 there and 4.57 → 3.90 held out, recall −0.2 / −0.5
       points; truth masks lose none.
+    - A branch whose base the image border cuts, or that something nearer hides at its base, is dropped
+      (`branchrange.core.branch_base`: the true base lies beyond what is seen, so a cut point measured from
+      the visible end is an artefact), and so is a cut point that projects outside the image.
+      `base_occluder_gap_m`: how much nearer than the base (m) the pixels just past the base end must be
+      to count as an occluder; more than a trunk's radius, as the trunk's front is that much nearer.
     - `tracking`: keep branch ids stable across frames (`branchrange.core.tracking`, tuned in
       `[branch_tracking]`; the daemon and replay want it, a single pair does not).
     """
@@ -119,6 +125,7 @@ class CutPointConfig(Settings):
     target_min_confidence: float = 0.7
     tracking: bool = True
     max_cut_beyond_tip_m: float = 0.01
+    base_occluder_gap_m: float = 0.1
 
     def checks(self) -> Checks:
         """The range of every setting; the working range within the physical distance range."""
@@ -146,6 +153,7 @@ class CutPointConfig(Settings):
             ),
             "target_min_confidence": (0 <= self.target_min_confidence <= 1, "a confidence in [0, 1]"),
             "max_cut_beyond_tip_m": (self.max_cut_beyond_tip_m >= 0, "≥ 0 m (a large value keeps every cut point)"),
+            "base_occluder_gap_m": (self.base_occluder_gap_m > 0, "> 0 m (a large value turns the check off)"),
         }
 
 
@@ -560,10 +568,22 @@ def _low_end_is_base(
     return bool(radius_low >= radius_high)
 
 
+@dataclass(frozen=True)
+class BranchEnds:
+    """A branch's `base` and `tip` on its axis (3,) metres; `base_at_low`: whether the base is the
+    silhouette's low end (None seen end-on); `base_on_trunk`: the base is where the axis leaves the
+    fitted trunk's bark (placed by the trunk's geometry, not by where the silhouette stops)."""
+
+    base: np.ndarray
+    tip: np.ndarray
+    base_at_low: bool | None
+    base_on_trunk: bool
+
+
 def _ends(
     cylinder: CylinderFit, geometry: StereoGeometry, trunk: MaskCrop | None, trunk_model: TrunkModel | None
-) -> tuple[np.ndarray, np.ndarray]:
-    """(base, tip) of a branch on its axis (3,) metres each.
+) -> BranchEnds:
+    """Base and tip of a branch on its axis.
 
     Elongated silhouettes: the mask's ends lifted onto the axis; at a fitted trunk the base is
     where the axis leaves the bark (the mask's end there is where the branch vanishes into the
@@ -574,18 +594,52 @@ def _ends(
     if silhouette.length_px < 2.0 * max(1.0, cylinder.profile.at(0.0)):
         t = line.parameters(cylinder.points[cylinder.inliers])
         ends = line.at(np.quantile(t, [0.02, 0.98]))
-        return (ends[0], ends[1]) if ends[0][2] >= ends[1][2] else (ends[1], ends[0])
+        base, tip = (ends[0], ends[1]) if ends[0][2] >= ends[1][2] else (ends[1], ends[0])
+        return BranchEnds(base, tip, None, False)
     slice_px = max(3.0, 0.15 * silhouette.length_px)
     ends_px = [silhouette.end_centre(at_low, slice_px) for at_low in (True, False)]
     low, high = (line.closest_to_ray(pixel_ray(u, v, geometry)) for u, v in ends_px)
-    base, tip = (
-        (low, high) if _low_end_is_base(cylinder, (low, high), geometry, trunk, trunk_model, slice_px) else (high, low)
-    )
+    base_at_low = _low_end_is_base(cylinder, (low, high), geometry, trunk, trunk_model, slice_px)
+    base, tip = (low, high) if base_at_low else (high, low)
     if trunk_model is not None:
         exit_m = trunk_model.exit_point(line, tip - base)
         if exit_m is not None and vector_norm(exit_m - base) < 0.5 * vector_norm(tip - base) + 0.1:
-            base = exit_m
-    return base, tip
+            return BranchEnds(exit_m, tip, base_at_low, True)
+    return BranchEnds(base, tip, base_at_low, False)
+
+
+def _base_out_of_view(
+    mask: MaskCrop,
+    cylinder: CylinderFit,
+    ends: BranchEnds,
+    disparity: np.ndarray,
+    geometry: StereoGeometry,
+    config: CutPointConfig,
+    trunk: MaskCrop | None,
+    max_disparity: float | None,
+) -> str | None:
+    """Why the branch's base is not seen (`branchrange.core.branch_base`), or None when it is.
+
+    A base placed on a fitted trunk is measured, not read off the silhouette's end, so only the
+    silhouette's own ends are checked.
+    """
+    if ends.base_on_trunk:
+        return None
+    if base_cut_by_image_border(mask, cylinder.silhouette, ends.base_at_low):
+        return "the image border cuts the branch at its base: the cut point lies outside the view"
+    if ends.base_at_low is not None and base_hidden_by_occluder(
+        mask,
+        cylinder.silhouette,
+        ends.base_at_low,
+        ends.base,
+        disparity,
+        geometry,
+        min_gap_m=config.base_occluder_gap_m,
+        trunk=trunk,
+        max_disparity=max_disparity,
+    ):
+        return "something nearer hides the branch at its base: the cut point is not in view"
+    return None
 
 
 def estimate_branch(
@@ -643,7 +697,11 @@ def _estimate_branch(
     cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
     if isinstance(cylinder, str):
         return DroppedBranch(mask_id, cylinder)
-    base_m, tip_m = _ends(cylinder, geometry, trunk, trunk_model)
+    ends = _ends(cylinder, geometry, trunk, trunk_model)
+    hidden = _base_out_of_view(mask, cylinder, ends, disparity, geometry, config, trunk, max_disparity)
+    if hidden is not None:
+        return DroppedBranch(mask_id, hidden)
+    base_m, tip_m = ends.base, ends.tip
     line = cylinder.axis
     axis = line.direction if line.direction @ (tip_m - base_m) >= 0 else -line.direction
     visible_m = vector_norm(tip_m - base_m)
@@ -663,6 +721,12 @@ def _estimate_branch(
     if cut_m[2] <= 0:
         return DroppedBranch(mask_id, "cut point lies behind the camera")
     pixel = project(cut_m, geometry)[0]
+    height, width = disparity.shape
+    if not (0.0 <= pixel[0] <= width - 1 and 0.0 <= pixel[1] <= height - 1):
+        return DroppedBranch(
+            mask_id,
+            f"the cut point projects to ({pixel[0]:.0f}, {pixel[1]:.0f}) px, outside the {width}×{height} image",
+        )
     diameter = 2.0 * cylinder.radius_at(cut_m, geometry)
     rows, cols = cylinder.pixels
     inliers = cylinder.inliers
@@ -740,6 +804,23 @@ def estimate_cut_points(
     return result
 
 
+def target_score(policy: TargetPolicy | str, distance_m: float, confidence: float, diameter_m: float) -> float:
+    """How good a target a cut point is under `policy`: lower is better (see `select_target`).
+
+    One ranking for the per-frame target and the fused world tracks (`mavlink.world_tracks`), so both
+    pick by the same rule; `confidence` must be > 0 for `nearest_confident`.
+    """
+    if policy == "nearest_confident":
+        return distance_m / confidence
+    if policy == "nearest":
+        return distance_m
+    if policy == "most_confident":
+        return -confidence
+    if policy == "thickest":
+        return -diameter_m
+    raise CutPointConfigError(f"target policy {policy!r} is not one of {', '.join(TARGET_POLICIES)}")
+
+
 def select_target(
     branches: list[BranchEstimate],
     policy: TargetPolicy = DEFAULT_TARGET_POLICY,
@@ -750,20 +831,14 @@ def select_target(
     `nearest_confident` (default): smallest distance / confidence — the nearest branch, a less
     certain one counting as farther (at 0.5 confidence, twice as far); `nearest`: smallest
     distance; `most_confident`: highest confidence; `thickest`: largest diameter. Only branches
-    with confidence ≥ `min_confidence` take part.
+    with confidence ≥ `min_confidence` (and > 0) take part.
     Why not plain `nearest` by default: with stereo noise a cut point estimated too near wins it
     by its error, and confidence tracks the error (sgbm, ground-truth masks, 50 synthetic
     scenes: 87 % of cut points at confidence ≥ 0.9 lie within 5 cm, 38 % at 0.3–0.5).
     """
     if policy not in TARGET_POLICIES:
         raise CutPointConfigError(f"target policy {policy!r} is not one of {', '.join(TARGET_POLICIES)}")
-    candidates = [b for b in branches if b.confidence >= min_confidence]
+    candidates = [b for b in branches if b.confidence >= min_confidence and b.confidence > 0]
     if not candidates:
         return None
-    if policy == "nearest_confident":
-        return min(candidates, key=lambda b: b.distance_m / b.confidence)
-    if policy == "nearest":
-        return min(candidates, key=lambda b: b.distance_m)
-    if policy == "most_confident":
-        return max(candidates, key=lambda b: b.confidence)
-    return max(candidates, key=lambda b: b.diameter_m)
+    return min(candidates, key=lambda b: target_score(policy, b.distance_m, b.confidence, b.diameter_m))

@@ -269,7 +269,14 @@ class WorldTrack(JsonPart):
     covariance_m2: Annotated[tuple[Vector3, Vector3, Vector3], Field(description="3×3 covariance, m²")]
     age_s: Annotated[float, Field(ge=0, description="seconds since its newest observation was captured")]
     observations: Annotated[int, Field(ge=1)]
-    confidence: Annotated[Fraction, Field(description="mean confidence of its observations")]
+    consistent_observations: Annotated[
+        int, Field(ge=1, description="observations in a row within tracking.consistency_m of the track")
+    ]
+    views: Annotated[int, Field(ge=1, description="distinct viewpoints its observations came from")]
+    confidence: Annotated[
+        Fraction,
+        Field(description="recency-weighted confidence of its observations (tracking.confidence_half_life_s)"),
+    ]
 
 
 @with_config(_STRICT)
@@ -281,7 +288,13 @@ class WorldTargets(JsonPart):
         Literal["local_ned", "camera"],
         Field(description="'local_ned' while vehicle state is in use, 'camera' without it"),
     ]
-    target_track_id: Annotated[int | None, Field(description="the target's track, null when none is fresh")]
+    target_track_id: Annotated[
+        int | None,
+        Field(
+            description="the target's track: consistent, confident and captured within mavlink.max_result_age_s "
+            "(world_tracks.TargetRule); null when none is"
+        ),
+    ]
     tracks: tuple[WorldTrack, ...]
 
 

@@ -73,6 +73,15 @@ class MaskCrop:
             ]
         return out
 
+    def contains(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Boolean `(N,)`: whether each image pixel (`rows`, `cols` `(N,)`) is in the mask (False outside it)."""
+        r, c = np.asarray(rows, dtype=np.int64) - self.top, np.asarray(cols, dtype=np.int64) - self.left
+        h, w = self.mask.shape
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        out = np.zeros(r.shape, dtype=bool)
+        out[inside] = self.mask[r[inside], c[inside]]
+        return out
+
     def with_mask(self, mask: np.ndarray) -> MaskCrop:
         """The same window holding another boolean mask of its shape (e.g. the eroded one)."""
         return MaskCrop(mask, self.top, self.left, self.image_shape)

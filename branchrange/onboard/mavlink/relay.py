@@ -5,9 +5,15 @@ thread-safe, and a reconnect must not race a send). It sends
 - HEARTBEAT at 1 Hz, and at once when the camera-lost state changes (CRITICAL while lost);
 - a frame's messages (DISTANCE_SENSOR, OBSTACLE_DISTANCE_3D…, DEBUG_VECT) as soon as `publish`
   hands over a result, back to back with one shared time_boot_ms;
-- the same set at least `send_rate_hz` times a second between results, from the newest result
-  while it is younger than `max_result_age_s` and as "no target" after that: autopilots call a
-  silent sensor stale, and an old position must never be repeated as if it were current.
+- the same set at least `send_rate_hz` times a second between results: autopilots call a silent
+  sensor stale.
+
+One freshness rule for the target, in both modes below: a target goes out only while the cut point
+it comes from was captured within `max_result_age_s` of the send and the camera is not lost; else
+the set says "no target" (an old position must never be repeated as if it were current, and a late
+result is not made current by fusing it). Obstacles follow the same rule without vehicle state; with
+it, fused obstacles stay while their track is fresh (`tracking.stale_after_s`: the branch is still
+there in the world, only its image is late).
 `publish` never waits on the link: it stores the result, fuses it into the world tracks (no I/O,
 well under a millisecond) and wakes the thread.
 
@@ -17,8 +23,9 @@ they flow) and keeps their history. `publish(result, captured_at)` carries each 
 body (mount) → local NED with the pose interpolated at `captured_at`, and fuses it into a track.
 Each send then re-expresses the fresh tracks in the body frame of *now* (the newest pose,
 extrapolated to the send time): the autopilot gets where the branch is at that moment, not where
-it was at capture (latency compensation). In this "world" mode a target stays valid while its
-track is fresh (`tracking.stale_after_s`), also through a short occlusion. Without a pose now, or
+it was at capture (latency compensation). In this "world" mode the target is the track chosen on
+evidence with hysteresis (`world_tracks`: consistent observations, recency-weighted confidence, a
+switching margin). Without a pose now, or
 for a result captured when there was none, the relay behaves as without vehicle state ("camera"
 mode: the result's cut points through the mount, valid for `max_result_age_s`); `link_state()`
 says which mode is in use. `targets()` gives the fused tracks for /latest and the results log.
@@ -33,14 +40,17 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from branchrange.core.config import MavlinkConfig, TrackingConfig
+from branchrange.core.cutpoints import DEFAULT_TARGET_POLICY, CutPointConfig
 from branchrange.core.frame_result import FrameResult, WorldTargets
 from branchrange.onboard.mavlink import messages
 from branchrange.onboard.mavlink.approach import ApproachPlanner
 from branchrange.onboard.mavlink.connection import MavlinkLink, load_signing_key
 from branchrange.onboard.mavlink.frames import CameraMount, quaternion_wxyz
 from branchrange.onboard.mavlink.vehicle_state import VehicleState
-from branchrange.onboard.mavlink.world_tracks import Measurement, WorldTracks, measurement_covariance
+from branchrange.onboard.mavlink.world_tracks import Measurement, TargetRule, WorldTracks, measurement_covariance
 
 log = logging.getLogger("branchrange.mavlink")
 HEARTBEAT_PERIOD_S = 1.0
@@ -64,8 +74,12 @@ class MavlinkRelay:
         mount: CameraMount,
         *,
         tracking: TrackingConfig = TrackingConfig(),
+        target_policy: str = DEFAULT_TARGET_POLICY,
+        target_min_confidence: float = CutPointConfig.target_min_confidence,
         clock: Callable[[], float] = time.monotonic,
     ):
+        """`target_policy` and `target_min_confidence` are `[cutpoints]`'s: the fused target is ranked
+        and gated as the per-frame one is."""
         self._cfg = cfg
         self._mount = mount
         self._tracking = tracking
@@ -88,7 +102,7 @@ class MavlinkRelay:
         # and by `link_state`/`targets`; held only for computation, never across link I/O
         self._state_lock = threading.Lock()
         self._vehicle = VehicleState(max_extrapolation_s=cfg.pose_timeout_s)
-        self._tracks = WorldTracks(tracking)
+        self._tracks = WorldTracks(tracking, TargetRule(target_policy, target_min_confidence, cfg.max_result_age_s))
         self._approach = ApproachPlanner(cfg)
         self._latest_fused = False
         self._mode: str | None = None  # "world" or "camera" from the first send on
@@ -124,16 +138,24 @@ class MavlinkRelay:
                 self.unfused_results += self._vehicle.has_state
                 return False
             cam_to_ned = pose.rotation @ self._mount.camera_to_body
+            camera_m = pose.body_to_ned(self._mount.translation_m)
             measurements = [
                 Measurement(
                     b.id,
-                    pose.body_to_ned(self._mount.to_body(b.cut_point_m)),
-                    measurement_covariance(b.cut_point_m, cam_to_ned, self._tracking),
+                    pose.body_to_ned(self._mount.to_body(np.asarray(b.cut_point_m))),
+                    measurement_covariance(np.asarray(b.cut_point_m), cam_to_ned, self._tracking),
                     b.confidence,
+                    camera_m,
+                    b.diameter_m,
                 )
                 for b in result.branches
             ]
-            self._tracks.update(measurements, captured_at, result.target_id)
+            # the frame's own rule (its light may ask more than the settings) refused every cut point the
+            # settings would take: no target from the fused tracks either until a frame allows one again
+            light_veto = result.target_id is None and any(
+                b.confidence >= self._tracks.rule.min_confidence for b in result.branches
+            )
+            self._tracks.update(measurements, captured_at, allow_target=not light_veto)
             return True
 
     def vehicle_pose(self) -> tuple[tuple[float, float, float], tuple[float, float, float, float]] | None:
@@ -235,7 +257,7 @@ class MavlinkRelay:
                 next_heartbeat = now + HEARTBEAT_PERIOD_S
             self._request_state(now)
             if new_result or now >= next_frame:
-                self._send_frame(latest, fused, now)
+                self._send_frame(latest, fused, camera_lost, now)
                 next_frame = now + frame_period
 
     def _receive(self, received: list[Any], now: float) -> None:
@@ -259,6 +281,8 @@ class MavlinkRelay:
             return
         self._last_state_request = now
         peer = self._link.peer
+        if peer is None:  # connected implies a peer; a disconnect between the two reads leaves none
+            return
         self._link.send(
             [
                 messages.message_interval_request(i, self._cfg.state_rate_hz, peer.system_id, peer.component_id)
@@ -267,15 +291,18 @@ class MavlinkRelay:
         )
 
     def _frame_targets(
-        self, latest: tuple[FrameResult, float] | None, fused: bool, now: float
+        self, latest: tuple[FrameResult, float] | None, fused: bool, camera_lost: bool, now: float
     ) -> tuple[messages.FrameTargets, tuple[Any, float] | None]:
-        """This send's targets in the body frame of `now`, and the approach setpoint (or None)."""
+        """This send's targets in the body frame of `now`, and the approach setpoint (or None).
+
+        No target while the camera is lost, whatever the tracks or the newest result say: what the
+        relay last saw may be the frame before a fall or a cover."""
         with self._state_lock:
             pose = self._vehicle.pose_at(now)
             fresh_unfused = latest is not None and not fused and now - latest[1] <= self._cfg.max_result_age_s
             if pose is not None and not fresh_unfused:
                 self._set_mode("world")
-                target = self._tracks.target(now)
+                target = None if camera_lost else self._tracks.target(now)
                 points = [
                     messages.BodyPoint(t.track_id, pose.ned_to_body(t.position_m), t.confidence)
                     for t in self._tracks.fresh(now)
@@ -285,8 +312,9 @@ class MavlinkRelay:
                 return messages.FrameTargets(body_target, points), self._approach.setpoint(target, pose, peer, now)
             self._set_mode("camera")
             self._approach.reset()  # no setpoint without a pose
-        fresh = latest is not None and now - latest[1] <= self._cfg.max_result_age_s
-        return messages.targets_from_result(latest[0] if fresh else None, self._mount), None
+        fresh = latest[0] if latest is not None and now - latest[1] <= self._cfg.max_result_age_s else None
+        targets = messages.targets_from_result(fresh, self._mount)
+        return (messages.FrameTargets(None, targets.candidates) if camera_lost else targets), None
 
     def _set_mode(self, mode: str) -> None:
         """Switch between "world" and "camera" sending, and say so in the log."""
@@ -303,9 +331,9 @@ class MavlinkRelay:
                 "without latency compensation"
             )
 
-    def _send_frame(self, latest: tuple[FrameResult, float] | None, fused: bool, now: float) -> None:
+    def _send_frame(self, latest: tuple[FrameResult, float] | None, fused: bool, camera_lost: bool, now: float) -> None:
         """Send this moment's targets (world tracks, else the newest fresh result, else "no target")."""
-        targets, setpoint = self._frame_targets(latest, fused, now)
+        targets, setpoint = self._frame_targets(latest, fused, camera_lost, now)
         time_boot_ms = self._time_boot_ms(now)
         frame = messages.frame_messages(targets, self._mount, self._cfg, time_boot_ms, self._tracking.gate_m)
         if self._link.send(frame):

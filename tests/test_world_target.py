@@ -1,0 +1,94 @@
+"""Which fused track is the target: evidence before trust, hysteresis, recency-weighted readiness, freshness."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from branchrange.core.config import TrackingConfig
+from branchrange.onboard.mavlink.world_tracks import Measurement, TargetRule, WorldTracks
+
+CAMERA = np.zeros(3)
+COVARIANCE = np.eye(3) * 1e-4
+FPS = 15.0
+
+
+def seen(branch_id: int, position, confidence: float = 0.9) -> Measurement:
+    """A cut point at `position` (NED m) seen from the origin."""
+    return Measurement(branch_id, np.asarray(position, dtype=float), COVARIANCE, confidence, CAMERA)
+
+
+def test_a_track_is_the_target_only_after_enough_consistent_observations():
+    tracks = WorldTracks(TrackingConfig(target_min_observations=3), TargetRule(min_confidence=0.5))
+    for k in range(2):
+        tracks.update([seen(0, [1.5, 0.0, 0.0])], k / FPS)
+        assert tracks.target(k / FPS) is None  # a 1–2-observation track is not trusted yet
+    tracks.update([seen(0, [1.5, 0.0, 0.0])], 2 / FPS)
+    assert tracks.target(2 / FPS) is not None
+
+
+def test_an_inconsistent_observation_restarts_the_count():
+    cfg = TrackingConfig(target_min_observations=3, consistency_m=0.05, gate_m=0.15)
+    tracks = WorldTracks(cfg, TargetRule(min_confidence=0.5))
+    positions = [[1.5, 0, 0], [1.5, 0, 0], [1.5, 0.1, 0], [1.5, 0.1, 0]]  # a 10 cm jump, within the gate
+    for k, p in enumerate(positions):
+        tracks.update([seen(0, p)], k / FPS)
+    (track,) = tracks.tracks
+    assert track.observations == 4 and track.consistent_observations < 3
+    assert tracks.target(3 / FPS) is None
+
+
+def test_the_target_holds_against_a_similar_branch_and_yields_to_a_clearly_better_one():
+    tracks = WorldTracks(
+        TrackingConfig(target_min_observations=1, target_switch_margin=0.2), TargetRule(min_confidence=0.5)
+    )
+    near, similar = [1.50, 0.0, 0.0], [1.0, 1.15, 0.0]  # 1.50 m and 1.52 m away
+    ids = tracks.update([seen(0, near), seen(1, similar)], 0.0)
+    first = tracks.target_id
+    assert first == ids[0]
+    # the per-frame ranking flips (the other one looks nearer this frame): the target stays
+    for k in range(1, 10):
+        nearer = [1.0, 1.05, 0.0] if k % 2 else similar  # 1.45 m: 3 % better, under the 20 % margin
+        tracks.update([seen(0, near), seen(1, nearer)], k / FPS)
+        assert tracks.target_id == first
+    assert tracks.target_switches == 0
+    # a branch 40 % nearer takes over
+    tracks.update([seen(0, near), seen(1, similar), seen(2, [0.9, 0.0, 0.0])], 10 / FPS)
+    assert tracks.target(10 / FPS).branch_id == 2 and tracks.target_switches == 1
+
+
+def test_readiness_follows_recent_confidence_not_the_lifetime_mean():
+    cfg = TrackingConfig(target_min_observations=3, confidence_half_life_s=0.4)
+    tracks = WorldTracks(cfg, TargetRule(min_confidence=0.7))
+    t = 0.0
+    for _ in range(40):  # first seen unsure from afar
+        tracks.update([seen(0, [3.0, 0, 0], confidence=0.3)], t)
+        t += 1 / FPS
+    assert tracks.target(t) is None
+    rose_at = t
+    while True:
+        tracks.update([seen(0, [3.0, 0, 0], confidence=0.85)], t)
+        if tracks.target(t) is not None:
+            break
+        t += 1 / FPS
+        assert t - rose_at < 1.0, "ready within 1 s of its views turning confident"
+    (track,) = tracks.tracks
+    lifetime_mean = (40 * 0.3 + (track.observations - 40) * 0.85) / track.observations
+    assert lifetime_mean < 0.7 <= track.confidence
+
+
+def test_a_target_from_a_capture_older_than_the_age_limit_is_not_the_target():
+    tracks = WorldTracks(TrackingConfig(target_min_observations=1), TargetRule(min_confidence=0.5, max_age_s=0.5))
+    tracks.update([seen(0, [1.5, 0, 0])], 10.0)
+    assert tracks.target(10.49) is not None
+    assert tracks.target(10.51) is None
+    assert tracks.fresh(10.51)  # still an obstacle
+
+
+def test_a_frame_whose_own_rule_refused_every_target_leaves_none():
+    tracks = WorldTracks(TrackingConfig(target_min_observations=1), TargetRule(min_confidence=0.5))
+    tracks.update([seen(0, [1.5, 0, 0])], 0.0)
+    assert tracks.target(0.0) is not None
+    tracks.update([seen(0, [1.5, 0, 0])], 0.1, allow_target=False)
+    assert tracks.target(0.1) is None
+    tracks.update([seen(0, [1.5, 0, 0])], 0.2)
+    assert tracks.target(0.2) is not None
