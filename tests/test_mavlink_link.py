@@ -11,7 +11,7 @@ import pytest
 from mavlink_peer import LoopbackPeer, of_type
 from result_factory import branch, frame_result
 
-from branchrange.core.config import MavlinkConfig
+from branchrange.core.config import MavlinkConfig, TrackingConfig
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from branchrange.onboard.mavlink.connection import SigningKeyError, load_signing_key, mavutil_v2
 
@@ -115,7 +115,8 @@ def test_relay_speaks_over_a_serial_port():
         parser = mavutil_v2().mavlink.MAVLink(None)
         got = []
         with MavlinkRelay(cfg, CameraMount.from_rpy()) as relay:
-            relay.publish(RESULT)
+            for _ in range(TrackingConfig().target_min_observations):  # a target needs results in a row
+                relay.publish(RESULT)
             deadline = time.monotonic() + 2.0
             # until the published target's set is complete (DEBUG_VECT is its last message); sets sent
             # before `publish` say "no target" (NaN)

@@ -10,7 +10,7 @@ import pytest
 from mavlink_peer import LoopbackPeer, of_type
 from result_factory import branch, frame_result
 
-from branchrange.core.config import MavlinkConfig
+from branchrange.core.config import MavlinkConfig, TrackingConfig
 from branchrange.core.frame_result import FrameResult
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 
@@ -27,9 +27,11 @@ def peer():
     p.close()
 
 
-def relay_for(peer: LoopbackPeer, **overrides) -> MavlinkRelay:
+def relay_for(peer: LoopbackPeer, min_observations: int = 1, **overrides) -> MavlinkRelay:
+    """A relay to `peer`; by default one result is evidence enough (these tests are about the messages)."""
     cfg = MavlinkConfig(url=f"udpout:127.0.0.1:{peer.port}", **overrides)
-    return MavlinkRelay(cfg, CameraMount.from_rpy((0, 0, 0), MOUNT_XYZ))
+    tracking = TrackingConfig(target_min_observations=min_observations)
+    return MavlinkRelay(cfg, CameraMount.from_rpy((0, 0, 0), MOUNT_XYZ), tracking=tracking)
 
 
 def first_frame_after_publish(peer: LoopbackPeer, relay: MavlinkRelay, result: FrameResult):
@@ -145,3 +147,20 @@ def test_no_target_goes_out_while_the_camera_is_lost_however_fresh_the_result(pe
     # the other branches are still obstacles: the camera's last view of them is not a target, but they are there
     assert {o.msg.obstacle_id for o in of_type(got, "OBSTACLE_DISTANCE_3D")} >= {3, 7}
     assert any(d.msg.current_distance == 142 for d in of_type(back, "DISTANCE_SENSOR"))
+
+
+def test_without_vehicle_state_a_target_needs_its_branch_in_results_in_a_row(peer):
+    with relay_for(peer, min_observations=3, send_rate_hz=10.0) as relay:
+        for _ in range(2):
+            relay.publish(RESULT)
+        early = peer.collect(0.3)
+        relay.publish(frame_result([branch(3, [0.5, 0.25, 2.0])], target_id=3))  # branch 0 missing: count restarts
+        relay.publish(RESULT)
+        relay.publish(RESULT)
+        gap = peer.collect(0.3)
+        relay.publish(RESULT)  # the third in a row
+        late = peer.collect(
+            0.5, until=lambda r: any(d.msg.current_distance == 142 for d in of_type(r, "DISTANCE_SENSOR"))
+        )
+    assert all(d.msg.current_distance != 142 for d in of_type(early + gap, "DISTANCE_SENSOR"))
+    assert any(d.msg.current_distance == 142 for d in of_type(late, "DISTANCE_SENSOR"))

@@ -105,6 +105,9 @@ class MavlinkRelay:
         self._tracks = WorldTracks(tracking, TargetRule(target_policy, target_min_confidence, cfg.max_result_age_s))
         self._approach = ApproachPlanner(cfg)
         self._latest_fused = False
+        # camera mode's evidence rule: results in a row that held each branch id (the pipeline's stable ids)
+        self._seen_in_a_row: dict[int, int] = {}
+        self._latest_evidenced = False
         self._mode: str | None = None  # "world" or "camera" from the first send on
         self._last_state_request = -math.inf
         self._link = MavlinkLink(
@@ -124,9 +127,14 @@ class MavlinkRelay:
         """Hand over a frame's result; `captured_at` (the relay's clock, s) defaults to now."""
         captured_at = self._clock() if captured_at is None else captured_at
         fused = self._fuse(result, captured_at)
+        self._seen_in_a_row = {b.id: self._seen_in_a_row.get(b.id, 0) + 1 for b in result.branches}
+        evidenced = result.target_id is not None and (
+            self._seen_in_a_row[result.target_id] >= self._tracking.target_min_observations
+        )
         with self._cond:
             self._latest = (result, captured_at)
             self._latest_fused = fused
+            self._latest_evidenced = evidenced
             self._new_result = True
             self._cond.notify()
 
@@ -250,6 +258,7 @@ class MavlinkRelay:
                 new_result, self._new_result = self._new_result, False
                 lost_changed, self._lost_changed = self._lost_changed, False
                 latest, camera_lost, fused = self._latest, self._camera_lost, self._latest_fused
+                evidenced = self._latest_evidenced
             self._receive(self._link.poll(), self._clock())
             now = self._clock()
             if lost_changed or now >= next_heartbeat:
@@ -257,7 +266,7 @@ class MavlinkRelay:
                 next_heartbeat = now + HEARTBEAT_PERIOD_S
             self._request_state(now)
             if new_result or now >= next_frame:
-                self._send_frame(latest, fused, camera_lost, now)
+                self._send_frame(latest, fused, camera_lost, evidenced, now)
                 next_frame = now + frame_period
 
     def _receive(self, received: list[Any], now: float) -> None:
@@ -291,12 +300,14 @@ class MavlinkRelay:
         )
 
     def _frame_targets(
-        self, latest: tuple[FrameResult, float] | None, fused: bool, camera_lost: bool, now: float
+        self, latest: tuple[FrameResult, float] | None, fused: bool, camera_lost: bool, evidenced: bool, now: float
     ) -> tuple[messages.FrameTargets, tuple[Any, float] | None]:
         """This send's targets in the body frame of `now`, and the approach setpoint (or None).
 
         No target while the camera is lost, whatever the tracks or the newest result say: what the
-        relay last saw may be the frame before a fall or a cover."""
+        relay last saw may be the frame before a fall or a cover. Without vehicle state the newest
+        result's target goes out only once `evidenced`: its branch id was in the last
+        `tracking.target_min_observations` results in a row (the world tracks' rule, on the pipeline's ids)."""
         with self._state_lock:
             pose = self._vehicle.pose_at(now)
             fresh_unfused = latest is not None and not fused and now - latest[1] <= self._cfg.max_result_age_s
@@ -314,7 +325,8 @@ class MavlinkRelay:
             self._approach.reset()  # no setpoint without a pose
         fresh = latest[0] if latest is not None and now - latest[1] <= self._cfg.max_result_age_s else None
         targets = messages.targets_from_result(fresh, self._mount)
-        return (messages.FrameTargets(None, targets.candidates) if camera_lost else targets), None
+        withheld = camera_lost or not evidenced
+        return (messages.FrameTargets(None, targets.candidates) if withheld else targets), None
 
     def _set_mode(self, mode: str) -> None:
         """Switch between "world" and "camera" sending, and say so in the log."""
@@ -331,9 +343,11 @@ class MavlinkRelay:
                 "without latency compensation"
             )
 
-    def _send_frame(self, latest: tuple[FrameResult, float] | None, fused: bool, camera_lost: bool, now: float) -> None:
+    def _send_frame(
+        self, latest: tuple[FrameResult, float] | None, fused: bool, camera_lost: bool, evidenced: bool, now: float
+    ) -> None:
         """Send this moment's targets (world tracks, else the newest fresh result, else "no target")."""
-        targets, setpoint = self._frame_targets(latest, fused, camera_lost, now)
+        targets, setpoint = self._frame_targets(latest, fused, camera_lost, evidenced, now)
         time_boot_ms = self._time_boot_ms(now)
         frame = messages.frame_messages(targets, self._mount, self._cfg, time_boot_ms, self._tracking.gate_m)
         if self._link.send(frame):
