@@ -139,3 +139,23 @@ def test_a_replays_results_file_names_the_recording_to_export_from(recording, tm
     results.write_text(run_header_line("replay", Config(), f"replay:{recording}") + '{"schema": "branchrange/v1"}\n')
     assert frames_source(results) == f"replay:{recording}"
     assert frames_source(recording) == f"replay:{recording}"
+
+
+def test_a_ros2_bag_is_exported_with_the_segmenters_masks(recording, tmp_path, capsys):
+    pytest.importorskip("rosbags", reason="ROS 2 bags need the 'ros' extra")
+    from camera.sources import open_source
+    from camera.sources.rosbag_writer import write_bag
+
+    with open_source(f"replay:{recording}", pace="fast") as source:
+        write_bag(list(source), source.calibration, tmp_path / "bag")
+    out = tmp_path / "coco"
+    argv = ["export-frames", str(tmp_path / "bag"), "--out", str(out), "--count", "2", "--segmenter", "structure"]
+    assert main(argv) == DONE
+    assert "scored 4 frames of rosbag:" in capsys.readouterr().out
+    dataset = coco.COCO(str(out / "annotations.json"))
+    images = dataset.loadImgs(dataset.getImgIds())
+    assert len(images) == 2 and all(dataset.getAnnIds(imgIds=[image["id"]]) for image in images)
+    for image in images:  # the bag's frames, in time order, as they were recorded
+        assert np.array_equal(
+            read_rgb(out / image["file_name"]), read_rgb(recording / "left" / f"{image['frame_index']:06d}.png")
+        )

@@ -120,29 +120,25 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
         metavar="ID",
         help="class ids an onnx model uses for the trunk (default none)",
     )
-    parser.add_argument(
-        "--score-threshold",
-        type=float,
-        default=onnx.score_threshold,
-        metavar="S",
-        help=f"an onnx model's detections scoring lower are dropped (default {onnx.score_threshold}, "
-        "Ultralytics' conf)",
-    )
-    parser.add_argument(
-        "--nms-iou",
-        type=float,
-        default=onnx.nms_iou,
-        metavar="IOU",
-        help=f"an onnx model's NMS drops the weaker of two same-class boxes overlapping more "
-        f"(default {onnx.nms_iou}, Ultralytics' iou)",
-    )
-    parser.add_argument(
-        "--input-size",
-        type=int,
-        default=onnx.input_size,
-        metavar="PX",
-        help="input side a dynamic-shape onnx model runs at (default 0: the imgsz in its metadata, else 640)",
-    )
+    for key, kind, metavar, what in (
+        ("score_threshold", float, "S", "an onnx model's detections scoring lower are dropped (Ultralytics' conf)"),
+        (
+            "nms_iou",
+            float,
+            "IOU",
+            "an onnx model's NMS drops the weaker of two same-class boxes overlapping more (Ultralytics' iou)",
+        ),
+        (
+            "input_size",
+            int,
+            "PX",
+            "input side a dynamic-shape onnx model runs at (0: the imgsz in its metadata, else 640)",
+        ),
+    ):
+        default = getattr(onnx, key)
+        parser.add_argument(
+            f"--{key.replace('_', '-')}", type=kind, default=default, metavar=metavar, help=f"{what}; default {default}"
+        )
 
 
 def segmenter_settings(args: argparse.Namespace) -> Any:
