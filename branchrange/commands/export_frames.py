@@ -71,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"branchrange export-frames: {exc}", file=sys.stderr)
         return STOPPED_ON_ERROR
     print(
-        f"scored {summary.scored} frames of {summary.source} ({summary.corrupt} unreadable); "
+        f"scored {summary.scored} frames of {summary.source} ({summary.corrupt} unreadable, "
+        f"{summary.rejected} rejected by the pipeline); "
         f"picked {len(summary.picked)}: {', '.join(str(s.index) for s in summary.picked)}"
     )
     print(f"wrote {summary.annotations} (import into CVAT as COCO 1.0; Label Studio: annotations_polygons.json)")

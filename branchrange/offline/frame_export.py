@@ -17,6 +17,7 @@ recording the replay ran on (a daemon's log of a live camera names no file to re
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,17 +34,20 @@ from branchrange.offline.replay import source_spec
 from camera.sources import CorruptFrameError, SourceConfigError, SourceUnavailable, StereoFrame, open_source
 from stereo.progress import progress_bar
 
+log = logging.getLogger("branchrange.export_frames")
 #: The segmenters whose disagreement marks a frame as uncertain: the learned one and the 3D-structure one.
 REFERENCE_SEGMENTERS = ("learned", "structure")
 
 
 @dataclass(frozen=True)
 class ExportSummary:
-    """What an export did: frames read and scored, frames unreadable, the frames picked, where the data set is."""
+    """What an export did: frames scored, unreadable and rejected by the pipeline, the frames picked, where
+    the data set is."""
 
     source: str
     scored: int
     corrupt: int
+    rejected: int
     picked: tuple[FrameStats, ...]
     annotations: Path
 
@@ -168,7 +172,7 @@ def export_frames(
         )
     spec = frames_source(source)
     scored: list[FrameStats] = []
-    corrupt = 0
+    corrupt, rejected = 0, []
     opened = open_source(spec, calibration=cfg.camera.calibration or None, pace="fast")
     try:
         analyser = FrameAnalyser(cfg, opened.calibration)
@@ -177,12 +181,20 @@ def export_frames(
                 bar.update()
                 if frame is None:
                     corrupt += 1
-                else:
+                    continue
+                try:
                     scored.append(analyser.stats(frame))
+                except ValueError as exc:  # the pipeline's input errors: a pair it refuses, a size off its calibration
+                    rejected.append(f"frame {frame.index}: {exc}")
+                    log.warning("frame %d skipped: %s", frame.index, exc)
     finally:
         opened.close()
     if not scored:
-        raise SourceUnavailable(f"{spec}: none of its frames could be read; expected a readable recording")
+        why = f"; {rejected[0]}" if rejected else ""
+        raise SourceUnavailable(
+            f"{spec}: no frame could be scored ({corrupt} unreadable, {len(rejected)} rejected{why}); "
+            "expected a readable recording"
+        )
     picked = select_frames(scored, count, int(round(min_spacing_s * 1e9)))
     annotations = write_coco(out_dir, _picked_frames(spec, cfg, analyser, {s.index for s in picked}), spec, version)
-    return ExportSummary(spec, len(scored), corrupt, tuple(picked), annotations)
+    return ExportSummary(spec, len(scored), corrupt, len(rejected), tuple(picked), annotations)
