@@ -366,8 +366,14 @@ def test_dynamic_shape_model_runs_a_1080p_frame_at_640_and_maps_its_masks_to_the
 
 @pytest.mark.parametrize(
     "imgsz, input_size, shape",
-    [(None, 0, (384, 640)), ("640", 0, (384, 640)), ("[320, 320]", 0, (192, 320)), ("[320, 320]", 960, (544, 960))],
-    ids=["default-640", "metadata-640", "metadata-320", "setting-wins"],
+    [
+        (None, 0, (384, 640)),
+        ("640", 0, (384, 640)),
+        ("[320, 320]", 0, (192, 320)),
+        ("[320, 320]", 960, (544, 960)),
+        (None, 650, (384, 672)),
+    ],
+    ids=["default-640", "metadata-640", "metadata-320", "setting-wins", "rounded-to-stride"],
 )
 def test_dynamic_input_size_is_the_setting_else_the_export_size_in_the_metadata(
     models, tmp_path, imgsz, input_size, shape

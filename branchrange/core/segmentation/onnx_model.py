@@ -122,10 +122,13 @@ class _Letterbox:
     def fit(cls, width: int, height: int, target: tuple[int, int], stride: int | None) -> _Letterbox:
         """Place a `width×height` image into `target` (w, h) px, aspect kept, centred.
 
-        `stride` None: the input is `target` itself (a fixed-shape model). Otherwise the input keeps
-        of the padding only what makes each side a multiple of `stride` (Ultralytics' letterbox with
-        `auto=True`, what its predictor uses for a dynamic-shape model): a 1920×1080 frame at 640
-        becomes 640×360 in a 640×384 input."""
+        `stride` None: the input is `target` itself (a fixed-shape model). Otherwise `target` is first
+        rounded up to multiples of `stride` (Ultralytics' `check_imgsz`) and the input keeps of the
+        padding only what makes each side a multiple of `stride` (its letterbox with `auto=True`, what
+        its predictor uses for a dynamic-shape model): a 1920×1080 frame at 640 becomes 640×360 in a
+        640×384 input."""
+        if stride is not None:
+            target = (-(-target[0] // stride) * stride, -(-target[1] // stride) * stride)
         scale = min(target[0] / width, target[1] / height)
         inner_w, inner_h = int(round(width * scale)), int(round(height * scale))
         in_w, in_h = target
