@@ -159,3 +159,25 @@ def test_a_ros2_bag_is_exported_with_the_segmenters_masks(recording, tmp_path, c
         assert np.array_equal(
             read_rgb(out / image["file_name"]), read_rgb(recording / "left" / f"{image['frame_index']:06d}.png")
         )
+
+
+def _shrink(recording, position: int) -> None:
+    """Make the recording's pair at `position` half its size: a frame its calibration does not fit."""
+    import cv2
+
+    for side in ("left", "right"):
+        path = recording / side / f"{position:06d}.png"
+        cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (240, 136)))
+
+
+def test_frames_the_pipeline_rejects_are_skipped_and_counted_and_none_scored_is_bad_input(tmp_path, capsys):
+    recording = write_tree_recording(tmp_path / "rec", count=2, period_ns=SECOND, with_masks=True)
+    _shrink(recording, 1)
+    assert main(["export-frames", str(recording), "--out", str(tmp_path / "coco"), "--count", "2"]) == DONE
+    assert "scored 1 frames of replay:" in (out := capsys.readouterr().out) and "1 rejected by the pipeline" in out
+    lonely = write_tree_recording(tmp_path / "lonely", count=1, period_ns=SECOND, with_masks=True)
+    _shrink(lonely, 0)
+    assert main(["export-frames", str(lonely), "--out", str(tmp_path / "none")]) == BAD_INPUT
+    err = capsys.readouterr().err
+    assert "no frame could be scored (0 unreadable, 1 rejected; frame 0: the calibration is for 480×270" in err
+    assert not (tmp_path / "none").exists()
