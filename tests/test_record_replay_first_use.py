@@ -112,8 +112,8 @@ def test_record_and_replay_agree_on_exit_code_2_for_a_deleted_or_truncated_recor
         assert str(broken) in err
 
 
-def test_both_help_texts_state_the_exit_codes(capsys):
-    for command in ("record", "replay"):
+def test_the_help_texts_state_the_exit_codes(capsys):
+    for command in ("record", "replay", "export-frames"):
         with pytest.raises(SystemExit):
             branchrange_main([command, "--help"])
         text = capsys.readouterr().out
