@@ -53,7 +53,7 @@ def test_export_round_trips_the_recordings_masks_exactly_through_pycocotools(rec
     for image in images:
         position = (image["timestamp_ns"] - FIRST_TIMESTAMP_NS) // SECOND
         truth = read_mask(recording / mask_name(position))
-        exported = read_rgb(out / image["file_name"])
+        exported = read_rgb(out / "images" / image["file_name"])
         assert np.array_equal(exported, read_rgb(recording / "left" / f"{position:06d}.png"))  # rectified already
         assert (image["width"], image["height"]) == (truth.shape[1], truth.shape[0])
         found = _decoded(dataset, image["id"])
@@ -157,7 +157,8 @@ def test_a_ros2_bag_is_exported_with_the_segmenters_masks(recording, tmp_path, c
     assert len(images) == 2 and all(dataset.getAnnIds(imgIds=[image["id"]]) for image in images)
     for image in images:  # the bag's frames, in time order, as they were recorded
         assert np.array_equal(
-            read_rgb(out / image["file_name"]), read_rgb(recording / "left" / f"{image['frame_index']:06d}.png")
+            read_rgb(out / "images" / image["file_name"]),
+            read_rgb(recording / "left" / f"{image['frame_index']:06d}.png"),
         )
 
 

@@ -3,7 +3,8 @@
 Layout of `DIR` (what CVAT's "COCO 1.0" import and Label Studio's COCO converter read):
 
 ```
-DIR/images/frame_000123.png       the frames' (rectified) left views, lossless
+DIR/images/frame_000123.png       the frames' (rectified) left views, lossless; each image's `file_name`
+                                  is the bare name, its index in the source (and `timestamp_ns`) beside it
 DIR/annotations.json              COCO: info, licenses, images, categories branch (1) / trunk (2),
                                   one annotation per instance, its mask as COCO RLE (exact)
 DIR/annotations_polygons.json     the same with each mask as polygons (its outer outlines)
@@ -57,8 +58,9 @@ class LabelledFrame:
 
     @property
     def file_name(self) -> str:
-        """The image's path inside the data set, named after the frame's index in its source."""
-        return f"{IMAGES_DIR}/frame_{self.index:06d}.png"
+        """The image's name, after the frame's index in its source; a bare name in `IMAGES_DIR`, as COCO's
+        own sets have it and as CVAT matches an uploaded annotation file to a task's images."""
+        return f"frame_{self.index:06d}.png"
 
 
 def _mask_api() -> Any:
@@ -135,7 +137,7 @@ def write_coco(out_dir: str | Path, frames: Iterable[LabelledFrame], source: str
     polygon_annotations: Records = []
     for image_id, frame in enumerate(frames, start=1):
         height, width = frame.image.shape[:2]
-        _write_image(out / frame.file_name, frame.image)
+        _write_image(out / IMAGES_DIR / frame.file_name, frame.image)
         images.append(
             {
                 "id": image_id,
