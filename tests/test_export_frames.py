@@ -66,7 +66,7 @@ def test_export_round_trips_the_recordings_masks_exactly_through_pycocotools(rec
     first = polygons.loadAnns(polygons.getAnnIds(imgIds=[images[0]["id"]]))
     assert first and all(isinstance(a["segmentation"], list) and len(a["segmentation"][0]) >= 6 for a in first)
     iou = [mask_agreement(polygons.annToMask(a).astype(bool), dataset.annToMask(a).astype(bool)) for a in first]
-    assert min(iou) > 0.5
+    assert min(iou) > 0.95  # holes aside, the outlines give the masks back
 
 
 def test_without_masks_the_configured_segmenter_pre_annotates(tmp_path):
