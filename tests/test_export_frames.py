@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from branchrange.commands.exit_codes import BAD_INPUT, DONE
 from branchrange.core.config import Config
 from branchrange.core.frame_results import run_header_line
 from branchrange.offline.frame_export import frames_source
-from branchrange.offline.frame_selection import FrameStats, mask_agreement, select_frames
+from branchrange.offline.frame_selection import FrameStats, mask_agreement, select_frames, with_flicker
 from camera.sources.image_files import read_mask, read_rgb
 from camera.sources.recording_format import mask_name
 from stereo.synth.truth import TRUNK_ID, is_branch_id
@@ -90,18 +91,18 @@ def test_without_masks_the_configured_segmenter_pre_annotates(tmp_path):
         assert sum(np.array_equal(masks.branch(branch_id), f) for f in found["branch"]) == 1
 
 
-def _stats(index: int, colour: int, uncertainty: float, near: float = 0.5) -> FrameStats:
-    """A frame at `index` s whose histogram is all in bin `colour`; `uncertainty` through its confidence."""
+def _stats(index: int, colour: int, confidence: float, near: float = 0.5) -> FrameStats:
+    """A frame at `index` s whose histogram is all in bin `colour`, the segmenters agreeing."""
     histogram = np.zeros(64)
     histogram[colour] = 1.0
-    return FrameStats(index, index * SECOND, histogram, near, confidence=1.0 - 2 * uncertainty, agreement=1.0)
+    return FrameStats(index, index * SECOND, histogram, near, confidence=confidence, agreement=1.0)
 
 
 def test_selection_starts_uncertain_then_picks_unlike_frames_never_closer_than_the_spacing():
     """Ten frames 1 s apart: 0–4 red, 5–9 green; frame 2 the most uncertain. With 2 s spacing: 2 first
     (most uncertain), then the first green frame far enough from it (5), then the earliest frame left
     (0: every other candidate is as unlike what was picked and as certain)."""
-    stats = [_stats(i, 0 if i < 5 else 63, 0.45 if i == 2 else 0.25) for i in range(10)]
+    stats = [_stats(i, 0 if i < 5 else 63, 0.1 if i == 2 else 0.5) for i in range(10)]
     picked = [s.index for s in select_frames(stats, 3, 2 * SECOND)]
     assert picked == [2, 5, 0]
     everything = [s.index for s in select_frames(stats, 10, 2 * SECOND)]
@@ -112,8 +113,19 @@ def test_selection_starts_uncertain_then_picks_unlike_frames_never_closer_than_t
 def test_selection_prefers_an_unlike_scene_over_a_more_uncertain_copy():
     """After the first pick, a frame of another colour and nearness beats a slightly more uncertain
     frame that looks like the first."""
-    stats = [_stats(0, 0, 0.5), _stats(5, 0, 0.4), _stats(10, 63, 0.1, near=0.9)]
+    stats = [_stats(0, 0, 0.0), _stats(5, 0, 0.2), _stats(10, 63, 0.7, near=0.9)]
     assert [s.index for s in select_frames(stats, 2, SECOND)] == [0, 10]
+
+
+def test_flicker_counts_branches_seen_in_one_frame_alone_and_branches_one_frame_missed():
+    """A branch at 1 m seen in every frame but 3; frame 2 also sees one 0.5 m aside that no neighbour sees."""
+    steady, stray = [0.0, 0.0, 1.0], [0.5, 0.0, 1.0]
+    points = {0: [steady], 1: [steady], 2: [steady, stray], 3: [], 4: [[0.05, 0.0, 1.02]]}  # 5 cm off: the same
+    stats = [replace(_stats(i, 0, 0.5), cut_points=np.array(p).reshape(-1, 3)) for i, p in points.items()]
+    flicker = [s.flicker for s in with_flicker(stats)]
+    assert flicker == [0.0, 0.0, 0.5, 1.0, 0.0]
+    first, _, third, fourth, _ = with_flicker(stats)
+    assert fourth.uncertainty > third.uncertainty > first.uncertainty  # (0.5 + 0 + f) / 3
 
 
 def test_bad_sources_and_options_are_clear_errors_with_the_bad_input_exit_code(recording, tmp_path, capsys):

@@ -4,7 +4,8 @@ Two passes over the source, so that a long recording is never held in memory:
 
 1. every `every`-th frame goes through the pipeline (whole-frame stereo, no tracking: each frame on its
    own), then the learned and the structure segmenters, giving its `FrameStats`: colour, nearness,
-   the mean confidence of its cut points and the two segmenters' agreement (`frame_selection`);
+   the mean confidence of its cut points, the two segmenters' agreement and its cut points, whose
+   flicker against the frames scored before and after it is counted once all are in (`frame_selection`);
 2. `select_frames` picks `count` of them, and the source is read again to write those frames' rectified
    left views and masks — the recording's own masks when it has them, else the configured segmenter's
    (`[segmenter] model`) — with `coco_export.write_coco`.
@@ -29,7 +30,13 @@ from branchrange.core.config import Config
 from branchrange.core.frame_results import pipeline_for, process_frame, read_runs
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.offline.coco_export import LabelledFrame, write_coco
-from branchrange.offline.frame_selection import FrameStats, colour_histogram, mask_agreement, select_frames
+from branchrange.offline.frame_selection import (
+    FrameStats,
+    colour_histogram,
+    mask_agreement,
+    select_frames,
+    with_flicker,
+)
 from branchrange.offline.replay import source_spec
 from camera.sources import CorruptFrameError, SourceConfigError, SourceUnavailable, StereoFrame, open_source
 from stereo.progress import progress_bar
@@ -116,6 +123,7 @@ class FrameAnalyser:
             near=min(1.0, near),
             confidence=float(np.mean(confidences)) if confidences else 0.0,
             agreement=mask_agreement(*branch_pixels),
+            cut_points=np.array([b.cut_point_m for b in result.branches], dtype=float).reshape(-1, 3),
         )
 
 
@@ -195,6 +203,6 @@ def export_frames(
             f"{spec}: no frame could be scored ({corrupt} unreadable, {len(rejected)} rejected{why}); "
             "expected a readable recording"
         )
-    picked = select_frames(scored, count, int(round(min_spacing_s * 1e9)))
+    picked = select_frames(with_flicker(scored), count, int(round(min_spacing_s * 1e9)))
     annotations = write_coco(out_dir, _picked_frames(spec, cfg, analyser, {s.index for s in picked}), spec, version)
     return ExportSummary(spec, len(scored), corrupt, len(rejected), tuple(picked), annotations)
