@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml deploy/constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(if $(TORCH_INDEX),$(PY) -m pip install --quiet -c deploy/constraints.txt --index-url $(TORCH_INDEX) torch)
-	$(PY) -m pip install --quiet -c deploy/constraints.txt -e ".[dev,onnx,ros]"
+	$(PY) -m pip install --quiet -c deploy/constraints.txt -e ".[dev,onnx,ros,coco]"
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -15,6 +15,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.serve",
     "branchrange.commands.daemon",
     "branchrange.commands.replay",
+    "branchrange.commands.export_frames",
     "branchrange.commands.record",
     "branchrange.commands.bag_from_recording",
     "branchrange.commands.estimate",

@@ -42,6 +42,7 @@ STRINGS = {
     "segmenter.learned.model": "my_branchnet.onnx",
     "segmenter.learned.precision": "int8",
     "segmenter.learned.network_width": 1280,  # 0 (the frame's own) or 160..4096
+    "segmenter.input_size": 320,  # 0 (the model's export size) or stride..8192
     "mavlink.url": "tcp:127.0.0.1:5760",
     "mavlink.signing_key_file": "k.key",
     "api.host": "0.0.0.0",

@@ -112,12 +112,12 @@ def test_record_and_replay_agree_on_exit_code_2_for_a_deleted_or_truncated_recor
         assert str(broken) in err
 
 
-def test_both_help_texts_state_the_exit_codes(capsys):
-    for command in ("record", "replay"):
+def test_the_help_texts_state_the_exit_codes(capsys):
+    for command in ("record", "replay", "export-frames"):
         with pytest.raises(SystemExit):
             branchrange_main([command, "--help"])
         text = capsys.readouterr().out
-        assert "exit codes (the same for record and replay):" in text and "2  bad input" in text
+        assert "exit codes (the same for record, replay and export-frames):" in text and "2  bad input" in text
 
 
 def test_replay_writes_a_run_header_and_readers_skip_it(recording, tmp_path):

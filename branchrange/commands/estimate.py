@@ -79,13 +79,15 @@ def whole_frame_stereo(args: argparse.Namespace) -> Any:
 
 
 def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: bool) -> None:
-    """--segmenter NAME and the class ids of an onnx model, shared by `estimate` and `demo`.
+    """--segmenter NAME and an onnx model's class ids, thresholds and input size, shared by `estimate`
+    and `demo` (the other commands set them as `[segmenter]` keys, `--set segmenter.nms_iou=0.6`).
 
     `optional_value`: a bare `--segmenter` means the default segmenter and leaving it out means no
     segmenter (demo: the truth mask); otherwise it defaults to the default segmenter.
     """
     from branchrange.core.segmentation.choose import DEFAULT_SEGMENTER
     from branchrange.core.segmentation.choose import SEGMENTER_NAMES as names
+    from branchrange.core.segmentation.onnx_model import OnnxSegmenterConfig as onnx
 
     if optional_value:
         parser.add_argument(
@@ -118,6 +120,25 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
         metavar="ID",
         help="class ids an onnx model uses for the trunk (default none)",
     )
+    for key, kind, metavar, what in (
+        ("score_threshold", float, "S", "an onnx model's detections scoring lower are dropped (Ultralytics' conf)"),
+        (
+            "nms_iou",
+            float,
+            "IOU",
+            "an onnx model's NMS drops the weaker of two same-class boxes overlapping more (Ultralytics' iou)",
+        ),
+        (
+            "input_size",
+            int,
+            "PX",
+            "input side a dynamic-shape onnx model runs at (0: the imgsz in its metadata, else 640)",
+        ),
+    ):
+        default = getattr(onnx, key)
+        parser.add_argument(
+            f"--{key.replace('_', '-')}", type=kind, default=default, metavar=metavar, help=f"{what}; default {default}"
+        )
 
 
 def segmenter_settings(args: argparse.Namespace) -> Any:
@@ -129,6 +150,9 @@ def segmenter_settings(args: argparse.Namespace) -> Any:
         model=args.segmenter or DEFAULT_SEGMENTER,
         branch_classes=tuple(args.branch_classes),
         trunk_classes=tuple(args.trunk_classes),
+        score_threshold=args.score_threshold,
+        nms_iou=args.nms_iou,
+        input_size=args.input_size,
     )
 
 

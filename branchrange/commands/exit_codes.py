@@ -1,4 +1,4 @@
-"""Exit codes shared by `branchrange record` and `branchrange replay`, and the `--help` epilog that states them."""
+"""Exit codes shared by `branchrange record`, `replay` and `export-frames`, and the `--help` epilog that states them."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ STOPPED_ON_ERROR = 1
 #: recording, a source that cannot be opened, or a source none of whose frames could be read.
 BAD_INPUT = 2
 
-EPILOG = f"""exit codes (the same for record and replay):
+EPILOG = f"""exit codes (the same for record, replay and export-frames):
   {DONE}  done: every frame was handled (corrupt frames skipped and counted)
   {STOPPED_ON_ERROR}  stopped on an error after it started (camera lost, disk full, video not
      writable); what was written is usable

@@ -11,16 +11,22 @@ Two output layouts are understood, recognised from the model's outputs:
   channel: sigmoid > `mask_threshold`); branch pixels are split into instances by 8-connectivity,
   trunk pixels form the trunk.
 
-Input: `(1, 3, H, W)` float32 RGB in [0, 1] (the Ultralytics convention). A fixed input size is
-letterboxed (aspect kept, grey 114 padding); a dynamic one gets the image padded to a multiple of
-`stride`. Which class ids are branch and which trunk is configuration, not guessed.
+Input: `(1, 3, H, W)` float32 RGB in [0, 1] (the Ultralytics convention), the frame letterboxed into
+it as Ultralytics' predictor does (aspect kept, bilinear resize, grey 114 padding split evenly): a
+fixed-shape model at its own input size; a dynamic-shape one at `input_size`, or the `imgsz` the
+exporter wrote into the model's metadata, or 640 — never the frame's own size: a model trained at 640
+finds a 1920×1080 frame's branches far less often there, in 4–5× the time — with the padding cut
+to what makes each side a multiple of `stride` (Ultralytics' "rect" letterbox). Detections
+are kept from `score_threshold` (0.25) and NMS suppresses above `nms_iou` (0.7): Ultralytics' predict
+defaults `conf` and `iou`. Which class ids are branch and which trunk is configuration, not guessed.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -28,6 +34,11 @@ import numpy as np
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks, split_binary
 from branchrange.core.settings_check import Checks, Settings
+
+#: Ultralytics' predict `imgsz`: the input side of a dynamic-shape model whose metadata gives none.
+DEFAULT_INPUT_SIDE_PX = 640
+#: The largest input side accepted from the settings or a model's metadata.
+MAX_INPUT_SIDE_PX = 8192
 
 
 class OnnxSegmenterError(ValueError):
@@ -40,11 +51,17 @@ class OnnxSegmenterConfig(Settings):
 
     - `branch_classes`, `trunk_classes`: the model's class ids that are branch / trunk (others are
       ignored); at least one branch class.
-    - `score_threshold`: detections scoring lower are dropped (YOLO layouts).
+    - `score_threshold`: detections scoring lower are dropped (YOLO layouts); 0.25 is Ultralytics'
+      predict default `conf`.
     - `mask_threshold`: probability above which a pixel belongs to a mask (0..1).
-    - `nms_iou`: IoU above which the weaker of two same-class boxes is suppressed.
+    - `nms_iou`: IoU above which the weaker of two same-class boxes is suppressed; 0.7 is Ultralytics'
+      default `iou` (0.5 kept 3.2 of 5.3 branches an image where thin diagonal stems' boxes overlap).
+    - `input_size`: a dynamic-shape model's input, px: the frame is letterboxed into this square
+      (Ultralytics' `imgsz`); 0 = the `imgsz` in the model's metadata (its export size), else 640.
+      A fixed-shape model runs at its own input size.
     - `min_area_px`: smaller instances are dropped (speckle).
-    - `stride`: dynamic input sizes are padded to a multiple of this.
+    - `stride`: a dynamic-shape input's sides are padded to a multiple of this (the network's largest
+      downsampling: 32 for YOLOv8/11/26-seg).
     - `threads`: onnxruntime intra-op threads (the pipeline shares 2 cores with stereo).
     """
 
@@ -52,7 +69,8 @@ class OnnxSegmenterConfig(Settings):
     trunk_classes: tuple[int, ...] = ()
     score_threshold: float = 0.25
     mask_threshold: float = 0.5
-    nms_iou: float = 0.5
+    nms_iou: float = 0.7
+    input_size: int = 0
     min_area_px: int = 20
     stride: int = 32
     threads: int = 2
@@ -76,6 +94,10 @@ class OnnxSegmenterConfig(Settings):
             "score_threshold": (0 <= self.score_threshold <= 1, "a score in [0, 1]"),
             "mask_threshold": (0 < self.mask_threshold < 1, "a probability in (0, 1)"),
             "nms_iou": (0 < self.nms_iou <= 1, "an IoU in (0, 1]"),
+            "input_size": (
+                self.input_size == 0 or self.stride <= self.input_size <= MAX_INPUT_SIDE_PX,
+                f"0 (the model's export size) or {self.stride}..{MAX_INPUT_SIDE_PX} px",
+            ),
             "min_area_px": (self.min_area_px >= 1, "≥ 1 pixel"),
             "stride": (self.stride >= 1, "≥ 1 pixel"),
             "threads": (self.threads >= 1, "≥ 1"),
@@ -85,25 +107,66 @@ class OnnxSegmenterConfig(Settings):
 
 @dataclass(frozen=True)
 class _Letterbox:
-    """How an image was placed into the network input: scale, then (left, top) padding in px."""
+    """How an image was placed into the network input: scaled by `scale` to `inner_w×inner_h` px,
+    at (`pad_x`, `pad_y`) px in the `input_w×input_h` input."""
 
     scale: float
     pad_x: int
     pad_y: int
+    inner_w: int
+    inner_h: int
     input_w: int
     input_h: int
+
+    @classmethod
+    def fit(cls, width: int, height: int, target: tuple[int, int], stride: int | None) -> _Letterbox:
+        """Place a `width×height` image into `target` (w, h) px, aspect kept, centred.
+
+        `stride` None: the input is `target` itself (a fixed-shape model). Otherwise `target` is first
+        rounded up to multiples of `stride` (Ultralytics' `check_imgsz`) and the input keeps of the
+        padding only what makes each side a multiple of `stride` (its letterbox with `auto=True`, what
+        its predictor uses for a dynamic-shape model): a 1920×1080 frame at 640 becomes 640×360 in a
+        640×384 input."""
+        if stride is not None:
+            target = (-(-target[0] // stride) * stride, -(-target[1] // stride) * stride)
+        scale = min(target[0] / width, target[1] / height)
+        inner_w, inner_h = int(round(width * scale)), int(round(height * scale))
+        in_w, in_h = target
+        if stride is not None:
+            in_w, in_h = inner_w + (in_w - inner_w) % stride, inner_h + (in_h - inner_h) % stride
+        return cls(scale, (in_w - inner_w) // 2, (in_h - inner_h) // 2, inner_w, inner_h, in_w, in_h)
+
+    def to_input(self, image: np.ndarray) -> np.ndarray:
+        """The `uint8 H×W×3` image placed into the `input_h×input_w×3` input, grey 114 around it;
+        resized bilinearly, as Ultralytics' `LetterBox` does."""
+        canvas = np.full((self.input_h, self.input_w, 3), 114, dtype=np.uint8)
+        inner = (self.inner_w, self.inner_h)
+        resized = image if inner == image.shape[1::-1] else cv2.resize(image, inner, interpolation=cv2.INTER_LINEAR)
+        canvas[self.pad_y : self.pad_y + self.inner_h, self.pad_x : self.pad_x + self.inner_w] = resized
+        return canvas
 
     def to_image(self, plane: np.ndarray, width: int, height: int, interpolation: int) -> np.ndarray:
         """A `h×w` map over the network input (any resolution) → the original `height×width` image."""
         full = cv2.resize(plane, (self.input_w, self.input_h), interpolation=interpolation)
-        x0, y0 = self.pad_x, self.pad_y
-        x1 = x0 + int(round(width * self.scale))
-        y1 = y0 + int(round(height * self.scale))
-        return cv2.resize(full[y0:y1, x0:x1], (width, height), interpolation=interpolation)
+        inner = full[self.pad_y : self.pad_y + self.inner_h, self.pad_x : self.pad_x + self.inner_w]
+        return cv2.resize(inner, (width, height), interpolation=interpolation)
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(x, -50.0, 50.0)))
+
+
+def _export_size(text: str) -> tuple[int, int] | None:
+    """(w, h) px of a metadata `imgsz` ('640', '[640, 640]' or '[384, 640]': Ultralytics writes [h, w]);
+    None when it is not one or two whole numbers in 1..`MAX_INPUT_SIDE_PX`."""
+    try:
+        value: Any = json.loads(text)  # str() of an int or a list of ints is JSON
+    except ValueError:
+        return None
+    sides = [value] if isinstance(value, int) else list(value) if isinstance(value, (list, tuple)) else []
+    if not 1 <= len(sides) <= 2 or not all(type(v) is int and 1 <= v <= MAX_INPUT_SIDE_PX for v in sides):
+        return None
+    return sides[-1], sides[0]
 
 
 def onnx_session(path: Path, threads: int, blocked_layout: bool = True) -> onnxruntime.InferenceSession:  # noqa: F821 - optional import
@@ -149,9 +212,27 @@ class OnnxSegmenter:
             )
         self._input = inputs[0].name
         h, w = inputs[0].shape[2:]
-        self._fixed_size = (w, h) if isinstance(w, int) and isinstance(h, int) else None
+        self.fixed_shape = isinstance(w, int) and isinstance(h, int)
+        #: (w, h) px the frame is letterboxed into: a fixed-shape model's input, else `input_size` or the export size
+        self.input_size: tuple[int, int] = (w, h) if self.fixed_shape else self._dynamic_size(path, config)
         outputs = self.session.get_outputs()
         self.layout = self._layout(path, [o.shape for o in outputs])
+
+    def _dynamic_size(self, path: Path, config: OnnxSegmenterConfig) -> tuple[int, int]:
+        """(w, h) px a dynamic-shape model runs at: `input_size` when set, else the `imgsz` the
+        Ultralytics exporter writes into the model's metadata ('640' or '[h, w]'), else 640."""
+        if config.input_size:
+            return config.input_size, config.input_size
+        text = self.session.get_modelmeta().custom_metadata_map.get("imgsz")
+        if text is None:
+            return DEFAULT_INPUT_SIDE_PX, DEFAULT_INPUT_SIDE_PX
+        size = _export_size(text)
+        if size is None:
+            raise OnnxSegmenterError(
+                f"onnx:{path}: metadata imgsz = {text!r} is not an input size (expected 640 or [h, w] px up to "
+                f"{MAX_INPUT_SIDE_PX}); set segmenter.input_size"
+            )
+        return size
 
     @staticmethod
     def _layout(path: Path, shapes: list[list]) -> str:
@@ -170,24 +251,9 @@ class OnnxSegmenter:
     def _prepare(self, left: np.ndarray) -> tuple[np.ndarray, _Letterbox]:
         """The `(1, 3, H, W)` float32 input and where the image sits in it."""
         height, width = left.shape[:2]
-        if self._fixed_size is not None:
-            in_w, in_h = self._fixed_size
-            scale = min(in_w / width, in_h / height)
-        else:
-            s = self.config.stride
-            scale = 1.0
-            in_w, in_h = -(-width // s) * s, -(-height // s) * s
-        new_w, new_h = int(round(width * scale)), int(round(height * scale))
-        canvas = np.full((in_h, in_w, 3), 114, dtype=np.uint8)
-        pad_x, pad_y = (in_w - new_w) // 2, (in_h - new_h) // 2
-        resized = (
-            left
-            if (new_w, new_h) == (width, height)
-            else cv2.resize(left, (new_w, new_h), interpolation=cv2.INTER_AREA)
-        )
-        canvas[pad_y : pad_y + new_h, pad_x : pad_x + new_w] = resized
-        tensor = canvas.astype(np.float32).transpose(2, 0, 1)[None] / 255.0
-        return np.ascontiguousarray(tensor), _Letterbox(scale, pad_x, pad_y, in_w, in_h)
+        box = _Letterbox.fit(width, height, self.input_size, None if self.fixed_shape else self.config.stride)
+        tensor = box.to_input(left).astype(np.float32).transpose(2, 0, 1)[None] / 255.0
+        return np.ascontiguousarray(tensor), box
 
     def segment(
         self, left: np.ndarray, disparity: np.ndarray, geometry: StereoGeometry, confidence: np.ndarray | None = None
