@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +29,10 @@ OPENAPI_FILE = "openapi.json"
 HTTP_METHODS = ("get", "post", "put", "patch", "delete")
 
 
+@cache
 def openapi_document() -> dict[str, Any]:
-    """The OpenAPI document of the full service: the POST routes (an estimator) and the daemon's `/latest`."""
+    """The OpenAPI document of the full service: the POST routes (an estimator) and the daemon's `/latest`;
+    made once per build."""
     from api.app import create_app
     from api.estimator import PipelineEstimator
     from branchrange.core.config import ApiConfig
