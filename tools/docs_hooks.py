@@ -40,9 +40,39 @@ def openapi_document() -> dict[str, Any]:
     return create_app(ApiConfig(), PipelineEstimator()).openapi()
 
 
+def _type_of(schema: dict[str, Any]) -> str:
+    """A field's type as a reader wants it: `file`, `number`, one of an enum's values; `null` left out."""
+    options = [option for option in schema.get("anyOf", [schema]) if option.get("type") != "null"]
+    names = []
+    for option in options:
+        if "enum" in option:
+            names.append(" \\| ".join(f"`{value}`" for value in option["enum"]))
+        elif option.get("contentMediaType"):
+            names.append("file")
+        else:
+            names.append(str(option.get("type", "")))
+    return ", ".join(names)
+
+
+def form_fields_table(document: dict[str, Any], operation: dict[str, Any]) -> str:
+    """A Markdown table of an operation's multipart form fields (name, type, required, description), or ''."""
+    body = operation.get("requestBody", {}).get("content", {}).get("multipart/form-data")
+    if body is None:
+        return ""
+    schema = document["components"]["schemas"][body["schema"]["$ref"].rsplit("/", 1)[-1]]
+    required = set(schema.get("required", []))
+    rows = ["| field | type | required | what it is |", "|---|---|---|---|"]
+    for name, field in schema["properties"].items():
+        need = "yes" if name in required else ""
+        rows.append(f"| `{name}` | {_type_of(field)} | {need} | {field.get('description', '')} |")
+    return "\n".join(rows)
+
+
 def endpoints_table(document: dict[str, Any]) -> str:
-    """A Markdown table of the document's operations: method, path, summary and documented status codes."""
+    """Markdown of the document's operations: one table of all of them (method, path, summary, documented
+    status codes), then each one that takes a form with the table of its fields."""
     rows = ["| method | path | what it does | answers |", "|---|---|---|---|"]
+    forms = []
     for path, operations in document["paths"].items():
         for method in HTTP_METHODS:
             operation = operations.get(method)
@@ -51,7 +81,11 @@ def endpoints_table(document: dict[str, Any]) -> str:
             summary = operation.get("summary") or operation.get("description", "").split("\n")[0]
             statuses = ", ".join(sorted(operation.get("responses", {})))
             rows.append(f"| `{method.upper()}` | `{path}` | {summary} | {statuses} |")
-    return "\n".join(rows)
+            fields = form_fields_table(document, operation)
+            if fields:
+                heading = f"### `{method.upper()} {path}`"
+                forms.append(f"{heading}\n\n{summary}. Form fields (multipart/form-data):\n\n{fields}")
+    return "\n\n".join(["\n".join(rows), *forms])
 
 
 def exit_codes_block() -> str:
