@@ -26,6 +26,8 @@ BUILTIN_EXCEPTIONS = frozenset(
     name for name, value in vars(builtins).items() if isinstance(value, type) and issubclass(value, BaseException)
 )
 LINK = re.compile(r"\]\(([^)\s]+)\)")
+#: A table's cell border: a pipe outside code spans (followed by an even number of backticks on its line).
+CELL_BORDER = re.compile(r"\|(?=(?:[^`]*`[^`]*`)*[^`]*$)")
 
 
 def _base_name(node: ast.expr) -> str:
@@ -61,7 +63,7 @@ def troubleshooting_rows() -> dict[str, list[str]]:
     """Table rows of the troubleshooting page by their first cell's code span: `name` → the row's cells."""
     rows = {}
     for line in TROUBLESHOOTING.read_text(encoding="utf-8").splitlines():
-        cells = [cell.strip() for cell in re.split(r"(?<!\\)\|", line.strip())[1:-1]]
+        cells = [cell.strip() for cell in CELL_BORDER.split(line.strip())[1:-1]]
         if cells and cells[0].startswith("`") and cells[0].endswith("`"):
             rows[cells[0].strip("`")] = cells
     return rows
