@@ -1,9 +1,14 @@
-"""The manual and the README keep their promises: every error type a user can meet is explained on the
-troubleshooting page, the README stays short with its two commands, and its links lead somewhere.
+"""The manual and the README keep their promises: every error type and every warning or error the code logs
+is explained on the troubleshooting page, the README stays short with its two commands, and its links lead
+somewhere.
 
-The rule for "every error type": each class defined in `branchrange/`, `camera/`, `stereo/` or `api/` that
-derives, directly or through another such class, from a built-in exception or warning. Classes are read
-from the source with `ast`, so no module (and no heavy dependency) is imported.
+The rules, both over the code of `branchrange/`, `camera/`, `stereo/` and `api/`, read with `ast` (no module,
+and no heavy dependency, is imported):
+- an error type is a class that derives, directly or through another such class, from a built-in exception
+  or warning; each has a table row of its own (`module.Class`, cause, fix);
+- a logged message is the format string of a `log.warning`, `log.error` or `log.exception` call (also
+  `(log.warning if … else log.info)(…)`); every literal piece of it between the %-placeholders is quoted on
+  the page, where the placeholders are written `…`.
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import ast
 import builtins
 import re
+from functools import cache
 from pathlib import Path
 
 import pytest
@@ -28,6 +34,9 @@ BUILTIN_EXCEPTIONS = frozenset(
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 #: A table's cell border: a pipe outside code spans (followed by an even number of backticks on its line).
 CELL_BORDER = re.compile(r"\|(?=(?:[^`]*`[^`]*`)*[^`]*$)")
+LOGGED_LEVELS = frozenset({"warning", "error", "exception"})
+#: A %-placeholder of a logging format string (`%d`, `%.1f`, `%r`, …).
+PLACEHOLDER = re.compile(r"%[-#0 +]*\d*(?:\.\d+)?[sdrfigx]")
 
 
 def _base_name(node: ast.expr) -> str:
@@ -37,15 +46,44 @@ def _base_name(node: ast.expr) -> str:
     return node.id if isinstance(node, ast.Name) else ""
 
 
-def user_facing_errors() -> list[str]:
-    """Dotted names (`camera.calibration.CalibrationError`) of the exception and warning classes of PACKAGES."""
-    classes: list[tuple[str, str, list[str]]] = []  # (module, class, base names)
+@cache
+def _modules() -> list[tuple[str, ast.Module]]:
+    """(dotted module name, parsed source) of every Python file of PACKAGES; parsed once per test run."""
+    modules = []
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
-            module = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
-            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-                if isinstance(node, ast.ClassDef):
-                    classes.append((module, node.name, [_base_name(base) for base in node.bases]))
+            name = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+            modules.append((name, ast.parse(path.read_text(encoding="utf-8"))))
+    return modules
+
+
+def _logs_at_user_level(func: ast.expr) -> bool:
+    """`log.warning`, `log.error`, `log.exception`, or a conditional choosing one of them."""
+    if isinstance(func, ast.IfExp):
+        return _logs_at_user_level(func.body) or _logs_at_user_level(func.orelse)
+    return isinstance(func, ast.Attribute) and func.attr in LOGGED_LEVELS and _base_name(func.value) == "log"
+
+
+def logged_messages() -> list[str]:
+    """The format strings of the warnings and errors the packages log."""
+    messages = set()
+    for _, tree in _modules():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and _logs_at_user_level(node.func) and node.args:
+                first = node.args[0]
+                if isinstance(first, ast.Constant) and isinstance(first.value, str):
+                    messages.add(first.value)
+    return sorted(messages)
+
+
+def user_facing_errors() -> list[str]:
+    """Dotted names (`camera.calibration.CalibrationError`) of the exception and warning classes of PACKAGES."""
+    classes = [
+        (module, node.name, [_base_name(base) for base in node.bases])
+        for module, tree in _modules()
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ClassDef)
+    ]
     known = set(BUILTIN_EXCEPTIONS)
     errors: set[str] = set()
     grew = True
@@ -84,6 +122,22 @@ def test_every_error_class_is_explained_in_troubleshooting(error: str) -> None:
     row = troubleshooting_rows().get(error)
     assert row is not None, f"{error} has no row in {TROUBLESHOOTING.relative_to(ROOT)} (| `{error}` | cause | fix |)"
     assert len(row) >= 3 and all(row[1:]), f"{error}: the row needs a cause and a fix, got {row}"
+
+
+def test_logged_messages_are_found() -> None:
+    """The scan sees the daemon's late-result, camera-lost and link messages."""
+    messages = logged_messages()
+    assert "camera disconnected: %s" in messages
+    assert any(message.startswith("frame took %.0f ms") for message in messages)
+    assert any(message.startswith("no vehicle state from the autopilot") for message in messages)  # IfExp form
+
+
+@pytest.mark.parametrize("message", logged_messages())
+def test_every_logged_message_is_quoted_in_troubleshooting(message: str) -> None:
+    """Each warning or error the code logs is on the troubleshooting page, placeholders written `…`."""
+    page = TROUBLESHOOTING.read_text(encoding="utf-8")
+    missing = [piece.strip() for piece in PLACEHOLDER.split(message) if piece.strip() and piece.strip() not in page]
+    assert not missing, f"{message!r}: not on {TROUBLESHOOTING.relative_to(ROOT)}: {missing}"
 
 
 def test_readme_is_short_and_keeps_its_two_commands() -> None:
