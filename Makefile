@@ -1,4 +1,4 @@
-# The two commands of the README's Quickstart, and `make lint`. All set up .venv on first use.
+# The two commands of the README's Quickstart, `make lint` and `make docs`. All set up .venv on first use.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 #   make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu
 TORCH_INDEX ?=
 
-.PHONY: demo test lint setup clean
+.PHONY: demo test lint docs setup clean
 
 setup: $(STAMP)
 
@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml deploy/constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(if $(TORCH_INDEX),$(PY) -m pip install --quiet -c deploy/constraints.txt --index-url $(TORCH_INDEX) torch)
-	$(PY) -m pip install --quiet -c deploy/constraints.txt -e ".[dev,onnx,ros,coco]"
+	$(PY) -m pip install --quiet -c deploy/constraints.txt -e ".[dev,onnx,ros,coco,docs]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -30,5 +30,9 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
+# The manual in site/ (mkdocs.yml); --strict turns a broken link, a missing page or a docstring warning into a failure.
+docs: $(STAMP)
+	$(VENV)/bin/mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out site

@@ -7,7 +7,7 @@ far more than the 5 cm recall radius, about the size of the avoidance margin's s
 space that is free, or leaves a branch where none is reported. For thresholds 0 … 0.6 the table
 shows how many of the cut points within 5 cm of a true one survive (obstacles kept) and how many of
 the misplaced ones still get through. `mavlink.obstacle_min_confidence` defaults to the value this
-table supports (README, "MAVLink").
+table supports (docs/mavlink.md, "Obstacle confidence").
 
     .venv/bin/python -m stereo.cli synth --out /tmp/evalset --scenes 40 --seed 0 --size 640x360
     .venv/bin/python benchmarks/obstacle_confidence.py /tmp/evalset --json out/obstacle_confidence.json

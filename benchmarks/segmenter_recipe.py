@@ -1,6 +1,6 @@
 """The shipped segmenter's whole training recipe, timed, and checked against the shipped files.
 
-Runs the stages of `branchrange/core/segmentation/weights/branchnet.json` ("stages") as README gives them
+Runs the stages of `branchrange/core/segmentation/weights/branchnet.json` ("stages") as docs/segmenter.md gives them
 (`branchrange train-segmenter --stage K`; every stage but the last with `--no-calibrate`, the last with
 `--int8`), from nothing cached: the scenes are rendered into a new or empty `--data` folder, so the wall time
 is what a new machine spends. Prints each part's wall time (rendering, each stage's training, the calibrations and the
@@ -39,7 +39,7 @@ RENDERED, VALIDATION, WROTE = "rendered ", "step ", "wrote "
 
 
 def stage_commands(stages: int, data: Path) -> list[tuple[str, list[str], Path]]:
-    """(name, argv, out folder) of each stage, as README gives them (the stages' "init_weights" name the
+    """(name, argv, out folder) of each stage, as docs/segmenter.md gives them (the stages' "init_weights" name the
     folders `runs/branchnet-stageK`, so those are the ones written)."""
     commands = []
     for stage in range(1, stages + 1):

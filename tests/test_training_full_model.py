@@ -8,8 +8,8 @@ two steps per epoch. Both tests share one run: its first N = 3 steps (crossing t
 with its validation) are the uninterrupted reference of the resume test, and the smoke test
 continues it to 6 steps (3 epochs) — which is itself a resume in process from a `max_steps` stop.
 The in-process interruption with weight EMA, the fp16 scaler and colour jitter is also pinned on a
-small network in test_training_loop.py. Longer runs: benchmarks/train_synthetic.py (figures in the
-README).
+small network in test_training_loop.py. Longer runs: benchmarks/train_synthetic.py (figures in
+docs/training.md).
 """
 
 from __future__ import annotations

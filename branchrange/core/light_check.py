@@ -4,7 +4,7 @@ The learned segmenter's confidence is a measured share of right cut points, and 
 on the light: at dusk SGBM has a third of the signal, in haze a third of the contrast, at high gain
 the noise shows the network stems that are not there. Calibrated under the renderer's own light only,
 the confidence strayed from the share of right cut points twice as far at dusk and at high gain as in
-that light (`benchmarks/RESULTS.md`, "Confidence read in the frame's own light"). So a frame's light is
+that light (`benchmarks/results/segmenter.md`, "Confidence read in the frame's own light"). So a frame's light is
 measured here, sorted into one of `LIGHTS`, and the segmenter reads its confidences through the
 calibration measured in that light.
 
