@@ -95,7 +95,7 @@ def table_schema(cls: type, name: str) -> dict[str, Any]:
     properties: dict[str, Any] = {}
     for field in dataclasses.fields(cls):
         annotation = hints[field.name]
-        if dataclasses.is_dataclass(annotation):
+        if isinstance(annotation, type) and dataclasses.is_dataclass(annotation):
             properties[field.name] = table_schema(annotation, f"{name}.{field.name}")
         else:
             properties[field.name] = _key_schema(cls, field.name, annotation, getattr(defaults, field.name))

@@ -1,6 +1,6 @@
 """`branchrange config show`: the effective configuration, every key, and where each value came from.
 
-A daemon's behaviour depends on ~200 keys of which a deploy file sets ~40; the rest are defaults
+A daemon's behaviour depends on ~140 keys of which a deploy file sets ~40; the rest are defaults
 that change between versions. This lists all of them as the code will use them, each marked
 `default`, `file` or `--set`, as TOML (readable, and a valid file to start from) or as JSON.
 """
