@@ -21,9 +21,13 @@ option can be set in the file and on the command line (`--set section.key=value`
 range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
 Examples live in `deploy/*.toml`.
 
-To add an option: add a typed field with a default to its section's dataclass, and its range to
-that class's `checks()` (`branchrange.core.settings_check.Settings`). The loader reads the field list,
-so nothing else changes; a field whose type is itself a settings dataclass is a sub-table.
+To add an option: add a typed field with a default to its section's dataclass, its range to that
+class's `checks()` and its plain bounds or choices to its `limits` (`branchrange.core.settings_check`),
+and say what it does in a bullet of the class docstring (`branchrange.core.settings_docs`). The
+loader reads the field list; a field whose type is itself a settings dataclass is a sub-table. The
+JSON Schema that editors check the file with and the reference `docs/configuration.md` are
+generated from the same classes (`branchrange config schema`, `branchrange config reference`); tests
+say when they need regenerating.
 """
 
 from __future__ import annotations
