@@ -258,6 +258,12 @@ class MavlinkConfig(Settings):
     obstacle, so the drone would stop short of the branch it must cut). Results older than
     `max_result_age_s` are reported as "no target"; messages go out at least `send_rate_hz` times
     a second even without new results (ArduPilot and PX4 call a proximity sensor stale at 0.5 s).
+    `enabled`: the daemon runs the relay (false: no MAVLink at all). `system_id`: the system id
+    BranchRange sends as, the vehicle's SYSID_THISMAV. `component_id`: its component id
+    (191 = MAV_COMP_ID_ONBOARD_COMPUTER). `min_distance_m`: the nearest distance DISTANCE_SENSOR and the
+    obstacle messages say they measure (their min_distance). `max_distance_m`: the farthest (no target
+    is sent as this + 1 cm, "nothing in range"). `sensor_id`: DISTANCE_SENSOR's sensor id.
+    `reconnect_interval_s`: after a failed open or a send or read error the link is opened afresh this often.
 
     Vehicle state and link health (`branchrange.onboard.mavlink.vehicle_state`): the autopilot is asked for
     ATTITUDE and LOCAL_POSITION_NED at `state_rate_hz` (MAV_CMD_SET_MESSAGE_INTERVAL) unless
