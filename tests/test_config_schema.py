@@ -276,3 +276,15 @@ def test_the_reference_has_a_row_for_every_key_and_a_heading_for_every_table(sch
     assert "## [segmenter.structure]" in text and "## [branch_tracking]" in text
     row = next(line for line in text.splitlines() if line.startswith("| `max_disp` |"))
     assert row.split(" | ")[1:5] == ["integer", "", "`192`", "[16, 512], multiple of 16"]
+
+
+def test_every_key_is_described_by_its_settings_class():
+    """A new key without a bullet (or a sentence naming it) in its class docstring would reach the editor and the
+    reference without a word about what it does."""
+    undocumented = []
+    for cls in dict.fromkeys(settings_classes()):
+        hints = typing.get_type_hints(cls)
+        for field in dataclasses.fields(cls):
+            if not dataclasses.is_dataclass(hints[field.name]) and not key_description(cls, field.name):
+                undocumented.append(f"{cls.section}.{field.name}")
+    assert undocumented == []
