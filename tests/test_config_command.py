@@ -57,6 +57,8 @@ def test_key_lines_finds_tables_keys_and_sub_tables():
     assert lines["cutpoints.target_min_confidnce"] == 9
     assert lines["segmenter.structure"] == 11 and lines["segmenter.structure.max_range_m"] == 13
     assert lines["mavlnk.url"] == 16 and "backend" not in lines  # a key belongs to its table
+    dotted = key_lines('stereo.backend = "sgbm"\n[segmenter]\nstructure . max_range_m = 3\n')
+    assert dotted == {"stereo.backend": 1, "segmenter": 2, "segmenter.structure.max_range_m": 3}
 
 
 def test_check_prints_every_problem_with_its_line_and_the_nearest_name(capsys, mistyped):
@@ -100,8 +102,8 @@ def test_check_passes_every_deploy_file_and_counts_its_keys(capsys, path):
     [
         (None, "configuration file not found"),
         (
-            "[stereo\nbackend = 1\n",
-            "not valid TOML (Expected ']' at the end of a table declaration (at line 1, column 8))",
+            "x = 1\n[stereo\nbackend = 1\n",
+            "not valid TOML (Expected ']' at the end of a table declaration (at line 2, column 8))",
         ),
         (b'[stereo]\nbackend = "\xff"\n', "not UTF-8 text (invalid start byte at byte 20)"),
     ],
@@ -113,7 +115,8 @@ def test_check_refuses_a_file_it_cannot_read_without_a_traceback(capsys, tmp_pat
     elif text is not None:
         path.write_text(text)
     status, out, _ = run(capsys, "check", str(path))
-    assert (status, out) == (BAD_INPUT, f"{path}: {message}\n")
+    where = f"{path}:2" if "at line 2" in message else str(path)  # a syntax error's line, from tomllib
+    assert (status, out) == (BAD_INPUT, f"{where}: {message}\n")
 
 
 def test_show_gives_each_value_and_its_source(capsys, tmp_path):
@@ -168,3 +171,8 @@ def test_check_config_gives_the_effective_configuration_when_valid():
     result = check_config(DEPLOY / "serve.toml", [("stereo.max_disp", 128)])
     assert result.problems == [] and result.config == load_config(DEPLOY / "serve.toml", [("stereo.max_disp", 128)])
     assert result.sources["stereo.max_disp"] == "--set" and result.sources["api.host"] == "file"
+
+
+def test_check_names_a_folder_given_for_the_file(capsys, tmp_path):
+    status, out, _ = run(capsys, "check", str(tmp_path))
+    assert (status, out) == (BAD_INPUT, f"{tmp_path}: cannot be read (Is a directory)\n")

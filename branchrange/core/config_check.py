@@ -33,8 +33,10 @@ from branchrange.core.config_schema import config_schema
 
 #: A table header line: `[section]` or `[section.sub]`, perhaps with a comment after it.
 _TABLE_HEADER = re.compile(r"^\s*\[\s*([\w.\- ]+?)\s*\]\s*(?:#.*)?$")
-#: A key line: `key = value`.
-_KEY_LINE = re.compile(r"^\s*([\w\-]+)\s*=")
+#: A key line: `key = value`, or a dotted key `table.key = value`.
+_KEY_LINE = re.compile(r"^\s*([\w\-]+(?:\s*\.\s*[\w\-]+)*)\s*=")
+#: Where tomllib says a syntax error is.
+_TOML_ERROR_LINE = re.compile(r"at line (\d+)")
 #: The dotted key a `ConfigError` message starts with (`cutpoints.min_points = 2: …`, `[mavlnk]: …`).
 _MESSAGE_KEY = re.compile(r"^\[?([\w.]+)")
 #: Where a value set on the command line comes from, in problems and in `config show`.
@@ -66,7 +68,8 @@ class ConfigCheck:
 
 def key_lines(text: str) -> dict[str, int]:
     """Dotted key (`cutpoints.cut_offset_m`) and table (`segmenter.learned`) → the 1-based line of
-    TOML `text` where it is first written (bare keys in `[table]` sections; other forms are not found)."""
+    TOML `text` where it is first written: bare and dotted keys, in `[table]` sections or at the top
+    (quoted keys and inline tables' keys are not found; their problems name the file or the table)."""
     lines: dict[str, int] = {}
     table = ""
     for number, line in enumerate(text.splitlines(), start=1):
@@ -77,7 +80,8 @@ def key_lines(text: str) -> dict[str, int]:
             continue
         key = _KEY_LINE.match(line)
         if key:
-            lines.setdefault(f"{table}.{key.group(1)}" if table else key.group(1), number)
+            name = ".".join(part.strip() for part in key.group(1).split("."))
+            lines.setdefault(f"{table}.{name}" if table else name, number)
     return lines
 
 
@@ -165,7 +169,8 @@ def check_config(path: str | Path, overrides: Iterable[Override] = ()) -> Config
     try:
         text, data = _read(path)
     except ConfigError as exc:
-        return ConfigCheck([ConfigProblem("", str(exc), str(path))])
+        at_line = _TOML_ERROR_LINE.search(str(exc))
+        return ConfigCheck([ConfigProblem("", str(exc), f"{path}:{at_line.group(1)}" if at_line else str(path))])
     set_keys = {key for key, value in overrides for key in leaf_keys({key: value})}
     try:
         tree = with_overrides(data, overrides)
