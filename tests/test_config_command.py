@@ -176,3 +176,13 @@ def test_check_config_gives_the_effective_configuration_when_valid():
 def test_check_names_a_folder_given_for_the_file(capsys, tmp_path):
     status, out, _ = run(capsys, "check", str(tmp_path))
     assert (status, out) == (BAD_INPUT, f"{tmp_path}: cannot be read (Is a directory)\n")
+
+
+def test_show_without_a_file_gives_the_defaults_and_the_set_keys(capsys):
+    status, out, _ = run(capsys, "show", "--set", "tracking.gate_m=0.2", "--json")
+    shown = json.loads(out)
+    assert status == DONE and shown["tracking.gate_m"] == {"value": 0.2, "source": "--set"}
+    assert {s["source"] for key, s in shown.items() if key != "tracking.gate_m"} == {"default"}
+    status, out, err = run(capsys, "show", "--set", "cutpoints.min_range_m=20")  # beyond max_range_m (10)
+    assert status == BAD_INPUT and out.startswith("--set: cutpoints.max_range_m = 10.0: expected > min_range_m")
+    assert err == "the defaults with --set: 1 problem\n"

@@ -1,7 +1,7 @@
 """`branchrange config check|show|schema|reference`: the configuration file, checked and explained.
 
 - `check FILE [--set K=V ...]`: every problem at once, each with its key and line; exit 0 when none.
-- `show FILE [--set K=V ...] [--json]`: every key in effect and where its value came from.
+- `show [FILE] [--set K=V ...] [--json]`: every key in effect and where its value came from.
 - `schema`: the JSON Schema editors check the TOML with (the package ships it:
   branchrange/core/schemas/config.schema.json, `#:schema` line of deploy/*.toml).
 - `reference`: the Markdown reference of every key (docs/configuration.md).
@@ -44,7 +44,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             epilog=EPILOG,
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
-        p.add_argument("file", help="the TOML configuration (see deploy/*.toml)")
+        if name == "show":  # no file: what the defaults and --set give
+            p.add_argument("file", nargs="?", help="the TOML configuration (see deploy/*.toml); none: the defaults")
+        else:
+            p.add_argument("file", help="the TOML configuration (see deploy/*.toml)")
         p.add_argument(
             "--set",
             action="append",
@@ -70,11 +73,14 @@ def _checked(args: argparse.Namespace) -> ConfigCheck:
     return check_config(args.file, overrides)
 
 
-def _report_problems(file: str, problems: list[ConfigProblem]) -> int:
+def _report_problems(file: str | None, problems: list[ConfigProblem]) -> int:
     """Print each problem (stdout) and their count (stderr); the exit status of a bad configuration."""
     for problem in problems:
         print(problem)
-    print(f"{file}: {len(problems)} problem{'s' if len(problems) != 1 else ''}", file=sys.stderr)
+    print(
+        f"{file or 'the defaults with --set'}: {len(problems)} problem{'s' if len(problems) != 1 else ''}",
+        file=sys.stderr,
+    )
     return BAD_INPUT
 
 
@@ -98,7 +104,7 @@ def run_show(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(as_json(settings), indent=2, ensure_ascii=False))
     else:
-        print(f"# {args.file} in effect: every key, its source (default, file or --set) after it\n")
+        print(f"# {args.file or 'the defaults'} in effect: every key, its source (default, file or --set) after it\n")
         print(as_toml(settings), end="")
     return DONE
 

@@ -134,15 +134,17 @@ def _without_index(key: str) -> str:
     return re.sub(r"\[\d+\]", "", key)
 
 
-def _where(key: str, path: Path, lines: dict[str, int], set_keys: set[str]) -> str:
+def _where(key: str, path: Path | None, lines: dict[str, int], set_keys: set[str]) -> str:
     """`--set` when the key (or a table above it) came from the command line, else `FILE:LINE` of the key
-    or of its nearest table written in the file, else `FILE`."""
+    or of its nearest table written in the file, else `FILE` (`--set` without a file: only they set keys)."""
     bare = _without_index(key)
     parts = bare.split(".")
     prefixes = [".".join(parts[:n]) for n in range(len(parts), 0, -1)]
     if any(prefix in set_keys for prefix in prefixes) or any(k.startswith(f"{bare}.") for k in set_keys):
         return FROM_SET
     line = next((lines[prefix] for prefix in prefixes if prefix in lines), None)
+    if path is None:
+        return FROM_SET
     return f"{path}:{line}" if line else str(path)
 
 
@@ -161,13 +163,17 @@ def _read(path: Path) -> tuple[str, dict[str, Any]]:
         raise ConfigError(f"not valid TOML ({exc})") from None
 
 
-def check_config(path: str | Path, overrides: Iterable[Override] = ()) -> ConfigCheck:
-    """Every problem of the configuration file `path` with the command line's `overrides` applied,
-    in the order of the file's lines; the effective configuration and each key's source when none."""
-    path = Path(path)
+def check_config(path: str | Path | None, overrides: Iterable[Override] = ()) -> ConfigCheck:
+    """Every problem of the configuration file `path` (None: no file, the defaults) with the command line's
+    `overrides` applied, in the order of the file's lines; the effective configuration and each key's
+    source when none."""
+    path = None if path is None else Path(path)
     overrides = list(overrides)
+    text = ""
+    data: dict[str, Any] = {}  # no file: the defaults
     try:
-        text, data = _read(path)
+        if path is not None:
+            text, data = _read(path)
     except ConfigError as exc:
         at_line = _TOML_ERROR_LINE.search(str(exc))
         return ConfigCheck([ConfigProblem("", str(exc), f"{path}:{at_line.group(1)}" if at_line else str(path))])
