@@ -1,4 +1,4 @@
-"""The `branchrange` command: the application (demo, estimate, serve, daemon, replay, record …).
+"""The `branchrange` command: the application (demo, estimate, serve, daemon, replay, config, record …).
 
 Each subcommand lives in its own module under `branchrange.commands` and exposes
 `register(subparsers)`, which adds its parser and sets `func(args) -> int`.
@@ -16,6 +16,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.daemon",
     "branchrange.commands.replay",
     "branchrange.commands.export_frames",
+    "branchrange.commands.config",
     "branchrange.commands.record",
     "branchrange.commands.bag_from_recording",
     "branchrange.commands.estimate",

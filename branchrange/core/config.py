@@ -21,14 +21,19 @@ option can be set in the file and on the command line (`--set section.key=value`
 range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
 Examples live in `deploy/*.toml`.
 
-To add an option: add a typed field with a default to its section's dataclass, and its range to
-that class's `checks()` (`branchrange.core.settings_check.Settings`). The loader reads the field list,
-so nothing else changes; a field whose type is itself a settings dataclass is a sub-table.
+To add an option: add a typed field with a default to its section's dataclass, its range to that
+class's `checks()` and its plain bounds or choices to its `limits` (`branchrange.core.settings_check`),
+and say what it does in a bullet of the class docstring (`branchrange.core.settings_docs`). The
+loader reads the field list; a field whose type is itself a settings dataclass is a sub-table. The
+JSON Schema that editors check the file with and the reference `docs/configuration.md` are
+generated from the same classes (`branchrange config schema`, `branchrange config reference`); tests
+say when they need regenerating.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import tomllib
 import typing
@@ -49,7 +54,7 @@ from branchrange.core.segmentation.learned import LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterConfig
 from branchrange.core.segmentation.segmenter import GeometricSegmenterConfig, Segmenter
 from branchrange.core.segmentation.structure import StructureSegmenterConfig
-from branchrange.core.settings_check import Checks, Settings, SettingsError, in_physical_range
+from branchrange.core.settings_check import Checks, Limit, Settings, SettingsError, in_physical_range
 from branchrange.core.tracking import TrackerConfig
 from stereo.backends import (
     BACKEND_NAMES,
@@ -59,6 +64,7 @@ from stereo.backends import (
     StereoBackend,
     is_valid_max_disp,
 )
+from stereo.backends.base import MAX_DISP_LIMIT, MAX_DISP_STEP
 
 
 class ConfigError(SettingsError):
@@ -69,6 +75,8 @@ class ConfigError(SettingsError):
 STEREO_MODES: tuple[str, ...] = ("full", "roi")
 #: `masks.kind`: how a mask file or array is read (`branchrange.core.masks.masks_from_array`).
 MASK_KINDS: tuple[str, ...] = ("auto", "instance", "binary")
+#: `log.level`: the logging levels the daemon and the service accept.
+LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR")
 
 
 def _one_of(choices: Iterable[str]) -> str:
@@ -95,6 +103,7 @@ class CameraConfig(Settings):
 
     section = "camera"
     error = ConfigError
+    limits = {"stall_timeout_s": Limit(exclusive_minimum=0)}
 
     source: str = "zed:0"
     calibration: str = ""
@@ -118,7 +127,8 @@ class StereoConfig(Settings):
     checkpoint; the exported .onnx file): a network without them gives meaningless disparities,
     which the daemon would send to the flight controller as cut points. `max_disp`: the disparity
     search range in px at full resolution (`stereo.backends.check_max_disp`'s rule). `precision`:
-    one of `stereo.backends.PRECISIONS` (fp16/bf16 need a CUDA `device` and emcstereo). `mode`:
+    one of `stereo.backends.PRECISIONS` (fp16/bf16 need a CUDA `device` and emcstereo). `device`: the torch
+    device a network backend runs on ('cpu', 'cuda', 'cuda:1'). `mode`:
     'roi' matches the frame at low resolution and each branch at full resolution in its box and
     disparity window (`[roi]`, `branchrange.core.roi`) — the real-time onboard default; 'full' matches
     the whole frame. `verify_weights`: check a registered release's weights against its SHA-256 on load.
@@ -128,6 +138,12 @@ class StereoConfig(Settings):
 
     section = "stereo"
     error = ConfigError
+    limits = {
+        "backend": Limit(enum=BACKEND_NAMES),
+        "max_disp": Limit(minimum=MAX_DISP_STEP, maximum=MAX_DISP_LIMIT, multiple_of=MAX_DISP_STEP),
+        "precision": Limit(enum=PRECISIONS),
+        "mode": Limit(enum=STEREO_MODES),
+    }
 
     backend: str = "sgbm"
     weights: str = ""
@@ -205,6 +221,13 @@ class RoiConfig(Settings):
 
     section = "roi"
     error = ConfigError
+    limits = {
+        "coarse_width": Limit(minimum=64),
+        "box_margin_px": Limit(minimum=0, maximum=256),
+        "window_margin_px": Limit(minimum=0, maximum=64),
+        "max_regions": Limit(minimum=1, maximum=256),
+        "network_regions": Limit(minimum=0, maximum=256),
+    }
 
     coarse_width: int = 640
     box_margin_px: int = 16
@@ -235,6 +258,12 @@ class MavlinkConfig(Settings):
     obstacle, so the drone would stop short of the branch it must cut). Results older than
     `max_result_age_s` are reported as "no target"; messages go out at least `send_rate_hz` times
     a second even without new results (ArduPilot and PX4 call a proximity sensor stale at 0.5 s).
+    `enabled`: the daemon runs the relay (false: no MAVLink at all). `system_id`: the system id
+    BranchRange sends as, the vehicle's SYSID_THISMAV. `component_id`: its component id
+    (191 = MAV_COMP_ID_ONBOARD_COMPUTER). `min_distance_m`: the nearest distance DISTANCE_SENSOR and the
+    obstacle messages say they measure (their min_distance). `max_distance_m`: the farthest (no target
+    is sent as this + 1 cm, "nothing in range"). `sensor_id`: DISTANCE_SENSOR's sensor id.
+    `reconnect_interval_s`: after a failed open or a send or read error the link is opened afresh this often.
 
     Vehicle state and link health (`branchrange.onboard.mavlink.vehicle_state`): the autopilot is asked for
     ATTITUDE and LOCAL_POSITION_NED at `state_rate_hz` (MAV_CMD_SET_MESSAGE_INTERVAL) unless
@@ -253,6 +282,26 @@ class MavlinkConfig(Settings):
 
     section = "mavlink"
     error = ConfigError
+    limits = {
+        "baud": Limit(exclusive_minimum=0),
+        "system_id": Limit(minimum=1, maximum=255),
+        "component_id": Limit(minimum=1, maximum=255),
+        "max_result_age_s": Limit(exclusive_minimum=0),
+        "send_rate_hz": Limit(minimum=2.0),
+        "min_distance_m": Limit.physical("distance_m"),
+        "max_distance_m": Limit.physical("distance_m"),
+        "sensor_id": Limit(minimum=0, maximum=255),
+        "reconnect_interval_s": Limit(exclusive_minimum=0),
+        "state_rate_hz": Limit(minimum=1.0, maximum=100.0),
+        "heartbeat_timeout_s": Limit(exclusive_minimum=0),
+        "pose_timeout_s": Limit(exclusive_minimum=0, maximum=5.0),
+        "obstacle_min_confidence": Limit(minimum=0.0, maximum=1.0),
+        "setpoint_standoff_m": Limit(minimum=0),
+        "setpoint_max_step_m": Limit(exclusive_minimum=0),
+        "setpoint_max_speed_m_s": Limit(exclusive_minimum=0, maximum=5.0),
+        "setpoint_min_observations": Limit(minimum=1),
+        "setpoint_min_confidence": Limit(minimum=0.0, maximum=1.0),
+    }
 
     enabled: bool = True
     url: str = "udpout:127.0.0.1:14550"
@@ -341,6 +390,20 @@ class TrackingConfig(Settings):
 
     section = "tracking"
     error = ConfigError
+    limits = {
+        "gate_m": Limit(exclusive_minimum=0),
+        "lateral_sigma_at_1m_m": Limit(exclusive_minimum=0),
+        "depth_sigma_at_1m_m": Limit(exclusive_minimum=0),
+        "process_noise_m2_per_s": Limit(minimum=0),
+        "stale_after_s": Limit(exclusive_minimum=0),
+        "bias_share": Limit(minimum=0, maximum=0.95),
+        "same_view_deg": Limit(minimum=0, exclusive_maximum=90),
+        "same_view_range_ratio": Limit(minimum=0, exclusive_maximum=1),
+        "target_min_observations": Limit(minimum=1),
+        "consistency_m": Limit(exclusive_minimum=0),
+        "confidence_half_life_s": Limit(exclusive_minimum=0),
+        "target_switch_margin": Limit(minimum=0, exclusive_maximum=1),
+    }
 
     gate_m: float = 0.15
     lateral_sigma_at_1m_m: float = 0.004
@@ -382,13 +445,24 @@ class TrackingConfig(Settings):
 class ApiConfig(Settings):
     """The HTTP service: address, bearer token and resource limits.
 
-    An empty `token` disables authentication, which `branchrange serve` allows on loopback only.
-    `max_concurrency` inferences run at once; one more request gets 503 with `Retry-After:
-    retry_after_s` instead of waiting in an unbounded queue.
+    - `enabled`: the daemon also serves /latest, /health and /metrics (`branchrange serve` always serves).
+    - `host`, `port`: the address to listen on; any host but loopback needs a `token`.
+    - `token`: the bearer token requests must carry (or BRANCHRANGE_API_TOKEN); empty disables
+      authentication, which `branchrange serve` allows on loopback only.
+    - `max_upload_mb`: the largest request body; `max_pixels`: the largest image (width × height).
+    - `max_concurrency`: inferences that run at once; one more request gets 503 with a `Retry-After`
+      of `retry_after_s` seconds instead of waiting in an unbounded queue.
     """
 
     section = "api"
     error = ConfigError
+    limits = {
+        "port": Limit(minimum=0, maximum=65535),
+        "max_upload_mb": Limit(exclusive_minimum=0),
+        "max_pixels": Limit(exclusive_minimum=0),
+        "max_concurrency": Limit(minimum=1),
+        "retry_after_s": Limit(minimum=1),
+    }
 
     enabled: bool = False
     host: str = "127.0.0.1"
@@ -428,10 +502,16 @@ class ApiConfig(Settings):
 
 @dataclass(frozen=True)
 class LogConfig(Settings):
-    """Where per-frame results go and how often the daemon reports its status."""
+    """Where per-frame results go and how often the daemon reports its status.
+
+    - `results_jsonl`: a file every frame's result is appended to as a JSON line ("" = none).
+    - `level`: the logging level, one of DEBUG, INFO, WARNING, ERROR.
+    - `status_interval_s`: how often the daemon logs its status (frames, rates, link).
+    """
 
     section = "log"
     error = ConfigError
+    limits = {"level": Limit(enum=LOG_LEVELS), "status_interval_s": Limit(exclusive_minimum=0)}
 
     results_jsonl: str = ""
     level: str = "INFO"
@@ -440,7 +520,7 @@ class LogConfig(Settings):
     def checks(self) -> Checks:
         """The range of every setting."""
         return {
-            "level": (self.level in ("DEBUG", "INFO", "WARNING", "ERROR"), "DEBUG, INFO, WARNING or ERROR"),
+            "level": (self.level in LOG_LEVELS, "DEBUG, INFO, WARNING or ERROR"),
             "status_interval_s": (self.status_interval_s > 0, "seconds > 0"),
         }
 
@@ -456,6 +536,11 @@ class MaskConfig(Settings):
 
     section = "masks"
     error = ConfigError
+    limits = {
+        "trunk_id": Limit(minimum=1, maximum=65535),
+        "ignored_ids": Limit(minimum=1, maximum=65535),
+        "kind": Limit(enum=MASK_KINDS),
+    }
 
     trunk_id: int = DEFAULT_TRUNK_ID
     ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS
@@ -474,12 +559,13 @@ class MaskConfig(Settings):
 class SegmenterConfig(OnnxSegmenterConfig):
     """Which segmenter finds branches when no mask is given, and the settings of each.
 
-    `model`: 'structure' (built in, 3D structure), 'geometric' (the older built-in one) or
-    'onnx:FILE' (your ONNX model, YOLOv8-seg or per-pixel logits). The model's settings are the
-    other `[segmenter]` keys (`OnnxSegmenterConfig`: `branch_classes` / `trunk_classes`, the
-    model's class ids for branch and trunk; `score_threshold`, …); the built-in segmenters' are
-    the sub-tables `[segmenter.structure]` (`StructureSegmenterConfig`) and `[segmenter.geometric]`
-    (`GeometricSegmenterConfig`).
+    `model`: 'learned' (the default: the shipped BranchNet network, `[segmenter.learned]`), 'structure'
+    (built in, 3D structure), 'geometric' (the older built-in one) or 'onnx:FILE' (your ONNX model,
+    YOLOv8-seg or per-pixel logits). Your model's settings are the other `[segmenter]` keys
+    (`OnnxSegmenterConfig`: `branch_classes` / `trunk_classes`, the model's class ids for branch and
+    trunk; `score_threshold`, …); the built-in segmenters' are
+    the sub-tables `[segmenter.learned]` (`LearnedSegmenterConfig`), `[segmenter.structure]`
+    (`StructureSegmenterConfig`) and `[segmenter.geometric]` (`GeometricSegmenterConfig`).
     """
 
     section = "segmenter"
@@ -523,6 +609,25 @@ class Config:
 
 #: A command-line override: the dotted key (`stereo.max_disp`, `segmenter.structure.max_range_m`) and its value.
 Override = tuple[str, Any]
+
+
+def did_you_mean(word: str, known: Iterable[str]) -> str:
+    """'; did you mean `port`?' for the known name nearest a mistyped `word` ('' when none is near):
+    a typo on the drone is found by reading the message, not the documentation."""
+    near = difflib.get_close_matches(word, list(known), n=1)
+    return f"; did you mean `{near[0]}`?" if near else ""
+
+
+def unknown_option(table: str, key: str, known: Iterable[str]) -> str:
+    """The message for `key` that the table `[table]` does not take: what it takes, and the nearest name."""
+    known = list(known)
+    return f"{table}.{key}: unknown option; [{table}] takes {', '.join(known)}{did_you_mean(key, known)}"
+
+
+def unknown_section(name: str, known: Iterable[str]) -> str:
+    """The message for a section `[name]` the file does not take: the sections it takes, and the nearest."""
+    known = list(known)
+    return f"[{name}]: unknown section; the file takes {', '.join(f'[{s}]' for s in known)}{did_you_mean(name, known)}"
 
 
 def _wrong_type(key: str, value: Any, expected: str) -> ConfigError:
@@ -572,7 +677,7 @@ def _table(cls: type, name: str, table: Any) -> Any:
     known = sorted(f.name for f in dataclasses.fields(cls))
     unknown = sorted(set(table) - set(known))
     if unknown:
-        raise ConfigError(f"{name}.{unknown[0]}: unknown option; [{name}] takes {', '.join(known)}")
+        raise ConfigError(unknown_option(name, unknown[0], known))
     values = {key: _coerce(f"{name}.{key}", value, hints[key]) for key, value in table.items()}
     try:
         return cls(**values)
@@ -587,7 +692,7 @@ def config_from_dict(data: dict[str, Any]) -> Config:
     sections = typing.get_type_hints(Config)
     unknown = sorted(set(data) - set(sections))
     if unknown:
-        raise ConfigError(f"[{unknown[0]}]: unknown section; the file takes {', '.join(f'[{s}]' for s in sections)}")
+        raise ConfigError(unknown_section(unknown[0], sections))
     return Config(**{name: _table(sections[name], name, table) for name, table in data.items()})
 
 

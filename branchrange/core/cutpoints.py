@@ -42,7 +42,7 @@ from branchrange.core.geometry import (
     vector_norm,
 )
 from branchrange.core.masks import BranchMasks, MaskCrop, as_crop, check_instance_count, erode
-from branchrange.core.settings_check import Checks, Settings, in_physical_range
+from branchrange.core.settings_check import Checks, Limit, Settings, in_physical_range
 from branchrange.core.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
 from stereo.pinhole import depth_from_disparity
 
@@ -107,6 +107,24 @@ class CutPointConfig(Settings):
 
     section = "cutpoints"
     error = CutPointConfigError
+    limits = {
+        "cut_offset_m": Limit.physical("cut_offset_m"),
+        "erode_px": Limit(minimum=0),
+        "min_points": Limit(minimum=3),
+        "min_valid_fraction": Limit(minimum=0, maximum=1),
+        "min_confidence": Limit(minimum=0, maximum=1),
+        "disparity_noise_px": Limit(exclusive_minimum=0),
+        "cut_tolerance_m": Limit(exclusive_minimum=0, maximum=1),
+        "cut_disparity_noise_px": Limit(minimum=0, exclusive_maximum=10),
+        "min_inlier_band_m": Limit(exclusive_minimum=0),
+        "min_range_m": Limit.physical("distance_m"),
+        "max_range_m": Limit.physical("distance_m"),
+        "max_instances": Limit(minimum=1),
+        "target_policy": Limit(enum=TARGET_POLICIES),
+        "target_min_confidence": Limit(minimum=0, maximum=1),
+        "max_cut_beyond_tip_m": Limit(minimum=0),
+        "base_occluder_gap_m": Limit(exclusive_minimum=0),
+    }
 
     cut_offset_m: float = 0.05
     erode_px: int = 1

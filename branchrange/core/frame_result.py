@@ -269,14 +269,15 @@ class WorldTrack(JsonPart):
     covariance_m2: Annotated[tuple[Vector3, Vector3, Vector3], Field(description="3×3 covariance, m²")]
     age_s: Annotated[float, Field(ge=0, description="seconds since its newest observation was captured")]
     observations: Annotated[int, Field(ge=1)]
-    consistent_observations: Annotated[
-        int, Field(ge=1, description="observations in a row within tracking.consistency_m of the track")
-    ]
-    views: Annotated[int, Field(ge=1, description="distinct viewpoints its observations came from")]
     confidence: Annotated[
         Fraction,
         Field(description="recency-weighted confidence of its observations (tracking.confidence_half_life_s)"),
     ]
+    # added in 0.2.0, optional so that older logs still read
+    consistent_observations: Annotated[
+        int | None, Field(ge=1, description="observations in a row within tracking.consistency_m of the track")
+    ] = None
+    views: Annotated[int | None, Field(ge=1, description="distinct viewpoints its observations came from")] = None
 
 
 @with_config(_STRICT)

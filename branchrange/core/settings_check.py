@@ -7,6 +7,12 @@ it names its `section` and lists its range checks in `checks()`; constructing it
 a value from a file, from `--set`, from a command-line flag or from Python is checked by the same
 rule and refused with the same message: `cutpoints.min_points = 1: expected ≥ 3 points`.
 
+A subclass also declares the plain part of those ranges as data, `limits` (`Limit`: bounds or the
+accepted values), from which `branchrange.core.config_schema` writes the JSON Schema that editors
+complete and check the TOML with. `checks()` stays the rule that refuses a value, with its message
+and the ranges that depend on other keys; tests/test_config_schema.py probes that every `Limit`
+agrees with it, so the schema cannot promise what the loader refuses, or the reverse.
+
 Why ranges and not only "> 0": the cut-point maths multiplies and divides by these values
 (`Z = f·B / d`), so 1e300 overflows and 1e-320 divides by (almost) zero; a value outside what a
 stereo camera on a drone can be is refused with the value and the accepted range, once, at the
@@ -16,6 +22,7 @@ entry, so nothing downstream has to guard against it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -41,16 +48,50 @@ def check_settings(section: str, settings: object, checks: Checks, error: type[V
 
 
 @dataclass(frozen=True)
+class Limit:
+    """The plain range of one setting, in JSON Schema's words: bounds for a number (or for each item
+    of a list of numbers) or the accepted strings. What the generated schema states; `checks()`
+    refuses the value."""
+
+    minimum: float | None = None
+    maximum: float | None = None
+    exclusive_minimum: float | None = None
+    exclusive_maximum: float | None = None
+    multiple_of: int | None = None
+    enum: tuple[str, ...] = ()
+
+    @classmethod
+    def physical(cls, quantity: str) -> Limit:
+        """The closed interval of `PHYSICAL_RANGES[quantity]` (`in_physical_range`'s rule)."""
+        accepted = PHYSICAL_RANGES[quantity]
+        return cls(minimum=accepted.low, maximum=accepted.high)
+
+    def as_schema(self) -> dict[str, Any]:
+        """The JSON Schema keywords of this limit (`minimum`, `exclusiveMaximum`, `enum` …)."""
+        keywords = {
+            "minimum": self.minimum,
+            "maximum": self.maximum,
+            "exclusiveMinimum": self.exclusive_minimum,
+            "exclusiveMaximum": self.exclusive_maximum,
+            "multipleOf": self.multiple_of,
+            "enum": list(self.enum) or None,
+        }
+        return {name: value for name, value in keywords.items() if value is not None}
+
+
+@dataclass(frozen=True)
 class Settings:
     """Base of the settings dataclasses: construction runs `checks()` (`check_settings`).
 
     A subclass sets `section` (its TOML section, the prefix of its keys in messages), may set
     `error` (the exception type its callers catch) and returns its range checks from `checks()`;
-    a subclass of a subclass extends them with `{**super().checks(), ...}`.
+    a subclass of a subclass extends them with `{**super().checks(), ...}`. `limits` declares the
+    plain ranges among them for the JSON Schema (a subclass of a subclass: `{**Base.limits, ...}`).
     """
 
     section: ClassVar[str] = ""
     error: ClassVar[type[ValueError]] = SettingsError
+    limits: ClassVar[Mapping[str, Limit]] = {}
 
     def __post_init__(self) -> None:
         check_settings(self.section, self, self.checks(), self.error)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from branchrange.core.cutpoints import BranchEstimate
-from branchrange.core.settings_check import Checks, Settings
+from branchrange.core.settings_check import Checks, Limit, Settings
 
 
 class TrackerConfigError(ValueError):
@@ -39,6 +39,11 @@ class TrackerConfig(Settings):
 
     section = "branch_tracking"
     error = TrackerConfigError
+    limits = {
+        "gate_m": Limit(exclusive_minimum=0),
+        "max_missed": Limit(minimum=0),
+        "max_axis_angle_deg": Limit(exclusive_minimum=0, maximum=180),
+    }
 
     gate_m: float = 0.10
     max_missed: int = 5

@@ -53,7 +53,7 @@ from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_se
 from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
-from branchrange.core.settings_check import Checks, Settings
+from branchrange.core.settings_check import Checks, Limit, Settings
 from stereo.weights import sha256_of
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
@@ -166,6 +166,22 @@ class LearnedSegmenterConfig(Settings):
 
     section = "segmenter.learned"
     error = OnnxSegmenterError
+    limits = {
+        "precision": Limit(enum=tuple(SHIPPED_MODELS)),
+        "network_width": Limit(minimum=0, maximum=MAX_NETWORK_WIDTH),  # 0, or from MIN_NETWORK_WIDTH: checks()
+        "branch_threshold": Limit(exclusive_minimum=0, exclusive_maximum=1),
+        "min_area_px": Limit(minimum=1),
+        "depth_edge_ratio": Limit(exclusive_minimum=0),
+        "front_of_trunk_ratio": Limit(minimum=0, maximum=1),
+        "trunk_band_px": Limit(minimum=0, maximum=MAX_TRUNK_BAND_PX),
+        "bridge_px": Limit(minimum=0, maximum=20),
+        "piece_disparity_ratio": Limit(minimum=0, maximum=1),
+        "max_trunk_gap_m": Limit(minimum=0, maximum=10),
+        "attachment_scale_m": Limit(minimum=0, maximum=1),
+        "visible_length_scale_m": Limit(minimum=0, maximum=10),
+        "threads": Limit(minimum=1, maximum=64),
+        "trunk_id": Limit(minimum=1, maximum=65535),
+    }
 
     model: str = ""
     precision: str = "fp32"

@@ -33,7 +33,7 @@ import numpy as np
 
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks, split_binary
-from branchrange.core.settings_check import Checks, Settings
+from branchrange.core.settings_check import Checks, Limit, Settings
 
 #: Ultralytics' predict `imgsz`: the input side of a dynamic-shape model whose metadata gives none.
 DEFAULT_INPUT_SIDE_PX = 640
@@ -63,6 +63,7 @@ class OnnxSegmenterConfig(Settings):
     - `stride`: a dynamic-shape input's sides are padded to a multiple of this (the network's largest
       downsampling: 32 for YOLOv8/11/26-seg).
     - `threads`: onnxruntime intra-op threads (the pipeline shares 2 cores with stereo).
+    - `trunk_id`: the id the trunk gets in the returned instances.
     """
 
     branch_classes: tuple[int, ...] = (0,)
@@ -78,6 +79,17 @@ class OnnxSegmenterConfig(Settings):
 
     section = "segmenter"
     error: ClassVar[type[ValueError]] = OnnxSegmenterError
+    limits = {
+        "branch_classes": Limit(minimum=0),
+        "trunk_classes": Limit(minimum=0),
+        "score_threshold": Limit(minimum=0, maximum=1),
+        "mask_threshold": Limit(exclusive_minimum=0, exclusive_maximum=1),
+        "nms_iou": Limit(exclusive_minimum=0, maximum=1),
+        "min_area_px": Limit(minimum=1),
+        "stride": Limit(minimum=1),
+        "threads": Limit(minimum=1),
+        "trunk_id": Limit(minimum=1, maximum=65535),
+    }
 
     def checks(self) -> Checks:
         """The range of every setting; a class id is branch or trunk, not both."""

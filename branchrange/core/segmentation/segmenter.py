@@ -39,7 +39,7 @@ import numpy as np
 
 from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.core.settings_check import Checks, Settings, in_physical_range
+from branchrange.core.settings_check import Checks, Limit, Settings, in_physical_range
 
 
 class SegmenterConfigError(ValueError):
@@ -102,6 +102,16 @@ class BuiltinSegmenterConfig(Settings):
 
     section = "segmenter"
     error = SegmenterConfigError
+    limits = {
+        "min_range_m": Limit.physical("distance_m"),
+        "max_range_m": Limit.physical("distance_m"),
+        "max_branch_diameter_m": Limit(exclusive_minimum=0),
+        "min_branch_length_m": Limit(exclusive_minimum=0),
+        "min_elongation": Limit(minimum=1),
+        "depth_edge_ratio": Limit(exclusive_minimum=0),
+        "min_confidence": Limit(minimum=0, maximum=1),
+        "trunk_id": Limit(minimum=1, maximum=65535),
+    }
 
     def checks(self) -> Checks:
         """The shared settings' ranges (the working range within the physical distance range); subclasses add theirs."""

@@ -44,14 +44,39 @@ from branchrange.core.segmentation.segmenter import (
     pixel_elongation,
     working_foreground,
 )
+from branchrange.core.settings_check import Limit
 
 
 @dataclass(frozen=True)
 class StructureSegmenterConfig(BuiltinSegmenterConfig):
     """`[segmenter.structure]`, settings of `StructureSegmenter` (metres unless named otherwise); see the
-    module docstring."""
+    module docstring for the steps they tune.
+
+    - `plane_min_share`: a plane holding at least this share of the foreground's 3D points may be
+      ground or a wall (step 2).
+    - `plane_tolerance_m`: how far from the plane a point may lie and count as on it (plus the
+      stereo noise at its depth).
+    - `plane_min_extent_m`: the plane must span this much both ways (not a trunk's front).
+    - `min_depth_consistency`: share of a piece's pixels its robust (position, disparity) line must hold.
+    - `max_trunk_tilt_deg`: how far from vertical the trunk may lean.
+    - `min_piece_px`: fewest pixels of a straight piece.
+    - `max_trunk_gap_m`: with a trunk found, only pieces with an end this close to it are kept (0 = keep all).
+    - `ridge_strength`: thin pixels must also lie on an image ridge this strong, in grey levels
+      (`ridge_pixels`; 0 = no image test).
+    """
 
     section = "segmenter.structure"
+    limits = {
+        **BuiltinSegmenterConfig.limits,
+        "plane_min_share": Limit(exclusive_minimum=0, maximum=1),
+        "plane_tolerance_m": Limit(exclusive_minimum=0),
+        "plane_min_extent_m": Limit(exclusive_minimum=0),
+        "min_depth_consistency": Limit(minimum=0, maximum=1),
+        "max_trunk_tilt_deg": Limit(exclusive_minimum=0, maximum=90),
+        "min_piece_px": Limit(minimum=2),
+        "max_trunk_gap_m": Limit(minimum=0),
+        "ridge_strength": Limit(minimum=0),
+    }
 
     max_range_m: float = 4.0
     min_branch_length_m: float = 0.2
