@@ -104,7 +104,9 @@ def test_damage_before_the_end_stays_an_error(recording: Path) -> None:
         ReplaySource(recording)
 
 
-def test_a_recording_whose_only_row_was_cut_off_or_whose_images_are_all_gone_is_refused(tmp_path: Path) -> None:
+def test_a_recording_whose_only_row_was_cut_off_is_refused_and_one_whose_images_are_all_gone_is_corrupt(
+    tmp_path: Path,
+) -> None:
     with Recorder(tmp_path / "one") as recorder:
         recorder.write(recording_kill.numbered_frame(0))
     _tear_last_row(tmp_path / "one")
@@ -115,8 +117,11 @@ def test_a_recording_whose_only_row_was_cut_off_or_whose_images_are_all_gone_is_
             recorder.write(recording_kill.numbered_frame(index))
     for image in (tmp_path / "two" / "left").iterdir():
         image.unlink()
-    with pytest.raises(RecordingFormatError, match=r"none of the 2 frames in timestamps\.csv can be read"):
-        ReplaySource(tmp_path / "two")
+    source = ReplaySource(tmp_path / "two")  # damaged, not interrupted: each frame is corrupt, none is "lost"
+    assert source.frames_lost_at_end == 0
+    for _ in range(2):
+        with pytest.raises(CorruptFrameError, match="image file is missing"):
+            next(source)
 
 
 def test_branchrange_replay_of_a_killed_recording_says_what_was_lost_and_exits_0(

@@ -102,23 +102,21 @@ class _DirectoryFrames:
         """Drop the rows at the end whose images (or mask) cannot be read; their number.
 
         Reads back from the last row to the first readable one (one frame decoded for a healthy
-        recording). RecordingFormatError when no row at all is readable: that is not an interrupted
-        recording but a damaged one.
+        recording). When no row at all is readable the recording was damaged, not interrupted: every
+        row stays, and each frame raises CorruptFrameError when read.
         """
-        dropped = 0
-        first_error: CorruptFrameError | None = None
-        while self.rows:
+        readable = len(self.rows)
+        while readable:
             try:
-                self._load(len(self.rows) - 1)
-                return dropped
-            except CorruptFrameError as error:
-                first_error = error
-                self.rows.pop()
-                dropped += 1
-        raise RecordingFormatError(
-            f"{self.directory}: none of the {dropped} frames in {TIMESTAMPS_NAME} can be read (first: {first_error}); "
-            "expected the images it lists"
-        )
+                self._load(readable - 1)
+                break
+            except CorruptFrameError:
+                readable -= 1
+        if not readable:
+            return 0
+        dropped = len(self.rows) - readable
+        del self.rows[readable:]
+        return dropped
 
     def _load(self, position: int) -> StereoFrame:
         """The frame of row `position` (recorded index, timestamp and mask); CorruptFrameError when unreadable."""
