@@ -347,6 +347,36 @@ def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, c
     assert dists and all(d.msg.current_distance == 1001 for d in dists)  # the stale results never went out
 
 
+def test_latest_says_how_old_the_served_result_is_and_when_it_became_stale(recording, tmp_path):
+    """After the camera stops (here: the recording ends) /latest keeps the last result; its age keeps growing
+    from the frame's capture, and past mavlink.max_result_age_s it says stale."""
+    from fastapi.testclient import TestClient
+
+    from api import create_app
+    from branchrange.core.config import ApiConfig
+
+    max_age_s = 1.0
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}"),
+        stereo=StereoConfig(max_disp=64),
+        mavlink=MavlinkConfig(max_result_age_s=max_age_s),
+    )
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    results = tmp_path / "results.jsonl"
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording), pipeline=pipeline, results_path=results)
+    assert daemon.run(max_frames=2) == 2
+    daemon.close()
+    with TestClient(create_app(ApiConfig(), None, state=daemon)) as client:
+        fresh = client.get("/latest").json()
+        time.sleep(max_age_s + 0.1 - fresh["freshness"]["age_s"])
+        stale = client.get("/latest").json()
+    assert fresh["freshness"]["stale"] is False and fresh["freshness"]["max_age_s"] == max_age_s
+    assert stale["freshness"]["stale"] is True and stale["freshness"]["age_s"] > max_age_s
+    assert stale["freshness"]["age_s"] - fresh["freshness"]["age_s"] == pytest.approx(max_age_s, abs=0.3)
+    logged = list(read_results(results))[-1].to_json_dict()
+    assert "freshness" not in logged and {k: v for k, v in stale.items() if k != "freshness"} == logged
+
+
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -386,7 +416,9 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
         peer.close()
     logged = [r.to_json_dict() for r in read_results(results)]
     assert seen, "the daemon's API never answered /latest"
-    assert seen["latest"] in logged  # /latest is a logged result, key for key
+    freshness = seen["latest"].pop("freshness")  # the age at the request: /latest only, never logged
+    assert seen["latest"] in logged  # otherwise /latest is a logged result, key for key
+    assert freshness["max_age_s"] == 0.5 and freshness["age_s"] >= 0 and freshness["stale"] is False
     health = seen["health"]
     assert health["status"] == "ok" and health["camera"]["lost"] is False and health["camera"]["frames"] >= 1
     assert health["model"]["backend"] == "sgbm" and health["model"]["loaded"] is True

@@ -152,10 +152,12 @@ def link_metrics(link: dict[str, Any]) -> list[str]:
     response_model=EstimateResult,
     dependencies=[Depends(require_token)],
     responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}},
-    summary="Daemon mode: the newest result",
+    summary="Daemon mode: the newest result and how old it is",
 )
 def get_latest(request: Request) -> JSONResponse:
-    """The newest frame's result in daemon mode; 404 outside it or before the first frame."""
+    """The newest frame's result in daemon mode, with `freshness`: its age at this request (seconds since the
+    frame's capture) and `stale` once that is over `mavlink.max_result_age_s` — while the camera stalls the
+    last result stays here, stale. 404 outside daemon mode or before the first frame."""
     live = request.app.state.live
     if live is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "/latest exists in daemon mode only (branchrange daemon)")

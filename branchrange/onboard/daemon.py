@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import IO, Any, Protocol
 
 from branchrange.core.config import Config
-from branchrange.core.frame_result import FrameResult, Latency
+from branchrange.core.frame_result import FrameResult, Freshness, Latency
 from branchrange.core.frame_results import result_line, run_header_line, stereo_stage
 from branchrange.core.pair_check import check_rectification
 from branchrange.onboard.mavlink import MavlinkRelay
@@ -109,7 +109,7 @@ class Daemon:
             # a restart appends to the same log: each run starts with its header, never silently at frame 0 again
             self._results.write(run_header_line("daemon", cfg, cfg.camera.source))
         self._stop = threading.Event()
-        self._latest: FrameResult | None = None
+        self._latest: tuple[FrameResult, float] | None = None  # and when its frame arrived (monotonic s)
         self._slot = NewestSlot()
         self._counts_lock = threading.Lock()
         self.camera_lost = False
@@ -134,8 +134,16 @@ class Daemon:
         return self._slot.replaced
 
     def latest_result(self) -> FrameResult | None:
-        """The newest frame's result (for GET /latest)."""
-        return self._latest
+        """The newest frame's result with its `freshness` now (for GET /latest): the age since its frame
+        arrived, and `stale` past `mavlink.max_result_age_s` — a stalled camera leaves the last result
+        served, and this is how a reader tells it is old."""
+        latest = self._latest
+        if latest is None:
+            return None
+        result, captured_at = latest
+        age_s = time.monotonic() - captured_at
+        limit = self.cfg.mavlink.max_result_age_s
+        return replace(result, freshness=Freshness(round(age_s, 3), age_s > limit, limit))
 
     def health(self) -> dict[str, Any]:
         """Model, camera and link state (for GET /health)."""
@@ -237,7 +245,7 @@ class Daemon:
         self._note_light(result)
         if self._results is not None:
             self._results.write(result_line(result))
-        self._latest = result
+        self._latest = (result, item.captured_at)
         for observer in self.observers:
             try:
                 observer(result, self.pipeline.last)
