@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import signal
@@ -220,6 +221,46 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     assert "link=down" in status_lines[-1]  # the loopback peer never sends a HEARTBEAT: no flight controller
     last = dict(field.split("=") for field in status_lines[-1].split()[1:])
     assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
+
+
+def test_a_reopened_camera_is_marked_in_the_results_log_where_indices_start_again(recording, tmp_path):
+    """The camera goes away after frame 2 and the watchdog reopens it; the new source counts from 0 again.
+    The log says so, with the reason and where the results go on, and the readers skip the marker."""
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.2), stereo=StereoConfig(max_disp=64)
+    )
+    opened = []
+
+    def open_source():
+        plan = FaultPlan(disconnect={3: 5.0}) if not opened else FaultPlan()  # the second source stays up
+        opened.append(FaultInjectingSource(ReplaySource(recording), plan))
+        return opened[-1]
+
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    results = tmp_path / "results.jsonl"
+    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, results_path=results)
+    try:
+        assert daemon.run(max_frames=5) == 5
+    finally:
+        daemon.close()
+    records = [json.loads(line) for line in results.read_text().splitlines()]
+    kinds = [r.get("event") or r["schema"] for r in records]
+    assert kinds == ["branchrange/run-header/v1", *["branchrange/v1"] * 3, "camera_reopened", *["branchrange/v1"] * 2]
+    marker = records[4]
+    assert marker["schema"] == "branchrange/camera-reopened/v1" and marker["reopens"] == 1 == daemon.reopens
+    assert marker["reason"] == "no frame for 3 stall timeouts of 0.2 s" and marker["reopened_utc"].endswith("Z")
+    after = records[5]["frame"]
+    assert (
+        (marker["first_index"], marker["first_timestamp_ns"])
+        == (after["index"], after["timestamp_ns"])
+        == (
+            0,
+            1_000_000_000,
+        )
+    )
+    assert [r.frame.index for r in read_results(results)] == [0, 1, 2, 0, 1]
+    ((header, lines),) = read_runs(results)
+    assert header["kind"] == "daemon" and len(lines) == 5
 
 
 def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):

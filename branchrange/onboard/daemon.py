@@ -2,7 +2,8 @@
 
 Three threads, so no stage waits for a slower one and every stage works on the newest input.
 The JSONL results log starts each run with a run header line (`frame_results.run_header`), so a
-restart is visible in the log. Threads:
+restart is visible in the log, and a reopened camera (whose indices and timestamps start again) gets
+a camera-reopened marker line before its first result (`frame_results.camera_reopened_line`). Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
   dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
   clock — the capture time every age and latency is measured from;
@@ -42,7 +43,7 @@ from typing import IO, Any, Protocol
 
 from branchrange.core.config import Config
 from branchrange.core.frame_result import FrameResult, Freshness, Latency
-from branchrange.core.frame_results import result_line, run_header_line, stereo_stage
+from branchrange.core.frame_results import camera_reopened_line, result_line, run_header_line, stereo_stage, utc_now
 from branchrange.core.pair_check import check_rectification
 from branchrange.onboard.mavlink import MavlinkRelay
 from branchrange.onboard.newest_slot import NewestSlot
@@ -127,6 +128,8 @@ class Daemon:
         self._pair_checked = False
         self._speed_warned = False
         self._light: str | None = None  # the class of light of the last result that measured it
+        # (reason, reopens, UTC) of a camera reopening whose marker goes into the log before the next result
+        self._reopened: tuple[str, int, str] | None = None
 
     @property
     def skipped(self) -> int:
@@ -244,6 +247,9 @@ class Daemon:
         self._check_age(age)
         self._note_light(result)
         if self._results is not None:
+            if self._reopened is not None:  # indices and timestamps start again from the new source's: say why
+                self._results.write(camera_reopened_line(*self._reopened, first=result))
+                self._reopened = None
             self._results.write(result_line(result))
         self._latest = (result, item.captured_at)
         for observer in self.observers:
@@ -419,14 +425,17 @@ class Daemon:
             return None
 
     def _reopen(self, source: LatestFrameSource | None) -> LatestFrameSource | None:
-        """Close a stalled source and open a fresh one; tracked branches are forgotten."""
-        log.warning("no frame for %d stall timeouts: reopening the camera", REOPEN_AFTER_STALLS)
+        """Close a stalled source and open a fresh one; tracked branches are forgotten, and the results log
+        gets a camera-reopened marker before the next result."""
+        reason = f"no frame for {REOPEN_AFTER_STALLS} stall timeouts of {self.cfg.camera.stall_timeout_s:g} s"
+        log.warning("%s: reopening the camera", reason)
         if source is not None:
             source.close()
             self._dropped_by_closed_sources += source.dropped
         self.reopens += 1
         self._pair_checked = False  # a camera plugged in again may be another one
-        self._slot.wait_idle()  # the tracker is the worker's until then
+        self._slot.wait_idle()  # the tracker (and the log's order) is the worker's until then
+        self._reopened = (reason, self.reopens, utc_now())
         self.pipeline.reset()
         return self._try_open()
 
