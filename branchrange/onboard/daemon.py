@@ -3,7 +3,9 @@
 Three threads, so no stage waits for a slower one and every stage works on the newest input.
 The JSONL results log starts each run with a run header line (`frame_results.run_header`), so a
 restart is visible in the log, and a reopened camera (whose indices and timestamps start again) gets
-a camera-reopened marker line before its first result (`frame_results.camera_reopened_line`). Threads:
+a camera-reopened marker line before its first result (`frame_results.camera_reopened_line`). Past
+`log.results_max_mb` the log is rotated (`results_log.ResultsLog`, `log.results_keep` older files kept),
+each new file starting with the run header again. Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
   dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
   clock — the capture time every age and latency is measured from;
@@ -39,7 +41,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import Any, Protocol
 
 from branchrange.core.config import Config
 from branchrange.core.frame_result import FrameResult, Freshness, Latency
@@ -47,6 +49,7 @@ from branchrange.core.frame_results import camera_reopened_line, result_line, ru
 from branchrange.core.pair_check import check_rectification
 from branchrange.onboard.mavlink import MavlinkRelay
 from branchrange.onboard.newest_slot import NewestSlot
+from branchrange.onboard.results_log import ResultsLog
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 from stereo.backends.base import validate_pair
 
@@ -103,12 +106,15 @@ class Daemon:
         self.relay = relay
         self.metrics = metrics
         self.observers = list(observers)
-        self._results: IO[str] | None = None
+        self._results: ResultsLog | None = None
         if results_path:
-            Path(results_path).parent.mkdir(parents=True, exist_ok=True)
-            self._results = open(results_path, "a", encoding="utf-8", buffering=1)  # one flushed line per frame
             # a restart appends to the same log: each run starts with its header, never silently at frame 0 again
-            self._results.write(run_header_line("daemon", cfg, cfg.camera.source))
+            self._results = ResultsLog(
+                results_path,
+                run_header_line("daemon", cfg, cfg.camera.source),
+                max_bytes=cfg.log.results_max_bytes,
+                keep=cfg.log.results_keep,
+            )
         self._stop = threading.Event()
         self._latest: tuple[FrameResult, float] | None = None  # and when its frame arrived (monotonic s)
         self._slot = NewestSlot()
