@@ -28,6 +28,7 @@ import numpy as np
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks, split_binary
 from branchrange.core.settings_check import Checks, Settings
+from stereo.onnx_runtime import import_onnxruntime
 
 
 class OnnxSegmenterError(ValueError):
@@ -118,7 +119,7 @@ def onnx_session(path: Path, threads: int, blocked_layout: bool = True) -> onnxr
     if not path.is_file():
         raise OnnxSegmenterError(f"onnx:{path}: no such model file (expected an .onnx file)")
     try:
-        import onnxruntime as ort
+        ort = import_onnxruntime()
     except ImportError:
         raise OnnxSegmenterError(
             "onnx segmenters need onnxruntime (a dependency of branchrange): pip install onnxruntime"
