@@ -19,10 +19,10 @@ from typing import Any
 from api.metrics import label_text
 
 PREFIX = "branchrange"
-Path = tuple[str, ...]
+KeyPath = tuple[str, ...]  # a key of /health, section first: ("camera", "late")
 
 #: /health leaves that only grow: Prometheus counters.
-COUNTERS: frozenset[Path] = frozenset(
+COUNTERS: frozenset[KeyPath] = frozenset(
     {
         ("camera", "frames"),
         ("camera", "dropped"),
@@ -44,18 +44,18 @@ COUNTERS: frozenset[Path] = frozenset(
     }
 )
 #: Series named before /metrics mirrored /health: path → name after the prefix.
-KEPT_NAMES: dict[Path, str] = {
+KEPT_NAMES: dict[KeyPath, str] = {
     ("mavlink", "received"): "mavlink_messages_received_total",
     ("mavlink", "sent"): "mavlink_messages_sent_total",
     ("mavlink", "signature_failures"): "mavlink_signature_failures_total",
     ("mavlink", "peer_heartbeat_age_s"): "mavlink_heartbeat_age_seconds",
 }
 #: Free-text strings (or None): never labels, never series.
-FREE_TEXT: frozenset[Path] = frozenset({("mavlink", "last_error")})
+FREE_TEXT: frozenset[KeyPath] = frozenset({("mavlink", "last_error")})
 #: Words that may be None (no estimator in the API): a label with an empty value then, not a NaN series.
-WORDS_OR_NONE: frozenset[Path] = frozenset({("model", "backend")})
+WORDS_OR_NONE: frozenset[KeyPath] = frozenset({("model", "backend")})
 #: HELP texts of the series whose name does not say enough; the others get "/health's `path`".
-HELP: dict[Path, str] = {
+HELP: dict[KeyPath, str] = {
     ("camera", "lost"): "1 while the camera is lost (stalled, gone or unreadable); the relay sends no target.",
     ("camera", "frames"): "Results published by the daemon.",
     ("camera", "dropped"): "Camera frames replaced by a newer one before the stereo stage took them.",
@@ -75,7 +75,7 @@ HELP: dict[Path, str] = {
 }
 
 
-def metric_name(path: Path) -> str:
+def metric_name(path: KeyPath) -> str:
     """The series name of the /health leaf at `path` (e.g. ("camera", "late") → branchrange_camera_late_total)."""
     kept = KEPT_NAMES.get(path)
     if kept is not None:
@@ -83,7 +83,7 @@ def metric_name(path: Path) -> str:
     return f"{PREFIX}_{'_'.join(path)}" + ("_total" if path in COUNTERS else "")
 
 
-def health_leaves(body: dict[str, Any], path: Path = ()) -> Iterator[tuple[Path, Any]]:
+def health_leaves(body: dict[str, Any], path: KeyPath = ()) -> Iterator[tuple[KeyPath, Any]]:
     """Every (path, value) of /health's body whose value is not an object; absent sections give none."""
     for key, value in body.items():
         if isinstance(value, dict):
