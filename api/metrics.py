@@ -14,7 +14,7 @@ LATENCY_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10
 Labels = tuple[tuple[str, str], ...]
 
 
-def _label_text(labels: Labels) -> str:
+def label_text(labels: Labels) -> str:
     """`{a="1",b="2"}` with Prometheus escaping of backslash, quote and newline."""
     if not labels:
         return ""
@@ -42,9 +42,9 @@ class Histogram:
             running = 0
             for bound, count in zip((*map(repr, self.buckets), "+Inf"), counts):
                 running += count
-                out.append(f"{name}_bucket{_label_text((*labels, ('le', bound)))} {running}")
-            out.append(f"{name}_sum{_label_text(labels)} {self.sums[labels]:.6f}")
-            out.append(f"{name}_count{_label_text(labels)} {running}")
+                out.append(f"{name}_bucket{label_text((*labels, ('le', bound)))} {running}")
+            out.append(f"{name}_sum{label_text(labels)} {self.sums[labels]:.6f}")
+            out.append(f"{name}_count{label_text(labels)} {running}")
         return out
 
 
@@ -83,7 +83,7 @@ class Metrics:
                 "# HELP branchrange_http_requests_total HTTP requests by route, method and status.",
                 "# TYPE branchrange_http_requests_total counter",
             ]
-            lines += [f"branchrange_http_requests_total{_label_text(k)} {v}" for k, v in sorted(self._requests.items())]
+            lines += [f"branchrange_http_requests_total{label_text(k)} {v}" for k, v in sorted(self._requests.items())]
             lines += [
                 "# HELP branchrange_http_request_duration_seconds HTTP request latency.",
                 "# TYPE branchrange_http_request_duration_seconds histogram",
@@ -100,5 +100,5 @@ class Metrics:
             ]
             lines += self._inference.lines("branchrange_frame_duration_seconds")
             lines += ["# HELP branchrange_errors_total Errors by kind.", "# TYPE branchrange_errors_total counter"]
-            lines += [f"branchrange_errors_total{_label_text(k)} {v}" for k, v in sorted(self._errors.items())]
+            lines += [f"branchrange_errors_total{label_text(k)} {v}" for k, v in sorted(self._errors.items())]
         return "\n".join(lines) + "\n"

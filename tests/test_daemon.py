@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import signal
@@ -222,6 +223,42 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
 
 
+def test_a_reopened_camera_is_marked_in_the_results_log_where_indices_start_again(recording, tmp_path):
+    """The camera goes away after frame 2 and the watchdog reopens it; the new source counts from 0 again.
+    The log says so, with the reason and where the results go on, and the readers skip the marker."""
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.2), stereo=StereoConfig(max_disp=64)
+    )
+    opened = []
+
+    def open_source():
+        plan = FaultPlan(disconnect={3: 5.0}) if not opened else FaultPlan()  # the second source stays up
+        opened.append(FaultInjectingSource(ReplaySource(recording), plan))
+        return opened[-1]
+
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    results = tmp_path / "results.jsonl"
+    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, results_path=results)
+    try:
+        assert daemon.run(max_frames=5) == 5
+    finally:
+        daemon.close()
+    records = [json.loads(line) for line in results.read_text().splitlines()]
+    (at,) = [i for i, r in enumerate(records) if r.get("event") == "camera_reopened"]
+    before, marker, after = records[1:at], records[at], records[at + 1 :]
+    assert records[0]["schema"] == "branchrange/run-header/v1" and before and after
+    assert all(r["schema"] == "branchrange/v1" for r in before + after)
+    assert marker["schema"] == "branchrange/camera-reopened/v1" and marker["reopens"] == 1 == daemon.reopens
+    assert marker["reason"] == "no frame for 3 stall timeouts of 0.2 s" and marker["reopened_utc"].endswith("Z")
+    first = after[0]["frame"]
+    assert (marker["first_index"], marker["first_timestamp_ns"]) == (first["index"], first["timestamp_ns"])
+    assert first["index"] < before[-1]["frame"]["index"]  # the new source counts from 0 again: here is why
+    indices = [r["frame"]["index"] for r in before + after]
+    assert [r.frame.index for r in read_results(results)] == indices and len(indices) == 5
+    ((header, lines),) = read_runs(results)
+    assert header["kind"] == "daemon" and len(lines) == 5
+
+
 def test_sigterm_stops_the_daemon_cleanly(recording, tmp_path):
     results = tmp_path / "results.jsonl"
     config = onboard_config(tmp_path, recording, "udpout:127.0.0.1:9", results)
@@ -347,6 +384,37 @@ def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, c
     assert dists and all(d.msg.current_distance == 1001 for d in dists)  # the stale results never went out
 
 
+def test_latest_says_how_old_the_served_result_is_and_when_it_became_stale(recording, tmp_path):
+    """After the camera stops (here: the recording ends) /latest keeps the last result; its age keeps growing
+    from the frame's capture, and past mavlink.max_result_age_s it says stale."""
+    from fastapi.testclient import TestClient
+
+    from api import create_app
+    from branchrange.core.config import ApiConfig
+
+    max_age_s = 2.0  # well above the time a loaded machine takes from the last frame to the first request
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}"),
+        stereo=StereoConfig(max_disp=64),
+        mavlink=MavlinkConfig(max_result_age_s=max_age_s),
+    )
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    results = tmp_path / "results.jsonl"
+    daemon = Daemon(cfg, open_source=lambda: ReplaySource(recording), pipeline=pipeline, results_path=results)
+    assert daemon.run(max_frames=2) == 2
+    daemon.close()
+    with TestClient(create_app(ApiConfig(), None, state=daemon)) as client:
+        fresh = client.get("/latest").json()
+        wait_s = max(0.0, max_age_s + 0.2 - fresh["freshness"]["age_s"])
+        time.sleep(wait_s)
+        stale = client.get("/latest").json()
+    assert fresh["freshness"]["stale"] is False and fresh["freshness"]["max_age_s"] == max_age_s
+    assert stale["freshness"]["stale"] is True and stale["freshness"]["age_s"] > max_age_s
+    assert stale["freshness"]["age_s"] - fresh["freshness"]["age_s"] == pytest.approx(wait_s, abs=0.3)
+    logged = list(read_results(results))[-1].to_json_dict()
+    assert "freshness" not in logged and {k: v for k, v in stale.items() if k != "freshness"} == logged
+
+
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -386,7 +454,9 @@ def test_daemon_serves_latest_health_and_metrics_in_the_same_process(recording, 
         peer.close()
     logged = [r.to_json_dict() for r in read_results(results)]
     assert seen, "the daemon's API never answered /latest"
-    assert seen["latest"] in logged  # /latest is a logged result, key for key
+    freshness = seen["latest"].pop("freshness")  # the age at the request: /latest only, never logged
+    assert seen["latest"] in logged  # otherwise /latest is a logged result, key for key
+    assert freshness["max_age_s"] == 0.5 and freshness["age_s"] >= 0 and freshness["stale"] is False
     health = seen["health"]
     assert health["status"] == "ok" and health["camera"]["lost"] is False and health["camera"]["frames"] >= 1
     assert health["model"]["backend"] == "sgbm" and health["model"]["loaded"] is True

@@ -89,9 +89,10 @@ def _damage(recording, tmp_path, how):
     shutil.copytree(recording, broken)
     if how == "deleted":
         shutil.rmtree(broken)
-    elif how == "truncated csv":
-        text = (broken / "timestamps.csv").read_text()
-        (broken / "timestamps.csv").write_text(text[: len(text) - 20])
+    elif how == "row cut short in the middle of the csv":  # a cut-off last row is an interrupted write (replays)
+        lines = (broken / "timestamps.csv").read_text().splitlines(keepends=True)
+        lines[1] = lines[1][:20] + "\n"
+        (broken / "timestamps.csv").write_text("".join(lines))
     elif how == "truncated manifest":
         text = (broken / "recording.json").read_text()
         (broken / "recording.json").write_text(text[: len(text) // 2])
@@ -100,7 +101,9 @@ def _damage(recording, tmp_path, how):
     return broken
 
 
-@pytest.mark.parametrize("how", ["deleted", "truncated csv", "truncated manifest", "images gone"])
+@pytest.mark.parametrize(
+    "how", ["deleted", "row cut short in the middle of the csv", "truncated manifest", "images gone"]
+)
 def test_record_and_replay_agree_on_exit_code_2_for_a_deleted_or_truncated_recording(recording, tmp_path, capsys, how):
     broken = _damage(recording, tmp_path, how)
     assert branchrange_main(["record", "--source", f"replay:{broken}", "--out", str(tmp_path / "rec")]) == 2

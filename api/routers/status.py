@@ -13,6 +13,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request, status
 from fastapi.responses import JSONResponse, PlainTextResponse
 
 from api.auth import BEARER, require_token
+from api.health_metrics import health_metrics
 from api.schemas import ErrorBody, EstimateResult, Health, Version
 from branchrange.core.frame_result import SCHEMA_ID
 
@@ -39,11 +40,8 @@ async def _has_token(request: Request) -> bool:
     return True
 
 
-@router.get("/health", response_model=Health, summary="Model, camera and MAVLink link state")
-async def get_health(request: Request) -> dict:
-    """'ok', or 'degraded' when the daemon's camera is lost or its MAVLink link is down (no autopilot
-    HEARTBEAT for 3 s). The camera source and the MAVLink URL are shown only with the token."""
-    state = request.app.state
+def health_body(state: Any) -> dict[str, Any]:
+    """/health's whole body (private keys included): model, camera and link state, and 'ok' or 'degraded'."""
     estimator = state.estimator
     model = {
         "loaded": estimator is not None,
@@ -56,14 +54,22 @@ async def get_health(request: Request) -> dict:
         live = state.live.health()
         model.update(live.get("model") or {})  # the daemon's pipeline, when the API has no estimator of its own
         body.update(camera=live.get("camera"), mavlink=live.get("mavlink"))
-        if not await _has_token(request):
-            for section, keys in PRIVATE_HEALTH_KEYS.items():
-                if body[section] is not None:
-                    body[section] = {k: v for k, v in body[section].items() if k not in keys}
         camera_lost = bool((body["camera"] or {}).get("lost"))
         link_down = body["mavlink"] is not None and not body["mavlink"].get("connected", False)
         if camera_lost or link_down:
             body["status"] = "degraded"
+    return body
+
+
+@router.get("/health", response_model=Health, summary="Model, camera and MAVLink link state")
+async def get_health(request: Request) -> dict:
+    """'ok', or 'degraded' when the daemon's camera is lost or its MAVLink link is down (no autopilot
+    HEARTBEAT for 3 s). The camera source and the MAVLink URL are shown only with the token."""
+    body = health_body(request.app.state)
+    if not await _has_token(request):
+        for section, keys in PRIVATE_HEALTH_KEYS.items():
+            if body[section] is not None:
+                body[section] = {k: v for k, v in body[section].items() if k not in keys}
     return body
 
 
@@ -89,62 +95,10 @@ METRICS_401 = {
     summary="Prometheus metrics (text format 0.0.4)",
 )
 def get_metrics(request: Request) -> PlainTextResponse:
-    """Requests, latencies, frames and errors in the Prometheus text format; in daemon mode the MAVLink link too."""
-    text = request.app.state.metrics.render()
-    live = request.app.state.live
-    link = None if live is None else live.health().get("mavlink")
-    if link is not None:
-        text += "\n".join(link_metrics(link)) + "\n"
+    """Requests, latencies, frames and errors in the Prometheus text format, and every count and state
+    /health gives (camera counters, the MAVLink link and its peer's mode and armed state in daemon mode)."""
+    text = request.app.state.metrics.render() + "\n".join(health_metrics(health_body(request.app.state))) + "\n"
     return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
-
-
-def link_metrics(link: dict[str, Any]) -> list[str]:
-    """Prometheus lines of the relay's `link_state()`: connected (with the peer's ids), heartbeat age, counts."""
-    peer = link.get("peer") or {}
-    ids = f'{{system_id="{peer.get("system_id", "")}",component_id="{peer.get("component_id", "")}"}}'
-    age = link.get("peer_heartbeat_age_s")
-    vehicle = link.get("vehicle_state") or {}
-    rows = [
-        (
-            "connected",
-            "gauge",
-            "1 while the autopilot's HEARTBEAT arrives within the timeout.",
-            ids,
-            int(bool(link.get("connected"))),
-        ),
-        (
-            "heartbeat_age_seconds",
-            "gauge",
-            "Seconds since the autopilot's newest HEARTBEAT (NaN: never).",
-            "",
-            "NaN" if age is None else age,
-        ),
-        ("messages_received_total", "counter", "MAVLink messages received.", "", link.get("received", 0)),
-        ("messages_sent_total", "counter", "MAVLink messages sent.", "", link.get("sent", 0)),
-        (
-            "signature_failures_total",
-            "counter",
-            "Messages dropped for a missing or wrong signature.",
-            "",
-            link.get("signature_failures", 0),
-        ),
-        (
-            "vehicle_state_available",
-            "gauge",
-            "1 while the vehicle pose is known (targets in local NED).",
-            "",
-            int(bool(vehicle.get("available"))),
-        ),
-        ("tracks", "gauge", "Fresh fused target tracks.", "", link.get("tracks", 0)),
-    ]
-    lines = []
-    for name, kind, help_text, labels, value in rows:
-        lines += [
-            f"# HELP branchrange_mavlink_{name} {help_text}",
-            f"# TYPE branchrange_mavlink_{name} {kind}",
-            f"branchrange_mavlink_{name}{labels} {value}",
-        ]
-    return lines
 
 
 @router.get(
@@ -152,10 +106,12 @@ def link_metrics(link: dict[str, Any]) -> list[str]:
     response_model=EstimateResult,
     dependencies=[Depends(require_token)],
     responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}},
-    summary="Daemon mode: the newest result",
+    summary="Daemon mode: the newest result and how old it is",
 )
 def get_latest(request: Request) -> JSONResponse:
-    """The newest frame's result in daemon mode; 404 outside it or before the first frame."""
+    """The newest frame's result in daemon mode, with `freshness`: its age at this request (seconds since the
+    frame's capture) and `stale` once that is over `mavlink.max_result_age_s` — while the camera stalls the
+    last result stays here, stale. 404 outside daemon mode or before the first frame."""
     live = request.app.state.live
     if live is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "/latest exists in daemon mode only (branchrange daemon)")

@@ -504,25 +504,45 @@ class ApiConfig(Settings):
 class LogConfig(Settings):
     """Where per-frame results go and how often the daemon reports its status.
 
-    - `results_jsonl`: a file every frame's result is appended to as a JSON line ("" = none).
-    - `level`: the logging level, one of DEBUG, INFO, WARNING, ERROR.
-    - `status_interval_s`: how often the daemon logs its status (frames, rates, link).
+    - `results_jsonl`: the daemon's results log (a run header line, then one `branchrange/v1` line per
+      frame; `branchrange.onboard.results_log`); empty: none.
+    - `results_max_mb`: past this size (MiB) the log is rotated — `NAME` becomes `NAME.1`, and a new
+      `NAME` starts with the run header again; 0: never. At the onboard rate the log grows about
+      56 MB an hour.
+    - `results_keep`: rotated files kept (`NAME.1` … `NAME.N`, the oldest deleted): with the defaults at
+      most 1.1 GB, about 18 hours of flight.
+    - `level`: the daemon's log level (DEBUG, INFO, WARNING, ERROR).
+    - `status_interval_s`: seconds between the daemon's status lines.
     """
 
     section = "log"
     error = ConfigError
-    limits = {"level": Limit(enum=LOG_LEVELS), "status_interval_s": Limit(exclusive_minimum=0)}
+    limits = {
+        "results_max_mb": Limit(minimum=0),
+        "results_keep": Limit(minimum=1),
+        "level": Limit(enum=LOG_LEVELS),
+        "status_interval_s": Limit(exclusive_minimum=0),
+    }
 
     results_jsonl: str = ""
+    results_max_mb: float = 100.0
+    results_keep: int = 10
     level: str = "INFO"
     status_interval_s: float = 5.0
 
     def checks(self) -> Checks:
         """The range of every setting."""
         return {
+            "results_max_mb": (self.results_max_mb >= 0, "MiB ≥ 0 (0: never rotate)"),
+            "results_keep": (self.results_keep >= 1, "at least 1 rotated file"),
             "level": (self.level in LOG_LEVELS, "DEBUG, INFO, WARNING or ERROR"),
             "status_interval_s": (self.status_interval_s > 0, "seconds > 0"),
         }
+
+    @property
+    def results_max_bytes(self) -> int:
+        """`results_max_mb` in bytes (MiB)."""
+        return int(self.results_max_mb * 1024 * 1024)
 
 
 @dataclass(frozen=True)

@@ -257,6 +257,19 @@ class Latency(JsonPart):
 
 @with_config(_STRICT)
 @dataclass(frozen=True)
+class Freshness(JsonPart):
+    """GET /latest only: how old the result is when it is served. The daemon keeps serving its newest result
+    while the camera stalls; this says how stale it has become (the relay already sends it as "no target")."""
+
+    age_s: Annotated[
+        NonNegFloat, Field(description="seconds from the frame's capture (daemon's monotonic clock) to this request")
+    ]
+    stale: Annotated[bool, Field(description="true when age_s is over max_age_s: too old to act on")]
+    max_age_s: Annotated[float, Field(gt=0, description="the daemon's mavlink.max_result_age_s, seconds")]
+
+
+@with_config(_STRICT)
+@dataclass(frozen=True)
 class WorldTrack(JsonPart):
     """A cut point fused across frames in the autopilot's local NED frame (`mavlink.world_tracks`)."""
 
@@ -307,7 +320,8 @@ class FrameResult(JsonPart):
     `timing_ms`: milliseconds per stage ('rectify', 'stereo', 'masks', 'cutpoints', 'tracking', 'total'
     and, in roi mode, the coarse and fine passes); treat it as read-only. `reason` says why there are
     no branches or no target, when so. `roi`, `pair_check`, `latency` and `targets` are there only when
-    the stage that gives them ran (roi mode, the pair check, the daemon, a MAVLink relay).
+    the stage that gives them ran (roi mode, the pair check, the daemon, a MAVLink relay); `freshness`
+    only in the answer of GET /latest (never in a results log: it is the age at the time of a request).
     """
 
     schema: Literal["branchrange/v1"] = SCHEMA_ID
@@ -330,6 +344,7 @@ class FrameResult(JsonPart):
     pair_check: PairCheckInfo | None = None
     latency: Latency | None = None
     targets: WorldTargets | None = None
+    freshness: Freshness | None = None
 
     def __post_init__(self) -> None:
         if self.target_id is not None and all(b.id != self.target_id for b in self.branches):

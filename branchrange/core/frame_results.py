@@ -7,8 +7,12 @@ timing aside), and both write the same log lines.
 
 A results log starts each run with a header line (`run_header_line`): `{"schema":
 "branchrange/run-header/v1", "version", "config_sha256", "started_utc", "source", "kind"}`, so
-runs appended to one file stay apart. `read_runs` gives back a log's JSON records grouped by run;
-`read_results` its frame results as typed `FrameResult`s (`FrameResult.from_json_dict`), headers skipped.
+runs appended to one file stay apart. When the daemon's camera is reopened within a run, frame
+indices and timestamps start again from the new source's; a marker line (`camera_reopened_line`:
+`{"schema": "branchrange/camera-reopened/v1", "event": "camera_reopened", "reason", "reopens",
+"reopened_utc", "first_index", "first_timestamp_ns"}`) comes just before the first result after it.
+`read_runs` gives back a log's JSON records grouped by run; `read_results` its frame results as typed
+`FrameResult`s (`FrameResult.from_json_dict`), headers and markers skipped.
 """
 
 from __future__ import annotations
@@ -85,17 +89,21 @@ def config_sha256(cfg: Config) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
+def utc_now() -> str:
+    """The UTC time now as the logs write it: ISO 8601 to the millisecond, with a Z."""
+    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
 def run_header(kind: str, cfg: Config, source: str) -> dict[str, Any]:
     """The header of one run: what wrote it (`kind`, e.g. "replay" or "daemon"), the package
     version, the configuration's hash, the UTC start time (ISO 8601, ms) and the source spec."""
     from stereo.cli import package_version
 
-    started = datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
     return {
         "schema": RUN_HEADER_SCHEMA,
         "version": package_version(),
         "config_sha256": config_sha256(cfg),
-        "started_utc": started,
+        "started_utc": utc_now(),
         "source": source,
         "kind": kind,
     }
@@ -111,15 +119,41 @@ def is_run_header(record: Any) -> bool:
     return isinstance(record, dict) and record.get("schema") == RUN_HEADER_SCHEMA
 
 
+CAMERA_REOPENED_SCHEMA = "branchrange/camera-reopened/v1"
+
+
+def camera_reopened_line(reason: str, reopens: int, reopened_utc: str, first: FrameResult) -> str:
+    """The marker line written before `first`, the first result after the camera was reopened: why
+    (`reason`), the how-manyth reopening of the run (`reopens`), when (`reopened_utc`), and the frame
+    index and timestamp (ns) the results go on from — the new source's, which may restart lower."""
+    return json_line(
+        {
+            "schema": CAMERA_REOPENED_SCHEMA,
+            "event": "camera_reopened",
+            "reason": reason,
+            "reopens": reopens,
+            "reopened_utc": reopened_utc,
+            "first_index": first.frame.index,
+            "first_timestamp_ns": first.frame.timestamp_ns,
+        }
+    )
+
+
+def is_camera_reopened(record: Any) -> bool:
+    """Whether a parsed log line is a camera-reopened marker (not a frame result)."""
+    return isinstance(record, dict) and record.get("schema") == CAMERA_REOPENED_SCHEMA
+
+
 def read_runs(path: str | Path) -> list[tuple[dict[str, Any] | None, list[dict[str, Any]]]]:
     """The runs of a results log as JSON records: (header, frame results) each; results before any
-    header (logs written before headers existed) come as a run whose header is None. Blank lines are skipped."""
+    header (logs written before headers existed) come as a run whose header is None. Blank lines and
+    camera-reopened markers are skipped."""
     runs: list[tuple[dict[str, Any] | None, list[dict[str, Any]]]] = []
     with open(path, encoding="utf-8") as stream:
         for record in (json.loads(line) for line in stream if line.strip()):
             if is_run_header(record):
                 runs.append((record, []))
-            else:
+            elif not is_camera_reopened(record):
                 if not runs:
                     runs.append((None, []))
                 runs[-1][1].append(record)

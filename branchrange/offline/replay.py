@@ -53,8 +53,9 @@ def _stats(values: list[float], digits: int) -> dict[str, float | int]:
 class ReplaySummary:
     """What a replay saw: frames, branches and tracks, distances (m), per-stage timing (ms).
 
-    `add` takes each frame's result; `skip_corrupt`/`skip_rejected` count the frames that gave
-    none. `tracks` are distinct branch ids over the sequence (stable ids when tracking is on).
+    `add` takes each frame's result; `corrupt`/`rejected` count the frames that gave none, and
+    `lost_at_end` the frames a killed or powered-off recording lists but cannot give. `tracks` are
+    distinct branch ids over the sequence (stable ids when tracking is on).
     """
 
     recording: str
@@ -68,6 +69,7 @@ class ReplaySummary:
     video: str | None = None
     video_codec: str | None = None
     unpaired: dict[str, int] | None = None
+    lost_at_end: int = 0
     _tracks: set[int] = field(default_factory=set, init=False, repr=False)
     _target_tracks: set[int] = field(default_factory=set, init=False, repr=False)
     _distances: list[float] = field(default_factory=list, init=False, repr=False)
@@ -102,6 +104,7 @@ class ReplaySummary:
                 "processed": self.frames,
                 "corrupt": self.corrupt,
                 "rejected": self.rejected,
+                "lost_at_end": self.lost_at_end,
                 "with_branches": self.frames_with_branches,
                 "with_target": self.frames_with_target,
                 **({} if self.unpaired is None else {"unpaired": self.unpaired}),
@@ -125,7 +128,8 @@ class ReplaySummary:
         f, b, t = d["frames"], d["branches"], d["distance_m"]["target"]
         lines = [
             f"replay of {self.recording}: {f['processed']} frames processed, {f['corrupt']} corrupt, "
-            f"{f['rejected']} rejected; {d['fps']:.1f} frames/s",
+            f"{f['rejected']} rejected; {d['fps']:.1f} frames/s"
+            + (f"; {self.lost_at_end} lost at the end of the recording" if self.lost_at_end else ""),
             f"branches: {b['detections']} cut points ({b['per_frame']:.2f} per frame) in {b['tracks']} tracks; "
             f"a target in {f['with_target']} frames ({b['target_tracks']} tracks)",
         ]
@@ -232,6 +236,8 @@ def replay_recording(
         summary.wall_s = time.perf_counter() - start
         if isinstance(source, RosbagSource):
             summary.unpaired = source.unpaired
+        if isinstance(source, ReplaySource):
+            summary.lost_at_end = source.frames_lost_at_end
     finally:
         source.close()
         if writer is not None:

@@ -2,7 +2,10 @@
 
 Three threads, so no stage waits for a slower one and every stage works on the newest input.
 The JSONL results log starts each run with a run header line (`frame_results.run_header`), so a
-restart is visible in the log. Threads:
+restart is visible in the log, and a reopened camera (whose indices and timestamps start again) gets
+a camera-reopened marker line before its first result (`frame_results.camera_reopened_line`). Past
+`log.results_max_mb` the log is rotated (`results_log.ResultsLog`, `log.results_keep` older files kept),
+each new file starting with the run header again. Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
   dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
   clock — the capture time every age and latency is measured from;
@@ -38,14 +41,15 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import Any, Protocol
 
 from branchrange.core.config import Config
-from branchrange.core.frame_result import FrameResult, Latency
-from branchrange.core.frame_results import result_line, run_header_line, stereo_stage
+from branchrange.core.frame_result import FrameResult, Freshness, Latency
+from branchrange.core.frame_results import camera_reopened_line, result_line, run_header_line, stereo_stage, utc_now
 from branchrange.core.pair_check import check_rectification
 from branchrange.onboard.mavlink import MavlinkRelay
 from branchrange.onboard.newest_slot import NewestSlot
+from branchrange.onboard.results_log import ResultsLog
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 from stereo.backends.base import validate_pair
 
@@ -102,14 +106,17 @@ class Daemon:
         self.relay = relay
         self.metrics = metrics
         self.observers = list(observers)
-        self._results: IO[str] | None = None
+        self._results: ResultsLog | None = None
         if results_path:
-            Path(results_path).parent.mkdir(parents=True, exist_ok=True)
-            self._results = open(results_path, "a", encoding="utf-8", buffering=1)  # one flushed line per frame
             # a restart appends to the same log: each run starts with its header, never silently at frame 0 again
-            self._results.write(run_header_line("daemon", cfg, cfg.camera.source))
+            self._results = ResultsLog(
+                results_path,
+                run_header_line("daemon", cfg, cfg.camera.source),
+                max_bytes=cfg.log.results_max_bytes,
+                keep=cfg.log.results_keep,
+            )
         self._stop = threading.Event()
-        self._latest: FrameResult | None = None
+        self._latest: tuple[FrameResult, float] | None = None  # and when its frame arrived (monotonic s)
         self._slot = NewestSlot()
         self._counts_lock = threading.Lock()
         self.camera_lost = False
@@ -127,6 +134,8 @@ class Daemon:
         self._pair_checked = False
         self._speed_warned = False
         self._light: str | None = None  # the class of light of the last result that measured it
+        # (reason, reopens, UTC) of a camera reopening whose marker goes into the log before the next result
+        self._reopened: tuple[str, int, str] | None = None
 
     @property
     def skipped(self) -> int:
@@ -134,8 +143,16 @@ class Daemon:
         return self._slot.replaced
 
     def latest_result(self) -> FrameResult | None:
-        """The newest frame's result (for GET /latest)."""
-        return self._latest
+        """The newest frame's result with its `freshness` now (for GET /latest): the age since its frame
+        arrived, and `stale` past `mavlink.max_result_age_s` — a stalled camera leaves the last result
+        served, and this is how a reader tells it is old."""
+        latest = self._latest
+        if latest is None:
+            return None
+        result, captured_at = latest
+        age_s = time.monotonic() - captured_at
+        limit = self.cfg.mavlink.max_result_age_s
+        return replace(result, freshness=Freshness(round(age_s, 3), age_s > limit, limit))
 
     def health(self) -> dict[str, Any]:
         """Model, camera and link state (for GET /health)."""
@@ -236,8 +253,11 @@ class Daemon:
         self._check_age(age)
         self._note_light(result)
         if self._results is not None:
+            if self._reopened is not None:  # indices and timestamps start again from the new source's: say why
+                self._results.write(camera_reopened_line(*self._reopened, first=result))
+                self._reopened = None
             self._results.write(result_line(result))
-        self._latest = result
+        self._latest = (result, item.captured_at)
         for observer in self.observers:
             try:
                 observer(result, self.pipeline.last)
@@ -411,14 +431,17 @@ class Daemon:
             return None
 
     def _reopen(self, source: LatestFrameSource | None) -> LatestFrameSource | None:
-        """Close a stalled source and open a fresh one; tracked branches are forgotten."""
-        log.warning("no frame for %d stall timeouts: reopening the camera", REOPEN_AFTER_STALLS)
+        """Close a stalled source and open a fresh one; tracked branches are forgotten, and the results log
+        gets a camera-reopened marker before the next result."""
+        reason = f"no frame for {REOPEN_AFTER_STALLS} stall timeouts of {self.cfg.camera.stall_timeout_s:g} s"
+        log.warning("%s: reopening the camera", reason)
         if source is not None:
             source.close()
             self._dropped_by_closed_sources += source.dropped
         self.reopens += 1
         self._pair_checked = False  # a camera plugged in again may be another one
-        self._slot.wait_idle()  # the tracker is the worker's until then
+        self._slot.wait_idle()  # the tracker (and the log's order) is the worker's until then
+        self._reopened = (reason, self.reopens, utc_now())
         self.pipeline.reset()
         return self._try_open()
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from camera.sources.atomic_file import replace_atomically
 from camera.sources.frame import CorruptFrameError
 
 
@@ -22,12 +23,12 @@ def read_rgb(path: Path) -> np.ndarray:
 
 
 def write_rgb(path: Path, image: np.ndarray) -> None:
-    """Write an H×W×3 uint8 RGB image; the format follows the suffix (PNG lossless, JPEG quality 95)."""
+    """Write an H×W×3 uint8 RGB image, atomically; the format follows the suffix (PNG lossless, JPEG quality 95)."""
     params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if path.suffix.lower() == ".png" else [cv2.IMWRITE_JPEG_QUALITY, 95]
     ok, encoded = cv2.imencode(path.suffix, cv2.cvtColor(image, cv2.COLOR_RGB2BGR), params)
     if not ok:
         raise OSError(f"{path}: OpenCV could not encode a {image.shape} image as {path.suffix}")
-    encoded.tofile(str(path))
+    replace_atomically(path, encoded.data)
 
 
 def read_mask(path: Path) -> np.ndarray:
@@ -41,13 +42,13 @@ def read_mask(path: Path) -> np.ndarray:
 
 
 def write_mask(path: Path, mask: np.ndarray) -> None:
-    """Write an H×W uint8/uint16 mask (instance ids) as a lossless PNG."""
+    """Write an H×W uint8/uint16 mask (instance ids) as a lossless PNG, atomically."""
     if mask.ndim != 2 or mask.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"{path}: mask is {mask.dtype} of shape {mask.shape}; expected uint8 or uint16 H×W")
     ok, encoded = cv2.imencode(".png", mask)
     if not ok:
         raise OSError(f"{path}: OpenCV could not encode a {mask.shape} mask as PNG")
-    encoded.tofile(str(path))
+    replace_atomically(path, encoded.data)
 
 
 def split_side_by_side(bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -30,6 +30,10 @@ class Recorder:
     mask/NNNNNN.png; the first frame decides whether the recording carries masks, and every
     later frame must agree. The directory must be empty or new unless `overwrite` is set. Use
     as a context manager, or call `close()` to finish the manifest.
+
+    A kill at any instant leaves a recording that replays up to its last complete frame: each
+    image file appears atomically and a frame's timestamps.csv row is appended, flushed, only after
+    all its files exist (camera.sources.recording_format).
     """
 
     def __init__(
@@ -60,6 +64,7 @@ class Recorder:
         self._csv_file = (self.directory / TIMESTAMPS_NAME).open("w", newline="", encoding="utf-8")
         self._csv = csv.writer(self._csv_file)
         self._csv.writerow(TIMESTAMP_COLUMNS)
+        self._csv_file.flush()
         self._write_manifest(complete=False)
         self._closed = False
 
@@ -93,6 +98,7 @@ class Recorder:
                 f"{self._size[1]}×{self._size[0]} like its images"
             )
         name = f"{self.frames:06d}.{self.image_format}"
+        # The files first, each renamed into place whole; the row that makes the frame part of the recording last.
         write_rgb(self.directory / "left" / name, frame.left)
         write_rgb(self.directory / "right" / name, frame.right)
         if frame.mask is not None:

@@ -15,16 +15,27 @@ DIR/mask/000000.png   optional: the left view's branch mask (8/16-bit PNG, insta
 The manifest is written when recording starts (`complete: false`), again after the first frame
 (size, masks) and on close, and timestamps.csv is appended frame by frame, so an interrupted
 recording still replays, with its masks.
+
+Surviving a kill or a power cut at any instant: every image appears atomically (written as a hidden
+`.NAME.tmp`, then renamed, camera.sources.atomic_file) and a frame's row is appended to
+timestamps.csv (and flushed) only once all its files exist. A kill therefore leaves at most a
+stray temporary file and a last row cut off before its line end, which `read_timestamps` drops.
+There is no fsync (it would cost more than a frame's budget on SD cards and eMMC): after a power
+cut the kernel may not yet have written the last seconds, so rows at the end may name missing or
+empty images; the replay source drops those trailing rows and counts them as frames lost at the
+end. A damaged row anywhere else is a format error (a cut-off line) or a corrupt frame (an image).
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from camera.sources.atomic_file import replace_atomically
 from camera.sources.frame import SourceUnavailable
 
 FORMAT_NAME = "branchrange-recording"
@@ -77,45 +88,66 @@ def read_manifest(directory: Path) -> dict[str, Any]:
 
 def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
     """Write the manifest atomically (a partial file never replaces a good one)."""
-    path = directory / MANIFEST_NAME
-    temporary = path.with_suffix(".json.tmp")
-    temporary.write_text(
-        json.dumps({"format": FORMAT_NAME, "version": FORMAT_VERSION, **manifest}, indent=2) + "\n", encoding="utf-8"
-    )
-    temporary.replace(path)
+    text = json.dumps({"format": FORMAT_NAME, "version": FORMAT_VERSION, **manifest}, indent=2) + "\n"
+    replace_atomically(directory / MANIFEST_NAME, text.encode("utf-8"))
 
 
-def read_timestamps(directory: Path) -> list[TimestampRow]:
-    """The rows of timestamps.csv, checked for the header, integer fields and increasing timestamps."""
+@dataclass(frozen=True)
+class TimestampTable:
+    """timestamps.csv read: its complete rows, and whether a last row cut off mid-write was dropped."""
+
+    rows: list[TimestampRow]
+    torn_last_row: bool
+
+
+def _split_torn_last_line(text: str) -> tuple[str, bool]:
+    """`text` without a last line that lacks its line end (a write cut off by a kill), and whether there was one.
+
+    The recorder ends every row with a line break in one flushed write, so only the very last line
+    can be cut off; a line that ends but does not parse is damage, not an interrupted write.
+    """
+    if not text or text.endswith("\n"):
+        return text, False
+    cut = text.rfind("\n") + 1
+    return text[:cut], True
+
+
+def read_timestamps(directory: Path) -> TimestampTable:
+    """The rows of timestamps.csv, checked for the header, integer fields and increasing timestamps.
+
+    A last line cut off before its line end is dropped (`torn_last_row`); any other malformed line
+    is a RecordingFormatError naming it.
+    """
     path = directory / TIMESTAMPS_NAME
     try:
-        handle = path.open(newline="", encoding="utf-8")
+        text = path.read_text(encoding="utf-8", errors="replace")
     except FileNotFoundError:
         raise RecordingFormatError(
             f"{path}: missing; expected a CSV with columns {','.join(TIMESTAMP_COLUMNS)}"
         ) from None
+    complete, torn = _split_torn_last_line(text)
+    reader = csv.reader(io.StringIO(complete, newline=""))
+    header = next(reader, None)
+    if header is None or tuple(h.strip() for h in header) != TIMESTAMP_COLUMNS:
+        raise RecordingFormatError(f"{path}: header is {header}; expected {','.join(TIMESTAMP_COLUMNS)}")
     rows: list[TimestampRow] = []
-    with handle:
-        reader = csv.reader(handle)
-        header = next(reader, None)
-        if header is None or tuple(h.strip() for h in header) != TIMESTAMP_COLUMNS:
-            raise RecordingFormatError(f"{path}: header is {header}; expected {','.join(TIMESTAMP_COLUMNS)}")
-        for line_number, fields in enumerate(reader, start=2):
-            if not fields:
-                continue
-            try:
-                row = TimestampRow(int(fields[0]), int(fields[1]), fields[2], fields[3])
-            except (ValueError, IndexError):
-                raise RecordingFormatError(
-                    f"{path}: line {line_number} reads {fields}; expected "
-                    "integer index, integer timestamp_ns, left path, right path"
-                ) from None
-            if rows and row.timestamp_ns <= rows[-1].timestamp_ns:
-                raise RecordingFormatError(
-                    f"{path}: line {line_number}: timestamp_ns {row.timestamp_ns} does not "
-                    f"increase (previous {rows[-1].timestamp_ns}); expected monotonic times"
-                )
-            rows.append(row)
+    for line_number, fields in enumerate(reader, start=2):
+        if not fields:
+            continue
+        try:
+            row = TimestampRow(int(fields[0]), int(fields[1]), fields[2], fields[3])
+        except (ValueError, IndexError):
+            raise RecordingFormatError(
+                f"{path}: line {line_number} reads {fields}; expected "
+                "integer index, integer timestamp_ns, left path, right path"
+            ) from None
+        if rows and row.timestamp_ns <= rows[-1].timestamp_ns:
+            raise RecordingFormatError(
+                f"{path}: line {line_number}: timestamp_ns {row.timestamp_ns} does not "
+                f"increase (previous {rows[-1].timestamp_ns}); expected monotonic times"
+            )
+        rows.append(row)
     if not rows:
-        raise RecordingFormatError(f"{path}: has no frames; expected at least one row")
-    return rows
+        cut_off = " (its only row was cut off mid-write)" if torn else ""
+        raise RecordingFormatError(f"{path}: has no complete frames{cut_off}; expected at least one row")
+    return TimestampTable(rows, torn)

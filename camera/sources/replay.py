@@ -10,6 +10,7 @@ This is also the file-based camera the tests and the daemon's tests use in place
 
 from __future__ import annotations
 
+import logging
 import re
 import statistics
 import threading
@@ -22,7 +23,7 @@ import cv2
 
 from camera.calibration import StereoCalibration
 from camera.load import load_calibration
-from camera.sources.frame import SourceBase, SourceConfigError, SourceUnavailable, StereoFrame
+from camera.sources.frame import CorruptFrameError, SourceBase, SourceConfigError, SourceUnavailable, StereoFrame
 from camera.sources.image_files import read_mask, read_rgb, split_side_by_side
 from camera.sources.recording_format import (
     CALIBRATION_NAME,
@@ -40,6 +41,8 @@ DEFAULT_PERIOD_NS = 33_333_333
 #: Frame rate given to a folder of pairs (which has no timestamps) unless `fps` says otherwise.
 PAIR_FOLDER_FPS = 15.0
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+log = logging.getLogger("camera.sources.replay")
 
 
 class FrameReader(Protocol):
@@ -70,17 +73,58 @@ class FrameReader(Protocol):
 
 
 class _DirectoryFrames:
-    """Frames of a recording directory, by position in timestamps.csv."""
+    """Frames of a recording directory, by position in timestamps.csv.
+
+    Rows at the end whose files are missing or unreadable, and a last row cut off mid-write, are
+    what a kill or a power cut while recording leaves (see camera.sources.recording_format): they
+    are dropped and counted in `lost_at_end`, and replay ends at the last complete frame.
+    """
 
     def __init__(self, directory: Path) -> None:
         self.directory = directory
         self.manifest = read_manifest(directory)
-        self.rows = read_timestamps(directory)
+        self.has_masks = bool(self.manifest.get("masks"))
+        table = read_timestamps(directory)
+        self.rows = table.rows
+        self.lost_at_end = int(table.torn_last_row) + self._drop_unreadable_tail()
+        if self.lost_at_end:
+            log.warning(
+                "%s: %d frame(s) lost at the end of the recording (power cut or kill while recording?)",
+                directory,
+                self.lost_at_end,
+            )
         deltas = [b.timestamp_ns - a.timestamp_ns for a, b in zip(self.rows, self.rows[1:])]
         self.period_ns = int(statistics.median(deltas)) if deltas else DEFAULT_PERIOD_NS
         self.count = len(self.rows)
-        self.has_masks = bool(self.manifest.get("masks"))
         self._position = 0
+
+    def _drop_unreadable_tail(self) -> int:
+        """Drop the rows at the end whose images (or mask) cannot be read; their number.
+
+        Reads back from the last row to the first readable one (one frame decoded for a healthy
+        recording). When no row at all is readable the recording was damaged, not interrupted: every
+        row stays, and each frame raises CorruptFrameError when read.
+        """
+        readable = len(self.rows)
+        while readable:
+            try:
+                self._load(readable - 1)
+                break
+            except CorruptFrameError:
+                readable -= 1
+        if not readable:
+            return 0
+        dropped = len(self.rows) - readable
+        del self.rows[readable:]
+        return dropped
+
+    def _load(self, position: int) -> StereoFrame:
+        """The frame of row `position` (recorded index, timestamp and mask); CorruptFrameError when unreadable."""
+        row = self.rows[position]
+        left = read_rgb(self.directory / row.left)
+        right = read_rgb(self.directory / row.right)
+        mask = read_mask(self.directory / mask_name(position)) if self.has_masks else None
+        return StereoFrame(left, right, row.timestamp_ns, row.index, mask)
 
     def seek(self, position: int) -> None:
         """Make `position` (0-based row of timestamps.csv) the next frame read."""
@@ -98,12 +142,9 @@ class _DirectoryFrames:
         """The next frame (with the recorded index, timestamp and mask), None at the end of the recording."""
         if self._position >= self.count:
             return None
-        position, row = self._position, self.rows[self._position]
+        position = self._position
         self._position += 1
-        left = read_rgb(self.directory / row.left)
-        right = read_rgb(self.directory / row.right)
-        mask = read_mask(self.directory / mask_name(position)) if self.has_masks else None
-        return StereoFrame(left, right, row.timestamp_ns, row.index, mask)
+        return self._load(position)
 
     def calibration(self) -> StereoCalibration | None:
         """The recording's calibration copy named in the manifest, None when it has none."""
@@ -331,6 +372,12 @@ class ReplaySource(SourceBase):
     def frame_count(self) -> int | None:
         """Frames in the recording (None for a video whose container does not say)."""
         return self._frames.count
+
+    @property
+    def frames_lost_at_end(self) -> int:
+        """Frames a recording directory lists at its end but cannot give (killed or powered off while
+        recording; they are not replayed); 0 for every other container."""
+        return self._frames.lost_at_end if isinstance(self._frames, _DirectoryFrames) else 0
 
     def __next__(self) -> StereoFrame:
         with self._io_lock:

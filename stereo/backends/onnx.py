@@ -22,6 +22,7 @@ from stereo.backends.base import (
 )
 from stereo.backends.emcstereo import normalize_images
 from stereo.export import METADATA_KEYS
+from stereo.onnx_runtime import import_onnxruntime
 from stereo.padding import Padding, pad_image, unpad
 
 
@@ -32,7 +33,7 @@ class OnnxBackend:
 
     def __init__(self, path: str | os.PathLike[str], *, threads: int | None = None) -> None:
         try:
-            import onnxruntime
+            onnxruntime = import_onnxruntime()
         except ImportError as exc:
             raise BackendConfigError(
                 "the onnx backend needs onnxruntime (a dependency of branchrange: pip install onnxruntime)"

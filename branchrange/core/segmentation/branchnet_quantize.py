@@ -21,6 +21,7 @@ import numpy as np
 from branchrange.core.segmentation.branchnet import network_input, padded_to_stride
 from branchrange.core.segmentation.branchnet_data import cached_sample
 from branchrange.core.segmentation.learned import verified_metadata
+from stereo.onnx_runtime import import_onnxruntime
 from stereo.weights import sha256_of
 
 #: scenes whose frames set the activation ranges (the validation seeds of the training config)
@@ -36,6 +37,7 @@ def quantize_branchnet(model: Path, data_dir: Path, seeds: tuple[int, int] = QUA
     """Write the int8 copy of the fp32 ONNX `model` to `int8_path(model)` and its metadata JSON beside it
     (the source's model, width and classes, its SHA-256, the seeds, the new file's SHA-256); returns that
     metadata. Frames of scenes `seeds` [first, last) come from (or are rendered into) `data_dir`."""
+    import_onnxruntime()  # its telemetry off before onnxruntime.quantization loads the library
     import onnxruntime.quantization as quantization
     from onnxruntime.quantization.shape_inference import quant_pre_process
 

@@ -34,6 +34,7 @@ import numpy as np
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks, split_binary
 from branchrange.core.settings_check import Checks, Limit, Settings
+from stereo.onnx_runtime import import_onnxruntime
 
 #: Ultralytics' predict `imgsz`: the input side of a dynamic-shape model whose metadata gives none.
 DEFAULT_INPUT_SIDE_PX = 640
@@ -193,7 +194,7 @@ def onnx_session(path: Path, threads: int, blocked_layout: bool = True) -> onnxr
     if not path.is_file():
         raise OnnxSegmenterError(f"onnx:{path}: no such model file (expected an .onnx file)")
     try:
-        import onnxruntime as ort
+        ort = import_onnxruntime()
     except ImportError:
         raise OnnxSegmenterError(
             "onnx segmenters need onnxruntime (a dependency of branchrange): pip install onnxruntime"
