@@ -20,17 +20,24 @@ from pathlib import Path
 from typing import Any
 
 
+def read_logged_runs(results_path: Path) -> list[tuple[dict[str, Any] | None, list[Any]]]:
+    """(run header, `FrameResult`s) of every run of the log at `results_path`, in the log's order;
+    `ResultFormatError` names the key of a line that is not a `branchrange/v1` result."""
+    from branchrange.core.frame_result import FrameResult
+    from branchrange.core.frame_results import read_runs
+
+    return [(header, [FrameResult.from_json_dict(r) for r in records]) for header, records in read_runs(results_path)]
+
+
 def score_log(
     results_path: Path, truth: Any, view: Any, max_result_age_s: float
 ) -> list[tuple[dict[str, Any] | None, dict[str, Any]]]:
     """(run header, scores) of every run of the log at `results_path`, in the log's order."""
-    from branchrange.core.frame_result import FrameResult
-    from branchrange.core.frame_results import read_runs
     from branchrange.offline.flight_score import score_results
 
     return [
-        (header, score_results([FrameResult.from_json_dict(r) for r in records], truth, view, max_result_age_s))
-        for header, records in read_runs(results_path)
+        (header, score_results(results, truth, view, max_result_age_s))
+        for header, results in read_logged_runs(results_path)
     ]
 
 
