@@ -82,12 +82,17 @@ def test_scores_of_a_handmade_flight():
 
 def test_latency_counts_in_freshness_and_in_the_time_to_a_first_result():
     results = published(publish_ms=120.0)
-    results[-1] = dataclasses.replace(results[-1], latency=Latency(1.0, 2.0, 700.0))  # stale on publishing
+    results[-1] = dataclasses.replace(results[-1], latency=Latency(1.0, 2.0, 300.0))
+    scores = score_results(results, flight(), VIEW, 0.5)
+    assert scores["fresh_rate_hz"] == pytest.approx(4 / (8 / FPS), abs=1e-3)
+    assert scores["latency_ms"]["max"] == 300.0
+    assert scores["first_result_s"]["max"] == pytest.approx(3 / FPS + 0.3, abs=1e-9)  # published 0.3 s later
+    assert scores["first_result_s"]["median"] == pytest.approx((0.12 + 3 / FPS + 0.3) / 2, abs=1e-9)
+    results[-1] = dataclasses.replace(results[-1], latency=Latency(1.0, 2.0, 700.0))  # stale: sent as no target
     scores = score_results(results, flight(), VIEW, 0.5)
     assert scores["fresh_rate_hz"] == pytest.approx(3 / (8 / FPS), abs=1e-3)
-    assert scores["latency_ms"]["max"] == 700.0
-    assert scores["first_result_s"]["max"] == pytest.approx(3 / FPS + 0.7, abs=1e-9)  # published 0.7 s later
-    assert scores["first_result_s"]["median"] == pytest.approx((0.12 + 3 / FPS + 0.7) / 2, abs=1e-9)
+    assert scores["first_result_s"] == {"median": 0.12, "max": 0.12, "branches_in_view": 2, "branches_found": 1}
+    assert scores["right_target_rate"] == 0.5  # the target figures count it all the same
 
 
 def test_recorded_visibility_is_used_when_every_frame_has_it():

@@ -17,14 +17,17 @@ rectified left camera frame of the frame's capture. A point is *right* within `C
 - `target_error_m.{median,p90}`: a target to the nearest true cut point, over targets;
 - `first_result_s.{median,max}`: per branch, from the capture of the first frame showing its cut point
   to the publishing of the first result (of that frame or a later one) with a cut point within 5 cm
-  of it (capture-time difference plus that result's capture → publish latency when it carries one);
-  `branches_in_view`, `branches_found` count the branches it is taken over;
+  of it that was fresh on publishing (a stale one goes out as "no target"): the capture-time
+  difference plus that result's capture → publish latency when it carries one; `branches_in_view`,
+  `branches_found` count the branches it is taken over;
 - `keyframe_rate_hz`, `tracked_share`, `track_losses`, `target_error_m_by_origin.{keyframe,tracked}`:
   from a result's `origin` ("keyframe" or "tracked") — keyframes per second of flight, the share of
   results carried forward by tracking, tracked → keyframe hand-backs (a track dropped, or a
   scheduled keyframe: the origin alone does not tell them apart) and the target error of each; all
   None while results have no `origin` (`branchrange/v1` has no such field yet: nothing to count);
 - `visibility`: which rule decided the visible cut points.
+The target figures count every published result, fresh or not: how good the targets are; how many
+arrive in time is `fresh_rate_hz`.
 """
 
 from __future__ import annotations
@@ -69,29 +72,39 @@ def nearest_m(point: Sequence[float], truths: Sequence[np.ndarray]) -> float:
     return min((float(np.linalg.norm(np.asarray(point) - t)) for t in truths), default=float("inf"))
 
 
+def frame_positions(truth: FlightTruth) -> dict[int, int]:
+    """Frame index → position of its pose in the flight."""
+    return {pose.index: position for position, pose in enumerate(truth.poses)}
+
+
+def publish_age_s(result: FrameResult) -> float | None:
+    """Seconds from the frame's capture to the result's publishing, None when the result does not say."""
+    age_ms = result.latency.capture_to_publish_ms if result.latency else None
+    return None if age_ms is None else age_ms / 1000
+
+
 def first_results_s(
-    results: Sequence[FrameResult], truth: FlightTruth, visible: Sequence[set[int]]
+    results: Sequence[FrameResult], truth: FlightTruth, visible: Sequence[set[int]], max_result_age_s: float
 ) -> tuple[list[float], int]:
-    """Per branch found, seconds from its cut point entering view to its first right result (module docstring),
-    and how many branches entered view."""
-    positions = {pose.index: p for p, pose in enumerate(truth.poses)}
+    """Per branch found, seconds from its cut point entering view to its first right, fresh result (module
+    docstring), and how many branches entered view."""
+    positions = frame_positions(truth)
     entered: dict[int, int] = {}  # cut point id → position of the first frame showing it
     for shown_at, ids in enumerate(visible):
         for cut_id in ids:
             entered.setdefault(cut_id, shown_at)
     found: dict[int, float] = {}
     for result in results:
-        position = positions.get(result.frame.index)
-        if position is None:
+        position, age_s = positions.get(result.frame.index), publish_age_s(result)
+        if position is None or (age_s is not None and age_s > max_result_age_s):
             continue
         in_camera = truth.cut_points_in_camera(position)
-        publish_s = (result.latency.capture_to_publish_ms or 0.0) / 1000 if result.latency else 0.0
         for cut_id, start in entered.items():
             if cut_id in found or position < start:
                 continue
             if any(nearest_m(b.cut_point_m, [in_camera[cut_id]]) <= CORRECT_WITHIN_M for b in result.branches):
                 captured_s = (truth.poses[position].timestamp_ns - truth.poses[start].timestamp_ns) / 1e9
-                found[cut_id] = captured_s + publish_s
+                found[cut_id] = captured_s + (age_s or 0.0)
     return list(found.values()), len(entered)
 
 
@@ -119,7 +132,7 @@ def score_results(
     results: Sequence[FrameResult], truth: FlightTruth, view: CameraView, max_result_age_s: float
 ) -> dict[str, Any]:
     """The module docstring's scores of one run's results against the flight's truth."""
-    positions = {pose.index: p for p, pose in enumerate(truth.poses)}
+    positions = frame_positions(truth)
     visible, rule = visible_in_frames(truth, view)
     duration_s = flight_duration_s(truth)
     ours = [result for result in results if result.frame.index in positions]
@@ -141,8 +154,8 @@ def score_results(
         if shown:
             hits += 1
             right += nearest_m(target.cut_point_m, [in_camera[i] for i in shown]) <= CORRECT_WITHIN_M
-    ages = [r.latency.capture_to_publish_ms for r in ours if r.latency and r.latency.capture_to_publish_ms is not None]
-    found_s, in_view = first_results_s(ours, truth, visible)
+    ages = [1000 * age for age in map(publish_age_s, ours) if age is not None]
+    found_s, in_view = first_results_s(ours, truth, visible, max_result_age_s)
     return {
         "frames_released": len(truth.poses),
         "frames_processed": len(ours),
