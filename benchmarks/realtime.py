@@ -275,6 +275,31 @@ def fmt(value: Any, scale: float = 1.0, digits: int = 0) -> str:
     return "—" if value is None else f"{value * scale:.{digits}f}"
 
 
+def table_cells(row: dict[str, Any]) -> list[tuple[str, str]]:
+    """(column header, cell) of one mode's row in the main table: rates, ms, cm, s; "—" where there is nothing."""
+    latency, error, first = row["latency_ms"], row["target_error_m"], row["first_result_s"]
+    ratios = row.get("ratio_to_baseline", {})
+    return [
+        ("fresh Hz", fmt(row["fresh_rate_hz"], 1, 2)),
+        ("p50 ms", fmt(latency["p50"])),
+        ("p95 ms", fmt(latency["p95"])),
+        ("max ms", fmt(latency["max"])),
+        ("proc", str(row["frames_processed"])),
+        ("drop", str(row["frames_dropped"])),
+        ("late", str(row["late"])),
+        ("err med cm", fmt(error["median"], 100, 1)),
+        ("err p90 cm", fmt(error["p90"], 100, 1)),
+        ("recall", fmt(row["target_recall"], 1, 2)),
+        ("right", fmt(row["right_target_rate"], 1, 2)),
+        ("false", fmt(row["false_target_rate"], 1, 2)),
+        ("1st med s", fmt(first["median"], 1, 2)),
+        ("1st max s", fmt(first["max"], 1, 2)),
+        ("found", f"{first['branches_found']}/{first['branches_in_view']}"),
+        ("× fresh", fmt(ratios.get("fresh_rate"), 1, 2)),
+        ("× p50", fmt(ratios.get("latency_p50"), 1, 2)),
+    ]
+
+
 def print_table(report: dict[str, Any]) -> None:
     config = report["config"]
     print(
@@ -283,24 +308,14 @@ def print_table(report: dict[str, Any]) -> None:
         + (f" (sha256 {config['sha256'][:12]}…)" if config else "")
         + f", max_result_age_s {report['max_result_age_s']}"
     )
-    header = (
-        f"{'mode/segmenter':22} {'fresh Hz':>8} {'p50 ms':>7} {'p95 ms':>7} {'max ms':>7} {'proc':>5} {'drop':>5} "
-        f"{'err med cm':>10} {'err p90 cm':>10} {'recall':>6} {'right':>6} {'false':>6} {'1st med s':>9} "
-        f"{'1st max s':>9} {'× fresh':>7} {'× p50':>6}"
-    )
-    print(header)
-    print("-" * len(header))
-    for name, row in report["modes"].items():
-        ratios, first = row.get("ratio_to_baseline", {}), row["first_result_s"]
-        print(
-            f"{name:22} {row['fresh_rate_hz']:8.2f} "
-            f"{fmt(row['latency_ms']['p50']):>7} {fmt(row['latency_ms']['p95']):>7} "
-            f"{fmt(row['latency_ms']['max']):>7} {row['frames_processed']:5d} {row['frames_dropped']:5d} "
-            f"{fmt(row['target_error_m']['median'], 100, 1):>10} {fmt(row['target_error_m']['p90'], 100, 1):>10} "
-            f"{fmt(row['target_recall'], 1, 2):>6} {fmt(row['right_target_rate'], 1, 2):>6} "
-            f"{fmt(row['false_target_rate'], 1, 2):>6} {fmt(first['median'], 1, 2):>9} {fmt(first['max'], 1, 2):>9} "
-            f"{fmt(ratios.get('fresh_rate'), 1, 2):>7} {fmt(ratios.get('latency_p50'), 1, 2):>6}"
-        )
+    rows = {name: table_cells(row) for name, row in report["modes"].items()}
+    headers = [header for header, _ in next(iter(rows.values()), [])]
+    widths = [max(len(header), *(len(cells[i][1]) for cells in rows.values())) for i, header in enumerate(headers)]
+    line = f"{'mode/segmenter':22} " + " ".join(h.rjust(w) for h, w in zip(headers, widths))
+    print(line)
+    print("-" * len(line))
+    for name, cells in rows.items():
+        print(f"{name:22} " + " ".join(cell.rjust(w) for (_, cell), w in zip(cells, widths)))
     print("\nkeyframes and tracking (from each result's `origin`; — : the results do not say):")
     for name, row in report["modes"].items():
         by_origin = row["target_error_m_by_origin"] or {}
