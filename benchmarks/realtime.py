@@ -39,6 +39,7 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
 - `handover_ms.{capture_to_stereo_ms,capture_to_geometry_ms,capture_to_publish_ms}.p50`: when the
   frame reached each thread (the result's `latency`): the waits between the stages;
 - `config_sha256`: the effective configuration's hash (its run header in the results log);
+- `load_average_1min`: the machine's load when the mode started (shared machines: read the timings by it), `wall_s`;
 - `ratio_to_baseline.{fresh_rate,latency_p50}`: against `full-sgbm` with the same segmenter.
 Also `cpu` (model and vector extensions), `threads`, `sequence`, `flight` (the render options when
 rendered here), `config` (`path`, `sha256` of the file), `overrides`, `results_jsonl`, `max_result_age_s`.
@@ -65,7 +66,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from machine import cpu_name  # a script's own folder is on its import path
+from machine import cpu_description, cpu_name  # a script's own folder is on its import path
 from score_flight import read_logged_runs, recording_view
 
 from branchrange.commands.config_args import add_config_arguments, config_from_args
@@ -207,6 +208,7 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
     relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking) if cfg.mavlink.enabled else None
     daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay, results_path=cfg.log.results_jsonl)
+    load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
     started = time.monotonic()
     try:
         daemon.run()
@@ -215,7 +217,8 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     return {
         "frames_dropped": int(daemon.dropped + daemon.skipped),
         "late": daemon.late,
-        "wall_s": time.monotonic() - started,
+        "wall_s": round(time.monotonic() - started, 2),
+        "load_average_1min": load,
     }
 
 
@@ -297,6 +300,7 @@ def table_cells(row: dict[str, Any]) -> list[tuple[str, str]]:
         ("found", f"{first['branches_found']}/{first['branches_in_view']}"),
         ("× fresh", fmt(ratios.get("fresh_rate"), 1, 2)),
         ("× p50", fmt(ratios.get("latency_p50"), 1, 2)),
+        ("load", fmt(row["load_average_1min"], 1, 1)),
     ]
 
 
