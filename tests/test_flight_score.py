@@ -17,10 +17,11 @@ from branchrange.core.frame_result import FrameResult, Latency
 from branchrange.core.frame_results import result_line, run_header_line
 from branchrange.offline.flight import FlightCutPoint, FlightPose, FlightTruth
 from branchrange.offline.flight_score import origin_scores, score_results
-from branchrange.offline.flight_visibility import DERIVED, FROM_FLIGHT_JSON, CameraView
+from branchrange.offline.flight_visibility import DERIVED, FROM_FLIGHT_JSON, CameraView, visible_in_frames
+from stereo.cli import build_parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from score_flight import score_log  # noqa: E402 — a benchmark script, imported from its folder
+from score_flight import recording_view, score_log  # noqa: E402 — a benchmark script, imported from its folder
 
 FPS = 15.0
 #: 100 × 80 px, focal 100 px, centred; the daemon's default depth band.
@@ -131,3 +132,21 @@ def test_a_results_log_is_scored_run_by_run(tmp_path: Path):
     assert [header["kind"] for header, _ in runs if header] == ["daemon", "daemon"]
     assert runs[0][1] == score_results(published(), flight(), VIEW, 0.5)
     assert (runs[1][1]["frames_processed"], runs[1][1]["right_target_rate"]) == (1, 1.0)
+
+
+def test_derived_visibility_covers_what_a_rendered_flights_masks_show(tmp_path: Path):
+    """On a rendered flight, every cut point its masks show is in front and inside the image by the
+    recording's calibration (the derived rule sees no occlusion, so it may show more, never less)."""
+    out = tmp_path / "rec"
+    argv = ["synth-flight", "--out", str(out), "--frames", "4", "--resolution", "320x180", "--seed", "3"]
+    args = build_parser("branchrange", "test", ["branchrange.commands.synth_flight"]).parse_args(argv)
+    assert args.func(args) == 0
+    recorded = FlightTruth.load(out)
+    derived = FlightTruth([dataclasses.replace(p, visible_cut_ids=None) for p in recorded.poses], recorded.cut_points)
+    view = recording_view(out, 0.3, 8.0)
+    assert (view.width, view.height, view.cx, view.cy) == (320, 180, 159.5, 89.5)
+    by_masks, rule = visible_in_frames(recorded, view)
+    by_geometry, derived_rule = visible_in_frames(derived, view)
+    assert (rule, derived_rule) == (FROM_FLIGHT_JSON, DERIVED)
+    assert all(shown <= seen for shown, seen in zip(by_masks, by_geometry, strict=True))
+    assert sum(map(len, by_masks)) >= 4  # the target at least, in every frame
