@@ -7,30 +7,49 @@ pipeline of `branchrange.core.frame_results.pipeline_for` and a real `MavlinkRel
 socket on 127.0.0.1 — on `--threads` CPU threads (OpenCV and torch). Nothing waits for the slow
 stage: frames the daemon has no time for are dropped, as onboard.
 
-Modes (`--modes`, comma-separated):
-- `full-sgbm`   — whole-frame SGBM at full resolution (`stereo.mode = "full"`): the baseline, measured in the same run;
+Settings: `--config FILE` is a deploy TOML (e.g. deploy/onboard_cpu.toml) read by the daemon's own
+loader with the daemon's precedence (`branchrange.commands.config_args`: the file, then
+`--max-disp` / `--max-result-age-s`, then every `--set`); without it the defaults, with
+`stereo.max_disp = 128`. Only what ties the daemon to its hardware is replaced: `camera.source` (the
+recording, with its own calibration), `mavlink.url` (the UDP socket), `log.results_jsonl` and the
+API (off); the mount, `[mavlink]`, `[tracking]` and every pipeline section stay as the file says.
+
+Modes (`--modes`, comma-separated; default `config,full-sgbm` with `--config`, else the last three):
+- `config`      — the stereo settings as configured (the shipped file as it is);
+- `full-sgbm`   — whole-frame SGBM at full resolution (`stereo.mode = "full"`): the per-frame baseline;
 - `roi-sgbm`    — coarse pass + per-branch full-resolution SGBM regions (`stereo.mode = "roi"`);
 - `roi-emcstereo` — coarse SGBM pass + per-branch EMCStereo regions (`--weights`, else random weights: timing only).
-`--segmenter truth` uses the sequence's instance masks, `builtin` ignores them and runs the built-in
-segmenter; `both` runs each mode twice.
+`--segmenter truth` uses the sequence's instance masks, `builtin` ignores them and runs the
+configured segmenter; `both` runs each mode twice.
 
-Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `modes["roi-sgbm/truth"]`):
-- `fresh_rate_hz`: results published with capture → publish age ≤ `max_result_age_s` (0.5 s), per
-  second of sequence time — what the autopilot gets as targets;
-- `latency_ms.{p50,p95,max}`: capture → publish, milliseconds, over published results;
-- `frames_processed`, `frames_dropped` (camera frames the stereo stage had no time for, plus stereo
-  outputs the geometry stage had no time for), `frames_released`;
-- `target_error_m.{median,p90}`: the published target against the nearest true cut point, both in
-  the camera frame at the frame's capture (the truth of `flight.json` at that frame's pose);
-- `target_recall`: processed frames with a target / processed frames whose truth has a visible cut point;
-- `false_target_rate`: targets farther than 10 cm from every true cut point / targets published;
+Every published result goes to a results log exactly as the daemon writes it (a run header, then
+one `branchrange/v1` line per result with the captured frame's index and timestamp): to
+`--results-jsonl FILE` (overwritten; one run per mode, in the report's order), else to a temporary
+file. The scores are read back from that log by `benchmarks/score_flight.py`'s reader and
+`branchrange.offline.flight_score.score_results`, as anyone scoring the file later would.
+
+Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `modes["config/builtin"]`):
+- the keys of `branchrange.offline.flight_score` (`fresh_rate_hz`, `latency_ms`, `frames_released`,
+  `frames_processed`, `target_recall`, `right_target_rate`, `false_target_rate`, `target_error_m`,
+  `first_result_s`, `keyframe_rate_hz`, `tracked_share`, `track_losses`, `target_error_m_by_origin`,
+  `visibility`);
+- `frames_dropped` (camera frames the stereo stage had no time for, plus stereo outputs the
+  geometry stage had no time for), `late` (results already older than `max_result_age_s` when published);
 - `stage_ms.<stage>.p50`: per-stage compute time (the result's `timing_ms`);
 - `handover_ms.{capture_to_stereo_ms,capture_to_geometry_ms,capture_to_publish_ms}.p50`: when the
   frame reached each thread (the result's `latency`): the waits between the stages;
+- `config_sha256`: the effective configuration's hash (its run header in the results log);
+- `load_average_1min`: the machine's load when the mode started (shared machines: read the timings by it), `wall_s`;
 - `ratio_to_baseline.{fresh_rate,latency_p50}`: against `full-sgbm` with the same segmenter.
-Also `cpu` (model and vector extensions), `threads`, `sequence`, `max_result_age_s`.
+Also `cpu` (model and vector extensions), `threads`, `sequence`, `flight` (the render options when
+rendered here), `config` (`path`, `sha256` of the file), `overrides`, `results_jsonl`, `max_result_age_s`.
+
+Without `--sequence` a flight is rendered once under out/bench (`branchrange synth-flight`, HD720,
+15 fps, 3.0 → 0.8 m, seed 1), at `--speed M/S` and `--yaw-rate DEG/S` when given.
 
     .venv/bin/python benchmarks/realtime.py --json out/realtime.json   # renders a default HD720 flight first
+    .venv/bin/python benchmarks/realtime.py --config deploy/onboard_cpu.toml --segmenter builtin --speed 0.8 \\
+        --results-jsonl out/realtime.jsonl --json out/realtime_shipped.json
     .venv/bin/python benchmarks/realtime.py --sequence out/flight --modes roi-sgbm --segmenter builtin
 """
 
@@ -40,27 +59,33 @@ import argparse
 import dataclasses
 import json
 import socket
-import statistics
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-from machine import cpu_name  # a script's own folder is on its import path
+from machine import cpu_description, cpu_name  # a script's own folder is on its import path
+from score_flight import read_logged_runs, recording_view
+
+from branchrange.commands.config_args import add_config_arguments, config_from_args
 
 if TYPE_CHECKING:
+    from branchrange.core.config import Config
     from branchrange.core.frame_result import FrameResult
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SEQUENCE = ROOT / "out" / "bench" / "flight_hd720"
-MODES = {  # mode → ([stereo] backend, mode)
+#: mode → ([stereo] backend, mode); None: as configured.
+MODES: dict[str, tuple[str, str] | None] = {
+    "config": None,
     "full-sgbm": ("sgbm", "full"),
     "roi-sgbm": ("sgbm", "roi"),
     "roi-emcstereo": ("emcstereo", "roi"),
 }
-FALSE_TARGET_M = 0.10
+#: `stereo.max_disp` without `--config` (the benchmark's figures so far; HD720 at 0.32 m).
+UNCONFIGURED_MAX_DISP = 128
 
 
 class WithoutMasks:
@@ -111,49 +136,64 @@ class UdpSink:
         self.sock.close()
 
 
-def percentile(values: list[float], q: float) -> float | None:
-    return float(np.percentile(values, q)) if values else None
+def base_config(args: argparse.Namespace) -> Config:
+    """The configuration every mode starts from: `--config`, the flags, `--set`, as the daemon reads them."""
+    max_disp = args.max_disp if args.max_disp is not None or args.config else UNCONFIGURED_MAX_DISP
+    flags = {"stereo.max_disp": max_disp, "mavlink.max_result_age_s": args.max_result_age_s}
+    config: Config = config_from_args(args, flags)
+    return config
 
 
-def render_default_sequence(path: Path) -> None:
-    """The default flight: HD720, 15 fps, 3.0 → 0.8 m (`branchrange synth-flight` defaults)."""
+def run_config(base: Config, mode: str, sequence: Path, port: int, results: Path, weights: str) -> Config:
+    """What the daemon runs in `mode`: `base` on the recording (its own calibration), sending to the UDP
+    `port`, logging to `results`, no API; the mode's stereo backend and mode (`weights` for EMCStereo)."""
+    stereo = base.stereo
+    chosen = MODES[mode]
+    if chosen is not None:
+        backend, stereo_mode = chosen
+        stereo = dataclasses.replace(
+            stereo, backend=backend, mode=stereo_mode, weights=weights if backend == "emcstereo" else stereo.weights
+        )
+    return dataclasses.replace(
+        base,
+        camera=dataclasses.replace(base.camera, source=f"replay:{sequence}", calibration=""),
+        stereo=stereo,
+        mavlink=dataclasses.replace(base.mavlink, url=f"udpout:127.0.0.1:{port}"),
+        api=dataclasses.replace(base.api, enabled=False),
+        log=dataclasses.replace(base.log, results_jsonl=str(results), status_interval_s=3600.0),
+    )
+
+
+def flight_path_for(args: argparse.Namespace) -> Path:
+    """Where the flight of `--speed` / `--yaw-rate` is rendered (the default flight without them)."""
+    suffix = "".join(
+        f"_{name}{value:g}" for name, value in (("speed", args.speed), ("yaw", args.yaw_rate)) if value is not None
+    )
+    return DEFAULT_SEQUENCE.with_name(DEFAULT_SEQUENCE.name + suffix)
+
+
+def render_flight(path: Path, args: argparse.Namespace) -> None:
+    """Render the flight once: `branchrange synth-flight` defaults (HD720, 15 fps, 3.0 → 0.8 m), seed 1."""
     from branchrange.cli import main as branchrange_main
 
-    print(f"rendering the default flight sequence into {path} (once) ...", file=sys.stderr)
-    code = branchrange_main(["synth-flight", "--out", str(path), "--seed", "1"])
+    argv = ["synth-flight", "--out", str(path), "--seed", "1"]
+    argv += ["--speed", str(args.speed)] if args.speed is not None else []
+    argv += ["--yaw-rate", str(args.yaw_rate)] if args.yaw_rate is not None else []
+    print(f"rendering the flight sequence into {path} (once) ...", file=sys.stderr)
+    code = branchrange_main(argv)
     if code != 0:
         raise SystemExit(f"synth-flight failed with exit code {code}")
 
 
-def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace, truth: Any) -> dict[str, Any]:
-    """Replay `sequence` in real time through the daemon in one mode; the metrics of the module docstring."""
-    from branchrange.core.config import (
-        CameraConfig,
-        LogConfig,
-        MavlinkConfig,
-        load_config,
-        parse_override,
-    )
+def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
+    """Replay `cfg.camera.source` in real time through the daemon as `branchrange daemon` builds it (the
+    source aside); its results go to `cfg.log.results_jsonl`. Returns the daemon's own counters."""
     from branchrange.core.frame_results import pipeline_for
     from branchrange.onboard.daemon import Daemon
     from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
     from camera.sources import ReplaySource
 
-    backend, stereo_mode = MODES[mode]
-    weights = args.weights or ""
-    if backend == "emcstereo" and not weights:
-        weights = str(random_weights(args))
-    sink = UdpSink()
-    loaded = load_config(None, [parse_override(item) for item in args.set])  # e.g. the segmenter's settings
-    cfg = dataclasses.replace(
-        loaded,
-        camera=CameraConfig(source=f"replay:{sequence}"),
-        stereo=dataclasses.replace(
-            loaded.stereo, backend=backend, weights=weights, max_disp=args.max_disp, mode=stereo_mode
-        ),
-        log=LogConfig(status_interval_s=3600.0),
-        mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{sink.port}", max_result_age_s=args.max_result_age_s),
-    )
+    sequence = cfg.camera.source.removeprefix("replay:")
 
     def open_source() -> Any:
         source = ReplaySource(sequence, pace="recorded")
@@ -165,26 +205,24 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     pipeline.process(warm.left, warm.right, mask=warm.mask if segmenter == "truth" else None)
     pipeline.reset()
     probe.close()
-    relay = MavlinkRelay(cfg.mavlink, CameraMount.from_rpy())
-    published: list[FrameResult] = []
-    daemon = Daemon(
-        cfg,
-        open_source=open_source,
-        pipeline=pipeline,
-        relay=relay,
-        observers=[lambda result, _artifacts: published.append(result)],
-    )
+    mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
+    relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking) if cfg.mavlink.enabled else None
+    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay, results_path=cfg.log.results_jsonl)
+    load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
     started = time.monotonic()
     try:
         daemon.run()
     finally:
         daemon.close()
-        sink.close()
-    wall_s = time.monotonic() - started
-    return summarise(published, daemon, truth, args.max_result_age_s, wall_s)
+    return {
+        "frames_dropped": int(daemon.dropped + daemon.skipped),
+        "late": daemon.late,
+        "wall_s": round(time.monotonic() - started, 2),
+        "load_average_1min": load,
+    }
 
 
-def random_weights(args: argparse.Namespace) -> Path:
+def random_weights() -> Path:
     """A checkpoint of a randomly initialised EMCStereo (timing only), written once under out/bench."""
     import torch
 
@@ -199,157 +237,211 @@ def random_weights(args: argparse.Namespace) -> Path:
     return path
 
 
-def summarise(published: list[FrameResult], daemon: Any, truth: Any, max_age_s: float, wall_s: float) -> dict[str, Any]:
-    """The docstring's metrics from the published results and the daemon's counters."""
-    ages = [r.latency.capture_to_publish_ms for r in published if r.latency is not None]
-    positions = {pose.index: i for i, pose in enumerate(truth.poses)}
-    duration_s = (truth.poses[-1].timestamp_ns - truth.poses[0].timestamp_ns) / 1e9 + 1 / fps_of(truth)
-    errors, false_targets, targets, with_truth, hits = [], 0, 0, 0, 0
-    for result in published:
-        position = positions.get(result.frame.index)
-        if position is None:
-            continue
-        pose = truth.poses[position]
-        true_points = list(truth.cut_points_in_camera(position).values())
-        visible = bool(pose.visible_cut_ids)
-        with_truth += visible
-        target = result.target
-        if target is None or not true_points:
-            continue
-        targets += 1
-        hits += visible
-        error = min(float(np.linalg.norm(np.asarray(target.cut_point_m) - p)) for p in true_points)
-        errors.append(error)
-        false_targets += error > FALSE_TARGET_M
+def timings(results: list[FrameResult]) -> dict[str, Any]:
+    """Per-stage compute time and per-hand-over wait, p50 (ms), over `results`."""
+    from branchrange.offline.flight_score import percentile
+
     stages: dict[str, list[float]] = {}
-    for result in published:
+    for result in results:
         for stage, ms in result.timing_ms.items():
             stages.setdefault(stage, []).append(ms)
-    fresh = sum(age <= 1000 * max_age_s for age in ages)
+    handovers = ("capture_to_stereo_ms", "capture_to_geometry_ms", "capture_to_publish_ms")
+    waits = {key: [getattr(r.latency, key) for r in results if r.latency is not None] for key in handovers}
     return {
-        "fresh_rate_hz": round(fresh / duration_s, 3),
-        "latency_ms": {"p50": percentile(ages, 50), "p95": percentile(ages, 95), "max": max(ages, default=None)},
-        "frames_released": len(truth.poses),
-        "frames_processed": len(published),
-        "frames_dropped": int(daemon.dropped + daemon.skipped),
-        "target_error_m": {"median": percentile(errors, 50), "p90": percentile(errors, 90)},
-        "target_recall": round(hits / with_truth, 4) if with_truth else None,
-        "false_target_rate": round(false_targets / targets, 4) if targets else None,
         "stage_ms": {stage: {"p50": percentile(values, 50)} for stage, values in sorted(stages.items())},
         "handover_ms": {
-            key: {"p50": percentile([getattr(r.latency, key) for r in published if r.latency is not None], 50)}
-            for key in ("capture_to_stereo_ms", "capture_to_geometry_ms", "capture_to_publish_ms")
+            key: {"p50": percentile([v for v in values if v is not None], 50)} for key, values in waits.items()
         },
-        "wall_s": round(wall_s, 2),
     }
 
 
-def fps_of(truth: Any) -> float:
-    """Frames per second of the sequence from its poses' timestamps."""
-    stamps = [p.timestamp_ns for p in truth.poses]
-    return 1e9 / statistics.median(np.diff(stamps)) if len(stamps) > 1 else 15.0
+def ratio(value: float | None, baseline: float | None, digits: int) -> float | None:
+    """`value / baseline` rounded, None when either is missing or the baseline is 0."""
+    return round(value / baseline, digits) if value is not None and baseline else None
+
+
+def add_ratios(rows: dict[str, dict[str, Any]], segmenter: str) -> None:
+    """`ratio_to_baseline` of every row of `segmenter` against its `full-sgbm` row, when there is one."""
+    baseline = rows.get(f"full-sgbm/{segmenter}")
+    if baseline is None:
+        return
+    for name, row in rows.items():
+        if name.endswith(f"/{segmenter}"):
+            row["ratio_to_baseline"] = {
+                "fresh_rate": ratio(row["fresh_rate_hz"], baseline["fresh_rate_hz"], 2),
+                "latency_p50": ratio(row["latency_ms"]["p50"], baseline["latency_ms"]["p50"], 3),
+            }
 
 
 def fmt(value: Any, scale: float = 1.0, digits: int = 0) -> str:
+    """A number scaled and rounded for the table; "—" for a figure that does not exist."""
     return "—" if value is None else f"{value * scale:.{digits}f}"
 
 
+def table_cells(row: dict[str, Any]) -> list[tuple[str, str]]:
+    """(column header, cell) of one mode's row in the main table: rates, ms, cm, s; "—" where there is nothing."""
+    latency, error, first = row["latency_ms"], row["target_error_m"], row["first_result_s"]
+    ratios = row.get("ratio_to_baseline", {})
+    return [
+        ("fresh Hz", fmt(row["fresh_rate_hz"], 1, 2)),
+        ("p50 ms", fmt(latency["p50"])),
+        ("p95 ms", fmt(latency["p95"])),
+        ("max ms", fmt(latency["max"])),
+        ("proc", str(row["frames_processed"])),
+        ("drop", str(row["frames_dropped"])),
+        ("late", str(row["late"])),
+        ("err med cm", fmt(error["median"], 100, 1)),
+        ("err p90 cm", fmt(error["p90"], 100, 1)),
+        ("recall", fmt(row["target_recall"], 1, 2)),
+        ("right", fmt(row["right_target_rate"], 1, 2)),
+        ("false", fmt(row["false_target_rate"], 1, 2)),
+        ("1st med s", fmt(first["median"], 1, 2)),
+        ("1st max s", fmt(first["max"], 1, 2)),
+        ("found", f"{first['branches_found']}/{first['branches_in_view']}"),
+        ("× fresh", fmt(ratios.get("fresh_rate"), 1, 2)),
+        ("× p50", fmt(ratios.get("latency_p50"), 1, 2)),
+        ("load", fmt(row["load_average_1min"], 1, 1)),
+    ]
+
+
 def print_table(report: dict[str, Any]) -> None:
+    config = report["config"]
     print(
         f"\nreal-time replay of {report['sequence']} on {report['cpu']}, {report['threads']} threads, "
-        f"max_result_age_s {report['max_result_age_s']}"
+        f"config {config['path'] if config else 'defaults'}"
+        + (f" (sha256 {config['sha256'][:12]}…)" if config else "")
+        + f", max_result_age_s {report['max_result_age_s']}"
     )
-    header = (
-        f"{'mode/segmenter':24} {'fresh Hz':>8} {'p50 ms':>7} {'p95 ms':>7} {'max ms':>7} {'proc':>5} {'drop':>5} "
-        f"{'err med cm':>10} {'err p90 cm':>10} {'recall':>6} {'false':>6} {'× fresh':>7} {'× p50':>6}"
-    )
-    print(header)
-    print("-" * len(header))
+    rows = {name: table_cells(row) for name, row in report["modes"].items()}
+    headers = [header for header, _ in next(iter(rows.values()), [])]
+    widths = [max(len(header), *(len(cells[i][1]) for cells in rows.values())) for i, header in enumerate(headers)]
+    line = f"{'mode/segmenter':22} " + " ".join(h.rjust(w) for h, w in zip(headers, widths))
+    print(line)
+    print("-" * len(line))
+    for name, cells in rows.items():
+        print(f"{name:22} " + " ".join(cell.rjust(w) for (_, cell), w in zip(cells, widths)))
+    print("\nkeyframes and tracking (from each result's `origin`; — : the results do not say):")
     for name, row in report["modes"].items():
-        ratio = row.get("ratio_to_baseline", {})
+        by_origin = row["target_error_m_by_origin"] or {}
         print(
-            f"{name:24} {row['fresh_rate_hz']:8.2f} "
-            f"{fmt(row['latency_ms']['p50']):>7} {fmt(row['latency_ms']['p95']):>7} "
-            f"{fmt(row['latency_ms']['max']):>7} {row['frames_processed']:5d} {row['frames_dropped']:5d} "
-            f"{fmt(row['target_error_m']['median'], 100, 1):>10} {fmt(row['target_error_m']['p90'], 100, 1):>10} "
-            f"{fmt(row['target_recall'], 1, 2):>6} {fmt(row['false_target_rate'], 1, 2):>6} "
-            f"{fmt(ratio.get('fresh_rate'), 1, 2):>7} {fmt(ratio.get('latency_p50'), 1, 2):>6}"
+            f"  {name:22} keyframe Hz {fmt(row['keyframe_rate_hz'], 1, 2)}  tracked {fmt(row['tracked_share'], 1, 2)}  "
+            f"track losses {fmt(row['track_losses'])}  "
+            + "  ".join(
+                f"err {kind} med/p90 cm {fmt((by_origin.get(kind) or {}).get('median'), 100, 1)}/"
+                f"{fmt((by_origin.get(kind) or {}).get('p90'), 100, 1)}"
+                for kind in ("keyframe", "tracked")
+            )
         )
     print("\nper-stage p50 (ms):")
     for name, row in report["modes"].items():
-        print(f"  {name:24} " + "  ".join(f"{stage} {fmt(v['p50'], 1, 1)}" for stage, v in row["stage_ms"].items()))
+        print(f"  {name:22} " + "  ".join(f"{stage} {fmt(v['p50'], 1, 1)}" for stage, v in row["stage_ms"].items()))
     print("\nframe arrival → each hand-over, p50 (ms):")
     for name, row in report["modes"].items():
         print(
-            f"  {name:24} "
+            f"  {name:22} "
             + "  ".join(f"{key.removesuffix('_ms')} {fmt(v['p50'], 1, 1)}" for key, v in row["handover_ms"].items())
         )
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line (module docstring); `--modes` filled in from `--config` when not given."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sequence", type=Path, help=f"a flight recording (default: render {DEFAULT_SEQUENCE} once)")
     parser.add_argument(
-        "--modes", default="full-sgbm,roi-sgbm,roi-emcstereo", help=f"comma-separated: {', '.join(MODES)}"
+        "--speed", type=float, help="render the flight at this approach speed, m/s (not with --sequence)"
     )
+    parser.add_argument(
+        "--yaw-rate", type=float, help="render the flight with this yaw sweep, deg/s (synth-flight --yaw-rate)"
+    )
+    parser.add_argument("--modes", help=f"comma-separated: {', '.join(MODES)} (default: see the module docstring)")
     parser.add_argument("--segmenter", choices=("truth", "builtin", "both"), default="both")
     parser.add_argument(
         "--weights", help="EMCStereo checkpoint for roi-emcstereo (default: random weights, timing only)"
     )
-    parser.add_argument("--max-disp", type=int, default=128, help="full-resolution disparity range, px")
-    parser.add_argument("--max-result-age-s", type=float, default=0.5)
+    parser.add_argument(
+        "--max-disp", type=int, help=f"stereo.max_disp, px (default: the file's, else {UNCONFIGURED_MAX_DISP})"
+    )
+    parser.add_argument(
+        "--max-result-age-s", type=float, help="mavlink.max_result_age_s (default: the file's, else 0.5)"
+    )
     parser.add_argument("--threads", type=int, default=2, help="OpenCV and torch threads")
     parser.add_argument("--json", type=Path, help="write the report here")
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="a config override for every run, e.g. --set segmenter.learned.precision=int8 (repeatable)",
-    )
+    parser.add_argument("--results-jsonl", type=Path, help="write every published result here (overwritten)")
+    add_config_arguments(parser, required=False, sections="every section, as `branchrange daemon` reads it")
     args = parser.parse_args(argv)
-    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
-    unknown = [m for m in modes if m not in MODES]
+    if args.sequence is not None and (args.speed is not None or args.yaw_rate is not None):
+        parser.error("--speed and --yaw-rate render a flight; not with --sequence")
+    args.modes = [m.strip() for m in (args.modes or default_modes(args)).split(",") if m.strip()]
+    unknown = [m for m in args.modes if m not in MODES]
     if unknown:
         parser.error(f"unknown mode {unknown[0]!r}; expected {', '.join(MODES)}")
+    return args
+
+
+def default_modes(args: argparse.Namespace) -> str:
+    """The file as it is and the per-frame baseline with `--config`; else the three stereo set-ups."""
+    return "config,full-sgbm" if args.config else "full-sgbm,roi-sgbm,roi-emcstereo"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
 
     import cv2
     import torch
 
+    from branchrange.core.config import ConfigError
     from branchrange.offline.flight import FlightTruth
+    from branchrange.offline.flight_score import score_results
+    from stereo.weights import sha256_of
 
+    try:
+        base = base_config(args)
+    except ConfigError as error:
+        raise SystemExit(f"realtime.py: {error}") from None
     cv2.setNumThreads(args.threads)
     torch.set_num_threads(args.threads)
-    sequence = args.sequence or DEFAULT_SEQUENCE
+    sequence = args.sequence or flight_path_for(args)
     if args.sequence is None and not (sequence / "flight.json").exists():
-        render_default_sequence(sequence)
+        render_flight(sequence, args)
     truth = FlightTruth.load(sequence)
+    view = recording_view(sequence, base.mavlink.min_distance_m, base.mavlink.max_distance_m)
     segmenters = ["truth", "builtin"] if args.segmenter == "both" else [args.segmenter]
+    runs = [(mode, segmenter) for segmenter in segmenters for mode in args.modes]
+    weights = (args.weights or str(random_weights())) if "roi-emcstereo" in args.modes else ""
     report: dict[str, Any] = {
         "cpu": cpu_name(),
         "threads": args.threads,
         "sequence": str(sequence),
-        "max_result_age_s": args.max_result_age_s,
-        "max_disp": args.max_disp,
+        "flight": {"speed_mps": args.speed, "yaw_rate_dps": args.yaw_rate} if args.sequence is None else None,
+        "config": {"path": args.config, "sha256": sha256_of(Path(args.config))} if args.config else None,
         "overrides": args.set,
+        "results_jsonl": str(args.results_jsonl) if args.results_jsonl else None,
+        "max_result_age_s": base.mavlink.max_result_age_s,
+        "max_disp": base.stereo.max_disp,
         "modes": {},
     }
+    with tempfile.TemporaryDirectory() as scratch:
+        log = args.results_jsonl or Path(scratch) / "results.jsonl"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        log.write_text("")
+        sink = UdpSink()
+        try:
+            counters = []
+            for mode, segmenter in runs:
+                print(f"{mode}/{segmenter} ...", file=sys.stderr)
+                counters.append(run_mode(run_config(base, mode, sequence, sink.port, log, weights), segmenter))
+        finally:
+            sink.close()
+        logged = read_logged_runs(log)
+    for (mode, segmenter), counted, (header, results) in zip(runs, counters, logged, strict=True):
+        report["modes"][f"{mode}/{segmenter}"] = {
+            **score_results(results, truth, view, base.mavlink.max_result_age_s),
+            **counted,
+            **timings(results),
+            "config_sha256": header["config_sha256"] if header else None,
+        }
     for segmenter in segmenters:
-        for mode in modes:
-            print(f"{mode}/{segmenter} ...", file=sys.stderr)
-            report["modes"][f"{mode}/{segmenter}"] = run_mode(sequence, mode, segmenter, args, truth)
-        baseline = report["modes"].get(f"full-sgbm/{segmenter}")
-        if baseline:
-            for mode in modes:
-                row = report["modes"][f"{mode}/{segmenter}"]
-                row["ratio_to_baseline"] = {
-                    "fresh_rate": round(row["fresh_rate_hz"] / baseline["fresh_rate_hz"], 2)
-                    if baseline["fresh_rate_hz"]
-                    else None,
-                    "latency_p50": round(row["latency_ms"]["p50"] / baseline["latency_ms"]["p50"], 3)
-                    if row["latency_ms"]["p50"] and baseline["latency_ms"]["p50"]
-                    else None,
-                }
+        add_ratios(report["modes"], segmenter)
     print_table(report)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,7 @@ from stereo.cli import build_parser
 from stereo.synth import LEAF_ID, SynthOptions, render_scene
 from stereo.synth.camera import SynthCamera
 from stereo.synth.flight import FlightRenderer
-from stereo.synth.flight_path import FlightOptions
+from stereo.synth.flight_path import YAW_BOUND_DEG, ApproachPath, FlightOptions
 from stereo.synth.motion_blur import blur_along_motion, image_motion
 from stereo.synth.render import auto_gain, develop, render_views
 from stereo.synth.viewpoint import scene_in_camera
@@ -139,6 +139,27 @@ def test_speed_sets_the_frame_count_without_overshooting_the_end():
     assert FlightOptions(frames=12).speed == pytest.approx(2.2 * 15 / 11)
     with pytest.raises(ValueError, match="speed_mps"):
         FlightOptions(frames=12, speed_mps=0.5)
+
+
+def test_yaw_sweep_turns_about_gravity_at_its_rate_and_back_at_the_bound():
+    target, down = np.array([0.3, -0.2, 2.5]), np.array([0.0, 1.0, 0.0])
+    still = ApproachPath(target, down, FlightOptions(frames=40), np.random.default_rng(0))
+    options = FlightOptions(frames=40, yaw_rate_dps=40.0)
+    turning = ApproachPath(target, down, options, np.random.default_rng(0))
+    assert YAW_BOUND_DEG == 15.0  # the angles below: 40 °/s reaches 15° at 0.375 s and turns back
+    expected = [(0.0, 0.0), (0.25, 10.0), (0.5, 10.0), (0.75, 0.0), (1.0, -10.0), (1.125, -15.0), (1.5, 0.0)]
+    for time_s, expected_deg in expected:
+        rotation, position = turning.pose(time_s)
+        still_rotation, still_position = still.pose(time_s)
+        np.testing.assert_allclose(position, still_position, atol=1e-12)  # the view turns, the camera stays put
+        turn = rotation @ still_rotation.T
+        np.testing.assert_allclose(turn @ down, down, atol=1e-12)  # about the vertical axis
+        angle = math.degrees(math.atan2(turn[0, 2], turn[0, 0]))  # about +y: z turns toward x
+        assert angle == pytest.approx(expected_deg, abs=1e-9)
+    for time_s in np.arange(0.0, options.time_s(39), 1 / 15):  # the target stays within the bound of the axis
+        rotation, position = turning.pose(time_s)
+        toward = rotation.T @ (target - position)
+        assert math.degrees(math.acos(toward[2] / np.linalg.norm(toward))) <= YAW_BOUND_DEG + 1e-9
 
 
 def test_flight_renderer_at_the_scene_pose_reproduces_render_scene():
@@ -340,6 +361,7 @@ def test_missing_or_garbled_flight_file(tmp_path: Path):
         (["--frames", "1"], "frames"),
         (["--speed", "0"], "speed_mps"),
         (["--jitter-deg", "-1"], "jitter_deg"),
+        (["--yaw-rate", "-5"], "yaw_rate_dps"),
         (["--supersample", "9"], "supersample"),
     ],
 )

@@ -51,6 +51,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="roll/pitch/yaw jitter amplitude, degrees (smooth, 0.3–2 Hz; default 0)",
     )
     p.add_argument(
+        "--yaw-rate",
+        type=float,
+        default=0.0,
+        help="yaw sweep about the vertical axis, deg/s: turns at this rate and back before the target "
+        "leaves the middle of the image (stereo.synth.flight_path.YAW_BOUND_DEG; default 0)",
+    )
+    p.add_argument(
         "--exposure",
         type=float,
         default=0.0,
@@ -133,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
             sway_m=args.sway_m,
             sway_hz=args.sway_hz,
             jitter_deg=args.jitter_deg,
+            yaw_rate_dps=args.yaw_rate,
             exposure=args.exposure,
             motion_blur=args.motion_blur,
             shutter=args.shutter,

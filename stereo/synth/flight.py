@@ -181,7 +181,7 @@ class FlightRenderer:
     def _choose_target(self) -> int:
         """Id of the branch to approach (see the module docstring): its cut point seen from both path ends."""
         by_thickness = sorted(self.scene.branches, key=lambda b: (-b.base_radius_m, b.id))
-        nominal = dataclasses.replace(self.options, sway_m=0.0, jitter_deg=0.0)
+        nominal = dataclasses.replace(self.options, sway_m=0.0, jitter_deg=0.0, yaw_rate_dps=0.0)
         last = nominal.time_s(nominal.frame_count - 1)
         seen_at_end = []
         for branch in by_thickness:

@@ -9,6 +9,11 @@ with no roll (its y axis is gravity projected across `a`). On top of that:
   so the first frame is on the approach line; the distance *along* the approach stays d(t));
 - attitude jitter: yaw, pitch and roll (about the camera's y, x and z axes) each a smooth random
   wobble within ±`jitter_deg` (three sinusoids of 0.3–2 Hz with random phases from the seed);
+- yaw sweep: the camera turns about the vertical (gravity) axis through its own centre at a
+  constant `yaw_rate_dps`, first to one side; it turns back on reaching ±`YAW_BOUND_DEG` (a
+  triangle wave starting at 0), so the target, on the optical axis at 0, never leaves the middle
+  of the image (a ZED Mini sees ±45° across) while the turn rate stays what the vehicle flies.
+  It rotates the view only: the position, and so the distance along the approach, is unchanged;
 - exposure: a gain factor `1 + exposure · w(t)` with a slow wobble w (0.1–0.5 Hz) within ±1.
 
 Timing: frame i is captured at `t_i = i / fps`. Either `frames` is given (the distance falls
@@ -32,6 +37,9 @@ from stereo.synth.primitives import cross3, unit
 DEFAULT_SPEED_MPS = 0.4
 #: Capture time of frame 0 (ns): a fixed start, so a sequence's timestamps depend on its options only.
 FIRST_TIMESTAMP_NS = 1_000_000_000
+#: How far (degrees) the yaw sweep turns either side of the approach before turning back: the
+#: target then stays within the middle third of a ZED Mini image's width.
+YAW_BOUND_DEG = 15.0
 _JITTER_HZ = (0.3, 2.0)
 _EXPOSURE_HZ = (0.1, 0.5)
 
@@ -53,10 +61,11 @@ class FlightOptions:
     Distances in metres, speeds in m/s, frequencies in Hz, angles in degrees. `width`×`height`:
     image size (ZED Mini rig scaled to it). `exposure`: relative gain wobble (0.2 → ±20 %).
     `motion_blur`: blur each view along its image motion over the last `shutter` of the frame
-    interval. `foliage`: sparse leaves on the twigs (off: a bare tree). `supersample`: rays per
-    pixel side for the images (1 keeps an HD720 frame under a second on 2 cores; truth always
-    comes from the pixel-centre ray). `noise_std`: sensor noise, grey levels. `threads`: render
-    threads (1–3; the result does not depend on it).
+    interval. `yaw_rate_dps`: the yaw sweep's turn rate, °/s (0: none). `foliage`: sparse leaves on
+    the twigs (off: a bare tree). `supersample`: rays per pixel side for the images (1 keeps an
+    HD720 frame under a second on 2 cores; truth always comes from the pixel-centre ray).
+    `noise_std`: sensor noise, grey levels. `threads`: render threads (1–3; the result does not
+    depend on it).
     """
 
     frames: int | None = None
@@ -69,6 +78,7 @@ class FlightOptions:
     sway_m: float = 0.0
     sway_hz: float = 0.5
     jitter_deg: float = 0.0
+    yaw_rate_dps: float = 0.0
     exposure: float = 0.0
     motion_blur: bool = False
     shutter: float = 0.5
@@ -124,6 +134,12 @@ class FlightOptions:
             "jitter_deg",
             self.jitter_deg,
             "an amplitude in [0, 15] degrees",
+        )
+        _check(
+            _finite(self.yaw_rate_dps) and 0 <= self.yaw_rate_dps <= 180.0,
+            "yaw_rate_dps",
+            self.yaw_rate_dps,
+            "a turn rate in [0, 180] degrees per second",
         )
         _check(
             _finite(self.exposure) and 0 <= self.exposure <= 0.9,
@@ -189,6 +205,12 @@ class FlightOptions:
         """Distance (m) from the nominal camera to the target cut point along the approach at `time_s`."""
         return self.start_m - self.speed * time_s
 
+    def yaw_deg(self, time_s: float) -> float:
+        """The yaw sweep's angle (degrees about gravity; + turns the view toward image x) at `time_s`: a
+        triangle wave of slope ±`yaw_rate_dps` between ±`YAW_BOUND_DEG`, 0 at t = 0."""
+        phase = (self.yaw_rate_dps * time_s + YAW_BOUND_DEG) % (4 * YAW_BOUND_DEG)
+        return YAW_BOUND_DEG - abs(phase - 2 * YAW_BOUND_DEG)
+
 
 class Wobble:
     """A smooth random signal within ±1: a weighted sum of three sinusoids, normalised by the weights."""
@@ -201,6 +223,13 @@ class Wobble:
     def __call__(self, time_s: float) -> float:
         waves = np.sin(2 * np.pi * self.frequency_hz * time_s + self.phase)
         return float((self.weight * waves).sum() / self.weight.sum())
+
+
+def _rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rotation (3×3) by `angle_rad` about the unit vector `axis` `(3,)` (Rodrigues' formula)."""
+    x, y, z = axis
+    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(angle_rad) * cross + (1 - math.cos(angle_rad)) * cross @ cross
 
 
 def _axis_rotation(axis: int, angle_rad: float) -> np.ndarray:
@@ -225,6 +254,7 @@ class ApproachPath:
         self.options = options
         self.target = np.asarray(target_m, dtype=np.float64)
         self.approach = unit(self.target)
+        self.down = unit(down)
         y = unit(down - (down @ self.approach) * self.approach)
         self.nominal = np.stack([cross3(y, self.approach), y, self.approach], axis=1)
         self.jitter = [Wobble(rng, _JITTER_HZ) for _ in range(3)]
@@ -237,7 +267,8 @@ class ApproachPath:
         position = self.target - opts.distance_m(time_s) * self.approach + sway * self.nominal[:, 0]
         yaw, pitch, roll = (math.radians(opts.jitter_deg) * wobble(time_s) for wobble in self.jitter)
         attitude = _axis_rotation(1, yaw) @ _axis_rotation(0, pitch) @ _axis_rotation(2, roll)
-        return self.nominal @ attitude, position
+        sweep = _rotation_about(self.down, math.radians(opts.yaw_deg(time_s)))
+        return sweep @ self.nominal @ attitude, position
 
     def gain_factor(self, time_s: float) -> float:
         """Exposure gain relative to the first frame's auto-exposure at `time_s`: `1 + exposure · w(t)`."""

@@ -1,0 +1,80 @@
+"""`benchmarks/realtime.py --config FILE` runs a deploy file as the daemon reads it, and renders the flight asked for.
+
+Why: the benchmark's figures stand for what a user gets only if it runs the shipped file as `branchrange
+daemon --config` would — same loader, same precedence, only the hardware ties (camera, autopilot link,
+log path, API) replaced. `benchmarks/` is not a package: its scripts import their siblings with their own
+folder on the path, so the test puts it there first.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import pytest
+
+from branchrange.commands.config_args import config_from_args
+from branchrange.core.config import pipeline_config
+from stereo.cli import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import realtime  # noqa: E402
+
+SHIPPED = str(ROOT / "deploy" / "onboard_cpu.toml")
+
+
+def daemon_config(*argv: str):
+    """The configuration `branchrange daemon ARGV` runs with (its own parser and loader, no --source/--mavlink)."""
+    args = build_parser("branchrange", "test", ["branchrange.commands.daemon"]).parse_args(["daemon", *argv])
+    return config_from_args(args, {"camera.source": None, "mavlink.url": None})
+
+
+def benchmark_config(mode: str, *argv: str):
+    args = realtime.parse_args(list(argv))
+    return args, realtime.run_config(realtime.base_config(args), mode, Path("flight"), 14550, Path("r.jsonl"), "")
+
+
+@pytest.mark.parametrize(
+    "extra", [[], ["--set", "cutpoints.target_min_confidence=0.5", "--set", "roi.coarse_width=480"]]
+)
+def test_the_shipped_file_runs_with_the_daemons_settings(extra: list[str]):
+    args, ours = benchmark_config("config", "--config", SHIPPED, *extra)
+    theirs = daemon_config("--config", SHIPPED, *extra)
+    assert args.modes == ["config", "full-sgbm"]
+    assert pipeline_config(ours) == pipeline_config(theirs)  # stereo, roi, cut points, segmenter, masks, tracker
+    assert ours.stereo.mode == "roi" and ours.stereo.max_disp == 128 and ours.segmenter.learned.precision == "int8"
+    assert ours.mavlink == dataclasses.replace(theirs.mavlink, url="udpout:127.0.0.1:14550")
+    assert ours.tracking == theirs.tracking
+    assert ours.camera == dataclasses.replace(theirs.camera, source="replay:flight", calibration="")
+    assert not ours.api.enabled and ours.log.results_jsonl == "r.jsonl"
+    assert ours.branch_tracking == theirs.branch_tracking and ours.masks == theirs.masks
+
+
+def test_a_named_mode_changes_only_the_stereo_backend_and_mode():
+    _, config = benchmark_config("config", "--config", SHIPPED)
+    _, baseline = benchmark_config("full-sgbm", "--config", SHIPPED)
+    assert baseline == dataclasses.replace(config, stereo=dataclasses.replace(config.stereo, mode="full"))
+
+
+def test_flags_and_overrides_keep_the_daemons_precedence():
+    _, config = benchmark_config("config", "--config", SHIPPED, "--max-disp", "96", "--max-result-age-s", "0.3")
+    assert (config.stereo.max_disp, config.mavlink.max_result_age_s) == (96, 0.3)  # the flags over the file
+    _, config = benchmark_config("config", "--config", SHIPPED, "--max-disp", "96", "--set", "stereo.max_disp=160")
+    assert config.stereo.max_disp == 160  # --set last
+    args, config = benchmark_config("roi-sgbm")
+    assert config.stereo.max_disp == realtime.UNCONFIGURED_MAX_DISP and args.modes == [
+        "full-sgbm",
+        "roi-sgbm",
+        "roi-emcstereo",
+    ]
+
+
+def test_the_flight_asked_for_is_rendered_in_its_own_folder(capsys: pytest.CaptureFixture[str]):
+    assert realtime.flight_path_for(realtime.parse_args([])) == realtime.DEFAULT_SEQUENCE
+    fast = realtime.flight_path_for(realtime.parse_args(["--speed", "0.8", "--yaw-rate", "20"]))
+    assert fast.name == "flight_hd720_speed0.8_yaw20"
+    with pytest.raises(SystemExit):
+        realtime.parse_args(["--sequence", "out/flight", "--speed", "0.8"])
+    assert "not with --sequence" in capsys.readouterr().err
