@@ -6,8 +6,9 @@ position + yaw) only while all of these hold, and not once any of them fails:
   follows external setpoints: ArduPilot GUIDED (custom_mode 4 on a copter) or PX4 OFFBOARD (main
   mode 6 in bits 16–23 of custom_mode);
 - the vehicle pose is known now;
-- the target track is fresh (seen within `tracking.stale_after_s`), has at least
-  `setpoint_min_observations` cut points and a mean confidence ≥ `setpoint_min_confidence`.
+- there is a target track (it passed `world_tracks`' target rule: fresh within `mavlink.max_result_age_s`,
+  consistent, confident), with at least `setpoint_min_observations` cut points and a recency-weighted
+  confidence ≥ `setpoint_min_confidence`.
 The point lies `setpoint_standoff_m` before the cut point along the horizontal line from the
 vehicle to it, at the cut point's height, facing it; it is at most `setpoint_max_step_m` from the
 vehicle and moves at most `setpoint_max_speed_m_s` × the time since the previous setpoint.
