@@ -133,14 +133,21 @@ def test_left_and_right_pair_by_stamp_within_the_tolerance_and_the_rest_is_count
 def test_recorded_pace_and_start_and_loop(tmp_path):
     write_bag(frames(3, period_ns=20_000_000), CALIBRATION, tmp_path / "bag")
     now = [0]
-    waits = []
+    released = []
+
+    def wait(seconds: float) -> bool:  # no real sleeping: the clock jumps to the end of the wait
+        now[0] += round(seconds * 1e9)
+        return False
 
     source = RosbagSource(tmp_path / "bag", start=1, loop=True, clock=lambda: now[0])
-    source._stop.wait = lambda seconds: waits.append(round(seconds, 3)) or False  # no real sleeping
-    got = [next(source) for _ in range(4)]
+    source._stop.wait = wait
+    for _ in range(4):
+        frame = next(source)
+        released.append((frame.index, now[0]))
     source.close()
-    assert [f.index for f in got] == [1, 2, 4, 5]  # start=1; each pass adds the bag's pair count, as ReplaySource
-    assert waits == [0.02, 0.04, 0.06]  # each frame released at its stamp's offset from the first
+    # start=1; each pass adds the bag's pair count, as ReplaySource; each frame released at its stamp's
+    # offset from the first, the loop seam one period after the last frame
+    assert released == [(1, 0), (2, 20_000_000), (4, 40_000_000), (5, 60_000_000)]
 
 
 def test_a_missing_topic_names_the_topics_the_bag_has(tmp_path):

@@ -3,7 +3,9 @@
 Specs: `zed:0`, `zed:0:HD720`, `zed:/dev/video0`, `zed:/dev/video0:VGA` (device index or path, then
 an optional mode), `oak`, `oak:640x400`, `oak:1280x800@60` (output size and fps), `replay:PATH`
 (a recording directory, a folder of pairs `left/` + `right/`, or a side-by-side video file),
-`rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag, see camera.sources.rosbag).
+`rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag, see camera.sources.rosbag). Both replays take the options
+`start_at=TIME`, `start_signal=file:PATH|udp:HOST:PORT` (repeatable; camera.sources.clock_sync) and
+`ignore_masks=true`: `replay:out/flight?start_signal=udp:127.0.0.1:9500&start_at=2026-11-28T18:10:00Z`.
 """
 
 from __future__ import annotations
@@ -13,9 +15,11 @@ from pathlib import Path
 
 from camera.calibration import CalibrationError, StereoCalibration
 from camera.load import detect_format, load_calibration
+from camera.sources.clock_sync import ClockSync
 from camera.sources.frame import SourceBase, SourceConfigError, SourceError
 from camera.sources.latest import LatestFrameSource
 from camera.sources.replay import ReplaySource
+from camera.sources.spec_options import REPLAY_KEYS, replay_options, split_spec
 from camera.sources.zed_uvc import ZED_MODES, ZedUvcSource
 from camera.zed_conf import ZED_RESOLUTIONS, resolution_for_size
 
@@ -54,14 +58,17 @@ def open_source(
     loop: bool = False,
     start: int = 0,
     fps: float | None = None,
+    ignore_masks: bool = False,
+    clock_sync: ClockSync | None = None,
 ) -> SourceBase:
     """Open the source a spec names (see the module docstring).
 
     `calibration`: a StereoCalibration or a calibration file overriding what the source knows; a
     file is read for the source's frame size (a ZED conf at the ZED mode's or the recording's
     resolution, a depthai JSON scaled to the OAK output or recording size). `latest=True` wraps the source in
-    LatestFrameSource (a slow consumer then always gets the newest frame). `pace`, `loop`, `start`
-    apply to replays, `fps` to `replay:` (a folder of pairs' frame rate, or a video's override).
+    LatestFrameSource (a slow consumer then always gets the newest frame). `pace`, `loop`, `start`,
+    `ignore_masks` and `clock_sync` apply to replays (as their spec options do; a clock sync given both
+    ways is refused), `fps` to `replay:` (a folder of pairs' frame rate, or a video's override).
     """
     kind, _, rest = spec.strip().partition(":")
     kind = kind.lower()
@@ -81,22 +88,37 @@ def open_source(
         )
         source = OakSource(config, calibration=_loaded(calibration, config.size))
     elif kind == "replay":
-        if not rest:
-            raise SourceConfigError(f"source spec {spec!r}: expected replay:PATH")
-        source = _calibrated(ReplaySource(rest, pace=pace, loop=loop, start=start, fps=fps), calibration)
+        path, options = split_spec(spec, rest, REPLAY_KEYS)
+        if not path:
+            raise SourceConfigError(f"source spec {spec!r}: expected replay:PATH[?OPTION=VALUE&…]")
+        spec_sync, spec_ignores_masks = replay_options(spec, options)
+        source = _calibrated(
+            ReplaySource(
+                path,
+                pace=pace,
+                loop=loop,
+                start=start,
+                fps=fps,
+                ignore_masks=ignore_masks or spec_ignores_masks,
+                clock_sync=_one_clock_sync(spec, spec_sync, clock_sync),
+            ),
+            calibration,
+        )
     elif kind == "rosbag":
         from camera.sources.rosbag import RosbagSource, parse_rosbag_spec  # rosbags is imported only for bags
 
-        path, topics, tolerance_ms = parse_rosbag_spec(rest)
+        bag, topics, tolerance_ms, options = parse_rosbag_spec(rest)
+        spec_sync, _ = replay_options(spec, options)  # a bag has no masks to ignore
         source = _calibrated(
             RosbagSource(
-                path,
+                bag,
                 topics=topics,
                 tolerance_ms=tolerance_ms,
                 use_camera_info=calibration is None,
                 pace=pace,
                 loop=loop,
                 start=start,
+                clock_sync=_one_clock_sync(spec, spec_sync, clock_sync),
             ),
             calibration,
         )
@@ -105,6 +127,15 @@ def open_source(
             f"source spec {spec!r}: expected zed:DEVICE[:MODE], oak[:WxH[@FPS]], replay:PATH or rosbag:PATH"
         )
     return LatestFrameSource(source) if latest else source
+
+
+def _one_clock_sync(spec: str, from_spec: ClockSync | None, given: ClockSync | None) -> ClockSync | None:
+    """The clock sync of the spec or of the caller; both at once would leave one of them silently unused."""
+    if from_spec is not None and given is not None:
+        raise SourceConfigError(
+            f"source spec {spec!r}: start_at/start_signal are given in the spec and as options; give them once"
+        )
+    return from_spec or given
 
 
 def _calibrated(source: ReplaySource, calibration: StereoCalibration | str | Path | None) -> ReplaySource:
