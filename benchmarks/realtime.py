@@ -1,7 +1,8 @@
 """Real-time onboard benchmark: a flight sequence replayed at its own frame rate through the daemon.
 
 Each frame is released at its recorded timestamp (as a 15 fps camera would deliver it; decoding
-happens ahead of the release, as a camera delivers raw frames), and goes through the daemon's own
+starts ahead of the release, as a camera delivers raw frames, and a frame that cannot be on time is
+dropped: `camera.sources.ReplaySource`), and goes through the daemon's own
 code path — `branchrange.onboard.daemon.Daemon` with its capture, stereo and geometry+send threads, the
 pipeline of `branchrange.core.frame_results.pipeline_for` and a real `MavlinkRelay` sending to a UDP
 socket on 127.0.0.1 — on `--threads` CPU threads (OpenCV and torch). Nothing waits for the slow
@@ -19,7 +20,8 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
   second of sequence time — what the autopilot gets as targets;
 - `latency_ms.{p50,p95,max}`: capture → publish, milliseconds, over published results;
 - `frames_processed`, `frames_dropped` (camera frames the stereo stage had no time for, plus stereo
-  outputs the geometry stage had no time for), `frames_released`;
+  outputs the geometry stage had no time for, plus frames the replay could not release on time: a
+  busy machine's decoding), `frames_released`;
 - `target_error_m.{median,p90}`: the published target against the nearest true cut point, both in
   the camera frame at the frame's capture (the truth of `flight.json` at that frame's pose);
 - `target_recall`: processed frames with a target / processed frames whose truth has a visible cut point;
@@ -61,27 +63,6 @@ MODES = {  # mode → ([stereo] backend, mode)
     "roi-emcstereo": ("emcstereo", "roi"),
 }
 FALSE_TARGET_M = 0.10
-
-
-class WithoutMasks:
-    """A frame source whose frames lose their recorded masks, so the built-in segmenter decides."""
-
-    def __init__(self, source: Any) -> None:
-        self.source = source
-        self.calibration = source.calibration
-
-    @property
-    def is_lost(self) -> bool:
-        return self.source.is_lost
-
-    def __iter__(self) -> WithoutMasks:
-        return self
-
-    def __next__(self) -> Any:
-        return dataclasses.replace(next(self.source), mask=None)
-
-    def close(self) -> None:
-        self.source.close()
 
 
 class UdpSink:
@@ -156,8 +137,7 @@ def run_mode(sequence: Path, mode: str, segmenter: str, args: argparse.Namespace
     )
 
     def open_source() -> Any:
-        source = ReplaySource(sequence, pace="recorded")
-        return source if segmenter == "truth" else WithoutMasks(source)
+        return ReplaySource(sequence, pace="recorded", ignore_masks=segmenter != "truth")
 
     probe = ReplaySource(sequence, pace="fast")
     pipeline = pipeline_for(cfg, probe.calibration)
@@ -231,7 +211,7 @@ def summarise(published: list[FrameResult], daemon: Any, truth: Any, max_age_s: 
         "latency_ms": {"p50": percentile(ages, 50), "p95": percentile(ages, 95), "max": max(ages, default=None)},
         "frames_released": len(truth.poses),
         "frames_processed": len(published),
-        "frames_dropped": int(daemon.dropped + daemon.skipped),
+        "frames_dropped": int(daemon.dropped + daemon.skipped + daemon.dropped_late),
         "target_error_m": {"median": percentile(errors, 50), "p90": percentile(errors, 90)},
         "target_recall": round(hits / with_truth, 4) if with_truth else None,
         "false_target_rate": round(false_targets / targets, 4) if targets else None,

@@ -130,6 +130,7 @@ def test_replay_summary_counts_what_the_results_hold(replayed):
         "processed": FRAMES,
         "corrupt": 0,
         "rejected": 0,
+        "dropped_late": 0,
         "with_branches": FRAMES,
         "with_target": FRAMES,
     }
