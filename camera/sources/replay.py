@@ -329,9 +329,10 @@ class ReplaySource(SourceBase):
     typical (median) decode time already makes it late, so no time goes to a frame that cannot be
     on time and the replay catches up; after decoding when that decode alone overran. The limit is
     half a frame period (later, the frame is nearer its successor's slot than its own), at most
-    MAX_LATE_NS (the accuracy promised to a simulator kept in step). Drops are counted in
-    `dropped_late`; delivered frames keep their recorded timestamps and indices, so a consumer
-    sees the gap.
+    MAX_LATE_NS (the accuracy promised to a simulator kept in step; and the daemon takes a frame's
+    release as its capture time, so a frame released late would hide its lateness from the latency
+    figures). Drops are counted in `dropped_late`; delivered frames keep their recorded timestamps
+    and indices, so a consumer sees the gap.
     """
 
     def __init__(
