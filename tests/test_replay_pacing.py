@@ -35,9 +35,9 @@ def recording(tmp_path: Path) -> Path:
 class FakeTime:
     """A monotonic clock that moves only when the replay waits, a frame decodes or the consumer works."""
 
-    def __init__(self, source: ReplaySource, decode_ns: dict[int, int] | None = None) -> None:
+    def __init__(self, source: ReplaySource, decode_ns: dict[int, int] | None = None, oversleep_ns: int = 0) -> None:
         self.now = 0
-        self.decode_ns = decode_ns or {}
+        self.decode_ns, self.oversleep_ns = decode_ns or {}, oversleep_ns
         source._clock = self.clock
         source._stop.wait = self.wait  # type: ignore[method-assign]
         read = source._frames.read
@@ -53,7 +53,7 @@ class FakeTime:
         return self.now
 
     def wait(self, seconds: float) -> bool:
-        self.now += round(seconds * 1e9)
+        self.now += round(seconds * 1e9) + self.oversleep_ns
         return False
 
 
@@ -68,6 +68,26 @@ def test_a_slow_consumer_gets_the_frames_still_on_time_and_the_late_ones_are_cou
     assert released == [(0, T0, 0), (2, T0 + 2 * PERIOD_NS, 100 * MS), (5, T0 + 5 * PERIOD_NS, 200 * MS)]
     assert source.dropped_late == 3  # 1, 3 and 4: recorded indices and stamps show the gaps
     assert source.late_limit_ns == 20 * MS  # half the 40 ms period
+
+
+def test_a_tighter_late_limit_drops_what_half_a_period_would_release(recording: Path) -> None:
+    source = ReplaySource(recording, pace="recorded", max_late_ms=10)
+    fake = FakeTime(source)
+    released = []
+    for frame in source:
+        released.append(frame.index)
+        fake.now += 100 * MS  # frame 2 would come 20 ms after its slot: more than 10 ms
+    assert released == [0, 3] and source.dropped_late == 4 and source.late_limit_ns == 10 * MS  # 5: 20 ms late
+    with pytest.raises(SourceConfigError, match="max_late_ms is 0"):
+        ReplaySource(recording, max_late_ms=0)
+
+
+def test_a_scheduler_that_wakes_the_replay_late_is_allowed_for(recording: Path) -> None:
+    source = ReplaySource(recording, pace="recorded")
+    fake = FakeTime(source, oversleep_ns=10 * MS)  # every wait returns 10 ms late
+    released = [fake.now for _ in source]
+    # the first wait overslept; from then on the replay wakes 10 ms early and releases on the slot
+    assert released == [0, 50 * MS, 80 * MS, 120 * MS, 160 * MS, 200 * MS] and source.dropped_late == 0
 
 
 def test_decoding_starts_ahead_of_the_slot_so_the_frame_is_ready_at_it(recording: Path) -> None:

@@ -42,9 +42,7 @@ DEFAULT_PERIOD_NS = 33_333_333
 #: Frame rate given to a folder of pairs (which has no timestamps) unless `fps` says otherwise.
 PAIR_FOLDER_FPS = 15.0
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-#: A paced frame reaching the consumer later than this after its slot is dropped (see `ReplaySource`).
-MAX_LATE_NS = 20_000_000
-#: Decode times remembered to predict the next one (a replay starts decoding that much before the slot).
+#: Decode times (and wake-up delays) remembered to predict the next (a replay starts that much before the slot).
 DECODE_HISTORY = 8
 #: (recorded timestamp ns, recorded index) of a frame, known before its images are decoded.
 FrameStamp = tuple[int, int]
@@ -323,16 +321,17 @@ class ReplaySource(SourceBase):
 
     Pacing keeps to a schedule, as a camera does: frame i is due at `start + (t_i − t_0)`, `start`
     being the release of the first frame. The replay waits for a frame's slot *before* decoding it,
-    starting early by the longest of the last DECODE_HISTORY decode times so that the frame is
-    ready at its slot. A frame that would reach the consumer more than `late_limit_ns` after its
-    slot is dropped, as a camera drops the frames nobody read in time: before decoding when the
-    typical (median) decode time already makes it late, so no time goes to a frame that cannot be
-    on time and the replay catches up; after decoding when that decode alone overran. The limit is
-    half a frame period (later, the frame is nearer its successor's slot than its own), at most
-    MAX_LATE_NS (the accuracy promised to a simulator kept in step; and the daemon takes a frame's
-    release as its capture time, so a frame released late would hide its lateness from the latency
-    figures). Drops are counted in `dropped_late`; delivered frames keep their recorded timestamps
-    and indices, so a consumer sees the gap.
+    starting early by the longest of the last DECODE_HISTORY decode times plus the longest recent
+    wake-up delay (how much later than asked a wait returned: a busy machine's scheduler), so that
+    the frame is ready at its slot. A frame that would reach the consumer more than `late_limit_ns`
+    after its slot is dropped, as a camera drops the frames nobody read in time: before decoding
+    when the typical (median) decode time already makes it late, so no time goes to a frame that
+    cannot be on time and the replay catches up; after decoding when that decode overran. The
+    limit is half a frame period (later, the frame is nearer its successor's slot than its own),
+    or `max_late_ms` (a simulator kept in step may want it tighter; the daemon takes a frame's
+    release as its capture time, so a late release hides its lateness from the latency figures).
+    Drops are counted in `dropped_late`; delivered frames keep their recorded timestamps and
+    indices, so a consumer sees the gap.
     """
 
     def __init__(
@@ -346,10 +345,13 @@ class ReplaySource(SourceBase):
         fps: float | None = None,
         ignore_masks: bool = False,
         clock_sync: ClockSync | None = None,
+        max_late_ms: float | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         if pace not in PACES:
             raise SourceConfigError(f"pace is {pace!r}; expected one of {', '.join(PACES)}")
+        if max_late_ms is not None and not max_late_ms > 0:
+            raise SourceConfigError(f"max_late_ms is {max_late_ms}; expected milliseconds > 0 (None: half a period)")
         if start < 0:
             raise SourceConfigError(f"start is {start}; expected a frame position ≥ 0")
         self.path = Path(path)
@@ -371,7 +373,9 @@ class ReplaySource(SourceBase):
         self._wrapped_without_frame = False
         self._start_clock_ns: int | None = None  # `clock` at the release of the first frame
         self._start_stamp_ns = 0  # that frame's (looped) timestamp
+        self._max_late_ns = None if max_late_ms is None else round(max_late_ms * 1e6)
         self._decode_ns: deque[int] = deque(maxlen=DECODE_HISTORY)
+        self._oversleep_ns: deque[int] = deque(maxlen=DECODE_HISTORY)
         self._dropped_late = 0
 
     def _open_frames(self, fps: float | None) -> FrameReader:
@@ -405,8 +409,8 @@ class ReplaySource(SourceBase):
 
     @property
     def late_limit_ns(self) -> int:
-        """How late after its slot a frame may still be released: half a period, at most MAX_LATE_NS."""
-        return min(self._frames.period_ns // 2, MAX_LATE_NS)
+        """How late after its slot a frame may still be released: `max_late_ms`, else half a period."""
+        return self._frames.period_ns // 2 if self._max_late_ns is None else self._max_late_ns
 
     def __next__(self) -> StereoFrame:
         with self._io_lock:
@@ -428,7 +432,7 @@ class ReplaySource(SourceBase):
             if self._clock() + typical > due + self.late_limit_ns:
                 self._drop_unread(stamp)
                 return None
-            self._sleep_until(due - max(self._decode_ns, default=0))
+            self._sleep_until(due - max(self._decode_ns, default=0) - max(self._oversleep_ns, default=0))
         frame = self._read(stamp)
         if frame is None:
             return None
@@ -507,10 +511,11 @@ class ReplaySource(SourceBase):
         self._frames.seek(self.start)
 
     def _sleep_until(self, deadline_ns: int) -> None:
-        """Wait until `clock()` reaches `deadline_ns` (at once when close() is called)."""
+        """Wait until `clock()` reaches `deadline_ns` (at once when close() is called); note how late it woke."""
         delay_ns = deadline_ns - self._clock()
         if delay_ns > 0:
             self._stop.wait(delay_ns / 1e9)
+            self._oversleep_ns.append(max(0, self._clock() - deadline_ns))
 
     def close(self) -> None:
         """Stop replaying (a paced wait in another thread returns at once) and release the video."""
