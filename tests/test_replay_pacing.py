@@ -90,6 +90,12 @@ def test_a_scheduler_that_wakes_the_replay_late_is_allowed_for(recording: Path) 
     assert released == [0, 50 * MS, 80 * MS, 120 * MS, 160 * MS, 200 * MS] and source.dropped_late == 0
 
 
+def test_a_frame_the_scheduler_wakes_too_late_is_never_released_late(recording: Path) -> None:
+    source = ReplaySource(recording, pace="recorded")
+    FakeTime(source, oversleep_ns=30 * MS)  # every wait returns 30 ms late: past the 20 ms limit
+    assert [frame.index for frame in source] == [0] and source.dropped_late == COUNT - 1
+
+
 def test_decoding_starts_ahead_of_the_slot_so_the_frame_is_ready_at_it(recording: Path) -> None:
     source = ReplaySource(recording, pace="recorded")
     fake = FakeTime(source, decode_ns={i: 15 * MS for i in range(COUNT)})

@@ -326,7 +326,8 @@ class ReplaySource(SourceBase):
     the frame is ready at its slot. A frame that would reach the consumer more than `late_limit_ns`
     after its slot is dropped, as a camera drops the frames nobody read in time: before decoding
     when the typical (median) decode time already makes it late, so no time goes to a frame that
-    cannot be on time and the replay catches up; after decoding when that decode overran. The
+    cannot be on time and the replay catches up; after decoding when that decode (or the wait for
+    the slot) overran. The
     limit is half a frame period (later, the frame is nearer its successor's slot than its own),
     or `max_late_ms` (a simulator kept in step may want it tighter; the daemon takes a frame's
     release as its capture time, so a late release hides its lateness from the latency figures).
@@ -439,10 +440,10 @@ class ReplaySource(SourceBase):
         if due is None:
             self._begin(frame)
         elif self.pace == "recorded":
-            if self._clock() > due + self.late_limit_ns:
+            self._sleep_until(due)
+            if self._clock() > due + self.late_limit_ns:  # the decode overran, or the wait woke too late
                 self._dropped_late += 1
                 return None
-            self._sleep_until(due)
         if self._stop.is_set():
             raise StopIteration
         return frame
