@@ -6,7 +6,8 @@ loop for `--frames` frames at its 15 fps, the way the daemon reads a camera: a `
 capture thread drains the source while the main thread stands for the pipeline, holding the CPU
 (and Python's GIL, as the pipeline's Python stages do) for `--work-ms` per frame. `--load N` adds N
 processes that spin on a core each (a busy companion computer). Each variant runs in the same
-invocation, one after the other, under the same load:
+invocation, one after the other, under the same added load (on a shared machine, other users' load
+still changes between them: compare within a run, and repeat a run before trusting a small gap):
 
 - `decode-then-sleep` — the baseline: the old pacing, re-implemented here — decode the frame, then
   sleep until its slot; never drop a frame, so once late it stays late;
@@ -22,6 +23,9 @@ and the lag of the last frame. `--json FILE` writes the same, with the CPU (`mac
 errors against the baseline of the same run.
 
     .venv/bin/python benchmarks/replay_pacing.py --frames 300 --load 1 --work-ms 40 --json out/replay_pacing.json
+
+`replay_pacing_results.json` (that command) and `replay_pacing_results_no_extra_load.json` (`--work-ms 0
+--load 0`) beside this script are runs on the shared 2-core development machine, loaded by others too.
 """
 
 from __future__ import annotations
