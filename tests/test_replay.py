@@ -310,6 +310,8 @@ def test_replay_ignores_masks_keeps_time_signals_its_start_and_places_the_camera
     [
         (["--start-at", "noon"], "start time 'noon'"),
         (["--start-signal", "udp:127.0.0.1"], "expected file:PATH or udp:HOST:PORT"),
+        (["--max-late-ms", "20"], "expected milliseconds > 0 with --pace recorded"),
+        (["--pace", "recorded", "--max-late-ms", "0"], "--max-late-ms is 0.0"),
     ],
 )
 def test_replay_refuses_bad_clock_sync_options(recording, tmp_path, capsys, options, expected):

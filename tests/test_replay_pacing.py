@@ -219,5 +219,18 @@ def test_bad_replay_spec_options_are_named(recording: Path) -> None:
         open_source(f"replay:{recording}?startat=1")
     with pytest.raises(SourceConfigError, match="ignore_masks is 'yes'"):
         open_source(f"replay:{recording}?ignore_masks=yes")
-    with pytest.raises(SourceConfigError, match="give them once"):
+    with pytest.raises(SourceConfigError, match="give it once"):
         open_source(f"replay:{recording}?start_at=1", clock_sync=ClockSync(start_at_s=2.0))
+    with pytest.raises(SourceConfigError, match="max_late_ms is 'soon'"):
+        open_source(f"replay:{recording}?max_late_ms=soon")
+    with pytest.raises(SourceConfigError, match="max_late_ms given in the spec and as an option"):
+        open_source(f"replay:{recording}?max_late_ms=5", max_late_ms=10)
+    with pytest.raises(SourceConfigError, match="start_at may be given once"):
+        open_source(f"replay:{recording}?start_at=1&start_at=2")
+
+
+def test_the_late_limit_comes_from_the_spec_or_the_argument(recording: Path) -> None:
+    with open_source(f"replay:{recording}?max_late_ms=5", pace="recorded") as source:
+        assert isinstance(source, ReplaySource) and source.late_limit_ns == 5 * MS
+    with open_source(f"replay:{recording}", pace="recorded", max_late_ms=7.5) as source:
+        assert isinstance(source, ReplaySource) and source.late_limit_ns == 7_500_000

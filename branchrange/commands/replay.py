@@ -42,6 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "dropping (and counting) the frames that can no longer be on time, as a camera would",
     )
     p.add_argument(
+        "--max-late-ms",
+        type=float,
+        help="with --pace recorded: how late after its slot a frame may still come, ms (default: half a frame "
+        "period; 20 keeps a simulator within 20 ms of the schedule, at the cost of more dropped frames)",
+    )
+    p.add_argument(
         "--ignore-masks",
         action="store_true",
         help="leave the recording's masks unread: the configured segmenter finds the branches, as for a live camera",
@@ -144,6 +150,12 @@ def run(args: argparse.Namespace) -> int:
     if args.fps is not None and not args.fps > 0:
         print(f"branchrange replay: --fps is {args.fps}; expected a positive frame rate", file=sys.stderr)
         return BAD_INPUT
+    if args.max_late_ms is not None and (args.pace != "recorded" or not args.max_late_ms > 0):
+        print(
+            f"branchrange replay: --max-late-ms is {args.max_late_ms}; expected milliseconds > 0 with --pace recorded",
+            file=sys.stderr,
+        )
+        return BAD_INPUT
     logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     sink = None
     try:
@@ -159,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
             pace=args.pace,
             ignore_masks=args.ignore_masks,
             clock_sync=clock_sync,
+            max_late_ms=args.max_late_ms,
         )
     except (SourceError, ValueError) as exc:  # recording missing / truncated / unreadable, or settings it cannot use
         print(f"branchrange replay: {exc}", file=sys.stderr)

@@ -186,6 +186,7 @@ def replay_recording(
     pace: str = "fast",
     ignore_masks: bool = False,
     clock_sync: ClockSync | None = None,
+    max_late_ms: float | None = None,
 ) -> ReplaySummary:
     """Process every frame of `recording` (a recording directory, a folder of pairs, a side-by-side video,
     a ROS 2 bag or a `rosbag:` spec, see `source_spec`) with the pipeline `cfg` describes; write a run
@@ -195,7 +196,8 @@ def replay_recording(
 
     `fps` sets a folder of pairs' frame rate (default 15) or overrides a video's. `pace` "fast" processes
     every frame; "recorded" keeps the recording's schedule and drops the frames that come too late
-    (camera.sources.ReplaySource). `ignore_masks` leaves a recording's masks unread, so the configured
+    (camera.sources.ReplaySource; `max_late_ms` how late a frame may still come, default half a period).
+    `ignore_masks` leaves a recording's masks unread, so the configured
     segmenter finds the branches as for a live camera. `clock_sync` starts the replay at a given time
     and/or announces its start (camera.sources.clock_sync).
     `cfg.camera.calibration` overrides the recording's calibration, as in the daemon. Raises
@@ -209,6 +211,7 @@ def replay_recording(
         fps=fps,
         ignore_masks=ignore_masks,
         clock_sync=clock_sync,
+        max_late_ms=max_late_ms,
     )
     summary = ReplaySummary(str(recording))
     writer = None

@@ -405,9 +405,10 @@ class RosbagSource(ReplaySource):
     `pace` "recorded" (at the stamps' rate) or "fast", `loop`, `start` (pairs skipped). `calibration`
     overrides the CameraInfo topics; with `use_camera_info=False` they are neither needed nor read (the
     caller sets `calibration` after reading a file at `frame_size`). `topics` None reads the ZED wrapper's,
-    in either naming (`topics` then holds those found). `clock_sync` as ReplaySource. Frame timestamps are the left
-    images' header stamps, indices the pairs' positions in the bag. `unpaired` counts the images
-    without a partner within `tolerance_ms` ({"left": n, "right": n}, complete at the end of the bag).
+    in either naming (`topics` then holds those found). `clock_sync`, `max_late_ms` as ReplaySource.
+    Frame timestamps are the left images' header stamps, indices the pairs' positions in the bag.
+    `unpaired` counts the images without a partner within `tolerance_ms` ({"left": n, "right": n},
+    complete at the end of the bag).
     """
 
     def __init__(
@@ -422,12 +423,20 @@ class RosbagSource(ReplaySource):
         start: int = 0,
         calibration: StereoCalibration | None = None,
         clock_sync: ClockSync | None = None,
+        max_late_ms: float | None = None,
         clock: Callable[[], int] | None = None,
     ) -> None:
         self.topics, self.tolerance_ms, self.use_camera_info = topics, tolerance_ms, use_camera_info
         options: dict[str, Any] = {} if clock is None else {"clock": clock}
         super().__init__(
-            path, pace=pace, loop=loop, start=start, calibration=calibration, clock_sync=clock_sync, **options
+            path,
+            pace=pace,
+            loop=loop,
+            start=start,
+            calibration=calibration,
+            clock_sync=clock_sync,
+            max_late_ms=max_late_ms,
+            **options,
         )
 
     def _open_frames(self, fps: float | None) -> _BagFrames:

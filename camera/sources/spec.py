@@ -4,14 +4,16 @@ Specs: `zed:0`, `zed:0:HD720`, `zed:/dev/video0`, `zed:/dev/video0:VGA` (device 
 an optional mode), `oak`, `oak:640x400`, `oak:1280x800@60` (output size and fps), `replay:PATH`
 (a recording directory, a folder of pairs `left/` + `right/`, or a side-by-side video file),
 `rosbag:PATH[?left=TOPIC&…]` (a ROS 2 bag, see camera.sources.rosbag). Both replays take the options
-`start_at=TIME`, `start_signal=file:PATH|udp:HOST:PORT` (repeatable; camera.sources.clock_sync) and
-`ignore_masks=true`: `replay:out/flight?start_signal=udp:127.0.0.1:9500&start_at=2026-11-28T18:10:00Z`.
+`start_at=TIME`, `start_signal=file:PATH|udp:HOST:PORT` (repeatable; camera.sources.clock_sync),
+`ignore_masks=true` and `max_late_ms=MS` (camera.sources.replay.ReplaySource), e.g.
+`replay:out/flight?start_signal=udp:127.0.0.1:9500&start_at=2026-11-28T18:10:00Z`.
 """
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import TypeVar
 
 from camera.calibration import CalibrationError, StereoCalibration
 from camera.load import detect_format, load_calibration
@@ -24,6 +26,7 @@ from camera.sources.zed_uvc import ZED_MODES, ZedUvcSource
 from camera.zed_conf import ZED_RESOLUTIONS, resolution_for_size
 
 _OAK_OPTIONS = re.compile(r"^(\d+)x(\d+)(?:@(\d+(?:\.\d+)?))?$")
+T = TypeVar("T")
 _MODE_LIKE = re.compile(r"^[A-Za-z0-9]*[A-Za-z][A-Za-z0-9]*$")  # a bare word with a letter, no path characters
 
 
@@ -60,6 +63,7 @@ def open_source(
     fps: float | None = None,
     ignore_masks: bool = False,
     clock_sync: ClockSync | None = None,
+    max_late_ms: float | None = None,
 ) -> SourceBase:
     """Open the source a spec names (see the module docstring).
 
@@ -67,8 +71,9 @@ def open_source(
     file is read for the source's frame size (a ZED conf at the ZED mode's or the recording's
     resolution, a depthai JSON scaled to the OAK output or recording size). `latest=True` wraps the source in
     LatestFrameSource (a slow consumer then always gets the newest frame). `pace`, `loop`, `start`,
-    `ignore_masks` and `clock_sync` apply to replays (as their spec options do; a clock sync given both
-    ways is refused), `fps` to `replay:` (a folder of pairs' frame rate, or a video's override).
+    `ignore_masks`, `clock_sync` and `max_late_ms` apply to replays (as their spec options do; a clock
+    sync or late limit given both ways is refused), `fps` to `replay:` (a folder of pairs' frame rate, or a
+    video's override).
     """
     kind, _, rest = spec.strip().partition(":")
     kind = kind.lower()
@@ -91,7 +96,7 @@ def open_source(
         path, options = split_spec(spec, rest, REPLAY_KEYS)
         if not path:
             raise SourceConfigError(f"source spec {spec!r}: expected replay:PATH[?OPTION=VALUE&…]")
-        spec_sync, spec_ignores_masks = replay_options(spec, options)
+        asked = replay_options(spec, options)
         source = _calibrated(
             ReplaySource(
                 path,
@@ -99,8 +104,9 @@ def open_source(
                 loop=loop,
                 start=start,
                 fps=fps,
-                ignore_masks=ignore_masks or spec_ignores_masks,
-                clock_sync=_one_clock_sync(spec, spec_sync, clock_sync),
+                ignore_masks=ignore_masks or asked.ignore_masks,
+                clock_sync=_given_once(spec, "start_at/start_signal", asked.clock_sync, clock_sync),
+                max_late_ms=_given_once(spec, "max_late_ms", asked.max_late_ms, max_late_ms),
             ),
             calibration,
         )
@@ -108,7 +114,7 @@ def open_source(
         from camera.sources.rosbag import RosbagSource, parse_rosbag_spec  # rosbags is imported only for bags
 
         bag, topics, tolerance_ms, options = parse_rosbag_spec(rest)
-        spec_sync, _ = replay_options(spec, options)  # a bag has no masks to ignore
+        asked = replay_options(spec, options)  # a bag has no masks to ignore
         source = _calibrated(
             RosbagSource(
                 bag,
@@ -118,7 +124,8 @@ def open_source(
                 pace=pace,
                 loop=loop,
                 start=start,
-                clock_sync=_one_clock_sync(spec, spec_sync, clock_sync),
+                clock_sync=_given_once(spec, "start_at/start_signal", asked.clock_sync, clock_sync),
+                max_late_ms=_given_once(spec, "max_late_ms", asked.max_late_ms, max_late_ms),
             ),
             calibration,
         )
@@ -129,13 +136,11 @@ def open_source(
     return LatestFrameSource(source) if latest else source
 
 
-def _one_clock_sync(spec: str, from_spec: ClockSync | None, given: ClockSync | None) -> ClockSync | None:
-    """The clock sync of the spec or of the caller; both at once would leave one of them silently unused."""
+def _given_once(spec: str, name: str, from_spec: T | None, given: T | None) -> T | None:
+    """A replay option from the spec or from the caller; both at once would leave one of them silently unused."""
     if from_spec is not None and given is not None:
-        raise SourceConfigError(
-            f"source spec {spec!r}: start_at/start_signal are given in the spec and as options; give them once"
-        )
-    return from_spec or given
+        raise SourceConfigError(f"source spec {spec!r}: {name} given in the spec and as an option; give it once")
+    return given if from_spec is None else from_spec
 
 
 def _calibrated(source: ReplaySource, calibration: StereoCalibration | str | Path | None) -> ReplaySource:
