@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -234,3 +235,13 @@ def test_the_late_limit_comes_from_the_spec_or_the_argument(recording: Path) -> 
         assert isinstance(source, ReplaySource) and source.late_limit_ns == 5 * MS
     with open_source(f"replay:{recording}", pace="recorded", max_late_ms=7.5) as source:
         assert isinstance(source, ReplaySource) and source.late_limit_ns == 7_500_000
+
+
+def test_a_replay_closed_while_waiting_for_its_start_time_announces_nothing(recording: Path, tmp_path: Path) -> None:
+    signal = tmp_path / "start.json"
+    source = ReplaySource(recording, clock_sync=ClockSync.parse(str(time.time() + 60), [f"file:{signal}"]))
+    threading.Timer(0.2, source.close).start()
+    started = time.monotonic()
+    with pytest.raises(StopIteration):
+        next(source)
+    assert time.monotonic() - started < 10 and not signal.exists()

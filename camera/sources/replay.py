@@ -495,6 +495,8 @@ class ReplaySource(SourceBase):
         """Start the schedule at the release of `first`: after the start time, announced (clock_sync)."""
         if self.clock_sync is not None:
             self.clock_sync.wait_for_start(self._stop)
+            if self._stop.is_set():  # closed while waiting: it never started, so nothing is announced
+                raise StopIteration
         self._start_clock_ns, wall_ns = self._clock(), time.time_ns()
         self._start_stamp_ns = first.timestamp_ns
         if self.clock_sync is not None:
