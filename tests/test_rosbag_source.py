@@ -204,11 +204,13 @@ def test_a_truncated_bag_is_named_truncated_with_what_to_do(tmp_path, storage):
         )
 
 
-def test_a_bag_directory_without_its_metadata_is_unfinished(tmp_path):
+def test_a_bag_directory_without_its_metadata_is_unfinished(tmp_path, capsys):
     write_bag(frames(2), CALIBRATION, tmp_path / "bag")
     (tmp_path / "bag" / "metadata.yaml").unlink()  # rosbag2 writes it last: a recording killed before
     with pytest.raises(SourceUnavailable, match=r"is truncated or unfinished \(no metadata\.yaml"):
         open_source(f"rosbag:{tmp_path / 'bag'}")
+    assert branchrange_main(["replay", str(tmp_path / "bag"), "--out", str(tmp_path / "r.jsonl")]) == 2
+    assert "truncated or unfinished" in capsys.readouterr().err  # recognised as a bag without its metadata
 
 
 def test_topics_from_the_spec_override_the_zed_defaults(tmp_path):

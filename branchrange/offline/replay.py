@@ -150,12 +150,14 @@ class ReplaySummary:
 
 def source_spec(recording: str | Path) -> str:
     """The `open_source` spec of what `branchrange replay` is given: a `rosbag:…`/`replay:…` spec as it is, a
-    ROS 2 bag (a directory with metadata.yaml, a .mcap or .db3 file) as `rosbag:PATH`, else `replay:PATH`."""
+    ROS 2 bag (a directory with metadata.yaml or .mcap/.db3 files — an unfinished bag lacks the metadata —, a
+    .mcap or .db3 file) as `rosbag:PATH`, else `replay:PATH`."""
     text = str(recording)
     if text.startswith(("rosbag:", "replay:")):
         return text
     path = Path(text)
-    is_bag = (path / "metadata.yaml").is_file() or path.suffix in (".mcap", ".db3")
+    bag_files = path.is_dir() and any(p.suffix in (".mcap", ".db3") for p in path.iterdir())
+    is_bag = (path / "metadata.yaml").is_file() or bag_files or path.suffix in (".mcap", ".db3")
     return f"{'rosbag' if is_bag else 'replay'}:{text}"
 
 
