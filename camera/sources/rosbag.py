@@ -14,7 +14,8 @@ given. A bag cut short (a recording killed before rosbag2 finished it, a copy in
 reported as "truncated or unfinished", with what to do.
 
 Spec (camera.sources.open_source): `rosbag:PATH[?left=TOPIC&right=TOPIC&left_info=TOPIC&right_info=TOPIC
-&tolerance_ms=MS]`, PATH a bag directory (metadata.yaml), a `.mcap` or a `.db3` file.
+&tolerance_ms=MS]`, PATH a bag directory (metadata.yaml), a `.mcap` or a `.db3` file; also the replay
+options `start_at`, `start_signal`, `max_late_ms` (camera.sources.spec_options).
 """
 
 from __future__ import annotations
