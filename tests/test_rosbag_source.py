@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -333,3 +335,17 @@ def test_bag_from_recording_command_and_its_errors(tmp_path, capsys):
         == 2
     )
     assert "encoding is 'yuv422'; expected one of bgra8" in capsys.readouterr().err
+
+
+def test_a_bag_spec_takes_the_replay_options(tmp_path):
+    sent = frames(2)
+    write_bag(sent, CALIBRATION, tmp_path / "bag")
+    signal = tmp_path / "start.json"
+    spec = f"rosbag:{tmp_path / 'bag'}?tolerance_ms=2&start_signal=file:{signal}&max_late_ms=5"
+    with open_source(spec, pace="recorded") as source:
+        first = next(source)
+        assert source.late_limit_ns == 5_000_000
+    start = json.loads(signal.read_text())
+    assert start["first_timestamp_ns"] == first.timestamp_ns == sent[0].timestamp_ns
+    with pytest.raises(SourceConfigError, match="ignore_masks is 'maybe'"):
+        open_source(f"rosbag:{tmp_path / 'bag'}?ignore_masks=maybe")
