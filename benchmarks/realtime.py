@@ -1,7 +1,8 @@
 """Real-time onboard benchmark: a flight sequence replayed at its own frame rate through the daemon.
 
 Each frame is released at its recorded timestamp (as a 15 fps camera would deliver it; decoding
-happens ahead of the release, as a camera delivers raw frames), and goes through the daemon's own
+starts ahead of the release, as a camera delivers raw frames, and a frame that cannot be on time is
+dropped: `camera.sources.ReplaySource`), and goes through the daemon's own
 code path — `branchrange.onboard.daemon.Daemon` with its capture, stereo and geometry+send threads, the
 pipeline of `branchrange.core.frame_results.pipeline_for` and a real `MavlinkRelay` sending to a UDP
 socket on 127.0.0.1 — on `--threads` CPU threads (OpenCV and torch). Nothing waits for the slow
@@ -34,7 +35,8 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
   `first_result_s`, `keyframe_rate_hz`, `tracked_share`, `track_losses`, `target_error_m_by_origin`,
   `visibility`);
 - `frames_dropped` (camera frames the stereo stage had no time for, plus stereo outputs the
-  geometry stage had no time for), `late` (results already older than `max_result_age_s` when published);
+  geometry stage had no time for, plus frames the replay could not release on time: a busy machine's
+  decoding), `late` (results already older than `max_result_age_s` when published);
 - `stage_ms.<stage>.p50`: per-stage compute time (the result's `timing_ms`);
 - `handover_ms.{capture_to_stereo_ms,capture_to_geometry_ms,capture_to_publish_ms}.p50`: when the
   frame reached each thread (the result's `latency`): the waits between the stages;
@@ -86,27 +88,6 @@ MODES: dict[str, tuple[str, str] | None] = {
 }
 #: `stereo.max_disp` without `--config` (the benchmark's figures so far; HD720 at 0.32 m).
 UNCONFIGURED_MAX_DISP = 128
-
-
-class WithoutMasks:
-    """A frame source whose frames lose their recorded masks, so the built-in segmenter decides."""
-
-    def __init__(self, source: Any) -> None:
-        self.source = source
-        self.calibration = source.calibration
-
-    @property
-    def is_lost(self) -> bool:
-        return self.source.is_lost
-
-    def __iter__(self) -> WithoutMasks:
-        return self
-
-    def __next__(self) -> Any:
-        return dataclasses.replace(next(self.source), mask=None)
-
-    def close(self) -> None:
-        self.source.close()
 
 
 class UdpSink:
@@ -196,8 +177,7 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     sequence = cfg.camera.source.removeprefix("replay:")
 
     def open_source() -> Any:
-        source = ReplaySource(sequence, pace="recorded")
-        return source if segmenter == "truth" else WithoutMasks(source)
+        return ReplaySource(sequence, pace="recorded", ignore_masks=segmenter != "truth")
 
     probe = ReplaySource(sequence, pace="fast")
     pipeline = pipeline_for(cfg, probe.calibration)
@@ -215,7 +195,7 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     finally:
         daemon.close()
     return {
-        "frames_dropped": int(daemon.dropped + daemon.skipped),
+        "frames_dropped": int(daemon.dropped + daemon.skipped + daemon.dropped_late),
         "late": daemon.late,
         "wall_s": round(time.monotonic() - started, 2),
         "load_average_1min": load,

@@ -164,7 +164,8 @@ def test_replay_starts_at_a_frame_and_loops_with_growing_index_and_time(
 
 def test_replay_paces_at_recorded_speed_or_as_fast_as_possible(recording: Path) -> None:
     started = time.monotonic()
-    assert len(list(ReplaySource(recording, pace="recorded"))) == 6
+    paced_source = ReplaySource(recording, pace="recorded")
+    assert len(list(paced_source)) + paced_source.dropped_late == 6  # a busy machine may make one too late
     paced = time.monotonic() - started
     started = time.monotonic()
     list(ReplaySource(recording, pace="fast"))

@@ -167,7 +167,8 @@ def test_foxglove_mcap_holds_every_channel_with_one_message_per_frame(runs):
         messages = [(channel.topic, message) for _, channel, message in reader.iter_messages(log_time_order=True)]
     results = runs["mcap_bag"]
     with_target = sum(r["target_id"] is not None for r in results)
-    expected = {TOPICS[k]: FRAMES for k in ("overlay", "disparity", "camera_info", "cut_points", "timing", "result")}
+    kinds = ("overlay", "disparity", "camera_info", "cut_points", "timing", "result", "tf")  # tf: the camera mount
+    expected = {TOPICS[k]: FRAMES for k in kinds}
     expected[TOPICS["target"]] = with_target
     assert {t: n for t, n in counts.items() if n} == {t: n for t, n in expected.items() if n}
     assert schemas[TOPICS["overlay"]] == "foxglove.CompressedImage"

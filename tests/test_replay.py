@@ -131,6 +131,7 @@ def test_replay_summary_counts_what_the_results_hold(replayed):
         "corrupt": 0,
         "rejected": 0,
         "lost_at_end": 0,
+        "dropped_late": 0,
         "with_branches": FRAMES,
         "with_target": FRAMES,
     }
@@ -230,3 +231,90 @@ def test_replay_results_equal_the_daemons_on_the_same_recording(recording, repla
         assert {k: v for k, v in result.items() if k not in timing} == {
             k: v for k, v in replayed_result.items() if k not in timing
         }
+
+
+def _transforms_in(mcap_path) -> list:
+    """The FrameTransform messages of an MCAP's tf topic, decoded through the protobuf schema the file carries."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    from mcap.reader import make_reader
+
+    from branchrange.onboard.foxglove_sink import TOPICS
+
+    transforms = []
+    with open(mcap_path, "rb") as stream:
+        for schema, _channel, message in make_reader(stream).iter_messages(topics=[TOPICS["tf"]]):
+            assert schema.encoding == "protobuf"
+            pool = descriptor_pool.DescriptorPool()
+            for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+                pool.Add(file)
+            decoded = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(message.data)
+            transforms.extend(decoded.transforms)
+    return transforms
+
+
+def test_replay_ignores_masks_keeps_time_signals_its_start_and_places_the_camera(
+    recording, config_file, tmp_path, capsys
+):
+    from branchrange.onboard.foxglove_sink import BODY_FRAME, CAMERA_FRAME
+    from branchrange.onboard.mavlink import CameraMount
+    from branchrange.onboard.mavlink.frames import quaternion_wxyz
+
+    results, start, mcap = tmp_path / "r.jsonl", tmp_path / "start.json", tmp_path / "run.mcap"
+    status = branchrange_main(
+        [
+            "replay",
+            str(recording),
+            "--out",
+            str(results),
+            "--config",
+            str(config_file),
+            "--summary",
+            "--ignore-masks",
+            "--pace",
+            "recorded",
+            "--start-signal",
+            f"file:{start}",
+            "--foxglove",
+            str(mcap),
+            "--mount-rpy-deg",
+            "0",
+            "-30",
+            "0",
+            "--mount-xyz-m",
+            "0.1",
+            "0",
+            "0.05",
+        ]
+    )
+    assert status == 0
+    lines = [r.to_json_dict() for r in read_results(results)]
+    assert lines and all(r["masks"]["source"] != "array" for r in lines)  # the segmenter's, not the recording's
+    summary = json.loads(summary_path(results).read_text())
+    assert summary["frames"]["processed"] + summary["frames"]["dropped_late"] == FRAMES
+    assert f"{summary['frames']['dropped_late']} frames dropped as too late" in capsys.readouterr().out
+    announced = json.loads(start.read_text())
+    assert (announced["first_index"], announced["first_timestamp_ns"]) == (0, lines[0]["frame"]["timestamp_ns"])
+
+    transforms = _transforms_in(mcap)
+    assert len(transforms) == len(lines)  # one per frame, so a viewer joining late still has the tree
+    mount = CameraMount.from_rpy((0, -30, 0), (0.1, 0, 0.05))
+    w, x, y, z = quaternion_wxyz(mount.camera_to_body)
+    for transform in transforms:
+        assert (transform.parent_frame_id, transform.child_frame_id) == (BODY_FRAME, CAMERA_FRAME)
+        t, r = transform.translation, transform.rotation
+        assert (t.x, t.y, t.z) == pytest.approx((0.1, 0.0, 0.05))
+        assert (r.w, r.x, r.y, r.z) == pytest.approx((w, x, y, z))
+
+
+@pytest.mark.parametrize(
+    "options, expected",
+    [
+        (["--start-at", "noon"], "start time 'noon'"),
+        (["--start-signal", "udp:127.0.0.1"], "expected file:PATH or udp:HOST:PORT"),
+        (["--max-late-ms", "20"], "expected milliseconds > 0 with --pace recorded"),
+        (["--pace", "recorded", "--max-late-ms", "0"], "--max-late-ms is 0.0"),
+    ],
+)
+def test_replay_refuses_bad_clock_sync_options(recording, tmp_path, capsys, options, expected):
+    assert branchrange_main(["replay", str(recording), "--out", str(tmp_path / "r.jsonl"), *options]) == 2
+    assert expected in capsys.readouterr().err and not (tmp_path / "r.jsonl").exists()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -16,6 +18,7 @@ from camera.sources.rosbag import (
     CAMERA_INFO_TYPE,
     COMPRESSED_TYPE,
     IMAGE_TYPE,
+    ZED_TOPICS_BEFORE_5_1,
     BagTopics,
     RosbagSource,
     parse_rosbag_spec,
@@ -133,14 +136,21 @@ def test_left_and_right_pair_by_stamp_within_the_tolerance_and_the_rest_is_count
 def test_recorded_pace_and_start_and_loop(tmp_path):
     write_bag(frames(3, period_ns=20_000_000), CALIBRATION, tmp_path / "bag")
     now = [0]
-    waits = []
+    released = []
+
+    def wait(seconds: float) -> bool:  # no real sleeping: the clock jumps to the end of the wait
+        now[0] += round(seconds * 1e9)
+        return False
 
     source = RosbagSource(tmp_path / "bag", start=1, loop=True, clock=lambda: now[0])
-    source._stop.wait = lambda seconds: waits.append(round(seconds, 3)) or False  # no real sleeping
-    got = [next(source) for _ in range(4)]
+    source._stop.wait = wait
+    for _ in range(4):
+        frame = next(source)
+        released.append((frame.index, now[0]))
     source.close()
-    assert [f.index for f in got] == [1, 2, 4, 5]  # start=1; each pass adds the bag's pair count, as ReplaySource
-    assert waits == [0.02, 0.04, 0.06]  # each frame released at its stamp's offset from the first
+    # start=1; each pass adds the bag's pair count, as ReplaySource; each frame released at its stamp's
+    # offset from the first, the loop seam one period after the last frame
+    assert released == [(1, 0), (2, 20_000_000), (4, 40_000_000), (5, 60_000_000)]
 
 
 def test_a_missing_topic_names_the_topics_the_bag_has(tmp_path):
@@ -150,6 +160,59 @@ def test_a_missing_topic_names_the_topics_the_bag_has(tmp_path):
     message = str(error.value)
     assert "left topic /camera/left/image_raw is not in the bag" in message
     assert f"{TOPICS.left} (sensor_msgs/msg/Image, 1 messages)" in message and TOPICS.right_info in message
+
+
+def test_the_zed_wrappers_topics_since_5_1_are_the_default(tmp_path):
+    assert TOPICS == BagTopics(
+        "/zed/zed_node/left/color/rect/image",
+        "/zed/zed_node/right/color/rect/image",
+        "/zed/zed_node/left/color/rect/camera_info",
+        "/zed/zed_node/right/color/rect/camera_info",
+    )
+    write_bag(frames(2), CALIBRATION, tmp_path / "bag")
+    with RosbagSource(tmp_path / "bag", pace="fast") as source:
+        assert source.topics == TOPICS and len(list(source)) == 2
+
+
+def test_a_bag_of_a_zed_wrapper_before_5_1_is_read_with_its_topics(tmp_path, caplog):
+    sent = frames(2)
+    write_bag(sent, CALIBRATION, tmp_path / "bag", storage="sqlite3", topics=ZED_TOPICS_BEFORE_5_1)
+    caplog.set_level("INFO", logger="camera.sources.rosbag")
+    with open_source(f"rosbag:{tmp_path / 'bag'}", pace="fast") as source:
+        got = list(source)
+        assert source.topics == ZED_TOPICS_BEFORE_5_1
+        assert Rectifier(source.calibration).baseline_m == pytest.approx(BASELINE)  # its camera_info topics too
+    assert [f.timestamp_ns for f in got] == [f.timestamp_ns for f in sent]
+    assert "ZED wrapper's topics of before version 5.1" in caplog.text
+
+
+def test_topics_named_in_the_spec_are_not_second_guessed(tmp_path):
+    write_bag(frames(1), CALIBRATION, tmp_path / "bag", topics=ZED_TOPICS_BEFORE_5_1)
+    with pytest.raises(SourceConfigError, match=f"the left topic {TOPICS.left} is not in the bag"):
+        open_source(f"rosbag:{tmp_path / 'bag'}?right={ZED_TOPICS_BEFORE_5_1.right}")
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_truncated_bag_is_named_truncated_with_what_to_do(tmp_path, storage):
+    write_bag(frames(6), CALIBRATION, tmp_path / "bag", storage=storage)
+    (data,) = [p for p in (tmp_path / "bag").iterdir() if p.suffix in (".mcap", ".db3")]
+    data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
+    for path in (tmp_path / "bag", data):
+        with pytest.raises(SourceUnavailable) as error:
+            open_source(f"rosbag:{path}")
+        assert str(error.value) == (
+            f"{path} is truncated or unfinished ({data.name} begins as a bag file but ends early or is damaged): "
+            f"record it again or run `ros2 bag reindex {tmp_path / 'bag'}`"
+        )
+
+
+def test_a_bag_directory_without_its_metadata_is_unfinished(tmp_path, capsys):
+    write_bag(frames(2), CALIBRATION, tmp_path / "bag")
+    (tmp_path / "bag" / "metadata.yaml").unlink()  # rosbag2 writes it last: a recording killed before
+    with pytest.raises(SourceUnavailable, match=r"is truncated or unfinished \(no metadata\.yaml"):
+        open_source(f"rosbag:{tmp_path / 'bag'}")
+    assert branchrange_main(["replay", str(tmp_path / "bag"), "--out", str(tmp_path / "r.jsonl")]) == 2
+    assert "truncated or unfinished" in capsys.readouterr().err  # recognised as a bag without its metadata
 
 
 def test_topics_from_the_spec_override_the_zed_defaults(tmp_path):
@@ -272,3 +335,17 @@ def test_bag_from_recording_command_and_its_errors(tmp_path, capsys):
         == 2
     )
     assert "encoding is 'yuv422'; expected one of bgra8" in capsys.readouterr().err
+
+
+def test_a_bag_spec_takes_the_replay_options(tmp_path):
+    sent = frames(2)
+    write_bag(sent, CALIBRATION, tmp_path / "bag")
+    signal = tmp_path / "start.json"
+    spec = f"rosbag:{tmp_path / 'bag'}?tolerance_ms=2&start_signal=file:{signal}&max_late_ms=5"
+    with open_source(spec, pace="recorded") as source:
+        first = next(source)
+        assert source.late_limit_ns == 5_000_000
+    start = json.loads(signal.read_text())
+    assert start["first_timestamp_ns"] == first.timestamp_ns == sent[0].timestamp_ns
+    with pytest.raises(SourceConfigError, match="ignore_masks is 'maybe'"):
+        open_source(f"rosbag:{tmp_path / 'bag'}?ignore_masks=maybe")

@@ -26,7 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p.add_argument(
             f"--{role.replace('_', '-')}-topic",
             dest=f"{role}_topic",
-            help="topic name (default: the ZED ROS 2 wrapper's, e.g. /zed/zed_node/left/image_rect_color)",
+            help="topic name (default: the ZED ROS 2 wrapper's since 5.1, e.g. /zed/zed_node/left/color/rect/image)",
         )
     p.set_defaults(func=run)
 

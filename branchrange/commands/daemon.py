@@ -24,7 +24,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `daemon` to the `branchrange` command."""
     p = subparsers.add_parser("daemon", help="run onboard: camera → cut points → MAVLink", description=__doc__)
     add_config_arguments(p, required=True, sections="every section; see deploy/onboard.toml")
-    p.add_argument("--source", help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH, rosbag:PATH)")
+    p.add_argument(
+        "--source",
+        help="frame source spec, overrides camera.source (zed:0, oak, replay:PATH, rosbag:PATH; a replay in step "
+        "with a simulator: replay:PATH?start_at=TIME&start_signal=udp:HOST:PORT)",
+    )
     p.add_argument("--mavlink", help="MAVLink connection string, overrides mavlink.url")
     p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     p.add_argument(

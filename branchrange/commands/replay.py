@@ -1,5 +1,9 @@
 """`branchrange replay`: a recording → per-frame results (JSONL) as the daemon gives them, a summary, an
-overlay video."""
+overlay video.
+
+By default every frame is processed, as fast as the computer allows. `--pace recorded` keeps the
+recording's schedule instead, as a camera would (frames it has no time for are dropped and counted),
+and `--start-at`/`--start-signal` let a simulator or autopilot outside keep in step with it."""
 
 from __future__ import annotations
 
@@ -31,6 +35,41 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--fps", type=float, help="frame rate of a folder of pairs (default 15) or a video's override")
     p.add_argument(
+        "--pace",
+        choices=("fast", "recorded"),
+        default="fast",
+        help="fast (default): every frame, as fast as the computer allows; recorded: at the recorded rate, "
+        "dropping (and counting) the frames that can no longer be on time, as a camera would",
+    )
+    p.add_argument(
+        "--max-late-ms",
+        type=float,
+        help="with --pace recorded: how late after its slot a frame may still come, ms (default: half a frame "
+        "period; 20 keeps a simulator within 20 ms of the schedule, at the cost of more dropped frames)",
+    )
+    p.add_argument(
+        "--ignore-masks",
+        action="store_true",
+        help="leave the recording's masks unread: the configured segmenter finds the branches, as for a live camera",
+    )
+    sync = p.add_argument_group(
+        "clock sync", "keep a simulator or autopilot in step with the replay (best with --pace recorded)"
+    )
+    sync.add_argument(
+        "--start-at",
+        metavar="TIME",
+        help="release the first frame at this wall-clock time: Unix seconds or ISO 8601 with a UTC offset "
+        "(2026-11-28T18:10:00Z)",
+    )
+    sync.add_argument(
+        "--start-signal",
+        action="append",
+        default=[],
+        metavar="file:PATH|udp:HOST:PORT",
+        help="announce the first frame's release (branchrange/replay-start/v1 JSON: wall_ns, monotonic_ns, "
+        "first_timestamp_ns, first_index) in a file and/or one UDP datagram (repeatable); it is also logged",
+    )
+    p.add_argument(
         "--out", required=True, help="results: a run header line, then one branchrange/v1 JSON line per frame"
     )
     p.add_argument(
@@ -57,6 +96,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="also send every frame to Foxglove: write an MCAP file and/or serve a live WebSocket "
         "(repeat for both); open with deploy/foxglove_layout.json",
     )
+    p.add_argument(
+        "--mount-rpy-deg",
+        nargs=3,
+        type=float,
+        metavar=("ROLL", "PITCH", "YAW"),
+        help="the camera's mount on the vehicle, as the daemon's camera.mount_rpy_deg (overrides it): "
+        "places the camera on body_frd in the Foxglove transform tree",
+    )
+    p.add_argument(
+        "--mount-xyz-m",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "Z"),
+        help="the camera's optical centre in body FRD metres, as camera.mount_xyz_m (overrides it)",
+    )
     p.set_defaults(func=run)
 
 
@@ -72,7 +126,9 @@ def run(args: argparse.Namespace) -> int:
     from branchrange.offline.overlay_video import VideoWriteError
     from branchrange.offline.replay import replay_recording, source_spec
     from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
-    from camera.sources import SourceError
+    from branchrange.onboard.mavlink import CameraMount
+    from camera.sources import SourceConfigError, SourceError
+    from camera.sources.clock_sync import ClockSync
 
     try:
         cfg = config_from_args(
@@ -82,21 +138,40 @@ def run(args: argparse.Namespace) -> int:
                 "stereo.weights": args.weights,
                 "stereo.max_disp": args.max_disp,
                 "camera.source": source_spec(args.recording),
+                "camera.mount_rpy_deg": args.mount_rpy_deg,
+                "camera.mount_xyz_m": args.mount_xyz_m,
             },
         )
         targets = parse_targets(args.foxglove) if args.foxglove else None
-    except (ConfigError, FoxgloveTargetError) as exc:
+        clock_sync = ClockSync.parse(args.start_at, args.start_signal) if args.start_at or args.start_signal else None
+    except (ConfigError, FoxgloveTargetError, SourceConfigError) as exc:
         print(f"branchrange replay: {exc}", file=sys.stderr)
         return BAD_INPUT
     if args.fps is not None and not args.fps > 0:
         print(f"branchrange replay: --fps is {args.fps}; expected a positive frame rate", file=sys.stderr)
         return BAD_INPUT
+    if args.max_late_ms is not None and (args.pace != "recorded" or not args.max_late_ms > 0):
+        print(
+            f"branchrange replay: --max-late-ms is {args.max_late_ms}; expected milliseconds > 0 with --pace recorded",
+            file=sys.stderr,
+        )
+        return BAD_INPUT
     logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     sink = None
     try:
-        sink = FoxgloveSink(targets) if targets else None
+        mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
+        sink = FoxgloveSink(targets, mount=mount) if targets else None
         summary = replay_recording(
-            args.recording, cfg, args.out, video=args.overlay_video, observers=[sink] if sink else [], fps=args.fps
+            args.recording,
+            cfg,
+            args.out,
+            video=args.overlay_video,
+            observers=[sink] if sink else [],
+            fps=args.fps,
+            pace=args.pace,
+            ignore_masks=args.ignore_masks,
+            clock_sync=clock_sync,
+            max_late_ms=args.max_late_ms,
         )
     except (SourceError, ValueError) as exc:  # recording missing / truncated / unreadable, or settings it cannot use
         print(f"branchrange replay: {exc}", file=sys.stderr)
@@ -114,7 +189,8 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return BAD_INPUT
-    print(f"results: {args.out} (a run header and {summary.frames} result lines)")
+    late = f"; {summary.dropped_late} frames dropped as too late" if args.pace == "recorded" else ""
+    print(f"results: {args.out} (a run header and {summary.frames} result lines{late})")
     if sink is not None:
         print(f"foxglove: {sink.describe()} (open it in Foxglove with deploy/foxglove_layout.json)")
     if args.summary:

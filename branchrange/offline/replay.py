@@ -3,7 +3,9 @@
 After a flight, `replay_recording` runs every frame of a recording (a `branchrange record`
 directory or a side-by-side video) through the pipeline the daemon builds from the same
 configuration (`branchrange.core.frame_results`), as fast as the machine allows and without dropping
-frames, so its results are the daemon's, frame for frame (timing aside). A corrupt frame is
+frames, so its results are the daemon's, frame for frame (timing aside). At `pace="recorded"` it
+keeps the recording's schedule instead, as a camera would: the frames it has no time for are
+dropped and counted (`dropped_late`). A corrupt frame is
 skipped and a frame the pipeline rejects is logged, as the daemon does. The summary counts
 frames, branches and tracks, and gives distance statistics and per-stage timing.
 """
@@ -26,6 +28,7 @@ from branchrange.core.frame_results import pipeline_for, process_frame, result_l
 from branchrange.core.overlay import draw_overlay
 from branchrange.offline.overlay_video import OverlayVideoWriter, check_video
 from camera.sources import CorruptFrameError, ReplaySource, open_source
+from camera.sources.clock_sync import ClockSync
 from camera.sources.rosbag import RosbagSource
 from stereo.progress import progress_bar
 
@@ -70,6 +73,7 @@ class ReplaySummary:
     video_codec: str | None = None
     unpaired: dict[str, int] | None = None
     lost_at_end: int = 0
+    dropped_late: int = 0
     _tracks: set[int] = field(default_factory=set, init=False, repr=False)
     _target_tracks: set[int] = field(default_factory=set, init=False, repr=False)
     _distances: list[float] = field(default_factory=list, init=False, repr=False)
@@ -105,6 +109,7 @@ class ReplaySummary:
                 "corrupt": self.corrupt,
                 "rejected": self.rejected,
                 "lost_at_end": self.lost_at_end,
+                "dropped_late": self.dropped_late,
                 "with_branches": self.frames_with_branches,
                 "with_target": self.frames_with_target,
                 **({} if self.unpaired is None else {"unpaired": self.unpaired}),
@@ -128,7 +133,7 @@ class ReplaySummary:
         f, b, t = d["frames"], d["branches"], d["distance_m"]["target"]
         lines = [
             f"replay of {self.recording}: {f['processed']} frames processed, {f['corrupt']} corrupt, "
-            f"{f['rejected']} rejected; {d['fps']:.1f} frames/s"
+            f"{f['rejected']} rejected, {f['dropped_late']} dropped late; {d['fps']:.1f} frames/s"
             + (f"; {self.lost_at_end} lost at the end of the recording" if self.lost_at_end else ""),
             f"branches: {b['detections']} cut points ({b['per_frame']:.2f} per frame) in {b['tracks']} tracks; "
             f"a target in {f['with_target']} frames ({b['target_tracks']} tracks)",
@@ -149,12 +154,14 @@ class ReplaySummary:
 
 def source_spec(recording: str | Path) -> str:
     """The `open_source` spec of what `branchrange replay` is given: a `rosbag:…`/`replay:…` spec as it is, a
-    ROS 2 bag (a directory with metadata.yaml, a .mcap or .db3 file) as `rosbag:PATH`, else `replay:PATH`."""
+    ROS 2 bag (a directory with metadata.yaml or .mcap/.db3 files — an unfinished bag lacks the metadata —, a
+    .mcap or .db3 file) as `rosbag:PATH`, else `replay:PATH`."""
     text = str(recording)
     if text.startswith(("rosbag:", "replay:")):
         return text
     path = Path(text)
-    is_bag = (path / "metadata.yaml").is_file() or path.suffix in (".mcap", ".db3")
+    bag_files = path.is_dir() and any(p.suffix in (".mcap", ".db3") for p in path.iterdir())
+    is_bag = (path / "metadata.yaml").is_file() or bag_files or path.suffix in (".mcap", ".db3")
     return f"{'rosbag' if is_bag else 'replay'}:{text}"
 
 
@@ -182,6 +189,10 @@ def replay_recording(
     progress: bool = True,
     observers: Sequence[Observer] = (),
     fps: float | None = None,
+    pace: str = "fast",
+    ignore_masks: bool = False,
+    clock_sync: ClockSync | None = None,
+    max_late_ms: float | None = None,
 ) -> ReplaySummary:
     """Process every frame of `recording` (a recording directory, a folder of pairs, a side-by-side video,
     a ROS 2 bag or a `rosbag:` spec, see `source_spec`) with the pipeline `cfg` describes; write a run
@@ -189,12 +200,25 @@ def replay_recording(
     recording's frame rate (checked to read back frame for frame). Each result also goes to `observers`
     with the pipeline's `FrameArtifacts` (e.g. a FoxgloveSink).
 
-    `fps` sets a folder of pairs' frame rate (default 15) or overrides a video's.
+    `fps` sets a folder of pairs' frame rate (default 15) or overrides a video's. `pace` "fast" processes
+    every frame; "recorded" keeps the recording's schedule and drops the frames that come too late
+    (camera.sources.ReplaySource; `max_late_ms` how late a frame may still come, default half a period).
+    `ignore_masks` leaves a recording's masks unread, so the configured
+    segmenter finds the branches as for a live camera. `clock_sync` starts the replay at a given time
+    and/or announces its start (camera.sources.clock_sync).
     `cfg.camera.calibration` overrides the recording's calibration, as in the daemon. Raises
     `camera.sources.SourceError` when the recording cannot be opened or has no calibration.
     """
     spec = source_spec(recording)
-    source = open_source(spec, calibration=cfg.camera.calibration or None, pace="fast", fps=fps)
+    source = open_source(
+        spec,
+        calibration=cfg.camera.calibration or None,
+        pace=pace,
+        fps=fps,
+        ignore_masks=ignore_masks,
+        clock_sync=clock_sync,
+        max_late_ms=max_late_ms,
+    )
     summary = ReplaySummary(str(recording))
     writer = None
     try:
@@ -234,6 +258,7 @@ def replay_recording(
                     writer.write(_overlay_frame(pipeline, result))
                 _notify(observers, result, pipeline.last)
         summary.wall_s = time.perf_counter() - start
+        summary.dropped_late = source.dropped_late
         if isinstance(source, RosbagSource):
             summary.unpaired = source.unpaired
         if isinstance(source, ReplaySource):

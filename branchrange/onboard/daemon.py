@@ -7,7 +7,8 @@ a camera-reopened marker line before its first result (`frame_results.camera_reo
 `log.results_max_mb` the log is rotated (`results_log.ResultsLog`, `log.results_keep` older files kept),
 each new file starting with the run header again. Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
-  dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
+  dropped and counted (`dropped`; frames a paced replay dropped before releasing them, as too late to
+  keep its schedule, in `dropped_late`); each frame is stamped with its arrival time on the monotonic
   clock — the capture time every age and latency is measured from;
 - **stereo** (the `run()` thread): on the first frame of each opened camera, a check that the
   rectified rows are aligned (`branchrange.core.pair_check`: a warning with the fix when not); then
@@ -125,8 +126,10 @@ class Daemon:
         self.rejected = 0
         self.reopens = 0
         self.dropped = 0
+        self.dropped_late = 0
         self.late = 0  # results older than mavlink.max_result_age_s when published
         self._dropped_by_closed_sources = 0
+        self._dropped_late_by_closed_sources = 0
         self._corrupt_in_a_row = 0
         self._latencies: list[float] = []
         self._warmup: list[tuple[float, float, float]] = []  # (capture → publish, stereo, geometry) s
@@ -161,6 +164,7 @@ class Daemon:
             "lost": self.camera_lost,
             "frames": self.frames,
             "dropped": self.dropped,
+            "dropped_late": self.dropped_late,
             "skipped": self.skipped,
             "corrupt": self.corrupt,
             "reopens": self.reopens,
@@ -341,12 +345,13 @@ class Daemon:
         link = "off" if state is None else ("up" if state["connected"] else "down")
         pose = "off" if state is None else state["mode"]  # world: fused in local NED; camera: no vehicle state
         log.info(
-            "status frames=%d fps=%.1f latency_ms=%.0f dropped=%d skipped=%d corrupt=%d late=%d camera=%s link=%s "
-            "pose=%s",
+            "status frames=%d fps=%.1f latency_ms=%.0f dropped=%d dropped_late=%d skipped=%d corrupt=%d late=%d "
+            "camera=%s link=%s pose=%s",
             self.frames,
             fps,
             latency,
             self.dropped,
+            self.dropped_late,
             self.skipped,
             self.corrupt,
             self.late,
@@ -397,6 +402,7 @@ class Daemon:
                 stalls = self._corrupt_in_a_row = 0
                 self._set_camera_lost(False)
                 self.dropped = self._dropped_by_closed_sources + source.dropped
+                self.dropped_late = self._dropped_late_by_closed_sources + source.dropped_late
                 if max_frames is not None:
                     self._slot.wait_idle()  # a counted run processes every frame it takes, and no more
                     if self._done(max_frames):
@@ -438,6 +444,7 @@ class Daemon:
         if source is not None:
             source.close()
             self._dropped_by_closed_sources += source.dropped
+            self._dropped_late_by_closed_sources += source.dropped_late
         self.reopens += 1
         self._pair_checked = False  # a camera plugged in again may be another one
         self._slot.wait_idle()  # the tracker (and the log's order) is the worker's until then

@@ -84,6 +84,12 @@ class SourceBase(ABC):
         """True while the camera is gone and the source is waiting for it to come back."""
         return False
 
+    @property
+    def dropped_late(self) -> int:
+        """Frames the source itself dropped for being too late to release (a paced replay); 0 for a camera,
+        whose driver drops frames unseen and uncounted."""
+        return 0
+
     def __iter__(self) -> SourceBase:
         return self
 

@@ -12,7 +12,8 @@ class LatestFrameSource(SourceBase):
     """Wraps a source; a background thread reads it continuously and keeps only the newest frame.
 
     `next()` returns the newest frame not yet returned, waiting for one if needed; frames the
-    consumer was too slow for are dropped (counted in `dropped`). Recoverable SourceErrors of
+    consumer was too slow for are dropped (counted in `dropped`; the inner source's own drops, a paced
+    replay's, in `dropped_late`). Recoverable SourceErrors of
     the inner source (CorruptFrameError, SourceDisconnected) are handed to the consumer by the
     next `next()` call and capture goes on; any other exception ends capture and is raised once,
     after which iteration stops. `get(timeout)` is `next()` with a timeout (None when nothing
@@ -36,6 +37,11 @@ class LatestFrameSource(SourceBase):
     @property
     def is_lost(self) -> bool:
         return self.source.is_lost
+
+    @property
+    def dropped_late(self) -> int:
+        """The inner source's count of frames it dropped as too late (ReplaySource), 0 for one that has none."""
+        return int(getattr(self.source, "dropped_late", 0))
 
     def _capture(self) -> None:
         try:

@@ -15,6 +15,7 @@ import re
 import statistics
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
@@ -23,6 +24,7 @@ import cv2
 
 from camera.calibration import StereoCalibration
 from camera.load import load_calibration
+from camera.sources.clock_sync import ClockSync, StartInstant
 from camera.sources.frame import CorruptFrameError, SourceBase, SourceConfigError, SourceUnavailable, StereoFrame
 from camera.sources.image_files import read_mask, read_rgb, split_side_by_side
 from camera.sources.recording_format import (
@@ -41,6 +43,10 @@ DEFAULT_PERIOD_NS = 33_333_333
 #: Frame rate given to a folder of pairs (which has no timestamps) unless `fps` says otherwise.
 PAIR_FOLDER_FPS = 15.0
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: Decode times (and wake-up delays) remembered to predict the next (a replay starts that much before the slot).
+DECODE_HISTORY = 8
+#: (recorded timestamp ns, recorded index) of a frame, known before its images are decoded.
+FrameStamp = tuple[int, int]
 
 log = logging.getLogger("camera.sources.replay")
 
@@ -56,8 +62,14 @@ class FrameReader(Protocol):
     def period_ns(self) -> int:
         """Nanoseconds between frames (recorded median or given rate)."""
 
+    def peek(self) -> FrameStamp | None:
+        """(recorded timestamp ns, index) of the next frame, found without decoding it; None at a known end."""
+
     def read(self) -> StereoFrame | None:
-        """The next frame, None at the end."""
+        """The next frame, decoded; None at the end."""
+
+    def skip(self) -> bool:
+        """Pass over the next frame without decoding its images; False at the end."""
 
     def seek(self, position: int) -> None:
         """Make frame `position` (0-based) the next one read."""
@@ -80,10 +92,10 @@ class _DirectoryFrames:
     are dropped and counted in `lost_at_end`, and replay ends at the last complete frame.
     """
 
-    def __init__(self, directory: Path) -> None:
+    def __init__(self, directory: Path, with_masks: bool) -> None:
         self.directory = directory
         self.manifest = read_manifest(directory)
-        self.has_masks = bool(self.manifest.get("masks"))
+        self.has_masks = with_masks and bool(self.manifest.get("masks"))
         table = read_timestamps(directory)
         self.rows = table.rows
         self.lost_at_end = int(table.torn_last_row) + self._drop_unreadable_tail()
@@ -138,6 +150,18 @@ class _DirectoryFrames:
         first = read_rgb(self.directory / self.rows[0].left)
         return int(first.shape[1]), int(first.shape[0])
 
+    def peek(self) -> FrameStamp | None:
+        """The next row's timestamp and index; None after the last row."""
+        if self._position >= self.count:
+            return None
+        row = self.rows[self._position]
+        return row.timestamp_ns, row.index
+
+    def skip(self) -> bool:
+        """Move past the next row; False after the last."""
+        self._position += 1
+        return self._position <= self.count
+
     def read(self) -> StereoFrame | None:
         """The next frame (with the recorded index, timestamp and mask), None at the end of the recording."""
         if self._position >= self.count:
@@ -172,7 +196,7 @@ def _images_in(folder: Path) -> list[Path]:
 class _PairFolderFrames:
     """Frames of a plain folder of pairs (`left/`, `right/`, optional `mask/`), stamped i / fps."""
 
-    def __init__(self, directory: Path, fps: float | None) -> None:
+    def __init__(self, directory: Path, fps: float | None, with_masks: bool) -> None:
         rate = PAIR_FOLDER_FPS if fps is None else fps
         if not rate > 0:
             raise SourceConfigError(f"fps is {fps}; expected a positive frame rate for a folder of pairs")
@@ -183,7 +207,7 @@ class _PairFolderFrames:
                 f"{directory}: left/ holds {len(self.lefts)} images and right/ {len(self.rights)}; expected the same "
                 f"number (at least one) of {'/'.join(IMAGE_SUFFIXES)} files, paired in name order"
             )
-        self.masks = _images_in(directory / "mask") if (directory / "mask").is_dir() else []
+        self.masks = _images_in(directory / "mask") if with_masks and (directory / "mask").is_dir() else []
         if self.masks and len(self.masks) != len(self.lefts):
             raise RecordingFormatError(
                 f"{directory}: mask/ holds {len(self.masks)} images for {len(self.lefts)} pairs; "
@@ -201,6 +225,15 @@ class _PairFolderFrames:
         """(width, height) of one view, from the first left image."""
         first = read_rgb(self.lefts[0])
         return int(first.shape[1]), int(first.shape[0])
+
+    def peek(self) -> FrameStamp | None:
+        """The next pair's timestamp (position / fps) and index (position); None after the last."""
+        return None if self._position >= self.count else (self._position * self.period_ns, self._position)
+
+    def skip(self) -> bool:
+        """Move past the next pair; False after the last."""
+        self._position += 1
+        return self._position <= self.count
 
     def read(self) -> StereoFrame | None:
         """The next pair (index = position, timestamp = position / fps), None after the last."""
@@ -222,12 +255,13 @@ class _PairFolderFrames:
         """Nothing stays open between reads."""
 
 
-def _directory_frames(directory: Path, fps: float | None) -> _DirectoryFrames | _PairFolderFrames:
-    """A recording (it has a manifest or timestamps) or else a folder of pairs (it has left/ and right/)."""
+def _directory_frames(directory: Path, fps: float | None, with_masks: bool) -> _DirectoryFrames | _PairFolderFrames:
+    """A recording (it has a manifest or timestamps) or else a folder of pairs (it has left/ and right/);
+    `with_masks=False` leaves their masks unread."""
     if (directory / MANIFEST_NAME).is_file() or (directory / TIMESTAMPS_NAME).is_file():
-        return _DirectoryFrames(directory)  # a damaged recording is reported as one, never read as plain pairs
+        return _DirectoryFrames(directory, with_masks)  # a damaged recording is reported as one, never as pairs
     if (directory / "left").is_dir() and (directory / "right").is_dir():
-        return _PairFolderFrames(directory, fps)
+        return _PairFolderFrames(directory, fps, with_masks)
     raise RecordingFormatError(
         f"{directory}: neither a recording ({MANIFEST_NAME} missing) nor a folder of pairs "
         "(left/ and right/ image folders); expected one of the two"
@@ -282,6 +316,15 @@ class _VideoFrames:
         self._position += 1
         return True
 
+    def peek(self) -> FrameStamp | None:
+        """The next frame's timestamp (position / fps) and index, never None: a video's frame count is only
+        an estimate, so its end is found by `read` or `skip`."""
+        return self._position * self.period_ns, self._position
+
+    def skip(self) -> bool:
+        """Grab the next frame without converting it (the codec still decodes it); False at the end."""
+        return self._grab()
+
     def read(self) -> StereoFrame | None:
         """The next frame, None at the end of the video."""
         assert self._capture is not None
@@ -307,13 +350,30 @@ class _VideoFrames:
 class ReplaySource(SourceBase):
     """Replays a recording directory (`branchrange record` layout), a folder of pairs or a side-by-side video file.
 
-    `pace="recorded"` waits so frames come at the recorded rate, `"fast"` as fast as they decode.
+    `pace="recorded"` releases frames at the recorded rate, `"fast"` as fast as they decode.
     `loop=True` starts again at `start` after the last frame; indices then keep growing (recorded
     index + pass × frame count) and timestamps keep increasing by the sequence's duration.
     `start` is the position (0-based) of the first frame replayed. `calibration` overrides the
     recording's own copy (a video has none: pass one, or leave it None). `fps` overrides a video's
-    frame rate and sets a folder of pairs' (default 15). A frame whose image cannot be decoded
-    raises CorruptFrameError; the next call goes on.
+    frame rate and sets a folder of pairs' (default 15). `ignore_masks=True` leaves a recording's
+    masks unread (frames come without, as from a live camera). `clock_sync` delays the first frame
+    to a start time and announces its release (camera.sources.clock_sync). A frame whose image
+    cannot be decoded raises CorruptFrameError; the next call goes on.
+
+    Pacing keeps to a schedule, as a camera does: frame i is due at `start + (t_i − t_0)`, `start`
+    being the release of the first frame. The replay waits for a frame's slot *before* decoding it,
+    starting early by the longest of the last DECODE_HISTORY decode times plus the longest recent
+    wake-up delay (how much later than asked a wait returned: a busy machine's scheduler), so that
+    the frame is ready at its slot. A frame that would reach the consumer more than `late_limit_ns`
+    after its slot is dropped, as a camera drops the frames nobody read in time: before decoding
+    when the typical (median) decode time already makes it late, so no time goes to a frame that
+    cannot be on time and the replay catches up; after decoding when that decode (or the wait for
+    the slot) overran. The
+    limit is half a frame period (later, the frame is nearer its successor's slot than its own),
+    or `max_late_ms` (a simulator kept in step may want it tighter; the daemon takes a frame's
+    release as its capture time, so a late release hides its lateness from the latency figures).
+    Drops are counted in `dropped_late`; delivered frames keep their recorded timestamps and
+    indices, so a consumer sees the gap.
     """
 
     def __init__(
@@ -325,18 +385,24 @@ class ReplaySource(SourceBase):
         start: int = 0,
         calibration: StereoCalibration | None = None,
         fps: float | None = None,
+        ignore_masks: bool = False,
+        clock_sync: ClockSync | None = None,
+        max_late_ms: float | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         if pace not in PACES:
             raise SourceConfigError(f"pace is {pace!r}; expected one of {', '.join(PACES)}")
+        if max_late_ms is not None and not max_late_ms > 0:
+            raise SourceConfigError(f"max_late_ms is {max_late_ms}; expected milliseconds > 0 (None: half a period)")
         if start < 0:
             raise SourceConfigError(f"start is {start}; expected a frame position ≥ 0")
         self.path = Path(path)
+        self.ignore_masks = ignore_masks
         self._frames: FrameReader = self._open_frames(fps)
         if self._frames.count is not None and start >= self._frames.count:
             raise SourceConfigError(f"start is {start}; {self.path} has {self._frames.count} frames")
         self.calibration = calibration if calibration is not None else self._frames.calibration()
-        self.pace, self.loop, self.start = pace, loop, start
+        self.pace, self.loop, self.start, self.clock_sync = pace, loop, start, clock_sync
         self._clock = clock
         self._stop = threading.Event()
         self._frames.seek(start)
@@ -346,14 +412,19 @@ class ReplaySource(SourceBase):
         self._first_ts: int | None = None
         self._last_ts: int | None = None
         self._last_index = -1
-        self._wall_start: int | None = None
-        self._stream_start: int | None = None
+        self._wrapped_without_frame = False
+        self._start_clock_ns: int | None = None  # `clock` at the release of the first frame
+        self._start_stamp_ns = 0  # that frame's (looped) timestamp
+        self._max_late_ns = None if max_late_ms is None else round(max_late_ms * 1e6)
+        self._decode_ns: deque[int] = deque(maxlen=DECODE_HISTORY)
+        self._oversleep_ns: deque[int] = deque(maxlen=DECODE_HISTORY)
+        self._dropped_late = 0
 
     def _open_frames(self, fps: float | None) -> FrameReader:
         """The frame reader of `self.path`; a subclass replaying another container (camera.sources.rosbag)
         returns its own."""
         if self.path.is_dir():
-            return _directory_frames(self.path, fps)
+            return _directory_frames(self.path, fps, not self.ignore_masks)
         if self.path.is_file():
             return _VideoFrames(self.path, fps)
         raise SourceUnavailable(f"{self.path}: no such recording directory or video file")
@@ -379,51 +450,122 @@ class ReplaySource(SourceBase):
         recording; they are not replayed); 0 for every other container."""
         return self._frames.lost_at_end if isinstance(self._frames, _DirectoryFrames) else 0
 
+    @property
+    def dropped_late(self) -> int:
+        """Frames dropped unseen because they could no longer be released on time (recorded pace)."""
+        return self._dropped_late
+
+    @property
+    def late_limit_ns(self) -> int:
+        """How late after its slot a frame may still be released: `max_late_ms`, else half a period."""
+        return self._frames.period_ns // 2 if self._max_late_ns is None else self._max_late_ns
+
     def __next__(self) -> StereoFrame:
         with self._io_lock:
-            if self._stop.is_set():
-                raise StopIteration
+            while (frame := self._next_on_time()) is None:
+                pass
+            return frame
+
+    def _next_on_time(self) -> StereoFrame | None:
+        """The next frame, released at its slot; None when it was dropped late or the replay looped."""
+        if self._stop.is_set():
+            raise StopIteration
+        stamp = self._frames.peek()
+        if stamp is None:
+            self._wrap()
+            return None
+        due = self._due(stamp[0] + self._offset_ns)
+        if due is not None and self.pace == "recorded":
+            typical = int(statistics.median(self._decode_ns)) if self._decode_ns else 0
+            if self._clock() + typical > due + self.late_limit_ns:
+                self._drop_unread(stamp)
+                return None
+            self._sleep_until(due - max(self._decode_ns, default=0) - max(self._oversleep_ns, default=0))
+        frame = self._read(stamp)
+        if frame is None:
+            return None
+        if due is None:
+            self._begin(frame)
+        elif self.pace == "recorded":
+            self._sleep_until(due)
+            if self._clock() > due + self.late_limit_ns:  # the decode overran, or the wait woke too late
+                self._dropped_late += 1
+                return None
+        if self._stop.is_set():
+            raise StopIteration
+        return frame
+
+    def _due(self, timestamp_ns: int) -> int | None:
+        """The `clock()` ns at which the frame stamped `timestamp_ns` (this pass) is due; None before the start."""
+        if self._start_clock_ns is None:
+            return None
+        return self._start_clock_ns + timestamp_ns - self._start_stamp_ns
+
+    def _drop_unread(self, stamp: FrameStamp) -> None:
+        """Pass over a frame too late to be worth decoding, and count it."""
+        if not self._frames.skip():
+            self._wrap()
+            return
+        self._note(stamp)
+        self._dropped_late += 1
+
+    def _read(self, stamp: FrameStamp) -> StereoFrame | None:
+        """Decode the frame `stamp` announced, restamped for the current pass; None (after wrapping) at the end."""
+        started = self._clock()
+        try:
             frame = self._frames.read()
-            if frame is None:
-                frame = self._wrap()
-        if self._pass == 0:
-            if self._first_ts is None:
-                self._first_ts = frame.timestamp_ns
-            self._last_ts, self._last_index = frame.timestamp_ns, frame.index
-        frame = StereoFrame(
+        except CorruptFrameError:
+            self._note(stamp)  # it had its place in the sequence
+            raise
+        if frame is None:
+            self._wrap()
+            return None
+        self._decode_ns.append(self._clock() - started)
+        self._note(stamp)
+        return StereoFrame(
             frame.left,
             frame.right,
             frame.timestamp_ns + self._offset_ns,
             frame.index + self._pass * (self._last_index + 1),
             frame.mask,
         )
-        self._wait_for(frame.timestamp_ns)
-        if self._stop.is_set():
-            raise StopIteration
-        return frame
 
-    def _wrap(self) -> StereoFrame:
-        """Go back to `start` when looping (StopIteration otherwise) and read the first frame again."""
-        if not self.loop or self._first_ts is None or self._last_ts is None:
+    def _note(self, stamp: FrameStamp) -> None:
+        """Remember the first pass's span (for the timestamps of the next passes)."""
+        self._wrapped_without_frame = False
+        if self._pass == 0:
+            if self._first_ts is None:
+                self._first_ts = stamp[0]
+            self._last_ts, self._last_index = stamp
+
+    def _begin(self, first: StereoFrame) -> None:
+        """Start the schedule at the release of `first`: after the start time, announced (clock_sync)."""
+        if self.clock_sync is not None:
+            self.clock_sync.wait_for_start(self._stop)
+            if self._stop.is_set():  # closed while waiting: it never started, so nothing is announced
+                raise StopIteration
+        self._start_clock_ns, wall_ns = self._clock(), time.time_ns()
+        self._start_stamp_ns = first.timestamp_ns
+        if self.clock_sync is not None:
+            self.clock_sync.announce(
+                StartInstant(str(self.path), wall_ns, self._start_clock_ns, first.timestamp_ns, first.index)
+            )
+
+    def _wrap(self) -> None:
+        """Go back to `start` when looping; StopIteration otherwise, or when a pass gave no frame at all."""
+        if not self.loop or self._first_ts is None or self._last_ts is None or self._wrapped_without_frame:
             raise StopIteration
+        self._wrapped_without_frame = True
         self._pass += 1
         self._offset_ns += self._last_ts - self._first_ts + self._frames.period_ns
         self._frames.seek(self.start)
-        frame = self._frames.read()
-        if frame is None:
-            raise StopIteration
-        return frame
 
-    def _wait_for(self, timestamp_ns: int) -> None:
-        if self.pace == "fast":
-            return
-        now = self._clock()
-        if self._wall_start is None or self._stream_start is None:
-            self._wall_start, self._stream_start = now, timestamp_ns
-            return
-        delay_ns = (timestamp_ns - self._stream_start) - (now - self._wall_start)
+    def _sleep_until(self, deadline_ns: int) -> None:
+        """Wait until `clock()` reaches `deadline_ns` (at once when close() is called); note how late it woke."""
+        delay_ns = deadline_ns - self._clock()
         if delay_ns > 0:
             self._stop.wait(delay_ns / 1e9)
+            self._oversleep_ns.append(max(0, self._clock() - deadline_ns))
 
     def close(self) -> None:
         """Stop replaying (a paced wait in another thread returns at once) and release the video."""

@@ -7,10 +7,15 @@ stamps both views of a grab alike, other drivers nearly so), counts the images t
 partner, and takes the calibration from the rectified projection matrices P of the two
 CameraInfo messages (focal length and principal point from the left P, the baseline from the
 right P's `Tx = -fx·B`) unless a calibration file is given. Topic names default to the ZED
-ROS 2 wrapper's rectified colour topics.
+ROS 2 wrapper's rectified colour topics: those of wrapper 5.1 and later
+(`/zed/zed_node/left/color/rect/image`, …), or, in a bag that has only them, those of the wrappers
+before 5.1 (`/zed/zed_node/left/image_rect_color`, …; logged). Topics named in the spec are used as
+given. A bag cut short (a recording killed before rosbag2 finished it, a copy interrupted) is
+reported as "truncated or unfinished", with what to do.
 
 Spec (camera.sources.open_source): `rosbag:PATH[?left=TOPIC&right=TOPIC&left_info=TOPIC&right_info=TOPIC
-&tolerance_ms=MS]`, PATH a bag directory (metadata.yaml), a `.mcap` or a `.db3` file.
+&tolerance_ms=MS]`, PATH a bag directory (metadata.yaml), a `.mcap` or a `.db3` file; also the replay
+options `start_at`, `start_signal`, `max_late_ms` (camera.sources.spec_options).
 """
 
 from __future__ import annotations
@@ -21,14 +26,15 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qsl
 
 import cv2
 import numpy as np
 
 from camera.calibration import CalibrationError, StereoCalibration, from_rectified
+from camera.sources.clock_sync import ClockSync
 from camera.sources.frame import CorruptFrameError, SourceConfigError, SourceUnavailable, StereoFrame
-from camera.sources.replay import DEFAULT_PERIOD_NS, ReplaySource
+from camera.sources.replay import DEFAULT_PERIOD_NS, FrameStamp, ReplaySource
+from camera.sources.spec_options import REPLAY_KEYS, split_spec
 
 log = logging.getLogger("camera.sources.rosbag")
 
@@ -52,32 +58,44 @@ BASELINE_RANGE_M = (0.005, 5.0)
 
 @dataclass(frozen=True)
 class BagTopics:
-    """The four topics of a stereo camera in a bag; the defaults are the ZED ROS 2 wrapper's
-    (namespace `/zed`, node `zed_node`), rectified colour images."""
+    """The four topics of a stereo camera in a bag; the defaults are the ZED ROS 2 wrapper's since its
+    version 5.1 (namespace `/zed`, node `zed_node`), rectified colour images."""
 
-    left: str = "/zed/zed_node/left/image_rect_color"
-    right: str = "/zed/zed_node/right/image_rect_color"
-    left_info: str = "/zed/zed_node/left/camera_info"
-    right_info: str = "/zed/zed_node/right/camera_info"
-
-
-SPEC_KEYS = ("left", "right", "left_info", "right_info", "tolerance_ms")
+    left: str = "/zed/zed_node/left/color/rect/image"
+    right: str = "/zed/zed_node/right/color/rect/image"
+    left_info: str = "/zed/zed_node/left/color/rect/camera_info"
+    right_info: str = "/zed/zed_node/right/color/rect/camera_info"
 
 
-def parse_rosbag_spec(rest: str) -> tuple[Path, BagTopics, float]:
-    """(bag path, topics, pairing tolerance in ms) from what follows `rosbag:` (see the module docstring)."""
-    path_text, _, query = rest.partition("?")
+#: The same topics as the ZED ROS 2 wrapper published them up to version 5.0.
+ZED_TOPICS_BEFORE_5_1 = BagTopics(
+    "/zed/zed_node/left/image_rect_color",
+    "/zed/zed_node/right/image_rect_color",
+    "/zed/zed_node/left/camera_info",
+    "/zed/zed_node/right/camera_info",
+)
+#: How an MCAP file and an SQLite database (rosbag2's .db3) begin.
+MCAP_MAGIC, SQLITE_MAGIC = b"\x89MCAP0\r\n", b"SQLite format 3\x00"
+
+
+TOPIC_KEYS = ("left", "right", "left_info", "right_info")
+SPEC_KEYS = (*TOPIC_KEYS, "tolerance_ms")
+
+
+def parse_rosbag_spec(rest: str) -> tuple[Path, BagTopics | None, float, list[tuple[str, str]]]:
+    """(bag path, topics, pairing tolerance in ms, the replay options) from what follows `rosbag:` (see the module
+    docstring and camera.sources.spec_options). Topics are None (the ZED wrapper's, either naming) unless the
+    spec names one; the others then keep the current wrapper's names."""
+    path_text, options = split_spec(f"rosbag:{rest}", rest, (*SPEC_KEYS, *REPLAY_KEYS))
     if not path_text:
         raise SourceConfigError(
             f"source spec 'rosbag:{rest}': expected rosbag:PATH[?left=TOPIC&right=TOPIC&"
             "left_info=TOPIC&right_info=TOPIC&tolerance_ms=MS]"
         )
-    topics, tolerance_ms = BagTopics(), DEFAULT_TOLERANCE_MS
-    for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
-        if key not in SPEC_KEYS:
-            raise SourceConfigError(
-                f"source spec 'rosbag:{rest}': option {key!r} is unknown; expected {', '.join(SPEC_KEYS)}"
-            )
+    topics, tolerance_ms = None, DEFAULT_TOLERANCE_MS
+    for key, value in options:
+        if key in REPLAY_KEYS:
+            continue
         if key == "tolerance_ms":
             try:
                 tolerance_ms = float(value)
@@ -93,8 +111,8 @@ def parse_rosbag_spec(rest: str) -> tuple[Path, BagTopics, float]:
                 f"source spec 'rosbag:{rest}': {key} is {value!r}; expected a topic name starting with /"
             )
         else:
-            topics = replace(topics, **{key: value})
-    return Path(path_text), topics, tolerance_ms
+            topics = replace(topics or BagTopics(), **{key: value})
+    return Path(path_text), topics, tolerance_ms, [(k, v) for k, v in options if k in REPLAY_KEYS]
 
 
 def stamp_ns(message: Any) -> int:
@@ -174,27 +192,28 @@ class _BagFrames:
     """Stereo pairs of a bag in stamp order, for ReplaySource's pacing and looping (same reader protocol as
     its recording-directory and video readers)."""
 
-    def __init__(self, path: Path, topics: BagTopics, tolerance_ns: int, use_camera_info: bool) -> None:
+    def __init__(self, path: Path, topics: BagTopics | None, tolerance_ns: int, use_camera_info: bool) -> None:
         from rosbags.highlevel import AnyReader, AnyReaderError
         from rosbags.typesys import Stores, get_typestore
 
-        self.path, self.topics, self.tolerance_ns = path, topics, tolerance_ns
+        self.path, self.tolerance_ns = path, tolerance_ns
         if not path.exists():
             raise SourceUnavailable(f"{path}: no such bag (expected a rosbag2 directory, a .mcap or a .db3 file)")
         try:
             self._reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             self._reader.open()
         except (AnyReaderError, OSError, ValueError, KeyError) as error:
-            raise SourceUnavailable(f"{path}: not a readable ROS 2 bag ({error})") from error
+            raise _unreadable(path, error) from error
         self._by_topic = {c.topic: c for c in self._reader.connections}
+        self.topics = self._zed_topics() if topics is None else topics
         wanted: dict[str, tuple[str, tuple[str, ...]]] = {
-            "left": (topics.left, (IMAGE_TYPE, COMPRESSED_TYPE)),
-            "right": (topics.right, (IMAGE_TYPE, COMPRESSED_TYPE)),
+            "left": (self.topics.left, (IMAGE_TYPE, COMPRESSED_TYPE)),
+            "right": (self.topics.right, (IMAGE_TYPE, COMPRESSED_TYPE)),
         }
         if use_camera_info:
             wanted |= {
-                "left_info": (topics.left_info, (CAMERA_INFO_TYPE,)),
-                "right_info": (topics.right_info, (CAMERA_INFO_TYPE,)),
+                "left_info": (self.topics.left_info, (CAMERA_INFO_TYPE,)),
+                "right_info": (self.topics.right_info, (CAMERA_INFO_TYPE,)),
             }
         for role, (topic, types) in wanted.items():
             self._check_topic(role, topic, types)
@@ -203,7 +222,19 @@ class _BagFrames:
         self.use_camera_info = use_camera_info
         self._stamps: list[int] = []
         self._pairs: Iterator[tuple[Any, Any, int]] = iter(())
+        self._pending: tuple[Any, Any, int] | None = None  # the pair `peek` read ahead
         self.seek(0)
+
+    def _zed_topics(self) -> BagTopics:
+        """The ZED wrapper's topics in this bag: those since 5.1, or those before when only they are there."""
+        current, older = BagTopics(), ZED_TOPICS_BEFORE_5_1
+        topics = self._by_topic.keys()
+        if {current.left, current.right} <= topics or not {older.left, older.right} <= topics:
+            return current
+        log.info(
+            "%s: reading the ZED wrapper's topics of before version 5.1 (%s, %s)", self.path, older.left, older.right
+        )
+        return older
 
     def _check_topic(self, role: str, topic: str, types: tuple[str, ...]) -> None:
         connection = self._by_topic.get(topic)
@@ -283,14 +314,29 @@ class _BagFrames:
     def seek(self, position: int) -> None:
         """Read from the bag's start again and skip `position` pairs (a bag has no pair index)."""
         self.unpaired = {"left": 0, "right": 0}
-        self._pairs = self._paired()
+        self._pairs, self._pending = self._paired(), None
         for _ in range(position):
             if next(self._pairs, None) is None:
                 break
 
+    def peek(self) -> FrameStamp | None:
+        """The next pair's stamp and index (its messages deserialised, its images not decoded); None at the end."""
+        if self._pending is None:
+            self._pending = next(self._pairs, None)
+        return None if self._pending is None else (stamp_ns(self._pending[0]), self._pending[2])
+
+    def _take(self) -> tuple[Any, Any, int] | None:
+        pair = self._pending if self._pending is not None else next(self._pairs, None)
+        self._pending = None
+        return pair
+
+    def skip(self) -> bool:
+        """Pass over the next pair without decoding its images; False at the end of the bag."""
+        return self._take() is not None
+
     def read(self) -> StereoFrame | None:
         """The next pair, None at the end of the bag; CorruptFrameError for a pair that does not decode."""
-        pair = next(self._pairs, None)
+        pair = self._take()
         return None if pair is None else self._frame(*pair)
 
     def frame_size(self) -> tuple[int, int]:
@@ -324,39 +370,80 @@ class _BagFrames:
 
     def close(self) -> None:
         """Close the bag's files."""
-        self._pairs = iter(())
+        self._pairs, self._pending = iter(()), None
         self._reader.close()
+
+
+def _unreadable(path: Path, error: Exception) -> SourceUnavailable:
+    """The error for a bag rosbags cannot open: "truncated or unfinished" when it was cut short (see
+    `_cut_short`), with what to do; else not a bag, with rosbags' reason."""
+    reason = _cut_short(path)
+    if reason is None:
+        return SourceUnavailable(f"{path}: not a readable ROS 2 bag ({error})")
+    folder = path if path.is_dir() else path.parent
+    return SourceUnavailable(
+        f"{path} is truncated or unfinished ({reason}): record it again or run `ros2 bag reindex {folder}`"
+    )
+
+
+def _cut_short(path: Path) -> str | None:
+    """Why a bag that does not open looks cut short, None when it does not: a bag directory without the
+    metadata.yaml rosbag2 writes when a recording ends, or a storage file that begins as MCAP or SQLite
+    (so it was one) and yet does not open."""
+    files = sorted(p for p in path.iterdir() if p.suffix in (".mcap", ".db3")) if path.is_dir() else [path]
+    if path.is_dir() and files and not (path / "metadata.yaml").is_file():
+        return "no metadata.yaml, which rosbag2 writes when a recording ends"
+    for file in files:
+        with file.open("rb") as stream:
+            head = stream.read(len(SQLITE_MAGIC))
+        if head.startswith(MCAP_MAGIC) or head.startswith(SQLITE_MAGIC):
+            return f"{file.name} begins as a bag file but ends early or is damaged"
+    return None
 
 
 class RosbagSource(ReplaySource):
     """Replays the stereo pairs of a ROS 2 bag (see the module docstring), with ReplaySource's options:
     `pace` "recorded" (at the stamps' rate) or "fast", `loop`, `start` (pairs skipped). `calibration`
     overrides the CameraInfo topics; with `use_camera_info=False` they are neither needed nor read (the
-    caller sets `calibration` after reading a file at `frame_size`). Frame timestamps are the left
-    images' header stamps, indices the pairs' positions in the bag. `unpaired` counts the images
-    without a partner within `tolerance_ms` ({"left": n, "right": n}, complete at the end of the bag).
+    caller sets `calibration` after reading a file at `frame_size`). `topics` None reads the ZED wrapper's,
+    in either naming (`topics` then holds those found). `clock_sync`, `max_late_ms` as ReplaySource.
+    Frame timestamps are the left images' header stamps, indices the pairs' positions in the bag.
+    `unpaired` counts the images without a partner within `tolerance_ms` ({"left": n, "right": n},
+    complete at the end of the bag).
     """
 
     def __init__(
         self,
         path: str | Path,
         *,
-        topics: BagTopics = BagTopics(),
+        topics: BagTopics | None = None,
         tolerance_ms: float = DEFAULT_TOLERANCE_MS,
         use_camera_info: bool = True,
         pace: str = "recorded",
         loop: bool = False,
         start: int = 0,
         calibration: StereoCalibration | None = None,
+        clock_sync: ClockSync | None = None,
+        max_late_ms: float | None = None,
         clock: Callable[[], int] | None = None,
     ) -> None:
         self.topics, self.tolerance_ms, self.use_camera_info = topics, tolerance_ms, use_camera_info
         options: dict[str, Any] = {} if clock is None else {"clock": clock}
-        super().__init__(path, pace=pace, loop=loop, start=start, calibration=calibration, **options)
+        super().__init__(
+            path,
+            pace=pace,
+            loop=loop,
+            start=start,
+            calibration=calibration,
+            clock_sync=clock_sync,
+            max_late_ms=max_late_ms,
+            **options,
+        )
 
     def _open_frames(self, fps: float | None) -> _BagFrames:
         # Kept under its own type too: the bag reader has more to say than a FrameReader.
         self._bag = _BagFrames(self.path, self.topics, int(round(self.tolerance_ms * 1e6)), self.use_camera_info)
+        self.topics = self._bag.topics
         return self._bag
 
     @property

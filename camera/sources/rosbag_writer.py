@@ -4,7 +4,8 @@ Used by `branchrange bag-from-recording` (our recordings to bags) and by the tes
 rectified left/right images on two topics with the same header stamp per pair, and each pair's
 `sensor_msgs/CameraInfo` on two more (rectified: D zero, R identity, P with the right camera's
 `Tx = -fx·B`), as ROS drivers publish them. A raw calibration is applied first (images rectified
-with camera.Rectifier), so the bag always holds what `*_rect_color` topics hold.
+with camera.Rectifier), so the bag always holds what the wrapper's rectified colour topics hold. Topic
+names default to those of the wrapper since 5.1 (camera.sources.rosbag.BagTopics).
 """
 
 from __future__ import annotations
