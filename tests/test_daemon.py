@@ -378,8 +378,20 @@ def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, c
         daemon.close()
         peer.close()
     assert daemon.late == 3 and daemon.health()["camera"]["late"] == 3
-    warnings = [r.getMessage() for r in caplog.records if "mavlink.max_result_age_s" in r.getMessage()]
+    messages = [r.getMessage() for r in caplog.records]
+    warnings = [m for m in messages if "mavlink.max_result_age_s" in m and not m.startswith("load shedding")]
     assert len(warnings) == 1 and "'no target'" in warnings[0]
+    # and the loop shed work, one level per late result, as far as it goes
+    assert [m.split(":")[1].strip() for m in messages if m.startswith("load shedding")] == [
+        "level 1 (full-resolution instances off)",
+        "level 2 (full-resolution instances and branch refinement off)",
+    ]
+    assert daemon.health()["shedding"] == {
+        "enabled": True,
+        "level": 2,
+        "actions": "full-resolution instances and branch refinement off",
+        "changes": 2,
+    }
     dists = of_type(got, "DISTANCE_SENSOR")
     assert dists and all(d.msg.current_distance == 1001 for d in dists)  # the stale results never went out
 

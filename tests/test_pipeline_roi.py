@@ -209,3 +209,18 @@ def test_the_learned_segmenters_instances_are_found_again_at_full_resolution_fro
             assert [shape for _, shape, _ in steps] == [(135, 240)]  # through `segment`, at coarse size
             assert "refine" in result.timing_ms and "instances" not in result.timing_ms
     assert looks_by_setting[True] == looks_by_setting[False]  # the network's work is the same
+
+
+def test_shed_levels_skip_the_full_resolution_instances_then_the_branch_refinement():
+    """The daemon's load shedding (`branchrange.onboard.load_shedding`): level 1 leaves out the roi mode's second
+    instance step, level 2 also each branch's own disparity refinement; both still give cut points."""
+    scene = tree_scene()
+    pipeline = _pipeline("roi", "learned")
+    stages = {
+        level: set(pipeline.geometry_stage(pipeline.stereo_stage(scene.left, scene.right, shed_level=level)).timing_ms)
+        for level in (0, 1, 2)
+    }
+    assert {"instances", "branch_disparity"} <= stages[0]
+    assert "instances" not in stages[1] and "branch_disparity" in stages[1]
+    assert "instances" not in stages[2] and "branch_disparity" not in stages[2]
+    assert pipeline.geometry_stage(pipeline.stereo_stage(scene.left, scene.right, shed_level=2)).branches

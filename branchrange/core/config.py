@@ -546,6 +546,56 @@ class LogConfig(Settings):
 
 
 @dataclass(frozen=True)
+class SheddingConfig(Settings):
+    """How the onboard loop sheds work when results near `mavlink.max_result_age_s`
+    (`branchrange.onboard.load_shedding`): a companion computer always runs other processes, and a late
+    result is worth nothing to the autopilot, so a cheaper result in time beats the full one too late.
+
+    - `enabled`: shed work at all (off: every frame is processed as configured, late or not).
+    - `raise_at`: a share of `mavlink.max_result_age_s`; when the median capture → publish time of the last
+      `window_frames` results passes it, or one result is late, the next level is taken.
+    - `lower_at`: a share of `mavlink.max_result_age_s`; after `calm_frames` results in a row below it, one
+      level is given back (a retry that has to be shed again soon waits twice as long the next time).
+    - `window_frames`: results whose median is compared with `raise_at`.
+    - `calm_frames`: results in a row below `lower_at` before a level is given back.
+    - `max_level`: the highest level taken: 1 drops the roi mode's full-resolution instance step
+      (`roi.full_resolution_instances`: its ~50 ms a frame on the stereo thread), 2 also each branch's own
+      disparity refinement (`stereo.refine_branches`: tens of ms on the geometry thread near the tree).
+    """
+
+    section = "shedding"
+    error = ConfigError
+    limits = {
+        # the bound between them (lower_at < raise_at) is a check between keys, not a plain range
+        "raise_at": Limit(maximum=1),
+        "lower_at": Limit(exclusive_minimum=0),
+        "window_frames": Limit(minimum=1),
+        "calm_frames": Limit(minimum=1),
+        "max_level": Limit(minimum=0, maximum=2),
+    }
+
+    enabled: bool = True
+    raise_at: float = 0.7
+    lower_at: float = 0.4
+    window_frames: int = 5
+    calm_frames: int = 30
+    max_level: int = 2
+
+    def checks(self) -> Checks:
+        """The range of every setting; `lower_at` below `raise_at` (else the level would flap)."""
+        return {
+            "raise_at": (0 < self.raise_at <= 1, "a share in (0, 1]"),
+            "lower_at": (
+                0 < self.lower_at < self.raise_at,
+                f"a share in (0, shedding.raise_at = {self.raise_at})",
+            ),
+            "window_frames": (self.window_frames >= 1, "≥ 1 result"),
+            "calm_frames": (self.calm_frames >= 1, "≥ 1 result"),
+            "max_level": (0 <= self.max_level <= 2, "0, 1 or 2"),
+        }
+
+
+@dataclass(frozen=True)
 class MaskConfig(Settings):
     """How instance masks (files, arrays, recordings' masks) are read (`branchrange.core.masks.masks_from_array`).
 
@@ -625,6 +675,7 @@ class Config:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
     log: LogConfig = field(default_factory=LogConfig)
+    shedding: SheddingConfig = field(default_factory=SheddingConfig)
 
 
 #: A command-line override: the dotted key (`stereo.max_disp`, `segmenter.structure.max_range_m`) and its value.

@@ -51,14 +51,15 @@ def pipeline_for(cfg: Config, calibration: Any) -> Any:
     return pipeline
 
 
-def stereo_stage(pipeline: Any, frame: StereoFrame) -> Any:
+def stereo_stage(pipeline: Any, frame: StereoFrame, shed_level: int = 0) -> Any:
     """The stereo half of the frame (`Pipeline.stereo_stage`): its pair, its mask when the recording
-    carries one, its index and capture time. The daemon's stereo thread calls it, then
+    carries one, its index and capture time, at the daemon's work level `shed_level`
+    (`branchrange.onboard.load_shedding`). The daemon's stereo thread calls it, then
     `pipeline.geometry_stage` on its geometry thread.
 
     Raises `ValueError` (the pipeline's input or geometry errors) when the pipeline rejects the frame.
     """
-    return pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
+    return pipeline.stereo_stage(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns, shed_level)
 
 
 def process_frame(pipeline: Any, frame: StereoFrame) -> FrameResult:

@@ -268,13 +268,21 @@ class Pipeline:
         return self.geometry_stage(self.stereo_stage(left, right, mask, index, timestamp_ns))
 
     def stereo_stage(
-        self, left: np.ndarray, right: np.ndarray, mask: MaskInput = None, index: int = 0, timestamp_ns: int = 0
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        mask: MaskInput = None,
+        index: int = 0,
+        timestamp_ns: int = 0,
+        shed_level: int = 0,
     ) -> StereoStage:
         """The first half of a frame: checks, rectification, masks read, disparity.
 
         In `mode = "roi"` this is the coarse pass, the segmenter (when no mask is given) and the
         full-resolution regions of interest; in `"full"` the whole-frame backend. The onboard
-        daemon runs it on its stereo thread and `geometry_stage` on another.
+        daemon runs it on its stereo thread and `geometry_stage` on another. `shed_level`
+        (`branchrange.onboard.load_shedding`): 1 skips the roi mode's full-resolution instance step,
+        2 also the branches' own disparity refinement in the geometry half.
         """
         start = time.perf_counter()
         timing: dict[str, float] = {}
@@ -288,7 +296,7 @@ class Pipeline:
             pair_check.raise_if_refused()
         t = lap_ms(timing, "rectify", start)
         if self.config.stereo.mode == "roi":
-            fine = self.coarse_to_fine.compute(left, right, masks, geometry)
+            fine = self.coarse_to_fine.compute(left, right, masks, geometry, full_resolution_instances=shed_level < 1)
             timing.update(fine.timing_ms)
             disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
             coarse_trunk = fine.trunk
@@ -314,7 +322,7 @@ class Pipeline:
             regions,
             pair_check,
             coarse_trunk=coarse_trunk,
-            right=right,
+            right=right if shed_level < 2 else None,
         )
 
     def process_disparity(

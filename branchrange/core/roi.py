@@ -256,9 +256,18 @@ class CoarseToFine:
         return [self.fine if i in chosen else sgbm for i in range(len(regions))]
 
     def compute(
-        self, left: np.ndarray, right: np.ndarray, masks: BranchMasks | None, geometry: StereoGeometry
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        masks: BranchMasks | None,
+        geometry: StereoGeometry,
+        *,
+        full_resolution_instances: bool = True,
     ) -> CoarseToFineResult:
-        """Full-resolution disparity inside each instance's region of a rectified `uint8 H×W×3` pair."""
+        """Full-resolution disparity inside each instance's region of a rectified `uint8 H×W×3` pair.
+
+        `full_resolution_instances` False skips that step for this frame even where the settings ask for
+        it (the daemon's load shedding)."""
         timing: dict[str, float] = {}
         t = time.perf_counter()
         height, width = left.shape[:2]
@@ -275,7 +284,8 @@ class CoarseToFine:
         coarse_logits = None  # the network's look at the coarse frame, when its instances are found again
         small_geometry = scaled_geometry(geometry, scale)
         if masks is None:
-            if self.config.full_resolution_instances and scale > 1 and hasattr(self.segmenter, "instances"):
+            refind = self.config.full_resolution_instances and full_resolution_instances
+            if refind and scale > 1 and hasattr(self.segmenter, "instances"):
                 coarse_logits = self.segmenter.logits(left_small, coarse.disparity)
                 found = self.segmenter.instances(coarse_logits, left_small, coarse.disparity, small_geometry)
             else:

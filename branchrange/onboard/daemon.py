@@ -24,7 +24,10 @@ each new file starting with the run header again. Threads:
   never waits for either), the JSONL log, /latest and the observers.
 Each result carries `latency` (ms from capture to the stereo stage, to the geometry stage, to
 publishing), besides the per-stage `timing_ms`. A result already older than
-`mavlink.max_result_age_s` when published is counted (`late`) and goes out as "no target". After
+`mavlink.max_result_age_s` when published is counted (`late`) and goes out as "no target"; as ages
+near that limit the daemon sheds work (`load_shedding`: the roi mode's full-resolution instances, then
+the branches' refinement), gives it back when calm, and says so in the log, the status line (`shed=`)
+and /health (`shedding`). After
 the first `WARMUP_FRAMES` frames the daemon logs, once, whether its measured capture → publish
 time can meet `max_result_age_s`, and what to change when it cannot. When the learned segmenter
 measures the light of a frame in another class than the last (`branchrange.core.light_check`: dark,
@@ -48,6 +51,7 @@ from branchrange.core.config import Config
 from branchrange.core.frame_result import FrameResult, Freshness, Latency
 from branchrange.core.frame_results import camera_reopened_line, result_line, run_header_line, stereo_stage, utc_now
 from branchrange.core.pair_check import check_rectification
+from branchrange.onboard.load_shedding import LoadShedder
 from branchrange.onboard.mavlink import MavlinkRelay
 from branchrange.onboard.newest_slot import NewestSlot
 from branchrange.onboard.results_log import ResultsLog
@@ -116,6 +120,7 @@ class Daemon:
                 max_bytes=cfg.log.results_max_bytes,
                 keep=cfg.log.results_keep,
             )
+        self.shedder = LoadShedder(cfg.shedding, cfg.mavlink.max_result_age_s)
         self._stop = threading.Event()
         self._latest: tuple[FrameResult, float] | None = None  # and when its frame arrived (monotonic s)
         self._slot = NewestSlot()
@@ -176,7 +181,12 @@ class Daemon:
             "max_disp": self.cfg.stereo.max_disp,
             "mode": self.cfg.stereo.mode,
         }
-        return {"model": model, "camera": camera, "mavlink": None if self.relay is None else self.relay.link_state()}
+        return {
+            "model": model,
+            "camera": camera,
+            "shedding": self.shedder.state(),
+            "mavlink": None if self.relay is None else self.relay.link_state(),
+        }
 
     def stop(self) -> None:
         """Ask the loop to finish (safe from a signal handler or another thread)."""
@@ -224,7 +234,7 @@ class Daemon:
             self._check_pair(frame)
         started = time.monotonic()
         try:
-            stage = stereo_stage(self.pipeline, frame)
+            stage = stereo_stage(self.pipeline, frame, self.shedder.level)
         except Exception as error:  # noqa: BLE001 — one bad frame must not stop the vehicle's sensor
             self._reject(frame.index, error)
             return
@@ -255,6 +265,7 @@ class Daemon:
             self.relay.publish(result, captured_at=item.captured_at)
             result = replace(result, targets=self.relay.targets())  # fused in local NED, for the log and /latest
         self._check_age(age)
+        self._shed(age)
         self._note_light(result)
         if self._results is not None:
             if self._reopened is not None:  # indices and timestamps start again from the new source's: say why
@@ -336,6 +347,29 @@ class Daemon:
                 1000 * self.cfg.mavlink.max_result_age_s,
             )
 
+    def _shed(self, age_s: float) -> None:
+        """Take the work level this result's age asks for (`load_shedding`), and say so when it changes."""
+        change = self.shedder.observe(age_s)
+        if change is None:
+            return
+        limit_ms = 1000 * self.cfg.mavlink.max_result_age_s
+        if change.raised:
+            log.warning(
+                "load shedding: level %d (%s): capture → publish %.0f ms is near mavlink.max_result_age_s = %.0f ms",
+                change.level,
+                self.shedder.actions,
+                1000 * change.age_s,
+                limit_ms,
+            )
+        else:
+            log.info(
+                "load shedding: back to level %d (%s): capture → publish %.0f ms, well within %.0f ms",
+                change.level,
+                self.shedder.actions,
+                1000 * change.age_s,
+                limit_ms,
+            )
+
     def _status(self, since: float, now: float, frames_then: int) -> None:
         with self._counts_lock:
             fps = (self.frames - frames_then) / max(now - since, 1e-9)
@@ -346,7 +380,7 @@ class Daemon:
         pose = "off" if state is None else state["mode"]  # world: fused in local NED; camera: no vehicle state
         log.info(
             "status frames=%d fps=%.1f latency_ms=%.0f dropped=%d dropped_late=%d skipped=%d corrupt=%d late=%d "
-            "camera=%s link=%s pose=%s",
+            "camera=%s link=%s pose=%s shed=%d",
             self.frames,
             fps,
             latency,
@@ -358,6 +392,7 @@ class Daemon:
             "lost" if self.camera_lost else "ok",
             link,
             pose,
+            self.shedder.level,
         )
 
     def _done(self, max_frames: int | None) -> bool:
