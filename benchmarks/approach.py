@@ -19,9 +19,12 @@ and the daemon's published results (the results log's lines, with their fused `t
   both in the body frame at the moment it arrived (the truth from flight.json, the pose the sim flew);
 - `border_targets`: sends whose target track's newest cut point lies within 2 % of the image width
   of the image border (the artefact of a branch the border cuts);
-- `nearest_ready_s`: the branch nearest to the camera at the last frame: seconds from the first
-  result in which its fused track's confidence is ≥ `cutpoints.target_min_confidence` to the first
-  send of it as the target (None: never sent);
+- `nearest` (the true cut point nearest to the camera at the last frame) and `approached` (the one
+  the flight heads for): seconds after the first frame when its fused track first had a confidence
+  ≥ `cutpoints.target_min_confidence` (`confident_s`), first was eligible as the target by the
+  results log (`eligible_s`: also `tracking.target_min_observations` consistent cut points and
+  captured within `mavlink.max_result_age_s`) and first went out as the target (`target_s`);
+  `ready_delay_s` = eligible − confident, `target_delay_s` = target − confident (None: never);
 - `setpoint_dev_mm` {median, max}: each setpoint against the standoff point computed by the daemon's
   own `ApproachPlanner` from the *true* cut point of the sent target and the true pose (step limit
   included, speed cap not); `setpoint_dev_free_mm` over setpoints the speed cap did not hold;
@@ -341,43 +344,57 @@ def sigma_of_sends(sends: list[Send], timeline: ResultsTimeline, cuts_ned: dict[
     return sigma_coverage(np.array(errors).reshape(-1, 3), np.array(covariances).reshape(-1, 3, 3))
 
 
-def nearest_ready_s(
-    flight: DaemonFlight, sends: list[Send], timeline: ResultsTimeline, min_confidence: float
+def readiness(
+    flight: DaemonFlight, sends: list[Send], timeline: ResultsTimeline, cut_id: int, cfg: Config
 ) -> dict[str, Any]:
-    """The branch nearest at the last frame: when its track's confidence first reached `min_confidence`, and
-    seconds from then to its first send as the target (None when never)."""
-    last = flight.truth.poses[-1]
-    in_camera = flight.truth.cut_points_in_camera(len(flight.truth.poses) - 1)
-    candidates = last.visible_cut_ids or list(in_camera)
-    cut_id = min(candidates, key=lambda i: float(np.linalg.norm(in_camera[i])))
+    """When the fused track of true cut point `cut_id` (the one within `SWITCH_APART_M`) first had a confidence
+    ≥ `cutpoints.target_min_confidence` (`confident_s`), first was eligible as the target by the results log
+    (`tracking.target_min_observations` consistent cut points, that confidence, captured within
+    `mavlink.max_result_age_s`: `eligible_s`), and first went out as the target (`target_s`), seconds after the
+    first frame; `ready_delay_s` = eligible − confident, `target_delay_s` = target − confident (None: never)."""
     cut = flight.cuts_ned()[cut_id]
-    confident_at = next(
+    min_confidence = cfg.cutpoints.target_min_confidence
+
+    def first_result(eligible: bool) -> float | None:
+        for t, result in zip(timeline.times, timeline.results):
+            for track in result.targets.tracks if result.targets is not None else ():
+                if np.linalg.norm(np.asarray(track.ned_m) - cut) > SWITCH_APART_M or track.confidence < min_confidence:
+                    continue
+                if not eligible or (
+                    track.consistent_observations >= cfg.tracking.target_min_observations
+                    and track.age_s <= cfg.mavlink.max_result_age_s
+                ):
+                    return t - flight.sim.start
+        return None
+
+    confident, eligible = first_result(False), first_result(True)
+    target = next(
         (
-            t
-            for t, result in zip(timeline.times, timeline.results)
-            if result.targets is not None
-            and any(
-                tr.confidence >= min_confidence and np.linalg.norm(np.asarray(tr.ned_m) - cut) <= SWITCH_APART_M
-                for tr in result.targets.tracks
-            )
-        ),
-        None,
-    )
-    sent_at = next(
-        (
-            s.at
+            s.at - flight.sim.start
             for s in sends
             if s.target_ned_m is not None and np.linalg.norm(s.target_ned_m - cut) <= SWITCH_APART_M
         ),
         None,
     )
-    delay = None if confident_at is None or sent_at is None else round(sent_at - confident_at, 3)
+
+    def delay(t: float | None) -> float | None:
+        return None if t is None or confident is None else round(t - confident, 3)
+
     return {
         "cut_id": cut_id,
-        "confident_s": None if confident_at is None else round(confident_at - flight.sim.start, 3),
-        "ready_s": None if sent_at is None else round(sent_at - flight.sim.start, 3),
-        "delay_s": delay,
+        "confident_s": None if confident is None else round(confident, 3),
+        "eligible_s": None if eligible is None else round(eligible, 3),
+        "target_s": None if target is None else round(target, 3),
+        "ready_delay_s": delay(eligible),
+        "target_delay_s": delay(target),
     }
+
+
+def nearest_at_arrival(flight: DaemonFlight) -> int:
+    """The true cut point nearest to the camera at the last frame, among those the frame shows."""
+    in_camera = flight.truth.cut_points_in_camera(len(flight.truth.poses) - 1)
+    candidates = flight.truth.poses[-1].visible_cut_ids or list(in_camera)
+    return min(candidates, key=lambda i: float(np.linalg.norm(in_camera[i])))
 
 
 def true_standoff(cfg: MavlinkConfig, tracking: TrackingConfig, cut_ned: np.ndarray, pose: SimPose, t: float):
@@ -461,7 +478,8 @@ def score_flight(flight: DaemonFlight, cfg: Config, target_id: int) -> dict[str,
         "error_mm": stats_mm(errors),
         "off_5cm": sum(e > OFF_TARGET_M for e in errors),
         "border_targets": border_targets(sends, timeline),
-        "nearest_ready": nearest_ready_s(flight, sends, timeline, cfg.cutpoints.target_min_confidence),
+        "nearest": readiness(flight, sends, timeline, nearest_at_arrival(flight), cfg),
+        "approached": readiness(flight, sends, timeline, target_id, cfg),
         **setpoint_scores(flight, sends, cfg),
         "sigma": sigma_of_sends(sends, timeline, cuts),
         "latency_ms": latency_bands(capture_to_send(flight, sends, target_id), cfg.mavlink.max_result_age_s),
@@ -496,7 +514,7 @@ def verdicts(rows: list[dict[str, Any]]) -> dict[str, bool]:
         "no border target": all(r["border_targets"] == 0 for r in rows),
         "≤ 1 switch per approach": all(r["switches"] <= MAX_SWITCHES for r in approaches),
         "nearest ready within 1 s": all(
-            r["nearest_ready"]["delay_s"] is not None and r["nearest_ready"]["delay_s"] <= READY_WITHIN_S
+            r["nearest"]["ready_delay_s"] is not None and r["nearest"]["ready_delay_s"] <= READY_WITHIN_S
             for r in approaches
         ),
         "1-σ covers 68 ± 10 %": bool(coverage)
@@ -515,7 +533,7 @@ def print_report(report: dict[str, Any]) -> None:
     print(f"CPU: {report['cpu']}; {report['threads']} threads; {report['resolution']}; machine load at start: {report['load']}")
     print(
         f"{'flight':>10} {'masks':>7} {'sends':>5} {'tgt':>4} {'sw':>3} {'first s':>7} {'err med':>7} {'p90':>5} "
-        f"{'max mm':>7} {'>5cm':>4} {'bord':>4} {'ready s':>7} {'sp dev med':>10} {'max mm':>7} {'capped':>6} "
+        f"{'max mm':>7} {'>5cm':>4} {'bord':>4} {'ready s':>7} {'tgt s':>5} {'sp dev med':>10} {'max mm':>7} {'capped':>6} "
         f"{'σ axis':>6} {'σ rad':>5} {'exp':>5}"
     )
     for r in report["flights"]:
@@ -524,7 +542,8 @@ def print_report(report: dict[str, Any]) -> None:
         print(
             f"{name:>10} {r['masks']:>7} {r['sends']:>5} {r['target_sends']:>4} {r['switches']:>3} "
             f"{fmt(r['first_target_s'], 2):>7} {fmt(e['median'], 1):>7} {fmt(e['p90'], 1):>5} {fmt(e['max'], 1):>7} "
-            f"{r['off_5cm']:>4} {r['border_targets']:>4} {fmt(r['nearest_ready']['delay_s'], 2):>7} "
+            f"{r['off_5cm']:>4} {r['border_targets']:>4} {fmt(r['nearest']['ready_delay_s'], 2):>7} "
+            f"{fmt(r['nearest']['target_delay_s'], 2):>5} "
             f"{fmt(d['median'], 0):>10} {fmt(d['max'], 0):>7} {fmt(r['speed_capped'], 2):>6} "
             f"{fmt(s['axis'], 2):>6} {fmt(s['radius'], 2):>5} {fmt(s['radius_expected'], 2):>5}"
         )
