@@ -517,8 +517,7 @@ def verdicts(rows: list[dict[str, Any]]) -> dict[str, bool]:
             r["nearest"]["ready_delay_s"] is not None and r["nearest"]["ready_delay_s"] <= READY_WITHIN_S
             for r in approaches
         ),
-        "1-σ covers 68 ± 10 %": bool(coverage)
-        and all(COVERAGE_RANGE[0] <= c <= COVERAGE_RANGE[1] for c in coverage),
+        "1-σ covers 68 ± 10 %": bool(coverage) and all(COVERAGE_RANGE[0] <= c <= COVERAGE_RANGE[1] for c in coverage),
         "capture → send p95 ≤ 250 ms per band": bool(p95) and all(v is not None and v <= LATENCY_P95_MS for v in p95),
     }
 
@@ -528,34 +527,45 @@ def fmt(value: Any, digits: int = 0) -> str:
     return "—" if value is None else f"{value:.{digits}f}"
 
 
+def flight_name(row: dict[str, Any]) -> str:
+    """`0.5 m/s`, or `hover`."""
+    return f"{row['speed_m_s']} m/s" if row["speed_m_s"] else "hover"
+
+
+def flight_line(r: dict[str, Any]) -> str:
+    """One row of the main table."""
+    e, d, s, n = r["error_mm"], r["setpoint_dev_mm"], r["sigma"], r["nearest"]
+    return (
+        f"{flight_name(r):>8} {r['masks']:>7} {r['sends']:>5} {r['target_sends']:>4} {r['switches']:>3} "
+        f"{fmt(r['first_target_s'], 2):>7} {fmt(e['median'], 1):>7} {fmt(e['p90'], 1):>5} {fmt(e['max'], 1):>6} "
+        f"{r['off_5cm']:>4} {r['border_targets']:>4} {fmt(n['ready_delay_s'], 2):>7} {fmt(n['target_delay_s'], 2):>5} "
+        f"{fmt(d['median'], 0):>6} {fmt(d['max'], 0):>6} {fmt(r['speed_capped'], 2):>6} "
+        f"{fmt(s['axis'], 2):>6} {fmt(s['radius'], 2):>5} {fmt(s['radius_expected'], 2):>5}"
+    )
+
+
+def band_cell(band: dict[str, Any]) -> str:
+    """`p50/p95 (sent/released, late)` of one range band, `—` when no frame was in it."""
+    if not band["released"]:
+        return "—"
+    return f"{fmt(band['p50_ms'])}/{fmt(band['p95_ms'])} ({band['sent']}/{band['released']}, {band['late']})"
+
+
 def print_report(report: dict[str, Any]) -> None:
     """The tables of the module docstring, and the targets met or not."""
-    print(f"CPU: {report['cpu']}; {report['threads']} threads; {report['resolution']}; machine load at start: {report['load']}")
+    print(f"CPU: {report['cpu']}; {report['threads']} threads; {report['resolution']}; load {report['load']}")
     print(
-        f"{'flight':>10} {'masks':>7} {'sends':>5} {'tgt':>4} {'sw':>3} {'first s':>7} {'err med':>7} {'p90':>5} "
-        f"{'max mm':>7} {'>5cm':>4} {'bord':>4} {'ready s':>7} {'tgt s':>5} {'sp dev med':>10} {'max mm':>7} {'capped':>6} "
-        f"{'σ axis':>6} {'σ rad':>5} {'exp':>5}"
+        f"{'flight':>8} {'masks':>7} {'sends':>5} {'tgt':>4} {'sw':>3} {'first s':>7} {'err med':>7} {'p90':>5} "
+        f"{'max mm':>6} {'>5cm':>4} {'bord':>4} {'ready s':>7} {'tgt s':>5} {'sp med':>6} {'max mm':>6} "
+        f"{'capped':>6} {'σ axis':>6} {'σ rad':>5} {'exp':>5}"
     )
-    for r in report["flights"]:
-        name = f"{r['speed_m_s']} m/s" if r["speed_m_s"] else "hover"
-        e, d, s = r["error_mm"], r["setpoint_dev_mm"], r["sigma"]
-        print(
-            f"{name:>10} {r['masks']:>7} {r['sends']:>5} {r['target_sends']:>4} {r['switches']:>3} "
-            f"{fmt(r['first_target_s'], 2):>7} {fmt(e['median'], 1):>7} {fmt(e['p90'], 1):>5} {fmt(e['max'], 1):>7} "
-            f"{r['off_5cm']:>4} {r['border_targets']:>4} {fmt(r['nearest']['ready_delay_s'], 2):>7} "
-            f"{fmt(r['nearest']['target_delay_s'], 2):>5} "
-            f"{fmt(d['median'], 0):>10} {fmt(d['max'], 0):>7} {fmt(r['speed_capped'], 2):>6} "
-            f"{fmt(s['axis'], 2):>6} {fmt(s['radius'], 2):>5} {fmt(s['radius_expected'], 2):>5}"
-        )
+    for row in report["flights"]:
+        print(flight_line(row))
     print("\ncapture → send, ms: p50/p95 (sent/released, late) by range to the approach's target cut point")
-    print(f"{'flight':>10} {'masks':>7} " + " ".join(f"{band_label(i) + ' m':>22}" for i in range(len(BAND_EDGES_M) - 1)))
-    for r in report["flights"]:
-        name = f"{r['speed_m_s']} m/s" if r["speed_m_s"] else "hover"
-        cells = [
-            f"{fmt(b['p50_ms'])}/{fmt(b['p95_ms'])} ({b['sent']}/{b['released']}, {b['late']})" if b["released"] else "—"
-            for b in r["latency_ms"]
-        ]
-        print(f"{name:>10} {r['masks']:>7} " + " ".join(f"{c:>22}" for c in cells))
+    bands = " ".join(f"{band_label(i) + ' m':>22}" for i in range(len(BAND_EDGES_M) - 1))
+    print(f"{'flight':>8} {'masks':>7} {bands}")
+    for row in report["flights"]:
+        print(f"{flight_name(row):>8} {row['masks']:>7} " + " ".join(f"{band_cell(b):>22}" for b in row["latency_ms"]))
     print("\ntargets: " + "; ".join(f"{k}: {'met' if v else 'NOT met'}" for k, v in report["targets"].items()))
 
 

@@ -48,7 +48,6 @@ from autopilot_sim import AutopilotSim, approach_flight, body_target_errors, fly
 from machine import cpu_name  # noqa: E402
 
 from branchrange.core.config import MavlinkConfig, TrackingConfig  # noqa: E402
-from branchrange.core.frame_result import FrameResult  # noqa: E402
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay  # noqa: E402
 
 FPS = 15.0

@@ -376,7 +376,7 @@ def fly_daemon(
     the simulator (GUIDED, armed) flies its flight.json, hovering at the first pose until the first frame
     is released. `wrap_source` wraps each replay source (e.g. to drop its masks). The pipeline is warmed
     up on the first frame before the clock starts, so lazily built parts do not count as latency."""
-    from branchrange.onboard.daemon import Daemon
+    from branchrange.onboard.daemon import Daemon, relay_for
     from camera.sources import ReplaySource
 
     truth = FlightTruth.load(directory)
@@ -386,13 +386,7 @@ def fly_daemon(
         sim.start = time.monotonic() + 3600.0  # hover at the first pose until the first frame
         cfg = dataclasses.replace(cfg, mavlink=dataclasses.replace(cfg.mavlink, url=f"udpout:127.0.0.1:{sim.port}"))
         pipeline = _warm_pipeline(directory, cfg, wrap_source)
-        relay = TimedRelay(
-            cfg.mavlink,
-            mount,
-            tracking=cfg.tracking,
-            target_policy=cfg.cutpoints.target_policy,
-            target_min_confidence=cfg.cutpoints.target_min_confidence,
-        )
+        relay = relay_for(cfg, mount, TimedRelay)
         deadline = time.monotonic() + 5.0
         while not relay.link_state()["vehicle_state"]["available"] and time.monotonic() < deadline:
             time.sleep(0.02)
