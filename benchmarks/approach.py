@@ -34,6 +34,9 @@ and the daemon's published results (the results log's lines, with their fused `t
   `axis` the share whose error along the covariance's largest axis is within its 1-σ (`sigma_m`,
   ideally 68 %); `radius` the share whose whole error is ≤ `sigma_m`, with `radius_expected`, the
   share a Gaussian with the reported covariance would give (3-D, so below 68 %);
+- `release_lag_ms` {median, max}: the daemon's arrival stamp of each frame after its release on the
+  simulator's clock (frames are decoded into memory first, as a camera delivers raw frames; a large
+  lag would mean the harness, not the daemon, fell behind);
 - `latency_ms` by 0.5 m band of the true range to the approach's target cut point at capture:
   p50/p95 of capture (the daemon's arrival stamp) → the first DEBUG_VECT at the autopilot after
   the result was published; `released` frames in the band, `sent` results, `late` ones older than
@@ -461,6 +464,22 @@ def capture_to_send(flight: DaemonFlight, sends: list[Send], target_id: int) -> 
     return samples
 
 
+def release_lag_ms(flight: DaemonFlight) -> dict[str, float | None]:
+    """How late (ms, median and max) the daemon stamped each published frame's arrival after its release time
+    on the simulator's clock: the benchmark's own check that the camera kept time (the sim flies the pose of
+    a frame's timestamp; a frame stamped later would be fused with a newer pose)."""
+    first_ns = flight.truth.poses[0].timestamp_ns
+    stamps = {pose.index: (pose.timestamp_ns - first_ns) / 1e9 for pose in flight.truth.poses}
+    lags = [
+        1000 * (captured - flight.sim.start - stamps[index])
+        for index, (captured, _) in flight.publications.items()
+        if index in stamps
+    ]
+    if not lags:
+        return {"median": None, "max": None}
+    return {"median": round(float(np.median(lags)), 1), "max": round(float(max(lags)), 1)}
+
+
 def score_flight(flight: DaemonFlight, cfg: Config, target_id: int) -> dict[str, Any]:
     """Every metric of the module docstring for one flight."""
     sends = received_sends(flight)
@@ -471,6 +490,7 @@ def score_flight(flight: DaemonFlight, cfg: Config, target_id: int) -> dict[str,
     return {
         "frames_released": len(flight.truth.poses),
         "counters": flight.counters,
+        "release_lag_ms": release_lag_ms(flight),
         "sends": len(sends),
         "target_sends": len(targets),
         "switches": count_switches([s.target_ned_m for s in sends]),
@@ -540,7 +560,8 @@ def flight_line(r: dict[str, Any]) -> str:
         f"{fmt(r['first_target_s'], 2):>7} {fmt(e['median'], 1):>7} {fmt(e['p90'], 1):>5} {fmt(e['max'], 1):>6} "
         f"{r['off_5cm']:>4} {r['border_targets']:>4} {fmt(n['ready_delay_s'], 2):>7} {fmt(n['target_delay_s'], 2):>5} "
         f"{fmt(d['median'], 0):>6} {fmt(d['max'], 0):>6} {fmt(r['speed_capped'], 2):>6} "
-        f"{fmt(s['axis'], 2):>6} {fmt(s['radius'], 2):>5} {fmt(s['radius_expected'], 2):>5}"
+        f"{fmt(s['axis'], 2):>6} {fmt(s['radius'], 2):>5} {fmt(s['radius_expected'], 2):>5} "
+        f"{fmt(r['release_lag_ms']['max']):>4}"
     )
 
 
@@ -557,7 +578,7 @@ def print_report(report: dict[str, Any]) -> None:
     print(
         f"{'flight':>8} {'masks':>7} {'sends':>5} {'tgt':>4} {'sw':>3} {'first s':>7} {'err med':>7} {'p90':>5} "
         f"{'max mm':>6} {'>5cm':>4} {'bord':>4} {'ready s':>7} {'tgt s':>5} {'sp med':>6} {'max mm':>6} "
-        f"{'capped':>6} {'σ axis':>6} {'σ rad':>5} {'exp':>5}"
+        f"{'capped':>6} {'σ axis':>6} {'σ rad':>5} {'exp':>5} {'lag':>4}"
     )
     for row in report["flights"]:
         print(flight_line(row))

@@ -17,9 +17,9 @@ pose at capture plus the noise the tracker's measurement model assumes. The test
 `benchmarks/pose_compensation.py` both use it.
 
 `fly_daemon` runs the real daemon instead (`branchrange.onboard.daemon.Daemon`, its pipeline and a real
-`MavlinkRelay`) on a `branchrange synth-flight` recording released at its timestamps, while the
-simulator flies the recording's camera poses; `benchmarks/pose_compensation.py --flight` and
-`benchmarks/approach.py` use it.
+`MavlinkRelay`) on a `branchrange synth-flight` recording released at its timestamps (decoded into
+memory first: `PreloadedReplay`), while the simulator flies the recording's camera poses;
+`benchmarks/pose_compensation.py --flight` and `benchmarks/approach.py` use it.
 """
 
 from __future__ import annotations
@@ -43,6 +43,9 @@ from branchrange.offline.flight import FlightPose, FlightTruth
 from branchrange.onboard.mavlink import MavlinkRelay
 from branchrange.onboard.mavlink.connection import mavutil_v2
 from branchrange.onboard.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
+from camera.calibration import StereoCalibration
+from camera.sources import ReplaySource, StereoFrame
+from camera.sources.replay import FrameReader
 
 ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
 MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
@@ -326,6 +329,60 @@ def flight_clock(sim: AutopilotSim) -> Callable[[], int]:
     return clock
 
 
+class DecodedFrames:
+    """A `FrameReader` over another one's frames, all decoded into memory up front."""
+
+    def __init__(self, reader: FrameReader) -> None:
+        self.frames: list[StereoFrame] = []
+        while (frame := reader.read()) is not None:
+            self.frames.append(frame)
+        self._period_ns, self._size, self._calibration = reader.period_ns, reader.frame_size(), reader.calibration()
+        reader.close()
+        self._position = 0
+
+    @property
+    def count(self) -> int:
+        """Frames held."""
+        return len(self.frames)
+
+    @property
+    def period_ns(self) -> int:
+        """The recording's frame period, ns."""
+        return self._period_ns
+
+    def read(self) -> StereoFrame | None:
+        """The next frame, None at the end."""
+        if self._position >= len(self.frames):
+            return None
+        self._position += 1
+        return self.frames[self._position - 1]
+
+    def seek(self, position: int) -> None:
+        """Make frame `position` (0-based) the next one read."""
+        self._position = position
+
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of each view, px."""
+        return self._size
+
+    def calibration(self) -> StereoCalibration | None:
+        """The recording's calibration."""
+        return self._calibration
+
+    def close(self) -> None:
+        """Nothing to release: the frames are in memory."""
+
+
+class PreloadedReplay(ReplaySource):
+    """A `ReplaySource` whose frames are decoded into memory before the first is released, then released at
+    their recorded times: a camera delivers raw frames on time, while decoding three HD720 PNGs a frame on a
+    busy 2-core computer falls behind, and a frame arriving late shows a pose older than the one the
+    simulator flies at its arrival (7.4 MB an HD720 frame with its mask: 0.8 GB for 110 frames)."""
+
+    def _open_frames(self, fps: float | None) -> FrameReader:
+        return DecodedFrames(super()._open_frames(fps))
+
+
 class TimedRelay(MavlinkRelay):
     """A `MavlinkRelay` that notes, per frame index, when the daemon captured and published each result
     (monotonic s): the start of the capture → send latency the benchmarks measure at the autopilot."""
@@ -377,7 +434,6 @@ def fly_daemon(
     is released. `wrap_source` wraps each replay source (e.g. to drop its masks). The pipeline is warmed
     up on the first frame before the clock starts, so lazily built parts do not count as latency."""
     from branchrange.onboard.daemon import Daemon, relay_for
-    from camera.sources import ReplaySource
 
     truth = FlightTruth.load(directory)
     trajectory, world_to_ned = flight_from_camera_poses(truth.poses, mount, start_ned_m, heading_deg)
@@ -390,7 +446,7 @@ def fly_daemon(
         deadline = time.monotonic() + 5.0
         while not relay.link_state()["vehicle_state"]["available"] and time.monotonic() < deadline:
             time.sleep(0.02)
-        replay = ReplaySource(directory, pace="recorded", clock=flight_clock(sim))
+        replay = PreloadedReplay(directory, pace="recorded", clock=flight_clock(sim))
         daemon = Daemon(
             cfg,
             open_source=lambda: wrap_source(replay),
@@ -412,7 +468,6 @@ def fly_daemon(
 def _warm_pipeline(directory: Path, cfg: Config, wrap_source: Callable[[Any], Any]) -> Any:
     """The daemon's pipeline for `cfg`, run once on the recording's first frame and reset."""
     from branchrange.core.frame_results import pipeline_for
-    from camera.sources import ReplaySource
 
     probe = wrap_source(ReplaySource(directory, pace="fast"))
     try:
