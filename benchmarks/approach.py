@@ -597,7 +597,8 @@ def machine_load() -> str:
     return " ".join(f"{v:.1f}" for v in os.getloadavg())
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """The command line; `--quick` sets the smoke run's resolution, speed and masks."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--speeds", default="0.3,0.5,0.8", help="approach speeds, m/s (comma-separated)")
     parser.add_argument("--masks", choices=("truth", "builtin", "both"), default="both")
@@ -610,6 +611,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.quick:
         args.resolution, args.speeds, args.masks = "640x360", "0.5", "truth"
+    return args
+
+
+def fly_all(args: argparse.Namespace) -> dict[str, Any]:
+    """Render (once) and fly every speed (and the hover) with every mask source; the report."""
     import cv2
     import torch
 
@@ -617,8 +623,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     width = int(args.resolution.lower().split("x")[0])
     speeds: list[float | None] = [float(v) for v in args.speeds.split(",")]
-    if args.hover_s > 0:
-        speeds.append(None)
+    speeds += [None] if args.hover_s > 0 else []
     masks = ["truth", "builtin"] if args.masks == "both" else [args.masks]
     report: dict[str, Any] = {
         "cpu": cpu_name(),
@@ -634,10 +639,22 @@ def main(argv: list[str] | None = None) -> int:
             print(f"flying {directory.name} with {mask} masks ...", file=sys.stderr)
             report["flights"].append({"speed_m_s": speed, "masks": mask, **run_flight(directory, mask, width)})
     report["targets"] = verdicts(report["flights"])
+    return report
+
+
+def write_json(path: Path, report: dict[str, Any]) -> None:
+    """The report as indented JSON at `path` (its folder made when missing)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Fly, print the tables, write `--json`."""
+    args = parse_args(argv)
+    report = fly_all(args)
     print_report(report)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report)
     return 0
 
 
