@@ -24,14 +24,14 @@ def test_switches_count_only_targets_more_than_10_cm_apart() -> None:
     b = a + np.array([0.2, 0.0, 0.0])
     sent = [a, a + [0.03, 0, 0], None, a + [0.05, 0, 0], b, b + [0, 0.02, 0], None, a]
     # a→a+3 cm, gap, →a+5 cm: the same branch; →b (15 cm): one; b→b+2 cm: none; gap, →a (≈ 20 cm): two
-    assert approach.count_switches(sent) == 2
+    assert approach.switch_indices(sent) == [4, 7]
 
 
 def test_a_target_exactly_10_cm_away_is_no_switch() -> None:
     a = np.zeros(3)
-    assert approach.count_switches([a, a + [0.10, 0, 0]]) == 0
-    assert approach.count_switches([a, a + [0.1001, 0, 0]]) == 1
-    assert approach.count_switches([None, None]) == 0
+    assert approach.switch_indices([a, a + [0.10, 0, 0]]) == []
+    assert approach.switch_indices([a, a + [0.1001, 0, 0]]) == [1]
+    assert approach.switch_indices([None, None]) == []
 
 
 def test_sigma_coverage_by_axis_and_radius() -> None:
@@ -90,6 +90,13 @@ def test_speed_cap_is_a_step_of_exactly_speed_times_dt() -> None:
     steps = [(0.25, 0.125), (0.25, 0.1), (0.251, 0.125), (0.25, 0.124), (0.1, 0.05)]
     # 0.5 m/s: 12.5 cm in 250 ms is the cap; 10 cm is free; 251 ms is within the ms rounding; 12.4 cm is free
     assert approach.speed_capped(steps, 0.5) == [True, False, True, False, True]
+
+
+def test_a_point_stands_for_the_nearest_cut_point_within_10_cm() -> None:
+    cuts = {1: np.zeros(3), 2: np.array([0.18, 0.0, 0.0])}
+    assert approach.is_of(np.array([0.02, 0.0, 0.0]), 1, cuts)
+    assert not approach.is_of(np.array([0.095, 0.0, 0.0]), 1, cuts)  # within 10 cm of 1, but 2 is nearer
+    assert not approach.is_of(np.array([0.0, 0.11, 0.0]), 1, cuts)  # nearest, but 11 cm off
 
 
 def test_border_pixels_within_2_percent_of_the_width() -> None:
