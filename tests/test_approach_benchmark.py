@@ -9,6 +9,7 @@ tests. `benchmarks/` is not a package: the tests put it on the path as its scrip
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -110,3 +111,25 @@ def test_stats_in_millimetres() -> None:
     values = [0.001 * v for v in range(1, 11)]
     assert approach.stats_mm(values) == {"median": 5.5, "p90": 9.1, "max": 10.0}
     assert approach.stats_mm([]) == {"median": None, "p90": None, "max": None}
+
+
+def test_preloaded_replay_releases_the_recordings_frames_at_their_times(tmp_path: Path) -> None:
+    from autopilot_sim import PreloadedReplay
+    from synth_recording import write_tree_recording
+
+    from camera.sources import ReplaySource
+
+    period_ns = 50_000_000
+    directory = write_tree_recording(tmp_path / "rec", 4, period_ns)
+    expected = list(ReplaySource(directory, pace="fast"))
+    released: list[float] = []
+    replay = PreloadedReplay(directory, pace="recorded")
+    frames = []
+    for frame in replay:
+        released.append(time.monotonic())
+        frames.append(frame)
+    assert [f.index for f in frames] == [f.index for f in expected]
+    assert [f.timestamp_ns for f in frames] == [f.timestamp_ns for f in expected]
+    assert all(np.array_equal(a.left, b.left) and np.array_equal(a.mask, b.mask) for a, b in zip(frames, expected))
+    # paced by the recording: frame k no earlier than k periods after the first
+    assert all(t - released[0] >= k * period_ns / 1e9 - 1e-3 for k, t in enumerate(released))
