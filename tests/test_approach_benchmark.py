@@ -100,6 +100,26 @@ def test_a_point_stands_for_the_nearest_cut_point_within_10_cm() -> None:
     assert not approach.is_of(np.array([0.0, 0.11, 0.0]), 1, cuts)  # nearest, but 11 cm off
 
 
+def test_confident_runs_and_when_each_became_eligible() -> None:
+    samples = [(0.0, False, False), (0.1, True, False), (0.2, True, False), (0.3, True, True), (0.4, False, False)]
+    samples += [(1.0, True, False), (1.5, True, False)]
+    runs = approach.confident_runs(samples, end_s=2.5)
+    assert runs == [
+        {"start_s": 0.1, "end_s": 0.4, "eligible_after_s": 0.2},
+        {"start_s": 1.0, "end_s": 2.5, "eligible_after_s": None},
+    ]
+
+
+def test_ready_in_time_fails_a_run_confident_for_a_second_without_eligibility() -> None:
+    eligible_soon = {"start_s": 0.1, "end_s": 0.4, "eligible_after_s": 0.2}
+    too_short_to_tell = {"start_s": 2.0, "end_s": 2.9, "eligible_after_s": None}
+    never = {"start_s": 1.0, "end_s": 2.5, "eligible_after_s": None}
+    late = {"start_s": 1.0, "end_s": 3.0, "eligible_after_s": 1.2}
+    assert approach.ready_in_time([eligible_soon, too_short_to_tell])
+    assert not approach.ready_in_time([eligible_soon, never])
+    assert not approach.ready_in_time([late])
+
+
 def test_border_pixels_within_2_percent_of_the_width() -> None:
     assert approach.is_border((10.0, 300.0), 1280, 720)
     assert approach.is_border((1260.0, 300.0), 1280, 720)
