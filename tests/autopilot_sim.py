@@ -15,24 +15,37 @@ The trajectory maps seconds since the simulator started to a `SimPose` (body FRD
 latency after capture with its capture time, holding the true cut points seen from the true camera
 pose at capture plus the noise the tracker's measurement model assumes. The tests and
 `benchmarks/pose_compensation.py` both use it.
+
+`fly_daemon` runs the real daemon instead (`branchrange.onboard.daemon.Daemon`, its pipeline and a real
+`MavlinkRelay`) on a `branchrange synth-flight` recording released at its timestamps (decoded into
+memory first: `PreloadedReplay`), while the simulator flies the recording's camera poses;
+`benchmarks/pose_compensation.py --flight` and `benchmarks/approach.py` use it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from mavlink_peer import Received
 from result_factory import branch, frame_result
 
-from branchrange.core.config import TrackingConfig
-from branchrange.offline.flight import FlightPose
+from branchrange.core.config import Config, TrackingConfig
+from branchrange.core.frame_result import FrameResult, WorldTargets
+from branchrange.offline.flight import FlightPose, FlightTruth
+from branchrange.onboard.mavlink import MavlinkRelay
 from branchrange.onboard.mavlink.connection import mavutil_v2
 from branchrange.onboard.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
+from camera.calibration import StereoCalibration
+from camera.sources import ReplaySource, StereoFrame
+from camera.sources.replay import FrameReader
 
 ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
 MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
@@ -299,3 +312,169 @@ def body_target_errors(
         compensated.append(float(np.linalg.norm(np.array([r.msg.x, r.msg.y, r.msg.z]) - truth)))
         uncompensated.append(float(np.linalg.norm(mount.to_body(newest[-1].target_cam_m) - truth)))
     return compensated, uncompensated
+
+
+def flight_clock(sim: AutopilotSim) -> Callable[[], int]:
+    """A replay clock (monotonic ns) that starts the simulator's flight when the replay first reads it,
+    which is when it releases the first frame (`ReplaySource` paces the rest from there)."""
+    started = False
+
+    def clock() -> int:
+        nonlocal started
+        now = time.monotonic_ns()
+        if not started:
+            sim.start, started = now / 1e9, True  # flight time 0 = the first pose, released now
+        return now
+
+    return clock
+
+
+class DecodedFrames:
+    """A `FrameReader` over another one's frames, all decoded into memory up front."""
+
+    def __init__(self, reader: FrameReader) -> None:
+        self.frames: list[StereoFrame] = []
+        while (frame := reader.read()) is not None:
+            self.frames.append(frame)
+        self._period_ns, self._size, self._calibration = reader.period_ns, reader.frame_size(), reader.calibration()
+        reader.close()
+        self._position = 0
+
+    @property
+    def count(self) -> int:
+        """Frames held."""
+        return len(self.frames)
+
+    @property
+    def period_ns(self) -> int:
+        """The recording's frame period, ns."""
+        return self._period_ns
+
+    def read(self) -> StereoFrame | None:
+        """The next frame, None at the end."""
+        if self._position >= len(self.frames):
+            return None
+        self._position += 1
+        return self.frames[self._position - 1]
+
+    def seek(self, position: int) -> None:
+        """Make frame `position` (0-based) the next one read."""
+        self._position = position
+
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of each view, px."""
+        return self._size
+
+    def calibration(self) -> StereoCalibration | None:
+        """The recording's calibration."""
+        return self._calibration
+
+    def close(self) -> None:
+        """Nothing to release: the frames are in memory."""
+
+
+class PreloadedReplay(ReplaySource):
+    """A `ReplaySource` whose frames are decoded into memory before the first is released, then released at
+    their recorded times: a camera delivers raw frames on time, while decoding three HD720 PNGs a frame on a
+    busy 2-core computer falls behind, and a frame arriving late shows a pose older than the one the
+    simulator flies at its arrival (7.4 MB an HD720 frame with its mask: 0.8 GB for 110 frames)."""
+
+    def _open_frames(self, fps: float | None) -> FrameReader:
+        return DecodedFrames(super()._open_frames(fps))
+
+
+class TimedRelay(MavlinkRelay):
+    """A `MavlinkRelay` that notes, per frame index, when the daemon captured and published each result
+    (monotonic s): the start of the capture → send latency the benchmarks measure at the autopilot."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.publications: dict[int, tuple[float, float]] = {}  # frame index → (captured_at, published_at)
+
+    def publish(self, result: FrameResult, captured_at: float | None = None) -> None:
+        """Note the times, then hand over as the relay does."""
+        published_at = time.monotonic()
+        self.publications[result.frame.index] = (published_at if captured_at is None else captured_at, published_at)
+        super().publish(result, captured_at)
+
+
+@dataclass
+class DaemonFlight:
+    """What a daemon replay against the simulator left behind.
+
+    `sim` (closed; `received` holds every message the autopilot got, with arrival times), `published`
+    (monotonic s when the daemon's observers saw it, the result as logged, with its fused `targets`),
+    `publications` (frame index → captured_at, published_at, monotonic s), the flight's `truth`, its
+    `world_to_ned` map, the relay's `final_targets`, and the daemon's frame counters."""
+
+    sim: AutopilotSim
+    published: list[tuple[float, FrameResult]]
+    publications: dict[int, tuple[float, float]]
+    truth: FlightTruth
+    world_to_ned: Callable[[np.ndarray], np.ndarray]
+    final_targets: WorldTargets
+    counters: dict[str, int]
+
+    def cuts_ned(self) -> dict[int, np.ndarray]:
+        """True cut point id → its local NED position (3,) m."""
+        return {c.id: self.world_to_ned(c.world_m) for c in self.truth.cut_points}
+
+
+def fly_daemon(
+    directory: Path,
+    cfg: Config,
+    mount: CameraMount,
+    *,
+    start_ned_m=(0.0, 0.0, -2.0),
+    heading_deg: float = 0.0,
+    wrap_source: Callable[[Any], Any] = lambda source: source,
+) -> DaemonFlight:
+    """Replay `directory` through the daemon (config `cfg`, its `mavlink.url` pointed at the simulator) while
+    the simulator (GUIDED, armed) flies its flight.json, hovering at the first pose until the first frame
+    is released. `wrap_source` wraps each replay source (e.g. to drop its masks). The pipeline is warmed
+    up on the first frame before the clock starts, so lazily built parts do not count as latency."""
+    from branchrange.onboard.daemon import Daemon, relay_for
+
+    truth = FlightTruth.load(directory)
+    trajectory, world_to_ned = flight_from_camera_poses(truth.poses, mount, start_ned_m, heading_deg)
+    published: list[tuple[float, FrameResult]] = []
+    with AutopilotSim(trajectory, heartbeat_period_s=0.2) as sim:
+        sim.start = time.monotonic() + 3600.0  # hover at the first pose until the first frame
+        cfg = dataclasses.replace(cfg, mavlink=dataclasses.replace(cfg.mavlink, url=f"udpout:127.0.0.1:{sim.port}"))
+        pipeline = _warm_pipeline(directory, cfg, wrap_source)
+        relay = relay_for(cfg, mount, TimedRelay)
+        deadline = time.monotonic() + 5.0
+        while not relay.link_state()["vehicle_state"]["available"] and time.monotonic() < deadline:
+            time.sleep(0.02)
+        replay = PreloadedReplay(directory, pace="recorded", clock=flight_clock(sim))
+        daemon = Daemon(
+            cfg,
+            open_source=lambda: wrap_source(replay),
+            pipeline=pipeline,
+            relay=relay,
+            results_path=cfg.log.results_jsonl or None,
+            observers=[lambda result, _: published.append((time.monotonic(), result))],
+        )
+        try:
+            daemon.run()
+            time.sleep(0.2)  # the last sends arrive
+            final = relay.targets()
+        finally:
+            daemon.close()
+    counters = {"frames": daemon.frames, "dropped": daemon.dropped, "skipped": daemon.skipped, "late": daemon.late}
+    return DaemonFlight(sim, published, relay.publications, truth, world_to_ned, final, counters)
+
+
+def _warm_pipeline(directory: Path, cfg: Config, wrap_source: Callable[[Any], Any]) -> Any:
+    """The daemon's pipeline for `cfg`, run once on the recording's first frame and reset."""
+    from branchrange.core.frame_results import pipeline_for
+
+    probe = wrap_source(ReplaySource(directory, pace="fast"))
+    try:
+        pipeline = pipeline_for(cfg, probe.calibration)
+        warm = next(probe)
+        pipeline.process(warm.left, warm.right, mask=warm.mask)
+        pipeline.reset()
+    finally:
+        probe.close()
+    return pipeline

@@ -61,9 +61,9 @@ def run(args: argparse.Namespace) -> int:
     from api.metrics import Metrics
     from branchrange.core.config import ConfigError
     from branchrange.core.frame_results import pipeline_for
-    from branchrange.onboard.daemon import Daemon
+    from branchrange.onboard.daemon import Daemon, relay_for
     from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
-    from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+    from branchrange.onboard.mavlink import CameraMount
     from branchrange.onboard.mavlink.connection import SigningKeyError
     from camera.sources import SourceError, open_source
 
@@ -90,13 +90,7 @@ def run(args: argparse.Namespace) -> int:
         first = open_camera()
         pipeline = pipeline_for(cfg, first.calibration)
         if cfg.mavlink.enabled:
-            relay = MavlinkRelay(
-                cfg.mavlink,
-                mount,
-                tracking=cfg.tracking,
-                target_policy=cfg.cutpoints.target_policy,
-                target_min_confidence=cfg.cutpoints.target_min_confidence,
-            )
+            relay = relay_for(cfg, mount)
         if targets is not None:
             sink = FoxgloveSink(targets, mount=mount, newest_only=True)
             if relay is not None:

@@ -52,7 +52,7 @@ from branchrange.core.frame_result import FrameResult, Freshness, Latency
 from branchrange.core.frame_results import camera_reopened_line, result_line, run_header_line, stereo_stage, utc_now
 from branchrange.core.pair_check import check_rectification
 from branchrange.onboard.load_shedding import LoadShedder
-from branchrange.onboard.mavlink import MavlinkRelay
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from branchrange.onboard.newest_slot import NewestSlot
 from branchrange.onboard.results_log import ResultsLog
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
@@ -65,6 +65,20 @@ REOPEN_AFTER_STALLS = 3
 CORRUPT_FRAMES_LOST = 5
 #: Frames after which the measured capture → publish time is compared with `max_result_age_s`.
 WARMUP_FRAMES = 3
+
+
+def relay_for(cfg: Config, mount: CameraMount, relay_type: type[MavlinkRelay] = MavlinkRelay) -> MavlinkRelay:
+    """The relay `cfg` asks for: its `[mavlink]` link, `[tracking]` fusion, and `[cutpoints]`' policy and
+    minimum confidence, so the fused target is ranked and gated as the per-frame one is. `relay_type` lets
+    a test or benchmark use a subclass that notes more."""
+    return relay_type(
+        cfg.mavlink,
+        mount,
+        tracking=cfg.tracking,
+        target_policy=cfg.cutpoints.target_policy,
+        target_min_confidence=cfg.cutpoints.target_min_confidence,
+    )
+
 
 #: Called once per processed frame with its `FrameResult` and the pipeline's `FrameArtifacts`.
 ResultObserver = Callable[[FrameResult, Any], None]
