@@ -69,7 +69,6 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 
 from autopilot_sim import DaemonFlight, SimPose, fly_daemon  # noqa: E402
 from machine import cpu_name  # noqa: E402
-from realtime import WithoutMasks  # noqa: E402
 
 from branchrange.core.config import Config, MavlinkConfig, TrackingConfig, load_config, parse_override  # noqa: E402
 from branchrange.core.frame_result import FrameResult, WorldTrack  # noqa: E402
@@ -569,7 +568,7 @@ def run_flight(directory: Path, masks: str, width: int) -> dict[str, Any]:
         mount,
         start_ned_m=START_NED_M,
         heading_deg=HEADING_DEG,
-        wrap_source=(lambda source: source) if masks == "truth" else WithoutMasks,
+        ignore_masks=masks != "truth",
     )
     return score_flight(flight, cfg, approach_target_id(directory))
 

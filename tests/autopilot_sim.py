@@ -45,7 +45,7 @@ from branchrange.onboard.mavlink.connection import mavutil_v2
 from branchrange.onboard.mavlink.frames import CameraMount, rotation_exp, rotation_from_rpy, rotation_log
 from camera.calibration import StereoCalibration
 from camera.sources import ReplaySource, StereoFrame
-from camera.sources.replay import FrameReader
+from camera.sources.replay import FrameReader, FrameStamp
 
 ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
 MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
@@ -350,12 +350,23 @@ class DecodedFrames:
         """The recording's frame period, ns."""
         return self._period_ns
 
+    def peek(self) -> FrameStamp | None:
+        """(timestamp ns, index) of the next frame; None at the end."""
+        if self._position >= len(self.frames):
+            return None
+        frame = self.frames[self._position]
+        return frame.timestamp_ns, frame.index
+
     def read(self) -> StereoFrame | None:
         """The next frame, None at the end."""
         if self._position >= len(self.frames):
             return None
         self._position += 1
         return self.frames[self._position - 1]
+
+    def skip(self) -> bool:
+        """Pass over the next frame; False at the end."""
+        return self.read() is not None
 
     def seek(self, position: int) -> None:
         """Make frame `position` (0-based) the next one read."""
@@ -427,11 +438,12 @@ def fly_daemon(
     *,
     start_ned_m=(0.0, 0.0, -2.0),
     heading_deg: float = 0.0,
-    wrap_source: Callable[[Any], Any] = lambda source: source,
+    ignore_masks: bool = False,
 ) -> DaemonFlight:
     """Replay `directory` through the daemon (config `cfg`, its `mavlink.url` pointed at the simulator) while
     the simulator (GUIDED, armed) flies its flight.json, hovering at the first pose until the first frame
-    is released. `wrap_source` wraps each replay source (e.g. to drop its masks). The pipeline is warmed
+    is released. `ignore_masks` leaves the recording's masks unread (the built-in segmenter finds the
+    branches, as for a live camera). The pipeline is warmed
     up on the first frame before the clock starts, so lazily built parts do not count as latency."""
     from branchrange.onboard.daemon import Daemon, relay_for
 
@@ -441,15 +453,15 @@ def fly_daemon(
     with AutopilotSim(trajectory, heartbeat_period_s=0.2) as sim:
         sim.start = time.monotonic() + 3600.0  # hover at the first pose until the first frame
         cfg = dataclasses.replace(cfg, mavlink=dataclasses.replace(cfg.mavlink, url=f"udpout:127.0.0.1:{sim.port}"))
-        pipeline = _warm_pipeline(directory, cfg, wrap_source)
+        pipeline = _warm_pipeline(directory, cfg, ignore_masks)
         relay = relay_for(cfg, mount, TimedRelay)
         deadline = time.monotonic() + 5.0
         while not relay.link_state()["vehicle_state"]["available"] and time.monotonic() < deadline:
             time.sleep(0.02)
-        replay = PreloadedReplay(directory, pace="recorded", clock=flight_clock(sim))
+        replay = PreloadedReplay(directory, pace="recorded", clock=flight_clock(sim), ignore_masks=ignore_masks)
         daemon = Daemon(
             cfg,
-            open_source=lambda: wrap_source(replay),
+            open_source=lambda: replay,
             pipeline=pipeline,
             relay=relay,
             results_path=cfg.log.results_jsonl or None,
@@ -465,11 +477,11 @@ def fly_daemon(
     return DaemonFlight(sim, published, relay.publications, truth, world_to_ned, final, counters)
 
 
-def _warm_pipeline(directory: Path, cfg: Config, wrap_source: Callable[[Any], Any]) -> Any:
+def _warm_pipeline(directory: Path, cfg: Config, ignore_masks: bool) -> Any:
     """The daemon's pipeline for `cfg`, run once on the recording's first frame and reset."""
     from branchrange.core.frame_results import pipeline_for
 
-    probe = wrap_source(ReplaySource(directory, pace="fast"))
+    probe = ReplaySource(directory, pace="fast", ignore_masks=ignore_masks)
     try:
         pipeline = pipeline_for(cfg, probe.calibration)
         warm = next(probe)
