@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from branch_geometry_fixtures import GEOMETRY, Cylinder, branch_with_trunk, ray_cast, unit
+from branch_geometry_fixtures import GEOMETRY, TRUNK_LABEL, Cylinder, branch_with_trunk, ray_cast, unit
 
 from branchrange.core.cutpoints import CutPointConfig, CutPointConfigError, estimate_cut_points
 from branchrange.core.masks import masks_from_array
@@ -85,3 +85,23 @@ def test_a_base_on_the_trunk_is_not_an_occlusion():
 def test_the_occluder_gap_must_be_positive():
     with pytest.raises(CutPointConfigError, match="base_occluder_gap_m"):
         CutPointConfig(base_occluder_gap_m=0.0)
+
+
+def test_a_base_on_the_trunk_below_the_image_gives_no_cut_point():
+    # the branch leaves the trunk 4 px below the bottom row; its cut point (5 cm up the branch) would be inside
+    # the image, placed by the trunk's cylinder carried beyond the frame
+    trunk_x, trunk_z, trunk_r = -0.35, 1.5, 0.08
+    direction = unit([1.0, -1.2, 0.0])
+    base_y = 0.37  # the bottom row is at y = 0.358 m at 1.5 m
+    base = np.array([trunk_x + trunk_r, base_y, trunk_z])
+    parts = {
+        1: [Cylinder(base, direction, 0.45, 0.015)],
+        TRUNK_LABEL: [Cylinder(np.array([trunk_x, -1.0, trunk_z]), unit([0, 1, 0]), 2.0, trunk_r)],
+    }
+    scene = ray_cast(320, 240, GEOMETRY, parts)
+    cut_v = GEOMETRY.cy + GEOMETRY.focal_px * (base + OFFSET * direction)[1] / trunk_z
+    assert cut_v < 239, "the true cut point itself is in the image"
+    masks = masks_from_array(scene.labels, trunk_id=TRUNK_LABEL, kind="instance")
+    result = estimate_cut_points(masks, scene.disparity, GEOMETRY, CutPointConfig())
+    assert not result.branches
+    assert "meets the trunk outside the image" in result.dropped[0].reason

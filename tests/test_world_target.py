@@ -92,3 +92,24 @@ def test_a_frame_whose_own_rule_refused_every_target_leaves_none():
     assert tracks.target(0.1) is None
     tracks.update([seen(0, [1.5, 0, 0])], 0.2)
     assert tracks.target(0.2) is not None
+
+
+def test_one_inconsistent_cut_point_does_not_hand_the_target_to_a_similar_branch():
+    cfg = TrackingConfig(target_min_observations=3, consistency_m=0.05, target_switch_margin=0.2)
+    tracks = WorldTracks(cfg, TargetRule(min_confidence=0.5))
+    near, similar = [1.50, 0.0, 0.0], [1.0, 1.15, 0.0]  # 1.50 m and 1.52 m away
+    for k in range(4):
+        tracks.update([seen(0, near), seen(1, similar)], k / FPS)
+    first = tracks.target_id
+    tracks.update([seen(0, [1.5, 0.08, 0.0]), seen(1, similar)], 4 / FPS)  # a noisy frame: 8 cm off, in the gate
+    assert tracks.tracks[0].consistent_observations == 1 and tracks.target_id == first
+    assert tracks.target_switches == 0
+
+
+def test_a_target_that_aged_by_the_send_gives_way_to_an_eligible_one_at_once():
+    tracks = WorldTracks(TrackingConfig(target_min_observations=1), TargetRule(min_confidence=0.5, max_age_s=0.5))
+    tracks.update([seen(0, [1.5, 0, 0])], 0.0)  # the target
+    tracks.update([seen(1, [2.5, 0, 0])], 0.3)  # farther: not better, not the target
+    assert tracks.target(0.3).branch_id == 0
+    assert tracks.target(0.6).branch_id == 1  # 0 is 0.6 s old at this send; 1 is 0.3 s old
+    assert tracks.target(0.81) is None  # both too old

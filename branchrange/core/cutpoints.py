@@ -639,9 +639,15 @@ def _base_out_of_view(
     """Why the branch's base is not seen (`branchrange.core.branch_base`), or None when it is.
 
     A base placed on a fitted trunk is measured, not read off the silhouette's end, so only the
-    silhouette's own ends are checked.
+    silhouette's own ends are checked — but it must itself be in the image: a trunk's cylinder carried
+    beyond the frame is an extrapolation (flown at 640×360, such bases put cut points at the bottom edge
+    5–8 cm off).
     """
     if ends.base_on_trunk:
+        u, v = project(ends.base, geometry)[0]
+        height, width = disparity.shape
+        if not (0.0 <= u <= width - 1 and 0.0 <= v <= height - 1):
+            return "the branch meets the trunk outside the image: its cut point is not in view"
         return None
     if base_cut_by_image_border(mask, cylinder.silhouette, ends.base_at_low):
         return "the image border cuts the branch at its base: the cut point lies outside the view"

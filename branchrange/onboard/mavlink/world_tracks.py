@@ -32,8 +32,11 @@ a moment comes back with its id and history; after `forget_after_s` it is droppe
   half-life) is ≥ the rule's `min_confidence` (`cutpoints.target_min_confidence`), so a branch first
   seen uncertain from afar becomes eligible as soon as its recent views are good.
 Among eligible tracks the cut-point policy ranks (`cutpoints.target_score`, the per-frame rule); the
-current target is kept while eligible unless another ranks better by `target_switch_margin` (a share
-of its score), so the target does not flip between similar branches from frame to frame.
+current target is kept while it is fresh and confident (one inconsistent cut point, a noisy frame, does
+not unseat it) unless another ranks better by `target_switch_margin` (a share of its score), so the
+target does not flip between similar branches from frame to frame. The choice is made at each frame's
+capture and checked again at each send: a target that aged past `max_age_s` meanwhile is replaced by the
+best eligible track at once (none while the last frame's own rule refused every target).
 """
 
 from __future__ import annotations
@@ -231,6 +234,7 @@ class WorldTracks:
         self.tracks: list[Track] = []
         self.target_id: int | None = None
         self.target_switches = 0
+        self._vetoed = False  # the last frame's own rule refused every target
         self._next_id = 0
 
     def update(self, measurements: list[Measurement], t: float, *, allow_target: bool = True) -> dict[int, int]:
@@ -264,22 +268,28 @@ class WorldTracks:
         self._choose_target(t) if allow_target else self._clear_target()
         return {measurements[zi].branch_id: tid for zi, tid in matched.items()}
 
+    def may_stay(self, track: Track, now: float) -> bool:
+        """Whether the current target `track` may stay the target at `now` (s): its newest cut point captured
+        within the rule's `max_age_s` and its recent confidence high enough. Its run of consistent
+        observations is what it took to become the target; one inconsistent cut point (a noisy frame)
+        does not hand the target to another branch without the margin."""
+        return 0.0 <= track.age(now) <= self.rule.max_age_s and track.confidence >= self.rule.min_confidence
+
     def eligible(self, track: Track, now: float) -> bool:
-        """Whether `track` may be the target at `now` (s): fresh, consistent and confident enough."""
-        return (
-            0.0 <= track.age(now) <= self.rule.max_age_s
-            and track.consistent_observations >= self.cfg.target_min_observations
-            and track.confidence >= self.rule.min_confidence
-        )
+        """Whether `track` may become the target at `now` (s): fresh, confident, and consistent enough."""
+        return self.may_stay(track, now) and track.consistent_observations >= self.cfg.target_min_observations
 
     def _choose_target(self, now: float) -> None:
-        """Keep the current target while eligible unless another eligible track ranks better by the margin."""
+        """Keep the current target while it may stay, unless an eligible track ranks better by the margin."""
+        self._vetoed = False
+        current = next((tr for tr in self.tracks if tr.track_id == self.target_id and self.may_stay(tr, now)), None)
         candidates = [tr for tr in self.tracks if self.eligible(tr, now)]
-        current = next((tr for tr in candidates if tr.track_id == self.target_id), None)
         best = min(candidates, key=lambda tr: tr.score(self.rule.policy), default=None)
-        if best is None:
-            chosen = None
-        elif current is None or _better_by(best.score(self.rule.policy), current.score(self.rule.policy), self.cfg):
+        if best is None or current is None:
+            chosen = best if current is None else current
+        elif best is not current and _better_by(
+            best.score(self.rule.policy), current.score(self.rule.policy), self.cfg
+        ):
             chosen = best
         else:
             chosen = current
@@ -289,8 +299,9 @@ class WorldTracks:
         self.target_id = new_id
 
     def _clear_target(self) -> None:
-        """No target (the next eligible track becomes it without a margin to beat)."""
+        """No target until a frame allows one again (the next eligible track becomes it without a margin)."""
         self.target_id = None
+        self._vetoed = True
 
     def _forget(self, now: float) -> None:
         """Drop tracks unseen for `forget_after_s`."""
@@ -303,13 +314,21 @@ class WorldTracks:
         return [tr for tr in self.tracks if tr.age(now) <= self.cfg.stale_after_s]
 
     def target(self, now: float) -> Track | None:
-        """The target track while it is eligible at `now` (fresh by the rule's `max_age_s`), else None."""
-        return next((tr for tr in self.tracks if tr.track_id == self.target_id and self.eligible(tr, now)), None)
+        """The target track at `now` (s), None when no track passes the rule. The choice made at the last
+        frame's capture is checked again at `now`: when its track has aged past `max_age_s` meanwhile, the
+        best eligible other one takes over at once rather than leaving the autopilot without a target."""
+        current = next((tr for tr in self.tracks if tr.track_id == self.target_id), None)
+        if current is None or not self.may_stay(current, now):
+            if self._vetoed:
+                return None
+            self._choose_target(now)
+        return next((tr for tr in self.tracks if tr.track_id == self.target_id), None)
 
     def reset(self) -> None:
         """Forget every track (ids keep counting up)."""
         self.tracks.clear()
         self.target_id = None
+        self._vetoed = False
 
 
 def _better_by(candidate_score: float, current_score: float, cfg: TrackingConfig) -> bool:
