@@ -253,14 +253,19 @@ def camera_point(pose: SimPose, point_ned_m: np.ndarray, mount: CameraMount) -> 
     return mount.camera_to_body.T @ (pose.ned_to_body(point_ned_m) - mount.translation_m)
 
 
+#: The camera the simulated results come from: a ZED Mini at HD720 (f ≈ 640 px, B = 63 mm).
+SIM_FOCAL_PX, SIM_BASELINE_M = 640.0, 0.063
+
+
 def noisy(point_cam_m: np.ndarray, rng: np.random.Generator, tracking: TrackingConfig) -> np.ndarray:
-    """A cut point with the noise `tracking` assumes: depth σ = depth_sigma_at_1m_m·r²,
-    lateral σ = lateral_sigma_at_1m_m·r."""
+    """A cut point with the noise `tracking` assumes for the simulated camera (`TrackingConfig.sigmas_m`):
+    depth σ = disparity_sigma_px·r² / (f·B), lateral σ = lateral_sigma_px·r / f."""
     r = float(np.linalg.norm(point_cam_m))
     u = point_cam_m / r
-    lateral = rng.normal(0.0, tracking.lateral_sigma_at_1m_m * r, 3)
+    lateral_sigma, depth_sigma = tracking.sigmas_m(r, SIM_FOCAL_PX, SIM_BASELINE_M)
+    lateral = rng.normal(0.0, lateral_sigma, 3)
     lateral -= u * (lateral @ u)
-    return point_cam_m + lateral + u * rng.normal(0.0, tracking.depth_sigma_at_1m_m * r * r)
+    return point_cam_m + lateral + u * rng.normal(0.0, depth_sigma)
 
 
 @dataclass(frozen=True)
@@ -291,7 +296,12 @@ def fly_frames(
         time.sleep(max(0.0, captured + latency_s - time.monotonic()))
         pose = sim.pose_at(captured)
         cams = [noisy(camera_point(pose, p, mount), rng, tracking) for p in branches_ned]
-        result = frame_result([branch(i, c, confidence=0.8) for i, c in enumerate(cams)], target_id=0)
+        result = frame_result(
+            [branch(i, c, confidence=0.8) for i, c in enumerate(cams)],
+            target_id=0,
+            focal_px=SIM_FOCAL_PX,
+            baseline_m=SIM_BASELINE_M,
+        )
         relay.publish(result, captured_at=captured)
         published.append(Published(captured, time.monotonic(), cams[0]))
     return published

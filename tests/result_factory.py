@@ -49,12 +49,13 @@ def frame_result(
     width: int = 64,
     height: int = 48,
     focal_px: float = 50.0,
+    baseline_m: float = 0.06,
     reason: str | None = None,
 ) -> FrameResult:
     """A result of `branches` (target `target_id`) in a `width × height` frame, timing 1 ms."""
     return FrameResult(
         frame=Frame(index, timestamp_ns, width, height),
-        camera=CameraInfo(focal_px, 0.06, (width - 1) / 2, (height - 1) / 2),
+        camera=CameraInfo(focal_px, baseline_m, (width - 1) / 2, (height - 1) / 2),
         stereo=StereoInfo("sgbm", 64, 1.0),
         timing_ms={"total": 1.0},
         masks=MasksInfo("array", len(branches), False),

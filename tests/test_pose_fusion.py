@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 from autopilot_sim import (
     ARDUCOPTER_LOITER,
+    SIM_BASELINE_M,
+    SIM_FOCAL_PX,
     AutopilotSim,
     approach_flight,
     body_target_errors,
@@ -159,7 +161,11 @@ def measure(track_set: WorldTracks, rng, t: float, points_ned, camera_ned=(-1.5,
         z_cam = noisy(cam, rng, TRACKING)
         zs.append(
             Measurement(
-                i, cam_to_ned @ z_cam + camera_ned, measurement_covariance(z_cam, cam_to_ned, TRACKING), 0.8, camera_ned
+                i,
+                cam_to_ned @ z_cam + camera_ned,
+                measurement_covariance(z_cam, cam_to_ned, TRACKING, SIM_FOCAL_PX, SIM_BASELINE_M),
+                0.8,
+                camera_ned,
             )
         )
     return track_set.update(zs, t)
@@ -187,7 +193,7 @@ def test_a_hover_does_not_shrink_sigma_below_the_shared_bias():
     for k in range(20):
         measure(tracks, rng, k / FPS, [np.zeros(3)])
         sigmas.append(tracks.tracks[0].sigma_m)
-    one_view = TRACKING.depth_sigma_at_1m_m * 1.5**2
+    one_view = TRACKING.sigmas_m(1.5, SIM_FOCAL_PX, SIM_BASELINE_M)[1]
     assert sigmas[0] == pytest.approx(one_view, rel=0.01)
     rho = TRACKING.bias_share
     # (each view's covariance is computed at its own noisy range, hence the 5 %)
@@ -206,11 +212,12 @@ def test_views_from_distinct_viewpoints_average_the_bias_down():
     (track,) = tracks.tracks
     assert len(track.views) == 10
     ranges = 1.1 ** np.arange(10)
-    variances = (TRACKING.depth_sigma_at_1m_m * ranges**2) ** 2  # along the line of sight, as fused
+    variances = TRACKING.sigmas_m(ranges, SIM_FOCAL_PX, SIM_BASELINE_M)[1] ** 2  # along the line of sight, as fused
     rho = TRACKING.bias_share
     expected = (1 - rho) / np.sum(1 / variances) + rho * variances[0] / 10
     assert track.sigma_m == pytest.approx(math.sqrt(expected), rel=0.05)
-    assert track.sigma_m < 0.7 * math.sqrt(rho) * TRACKING.depth_sigma_at_1m_m  # below a hover's floor at 1 m
+    at_1m = TRACKING.sigmas_m(1.0, SIM_FOCAL_PX, SIM_BASELINE_M)[1]
+    assert track.sigma_m < 0.7 * math.sqrt(rho) * at_1m  # below a hover's floor at 1 m
 
 
 def test_a_hidden_branch_keeps_its_track_stops_being_the_target_goes_stale_and_is_forgotten():

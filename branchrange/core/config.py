@@ -365,15 +365,17 @@ class MavlinkConfig(Settings):
 class TrackingConfig(Settings):
     """World-frame target tracks (`branchrange.onboard.mavlink.world_tracks`), used when vehicle state arrives.
 
-    Each track is a Kalman filter on a static point in local NED. A cut point measured at range r
-    (metres, camera frame) has a standard deviation of `lateral_sigma_at_1m_m`·r across the line of
-    sight and `depth_sigma_at_1m_m`·r² along it (stereo depth error grows with the square of the
-    range); `process_noise_m2_per_s` lets a track follow a branch that sways or a slowly drifting
-    local position. A cut point joins the nearest track within `gate_m`. A track whose newest
-    cut point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than
-    that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count from the
-    capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU
-    companion) by a frame or two: 1.5 s.
+    Each track is a Kalman filter on a static point in local NED. A cut point measured at range r (metres,
+    camera frame) by a camera of focal length f (px) and baseline B (m) has a standard deviation of
+    `lateral_sigma_px`·r / f across the line of sight and `disparity_sigma_px`·r² / (f·B) along it (a disparity
+    error δ moves the depth by Z²·δ / (f·B)): in pixels, so that one setting holds at every resolution — in
+    metres the same σ would be twice too small at half the resolution. 0.4 px and 2.5 px are 1 cm and 4 mm at 1
+    m for a ZED Mini at HD720 (f·B ≈ 40 px·m). `process_noise_m2_per_s` lets a track follow a branch that sways
+    or a slowly drifting local position. A cut point joins the nearest track within `gate_m`. A track whose
+    newest cut point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than that
+    are bridged by the filter) and is forgotten after `forget_after_s`. Ages count from the capture, so
+    `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU companion) by a frame or two:
+    1.5 s.
 
     Honest covariance: `bias_share` of each cut point's variance is a stereo bias shared by views from
     (nearly) the same viewpoint — within `same_view_deg` of line of sight and `same_view_range_ratio`
@@ -392,8 +394,8 @@ class TrackingConfig(Settings):
     error = ConfigError
     limits = {
         "gate_m": Limit(exclusive_minimum=0),
-        "lateral_sigma_at_1m_m": Limit(exclusive_minimum=0),
-        "depth_sigma_at_1m_m": Limit(exclusive_minimum=0),
+        "lateral_sigma_px": Limit(exclusive_minimum=0),
+        "disparity_sigma_px": Limit(exclusive_minimum=0),
         "process_noise_m2_per_s": Limit(minimum=0),
         "stale_after_s": Limit(exclusive_minimum=0),
         "bias_share": Limit(minimum=0, maximum=0.95),
@@ -406,8 +408,8 @@ class TrackingConfig(Settings):
     }
 
     gate_m: float = 0.15
-    lateral_sigma_at_1m_m: float = 0.004
-    depth_sigma_at_1m_m: float = 0.01
+    lateral_sigma_px: float = 2.5
+    disparity_sigma_px: float = 0.4
     process_noise_m2_per_s: float = 1e-5
     stale_after_s: float = 1.5
     forget_after_s: float = 5.0
@@ -423,8 +425,8 @@ class TrackingConfig(Settings):
         """The range of every setting."""
         return {
             "gate_m": (self.gate_m > 0, "metres > 0"),
-            "lateral_sigma_at_1m_m": (self.lateral_sigma_at_1m_m > 0, "metres > 0"),
-            "depth_sigma_at_1m_m": (self.depth_sigma_at_1m_m > 0, "metres > 0"),
+            "lateral_sigma_px": (self.lateral_sigma_px > 0, "px > 0"),
+            "disparity_sigma_px": (self.disparity_sigma_px > 0, "px > 0"),
             "process_noise_m2_per_s": (self.process_noise_m2_per_s >= 0, "m²/s >= 0"),
             "stale_after_s": (self.stale_after_s > 0, "seconds > 0"),
             "forget_after_s": (
@@ -439,6 +441,13 @@ class TrackingConfig(Settings):
             "confidence_half_life_s": (self.confidence_half_life_s > 0, "seconds > 0"),
             "target_switch_margin": (0 <= self.target_switch_margin < 1, "a share in [0, 1)"),
         }
+
+    def sigmas_m(self, range_m: float, focal_px: float, baseline_m: float) -> tuple[float, float]:
+        """(lateral, along the line of sight) 1-σ of a cut point at `range_m` (m), metres, for a camera of
+        `focal_px` (px at the disparity's resolution) and `baseline_m` (m)."""
+        return self.lateral_sigma_px * range_m / focal_px, self.disparity_sigma_px * range_m**2 / (
+            focal_px * baseline_m
+        )
 
 
 @dataclass(frozen=True)

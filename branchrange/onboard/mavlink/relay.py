@@ -151,7 +151,13 @@ class MavlinkRelay:
                 Measurement(
                     b.id,
                     pose.body_to_ned(self._mount.to_body(np.asarray(b.cut_point_m))),
-                    measurement_covariance(np.asarray(b.cut_point_m), cam_to_ned, self._tracking),
+                    measurement_covariance(
+                        np.asarray(b.cut_point_m),
+                        cam_to_ned,
+                        self._tracking,
+                        result.camera.focal_px,
+                        result.camera.baseline_m,
+                    ),
                     b.confidence,
                     camera_m,
                     b.diameter_m,

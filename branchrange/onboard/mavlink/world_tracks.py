@@ -4,8 +4,8 @@ and a target chosen on evidence, with hysteresis.
 **Fusion.** A branch does not move in the world while the drone flies past it, so each track's state
 is a static point (3,) in local NED. A frame's cut point, measured in the camera frame and carried to
 NED through the mount and the vehicle pose at its capture time, is a measurement z with covariance R:
-`lateral σ = lateral_sigma_at_1m_m · r` across the line of sight, `depth σ = depth_sigma_at_1m_m · r²`
-along it (stereo depth error ∝ range²), rotated into NED.
+`lateral σ = lateral_sigma_px · r / f` across the line of sight, `depth σ = disparity_sigma_px · r² /
+(f·B)` along it (stereo depth error ∝ range²; f, B the result's camera), rotated into NED.
 
 **Honest covariance.** Views of a branch from (nearly) the same viewpoint are not independent: they
 share the stereo bias of that viewpoint (the same disparity error on the same pixels), so 20 frames
@@ -80,14 +80,16 @@ class Measurement:
         return float(np.linalg.norm(self.position_m - self.camera_m))
 
 
-def measurement_covariance(point_cam_m: np.ndarray, cam_to_ned: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
-    """NED covariance (3×3, m²) of a camera-frame cut point (3,) m; `cam_to_ned` rotates camera → NED."""
+def measurement_covariance(
+    point_cam_m: np.ndarray, cam_to_ned: np.ndarray, cfg: TrackingConfig, focal_px: float, baseline_m: float
+) -> np.ndarray:
+    """NED covariance (3×3, m²) of a camera-frame cut point (3,) m measured by a camera of `focal_px` (px)
+    and `baseline_m` (m); `cam_to_ned` rotates camera → NED."""
     r = float(np.linalg.norm(point_cam_m))
     u = np.asarray(point_cam_m, dtype=np.float64) / max(r, 1e-6)
     along = np.outer(u, u)
-    cov_cam = (cfg.lateral_sigma_at_1m_m * r) ** 2 * (np.eye(3) - along) + (
-        cfg.depth_sigma_at_1m_m * r * r
-    ) ** 2 * along
+    lateral, depth = cfg.sigmas_m(r, focal_px, baseline_m)
+    cov_cam = lateral**2 * (np.eye(3) - along) + depth**2 * along
     rotated: np.ndarray = cam_to_ned @ cov_cam @ cam_to_ned.T
     return rotated
 
