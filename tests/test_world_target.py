@@ -106,10 +106,26 @@ def test_one_inconsistent_cut_point_does_not_hand_the_target_to_a_similar_branch
     assert tracks.target_switches == 0
 
 
-def test_a_target_that_aged_by_the_send_gives_way_to_an_eligible_one_at_once():
-    tracks = WorldTracks(TrackingConfig(target_min_observations=1), TargetRule(min_confidence=0.5, max_age_s=0.5))
+def test_a_target_missed_for_a_moment_keeps_its_claim_and_gives_way_once_stale():
+    cfg = TrackingConfig(target_min_observations=1, stale_after_s=1.5)
+    tracks = WorldTracks(cfg, TargetRule(min_confidence=0.5, max_age_s=0.5))
     tracks.update([seen(0, [1.5, 0, 0])], 0.0)  # the target
-    tracks.update([seen(1, [2.5, 0, 0])], 0.3)  # farther: not better, not the target
-    assert tracks.target(0.3).branch_id == 0
-    assert tracks.target(0.6).branch_id == 1  # 0 is 0.6 s old at this send; 1 is 0.3 s old
-    assert tracks.target(0.81) is None  # both too old
+    sent = {}
+    for k in range(1, 18):  # then only a farther branch is seen, every 0.1 s; a send after each frame
+        t = round(0.1 * k, 1)
+        tracks.update([seen(1, [2.5, 0, 0])], t)
+        target = tracks.target(t)
+        sent[t] = None if target is None else target.branch_id
+    assert sent[0.4] == 0
+    assert sent[0.6] is None and sent[1.5] is None  # 0 still holds but is too old to send: nothing goes out
+    assert sent[1.6] == 1  # 0 went stale: the eligible one takes over at once
+    assert tracks.target_switches == 1
+    assert tracks.target(2.3) is None  # both too old
+
+
+def test_a_clearly_better_branch_takes_over_even_while_the_target_holds():
+    cfg = TrackingConfig(target_min_observations=1, target_switch_margin=0.2)
+    tracks = WorldTracks(cfg, TargetRule(min_confidence=0.5, max_age_s=0.5))
+    tracks.update([seen(0, [2.0, 0, 0])], 0.0)
+    tracks.update([seen(1, [1.0, 0, 0])], 0.6)  # half as far: better by more than the margin
+    assert tracks.target(0.6).branch_id == 1

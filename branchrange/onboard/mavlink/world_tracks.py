@@ -32,11 +32,12 @@ a moment comes back with its id and history; after `forget_after_s` it is droppe
   half-life) is ≥ the rule's `min_confidence` (`cutpoints.target_min_confidence`), so a branch first
   seen uncertain from afar becomes eligible as soon as its recent views are good.
 Among eligible tracks the cut-point policy ranks (`cutpoints.target_score`, the per-frame rule); the
-current target is kept while it is fresh and confident (one inconsistent cut point, a noisy frame, does
-not unseat it) unless another ranks better by `target_switch_margin` (a share of its score), so the
-target does not flip between similar branches from frame to frame. The choice is made at each frame's
-capture and checked again at each send: a target that aged past `max_age_s` meanwhile is replaced by the
-best eligible track at once (none while the last frame's own rule refused every target).
+current target is kept while it holds — still tracked (`stale_after_s`) and confident; one inconsistent
+cut point or a frame that missed it does not unseat it — unless another ranks better by
+`target_switch_margin` (a share of its score), so the target does not flip between similar branches. While
+it holds but its newest cut point is older than `max_age_s`, nothing is sent as the target. The choice is
+made at each frame's capture and checked again at each send: a target that no longer holds is replaced by
+the best eligible track at once (none while the last frame's own rule refused every target).
 """
 
 from __future__ import annotations
@@ -270,21 +271,29 @@ class WorldTracks:
         self._choose_target(t) if allow_target else self._clear_target()
         return {measurements[zi].branch_id: tid for zi, tid in matched.items()}
 
-    def may_stay(self, track: Track, now: float) -> bool:
-        """Whether the current target `track` may stay the target at `now` (s): its newest cut point captured
-        within the rule's `max_age_s` and its recent confidence high enough. Its run of consistent
-        observations is what it took to become the target; one inconsistent cut point (a noisy frame)
-        does not hand the target to another branch without the margin."""
-        return 0.0 <= track.age(now) <= self.rule.max_age_s and track.confidence >= self.rule.min_confidence
+    def holds(self, track: Track, now: float) -> bool:
+        """Whether the current target `track` keeps its claim at `now` (s): still tracked (seen within
+        `stale_after_s`) and confident enough. Its run of consistent observations is what it took to become
+        the target: one inconsistent cut point (a noisy frame) does not hand the target to another branch,
+        nor does a frame or two that missed it."""
+        return track.age(now) <= self.cfg.stale_after_s and track.confidence >= self.rule.min_confidence
+
+    def sendable(self, track: Track, now: float) -> bool:
+        """Whether a target `track` may go out at `now` (s): its newest cut point captured within `max_age_s`."""
+        return 0.0 <= track.age(now) <= self.rule.max_age_s
 
     def eligible(self, track: Track, now: float) -> bool:
         """Whether `track` may become the target at `now` (s): fresh, confident, and consistent enough."""
-        return self.may_stay(track, now) and track.consistent_observations >= self.cfg.target_min_observations
+        return (
+            self.sendable(track, now)
+            and track.confidence >= self.rule.min_confidence
+            and track.consistent_observations >= self.cfg.target_min_observations
+        )
 
     def _choose_target(self, now: float) -> None:
-        """Keep the current target while it may stay, unless an eligible track ranks better by the margin."""
+        """Keep the current target while it holds, unless an eligible track ranks better by the margin."""
         self._vetoed = False
-        current = next((tr for tr in self.tracks if tr.track_id == self.target_id and self.may_stay(tr, now)), None)
+        current = next((tr for tr in self.tracks if tr.track_id == self.target_id and self.holds(tr, now)), None)
         candidates = [tr for tr in self.tracks if self.eligible(tr, now)]
         best = min(candidates, key=lambda tr: tr.score(self.rule.policy), default=None)
         if best is None or current is None:
@@ -316,15 +325,16 @@ class WorldTracks:
         return [tr for tr in self.tracks if tr.age(now) <= self.cfg.stale_after_s]
 
     def target(self, now: float) -> Track | None:
-        """The target track at `now` (s), None when no track passes the rule. The choice made at the last
-        frame's capture is checked again at `now`: when its track has aged past `max_age_s` meanwhile, the
-        best eligible other one takes over at once rather than leaving the autopilot without a target."""
+        """The target track to send at `now` (s), None when there is none to send. The choice made at the
+        last frame's capture is checked again at `now`: a target that no longer holds (stale, or no longer
+        confident) is replaced by the best eligible track at once; one that holds but whose newest cut
+        point is older than `max_age_s` keeps its claim and sends nothing meanwhile (a frame or two that
+        missed it must not swing the approach to another branch)."""
         current = next((tr for tr in self.tracks if tr.track_id == self.target_id), None)
-        if current is None or not self.may_stay(current, now):
-            if self._vetoed:
-                return None
+        if (current is None or not self.holds(current, now)) and not self._vetoed:
             self._choose_target(now)
-        return next((tr for tr in self.tracks if tr.track_id == self.target_id), None)
+            current = next((tr for tr in self.tracks if tr.track_id == self.target_id), None)
+        return current if current is not None and self.sendable(current, now) else None
 
     def reset(self) -> None:
         """Forget every track (ids keep counting up)."""
