@@ -129,3 +129,12 @@ def test_a_clearly_better_branch_takes_over_even_while_the_target_holds():
     tracks.update([seen(0, [2.0, 0, 0])], 0.0)
     tracks.update([seen(1, [1.0, 0, 0])], 0.6)  # half as far: better by more than the margin
     assert tracks.target(0.6).branch_id == 1
+
+
+def test_a_branch_split_in_two_this_frame_gets_one_track_not_two():
+    tracks = WorldTracks(TrackingConfig(consistency_m=0.05), TargetRule(min_confidence=0.5))
+    tracks.update([seen(0, [1.5, 0.0, 0.0])], 0.0)
+    ids = tracks.update([seen(3, [1.5, 0.0, 0.0]), seen(4, [1.5, 0.03, 0.0])], 0.1)  # two instances, 3 cm apart
+    assert len(tracks.tracks) == 1 and ids == {3: 0, 4: 0}
+    tracks.update([seen(3, [1.5, 0.0, 0.0]), seen(5, [1.5, 0.12, 0.0])], 0.2)  # 12 cm: another branch
+    assert len(tracks.tracks) == 2

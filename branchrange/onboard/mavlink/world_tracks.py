@@ -18,7 +18,9 @@ covariance is P + `bias_share`·R_near / views, R_near the covariance of the nea
 view: exactly R; n distinct views: R/n; n views from one spot: never below `bias_share`·R.
 
 **Association.** Each cut point joins the nearest live track within `gate_m` (each track takes at most
-one per frame, the closest pairs first); an unmatched one starts a track with a fresh id. A track
+one per frame, the closest pairs first); an unmatched one starts a track with a fresh id — unless it lies
+within `consistency_m` of a track that took a cut point this frame: that is one branch the segmenter split in
+two, and a second track for it would only let the target flip between the halves. A track
 unseen for `stale_after_s` is not reported (nor sent as an obstacle) but kept, so a branch hidden for
 a moment comes back with its id and history; after `forget_after_s` it is dropped.
 
@@ -248,7 +250,7 @@ class WorldTracks:
         for track in self.tracks:
             track.predict(t, self.cfg.process_noise_m2_per_s)
         pairs = sorted(
-            (float(np.linalg.norm(z.position_m - tr.position_m)), ti, zi)
+            (_distance(z.position_m, tr.position_m), ti, zi)
             for ti, tr in enumerate(self.tracks)
             for zi, z in enumerate(measurements)
         )
@@ -262,8 +264,15 @@ class WorldTracks:
             self.tracks[ti].update(measurements[zi], t, self.cfg)
             used_tracks.add(ti)
             matched[zi] = self.tracks[ti].track_id
+        taken = [self.tracks[ti] for ti in used_tracks]
         for zi, z in enumerate(measurements):
             if zi not in matched:
+                twin = next(
+                    (tr for tr in taken if _distance(z.position_m, tr.position_m) <= self.cfg.consistency_m), None
+                )
+                if twin is not None:  # the same branch seen twice this frame (a split instance): no second track
+                    matched[zi] = twin.track_id
+                    continue
                 track = Track.start(self._next_id, z, t, self.cfg)
                 self._next_id += 1
                 self.tracks.append(track)
@@ -341,6 +350,11 @@ class WorldTracks:
         self.tracks.clear()
         self.target_id = None
         self._vetoed = False
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Euclidean distance between two points (3,), metres."""
+    return float(np.linalg.norm(a - b))
 
 
 def _better_by(candidate_score: float, current_score: float, cfg: TrackingConfig) -> bool:
