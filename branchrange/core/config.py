@@ -217,6 +217,20 @@ class RoiConfig(Settings):
       with the default second look; on the synthetic HD720 flight (2 cores, one look) a target in 97–100
       instead of 80–85 % of the frames, for ~42 ms a frame on the stereo thread: 5.6–6.1 instead of 8.7–9.6
       fresh results a second (benchmarks/RESULTS.md).
+    - `keyframe_interval_s`: with the segmenter (no masks given), run it on keyframes only, this far apart
+      (s), and carry each branch's mask over to the frames between by image alignment
+      (`branchrange.core.keyframes`); 0: the segmenter on every frame.
+    - `track_search_px`: how far (px at full resolution) a carried branch is searched from where it was.
+    - `track_min_ncc`: the image match's score (normalised cross-correlation) a carried branch needs;
+      under it the branch is lost and the next frame is a keyframe.
+    - `track_min_support`: the share of a carried branch's pixels the new frame's disparity must keep (within
+      its window); under it the branch was carried to the wrong place: left out, and a keyframe is due.
+    - `track_gate_px`: how far (px) a carried branch's disparity may move from the range its pixels had in
+      the last frame (median ± 3 robust σ) before the search window's margin: one frame's motion near the tree.
+    - `track_max_jump_m`: a carried branch's cut point more than this far (m, camera frame) from its own in
+      the last frame is dropped and a keyframe is due: a carried mask that slid onto other pixels (a
+      silhouette with much background, the fit taking the background's depth) gives a cut point far off,
+      and a tracked result must never jump (one frame's motion at 0.8 m/s moves it 5 cm).
     """
 
     section = "roi"
@@ -227,6 +241,12 @@ class RoiConfig(Settings):
         "window_margin_px": Limit(minimum=0, maximum=64),
         "max_regions": Limit(minimum=1, maximum=256),
         "network_regions": Limit(minimum=0, maximum=256),
+        "keyframe_interval_s": Limit(minimum=0, maximum=10),
+        "track_search_px": Limit(minimum=1, maximum=256),
+        "track_min_ncc": Limit(minimum=-1, maximum=1),
+        "track_min_support": Limit(minimum=0, maximum=1),
+        "track_gate_px": Limit(minimum=0, maximum=64),
+        "track_max_jump_m": Limit(exclusive_minimum=0),
     }
 
     coarse_width: int = 640
@@ -235,6 +255,12 @@ class RoiConfig(Settings):
     max_regions: int = 48
     network_regions: int = 1
     full_resolution_instances: bool = True
+    keyframe_interval_s: float = 0.0
+    track_search_px: int = 32
+    track_min_ncc: float = 0.6
+    track_min_support: float = 0.5
+    track_gate_px: float = 2.0
+    track_max_jump_m: float = 0.1
 
     def checks(self) -> Checks:
         """The range of every setting."""
@@ -244,6 +270,12 @@ class RoiConfig(Settings):
             "window_margin_px": (0 <= self.window_margin_px <= 64, "0..64 px"),
             "max_regions": (1 <= self.max_regions <= 256, "1..256"),
             "network_regions": (0 <= self.network_regions <= 256, "0..256 (0: all)"),
+            "keyframe_interval_s": (0 <= self.keyframe_interval_s <= 10, "seconds in [0, 10] (0: every frame)"),
+            "track_search_px": (1 <= self.track_search_px <= 256, "1..256 px"),
+            "track_min_ncc": (-1 <= self.track_min_ncc <= 1, "a score in [-1, 1]"),
+            "track_min_support": (0 <= self.track_min_support <= 1, "a share in [0, 1]"),
+            "track_gate_px": (0 <= self.track_gate_px <= 64, "px in [0, 64]"),
+            "track_max_jump_m": (self.track_max_jump_m > 0, "metres > 0"),
         }
 
 

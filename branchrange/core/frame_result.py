@@ -345,6 +345,16 @@ class FrameResult(JsonPart):
     latency: Latency | None = None
     targets: WorldTargets | None = None
     freshness: Freshness | None = None
+    origin: Annotated[
+        Literal["keyframe", "tracked"] | None,
+        Field(
+            description="with [roi] keyframe_interval_s > 0: 'keyframe' when the segmenter ran on this frame, "
+            "'tracked' when its instances were carried over from the last frame"
+        ),
+    ] = None
+    keyframe_age_s: Annotated[
+        NonNegFloat | None, Field(description="seconds from the keyframe its instances descend from (0 on a keyframe)")
+    ] = None
 
     def __post_init__(self) -> None:
         if self.target_id is not None and all(b.id != self.target_id for b in self.branches):

@@ -18,11 +18,13 @@ from typing import Any, Literal, cast
 import numpy as np
 
 from branchrange.core.branch_disparity import refine_branch_disparity
+from branchrange.core.branch_propagation import propagate_labels, verify_support
 from branchrange.core.config import MaskConfig, RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import (
     DEFAULT_TARGET_POLICY,
     CutPointConfig,
     CutPointResult,
+    DroppedBranch,
     TargetPolicy,
     TrunkModel,
     estimate_cut_points,
@@ -42,6 +44,7 @@ from branchrange.core.frame_result import (
     StereoInfo,
 )
 from branchrange.core.geometry import StereoGeometry, offset_disparity, valid_disparity
+from branchrange.core.keyframes import KeyframeSchedule, Origin, grey_of
 from branchrange.core.masks import (
     BranchMasks,
     MaskKind,
@@ -51,7 +54,7 @@ from branchrange.core.masks import (
     validate_masks,
 )
 from branchrange.core.pair_check import PairCheck, check_rectification
-from branchrange.core.roi import CoarseToFine, CoarseTrunk, Region
+from branchrange.core.roi import CoarseToFine, CoarseToFineResult, CoarseTrunk, Region, branch_gates
 from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.core.timing import lap_ms
 from branchrange.core.tracking import BranchTracker, TrackerConfig
@@ -146,6 +149,8 @@ class StereoStage:
     pair_check: PairCheck | None = None
     coarse_trunk: CoarseTrunk | None = None
     right: np.ndarray | None = None
+    origin: Origin | None = None
+    keyframe_age_s: float | None = None
 
 
 class Pipeline:
@@ -203,6 +208,9 @@ class Pipeline:
         self._backend = backend
         self.segmenter: Segmenter = segmenter or self.config.segmenter.build()
         self.tracker = BranchTracker(self.config.tracker)
+        self.keyframes = KeyframeSchedule()
+        # keyframe mode: each carried branch's last trusted cut point (3,) m, by mask id (the geometry half's)
+        self._trusted_cuts: dict[int, np.ndarray] = {}
         self.last: FrameArtifacts | None = None
         self._coarse_to_fine: CoarseToFine | None = None
 
@@ -234,8 +242,10 @@ class Pipeline:
         return StereoGeometry(self.focal_px, self.baseline_m, *self.principal_point)
 
     def reset(self) -> None:
-        """Forget tracked branches (a new sequence or after the camera was lost)."""
+        """Forget tracked branches and carried instances (a new sequence or after the camera was lost)."""
         self.tracker.reset()
+        self.keyframes.reset()
+        self._trusted_cuts = {}
 
     def _masks(self, mask: MaskInput, shape: tuple[int, int]) -> BranchMasks | None:
         """The frame's `BranchMasks` from a path, array or ready instance (None when not given)."""
@@ -296,13 +306,15 @@ class Pipeline:
             pair_check.raise_if_refused()
         t = lap_ms(timing, "rectify", start)
         if self.config.stereo.mode == "roi":
-            fine = self.coarse_to_fine.compute(left, right, masks, geometry, full_resolution_instances=shed_level < 1)
+            fine, origin, keyframe_age_s = self._roi_stereo(
+                left, right, masks, geometry, timestamp_ns, shed_level, timing
+            )
             timing.update(fine.timing_ms)
             disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
             coarse_trunk = fine.trunk
             backend, max_disparity = f"{self.backend.name}-roi", self.config.stereo.max_disp
         else:
-            regions, coarse_trunk = None, None
+            regions, coarse_trunk, origin, keyframe_age_s = None, None, None, None
             stereo = self.backend.compute(left, right)
             disparity, confidence = stereo.disparity, stereo.confidence
             backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
@@ -323,7 +335,81 @@ class Pipeline:
             pair_check,
             coarse_trunk=coarse_trunk,
             right=right if shed_level < 2 else None,
+            origin=origin,
+            keyframe_age_s=keyframe_age_s,
         )
+
+    def _roi_stereo(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        masks: BranchMasks | None,
+        geometry: StereoGeometry,
+        timestamp_ns: int,
+        shed_level: int,
+        timing: dict[str, float],
+    ) -> tuple[CoarseToFineResult, Origin | None, float | None]:
+        """The roi mode's stereo half: a keyframe (the segmenter runs), or a tracked frame (the last frame's
+        instances carried over, `branchrange.core.keyframes`); with masks given, those. Its origin and the
+        age (s) of the keyframe its instances descend from are None unless keyframes are on."""
+        schedule, roi = self.keyframes, self.config.roi
+        if masks is not None or roi.keyframe_interval_s <= 0:
+            fine = self.coarse_to_fine.compute(left, right, masks, geometry, full_resolution_instances=shed_level < 1)
+            return fine, None, None
+        t = time.perf_counter()
+        grey = grey_of(left)
+        carried = schedule.carry_from(timestamp_ns, roi.keyframe_interval_s)
+        moved = None
+        if carried is not None:
+            moved = propagate_labels(
+                carried.grey, carried.masks, grey, search_px=roi.track_search_px, min_ncc=roi.track_min_ncc
+            )
+            lap_ms(timing, "propagate", t)
+        if moved is None or not moved.shifts:
+            fine = self.coarse_to_fine.compute(left, right, None, geometry, full_resolution_instances=shed_level < 1)
+            found = fine.masks
+            gates = {} if found is None else branch_gates(found, fine.disparity, roi.track_gate_px)
+            schedule.done(grey, found, gates, timestamp_ns, "keyframe", lost=False)
+            return fine, "keyframe", 0.0
+        assert carried is not None
+        fine = self.coarse_to_fine.compute(
+            left, right, replace(carried.masks, labels=moved.labels), geometry, carried=True, gates=carried.gates
+        )
+        assert fine.masks is not None, "carried masks are given masks"
+        labels, failed = verify_support(moved.labels, fine.masks.labels, list(moved.shifts), roi.track_min_support)
+        kept = replace(fine.masks, labels=labels)
+        fine = replace(fine, masks=kept)
+        gates = branch_gates(kept, fine.disparity, roi.track_gate_px)
+        schedule.done(grey, kept, gates, timestamp_ns, "tracked", lost=bool(moved.lost or failed))
+        return fine, "tracked", round((timestamp_ns - carried.keyframe_ns) / 1e9, 3)
+
+    def _without_jumps(self, cut: CutPointResult, origin: Origin) -> CutPointResult:
+        """Keyframe mode: on a tracked frame, drop each cut point that is more than `roi.track_max_jump_m`
+        from its branch's last trusted one (or has none) and ask for a keyframe; remember the trusted ones
+        (a keyframe's are all trusted: the segmenter measured them)."""
+        if origin == "keyframe":
+            self._trusted_cuts = {b.mask_id: b.cut_point_m for b in cut.branches}
+            return cut
+        kept, dropped = [], list(cut.dropped)
+        limit = self.config.roi.track_max_jump_m
+        for branch in cut.branches:
+            last = self._trusted_cuts.get(branch.mask_id)
+            jump = math.inf if last is None else float(np.linalg.norm(branch.cut_point_m - last))
+            if jump > limit:
+                dropped.append(
+                    DroppedBranch(
+                        branch.mask_id,
+                        "carried over from the last frame, its cut point is "
+                        + ("new" if last is None else f"{100 * jump:.0f} cm from that frame's")
+                        + f" (more than roi.track_max_jump_m = {limit} m): not trusted until the next keyframe",
+                    )
+                )
+                continue
+            kept.append(branch)
+        if len(kept) < len(cut.branches):
+            self.keyframes.request()
+        self._trusted_cuts.update((b.mask_id, b.cut_point_m) for b in kept)
+        return CutPointResult(kept, dropped)
 
     def process_disparity(
         self,
@@ -431,6 +517,8 @@ class Pipeline:
                 max_disparity=max_disparity,
                 trunk_model=trunk_model,
             )
+            if stage.origin is not None:
+                cut = self._without_jumps(cut, stage.origin)
             if not cut.branches:
                 reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
                     f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5]
@@ -465,6 +553,8 @@ class Pipeline:
             reason=reason,
             roi=None if stage.regions is None else RoiInfo(tuple(RoiRegion.from_region(r) for r in stage.regions)),
             pair_check=None if stage.pair_check is None else PairCheckInfo.from_check(stage.pair_check),
+            origin=stage.origin,
+            keyframe_age_s=stage.keyframe_age_s,
         )
 
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -118,6 +119,12 @@ def disparity_window(coarse_disparities: np.ndarray, scale: int, margin_px: int,
     if coarse_disparities.size < MIN_WINDOW_EVIDENCE:
         return 0, max_disp
     low, high = np.percentile(coarse_disparities, [2.0, 98.0]) * scale
+    return window_between(float(low), float(high), margin_px, max_disp)
+
+
+def window_between(low: float, high: float, margin_px: int, max_disp: int) -> tuple[int, int]:
+    """(d_min, d_range) px covering disparities [`low`, `high`] ± `margin_px`, in whole steps of
+    `DISPARITY_STEP` within [0, max_disp)."""
     d_min = max(0, int(math.floor(low - margin_px)))
     d_max = min(max_disp, int(math.ceil(high + margin_px)))
     d_range = DISPARITY_STEP * max(1, math.ceil((d_max - d_min) / DISPARITY_STEP))
@@ -132,18 +139,24 @@ def plan_regions(
     scale: int,
     config: RoiConfig,
     max_disp: int,
+    gates: Mapping[int, tuple[float, float]] | None = None,
 ) -> list[Region]:
     """A `Region` per branch of `instances` (full resolution): its box grown by the margin, its
     disparity window from the coarse disparities (`float32 h×w` px, 0 invalid) under its coarse
-    labels. When more than `max_regions` branches are present, the nearest ones (largest median
-    coarse disparity) are kept."""
+    labels — or, for a branch carried over from the last frame, around the range its own pixels had
+    there (`gates`: id → [low, high) px, `branch_gates`), so that the new disparity must agree with the
+    branch's, not with whatever it was carried onto. When more than `max_regions` branches are present,
+    the nearest ones (largest median coarse disparity) are kept."""
     height, width = instances.shape
     regions, nearness = [], []
     m = config.box_margin_px
     for instance in instances.branch_ids():
         row0, row1, col0, col1 = instances.index.box(instance)  # type: ignore[misc]  # ids come from the index
         values = coarse_disparity[(labels_coarse == instance) & (coarse_disparity > 0)]
-        d_min, d_range = disparity_window(values, scale, config.window_margin_px, max_disp)
+        if gates is not None and instance in gates:
+            d_min, d_range = window_between(*gates[instance], config.window_margin_px, max_disp)
+        else:
+            d_min, d_range = disparity_window(values, scale, config.window_margin_px, max_disp)
         box = (max(0, col0 - m), max(0, row0 - m), min(width, col1 + m), min(height, row1 + m))
         regions.append(Region(int(instance), box, d_min, d_range))
         nearness.append(float(np.median(values)) if values.size else 0.0)
@@ -151,6 +164,28 @@ def plan_regions(
         order = sorted(range(len(regions)), key=lambda i: -nearness[i])[: config.max_regions]
         regions = [regions[i] for i in sorted(order)]
     return regions
+
+
+def branch_gates(masks: BranchMasks, disparity: np.ndarray, margin_px: float) -> dict[int, tuple[float, float]]:
+    """Each branch's own disparity range [low, high) px at full resolution, from its pixels' valid
+    `float32 H×W` disparity: what the next frame's carried-over mask must agree with (a branch moves
+    little in depth from one frame to the next). The median ± 3 robust σ (1.4826 · MAD) ± `margin_px`
+    (the depth change of a frame's motion): a silhouette's edge pixels that read the background (up to a
+    fifth of a thin stem's) must not widen it to the background's depth, or the carried mask would keep
+    background pixels and its cut point would go there. A branch with too little depth is left out."""
+    gates = {}
+    for instance in masks.branch_ids():
+        crop = masks.crop(instance, margin=0)
+        assert crop is not None, "every id of branch_ids() has pixels, hence a crop"
+        rows, cols = crop.pixels()
+        values = disparity[rows, cols]
+        values = values[values > 0]
+        if values.size < MIN_WINDOW_EVIDENCE:
+            continue
+        median = float(np.median(values))
+        spread = 3.0 * 1.4826 * float(np.median(np.abs(values - median))) + margin_px
+        gates[instance] = (max(0.0, median - spread), median + spread)
+    return gates
 
 
 def refine_labels(
@@ -263,11 +298,16 @@ class CoarseToFine:
         geometry: StereoGeometry,
         *,
         full_resolution_instances: bool = True,
+        carried: bool = False,
+        gates: Mapping[int, tuple[float, float]] | None = None,
     ) -> CoarseToFineResult:
         """Full-resolution disparity inside each instance's region of a rectified `uint8 H×W×3` pair.
 
         `full_resolution_instances` False skips that step for this frame even where the settings ask for
-        it (the daemon's load shedding)."""
+        it (the daemon's load shedding). `carried`: `masks` were carried over from the last frame
+        (`branch_propagation`), not measured: each branch is then matched around `gates` (its own
+        disparity range in the last frame, `branch_gates`) and, like a segmenter's, kept where the fine
+        disparity lies in that search window (`refine_labels`)."""
         timing: dict[str, float] = {}
         t = time.perf_counter()
         height, width = left.shape[:2]
@@ -298,7 +338,9 @@ class CoarseToFine:
             coarse_labels = on_coarse_grid(masks.labels, scale, small)
             labels_full = masks.labels
         t = lap_ms(timing, "segment", t)
-        regions = plan_regions(instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp)
+        regions = plan_regions(
+            instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp, gates if carried else None
+        )
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
         matchers = self._matchers(regions)
@@ -318,10 +360,9 @@ class CoarseToFine:
             labels_full = instances.labels
             coarse_labels = on_coarse_grid(labels_full, scale, small)
             lap_ms(timing, "instances", t)
-        elif masks is None:
-            instances = replace(
-                instances, labels=refine_labels(labels_full, scale, disparity, regions, instances.trunk_id)
-            )
+        elif masks is None or carried:
+            refined = refine_labels(labels_full, scale, disparity, regions, instances.trunk_id)
+            instances = replace(instances, labels=refined)
             lap_ms(timing, "refine", t)
         trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
         return CoarseToFineResult(

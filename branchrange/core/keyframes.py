@@ -1,0 +1,91 @@
+"""Detect slowly, track at camera rate: when the roi mode runs its segmenter, and when it carries masks over.
+
+With `[roi] keyframe_interval_s` > 0 the segmenter (its network look and instance steps, ~150 ms a frame
+at HD720 on 2 CPU cores) runs on *keyframes* only; the frames between reuse the last frame's instances,
+each branch moved to where its pixels went (`branch_propagation.propagate_labels`), and run the coarse
+pass, the region stereo, the branch refinement and the cut points as usual. A keyframe comes
+- on the first frame, and after `reset` (a new sequence, a reopened camera);
+- `keyframe_interval_s` after the last one (new branches appear within that, plus one frame);
+- at once after a frame that lost a branch: its image match failed (`track_min_ncc`), the new disparity
+  did not support where it was carried (`track_min_support`), or its cut point jumped from the last
+  frame's (`track_max_jump_m`, checked in the geometry half) — a branch is never measured at a guessed place;
+- when the last frame had no branch left to carry.
+Masks given with the frame (a recording's, the API's) are always used as they are: nothing to track.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from branchrange.core.masks import BranchMasks
+
+Origin = Literal["keyframe", "tracked"]
+
+
+@dataclass(frozen=True)
+class CarriedFrame:
+    """What the next frame may carry over: the rectified left image in grey (`uint8 H×W`), its final
+    instances, each branch's own disparity range there (id → [low, high) px, `roi.branch_gates`), and
+    the capture time (ns) of the keyframe they descend from."""
+
+    grey: np.ndarray
+    masks: BranchMasks
+    gates: dict[int, tuple[float, float]]
+    keyframe_ns: int
+
+
+def grey_of(left: np.ndarray) -> np.ndarray:
+    """The `uint8 H×W` grey of a rectified RGB `uint8 H×W×3` image."""
+    return cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
+
+
+class KeyframeSchedule:
+    """Decides per frame whether the segmenter runs, and keeps what a tracked frame needs."""
+
+    def __init__(self) -> None:
+        self._carried: CarriedFrame | None = None
+        self._keyframe_due = True
+        self._requested = False  # set by the geometry half (another thread), taken by `carry_from`
+
+    def request(self) -> None:
+        """Ask for a keyframe next (the geometry half found a carried branch's cut point untrustworthy)."""
+        self._requested = True
+
+    def carry_from(self, timestamp_ns: int, interval_s: float) -> CarriedFrame | None:
+        """What the frame captured at `timestamp_ns` (ns) may carry over, keyframes `interval_s` (s) apart;
+        None when it must be a keyframe."""
+        carried = self._carried
+        requested, self._requested = self._requested, False
+        if carried is None or self._keyframe_due or requested or not carried.masks.branch_ids():
+            return None
+        if not 0 <= timestamp_ns - carried.keyframe_ns < interval_s * 1e9:
+            return None
+        return carried
+
+    def done(
+        self,
+        grey: np.ndarray,
+        masks: BranchMasks | None,
+        gates: dict[int, tuple[float, float]],
+        timestamp_ns: int,
+        origin: Origin,
+        lost: bool,
+    ) -> None:
+        """Note the frame just processed: its grey image, final instances and their disparity ranges, and
+        whether it lost a branch."""
+        if masks is None:
+            self.reset()
+            return
+        keyframe_ns = timestamp_ns if origin == "keyframe" or self._carried is None else self._carried.keyframe_ns
+        self._carried = CarriedFrame(grey, masks, gates, keyframe_ns)
+        self._keyframe_due = lost
+
+    def reset(self) -> None:
+        """Forget the carried instances: the next frame is a keyframe."""
+        self._carried = None
+        self._keyframe_due = True
+        self._requested = False
