@@ -604,6 +604,7 @@ def test_a_frame_is_read_through_the_calibration_of_its_light_and_dark_light_giv
     normal, normal_masks = run(rendered.left)
     assert normal_masks.light.light == "normal" and normal_masks.target_min_confidence == 0.0
     assert normal.masks.light.light == "normal" and normal.target is not None  # the settings' 0.1 stands
+    assert all(b.light_refuses_target is None for b in normal.branches)
     dusk_left = (rendered.left * 0.3).astype(np.uint8)  # same disparity: only the reading of confidences changes
     dusk, dusk_masks = run(dusk_left)
     assert dusk.masks.light.light == "dark" and dusk.masks.light.median_grey < 55
@@ -611,6 +612,7 @@ def test_a_frame_is_read_through_the_calibration_of_its_light_and_dark_light_giv
     assert dusk_masks.target_min_confidence == math.inf and dusk.branches and dusk.target is None
     assert dusk.reason.startswith("no target in dark light (median grey") and "≥ 90 % right" in dusk.reason
     assert max(b.confidence for b in dusk.branches) <= 0.5
+    assert all(b.light_refuses_target for b in dusk.branches)  # so the MAVLink relay's tracks hold to it too
     bright, _ = run(np.clip(rendered.left.astype(int) * 2 + 40, 0, 255).astype(np.uint8))
     assert bright.masks.light.light == "bright"
     assert bright.branches and bright.target is None  # 1.0 asked: no cut point is that sure

@@ -84,13 +84,14 @@ def test_a_target_from_a_capture_older_than_the_age_limit_is_not_the_target():
     assert tracks.fresh(10.51)  # still an obstacle
 
 
-def test_a_frame_whose_own_rule_refused_every_target_leaves_none():
+def test_a_branch_its_frames_light_refuses_is_not_the_target():
     tracks = WorldTracks(TrackingConfig(target_min_observations=1), TargetRule(min_confidence=0.5))
     tracks.update([seen(0, [1.5, 0, 0])], 0.0)
     assert tracks.target(0.0) is not None
-    tracks.update([seen(0, [1.5, 0, 0])], 0.1, allow_target=False)
+    dark = Measurement(0, np.array([1.5, 0, 0]), COVARIANCE, 0.9, CAMERA, light_allows_target=False)
+    tracks.update([dark], 0.1)  # the light now asks more than its 0.9
     assert tracks.target(0.1) is None
-    tracks.update([seen(0, [1.5, 0, 0])], 0.2)
+    tracks.update([seen(0, [1.5, 0, 0])], 0.2)  # back in normal light
     assert tracks.target(0.2) is not None
 
 

@@ -146,6 +146,13 @@ class Branch(JsonPart):
     valid_fraction: Annotated[Fraction, Field(description="share of the eroded mask with valid disparity")]
     residual_m: Annotated[float, Field(ge=0, description="robust axis-fit residual, metres")]
     points: Annotated[int, Field(ge=0, description="3D points the fit used")]
+    light_refuses_target: Annotated[
+        bool | None,
+        Field(
+            description="true when the frame's light asks more confidence of a target than this cut point has "
+            "(the segmenter's calibration in that light); left out otherwise"
+        ),
+    ] = None
 
     @classmethod
     def from_estimate(cls, b: BranchEstimate) -> Branch:

@@ -547,7 +547,10 @@ class Pipeline:
                 masks.trunk() is not None,
                 None if masks.light is None else LightInfo.from_reading(masks.light),
             ),
-            branches=tuple(Branch.from_estimate(b) for b in sorted(cut.branches, key=lambda b: b.id)),
+            branches=tuple(
+                _refused_in_light(Branch.from_estimate(b), needed, masks)
+                for b in sorted(cut.branches, key=lambda b: b.id)
+            ),
             dropped=tuple(DroppedInstance.from_dropped(d) for d in cut.dropped),
             target_id=None if target is None else int(target.id),
             reason=reason,
@@ -556,6 +559,16 @@ class Pipeline:
             origin=stage.origin,
             keyframe_age_s=stage.keyframe_age_s,
         )
+
+
+def _refused_in_light(branch: Branch, needed: float, masks: BranchMasks | None) -> Branch:
+    """`branch` marked `light_refuses_target` when the frame's light asks more of a target than the settings'
+    minimum `needed` and more than its confidence: the MAVLink relay's fused tracks read it, so the light's
+    rule holds for the target it sends too."""
+    light_needs = target_minimum(needed, masks)
+    if light_needs > needed and branch.confidence < light_needs:
+        return replace(branch, light_refuses_target=True)
+    return branch
 
 
 def target_minimum(needed: float, masks: BranchMasks | None) -> float:

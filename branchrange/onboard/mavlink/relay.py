@@ -161,15 +161,11 @@ class MavlinkRelay:
                     b.confidence,
                     camera_m,
                     b.diameter_m,
+                    light_allows_target=not b.light_refuses_target,
                 )
                 for b in result.branches
             ]
-            # the frame's own rule (its light may ask more than the settings) refused every cut point the
-            # settings would take: no target from the fused tracks either until a frame allows one again
-            light_veto = result.target_id is None and any(
-                b.confidence >= self._tracks.rule.min_confidence for b in result.branches
-            )
-            self._tracks.update(measurements, captured_at, allow_target=not light_veto)
+            self._tracks.update(measurements, captured_at)
             return True
 
     def vehicle_pose(self) -> tuple[tuple[float, float, float], tuple[float, float, float, float]] | None:

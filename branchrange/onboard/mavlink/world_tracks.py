@@ -32,14 +32,16 @@ a moment comes back with its id and history; after `forget_after_s` it is droppe
   never the target;
 - its recency-weighted confidence (`confidence_half_life_s`: an observation's weight halves every
   half-life) is ≥ the rule's `min_confidence` (`cutpoints.target_min_confidence`), so a branch first
-  seen uncertain from afar becomes eligible as soon as its recent views are good.
+  seen uncertain from afar becomes eligible as soon as its recent views are good;
+- its newest observation's frame did not refuse it in its light (`Branch.light_refuses_target`: the
+  segmenter's calibration in dark or noisy light asks more confidence, or allows no target at all).
 Among eligible tracks the cut-point policy ranks (`cutpoints.target_score`, the per-frame rule); the
 current target is kept while it holds — still tracked (`stale_after_s`) and confident; one inconsistent
 cut point or a frame that missed it does not unseat it — unless another ranks better by
 `target_switch_margin` (a share of its score), so the target does not flip between similar branches. While
 it holds but its newest cut point is older than `max_age_s`, nothing is sent as the target. The choice is
 made at each frame's capture and checked again at each send: a target that no longer holds is replaced by
-the best eligible track at once (none while the last frame's own rule refused every target).
+the best eligible track at once.
 """
 
 from __future__ import annotations
@@ -67,8 +69,9 @@ class TargetRule:
 @dataclass(frozen=True)
 class Measurement:
     """One frame's cut point in local NED: `position_m` (3,), `covariance_m2` (3×3, m²), pipeline branch
-    id, confidence, `camera_m` (3,) the camera's optical centre in NED at capture, and the cut point's
-    `diameter_m` (for the `thickest` policy)."""
+    id, confidence, `camera_m` (3,) the camera's optical centre in NED at capture, the cut point's
+    `diameter_m` (for the `thickest` policy), and whether the frame's light allows it as a target
+    (`Branch.light_refuses_target`: the segmenter's calibration in that light asks more confidence)."""
 
     branch_id: int
     position_m: np.ndarray
@@ -76,6 +79,7 @@ class Measurement:
     confidence: float
     camera_m: np.ndarray
     diameter_m: float = 0.0
+    light_allows_target: bool = True
 
     @property
     def range_m(self) -> float:
@@ -122,6 +126,7 @@ class Track:
     views: list[View]
     observations: int = 1
     consistent_observations: int = 1
+    light_allows_target: bool = True  # as its newest observation's frame said
     bias_share: float = 0.5
     updated_at: float = field(default=0.0)
 
@@ -139,6 +144,7 @@ class Track:
             z.range_m,
             z.diameter_m,
             [_view_of(z)],
+            light_allows_target=z.light_allows_target,
             bias_share=cfg.bias_share,
             updated_at=t,
         )
@@ -191,6 +197,7 @@ class Track:
         self.last_seen = max(self.last_seen, t)
         self.branch_id = z.branch_id
         self.distance_m, self.diameter_m = z.range_m, z.diameter_m
+        self.light_allows_target = z.light_allows_target
 
     def score(self, policy: str) -> float:
         """The cut-point policy's rank of this track (lower is better)."""
@@ -239,13 +246,11 @@ class WorldTracks:
         self.tracks: list[Track] = []
         self.target_id: int | None = None
         self.target_switches = 0
-        self._vetoed = False  # the last frame's own rule refused every target
         self._next_id = 0
 
-    def update(self, measurements: list[Measurement], t: float, *, allow_target: bool = True) -> dict[int, int]:
+    def update(self, measurements: list[Measurement], t: float) -> dict[int, int]:
         """Fuse one frame's measurements taken at time `t` (s), then choose the target; returns branch
-        id → track id. `allow_target` False (the frame's own rule refused every target, e.g. in light
-        its segmenter is not sure in) leaves no target until a frame allows one again."""
+        id → track id."""
         self._forget(t)
         for track in self.tracks:
             track.predict(t, self.cfg.process_noise_m2_per_s)
@@ -277,7 +282,7 @@ class WorldTracks:
                 self._next_id += 1
                 self.tracks.append(track)
                 matched[zi] = track.track_id
-        self._choose_target(t) if allow_target else self._clear_target()
+        self._choose_target(t)
         return {measurements[zi].branch_id: tid for zi, tid in matched.items()}
 
     def holds(self, track: Track, now: float) -> bool:
@@ -285,7 +290,11 @@ class WorldTracks:
         `stale_after_s`) and confident enough. Its run of consistent observations is what it took to become
         the target: one inconsistent cut point (a noisy frame) does not hand the target to another branch,
         nor does a frame or two that missed it."""
-        return track.age(now) <= self.cfg.stale_after_s and track.confidence >= self.rule.min_confidence
+        return (
+            track.age(now) <= self.cfg.stale_after_s
+            and track.confidence >= self.rule.min_confidence
+            and track.light_allows_target
+        )
 
     def sendable(self, track: Track, now: float) -> bool:
         """Whether a target `track` may go out at `now` (s): its newest cut point captured within `max_age_s`."""
@@ -296,12 +305,12 @@ class WorldTracks:
         return (
             self.sendable(track, now)
             and track.confidence >= self.rule.min_confidence
+            and track.light_allows_target
             and track.consistent_observations >= self.cfg.target_min_observations
         )
 
     def _choose_target(self, now: float) -> None:
         """Keep the current target while it holds, unless an eligible track ranks better by the margin."""
-        self._vetoed = False
         current = next((tr for tr in self.tracks if tr.track_id == self.target_id and self.holds(tr, now)), None)
         candidates = [tr for tr in self.tracks if self.eligible(tr, now)]
         best = min(candidates, key=lambda tr: tr.score(self.rule.policy), default=None)
@@ -317,11 +326,6 @@ class WorldTracks:
         if new_id is not None and self.target_id is not None and new_id != self.target_id:
             self.target_switches += 1
         self.target_id = new_id
-
-    def _clear_target(self) -> None:
-        """No target until a frame allows one again (the next eligible track becomes it without a margin)."""
-        self.target_id = None
-        self._vetoed = True
 
     def _forget(self, now: float) -> None:
         """Drop tracks unseen for `forget_after_s`."""
@@ -340,7 +344,7 @@ class WorldTracks:
         point is older than `max_age_s` keeps its claim and sends nothing meanwhile (a frame or two that
         missed it must not swing the approach to another branch)."""
         current = next((tr for tr in self.tracks if tr.track_id == self.target_id), None)
-        if (current is None or not self.holds(current, now)) and not self._vetoed:
+        if current is None or not self.holds(current, now):
             self._choose_target(now)
             current = next((tr for tr in self.tracks if tr.track_id == self.target_id), None)
         return current if current is not None and self.sendable(current, now) else None
@@ -349,7 +353,6 @@ class WorldTracks:
         """Forget every track (ids keep counting up)."""
         self.tracks.clear()
         self.target_id = None
-        self._vetoed = False
 
 
 def _distance(a: np.ndarray, b: np.ndarray) -> float:
