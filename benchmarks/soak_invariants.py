@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import bisect
 import json
+import math
 import statistics
 from collections import defaultdict
 from collections.abc import Sequence
@@ -117,7 +118,7 @@ class Limits:
     warmup_s: float = 30.0  # resources are judged from this long after a daemon started
     resource_window_s: float = 30.0
     rss_growth: float = 0.05
-    max_target_gap_s: float = 1.0  # targets must keep coming this often through a full disk
+    max_set_gap_s: float = 1.0  # frame sets (target or not) must keep coming this often through a full disk
 
 
 @dataclass
@@ -133,6 +134,7 @@ class Recording:
     log_lines: list[str] = field(default_factory=list)
     daemon_log: list[tuple[float, str]] = field(default_factory=list)
     blind: list[tuple[float, float]] = field(default_factory=list)
+    horizon: float = math.inf  # what is known so far: a recovery due after it is not judged yet
 
 
 def _span_at(spans: Sequence[Span], at: float) -> Span | None:
@@ -188,6 +190,8 @@ def recoveries(rec: Recording, limits: Limits) -> tuple[dict[str, list[float]], 
         if before == 0 or fault.start - targets[before - 1] > limits.flowing_s:
             continue  # nothing was going out before: nothing to recover
         limit = limits.restart_recovery_s if fault.kind in RESTARTS else limits.recovery_s
+        if fault.end + limit > rec.horizon:
+            continue
         after = bisect.bisect_left(targets, fault.end)
         following = faults[number + 1].start if number + 1 < len(faults) else float("inf")
         first = targets[after] if after < len(targets) else None
@@ -260,8 +264,8 @@ def log_lines(rec: Recording) -> list[Breach]:
 
 
 def disk_full(rec: Recording, limits: Limits) -> list[Breach]:
-    """Per full-disk fault: its error logged at most once (none outside the faults), and targets kept
-    coming through it (no gap over `max_target_gap_s`) when they were coming before it."""
+    """Per full-disk fault: its error logged at most once (none outside the faults), frame sets kept going out
+    (no gap over `max_set_gap_s`), and targets too (no gap over `recovery_s`) when they were coming before it."""
     faults = [f for f in rec.faults if f.kind == "disk.full"]
     errors = [at for at, line in rec.daemon_log if DISK_FULL_MESSAGE in line and "results log" in line]
     targets = [s.at for s in rec.sent if s.kind == "target"]
@@ -273,12 +277,15 @@ def disk_full(rec: Recording, limits: Limits) -> list[Breach]:
     for fault in faults:
         if sum(fault.start <= at <= fault.end + limits.settle_s for at in errors) > 1:
             breaches.append(Breach("disk_full_logged_twice", fault.start, "the full disk was logged more than once"))
-        if not any(fault.start - limits.flowing_s <= at < fault.start for at in targets):
-            continue
-        points = [fault.start, *(at for at in targets if fault.start <= at <= fault.end), fault.end]
-        gap, at = max((b - a, a) for a, b in zip(points, points[1:]))
-        if gap > limits.max_target_gap_s:
-            breaches.append(Breach("output_stopped_by_full_disk", at, f"no target for {gap:.2f} s"))
+        sets = [s.at for s in rec.sent if s.kind in ("target", "no_target")]
+        flowing = any(fault.start - limits.flowing_s <= at < fault.start for at in targets)
+        for name, times, limit in (("frame set", sets, limits.max_set_gap_s), ("target", targets, limits.recovery_s)):
+            if name == "target" and not flowing:
+                continue
+            points = [fault.start, *(at for at in times if fault.start <= at <= fault.end), fault.end]
+            gap, at = max((b - a, a) for a, b in zip(points, points[1:]))
+            if gap > limit:
+                breaches.append(Breach("output_stopped_by_full_disk", at, f"no {name} for {gap:.2f} s"))
     return breaches
 
 

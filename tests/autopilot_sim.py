@@ -142,6 +142,7 @@ class AutopilotSim:
         answer_interval_requests: bool = True,
         boot_age_s: float = 100.0,
         listener: Callable[[Received], None] | None = None,
+        poll_s: float = 0.001,
     ):
         self.trajectory = trajectory
         self.heartbeat_period_s = heartbeat_period_s
@@ -151,6 +152,7 @@ class AutopilotSim:
         self.heartbeats_sent = 0
         self.received: list[Received] = []
         self.listener = listener
+        self.poll_s = poll_s  # how often its thread wakes (s): finer times in the tests, less CPU in a soak
         self.signing_key = signing_key
         self._silent_until = self._wrong_key_until = self._flood_until = 0.0
         self._flood_rate_hz = 0.0
@@ -268,7 +270,7 @@ class AutopilotSim:
                 if msg.get_type() != "BAD_DATA":
                     self._handle(msg, now)
             if not self.conn.clients or now < self._silent_until:  # nobody to send to yet, or told to be silent
-                time.sleep(0.002)
+                time.sleep(max(self.poll_s, 0.002))
                 continue
             with self._lock:
                 self._end_faults(now)
@@ -281,7 +283,7 @@ class AutopilotSim:
                 if now >= next_stream.get(message_id, 0.0):
                     self._stream(message_id, now)
                     next_stream[message_id] = max(next_stream.get(message_id, now) + 1.0 / rate, now)
-            time.sleep(0.001)
+            time.sleep(self.poll_s)
 
     def close(self) -> None:
         self._stop.set()
