@@ -607,7 +607,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     view = settled(rec, time.monotonic() - CHECK_LAG_S)
                 breaches = check(view, limits)
                 next_check = time.monotonic() + CHECK_PERIOD_S
-                if breaches:
+                if breaches and not args.keep_going:
                     first_breach = breaches[0]
                     break
         if first_breach is None:
@@ -619,13 +619,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         tail.read(rec, lock)
     with lock:
         final = settled(rec, math.inf)
+    breaches = check(final, limits)
     if first_breach is None:
-        breaches = check(final, limits)
         first_breach = breaches[0] if breaches else None
     disk.close()
+    dump(final, work / "recording.json", started)
     times, _ = recoveries(final, limits)
     resources, _ = resource_summary(final, limits)
-    return report(args, final, times, resources, first_breach, service, observers, code, started, load_start, cpu_start)
+    result = report(args, final, times, resources, first_breach, service, observers, code, started, load_start, cpu_start)
+    result["breaches_by_invariant"] = dict(Counter(b.invariant for b in breaches))
+    result["run_folder"] = str(work)
+    return result
+
+
+def dump(rec: Recording, path: Path, started: float) -> None:
+    """What the autopilot received and the faults, times in s since the soak started, for a closer look."""
+    path.write_text(
+        json.dumps(
+            {
+                "sent": [[round(s.at - started, 3), s.kind] for s in rec.sent],
+                "faults": [[f.kind, round(f.start - started, 3), round(f.end - started, 3)] for f in rec.faults],
+                "spans": [[s.pid, round(s.started - started, 3), s.ended and round(s.ended - started, 3)] for s in rec.spans],
+                "captures": [round(c - started, 3) for c in rec.captures],
+            }
+        )
+    )
 
 
 def report(
@@ -682,6 +700,8 @@ def print_report(result: dict[str, Any]) -> None:
     print(f"daemon starts {result['daemon_starts']}, unexpected exits {result['unexpected_exits']}, targets received {result['targets_received']}, API {result['api_statuses']}")
     breach = result["breach"]
     print("invariant breaches: 0" if breach is None else f"INVARIANT BREACH {breach['invariant']} at {breach['at_s']} s: {breach['detail']}")
+    if result.get("breaches_by_invariant"):
+        print(f"breaches by invariant: {result['breaches_by_invariant']}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -693,6 +713,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--flight", type=Path, default=FLIGHT, help="the rendered flight the camera replays")
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "soak", help="where each run's folder goes")
     parser.add_argument("--json", type=Path, help="write the report here")
+    parser.add_argument(
+        "--keep-going", action="store_true", help="do not stop at the first breach: run on and count every breach"
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.minutes = 3.0
