@@ -141,8 +141,8 @@ class Service:
         self.proc: subprocess.Popen[str] | None = None
         self.starts = 0
         self.unexpected_exits: list[tuple[float, int]] = []
-        self._log = log_path.open("a", encoding="utf-8")
-        self._stopping = False
+        self._log = log_path.open("a", encoding="utf-8", buffering=1)
+        self._stopping = self._restarting = False
 
     def start(self) -> None:
         self.proc = subprocess.Popen(
@@ -172,6 +172,7 @@ class Service:
         """Send `sig`, wait for the end (SIGTERM: up to TimeoutStopSec), then restart after RestartSec."""
         proc = self.proc
         assert proc is not None
+        self._restarting = True  # the watch must not take this exit for a crash
         proc.send_signal(sig)
         try:
             proc.wait(timeout=15)
@@ -181,18 +182,13 @@ class Service:
         self._ended(proc)
         if not stop.wait(self.restart_sec):
             self.start()
+        self._restarting = False
 
     def watch(self, stop: threading.Event) -> None:
         """Restart a daemon that ended by itself (Restart=always; exit 2 is final: RestartPreventExitStatus)."""
         while not stop.wait(0.2):
             proc = self.proc
-            if proc is None or proc.poll() is None or self._stopping:
-                continue
-            if proc is not self.proc:
-                continue
-            with self.lock:
-                ended = self.rec.spans[-1].ended is not None
-            if ended:  # a kill_and_restart in progress owns it
+            if proc is None or proc.poll() is None or self._stopping or self._restarting:
                 continue
             self._ended(proc)
             self.unexpected_exits.append((time.monotonic(), proc.returncode))
@@ -437,9 +433,9 @@ class Injector:
         """When the restarted daemon's first HEARTBEAT arrived (its restart is over then)."""
         while not stop.wait(0.05):
             with lock:
-                beats = [s.at for s in rec.sent if s.kind in ("ok", "lost") and s.at > started]
                 spans = [s for s in rec.spans if s.started > started]
-            if spans and beats and beats[0] > spans[0].started:
+                beats = [s.at for s in rec.sent if spans and s.kind in ("ok", "lost") and s.at > spans[0].started]
+            if beats:
                 return beats[0]
         return time.monotonic()
 
@@ -628,6 +624,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     resources, _ = resource_summary(final, limits)
     result = report(args, final, times, resources, first_breach, service, observers, code, started, load_start, cpu_start)
     result["breaches_by_invariant"] = dict(Counter(b.invariant for b in breaches))
+    result["breaches"] = [[b.invariant, round(b.at - started, 2) if b.at else None, b.detail] for b in breaches[:50]]
     result["run_folder"] = str(work)
     return result
 

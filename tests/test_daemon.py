@@ -223,6 +223,27 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
 
 
+def test_a_repeated_or_older_frame_is_skipped_and_counted_not_passed_off_as_new(recording, caplog):
+    """A frozen driver buffer delivers one image again and again, each time arriving now: processed, its
+    result would look fresh and an old target would go out as current (issue 39 soak)."""
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
+    pipeline = Pipeline(
+        pipeline_config(cfg), calibration=from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))
+    )
+    source = FaultInjectingSource(ReplaySource(recording), FaultPlan(repeat={3: 3}))  # at the recorded pace
+    daemon = Daemon(cfg, open_source=lambda: source, pipeline=pipeline)
+    processed = []
+    stereo_stage = pipeline.stereo_stage
+    pipeline.stereo_stage = lambda *a: processed.append(a[3]) or stereo_stage(*a)
+    try:
+        daemon.run()
+    finally:
+        daemon.close()
+    assert processed.count(3) == 1 and 4 not in processed and max(processed) == FRAMES - 1
+    assert 1 <= daemon.repeated <= 3 and daemon.health()["camera"]["repeated"] == daemon.repeated  # a copy may be dropped
+    assert sum("captured no later than the frame before it" in r.getMessage() for r in caplog.records) == 1
+
+
 def test_a_reopened_camera_is_marked_in_the_results_log_where_indices_start_again(recording, tmp_path):
     """The camera goes away after frame 2 and the watchdog reopens it; the new source counts from 0 again.
     The log says so, with the reason and where the results go on, and the readers skip the marker."""

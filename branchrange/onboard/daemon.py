@@ -16,7 +16,10 @@ each new file starting with the run header again. Threads:
   also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
   or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
   results go stale → "no target"); after three stall timeouts it closes the source, opens a fresh
-  one and forgets tracked branches;
+  one and forgets tracked branches. A frame whose `timestamp_ns` is not newer than the previous
+  frame's from the same opened camera (a frozen driver buffer delivering one image again, frames
+  arriving out of order) is skipped and counted (`repeated`): its arrival time would pass an old
+  image off as fresh, and the tracker must never go back in time;
 - **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
   on the newest stereo output (one slot: an output the worker had no time for is replaced by the
   next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
@@ -126,6 +129,9 @@ class Daemon:
         self.reopens = 0
         self.dropped = 0
         self.late = 0  # results older than mavlink.max_result_age_s when published
+        self.repeated = 0  # frames skipped: captured no later than the frame before them
+        self._repeat_logged_for = -1  # the reopening count when a repeated frame was last logged
+        self._newest_capture_ns: int | None = None  # the newest frame's timestamp, of the open camera
         self._dropped_by_closed_sources = 0
         self._corrupt_in_a_row = 0
         self._latencies: list[float] = []
@@ -165,6 +171,7 @@ class Daemon:
             "corrupt": self.corrupt,
             "reopens": self.reopens,
             "late": self.late,
+            "repeated": self.repeated,
         }
         model = {
             "loaded": True,
@@ -396,6 +403,8 @@ class Daemon:
                         continue
                 stalls = self._corrupt_in_a_row = 0
                 self._set_camera_lost(False)
+                if not self._is_newer(stamped[0]):
+                    continue
                 self.dropped = self._dropped_by_closed_sources + source.dropped
                 if max_frames is not None:
                     self._slot.wait_idle()  # a counted run processes every frame it takes, and no more
@@ -411,6 +420,24 @@ class Daemon:
         self._report_speed()  # a run shorter than the warm-up
         self._status(status_at, time.monotonic(), frames_then)
         return self.frames
+
+    def _is_newer(self, frame: Any) -> bool:
+        """Whether `frame` was captured after the newest frame of this camera so far; counts and logs (once
+        per opened camera) a frame that was not: a repeated image or one out of order."""
+        newest = self._newest_capture_ns
+        if newest is None or frame.timestamp_ns > newest:
+            self._newest_capture_ns = frame.timestamp_ns
+            return True
+        self.repeated += 1
+        self._count_error("repeated_frame")
+        if self._repeat_logged_for != self.reopens:
+            self._repeat_logged_for = self.reopens
+            log.warning(
+                "frame %d captured no later than the frame before it (a repeated image or frames out of order): "
+                "skipped, as are the next such frames",
+                frame.index,
+            )
+        return False
 
     def _on_corrupt(self, error: CorruptFrameError) -> None:
         """Skip an unreadable frame; several in a row mean the camera (or the recording) is gone."""
@@ -442,6 +469,7 @@ class Daemon:
         self._pair_checked = False  # a camera plugged in again may be another one
         self._slot.wait_idle()  # the tracker (and the log's order) is the worker's until then
         self._reopened = (reason, self.reopens, utc_now())
+        self._newest_capture_ns = None  # a new source's timestamps may start again lower
         self.pipeline.reset()
         return self._try_open()
 

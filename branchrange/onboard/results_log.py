@@ -9,8 +9,10 @@ file with a header, and the lines are data, not log records (no levels, formatti
 
 Two faults of the field are handled here, because the log must never stop the vehicle's sensor:
 - a full disk (or any write error): the line is dropped, whatever part of it reached the file is cut
-  off again (the file keeps whole lines only), one error is logged for the whole episode, and
-  writing resumes by itself with the first line that fits (logged too, with how many were dropped);
+  off again (the file keeps whole lines only), and writing resumes by itself with the first line that
+  fits. One error is logged for the episode, and one info line when writing works again: a nearly full
+  filesystem takes a short line into a block it already gave the file and refuses the next, so writes
+  may come and go for a while — within `ERROR_REPEAT_S` of the error that is the same episode, silent;
 - a daemon killed in the middle of a line (SIGKILL, power loss) leaves a torn last line without its
   newline: the next run ends it with a newline and says so in its header (`"previous_line_torn": true`),
   so the header is never glued to the fragment and a reader knows that line is not a result.
@@ -22,18 +24,30 @@ import io
 import json
 import logging
 import os
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 log = logging.getLogger("branchrange.daemon")
 #: The run header's key saying the line before it is a fragment left by a run that was killed mid-line.
 TORN_KEY = "previous_line_torn"
+#: Seconds after a logged write error within which further errors are the same episode (not logged again).
+ERROR_REPEAT_S = 60.0
 
 
 class ResultsLog:
     """Appends lines to `path` (created with its folder), rotating past `max_bytes` (0: never), keeping `keep`
     older files; each file starts with `header`, written when this log opens (a run's first line)."""
 
-    def __init__(self, path: str | Path, header: str, *, max_bytes: int = 0, keep: int = 1) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        header: str,
+        *,
+        max_bytes: int = 0,
+        keep: int = 1,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         if max_bytes < 0 or keep < 1:
             raise ValueError(f"max_bytes is {max_bytes} and keep {keep}; expected max_bytes ≥ 0 and keep ≥ 1")
         self.path = Path(path)
@@ -41,7 +55,10 @@ class ResultsLog:
         self.header, self.max_bytes, self.keep = header, max_bytes, keep
         self.rotations = 0
         self.dropped_lines = 0  # lines lost to write errors (a full disk), over the run
-        self._failing = False  # in a write-error episode: logged once, until a line fits again
+        self._failing = False  # the last write failed
+        self._clock = clock
+        self._error_logged_at = -ERROR_REPEAT_S  # when the newest write error was logged (clock s)
+        self._resume_logged = True  # the episode's "writing again" is logged (or there was none)
         self._file = self._open()
         torn = self._size > 0 and self._last_byte() != b"\n"
         if torn:  # a run killed mid-line: end the fragment so the header gets a line of its own
@@ -83,8 +100,9 @@ class ResultsLog:
             self._failed(error)
             return
         self._size += len(data)
-        if self._failing:
-            self._failing = False
+        self._failing = False
+        if not self._resume_logged:
+            self._resume_logged = True
             log.info("results log %s: writing again after %d dropped lines", self.path, self.dropped_lines)
 
     def _cut_back(self) -> None:
@@ -96,13 +114,15 @@ class ResultsLog:
 
     def _failed(self, error: OSError) -> None:
         self.dropped_lines += 1
-        if not self._failing:
-            self._failing = True
+        now = self._clock()
+        if not self._failing and now - self._error_logged_at >= ERROR_REPEAT_S:
+            self._error_logged_at, self._resume_logged = now, False
             log.error(
                 "results log %s: cannot write (%s); results are not logged until it can, MAVLink and the API go on",
                 self.path,
                 error.strerror or error,
             )
+        self._failing = True
 
     def _rotate(self) -> None:
         """NAME → NAME.1 → … → NAME.KEEP (the oldest dropped), then a fresh NAME that starts with the header."""
