@@ -467,7 +467,7 @@ class Injector:
         return max(start + seconds, time.monotonic() if kind.startswith("camera.") else start + seconds)
 
 
-# --- the run -----------------------------------------------------------------------------------------------------------
+# --- the run ------------------------------------------------------------------------------------------
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -622,7 +622,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     dump(final, work / "recording.json", started)
     times, _ = recoveries(final, limits)
     resources, _ = resource_summary(final, limits)
-    result = report(args, final, times, resources, first_breach, service, observers, code, started, load_start, cpu_start)
+    result = report(
+        args, final, times, resources, first_breach, service, observers, code, started, load_start, cpu_start
+    )
     result["breaches_by_invariant"] = dict(Counter(b.invariant for b in breaches))
     result["breaches"] = [[b.invariant, round(b.at - started, 2) if b.at else None, b.detail] for b in breaches[:50]]
     result["run_folder"] = str(work)
@@ -636,7 +638,9 @@ def dump(rec: Recording, path: Path, started: float) -> None:
             {
                 "sent": [[round(s.at - started, 3), s.kind] for s in rec.sent],
                 "faults": [[f.kind, round(f.start - started, 3), round(f.end - started, 3)] for f in rec.faults],
-                "spans": [[s.pid, round(s.started - started, 3), s.ended and round(s.ended - started, 3)] for s in rec.spans],
+                "spans": [
+                    [s.pid, round(s.started - started, 3), s.ended and round(s.ended - started, 3)] for s in rec.spans
+                ],
                 "captures": [round(c - started, 3) for c in rec.captures],
             }
         )
@@ -679,24 +683,53 @@ def report(
         "targets_received": sum(s.kind == "target" for s in rec.sent),
         "results_logged_with_cut_points": len(rec.captures),
         "api_statuses": {name: dict(counts) for name, counts in observers.statuses.items()},
-        "breach": None if breach is None else {"invariant": breach.invariant, "at_s": round(breach.at - started, 2) if breach.at else None, "detail": breach.detail},
+        "breach": None
+        if breach is None
+        else {
+            "invariant": breach.invariant,
+            "at_s": round(breach.at - started, 2) if breach.at else None,
+            "detail": breach.detail,
+        },
     }
 
 
 def print_report(result: dict[str, Any]) -> None:
-    print(f"\nsoak: {result['wall_s']:.0f} s on {result['cpu']}, seed {result['seed']}, load {result['load_average_1min']}")
+    print(
+        f"\nsoak: {result['wall_s']:.0f} s on {result['cpu']}, seed {result['seed']}, "
+        f"load {result['load_average_1min']}"
+    )
     print(f"{'fault':20} {'injected':>8} {'rec p50 s':>9} {'p95 s':>6} {'max s':>6}")
     for kind, count in result["faults"].items():
         figures = result["recovery_s"].get(kind, {})
         cells = [figures.get(q) for q in ("p50", "p95", "max")]
-        print(f"{kind:20} {count:8d} " + " ".join(f"{'—' if v is None else f'{v:.2f}':>{w}}" for v, w in zip(cells, (9, 6, 6))))
+        print(
+            f"{kind:20} {count:8d} "
+            + " ".join(f"{'—' if v is None else f'{v:.2f}':>{w}}" for v, w in zip(cells, (9, 6, 6)))
+        )
     overall = result["recovery_s"]["all"]
-    print(f"{'all':20} {result['faults_total']:8d} " + " ".join(f"{'—' if overall[q] is None else f'{overall[q]:.2f}':>{w}}" for q, w in (("p50", 9), ("p95", 6), ("max", 6))))
+    print(
+        f"{'all':20} {result['faults_total']:8d} "
+        + " ".join(
+            f"{'—' if overall[q] is None else f'{overall[q]:.2f}':>{w}}"
+            for q, w in (("p50", 9), ("p95", 6), ("max", 6))
+        )
+    )
     for pid, figures in result["resources"]["by_pid"].items():
-        print(f"daemon pid {pid}: RSS kB {figures['rss_kb'][0]} → {figures['rss_kb'][1]}, fds {figures['fds'][0]} → {figures['fds'][1]}, threads {figures['threads'][0]} → {figures['threads'][1]} (floors)")
-    print(f"daemon starts {result['daemon_starts']}, unexpected exits {result['unexpected_exits']}, targets received {result['targets_received']}, API {result['api_statuses']}")
+        print(
+            f"daemon pid {pid}: RSS kB {figures['rss_kb'][0]} → {figures['rss_kb'][1]} (medians), "
+            f"fds {figures['fds'][0]} → {figures['fds'][1]}, threads {figures['threads'][0]} → {figures['threads'][1]} "
+            "(floors), first and last window after the warm-up"
+        )
+    print(
+        f"daemon starts {result['daemon_starts']}, unexpected exits {result['unexpected_exits']}, "
+        f"targets received {result['targets_received']}, API answers by status {result['api_statuses']}"
+    )
     breach = result["breach"]
-    print("invariant breaches: 0" if breach is None else f"INVARIANT BREACH {breach['invariant']} at {breach['at_s']} s: {breach['detail']}")
+    print(
+        "invariant breaches: 0"
+        if breach is None
+        else f"INVARIANT BREACH {breach['invariant']} at {breach['at_s']} s: {breach['detail']}"
+    )
     if result.get("breaches_by_invariant"):
         print(f"breaches by invariant: {result['breaches_by_invariant']}")
 
@@ -717,7 +750,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.minutes = 3.0
     if not (args.flight / "flight.json").exists():
-        print(f"soak.py: no rendered flight in {args.flight}; render it with: {render_hint(args.flight)}", file=sys.stderr)
+        print(
+            f"soak.py: no rendered flight in {args.flight}; render it with: {render_hint(args.flight)}", file=sys.stderr
+        )
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     result = run(args)

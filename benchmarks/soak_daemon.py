@@ -8,8 +8,9 @@ daemon opens its camera with, at start and on each reopening) is replaced by one
 configured replay looping, at the frame the flight has reached since `--epoch` (a `time.monotonic()`
 instant: CLOCK_MONOTONIC is one clock for every process of the machine), so a camera opened again
 mid-flight sees the scene of that moment, as a real one would, and the soak's autopilot flies the
-same flight. The recording's masks are left out (the configured segmenter finds the branches). Each frame's `timestamp_ns` is the monotonic time it was captured (a V4L2 driver stamps
-frames so), which the results log keeps: the soak compares it with when a target arrived.
+same flight. The recording's masks are left out (the configured segmenter finds the branches). Each
+frame's `timestamp_ns` is the monotonic time it was captured (a V4L2 driver stamps frames so), which
+the results log keeps: the soak compares it with when a target arrived.
 
 Faults come as JSON datagrams on 127.0.0.1:`--control-port` and apply to whichever camera is open:
 - `{"fault": "stall", "until": T}`: no frame until monotonic time T (the camera still says it is there);

@@ -199,7 +199,9 @@ def recoveries(rec: Recording, limits: Limits) -> tuple[dict[str, list[float]], 
             times[fault.kind].append(first - fault.end)
         if (first is None or first - fault.end > limit) and fault.end + limit < following:
             took = "none" if first is None else f"{first - fault.end:.2f} s"
-            breaches.append(Breach("slow_recovery", fault.end, f"{fault.kind}: first target after {took} (≤ {limit} s)"))
+            breaches.append(
+                Breach("slow_recovery", fault.end, f"{fault.kind}: first target after {took} (≤ {limit} s)")
+            )
     return dict(times), breaches
 
 
@@ -296,7 +298,10 @@ def _expected(fault: Fault, state: State, limits: Limits) -> dict[str, object]:
         return {}
     if fault.kind in ("camera.stall", "camera.disconnect") and since >= limits.stall_timeout_s + limits.tolerance_s:
         return {"camera_lost": True}
-    if fault.kind in ("mavlink.silence", "mavlink.wrong_key") and since >= limits.heartbeat_timeout_s + limits.tolerance_s:
+    if (
+        fault.kind in ("mavlink.silence", "mavlink.wrong_key")
+        and since >= limits.heartbeat_timeout_s + limits.tolerance_s
+    ):
         return {"link_connected": False, "mode": "camera"}
     return {}
 
@@ -331,7 +336,9 @@ def states(rec: Recording, limits: Limits) -> list[Breach]:
         for name, value in expected.items():
             if getattr(state, name) != value:
                 breaches.append(
-                    Breach(f"{state.endpoint}_untrue", state.at, f"{name} = {getattr(state, name)!r}, expected {value!r}")
+                    Breach(
+                        f"{state.endpoint}_untrue", state.at, f"{name} = {getattr(state, name)!r}, expected {value!r}"
+                    )
                 )
     return breaches
 

@@ -209,9 +209,7 @@ class AutopilotSim:
         if self._wrong_key_until and now >= self._wrong_key_until:
             self._wrong_key_until = 0.0
             if self.signing_key is not None:
-                self.conn.setup_signing(
-                    self.signing_key, sign_outgoing=True, allow_unsigned_callback=None, link_id=0
-                )
+                self.conn.setup_signing(self.signing_key, sign_outgoing=True, allow_unsigned_callback=None, link_id=0)
             else:  # unsigned again
                 self.conn.mav.signing.secret_key, self.conn.mav.signing.sign_outgoing = None, False
 

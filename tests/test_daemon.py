@@ -240,7 +240,9 @@ def test_a_repeated_or_older_frame_is_skipped_and_counted_not_passed_off_as_new(
     finally:
         daemon.close()
     assert processed.count(3) == 1 and 4 not in processed and max(processed) == FRAMES - 1
-    assert 1 <= daemon.repeated <= 3 and daemon.health()["camera"]["repeated"] == daemon.repeated  # a copy may be dropped
+    assert (
+        1 <= daemon.repeated <= 3 and daemon.health()["camera"]["repeated"] == daemon.repeated
+    )  # a copy may be dropped
     assert sum("captured no later than the frame before it" in r.getMessage() for r in caplog.records) == 1
 
 
