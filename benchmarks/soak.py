@@ -676,6 +676,7 @@ def report(
         "faults_total": sum(injected.values()),
         "not_injected": ["clock.jump"] + ([] if "disk.full" in injected or args.minutes < 1 else []),
         "recovery_s": {"all": percentiles(every), **{k: percentiles(v) for k, v in sorted(times.items())}},
+        "recoveries_judged": {"all": len(every), **{k: len(v) for k, v in sorted(times.items())}},
         "resources": {"longest_pid": longest.pid, "by_pid": resources},
         "daemon_starts": service.starts,
         "unexpected_exits": service.unexpected_exits,
@@ -698,17 +699,17 @@ def print_report(result: dict[str, Any]) -> None:
         f"\nsoak: {result['wall_s']:.0f} s on {result['cpu']}, seed {result['seed']}, "
         f"load {result['load_average_1min']}"
     )
-    print(f"{'fault':20} {'injected':>8} {'rec p50 s':>9} {'p95 s':>6} {'max s':>6}")
+    print(f"{'fault':20} {'injected':>8} {'judged':>6} {'rec p50 s':>9} {'p95 s':>6} {'max s':>6}")
     for kind, count in result["faults"].items():
         figures = result["recovery_s"].get(kind, {})
         cells = [figures.get(q) for q in ("p50", "p95", "max")]
         print(
-            f"{kind:20} {count:8d} "
+            f"{kind:20} {count:8d} {result['recoveries_judged'].get(kind, 0):6d} "
             + " ".join(f"{'—' if v is None else f'{v:.2f}':>{w}}" for v, w in zip(cells, (9, 6, 6)))
         )
     overall = result["recovery_s"]["all"]
     print(
-        f"{'all':20} {result['faults_total']:8d} "
+        f"{'all':20} {result['faults_total']:8d} {result['recoveries_judged']['all']:6d} "
         + " ".join(
             f"{'—' if overall[q] is None else f'{overall[q]:.2f}':>{w}}"
             for q, w in (("p50", 9), ("p95", 6), ("max", 6))

@@ -114,7 +114,8 @@ class Limits:
     pose_timeout_s: float = 0.5
     settle_s: float = 3.5  # after a fault ends, the states /health gives are not judged for this long
     tolerance_s: float = 0.6  # a state change may lag its cause by this much (detection, sampling)
-    flowing_s: float = 1.0  # targets were flowing before a fault when one arrived this long before it
+    flowing_s: float = 2.0  # targets were flowing before a fault when at least `flowing_min` came in
+    flowing_min: int = 4  # the `flowing_s` before it (a daemon meeting its time budget: ≥ 2 Hz of targets)
     warmup_s: float = 30.0  # resources are judged from this long after a daemon started
     resource_window_s: float = 30.0
     rss_growth: float = 0.05
@@ -179,16 +180,15 @@ def targets_while_lost(rec: Recording) -> list[Breach]:
 
 
 def recoveries(rec: Recording, limits: Limits) -> tuple[dict[str, list[float]], list[Breach]]:
-    """Per fault kind, seconds from each fault's end to the next target (faults before which targets
-    were flowing); a breach when longer than 2 s (3 s after a restart)."""
+    """Per fault kind, seconds from each fault's end to the next target, for the faults before which targets
+    were flowing (`_flowing`); a breach when longer than 2 s (3 s after a restart)."""
     targets = [s.at for s in rec.sent if s.kind == "target"]
     faults = sorted(rec.faults, key=lambda f: f.start)
     times: dict[str, list[float]] = defaultdict(list)
     breaches = []
     for number, fault in enumerate(faults):
-        before = bisect.bisect_left(targets, fault.start)
-        if before == 0 or fault.start - targets[before - 1] > limits.flowing_s:
-            continue  # nothing was going out before: nothing to recover
+        if not _flowing(targets, fault.start, limits):
+            continue  # targets were not going out before (e.g. results late on a busy CPU): nothing to recover
         limit = limits.restart_recovery_s if fault.kind in RESTARTS else limits.recovery_s
         if fault.end + limit > rec.horizon:
             continue
@@ -203,6 +203,11 @@ def recoveries(rec: Recording, limits: Limits) -> tuple[dict[str, list[float]], 
                 Breach("slow_recovery", fault.end, f"{fault.kind}: first target after {took} (≤ {limit} s)")
             )
     return dict(times), breaches
+
+
+def _flowing(targets: list[float], at: float, limits: Limits) -> bool:
+    """Whether targets (sorted arrival times) were coming steadily just before `at`."""
+    return bisect.bisect_left(targets, at) - bisect.bisect_left(targets, at - limits.flowing_s) >= limits.flowing_min
 
 
 def _windows(stats: list[Stat], limits: Limits) -> tuple[list[Stat], list[Stat]] | None:
@@ -280,7 +285,7 @@ def disk_full(rec: Recording, limits: Limits) -> list[Breach]:
         if sum(fault.start <= at <= fault.end + limits.settle_s for at in errors) > 1:
             breaches.append(Breach("disk_full_logged_twice", fault.start, "the full disk was logged more than once"))
         sets = [s.at for s in rec.sent if s.kind in ("target", "no_target")]
-        flowing = any(fault.start - limits.flowing_s <= at < fault.start for at in targets)
+        flowing = _flowing(targets, fault.start, limits)
         for name, times, limit in (("frame set", sets, limits.max_set_gap_s), ("target", targets, limits.recovery_s)):
             if name == "target" and not flowing:
                 continue
