@@ -139,7 +139,16 @@ class Recording:
 
 
 def _span_at(spans: Sequence[Span], at: float) -> Span | None:
-    return next((span for span in spans if span.holds(at)), None)
+    """The process running at `at` (`spans` in start order, one at a time), or None."""
+    index = bisect.bisect_right([span.started for span in spans], at) - 1
+    return spans[index] if index >= 0 and spans[index].holds(at) else None
+
+
+def _near(faults: Sequence[Fault], at: float, before_s: float) -> Sequence[Fault]:
+    """The faults (in start order, one at a time) that may matter at `at`: begun by `at` + `before_s`, the
+    last few (a fault ends before the next begins)."""
+    index = bisect.bisect_right([fault.start for fault in faults], at + before_s)
+    return faults[max(0, index - 3) : index]
 
 
 def stale_targets(rec: Recording, limits: Limits) -> list[Breach]:
@@ -323,18 +332,20 @@ def states(rec: Recording, limits: Limits) -> list[Breach]:
     """/health and /metrics against the schedule: lost camera, link down and camera mode inside the faults
     that must cause them; camera up, link up and world mode when no fault that could change them is near."""
     calm = {"camera_lost": False, "link_connected": True, "mode": "world"}
+    faults = sorted(rec.faults, key=lambda f: f.start)
     breaches = []
     for state in rec.states:
         span = _span_at(rec.spans, state.at)
         if span is None or state.at - span.started < limits.settle_s:
             continue
         expected: dict[str, object] = {}
-        for fault in rec.faults:
+        near_faults = _near(faults, state.at, limits.tolerance_s)
+        for fault in near_faults:
             expected.update(_expected(fault, state, limits))
         for name, value in calm.items():
             near = any(
                 _disturbs(f, name) and f.start - limits.tolerance_s <= state.at <= f.end + limits.settle_s
-                for f in rec.faults
+                for f in near_faults
             )
             if name not in expected and not near:
                 expected[name] = value
