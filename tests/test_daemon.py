@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -34,7 +35,7 @@ from branchrange.core.config import (
 )
 from branchrange.core.frame_results import pipeline_for, read_results, read_runs
 from branchrange.core.pipeline import Pipeline
-from branchrange.onboard.daemon import Daemon
+from branchrange.onboard.daemon import Daemon, capture_time
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from camera.calibration import from_rectified
 from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
@@ -379,6 +380,42 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
     }
     assert distances and set(distances) <= logged  # fresh results resumed, not a replay of old ones
     assert len(list(read_results(tmp_path / "results.jsonl"))) == daemon.frames  # one line per frame
+
+
+class _LateCamera:
+    """A live camera (frames stamped on the monotonic clock when captured) whose driver hands each frame over
+    `delay_s` after capture — the hardware a test cannot have, played by a recording."""
+
+    def __init__(self, recording, delay_s: float) -> None:
+        self.replay, self.delay_s = ReplaySource(recording, pace="recorded"), delay_s
+        self.calibration, self.is_lost = self.replay.calibration, False
+
+    def __next__(self) -> StereoFrame:
+        frame = next(self.replay)
+        captured_ns = time.monotonic_ns()
+        time.sleep(self.delay_s)
+        return dataclasses.replace(frame, timestamp_ns=captured_ns)
+
+    def close(self) -> None:
+        self.replay.close()
+
+
+def test_a_frame_arriving_late_counts_its_age_from_its_own_capture_time_not_its_arrival(recording):
+    """Age is what the autopilot's `max_result_age_s` is about: a frame captured 0.6 s before it arrived is
+    0.6 s old on arrival (issue 39 soak: a frozen buffer released late made an old image's target current)."""
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    daemon = Daemon(cfg, open_source=lambda: _LateCamera(recording, 0.6), pipeline=pipeline)
+    results = []
+    daemon.observers.append(lambda result, _: results.append(result))
+    try:
+        assert daemon.run(max_frames=2) == 2
+    finally:
+        daemon.close()
+    assert daemon.late == 2 and all(r.latency.capture_to_publish_ms >= 600 for r in results)
+    replayed = ReplaySource(recording)  # recorded timestamps, not this machine's clock: the arrival counts
+    assert capture_time(next(replayed), 1234.5) == 1234.5
+    replayed.close()
 
 
 def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, caplog):

@@ -8,7 +8,10 @@ a camera-reopened marker line before its first result (`frame_results.camera_reo
 each new file starting with the run header again. Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
   dropped and counted (`dropped`); each frame is stamped with its arrival time on the monotonic
-  clock — the capture time every age and latency is measured from;
+  clock. The capture time every age and latency is measured from is the frame's own `timestamp_ns`
+  when it is on this machine's monotonic clock (live sources stamp frames so: no later than the
+  arrival, at most `CAPTURE_CLOCK_WINDOW_S` before it), else the arrival (a replay's recorded times):
+  a frame that arrives late — buffered by the driver, held back — must not count as new;
 - **stereo** (the `run()` thread): on the first frame of each opened camera, a check that the
   rectified rows are aligned (`branchrange.core.pair_check`: a warning with the fix when not); then
   rectification and disparity (`Pipeline.stereo_stage`; in
@@ -63,6 +66,15 @@ REOPEN_AFTER_STALLS = 3
 CORRUPT_FRAMES_LOST = 5
 #: Frames after which the measured capture → publish time is compared with `max_result_age_s`.
 WARMUP_FRAMES = 3
+#: A frame's `timestamp_ns` is taken as its capture time when it is at most this long (s) before its arrival.
+CAPTURE_CLOCK_WINDOW_S = 5.0
+
+
+def capture_time(frame: Any, arrived: float) -> float:
+    """When `frame` was captured (monotonic s): its own timestamp when that is on this machine's monotonic
+    clock (no later than `arrived`, at most `CAPTURE_CLOCK_WINDOW_S` before it), else its arrival."""
+    stamped = frame.timestamp_ns / 1e9
+    return stamped if 0.0 <= arrived - stamped <= CAPTURE_CLOCK_WINDOW_S else arrived
 
 #: Called once per processed frame with its `FrameResult` and the pipeline's `FrameArtifacts`.
 ResultObserver = Callable[[FrameResult, Any], None]
@@ -410,7 +422,7 @@ class Daemon:
                     self._slot.wait_idle()  # a counted run processes every frame it takes, and no more
                     if self._done(max_frames):
                         break
-                self._stereo(*stamped)
+                self._stereo(stamped[0], capture_time(*stamped))
         finally:
             if source is not None:
                 source.close()
