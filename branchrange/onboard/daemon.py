@@ -76,6 +76,7 @@ def capture_time(frame: Any, arrived: float) -> float:
     stamped = frame.timestamp_ns / 1e9
     return stamped if 0.0 <= arrived - stamped <= CAPTURE_CLOCK_WINDOW_S else arrived
 
+
 #: Called once per processed frame with its `FrameResult` and the pipeline's `FrameArtifacts`.
 ResultObserver = Callable[[FrameResult, Any], None]
 
