@@ -221,13 +221,15 @@ class Service:
 
 
 def proc_stat(pid: int) -> tuple[int, int, int] | None:
-    """(RSS kB, open descriptors, threads) of a process, None when it is gone."""
+    """(RSS kB, open descriptors, threads) of a process, None when it is gone or ending."""
     try:
         status = Path(f"/proc/{pid}/status").read_text()
         fds = len(os.listdir(f"/proc/{pid}/fd"))
     except OSError:
         return None
     fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
+    if "VmRSS" not in fields:  # exited, not yet reaped: no memory
+        return None
     return int(fields["VmRSS"].split()[0]), fds, int(fields["Threads"])
 
 
