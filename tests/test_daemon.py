@@ -38,7 +38,7 @@ from branchrange.core.pipeline import Pipeline
 from branchrange.onboard.daemon import Daemon, capture_time
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from camera.calibration import from_rectified
-from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
+from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, SourceUnavailable, StereoFrame
 
 FRAMES = 12
 PERIOD_NS = 250_000_000  # 4 fps: slow enough that a loaded test machine keeps up (latest frame wins)
@@ -245,6 +245,32 @@ def test_a_repeated_or_older_frame_is_skipped_and_counted_not_passed_off_as_new(
         1 <= daemon.repeated <= 3 and daemon.health()["camera"]["repeated"] == daemon.repeated
     )  # a copy may be dropped
     assert sum("captured no later than the frame before it" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_camera_that_cannot_be_opened_is_tried_again_every_stall_timeout_and_logged_once(recording, caplog):
+    """Unplugged, then plugged in again: back within a stall timeout, not three (issue 39 soak: the first
+    target came 4 s after a 3.5 s disconnect ended)."""
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.2), stereo=StereoConfig(max_disp=64)
+    )
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    plugged_in_at = time.monotonic() + 2.0
+    attempts = []
+
+    def open_source():
+        attempts.append(time.monotonic())
+        if attempts[-1] < plugged_in_at:
+            raise SourceUnavailable("no camera on /dev/zedmini")
+        return ReplaySource(recording)
+
+    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline)
+    try:
+        assert daemon.run(max_frames=1) == 1
+    finally:
+        daemon.close()
+    gaps = [later - earlier for earlier, later in zip(attempts, attempts[1:])]
+    assert attempts[-1] >= plugged_in_at and max(gaps) < 0.2 + 0.15  # one stall timeout apart, and some slack
+    assert sum("cannot open the camera" in r.getMessage() for r in caplog.records if r.levelname == "ERROR") == 1
 
 
 def test_a_reopened_camera_is_marked_in_the_results_log_where_indices_start_again(recording, tmp_path):

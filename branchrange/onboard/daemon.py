@@ -19,10 +19,12 @@ each new file starting with the run header again. Threads:
   also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
   or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
   results go stale → "no target"); after three stall timeouts it closes the source, opens a fresh
-  one and forgets tracked branches. A frame whose `timestamp_ns` is not newer than the previous
-  frame's from the same opened camera (a frozen driver buffer delivering one image again, frames
-  arriving out of order) is skipped and counted (`repeated`): its arrival time would pass an old
-  image off as fresh, and the tracker must never go back in time;
+  one and forgets tracked branches; a camera that cannot be opened (unplugged) is tried again every
+  stall timeout, so it is back within one of being plugged in (its error is logged once per outage).
+  A frame whose `timestamp_ns` is not newer than the previous frame's from the same opened camera
+  (a frozen driver buffer delivering one image again, frames arriving out of order) is skipped and
+  counted (`repeated`): it would pass an old image off as fresh, and the tracker must never go back
+  in time;
 - **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
   on the newest stereo output (one slot: an output the worker had no time for is replaced by the
   next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
@@ -394,8 +396,11 @@ class Daemon:
                     self._status(status_at, now, frames_then)
                     status_at, frames_then = now, self.frames
                 stamped = None
-                if source is None:
-                    self._stop.wait(timeout)
+                if source is None:  # not opened: again every stall timeout, so it is back within one
+                    self._set_camera_lost(True)
+                    if not self._stop.wait(timeout):
+                        source, stalls = self._try_open(quiet=True), 0
+                    continue
                 else:
                     try:
                         stamped = source.get_stamped(timeout=timeout)
@@ -462,12 +467,13 @@ class Daemon:
             log.warning("%d unreadable frames in a row: treating the camera as lost", CORRUPT_FRAMES_LOST)
             self._set_camera_lost(True)
 
-    def _try_open(self) -> LatestFrameSource | None:
-        """A fresh source with its capture thread, or None (logged) when the camera cannot be opened."""
+    def _try_open(self, quiet: bool = False) -> LatestFrameSource | None:
+        """A fresh source with its capture thread, or None (logged; `quiet`: the retries of an outage already
+        logged, at debug level) when the camera cannot be opened."""
         try:
             return LatestFrameSource(self._open_source())
         except SourceError as exc:
-            log.error("cannot open the camera: %s", exc)
+            (log.debug if quiet else log.error)("cannot open the camera: %s", exc)
             return None
 
     def _reopen(self, source: LatestFrameSource | None) -> LatestFrameSource | None:
