@@ -761,6 +761,15 @@ def main(argv: list[str] | None = None) -> int:
             f"soak.py: no rendered flight in {args.flight}; render it with: {render_hint(args.flight)}", file=sys.stderr
         )
         return 2
+    if args.minutes <= 0:
+        parser.error(f"--minutes is {args.minutes}; expected a number of minutes > 0")
+    from branchrange.core.config import ConfigError, load_config
+
+    try:
+        load_config(str(args.config), [])
+    except ConfigError as error:
+        print(f"soak.py: {error}", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     result = run(args)
     print_report(result)
