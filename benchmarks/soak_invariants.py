@@ -119,6 +119,7 @@ class Limits:
     warmup_s: float = 30.0  # resources are judged from this long after a daemon started
     resource_window_s: float = 30.0
     rss_growth: float = 0.05
+    stopping_s: float = 3.0  # the samples of a daemon's last seconds (shutting down) are not judged
     max_set_gap_s: float = 1.0  # frame sets (target or not) must keep coming this often through a full disk
 
 
@@ -234,9 +235,11 @@ def resources(rec: Recording, limits: Limits) -> tuple[dict[int, dict[str, list[
     """Per process lived long enough: RSS (median of the last window ≤ first × (1 + rss_growth)), and the
     floor (minimum) of open descriptors and of threads not above the first window's: a leak raises the
     floor, a connection or worker in flight does not."""
+    ends = {span.pid: span.ended for span in rec.spans if span.ended is not None}
     by_pid: dict[int, list[Stat]] = defaultdict(list)
     for stat in sorted(rec.stats, key=lambda s: s.at):
-        by_pid[stat.pid].append(stat)
+        if stat.at <= ends.get(stat.pid, math.inf) - limits.stopping_s:  # not while it shuts down
+            by_pid[stat.pid].append(stat)
     summary, breaches = {}, []
     for pid, stats in by_pid.items():
         windows = _windows(stats, limits)
