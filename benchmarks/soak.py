@@ -728,7 +728,7 @@ def print_report(result: dict[str, Any]) -> None:
         print(
             f"daemon pid {pid}: RSS kB {figures['rss_kb'][0]} → {figures['rss_kb'][1]} (medians), "
             f"fds {figures['fds'][0]} → {figures['fds'][1]}, threads {figures['threads'][0]} → {figures['threads'][1]} "
-            "(floors), first and last window after the warm-up"
+            "(median of the first window → floor of the last, after the warm-up)"
         )
     print(
         f"daemon starts {result['daemon_starts']}, unexpected exits {result['unexpected_exits']}, "

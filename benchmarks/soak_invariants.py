@@ -233,8 +233,9 @@ def _windows(stats: list[Stat], limits: Limits) -> tuple[list[Stat], list[Stat]]
 
 def resources(rec: Recording, limits: Limits) -> tuple[dict[int, dict[str, list[int]]], list[Breach]]:
     """Per process lived long enough: RSS (median of the last window ≤ first × (1 + rss_growth)), and the
-    floor (minimum) of open descriptors and of threads not above the first window's: a leak raises the
-    floor, a connection or worker in flight does not."""
+    floor (minimum) of open descriptors and of threads in the last window not above their median in the
+    first: a leak raises the floor, a connection or worker in flight does not, and a camera outage (no
+    capture thread for a while) early on does not lower the baseline."""
     ends = {span.pid: span.ended for span in rec.spans if span.ended is not None}
     by_pid: dict[int, list[Stat]] = defaultdict(list)
     for stat in sorted(rec.stats, key=lambda s: s.at):
@@ -247,8 +248,8 @@ def resources(rec: Recording, limits: Limits) -> tuple[dict[int, dict[str, list[
             continue
         first, last = windows
         rss = (statistics.median(s.rss_kb for s in first), statistics.median(s.rss_kb for s in last))
-        fds = (min(s.fds for s in first), min(s.fds for s in last))
-        threads = (min(s.threads for s in first), min(s.threads for s in last))
+        fds = (int(statistics.median(s.fds for s in first)), min(s.fds for s in last))
+        threads = (int(statistics.median(s.threads for s in first)), min(s.threads for s in last))
         summary[pid] = {"rss_kb": [int(v) for v in rss], "fds": list(fds), "threads": list(threads)}
         at = last[-1].at
         if rss[1] > rss[0] * (1 + limits.rss_growth):
