@@ -7,8 +7,13 @@ from its own thread, at the wall-clock times they are due:
 - answers COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL with COMMAND_ACK and from then on streams that
   message (ATTITUDE, LOCAL_POSITION_NED) at the requested rate, stamped with its own time_boot_ms
   (it "booted" `boot_age_s` before the test started, so the relay must align clocks);
-- records every message it receives with its arrival time (`time.monotonic()`).
+- records every message it receives with its arrival time (`time.monotonic()`), or hands each to
+  `listener` instead (a soak of an hour would hold hundreds of thousands of messages).
 With `signing_key` it signs what it sends and rejects what is not signed with that key.
+Faults of a real flight controller, for the soak (`benchmarks/soak.py`): `reboot()` (time_boot_ms
+starts again at 0 and the requested streams are forgotten, as after a power cycle), `silence(s)`
+(nothing sent for that long), `wrong_key(key, s)` (signs with another key for that long; what it
+receives is still recorded), `flood(rate_hz, s)` (NAMED_VALUE_FLOAT nobody asked for at that rate).
 The trajectory maps seconds since the simulator started to a `SimPose` (body FRD in local NED).
 
 `fly_frames` plays the daemon's side: frames captured at a rate, each published to a relay a fixed
@@ -149,6 +154,8 @@ class AutopilotSim:
         signing_key: bytes | None = None,
         answer_interval_requests: bool = True,
         boot_age_s: float = 100.0,
+        listener: Callable[[Received], None] | None = None,
+        poll_s: float = 0.001,
     ):
         self.trajectory = trajectory
         self.heartbeat_period_s = heartbeat_period_s
@@ -157,6 +164,13 @@ class AutopilotSim:
         self.heartbeats_on = True
         self.heartbeats_sent = 0
         self.received: list[Received] = []
+        self.listener = listener
+        self.poll_s = poll_s  # how often its thread wakes (s): finer times in the tests, less CPU in a soak
+        self.signing_key = signing_key
+        self._silent_until = self._wrong_key_until = self._flood_until = 0.0
+        self._flood_rate_hz = 0.0
+        self._flood_sent = 0
+        self._flood_start = 0.0
         self.rates_hz: dict[int, float] = {}
         self.mavlink = mavutil_v2().mavlink  # the dialect module: message ids and enums
         self.conn = mavutil_v2().mavlink_connection("udpin:127.0.0.1:0", source_system=1, source_component=1)
@@ -181,8 +195,45 @@ class AutopilotSim:
         with self._lock:
             return [r for r in self.received if r.type == name]
 
+    def reboot(self) -> None:
+        """A power cycle: time_boot_ms starts again at 0 and the streams asked for are forgotten."""
+        with self._lock:
+            self.boot = time.monotonic()
+            self.rates_hz.clear()
+
+    def silence(self, seconds: float) -> None:
+        """Send nothing at all (heartbeats, streams, acks) for `seconds`."""
+        self._silent_until = time.monotonic() + seconds
+
+    def wrong_key(self, key: bytes, seconds: float) -> None:
+        """Sign with `key` instead of the configured one for `seconds`; everything received is still recorded."""
+        with self._lock:
+            self.conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda *_: True, link_id=0)
+            self._wrong_key_until = time.monotonic() + seconds
+
+    def flood(self, rate_hz: float, seconds: float) -> None:
+        """Send NAMED_VALUE_FLOAT (unrelated to BranchRange) at `rate_hz` for `seconds`."""
+        with self._lock:
+            self._flood_start, self._flood_sent = time.monotonic(), 0
+            self._flood_rate_hz, self._flood_until = rate_hz, self._flood_start + seconds
+
+    def _end_faults(self, now: float) -> None:
+        """Back to the configured key once a wrong-key spell is over."""
+        if self._wrong_key_until and now >= self._wrong_key_until:
+            self._wrong_key_until = 0.0
+            if self.signing_key is not None:
+                self.conn.setup_signing(self.signing_key, sign_outgoing=True, allow_unsigned_callback=None, link_id=0)
+            else:  # unsigned again
+                self.conn.mav.signing.secret_key, self.conn.mav.signing.sign_outgoing = None, False
+
+    def _send_flood(self, now: float) -> None:
+        due = int((min(now, self._flood_until) - self._flood_start) * self._flood_rate_hz)
+        for _ in range(due - self._flood_sent):
+            self.conn.mav.named_value_float_send(self._time_boot_ms(now), b"FLOOD", float(self._flood_sent))
+            self._flood_sent += 1
+
     def _time_boot_ms(self, now: float) -> int:
-        return int((now - self.boot) * 1000)
+        return max(0, int((now - self.boot) * 1000))  # a reboot from another thread may come after `now`
 
     def _heartbeat(self) -> None:
         m = self.mavlink
@@ -204,8 +255,13 @@ class AutopilotSim:
             )
 
     def _handle(self, msg, now: float) -> None:
-        with self._lock:
-            self.received.append(Received(msg, now))
+        if self.listener is not None:
+            self.listener(Received(msg, now))
+        else:
+            with self._lock:
+                self.received.append(Received(msg, now))
+        if now < self._silent_until:
+            return
         if msg.get_type() == "COMMAND_LONG" and msg.command == self.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             if not self.answer_interval_requests:
                 return
@@ -224,9 +280,13 @@ class AutopilotSim:
             while (msg := self.conn.recv_msg()) is not None:
                 if msg.get_type() != "BAD_DATA":
                     self._handle(msg, now)
-            if not self.conn.clients:  # nobody has talked to us yet: nowhere to send
-                time.sleep(0.002)
+            if not self.conn.clients or now < self._silent_until:  # nobody to send to yet, or told to be silent
+                time.sleep(max(self.poll_s, 0.002))
                 continue
+            with self._lock:
+                self._end_faults(now)
+                if now < self._flood_until + 0.1:
+                    self._send_flood(now)
             if self.heartbeats_on and now >= next_beat:
                 self._heartbeat()
                 next_beat = now + self.heartbeat_period_s
@@ -234,7 +294,7 @@ class AutopilotSim:
                 if now >= next_stream.get(message_id, 0.0):
                     self._stream(message_id, now)
                     next_stream[message_id] = max(next_stream.get(message_id, now) + 1.0 / rate, now)
-            time.sleep(0.001)
+            time.sleep(self.poll_s)
 
     def close(self) -> None:
         self._stop.set()

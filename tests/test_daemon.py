@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -34,10 +35,10 @@ from branchrange.core.config import (
 )
 from branchrange.core.frame_results import pipeline_for, read_results, read_runs
 from branchrange.core.pipeline import Pipeline
-from branchrange.onboard.daemon import Daemon
+from branchrange.onboard.daemon import Daemon, capture_time
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from camera.calibration import from_rectified
-from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
+from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, SourceUnavailable, StereoFrame
 
 FRAMES = 12
 PERIOD_NS = 250_000_000  # 4 fps: slow enough that a loaded test machine keeps up (latest frame wins)
@@ -223,6 +224,55 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
 
 
+def test_a_repeated_or_older_frame_is_skipped_and_counted_not_passed_off_as_new(recording, caplog):
+    """A frozen driver buffer delivers one image again and again, each time arriving now: processed, its
+    result would look fresh and an old target would go out as current (issue 39 soak)."""
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
+    pipeline = Pipeline(
+        pipeline_config(cfg), calibration=from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))
+    )
+    source = FaultInjectingSource(ReplaySource(recording), FaultPlan(repeat={3: 3}))  # at the recorded pace
+    daemon = Daemon(cfg, open_source=lambda: source, pipeline=pipeline)
+    processed = []
+    stereo_stage = pipeline.stereo_stage
+    pipeline.stereo_stage = lambda *a: processed.append(a[3]) or stereo_stage(*a)
+    try:
+        daemon.run()
+    finally:
+        daemon.close()
+    assert processed.count(3) == 1 and 4 not in processed and max(processed) == FRAMES - 1
+    assert (
+        1 <= daemon.repeated <= 3 and daemon.health()["camera"]["repeated"] == daemon.repeated
+    )  # a copy may be dropped
+    assert sum("captured no later than the frame before it" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_camera_that_cannot_be_opened_is_tried_again_every_stall_timeout_and_logged_once(recording, caplog):
+    """Unplugged, then plugged in again: back within a stall timeout, not three (issue 39 soak: the first
+    target came 4 s after a 3.5 s disconnect ended)."""
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.2), stereo=StereoConfig(max_disp=64)
+    )
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    plugged_in_at = time.monotonic() + 2.0
+    attempts = []
+
+    def open_source():
+        attempts.append(time.monotonic())
+        if attempts[-1] < plugged_in_at:
+            raise SourceUnavailable("no camera on /dev/zedmini")
+        return ReplaySource(recording)
+
+    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline)
+    try:
+        assert daemon.run(max_frames=1) == 1
+    finally:
+        daemon.close()
+    gaps = [later - earlier for earlier, later in zip(attempts, attempts[1:])]
+    assert attempts[-1] >= plugged_in_at and max(gaps) < 0.2 + 0.15  # one stall timeout apart, and some slack
+    assert sum("cannot open the camera" in r.getMessage() for r in caplog.records if r.levelname == "ERROR") == 1
+
+
 def test_a_reopened_camera_is_marked_in_the_results_log_where_indices_start_again(recording, tmp_path):
     """The camera goes away after frame 2 and the watchdog reopens it; the new source counts from 0 again.
     The log says so, with the reason and where the results go on, and the readers skip the marker."""
@@ -356,6 +406,42 @@ def test_daemon_keeps_processing_while_the_tcp_peer_goes_away_and_comes_back(rec
     }
     assert distances and set(distances) <= logged  # fresh results resumed, not a replay of old ones
     assert len(list(read_results(tmp_path / "results.jsonl"))) == daemon.frames  # one line per frame
+
+
+class _LateCamera:
+    """A live camera (frames stamped on the monotonic clock when captured) whose driver hands each frame over
+    `delay_s` after capture — the hardware a test cannot have, played by a recording."""
+
+    def __init__(self, recording, delay_s: float) -> None:
+        self.replay, self.delay_s = ReplaySource(recording, pace="recorded"), delay_s
+        self.calibration, self.is_lost = self.replay.calibration, False
+
+    def __next__(self) -> StereoFrame:
+        frame = next(self.replay)
+        captured_ns = time.monotonic_ns()
+        time.sleep(self.delay_s)
+        return dataclasses.replace(frame, timestamp_ns=captured_ns)
+
+    def close(self) -> None:
+        self.replay.close()
+
+
+def test_a_frame_arriving_late_counts_its_age_from_its_own_capture_time_not_its_arrival(recording):
+    """Age is what the autopilot's `max_result_age_s` is about: a frame captured 0.6 s before it arrived is
+    0.6 s old on arrival (issue 39 soak: a frozen buffer released late made an old image's target current)."""
+    cfg = Config(camera=CameraConfig(source=f"replay:{recording}"), stereo=StereoConfig(max_disp=64))
+    pipeline = pipeline_for(cfg, from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256)))
+    daemon = Daemon(cfg, open_source=lambda: _LateCamera(recording, 0.6), pipeline=pipeline)
+    results = []
+    daemon.observers.append(lambda result, _: results.append(result))
+    try:
+        assert daemon.run(max_frames=2) == 2
+    finally:
+        daemon.close()
+    assert daemon.late == 2 and all(r.latency.capture_to_publish_ms >= 600 for r in results)
+    replayed = ReplaySource(recording)  # recorded timestamps, not this machine's clock: the arrival counts
+    assert capture_time(next(replayed), 1234.5) == 1234.5
+    replayed.close()
 
 
 def test_results_too_old_on_publishing_are_counted_and_warned_about(recording, caplog):

@@ -91,3 +91,25 @@ def test_the_daemon_rotates_its_log_at_results_max_mb(tmp_path):
     assert all(is_run_header(h) and h == headers[0] for h in headers)  # one run, its header at each file's top
     indices = [r.frame.index for f in files for r in read_results(f)]
     assert len(indices) == processed and indices == sorted(indices)  # every result once, in order
+
+
+def test_a_full_disk_drops_lines_without_raising_and_is_logged_once(caplog):
+    """/dev/full answers every write with ENOSPC, as a full filesystem does (issue 39 item 2)."""
+    log = ResultsLog("/dev/full", HEADER)
+    for number in range(20):
+        log.write(_line(number))
+    log.close()
+    errors = [r for r in caplog.records if r.levelname == "ERROR" and "cannot write" in r.getMessage()]
+    assert len(errors) == 1 and "No space left on device" in errors[0].getMessage()
+    assert log.dropped_lines == 21  # the header and the twenty lines
+
+
+def test_a_line_torn_by_a_kill_is_ended_and_the_next_run_header_says_so(tmp_path):
+    path = tmp_path / "results.jsonl"
+    path.write_text(HEADER + _line(0) + _line(1)[:40], encoding="utf-8")  # killed in the middle of line 1
+    ResultsLog(path, HEADER).close()
+    lines = path.read_text(encoding="utf-8").splitlines()
+    assert lines[:2] == [HEADER.strip(), _line(0).strip()] and lines[2] == _line(1)[:40]
+    assert json.loads(lines[3]) == {**json.loads(HEADER), "previous_line_torn": True}
+    ResultsLog(path, HEADER).close()  # a clean end before: no claim of a torn line
+    assert path.read_text(encoding="utf-8").endswith(HEADER)

@@ -9,7 +9,10 @@ each new file starting with the run header again. Threads:
 - **capture** (`LatestFrameSource`): drains the camera; the newest frame wins, older ones are
   dropped and counted (`dropped`; frames a paced replay dropped before releasing them, as too late to
   keep its schedule, in `dropped_late`); each frame is stamped with its arrival time on the monotonic
-  clock — the capture time every age and latency is measured from;
+  clock. The capture time every age and latency is measured from is the frame's own `timestamp_ns`
+  when it is on this machine's monotonic clock (live sources stamp frames so: no later than the
+  arrival, at most `CAPTURE_CLOCK_WINDOW_S` before it), else the arrival (a replay's recorded times):
+  a frame that arrives late — buffered by the driver, held back — must not count as new;
 - **stereo** (the `run()` thread): on the first frame of each opened camera, a check that the
   rectified rows are aligned (`branchrange.core.pair_check`: a warning with the fix when not); then
   rectification and disparity (`Pipeline.stereo_stage`; in
@@ -17,7 +20,12 @@ each new file starting with the run header again. Threads:
   also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
   or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
   results go stale → "no target"); after three stall timeouts it closes the source, opens a fresh
-  one and forgets tracked branches;
+  one and forgets tracked branches; a camera that cannot be opened (unplugged) is tried again every
+  stall timeout, so it is back within one of being plugged in (its error is logged once per outage).
+  A frame whose `timestamp_ns` is not newer than the previous frame's from the same opened camera
+  (a frozen driver buffer delivering one image again, frames arriving out of order) is skipped and
+  counted (`repeated`): it would pass an old image off as fresh, and the tracker must never go back
+  in time;
 - **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
   on the newest stereo output (one slot: an output the worker had no time for is replaced by the
   next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
@@ -65,6 +73,15 @@ REOPEN_AFTER_STALLS = 3
 CORRUPT_FRAMES_LOST = 5
 #: Frames after which the measured capture → publish time is compared with `max_result_age_s`.
 WARMUP_FRAMES = 3
+#: A frame's `timestamp_ns` is taken as its capture time when it is at most this long (s) before its arrival.
+CAPTURE_CLOCK_WINDOW_S = 5.0
+
+
+def capture_time(frame: Any, arrived: float) -> float:
+    """When `frame` was captured (monotonic s): its own timestamp when that is on this machine's monotonic
+    clock (no later than `arrived`, at most `CAPTURE_CLOCK_WINDOW_S` before it), else its arrival."""
+    stamped = frame.timestamp_ns / 1e9
+    return stamped if 0.0 <= arrived - stamped <= CAPTURE_CLOCK_WINDOW_S else arrived
 
 
 def relay_for(cfg: Config, mount: CameraMount, relay_type: type[MavlinkRelay] = MavlinkRelay) -> MavlinkRelay:
@@ -147,6 +164,9 @@ class Daemon:
         self.dropped = 0
         self.dropped_late = 0
         self.late = 0  # results older than mavlink.max_result_age_s when published
+        self.repeated = 0  # frames skipped: captured no later than the frame before them
+        self._repeat_logged_for = -1  # the reopening count when a repeated frame was last logged
+        self._newest_capture_ns: int | None = None  # the newest frame's timestamp, of the open camera
         self._dropped_by_closed_sources = 0
         self._dropped_late_by_closed_sources = 0
         self._corrupt_in_a_row = 0
@@ -188,6 +208,7 @@ class Daemon:
             "corrupt": self.corrupt,
             "reopens": self.reopens,
             "late": self.late,
+            "repeated": self.repeated,
         }
         model = {
             "loaded": True,
@@ -428,8 +449,11 @@ class Daemon:
                     self._status(status_at, now, frames_then)
                     status_at, frames_then = now, self.frames
                 stamped = None
-                if source is None:
-                    self._stop.wait(timeout)
+                if source is None:  # not opened: again every stall timeout, so it is back within one
+                    self._set_camera_lost(True)
+                    if not self._stop.wait(timeout):
+                        source, stalls = self._try_open(quiet=True), 0
+                    continue
                 else:
                     try:
                         stamped = source.get_stamped(timeout=timeout)
@@ -450,13 +474,15 @@ class Daemon:
                         continue
                 stalls = self._corrupt_in_a_row = 0
                 self._set_camera_lost(False)
+                if not self._is_newer(stamped[0]):
+                    continue
                 self.dropped = self._dropped_by_closed_sources + source.dropped
                 self.dropped_late = self._dropped_late_by_closed_sources + source.dropped_late
                 if max_frames is not None:
                     self._slot.wait_idle()  # a counted run processes every frame it takes, and no more
                     if self._done(max_frames):
                         break
-                self._stereo(*stamped)
+                self._stereo(stamped[0], capture_time(*stamped))
         finally:
             if source is not None:
                 source.close()
@@ -466,6 +492,24 @@ class Daemon:
         self._report_speed()  # a run shorter than the warm-up
         self._status(status_at, time.monotonic(), frames_then)
         return self.frames
+
+    def _is_newer(self, frame: Any) -> bool:
+        """Whether `frame` was captured after the newest frame of this camera so far; counts and logs (once
+        per opened camera) a frame that was not: a repeated image or one out of order."""
+        newest = self._newest_capture_ns
+        if newest is None or frame.timestamp_ns > newest:
+            self._newest_capture_ns = frame.timestamp_ns
+            return True
+        self.repeated += 1
+        self._count_error("repeated_frame")
+        if self._repeat_logged_for != self.reopens:
+            self._repeat_logged_for = self.reopens
+            log.warning(
+                "frame %d captured no later than the frame before it (a repeated image or frames out of order): "
+                "skipped, as are the next such frames",
+                frame.index,
+            )
+        return False
 
     def _on_corrupt(self, error: CorruptFrameError) -> None:
         """Skip an unreadable frame; several in a row mean the camera (or the recording) is gone."""
@@ -477,12 +521,13 @@ class Daemon:
             log.warning("%d unreadable frames in a row: treating the camera as lost", CORRUPT_FRAMES_LOST)
             self._set_camera_lost(True)
 
-    def _try_open(self) -> LatestFrameSource | None:
-        """A fresh source with its capture thread, or None (logged) when the camera cannot be opened."""
+    def _try_open(self, quiet: bool = False) -> LatestFrameSource | None:
+        """A fresh source with its capture thread, or None (logged; `quiet`: the retries of an outage already
+        logged, at debug level) when the camera cannot be opened."""
         try:
             return LatestFrameSource(self._open_source())
         except SourceError as exc:
-            log.error("cannot open the camera: %s", exc)
+            (log.debug if quiet else log.error)("cannot open the camera: %s", exc)
             return None
 
     def _reopen(self, source: LatestFrameSource | None) -> LatestFrameSource | None:
@@ -498,6 +543,7 @@ class Daemon:
         self._pair_checked = False  # a camera plugged in again may be another one
         self._slot.wait_idle()  # the tracker (and the log's order) is the worker's until then
         self._reopened = (reason, self.reopens, utc_now())
+        self._newest_capture_ns = None  # a new source's timestamps may start again lower
         self.pipeline.reset()
         return self._try_open()
 

@@ -7,7 +7,8 @@ Usage::
     plan = FaultPlan(drop={3, 4},            # frames 3 and 4 vanish (the consumer sees a gap in index)
                      stall={6: 0.5},         # frame 6 arrives 0.5 s late (is_lost stays False)
                      disconnect={10: 2.0},   # before frame 10 the camera is gone for 2 s
-                     corrupt={12})           # frame 12 cannot be decoded: next() raises CorruptFrameError
+                     corrupt={12},           # frame 12 cannot be decoded: next() raises CorruptFrameError
+                     repeat={14: 3})         # frame 14 comes again instead of the next 3 (a frozen driver buffer)
     with FaultInjectingSource(ReplaySource(path, pace="fast"), plan) as source:
         for frame in source: ...
 
@@ -19,7 +20,9 @@ Disconnects: with `FaultPlan.disconnect_raises=False` (default) `next()` blocks 
 `disconnect_raises=True`, every `next()` during the outage raises SourceDisconnected at once
 (`is_lost` True) and the first call after it delivers the frame: the behaviour of a source that
 does not reconnect by itself. A corrupt frame raises CorruptFrameError once; the following
-`next()` goes on with the next frame. `injected` lists what fired, as (position, kind) pairs.
+`next()` goes on with the next frame. A repeated frame comes again, the same object (index,
+timestamp and images), in place of as many following frames as `repeat` says (pulled from the
+wrapped source all the same, so a paced source keeps its pace). `injected` lists what fired, as (position, kind) pairs.
 `sleep`/`clock` can be replaced in tests; by default waits end early when `close()` is called.
 """
 
@@ -42,9 +45,12 @@ class FaultPlan:
     stall: Mapping[int, float] = field(default_factory=dict)
     disconnect: Mapping[int, float] = field(default_factory=dict)
     corrupt: frozenset[int] | set[int] = field(default_factory=frozenset)
+    repeat: Mapping[int, int] = field(default_factory=dict)
     disconnect_raises: bool = False
 
     def __post_init__(self) -> None:
+        if any(position < 0 or times < 1 for position, times in self.repeat.items()):
+            raise ValueError(f"FaultPlan.repeat = {dict(self.repeat)}; expected position ≥ 0 and times ≥ 1")
         for name in ("stall", "disconnect"):
             for position, seconds in getattr(self, name).items():
                 if position < 0 or seconds < 0:
@@ -76,6 +82,8 @@ class FaultInjectingSource(SourceBase):
         self._lost = False
         self._outage_end: float | None = None
         self._fired: set[tuple[int, str]] = set()
+        self._frozen: StereoFrame | None = None  # a repeated frame, delivered in place of the next ones
+        self._frozen_left = 0
 
     @property
     def is_lost(self) -> bool:
@@ -89,6 +97,7 @@ class FaultInjectingSource(SourceBase):
             "stall": self._position in self.plan.stall,
             "disconnect": self._position in self.plan.disconnect,
             "corrupt": self._position in self.plan.corrupt,
+            "repeat": self._position in self.plan.repeat,
         }[kind]
         if not due or key in self._fired:
             return False
@@ -117,12 +126,18 @@ class FaultInjectingSource(SourceBase):
                 self._sleep(self.plan.stall[self._position])
             frame = next(self.source)
             position = self._position
+            if self._frozen_left > 0 and self._frozen is not None:  # the wrapped source keeps its pace
+                self._frozen_left -= 1
+                self._position += 1
+                return self._frozen
             if self._fire("drop"):
                 self._position += 1
                 continue
             if self._fire("corrupt"):
                 self._position += 1
                 raise CorruptFrameError(f"injected corrupt image at frame position {position} (index {frame.index})")
+            if self._fire("repeat"):
+                self._frozen, self._frozen_left = frame, self.plan.repeat[self._position]
             self._position += 1
             return frame
 

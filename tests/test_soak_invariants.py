@@ -1,0 +1,122 @@
+"""The soak's invariant checker (`benchmarks/soak_invariants.py`) fails on each breach it exists for.
+
+Why: a soak that reports "0 breaches" proves something only if its checker fails on a breach. Each test
+takes one recording the checker passes and breaks it the way the issue names (issue 39: a stale send,
+a leaked file descriptor, a torn middle line) or the way a status could lie; no daemon runs.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from soak_invariants import Fault, Limits, Recording, Sent, Span, Stat, State, check  # noqa: E402
+
+LIMITS = Limits()
+HEADER = {"schema": "branchrange/run-header/v1", "kind": "daemon"}
+
+
+def _line(record: dict) -> str:
+    return json.dumps(record)
+
+
+def calm_recording(seconds: float = 120.0) -> Recording:
+    """A daemon started at 0 s: a result with a cut point captured every 0.1 s, a target 0.2 s after each,
+    HEARTBEAT ACTIVE each second, flat resources, a truthful /health, a whole log; one 1.5 s stall at
+    60 s (no results, no targets, HEARTBEAT CRITICAL from 61 s, targets again 0.3 s after it ends)."""
+    rec = Recording(spans=[Span(pid=7, started=0.0)], faults=[Fault("camera.stall", 60.0, 61.5)])
+    for tenth in range(int(seconds * 10)):
+        at = tenth / 10
+        if 60.0 <= at < 61.7:
+            continue
+        rec.captures.append(at)
+        rec.sent.append(Sent(at + 0.2, "target"))
+    for second in range(int(seconds)):
+        rec.sent.append(Sent(second + 0.05, "lost" if second == 61 else "ok"))
+    rec.sent.append(Sent(61.75, "ok"))  # the camera is back: a HEARTBEAT at once
+    rec.sent.sort(key=lambda s: s.at)
+    rec.stats = [Stat(float(t), 7, 400_000 + (t % 3), 40 + (t % 5 == 0), 30) for t in range(int(seconds))]
+    rec.states = [State(float(t), "health", False, True, "world") for t in range(5, int(seconds))]
+    rec.log_lines = [_line(HEADER)] + [_line({"frame": {"index": i}, "branches": [{}]}) for i in range(50)]
+    return rec
+
+
+def names(rec: Recording) -> list[str]:
+    return [breach.invariant for breach in check(rec, LIMITS)]
+
+
+def test_a_calm_recording_passes():
+    assert names(calm_recording()) == []
+
+
+def test_a_deliberately_stale_send_fails_it():
+    rec = calm_recording()
+    rec.sent.append(Sent(61.2, "target"))  # during the stall: the newest capture is 1.3 s old
+    rec.sent.sort(key=lambda s: s.at)
+    breaches = check(rec, LIMITS)
+    assert [b.invariant for b in breaches][:1] == ["stale_target"] and breaches[0].at == 61.2
+
+
+def test_a_target_from_the_previous_daemon_fails_it():
+    rec = calm_recording()
+    rec.spans = [Span(7, 0.0, 80.0), Span(8, 80.05)]  # restarted: the new daemon logged nothing yet
+    rec.captures = [c for c in rec.captures if not 80.0 <= c < 82.0]
+    assert "target_from_before_restart" in names(rec)
+
+
+def test_a_target_while_the_heartbeat_says_camera_lost_fails_it():
+    rec = calm_recording()
+    rec.sent = [s for s in rec.sent if not (s.kind == "ok" and 61 < s.at < 64)]  # CRITICAL until 64
+    rec.sent.sort(key=lambda s: s.at)
+    assert "target_while_camera_lost" in names(rec)
+
+
+def test_a_leaked_file_descriptor_fails_it():
+    rec = calm_recording()
+    rec.stats = [replace(s, fds=s.fds + (s.at > 70)) for s in rec.stats]  # one more descriptor, never closed
+    assert names(rec) == ["fd_leak"]
+
+
+def test_memory_growing_past_five_percent_fails_it():
+    rec = calm_recording()
+    rec.stats = [replace(s, rss_kb=int(s.rss_kb * (1 + 0.001 * s.at))) for s in rec.stats]  # ~9 % in 90 s
+    assert names(rec) == ["rss_growth"]
+
+
+def test_a_torn_middle_line_fails_it_but_a_torn_last_line_owned_up_to_by_the_restart_does_not():
+    rec = calm_recording()
+    rec.log_lines[20] = rec.log_lines[20][:15]
+    assert names(rec) == ["torn_line"]
+    rec.log_lines.insert(21, _line({**HEADER, "previous_line_torn": True}))  # a restart after a kill says so
+    assert names(rec) == []
+    rec.log_lines[20] = _line({"frame": {"index": 19}})  # ... and claiming a torn line that is whole fails
+    assert names(rec) == ["false_torn_claim"]
+
+
+def test_a_slow_recovery_fails_it():
+    rec = calm_recording()
+    rec.sent = [s for s in rec.sent if not (61.5 <= s.at < 64.0 and s.kind == "target")]  # first target 2.5 s after
+    assert names(rec) == ["slow_recovery"]
+
+
+def test_a_health_that_says_camera_up_during_a_long_stall_fails_it():
+    rec = calm_recording()
+    rec.faults = [Fault("camera.stall", 60.0, 64.0)]
+    rec.sent = [s for s in rec.sent if not (60.0 <= s.at < 64.2 and s.kind == "target")]
+    rec.states = [replace(s, camera_lost=False) for s in rec.states]
+    rec.sent = [s for s in rec.sent if s.at != 61.75]
+    assert names(rec) == ["health_untrue"] * 3  # at 62, 63 and 64 s; 61 s is within the detection time
+
+
+def test_a_full_disk_logged_twice_or_stopping_the_targets_fails_it():
+    rec = calm_recording()
+    rec.faults.append(Fault("disk.full", 80.0, 85.0))
+    rec.daemon_log = [(80.1, "results log /x: cannot write (No space left on device)")]
+    assert names(rec) == []
+    rec.daemon_log.append((82.0, "results log /x: cannot write (No space left on device)"))
+    rec.sent = [s for s in rec.sent if not (81.0 <= s.at < 83.5)]  # no frame set for 2.6 s
+    assert sorted(names(rec)) == ["disk_full_logged_twice", "output_stopped_by_full_disk"]
