@@ -120,7 +120,7 @@ class Track:
     near_covariance_m2: np.ndarray
     last_seen: float
     branch_id: int
-    recent_confidence: float
+    confidence: float  # recency-weighted: an observation's weight halves every `confidence_half_life_s`
     distance_m: float
     diameter_m: float
     views: list[View]
@@ -155,11 +155,6 @@ class Track:
         return self.filter_covariance_m2 + self.bias_share * self.near_covariance_m2 / len(self.views)
 
     @property
-    def confidence(self) -> float:
-        """Recency-weighted confidence of the cut points fused into the track."""
-        return self.recent_confidence
-
-    @property
     def sigma_m(self) -> float:
         """1-σ radius (m): the square root of the reported covariance's largest eigenvalue."""
         return math.sqrt(max(0.0, float(np.linalg.eigvalsh(self.covariance_m2)[-1])))
@@ -191,7 +186,7 @@ class Track:
         if not any(_same_view(view, seen, cfg) for seen in self.views):
             self.views.append(view)
         weight_kept = 0.5 ** (max(t - self.last_seen, 0.0) / cfg.confidence_half_life_s)
-        self.recent_confidence = weight_kept * self.recent_confidence + (1.0 - weight_kept) * z.confidence
+        self.confidence = weight_kept * self.confidence + (1.0 - weight_kept) * z.confidence
         self.observations += 1
         self.consistent_observations = self.consistent_observations + 1 if consistent else 1
         self.last_seen = max(self.last_seen, t)
@@ -224,9 +219,8 @@ class Track:
 
 def _view_of(z: Measurement) -> View:
     """The viewpoint of a measurement: unit line of sight from the cut point to the camera, and the range."""
-    sight = z.camera_m - z.position_m
-    distance = float(np.linalg.norm(sight))
-    return View(sight / max(distance, 1e-9), distance)
+    distance = z.range_m
+    return View((z.camera_m - z.position_m) / max(distance, 1e-9), distance)
 
 
 def _same_view(a: View, b: View, cfg: TrackingConfig) -> bool:
