@@ -47,6 +47,7 @@ disparity is already good.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -54,6 +55,7 @@ import numpy as np
 
 from branchrange.core.geometry import GeometryError, LinearFit, fit_linear_robust, valid_disparity
 from branchrange.core.masks import BranchMasks
+from branchrange.core.region_budget import on_working_grid
 from branchrange.core.silhouette import image_axis
 
 #: offsets of the initial line searched, ± px, and the search step (px)
@@ -321,6 +323,7 @@ def refine_branch_disparity(
     confidence: np.ndarray | None = None,
     doffs_px: float = 0.0,
     max_disparity: float | None = None,
+    working_scales: Mapping[int, int] | None = None,
 ) -> RefinedBranches:
     """Each branch instance's disparity refined on its own pixels (see the module docstring).
 
@@ -332,6 +335,9 @@ def refine_branch_disparity(
     copy, and a second full-frame array would cost more than the refinement itself (at HD720 its fresh
     pages took 5 ms against 5 ms for all the rest). `max_disparity` (px; None: the largest valid value
     given, at least `DEFAULT_MAX_SHIFT_PX`) bounds the whole-range search. `disparity` is not modified.
+    `working_scales`: mask id → the scale its disparity was matched at (`region_budget`): its line is then
+    fitted and refined on one pixel per working pixel (`on_working_grid`: the cost bounded with its region's)
+    and written to all of its pixels.
     """
     refined = np.array(disparity, dtype=np.float32, copy=True)
     shifts: list[BranchShift] = []
@@ -357,13 +363,15 @@ def refine_branch_disparity(
         values = disparity[rows, cols].astype(np.float64)
         valid = valid_disparity(values, max_disparity)
         s = image_axis(crop).s
+        sub = on_working_grid(rows, cols, (working_scales or {}).get(mask_id, 1))
         initial = None
-        if np.count_nonzero(valid) >= MIN_PIXELS:
+        if np.count_nonzero(valid & sub) >= MIN_PIXELS:
             try:
-                initial = fit_linear_robust(s[valid], values[valid], INITIAL_BAND_PX, penalty_above=1.0)
+                initial = fit_linear_robust(s[valid & sub], values[valid & sub], INITIAL_BAND_PX, penalty_above=1.0)
             except GeometryError:  # every valid pixel at one position along the axis
                 initial = None
-        line = _branch_line(left_grey[rows, cols], right_grey, rows, cols, s, initial, doffs_px, max_shift)
+        at = (rows[sub], cols[sub])
+        line = _branch_line(left_grey[at], right_grey, *at, s[sub], initial, doffs_px, max_shift)
         if line is None:
             continue
         if line.searched is None:  # the matcher's own line, refined: its holes stay holes

@@ -231,6 +231,19 @@ class RoiConfig(Settings):
       the last frame is dropped and a keyframe is due: a carried mask that slid onto other pixels (a
       silhouette with much background, the fit taking the background's depth) gives a cut point far off,
       and a tracked result must never jump (one frame's motion at 0.8 m/s moves it 5 cm).
+    - `budget`: the region budget (`branchrange.core.region_budget`): each branch's region is matched at the
+      coarsest working scale (1, 2, 4 … times smaller) its cut point can afford, and the frame's regions within
+      the two caps below; false: every region at full resolution.
+    - `budget_min_disparity_px`: a region is shrunk only while its branch's disparity at the working scale stays
+      ≥ this (px): relative depth precision σ_d/d at least that of a full-resolution branch at this disparity
+      (16 px at HD720 with the ZED Mini is ~2.5 m; regions shrink from ~1.3 m in).
+    - `budget_min_diameter_px`: … and while the branch's width at the working scale stays ≥ this (px): a stem the
+      matcher still sees (this one is never relaxed to meet the caps).
+    - `budget_max_scale`: the coarsest working scale (a power of two; 1: the budget never shrinks a region).
+    - `budget_max_pixels`: the frame's region pixels at their working scales at most (px); over it, regions are
+      shrunk further nearest-first, then the farthest left out.
+    - `budget_max_cost_mpd`: the frame's matching cost at most, in million pixel-disparities (Σ region pixels ×
+      disparities searched, at the working scales): SGBM's time is proportional to it.
     """
 
     section = "roi"
@@ -247,6 +260,11 @@ class RoiConfig(Settings):
         "track_min_support": Limit(minimum=0, maximum=1),
         "track_gate_px": Limit(minimum=0, maximum=64),
         "track_max_jump_m": Limit(exclusive_minimum=0),
+        "budget_min_disparity_px": Limit(minimum=1, maximum=256),
+        "budget_min_diameter_px": Limit(minimum=1, maximum=64),
+        "budget_max_scale": Limit(minimum=1, maximum=8),
+        "budget_max_pixels": Limit(minimum=1000),
+        "budget_max_cost_mpd": Limit(exclusive_minimum=0),
     }
 
     coarse_width: int = 640
@@ -261,6 +279,12 @@ class RoiConfig(Settings):
     track_min_support: float = 0.5
     track_gate_px: float = 2.0
     track_max_jump_m: float = 0.1
+    budget: bool = True
+    budget_min_disparity_px: float = 16.0
+    budget_min_diameter_px: float = 4.0
+    budget_max_scale: int = 4
+    budget_max_pixels: int = 200_000
+    budget_max_cost_mpd: float = 10.0
 
     def checks(self) -> Checks:
         """The range of every setting."""
@@ -276,6 +300,11 @@ class RoiConfig(Settings):
             "track_min_support": (0 <= self.track_min_support <= 1, "a share in [0, 1]"),
             "track_gate_px": (0 <= self.track_gate_px <= 64, "px in [0, 64]"),
             "track_max_jump_m": (self.track_max_jump_m > 0, "metres > 0"),
+            "budget_min_disparity_px": (1 <= self.budget_min_disparity_px <= 256, "px in [1, 256]"),
+            "budget_min_diameter_px": (1 <= self.budget_min_diameter_px <= 64, "px in [1, 64]"),
+            "budget_max_scale": (self.budget_max_scale in (1, 2, 4, 8), "1, 2, 4 or 8"),
+            "budget_max_pixels": (self.budget_max_pixels >= 1000, "at least 1000 px"),
+            "budget_max_cost_mpd": (self.budget_max_cost_mpd > 0, "million pixel-disparities > 0"),
         }
 
 

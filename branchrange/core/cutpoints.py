@@ -20,8 +20,8 @@ A branch with too little evidence is dropped with a reason, never invented.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -42,6 +42,7 @@ from branchrange.core.geometry import (
     vector_norm,
 )
 from branchrange.core.masks import BranchMasks, MaskCrop, as_crop, check_instance_count, erode
+from branchrange.core.region_budget import on_working_grid
 from branchrange.core.settings_check import Checks, Limit, Settings, in_physical_range
 from branchrange.core.silhouette import ImageAxis, WidthProfile, image_axis, width_profile
 from stereo.pinhole import depth_from_disparity
@@ -181,7 +182,9 @@ class BranchEstimate:
 
     `id` is the stable track id (set by the tracker; the mask id until then), `mask_id` the
     instance id in the frame's mask, `pixel` the cut point's (u, v) in the left image, `axis` a
-    unit vector from base toward tip.
+    unit vector from base toward tip. `working_scale`: its disparity came from the pair shrunk this many
+    times (the roi mode's region budget): its fit took one pixel per working pixel and its disparity noise
+    as that many full-resolution pixels.
     """
 
     mask_id: int
@@ -196,6 +199,7 @@ class BranchEstimate:
     residual_m: float
     n_points: int
     id: int = -1
+    working_scale: int = 1
 
 
 @dataclass(frozen=True)
@@ -375,9 +379,12 @@ def fit_cylinder(
     config: CutPointConfig,
     max_disparity: float | None = None,
     cut_by: np.ndarray | MaskCrop | None = None,
+    stride: int = 1,
 ) -> CylinderFit | str:
     """Fit a (possibly tapered) cylinder to one boolean `H×W` mask (or its `MaskCrop`: the work
-    then follows the mask's size, not the image's) and the `H×W` disparity (px).
+    then follows the mask's size, not the image's) and the `H×W` disparity (px). `stride` > 1: the
+    disparity was matched at that working scale (`region_budget`), so only one pixel per s×s block
+    is a measurement: the fit takes those (`on_working_grid`), its cost bounded with the region's.
 
     Elongated silhouettes: centreline from the mask, disparity along it by a robust linear fit
     (see `fit_linear_robust`); seen end-on: a robust 3D line through the points. Either line runs
@@ -388,6 +395,9 @@ def fit_cylinder(
     core = erode(crop.mask, config.erode_px)  # the crop's background margin erodes as the image would
     eroded_px = config.erode_px if np.count_nonzero(core) < np.count_nonzero(crop.mask) else 0
     rows, cols = crop.with_mask(core).pixels()
+    if stride > 1:
+        on_grid = on_working_grid(rows, cols, stride)
+        rows, cols = rows[on_grid], cols[on_grid]
     if rows.size < config.min_points:
         return f"mask has {rows.size} pixels after erosion, fewer than {config.min_points}"
     d = disparity[rows, cols]
@@ -678,6 +688,7 @@ def estimate_branch(
     trunk_model: TrunkModel | None = None,
     max_disparity: float | None = None,
     reported_confidence: Callable[[float, float], float] | None = None,
+    working_scale: int = 1,
 ) -> BranchEstimate | DroppedBranch:
     """Cut point of one branch from its boolean `H×W` mask (or `MaskCrop`) and the `H×W` disparity (px).
 
@@ -686,6 +697,9 @@ def estimate_branch(
     then where the axis pierces the bark). `reported_confidence` maps the cut point's own confidence
     and the branch's visible length (m, base to tip) to the reported one (`BranchMasks.reported_confidence`:
     the segmenter's belief in the instance, how long it is seen, and its calibration; None = as it is).
+    `working_scale` > 1: its disparity was matched at that scale (`region_budget`): the fit takes one pixel
+    per working pixel, and the disparity noise settings (`disparity_noise_px`, `cut_disparity_noise_px`)
+    count working pixels — that many full-resolution ones — so its inlier band and confidence say so.
     Returns a `DroppedBranch` with the reason when the evidence does not support a cut point.
     """
     try:
@@ -700,6 +714,7 @@ def estimate_branch(
             trunk_model,
             max_disparity,
             reported_confidence,
+            working_scale,
         )
     except GeometryError as exc:  # e.g. the axis runs behind the camera: the depth is inconsistent
         return DroppedBranch(mask_id, f"no consistent branch axis: {exc}")
@@ -716,9 +731,16 @@ def _estimate_branch(
     trunk_model: TrunkModel | None,
     max_disparity: float | None,
     reported_confidence: Callable[[float, float], float] | None = None,
+    working_scale: int = 1,
 ) -> BranchEstimate | DroppedBranch:
     """`estimate_branch` without the guard against degenerate geometry."""
-    cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk)
+    if working_scale > 1:
+        config = replace(
+            config,
+            disparity_noise_px=config.disparity_noise_px * working_scale,
+            cut_disparity_noise_px=config.cut_disparity_noise_px * working_scale,
+        )
+    cylinder = fit_cylinder(mask, disparity, geometry, config, max_disparity, cut_by=trunk, stride=working_scale)
     if isinstance(cylinder, str):
         return DroppedBranch(mask_id, cylinder)
     ends = _ends(cylinder, geometry, trunk, trunk_model)
@@ -773,6 +795,7 @@ def _estimate_branch(
         residual_m=cylinder.residual_m,
         n_points=int(inliers.sum()),
         id=mask_id,
+        working_scale=working_scale,
     )
 
 
@@ -785,12 +808,14 @@ def estimate_cut_points(
     confidence: np.ndarray | None = None,
     max_disparity: float | None = None,
     trunk_model: TrunkModel | None | Literal["fit"] = "fit",
+    working_scales: Mapping[int, int] | None = None,
 ) -> CutPointResult:
     """Cut points of every branch instance in `masks` from the `H×W` disparity (px).
 
     `trunk_model`: "fit" fits the trunk's cylinder from its mask here; a `TrunkModel` fitted
     elsewhere (the roi mode fits it on the coarse pass, in metres like any other) or None is used
-    as it is.
+    as it is. `working_scales`: mask id → the scale its disparity was matched at (`region_budget.branch_scales`;
+    absent: full resolution), see `estimate_branch`.
 
     Shapes must agree (the caller validates); `confidence` is the stereo confidence `H×W` in [0, 1].
     Each instance is read from its bounding box (`BranchMasks.crop`), so the cost follows the
@@ -820,6 +845,7 @@ def estimate_cut_points(
             trunk_model=trunk_model,
             max_disparity=max_disparity,
             reported_confidence=masks.reported_confidence(mask_id),
+            working_scale=(working_scales or {}).get(mask_id, 1),
         )
         if isinstance(outcome, DroppedBranch):
             result.dropped.append(outcome)

@@ -153,6 +153,15 @@ class Branch(JsonPart):
             "(the segmenter's calibration in that light); left out otherwise"
         ),
     ] = None
+    disparity_scale: Annotated[
+        int | None,
+        Field(
+            ge=2,
+            description="its disparity was matched on the pair shrunk this many times (the roi mode's region "
+            "budget, near the tree): its disparity noise is that many full-resolution pixels, and its "
+            "covariance says so; absent: at full resolution",
+        ),
+    ] = None
 
     @classmethod
     def from_estimate(cls, b: BranchEstimate) -> Branch:
@@ -170,6 +179,7 @@ class Branch(JsonPart):
             valid_fraction=round(float(b.valid_fraction), 4),
             residual_m=round(float(b.residual_m), 5),
             points=int(b.n_points),
+            disparity_scale=int(b.working_scale) if b.working_scale > 1 else None,
         )
 
 
@@ -211,12 +221,21 @@ class RoiRegion(JsonPart):
     d_min: Annotated[int, Field(ge=0, description="smallest disparity searched, pixels")]
     d_range: Annotated[int, Field(ge=1, description="disparities searched from d_min, pixels")]
     backend: Annotated[str, Field(description="the backend that matched it (SGBM beyond roi.network_regions)")]
+    scale: Annotated[
+        int | None,
+        Field(
+            ge=2,
+            description="the region budget matched it on the pair shrunk this many times (roi.budget; "
+            "absent: at full resolution)",
+        ),
+    ] = None
 
     @classmethod
     def from_region(cls, region: Region) -> RoiRegion:
         """The written form of a `roi.Region`."""
         x0, y0, x1, y1 = region.box
-        return cls(region.instance_id, (x0, y0, x1, y1), region.d_min, region.d_range, region.backend)
+        scale = region.scale if region.scale > 1 else None
+        return cls(region.instance_id, (x0, y0, x1, y1), region.d_min, region.d_range, region.backend, scale)
 
 
 @with_config(_STRICT)

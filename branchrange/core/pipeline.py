@@ -54,6 +54,7 @@ from branchrange.core.masks import (
     validate_masks,
 )
 from branchrange.core.pair_check import PairCheck, check_rectification
+from branchrange.core.region_budget import branch_scales
 from branchrange.core.roi import CoarseToFine, CoarseToFineResult, CoarseTrunk, Region, branch_gates
 from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.core.timing import lap_ms
@@ -131,7 +132,9 @@ class StereoStage:
     fine passes of `mode = "roi"` (None in whole-frame mode); `pair_check`: the rectification check
     when asked for; `coarse_trunk`: the trunk as the roi mode's coarse pass saw it (its cylinder is
     fitted from it in the geometry half); `right`: the rectified right image, for the branches' own
-    disparity refinement (`branchrange.core.branch_disparity`; None: no refinement).
+    disparity refinement (`branchrange.core.branch_disparity`; None: no refinement); `working_scale`:
+    the scale each pixel's disparity was matched at (`uint8 H×W`, the roi mode's region budget; None: all
+    at full resolution).
     """
 
     left: np.ndarray
@@ -151,6 +154,7 @@ class StereoStage:
     right: np.ndarray | None = None
     origin: Origin | None = None
     keyframe_age_s: float | None = None
+    working_scale: np.ndarray | None = None
 
 
 class Pipeline:
@@ -311,10 +315,10 @@ class Pipeline:
             )
             timing.update(fine.timing_ms)
             disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
-            coarse_trunk = fine.trunk
+            coarse_trunk, working_scale = fine.trunk, fine.working_scale
             backend, max_disparity = f"{self.backend.name}-roi", self.config.stereo.max_disp
         else:
-            regions, coarse_trunk, origin, keyframe_age_s = None, None, None, None
+            regions, coarse_trunk, origin, keyframe_age_s, working_scale = None, None, None, None, None
             stereo = self.backend.compute(left, right)
             disparity, confidence = stereo.disparity, stereo.confidence
             backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
@@ -337,6 +341,7 @@ class Pipeline:
             right=right if shed_level < 2 else None,
             origin=origin,
             keyframe_age_s=keyframe_age_s,
+            working_scale=working_scale,
         )
 
     def _roi_stereo(
@@ -489,9 +494,17 @@ class Pipeline:
         if masks is None:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = lap_ms(timing, "masks", t)
+        working_scales = {} if masks is None else branch_scales(masks, stage.working_scale)
         if masks is not None and stage.right is not None and self.config.stereo.refine_branches:
             disparity = refine_branch_disparity(  # rewrites `confidence` (this frame's own) on refined branches
-                left, stage.right, disparity, masks, confidence, doffs_px=self.doffs_px, max_disparity=max_disparity
+                left,
+                stage.right,
+                disparity,
+                masks,
+                confidence,
+                doffs_px=self.doffs_px,
+                max_disparity=max_disparity,
+                working_scales=working_scales,
             ).disparity
             t = lap_ms(timing, "branch_disparity", t)
         self.last = FrameArtifacts(left, disparity, confidence, masks)
@@ -516,6 +529,7 @@ class Pipeline:
                 confidence=confidence,
                 max_disparity=max_disparity,
                 trunk_model=trunk_model,
+                working_scales=working_scales,
             )
             if stage.origin is not None:
                 cut = self._without_jumps(cut, stage.origin)

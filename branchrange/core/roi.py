@@ -39,6 +39,7 @@ from branchrange.core.config import RoiConfig
 from branchrange.core.cutpoints import CutPointConfig, TrunkModel, fit_trunk
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks, MaskCrop
+from branchrange.core.region_budget import fit_budget, match_region, region_needs
 from branchrange.core.timing import lap_ms
 
 #: SGBM searches disparities in steps of this many pixels.
@@ -50,13 +51,15 @@ MIN_WINDOW_EVIDENCE = 5
 @dataclass(frozen=True)
 class Region:
     """One instance's fine pass: `box` = (x0, y0, x1, y1) px at full resolution (exclusive ends);
-    absolute disparities searched: [d_min, d_min + d_range) px at full resolution."""
+    absolute disparities searched: [d_min, d_min + d_range) px at full resolution; `scale`: the working
+    scale it is matched at (`region_budget`: the pair shrunk this many times; 1 = full resolution)."""
 
     instance_id: int
     box: tuple[int, int, int, int]
     d_min: int
     d_range: int
     backend: str = ""  # the backend that matched it (set when it was matched)
+    scale: int = 1
 
     @property
     def pixels(self) -> int:
@@ -84,7 +87,8 @@ class CoarseTrunk:
 class CoarseToFineResult:
     """Full-resolution `disparity` (`float32 H×W` px, 0 outside the regions), `confidence` (`H×W`),
     the instances used (`masks`), the `regions` matched, the trunk as the coarse pass saw it (None
-    without a trunk) and the stage times in ms."""
+    without a trunk), the stage times in ms, and `working_scale` (`uint8 H×W`): the scale each pixel's
+    fine disparity was matched at (`region_budget`; 1 elsewhere)."""
 
     disparity: np.ndarray
     confidence: np.ndarray
@@ -92,6 +96,7 @@ class CoarseToFineResult:
     regions: list[Region]
     trunk: CoarseTrunk | None
     timing_ms: dict[str, float]
+    working_scale: np.ndarray | None = None
 
 
 def coarse_scale(width: int, coarse_width: int) -> int:
@@ -341,17 +346,22 @@ class CoarseToFine:
         regions = plan_regions(
             instances, coarse_labels, coarse.disparity, scale, self.config, self.max_disp, gates if carried else None
         )
+        regions = fit_budget(
+            regions, region_needs(regions, instances, coarse_labels, coarse.disparity, scale), self.config
+        )
         disparity = np.zeros((height, width), np.float32)
         confidence = np.zeros((height, width), np.float32)
+        working = np.ones((height, width), np.uint8)
         matchers = self._matchers(regions)
         regions = [replace(region, backend=backend.name) for region, backend in zip(regions, matchers)]
         for region, backend in zip(regions, matchers):
-            result = backend.compute_roi(left, right, region.box, region.d_min, region.d_range)
+            box_disparity, box_confidence = match_region(backend, left, right, region)
             x0, y0, x1, y1 = region.box
             box_labels = labels_full[y0:y1, x0:x1]
-            take = ((box_labels == region.instance_id) | (box_labels == 0)) & (result.disparity > 0)
-            disparity[y0:y1, x0:x1][take] = result.disparity[take]
-            confidence[y0:y1, x0:x1][take] = result.confidence[take]
+            take = ((box_labels == region.instance_id) | (box_labels == 0)) & (box_disparity > 0)
+            disparity[y0:y1, x0:x1][take] = box_disparity[take]
+            confidence[y0:y1, x0:x1][take] = box_confidence[take]
+            working[y0:y1, x0:x1][take] = region.scale
         t = lap_ms(timing, "roi_stereo", t)
         if coarse_logits is not None:
             instances = self.segmenter.instances(
@@ -372,4 +382,5 @@ class CoarseToFine:
             regions,
             coarse_trunk(coarse_labels, instances.trunk_id, coarse.disparity, small_geometry, coarse_max),
             timing,
+            working,
         )

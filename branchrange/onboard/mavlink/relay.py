@@ -155,7 +155,8 @@ class MavlinkRelay:
                         np.asarray(b.cut_point_m),
                         cam_to_ned,
                         self._tracking,
-                        result.camera.focal_px,
+                        # a branch matched on the pair shrunk s times (region budget) saw a camera of focal f / s
+                        result.camera.focal_px / (b.disparity_scale or 1),
                         result.camera.baseline_m,
                     ),
                     b.confidence,
