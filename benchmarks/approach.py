@@ -229,8 +229,9 @@ def approach_target_id(directory: Path) -> int:
     return int(found.group(1))
 
 
-def daemon_config(directory: Path, width: int) -> Config:
-    """deploy/onboard_cpu.toml for the recording: replay source, setpoints on, no API; max_disp scaled to `width`."""
+def daemon_config(directory: Path, width: int, extra: Sequence[str] = ()) -> Config:
+    """deploy/onboard_cpu.toml for the recording: replay source, setpoints on, no API; max_disp scaled to `width`;
+    then the `extra` `section.key=value` overrides (`--set`)."""
     max_disp = max(32, round(128 * width / 1280 / 16) * 16)  # 128 px at HD720 reaches the same 0.32 m
     overrides = [
         f'camera.source="replay:{directory}"',
@@ -240,6 +241,7 @@ def daemon_config(directory: Path, width: int) -> Config:
         "api.enabled=false",
         'log.results_jsonl=""',
         "log.status_interval_s=3600.0",
+        *extra,
     ]
     return load_config(DEPLOY_CONFIG, [parse_override(item) for item in overrides])
 
@@ -558,9 +560,9 @@ def score_flight(flight: DaemonFlight, cfg: Config, target_id: int) -> dict[str,
     }
 
 
-def run_flight(directory: Path, masks: str, width: int) -> dict[str, Any]:
+def run_flight(directory: Path, masks: str, width: int, extra: Sequence[str] = ()) -> dict[str, Any]:
     """Fly one recording through the daemon with `masks` ('truth' or 'builtin') and score it."""
-    cfg = daemon_config(directory, width)
+    cfg = daemon_config(directory, width, extra)
     mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
     flight = fly_daemon(
         directory,
@@ -624,7 +626,10 @@ def band_cell(band: dict[str, Any]) -> str:
 
 def print_report(report: dict[str, Any]) -> None:
     """The tables of the module docstring, and the targets met or not."""
-    print(f"CPU: {report['cpu']}; {report['threads']} threads; {report['resolution']}; load {report['load']}")
+    print(
+        f"CPU: {report['cpu']}; {report['threads']} threads; {report['resolution']}; load {report['load']}; "
+        f"overrides: {' '.join(report.get('overrides', [])) or 'none'}"
+    )
     print(
         f"{'flight':>8} {'masks':>7} {'sends':>5} {'tgt':>4} {'sw':>3} {'first s':>7} {'err med':>7} {'p90':>5} "
         f"{'max mm':>6} {'>5cm':>4} {'bord':>4} {'ready s':>7} {'ok':>5} {'sp med':>6} {'max mm':>6} "
@@ -658,6 +663,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2, help="OpenCV and torch threads")
     parser.add_argument("--quick", action="store_true", help="smoke run: 640x360, 0.5 m/s, truth masks")
     parser.add_argument("--json", type=Path, help="write the report here")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override the deploy file (repeatable)"
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.resolution, args.speeds, args.masks = "640x360", "0.5", "truth"
@@ -681,13 +689,16 @@ def fly_all(args: argparse.Namespace) -> dict[str, Any]:
         "resolution": args.resolution,
         "load": machine_load(),
         "config": str(DEPLOY_CONFIG.relative_to(ROOT)),
+        "overrides": args.set,
         "flights": [],
     }
     for speed in speeds:
         directory = render_flight(args.resolution, speed, args.hover_s, args.seed)
         for mask in masks:
             print(f"flying {directory.name} with {mask} masks ...", file=sys.stderr)
-            report["flights"].append({"speed_m_s": speed, "masks": mask, **run_flight(directory, mask, width)})
+            report["flights"].append(
+                {"speed_m_s": speed, "masks": mask, **run_flight(directory, mask, width, args.set)}
+            )
     report["targets"] = verdicts(report["flights"])
     return report
 

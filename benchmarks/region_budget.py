@@ -62,6 +62,7 @@ def variant_config(directory: Path, overrides: str) -> Config:
 
 def frame_scores(result: FrameResult, truths: list[np.ndarray]) -> dict[str, Any]:
     """Per result: its stage times, each cut point's distance (m) to the nearest true one, the target's."""
+
     def nearest(point: np.ndarray) -> float:
         return min(float(np.linalg.norm(np.asarray(point) - t)) for t in truths)
 
@@ -71,9 +72,7 @@ def frame_scores(result: FrameResult, truths: list[np.ndarray]) -> dict[str, Any
     timing["geometry_half"] = timing.get("total", 0.0) - stereo
     regions = result.roi.regions if result.roi is not None else ()
     scales = [getattr(r, "scale", None) or 1 for r in regions]
-    pixels = sum(
-        (r.box[2] - r.box[0]) * (r.box[3] - r.box[1]) // (s * s) for r, s in zip(regions, scales)
-    )
+    pixels = sum((r.box[2] - r.box[0]) * (r.box[3] - r.box[1]) // (s * s) for r, s in zip(regions, scales))
     target = result.target
     return {
         "timing": timing,
@@ -103,12 +102,22 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
     return {
         "frames": len(frames),
         "stage_ms": {s: {"p50": percentile(v, 50), "p95": percentile(v, 95)} for s, v in sorted(stages.items())},
-        "error_mm": {"median": percentile(right, 50), "p90": percentile(right, 90), "right": len(right),
-                     "wrong": len(errors) - len(right)},
-        "target_error_mm": {"median": percentile(targets, 50), "p90": percentile(targets, 90),
-                            "max": round(max(targets), 1) if targets else None, "count": len(targets)},
-        "region_px": {"p50": percentile([f["region_px"] for f in frames], 50),
-                      "max": max((f["region_px"] for f in frames), default=None)},
+        "error_mm": {
+            "median": percentile(right, 50),
+            "p90": percentile(right, 90),
+            "right": len(right),
+            "wrong": len(errors) - len(right),
+        },
+        "target_error_mm": {
+            "median": percentile(targets, 50),
+            "p90": percentile(targets, 90),
+            "max": round(max(targets), 1) if targets else None,
+            "count": len(targets),
+        },
+        "region_px": {
+            "p50": percentile([f["region_px"] for f in frames], 50),
+            "max": max((f["region_px"] for f in frames), default=None),
+        },
         "reduced": round(sum(f["reduced"] for f in frames) / regions, 3) if regions else None,
     }
 
@@ -137,7 +146,7 @@ def run(directory: Path, variants: dict[str, str], masks: str) -> dict[str, Any]
         position = positions[frame.index]
         in_camera = truth.cut_points_in_camera(position)
         band = band_of(float(np.linalg.norm(in_camera[target_id])))
-        for name in names[n % len(names):] + names[: n % len(names)]:
+        for name in names[n % len(names) :] + names[: n % len(names)]:
             result = pipelines[name].process(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
             by_band[name][band].append(frame_scores(result, list(in_camera.values())))
     bands = range(len(BAND_EDGES_M) - 1)
@@ -156,19 +165,23 @@ def print_report(report: dict[str, Any]) -> None:
                 print(f"  [{name}] {'stage':>16} " + " ".join(f"{b + ' m':>14}" for b in bands))
                 for stage in stages:
                     cells = [by_band[b]["stage_ms"].get(stage, {"p50": None, "p95": None}) for b in bands]
-                    print(f"  {'':>{len(name) + 2}} {stage:>16} "
-                          + " ".join(f"{fmt(c['p50'])}/{fmt(c['p95']):<6}".rjust(14) for c in cells))
+                    print(
+                        f"  {'':>{len(name) + 2}} {stage:>16} "
+                        + " ".join(f"{fmt(c['p50'])}/{fmt(c['p95']):<6}".rjust(14) for c in cells)
+                    )
                 region = [f"{fmt(by_band[b]['region_px']['p50'], 0)}" for b in bands]
                 reduced = [fmt(by_band[b]["reduced"], 2) for b in bands]
                 print(f"  {'':>{len(name) + 2}} {'region px p50':>16} " + " ".join(f"{c:>14}" for c in region))
                 print(f"  {'':>{len(name) + 2}} {'reduced share':>16} " + " ".join(f"{c:>14}" for c in reduced))
-            print(f"  accuracy: cut points within 5 cm, median/p90 mm (right, wrong); target median/p90/max mm")
+            print("  accuracy: cut points within 5 cm, median/p90 mm (right, wrong); target median/p90/max mm")
             for name, by_band in by_variant.items():
                 cells = []
                 for b in bands:
                     e, t = by_band[b]["error_mm"], by_band[b]["target_error_mm"]
-                    cells.append(f"{fmt(e['median'])}/{fmt(e['p90'])} ({e['right']},{e['wrong']}) "
-                                 f"{fmt(t['median'])}/{fmt(t['p90'])}/{fmt(t['max'])}")
+                    cells.append(
+                        f"{fmt(e['median'])}/{fmt(e['p90'])} ({e['right']},{e['wrong']}) "
+                        f"{fmt(t['median'])}/{fmt(t['p90'])}/{fmt(t['max'])}"
+                    )
                 print(f"  [{name}] " + " | ".join(cells))
 
 
@@ -180,8 +193,13 @@ def fmt(value: Any, digits: int = 1) -> str:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """The command line (module docstring)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--variant", action="append", default=[], metavar="NAME=OVERRIDES",
-                        help="a pipeline: `;`-separated section.key=value overrides of the deploy file (repeatable)")
+    parser.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=OVERRIDES",
+        help="a pipeline: `;`-separated section.key=value overrides of the deploy file (repeatable)",
+    )
     parser.add_argument("--speeds", default="0.5", help="approach speeds, m/s (comma-separated; rendered once)")
     parser.add_argument("--masks", choices=("truth", "builtin", "both"), default="both")
     parser.add_argument("--resolution", default="1280x720")
@@ -208,15 +226,18 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     masks = ["truth", "builtin"] if args.masks == "both" else [args.masks]
     load = " ".join(f"{v:.1f}" for v in os.getloadavg())
-    report: dict[str, Any] = {"cpu": cpu_name(), "threads": args.threads, "load_before": load,
-                              "variants": args.variants, "config": str(DEPLOY_CONFIG.relative_to(ROOT)),
-                              "flights": {}}
+    report: dict[str, Any] = {
+        "cpu": cpu_name(),
+        "threads": args.threads,
+        "load_before": load,
+        "variants": args.variants,
+        "config": str(DEPLOY_CONFIG.relative_to(ROOT)),
+        "flights": {},
+    }
     started = time.time()
     for speed in [float(v) for v in args.speeds.split(",")]:
         directory = render_flight(args.resolution, speed, 0.0, args.seed)
-        report["flights"][directory.name] = {
-            m: run(directory, args.variants, m) for m in masks
-        }
+        report["flights"][directory.name] = {m: run(directory, args.variants, m) for m in masks}
     report["load_after"] = " ".join(f"{v:.1f}" for v in os.getloadavg())
     report["wall_s"] = round(time.time() - started, 1)
     print_report(report)

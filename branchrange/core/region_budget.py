@@ -200,4 +200,5 @@ def on_working_grid(rows: np.ndarray, cols: np.ndarray, scale: int) -> np.ndarra
     (the top-left of each s×s block): a scaled region's s² copies of one disparity count once."""
     if scale <= 1:
         return np.ones(rows.shape, dtype=bool)
-    return (rows % scale == 0) & (cols % scale == 0)
+    on_grid: np.ndarray = (rows % scale == 0) & (cols % scale == 0)
+    return on_grid
