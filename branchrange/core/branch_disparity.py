@@ -363,7 +363,7 @@ def refine_branch_disparity(
         values = disparity[rows, cols].astype(np.float64)
         valid = valid_disparity(values, max_disparity)
         s = image_axis(crop).s
-        sub = on_working_grid(rows, cols, (working_scales or {}).get(mask_id, 1))
+        sub = on_working_grid(rows, cols, (working_scales or {}).get(mask_id, 1), MIN_PIXELS)
         initial = None
         if np.count_nonzero(valid & sub) >= MIN_PIXELS:
             try:

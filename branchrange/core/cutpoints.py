@@ -396,7 +396,7 @@ def fit_cylinder(
     eroded_px = config.erode_px if np.count_nonzero(core) < np.count_nonzero(crop.mask) else 0
     rows, cols = crop.with_mask(core).pixels()
     if stride > 1:
-        on_grid = on_working_grid(rows, cols, stride)
+        on_grid = on_working_grid(rows, cols, stride, config.min_points)
         rows, cols = rows[on_grid], cols[on_grid]
     if rows.size < config.min_points:
         return f"mask has {rows.size} pixels after erosion, fewer than {config.min_points}"

@@ -195,10 +195,11 @@ def branch_scales(masks: BranchMasks, working: np.ndarray | None) -> dict[int, i
     return scales
 
 
-def on_working_grid(rows: np.ndarray, cols: np.ndarray, scale: int) -> np.ndarray:
+def on_working_grid(rows: np.ndarray, cols: np.ndarray, scale: int, minimum: int = 1) -> np.ndarray:
     """Boolean mask of the pixels (`rows`, `cols`, full resolution) that are one per working pixel at `scale`
-    (the top-left of each s×s block): a scaled region's s² copies of one disparity count once."""
-    if scale <= 1:
-        return np.ones(rows.shape, dtype=bool)
+    (the top-left of each s×s block): a scaled region's s² copies of one disparity count once. All of them
+    when fewer than `minimum` lie on the grid (a small piece of a branch: its few pixels are all the evidence)."""
     on_grid: np.ndarray = (rows % scale == 0) & (cols % scale == 0)
+    if scale <= 1 or np.count_nonzero(on_grid) < minimum:
+        return np.ones(rows.shape, dtype=bool)
     return on_grid
