@@ -87,6 +87,11 @@ def test_a_region_matched_at_half_scale_gives_full_resolution_disparities_on_the
     assert np.all(disparity[0::2, 0::2] == disparity[1::2, 1::2])
     rows, cols = np.nonzero(np.ones((4, 4), bool))
     assert on_working_grid(rows, cols, 2).sum() == 4 and on_working_grid(rows, cols, 1).all()
+    # a piece with too few pixels on the grid (an odd row) keeps all of them: they are all its evidence
+    odd, even = (np.full(6, 3), np.arange(6)), (np.full(6, 2), np.arange(6))
+    assert on_working_grid(*odd, 2).all()
+    assert on_working_grid(*even, 2, minimum=3).tolist() == [True, False] * 3
+    assert on_working_grid(*even, 2, minimum=4).all()
 
 
 def test_a_branch_takes_the_scale_most_of_its_pixels_were_matched_at():
