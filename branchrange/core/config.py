@@ -241,9 +241,13 @@ class RoiConfig(Settings):
       matcher still sees (this one is never relaxed to meet the caps).
     - `budget_max_scale`: the coarsest working scale (a power of two; 1: the budget never shrinks a region).
     - `budget_max_pixels`: the frame's region pixels at their working scales at most (px); over it, regions are
-      shrunk further nearest-first, then the farthest left out.
+      shrunk further nearest-first (the disparity rule gives way, the width rule does not), then the farthest
+      are left out. 120,000: above every frame of the rendered HD720 approaches under the two rules (p95 100k,
+      max 112k; 156k before the budget), so it bounds a pathological frame (a dense tree close up) and
+      never costs a branch on those.
     - `budget_max_cost_mpd`: the frame's matching cost at most, in million pixel-disparities (Σ region pixels ×
-      disparities searched, at the working scales): SGBM's time is proportional to it.
+      disparities searched, at the working scales): SGBM's time is proportional to it. 6: the same approaches
+      need at most 4.75 (p95 4.2; 9.1 before the budget).
     """
 
     section = "roi"
@@ -283,8 +287,8 @@ class RoiConfig(Settings):
     budget_min_disparity_px: float = 16.0
     budget_min_diameter_px: float = 4.0
     budget_max_scale: int = 4
-    budget_max_pixels: int = 200_000
-    budget_max_cost_mpd: float = 10.0
+    budget_max_pixels: int = 120_000
+    budget_max_cost_mpd: float = 6.0
 
     def checks(self) -> Checks:
         """The range of every setting."""
