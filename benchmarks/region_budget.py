@@ -16,6 +16,8 @@ configured segmenter) and 0.5 m band of the true range to the approach's target 
 - `error_mm`: each reported cut point to the nearest true cut point (camera frame of the capture), median
   and p90 over those within 5 cm of one (`right`), and how many were farther (`wrong`) — the accuracy
   the budget must not lose; `target_error_mm`: the same for the frame's target alone;
+`--shed-level 1|2` runs every frame as the daemon's load shedding would (1: no full-resolution instances;
+2: nor the branch refinement).
 - `region_px`: p50 / max total pixels matched by the fine regions at their working scale, and
   `reduced`: the share of regions worked at a reduced scale (`roi.regions[].scale` > 1).
 
@@ -122,7 +124,7 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def run(directory: Path, variants: dict[str, str], masks: str) -> dict[str, Any]:
+def run(directory: Path, variants: dict[str, str], masks: str, shed_level: int = 0) -> dict[str, Any]:
     """Every frame of the recording through each variant's pipeline (rotating order); per variant and band."""
     from branchrange.core.frame_results import pipeline_for
     from camera.sources.replay import ReplaySource
@@ -147,7 +149,11 @@ def run(directory: Path, variants: dict[str, str], masks: str) -> dict[str, Any]
         in_camera = truth.cut_points_in_camera(position)
         band = band_of(float(np.linalg.norm(in_camera[target_id])))
         for name in names[n % len(names) :] + names[: n % len(names)]:
-            result = pipelines[name].process(frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns)
+            pipeline = pipelines[name]
+            stage = pipeline.stereo_stage(
+                frame.left, frame.right, frame.mask, frame.index, frame.timestamp_ns, shed_level
+            )
+            result = pipeline.geometry_stage(stage)
             by_band[name][band].append(frame_scores(result, list(in_camera.values())))
     bands = range(len(BAND_EDGES_M) - 1)
     return {name: {band_label(b): summarise(by_band[name][b]) for b in bands} for name in names}
@@ -206,6 +212,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2, help="OpenCV and torch threads")
     parser.add_argument("--json", type=Path, help="write the report here")
+    parser.add_argument(
+        "--shed-level", type=int, default=0, choices=(0, 1, 2), help="the daemon's load shedding level for every frame"
+    )
     args = parser.parse_args(argv)
     args.variants = {}
     for item in args.variant or ["shipped="]:
@@ -231,13 +240,14 @@ def main(argv: list[str] | None = None) -> int:
         "threads": args.threads,
         "load_before": load,
         "variants": args.variants,
+        "shed_level": args.shed_level,
         "config": str(DEPLOY_CONFIG.relative_to(ROOT)),
         "flights": {},
     }
     started = time.time()
     for speed in [float(v) for v in args.speeds.split(",")]:
         directory = render_flight(args.resolution, speed, 0.0, args.seed)
-        report["flights"][directory.name] = {m: run(directory, args.variants, m) for m in masks}
+        report["flights"][directory.name] = {m: run(directory, args.variants, m, args.shed_level) for m in masks}
     report["load_after"] = " ".join(f"{v:.1f}" for v in os.getloadavg())
     report["wall_s"] = round(time.time() - started, 1)
     print_report(report)
