@@ -181,3 +181,24 @@ def test_the_relay_fuses_a_reduced_scale_cut_point_with_a_sigma_as_many_times_la
             tracks = {t.branch_id: t for t in relay.targets().tracks}
     assert set(tracks) == {1, 2}
     assert tracks[2].sigma_m == pytest.approx(2.0 * tracks[1].sigma_m, rel=0.02)
+
+
+def test_the_pipeline_holds_a_tight_frame_budget_on_the_close_frame(close_frame):
+    """Caps far below what the close frame's regions need: the regions matched fit them (shrunk, then the
+    farthest left out), and what is kept is still matched and gives cut points."""
+    camera, frame = close_frame
+    tight = replace(ON, budget_max_pixels=20_000, budget_max_cost_mpd=0.5)
+    pipeline = Pipeline(
+        PipelineConfig(
+            stereo=StereoConfig(mode="roi", max_disp=128), roi=tight, cutpoints=CutPointConfig(tracking=False)
+        ),
+        focal_px=camera.focal_px,
+        baseline_m=camera.baseline_m,
+        principal_point=(camera.cx, camera.cy),
+    )
+    result = pipeline.process(frame.left, frame.right, mask=frame.mask)
+    kept = [Region(r.id, r.box, r.d_min, r.d_range, scale=r.scale or 1) for r in result.roi.regions]
+    pixels, cost = _totals(kept)
+    assert kept and pixels <= tight.budget_max_pixels and cost <= tight.budget_max_cost_mpd * 1e6
+    assert len(kept) < len(_process(close_frame, budget=False).roi.regions)  # something had to give
+    assert result.branches
