@@ -202,3 +202,22 @@ def test_the_pipeline_holds_a_tight_frame_budget_on_the_close_frame(close_frame)
     assert kept and pixels <= tight.budget_max_pixels and cost <= tight.budget_max_cost_mpd * 1e6
     assert len(kept) < len(_process(close_frame, budget=False).roi.regions)  # something had to give
     assert result.branches
+
+
+def test_the_trunk_near_the_tree_is_fitted_on_a_capped_number_of_points_with_the_same_axis(close_frame):
+    camera, frame = close_frame
+    pipeline = Pipeline(
+        PipelineConfig(stereo=StereoConfig(mode="roi", max_disp=128), roi=ON, cutpoints=CutPointConfig(tracking=False)),
+        focal_px=camera.focal_px,
+        baseline_m=camera.baseline_m,
+        principal_point=(camera.cx, camera.cy),
+    )
+    trunk = pipeline.stereo_stage(frame.left, frame.right, frame.mask).coarse_trunk
+    assert trunk is not None and trunk.crop.mask.sum() > 4 * 2000
+    every, capped = trunk.fit(pipeline.config.cutpoints), trunk.fit(pipeline.config.cutpoints, max_points=2000)
+    assert every is not None and capped is not None
+    assert capped.cylinder.points.shape[0] <= 2000 < every.cylinder.points.shape[0]
+    cosine = abs(float(capped.cylinder.axis.direction @ every.cylinder.axis.direction))
+    assert cosine > np.cos(np.radians(2.0))
+    point = every.cylinder.axis.point
+    assert every.surface_distance(point) == pytest.approx(capped.surface_distance(point), abs=0.01)

@@ -380,11 +380,13 @@ def fit_cylinder(
     max_disparity: float | None = None,
     cut_by: np.ndarray | MaskCrop | None = None,
     stride: int = 1,
+    max_points: int = 0,
 ) -> CylinderFit | str:
     """Fit a (possibly tapered) cylinder to one boolean `H×W` mask (or its `MaskCrop`: the work
     then follows the mask's size, not the image's) and the `H×W` disparity (px). `stride` > 1: the
     disparity was matched at that working scale (`region_budget`), so only one pixel per s×s block
     is a measurement: the fit takes those (`on_working_grid`), its cost bounded with the region's.
+    `max_points` > 0: at most about that many pixels, every k-th of the mask's (the trunk near the tree).
 
     Elongated silhouettes: centreline from the mask, disparity along it by a robust linear fit
     (see `fit_linear_robust`); seen end-on: a robust 3D line through the points. Either line runs
@@ -398,6 +400,9 @@ def fit_cylinder(
     if stride > 1:
         on_grid = on_working_grid(rows, cols, stride, config.min_points)
         rows, cols = rows[on_grid], cols[on_grid]
+    if 0 < max_points < rows.size:
+        every = -(-rows.size // max_points)
+        rows, cols = rows[::every], cols[::every]
     if rows.size < config.min_points:
         return f"mask has {rows.size} pixels after erosion, fewer than {config.min_points}"
     d = disparity[rows, cols]
@@ -520,11 +525,13 @@ def fit_trunk(
     geometry: StereoGeometry,
     config: CutPointConfig,
     max_disparity: float | None = None,
+    max_points: int = 0,
 ) -> TrunkModel | None:
     """A `TrunkModel` from the boolean `H×W` trunk mask (or its `MaskCrop`) and the disparity (px); None when the
-    trunk's depth is too thin to fit or it is not elongated (no axis to speak of)."""
+    trunk's depth is too thin to fit or it is not elongated (no axis to speak of). `max_points` > 0: fitted on
+    about that many of its pixels at most (`fit_cylinder`)."""
     try:
-        cylinder = fit_cylinder(trunk, disparity, geometry, config, max_disparity)
+        cylinder = fit_cylinder(trunk, disparity, geometry, config, max_disparity, max_points=max_points)
     except GeometryError:
         return None
     if isinstance(cylinder, str):

@@ -519,7 +519,11 @@ class Pipeline:
         else:
             trunk_model: TrunkModel | None | Literal["fit"] = "fit"  # whole-frame mode: from the mask
             if stage.regions is not None:  # roi mode: the trunk's cylinder from the coarse pass
-                trunk_model = None if stage.coarse_trunk is None else stage.coarse_trunk.fit(self.config.cutpoints)
+                roi = self.config.roi
+                trunk_points = roi.budget_trunk_points if roi.budget else 0
+                trunk_model = (
+                    None if stage.coarse_trunk is None else stage.coarse_trunk.fit(self.config.cutpoints, trunk_points)
+                )
                 t = lap_ms(timing, "trunk", t)
             cut = estimate_cut_points(
                 masks,

@@ -79,8 +79,9 @@ class CoarseTrunk:
     geometry: StereoGeometry
     max_disparity: int
 
-    def fit(self, config: CutPointConfig) -> TrunkModel | None:
-        return fit_trunk(self.crop, self.disparity, self.geometry, config, self.max_disparity)
+    def fit(self, config: CutPointConfig, max_points: int = 0) -> TrunkModel | None:
+        """Its cylinder; on about `max_points` of its pixels at most when > 0 (`RoiConfig.budget_trunk_points`)."""
+        return fit_trunk(self.crop, self.disparity, self.geometry, config, self.max_disparity, max_points)
 
 
 @dataclass(frozen=True, eq=False)
