@@ -249,9 +249,10 @@ class RoiConfig(Settings):
       disparities searched, at the working scales): SGBM's time is proportional to it. 6: the same approaches
       need at most 4.75 (p95 4.2; 9.1 before the budget).
     - `budget_trunk_points`: the trunk's cylinder (fitted on the coarse pass) takes at most about this many of its
-      pixels (every k-th): its mask grows from ~11,000 coarse px at 3 m to ~41,000 at 0.8 m (HD720), so near the
-      tree it is fitted on as many points as at the start of the approach, each with far less depth noise.
-      0: all of them.
+      pixels (every k-th); 0 (the default): all of them. Its mask grows from ~11,000 coarse px at 3 m to ~41,000
+      at 0.8 m at HD720, so deploy/onboard_cpu.toml sets 12,000: near the tree it is fitted on as many points
+      as at the start of the approach, each with far less depth noise (the same cut points, the stage flat).
+      The count depends on the coarse pass's size, hence no default for every camera.
     """
 
     section = "roi"
@@ -294,7 +295,7 @@ class RoiConfig(Settings):
     budget_max_scale: int = 4
     budget_max_pixels: int = 120_000
     budget_max_cost_mpd: float = 6.0
-    budget_trunk_points: int = 12_000
+    budget_trunk_points: int = 0
 
     def checks(self) -> Checks:
         """The range of every setting."""

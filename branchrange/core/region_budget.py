@@ -27,8 +27,9 @@ stages can take one pixel of each block (`on_working_grid`). What a branch's pix
 kept per pixel (`CoarseToFineResult.working_scale`): its cut point's fit and refinement run on that grid
 (their cost bounded with the regions'), and its result says so (`Branch.disparity_scale`): the MAVLink
 covariance and the cut point's depth-precision score then take the disparity noise in working pixels
-(s full-resolution pixels each). The trunk, which has no fine pass, is fitted on the coarse pass on at most
-`roi.budget_trunk_points` of its pixels (`CoarseTrunk.fit`): near the tree its mask is ~4× what it is at 3 m.
+(s full-resolution pixels each). The trunk, which has no fine pass, can be fitted on the coarse pass on at most
+`roi.budget_trunk_points` of its pixels (`CoarseTrunk.fit`; set in the HD720 deploy file): near the tree its
+mask is ~4× what it is at 3 m.
 """
 
 from __future__ import annotations
