@@ -15,7 +15,7 @@ Masks given with the frame (a recording's, the API's) are always used as they ar
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import cv2
@@ -28,14 +28,17 @@ Origin = Literal["keyframe", "tracked"]
 
 @dataclass(frozen=True)
 class CarriedFrame:
-    """What the next frame may carry over: the rectified left image in grey (`uint8 H×W`), its final
-    instances, each branch's own disparity range there (id → [low, high) px, `roi.branch_gates`), and
-    the capture time (ns) of the keyframe they descend from."""
+    """What the next frame may carry over: the anchor it is matched on — the keyframe's rectified left image
+    in grey (`uint8 H×W`) and its final instances (less the branches lost since) —, where the last frame
+    found each branch and the trunk (id → (du, dv) px from the anchor, `branch_propagation.Propagation`;
+    empty after a keyframe), each branch's own disparity range in the last frame (id → [low, high) px,
+    `roi.branch_gates`), and the keyframe's capture time (ns)."""
 
     grey: np.ndarray
     masks: BranchMasks
     gates: dict[int, tuple[float, float]]
     keyframe_ns: int
+    offsets: dict[int, tuple[float, float]] = field(default_factory=dict)
 
 
 def grey_of(left: np.ndarray) -> np.ndarray:
@@ -74,14 +77,16 @@ class KeyframeSchedule:
         timestamp_ns: int,
         origin: Origin,
         lost: bool,
+        offsets: dict[int, tuple[float, float]] | None = None,
     ) -> None:
-        """Note the frame just processed: its grey image, final instances and their disparity ranges, and
-        whether it lost a branch."""
+        """Note the frame just processed: the anchor the next frame is matched on (a keyframe's own grey
+        image and instances; a tracked frame's keyframe's), the branches' disparity ranges, where this frame
+        found them (`offsets`, px from the anchor) and whether it lost a branch."""
         if masks is None:
             self.reset()
             return
         keyframe_ns = timestamp_ns if origin == "keyframe" or self._carried is None else self._carried.keyframe_ns
-        self._carried = CarriedFrame(grey, masks, gates, keyframe_ns)
+        self._carried = CarriedFrame(grey, masks, gates, keyframe_ns, dict(offsets or {}))
         self._keyframe_due = lost
 
     def reset(self) -> None:

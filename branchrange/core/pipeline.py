@@ -362,7 +362,12 @@ class Pipeline:
         moved = None
         if carried is not None:
             moved = propagate_labels(
-                carried.grey, carried.masks, grey, search_px=roi.track_search_px, min_ncc=roi.track_min_ncc
+                carried.grey,
+                carried.masks,
+                grey,
+                search_px=roi.track_search_px,
+                min_ncc=roi.track_min_ncc,
+                offsets=carried.offsets,
             )
             lap_ms(timing, "propagate", t)
         if moved is None or not moved.shifts:
@@ -380,7 +385,21 @@ class Pipeline:
         kept = replace(fine.masks, labels=labels)
         fine = replace(fine, masks=kept)
         gates = branch_gates(kept, fine.disparity, roi.track_gate_px)
-        schedule.done(grey, kept, gates, timestamp_ns, "tracked", lost=bool(moved.lost or failed))
+        # the next frame is matched on the keyframe again (its image, its masks, less the branches lost since),
+        # from where this frame found each branch
+        gone = set(moved.lost) | set(failed)
+        anchor = carried.masks.labels
+        anchor = np.where(np.isin(anchor, list(gone)), 0, anchor) if gone else anchor
+        offsets = {k: v for k, v in moved.offsets.items() if k not in gone}
+        schedule.done(
+            carried.grey,
+            replace(carried.masks, labels=anchor),
+            gates,
+            timestamp_ns,
+            "tracked",
+            lost=bool(gone),
+            offsets=offsets,
+        )
         return fine, "tracked", round((timestamp_ns - carried.keyframe_ns) / 1e9, 3)
 
     def _without_jumps(self, cut: CutPointResult, origin: Origin) -> CutPointResult:
