@@ -231,6 +231,11 @@ class RoiConfig(Settings):
       the last frame is dropped and a keyframe is due: a carried mask that slid onto other pixels (a
       silhouette with much background, the fit taking the background's depth) gives a cut point far off,
       and a tracked result must never jump (one frame's motion at 0.8 m/s moves it 5 cm).
+    - `keyframe_worker`: run the keyframes' segmenter in its own worker (`branchrange.core.keyframe_worker`):
+      the stereo thread never waits for it and carries its instances, a few frames old when they arrive, to
+      its newest frame; false: a keyframe runs on the stereo thread (as slow as a frame without keyframes).
+    - `track_max_age_s`: with the worker, a track whose keyframe is older than this (s) is dropped (the
+      worker is slow, failed or being restarted): its branch goes unreported rather than guessed.
     """
 
     section = "roi"
@@ -247,6 +252,7 @@ class RoiConfig(Settings):
         "track_min_support": Limit(minimum=0, maximum=1),
         "track_gate_px": Limit(minimum=0, maximum=64),
         "track_max_jump_m": Limit(exclusive_minimum=0),
+        "track_max_age_s": Limit(exclusive_minimum=0, maximum=10),
     }
 
     coarse_width: int = 640
@@ -261,6 +267,8 @@ class RoiConfig(Settings):
     track_min_support: float = 0.5
     track_gate_px: float = 2.0
     track_max_jump_m: float = 0.1
+    keyframe_worker: bool = False
+    track_max_age_s: float = 1.0
 
     def checks(self) -> Checks:
         """The range of every setting."""
@@ -276,6 +284,7 @@ class RoiConfig(Settings):
             "track_min_support": (0 <= self.track_min_support <= 1, "a share in [0, 1]"),
             "track_gate_px": (0 <= self.track_gate_px <= 64, "px in [0, 64]"),
             "track_max_jump_m": (self.track_max_jump_m > 0, "metres > 0"),
+            "track_max_age_s": (0 < self.track_max_age_s <= 10, "seconds in (0, 10]"),
         }
 
 
