@@ -268,7 +268,7 @@ class RoiConfig(Settings):
     track_gate_px: float = 2.0
     track_max_jump_m: float = 0.1
     keyframe_worker: bool = False
-    track_max_age_s: float = 1.0
+    track_max_age_s: float = 0.5
 
     def checks(self) -> Checks:
         """The range of every setting."""
