@@ -15,27 +15,32 @@ Pixels are (u, v) = (column, row); labels are `int32 H×W` instance ids as in `b
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from branchrange.core.masks import BranchMasks
+from branchrange.core.masks import BranchMasks, MaskCrop
 
 #: Growth (px) of a branch's mask before matching: its silhouette's edge pixels and a thin rim of
 #: background carry most of the texture of a thin stem.
 TEMPLATE_GROWTH_PX = 2
+#: The trunk is matched at this many times less resolution (the coarse pass's scale at HD720).
+TRUNK_MATCH_SCALE = 2
 
 
 @dataclass(frozen=True)
 class Propagation:
-    """A frame's labels carried to the next: `labels` (`int32 H×W`), each kept branch's (du, dv) shift
-    (px), its match score, and the branches that were `lost` (left out of `labels`)."""
+    """An anchor frame's labels carried to a new frame: `labels` (`int32 H×W`), each kept branch's (du, dv)
+    shift (px, whole: where its mask was placed), its match score, the branches that were `lost` (left out
+    of `labels`), and `offsets`: each kept branch's and the trunk's shift from the anchor to the sub-pixel
+    (px, float), to centre the next frame's search on."""
 
     labels: np.ndarray
     shifts: dict[int, tuple[int, int]]
     scores: dict[int, float]
     lost: tuple[int, ...]
+    offsets: dict[int, tuple[float, float]] = field(default_factory=dict)
 
 
 def _paste(labels: np.ndarray, crop: np.ndarray, row0: int, col0: int, value: int, only_empty: bool = False) -> None:
@@ -76,36 +81,67 @@ def _kept_at_borders(
 
 
 def _match(
-    previous: np.ndarray, current: np.ndarray, weight: np.ndarray, box: tuple[int, int, int, int], search_px: int
-) -> tuple[tuple[int, int], float]:
-    """((du, dv) px, score) of the template `previous[box]` (`box` = row0, row1, col0, col1) found in
-    `current` (both `uint8 H×W` grey) within `search_px`, weighted by the boolean `weight` (the box's
-    size); score −1 when nothing can be matched (a flat template, no room to search)."""
+    previous: np.ndarray,
+    current: np.ndarray,
+    weight: np.ndarray,
+    box: tuple[int, int, int, int],
+    search_px: int,
+    around: tuple[float, float] = (0.0, 0.0),
+) -> tuple[tuple[float, float], float]:
+    """((du, dv) px to the sub-pixel, score) of the template `previous[box]` (`box` = row0, row1, col0, col1)
+    found in `current` (both `uint8 H×W` grey) within `search_px` of the shift `around` (px), weighted by the
+    boolean `weight` (the box's size); score −1 when nothing can be matched (a flat template, no room to
+    search). The sub-pixel part is the vertex of a parabola through the best score and its neighbours: a
+    track anchored on its keyframe is placed from the sum of whole pixels otherwise, and their rounding
+    would move it."""
     height, width = previous.shape
     row0, row1, col0, col1 = box
+    du0, dv0 = int(round(around[0])), int(round(around[1]))
     template = previous[row0:row1, col0:col1]
-    top, left = max(0, row0 - search_px), max(0, col0 - search_px)
-    bottom, right = min(height, row1 + search_px), min(width, col1 + search_px)
+    top, left = max(0, row0 + dv0 - search_px), max(0, col0 + du0 - search_px)
+    bottom, right = min(height, row1 + dv0 + search_px), min(width, col1 + du0 + search_px)
+    if bottom - top < template.shape[0] or right - left < template.shape[1] or not weight.any():
+        return (0.0, 0.0), -1.0
     window = current[top:bottom, left:right]
-    if window.shape[0] < template.shape[0] or window.shape[1] < template.shape[1] or not weight.any():
-        return (0, 0), -1.0
     scores = cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED, mask=weight.astype(np.uint8) * 255)
     scores = np.nan_to_num(scores, nan=-1.0, posinf=-1.0, neginf=-1.0)
     _, best, _, (u, v) = cv2.minMaxLoc(scores)
-    return (left + u - col0, top + v - row0), float(best)
+    fu = _vertex(scores[v, u - 1 : u + 2]) if 0 < u < scores.shape[1] - 1 else 0.0
+    fv = _vertex(scores[v - 1 : v + 2, u]) if 0 < v < scores.shape[0] - 1 else 0.0
+    return (left + u + fu - col0, top + v + fv - row0), float(best)
+
+
+def _vertex(three: np.ndarray) -> float:
+    """Where (in [−½, ½] px from the middle) the parabola through three scores peaks."""
+    curvature = float(three[0] - 2.0 * three[1] + three[2])
+    if curvature >= 0:
+        return 0.0
+    return float(np.clip(0.5 * float(three[0] - three[2]) / curvature, -0.5, 0.5))
 
 
 def propagate_labels(
-    previous_grey: np.ndarray, previous: BranchMasks, grey: np.ndarray, *, search_px: int, min_ncc: float
+    previous_grey: np.ndarray,
+    previous: BranchMasks,
+    grey: np.ndarray,
+    *,
+    search_px: int,
+    min_ncc: float,
+    offsets: dict[int, tuple[float, float]] | None = None,
 ) -> Propagation:
-    """Carry the instances `previous` (on `previous_grey`) to the frame `grey` (both `uint8 H×W`).
+    """Carry the instances `previous` (on `previous_grey`, the anchor) to the frame `grey` (both `uint8 H×W`).
 
     Each branch is matched on its own, from its bounding box (the work follows the branches' pixels, not
-    the frame's); one scoring under `min_ncc` is lost. The trunk moves by the kept branches' median shift.
+    the frame's), within `search_px` of its `offsets` (px from the anchor where the last frame found it; none:
+    where it was); one scoring under `min_ncc` is lost. Anchoring every frame between two keyframes on the
+    keyframe itself (its image and masks) keeps each mask its own shape: matched from frame to frame,
+    a template drifts a little each time and the errors add up (~0.3 cm a frame in the cut points).
+    The trunk is matched on its own too (`_trunk_shift`).
     """
+    offsets = offsets or {}
     height, width = previous.shape
     labels = np.zeros((height, width), np.int32)
     shifts: dict[int, tuple[int, int]] = {}
+    found: dict[int, tuple[float, float]] = {}
     scores: dict[int, float] = {}
     lost: list[int] = []
     grow = TEMPLATE_GROWTH_PX
@@ -115,18 +151,56 @@ def propagate_labels(
         box = (max(0, row0 - grow), min(height, row1 + grow), max(0, col0 - grow), min(width, col1 + grow))
         mask = previous.labels[box[0] : box[1], box[2] : box[3]] == branch_id
         weight = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
-        shift, score = _match(previous_grey, grey, weight, box, search_px)
+        offset, score = _match(previous_grey, grey, weight, box, search_px, offsets.get(branch_id, (0.0, 0.0)))
         scores[branch_id] = score
         if score < min_ncc:
             lost.append(branch_id)
             continue
-        shifts[branch_id] = shift
+        found[branch_id] = offset
+        shifts[branch_id] = shift = (int(round(offset[0])), int(round(offset[1])))
         _paste(labels, *_kept_at_borders(mask, box[0], box[2], shift, (height, width)), branch_id)
     trunk = previous.trunk_crop(margin=0)
-    if trunk is not None and shifts:
-        du, dv = (int(round(float(np.median(axis)))) for axis in zip(*shifts.values()))
-        _paste(labels, trunk.mask, trunk.top + dv, trunk.left + du, int(previous.trunk_id), only_empty=True)  # type: ignore[arg-type]
-    return Propagation(labels, shifts, scores, tuple(lost))
+    if trunk is not None and previous.trunk_id is not None and shifts:
+        last = offsets.get(previous.trunk_id)
+        trunk_offset = _trunk_shift(previous_grey, grey, trunk, search_px, min_ncc, found, last)
+        found[previous.trunk_id] = trunk_offset
+        du, dv = int(round(trunk_offset[0])), int(round(trunk_offset[1]))
+        _paste(labels, trunk.mask, trunk.top + dv, trunk.left + du, int(previous.trunk_id), only_empty=True)
+    return Propagation(labels, shifts, scores, tuple(lost), found)
+
+
+def _trunk_shift(
+    previous_grey: np.ndarray,
+    grey: np.ndarray,
+    trunk: MaskCrop,
+    search_px: int,
+    min_ncc: float,
+    branch_offsets: dict[int, tuple[float, float]],
+    around: tuple[float, float] | None,
+) -> tuple[float, float]:
+    """(du, dv) px of the trunk between the two `uint8 H×W` grey frames, searched around `around` (its last
+    shift; None: the branches' median): its own pixels matched at `TRUNK_MATCH_SCALE` times less resolution
+    (it is large, a frame's height near the tree, and its cylinder is fitted on the coarse pass anyway).
+    The trunk stands at its own depth, so the branches' shifts are not its own (parallax: their median put
+    it 2–4 px off at 2–3 m, the cylinder's axis ~1 cm, and every branch's base with it); their median only
+    when its own match fails."""
+    median = tuple(float(np.median(axis)) for axis in zip(*branch_offsets.values()))
+    start = median if around is None else around
+    factor = TRUNK_MATCH_SCALE
+    small = (grey.shape[1] // factor, grey.shape[0] // factor)
+    before = cv2.resize(previous_grey, small, interpolation=cv2.INTER_AREA)
+    after = cv2.resize(grey, small, interpolation=cv2.INTER_AREA)
+    rows, cols = trunk.pixels()
+    coarse = np.zeros(before.shape, bool)
+    coarse[np.minimum(rows // factor, small[1] - 1), np.minimum(cols // factor, small[0] - 1)] = True
+    r, c = np.flatnonzero(coarse.any(axis=1)), np.flatnonzero(coarse.any(axis=0))
+    box = (int(r[0]), int(r[-1]) + 1, int(c[0]), int(c[-1]) + 1)
+    weight = coarse[box[0] : box[1], box[2] : box[3]]
+    around_small = (start[0] / factor, start[1] / factor)
+    (du, dv), score = _match(before, after, weight, box, max(1, search_px // factor), around_small)
+    if score >= min_ncc:
+        return du * factor, dv * factor
+    return median[0], median[1]
 
 
 def verify_support(

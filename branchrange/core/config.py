@@ -253,6 +253,11 @@ class RoiConfig(Settings):
       at 0.8 m at HD720, so deploy/onboard_cpu.toml sets 12,000: near the tree it is fitted on as many points
       as at the start of the approach, each with far less depth noise (the same cut points, the stage flat).
       The count depends on the coarse pass's size, hence no default for every camera.
+    - `keyframe_worker`: run the keyframes' segmenter in its own worker (`branchrange.core.keyframe_worker`):
+      the stereo thread never waits for it and carries its instances, a few frames old when they arrive, to
+      its newest frame; false: a keyframe runs on the stereo thread (as slow as a frame without keyframes).
+    - `track_max_age_s`: with the worker, a track whose keyframe is older than this (s) is dropped (the
+      worker is slow, failed or being restarted): its branch goes unreported rather than guessed.
     """
 
     section = "roi"
@@ -275,6 +280,7 @@ class RoiConfig(Settings):
         "budget_max_pixels": Limit(minimum=1000),
         "budget_max_cost_mpd": Limit(exclusive_minimum=0),
         "budget_trunk_points": Limit(minimum=0),
+        "track_max_age_s": Limit(exclusive_minimum=0, maximum=10),
     }
 
     coarse_width: int = 640
@@ -296,6 +302,8 @@ class RoiConfig(Settings):
     budget_max_pixels: int = 120_000
     budget_max_cost_mpd: float = 6.0
     budget_trunk_points: int = 0
+    keyframe_worker: bool = False
+    track_max_age_s: float = 0.5
 
     def checks(self) -> Checks:
         """The range of every setting."""
@@ -317,6 +325,7 @@ class RoiConfig(Settings):
             "budget_max_pixels": (self.budget_max_pixels >= 1000, "at least 1000 px"),
             "budget_max_cost_mpd": (self.budget_max_cost_mpd > 0, "million pixel-disparities > 0"),
             "budget_trunk_points": (self.budget_trunk_points >= 0, "a count ≥ 0 (0: every pixel)"),
+            "track_max_age_s": (0 < self.track_max_age_s <= 10, "seconds in (0, 10]"),
         }
 
 

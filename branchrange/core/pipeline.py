@@ -44,7 +44,8 @@ from branchrange.core.frame_result import (
     StereoInfo,
 )
 from branchrange.core.geometry import StereoGeometry, offset_disparity, valid_disparity
-from branchrange.core.keyframes import KeyframeSchedule, Origin, grey_of
+from branchrange.core.keyframe_worker import Keyframe, KeyframeWorker, global_shift
+from branchrange.core.keyframes import CarriedFrame, KeyframeSchedule, Origin, grey_of
 from branchrange.core.masks import (
     BranchMasks,
     MaskKind,
@@ -134,7 +135,9 @@ class StereoStage:
     fitted from it in the geometry half); `right`: the rectified right image, for the branches' own
     disparity refinement (`branchrange.core.branch_disparity`; None: no refinement); `working_scale`:
     the scale each pixel's disparity was matched at (`uint8 H×W`, the roi mode's region budget; None: all
-    at full resolution).
+    at full resolution); `origin`, `keyframe_age_s`, `keyframe_ns`: with keyframes on, whether the segmenter
+    ran on this frame or its instances were tracked, and the age (s) and capture time (ns) of the keyframe
+    they come from.
     """
 
     left: np.ndarray
@@ -155,6 +158,7 @@ class StereoStage:
     origin: Origin | None = None
     keyframe_age_s: float | None = None
     working_scale: np.ndarray | None = None
+    keyframe_ns: int | None = None
 
 
 class Pipeline:
@@ -213,8 +217,12 @@ class Pipeline:
         self.segmenter: Segmenter = segmenter or self.config.segmenter.build()
         self.tracker = BranchTracker(self.config.tracker)
         self.keyframes = KeyframeSchedule()
+        self.keyframe_worker = KeyframeWorker(self._keyframe)  # its thread starts with the first keyframe handed over
+        self._worker_coarse_to_fine: CoarseToFine | None = None  # the worker's own matchers, built on first use
+        self._worker_shed_level = 0
         # keyframe mode: each carried branch's last trusted cut point (3,) m, by mask id (the geometry half's)
         self._trusted_cuts: dict[int, np.ndarray] = {}
+        self._trusted_keyframe_ns: int | None = None  # the keyframe those ids belong to
         self.last: FrameArtifacts | None = None
         self._coarse_to_fine: CoarseToFine | None = None
 
@@ -249,6 +257,7 @@ class Pipeline:
         """Forget tracked branches and carried instances (a new sequence or after the camera was lost)."""
         self.tracker.reset()
         self.keyframes.reset()
+        self.keyframe_worker.forget()
         self._trusted_cuts = {}
 
     def _masks(self, mask: MaskInput, shape: tuple[int, int]) -> BranchMasks | None:
@@ -310,15 +319,13 @@ class Pipeline:
             pair_check.raise_if_refused()
         t = lap_ms(timing, "rectify", start)
         if self.config.stereo.mode == "roi":
-            fine, origin, keyframe_age_s = self._roi_stereo(
-                left, right, masks, geometry, timestamp_ns, shed_level, timing
-            )
+            fine, origin, keyframe_ns = self._roi_stereo(left, right, masks, geometry, timestamp_ns, shed_level, timing)
             timing.update(fine.timing_ms)
             disparity, confidence, masks, regions = fine.disparity, fine.confidence, fine.masks, tuple(fine.regions)
             coarse_trunk, working_scale = fine.trunk, fine.working_scale
             backend, max_disparity = f"{self.backend.name}-roi", self.config.stereo.max_disp
         else:
-            regions, coarse_trunk, origin, keyframe_age_s, working_scale = None, None, None, None, None
+            regions, coarse_trunk, origin, keyframe_ns, working_scale = None, None, None, None, None
             stereo = self.backend.compute(left, right)
             disparity, confidence = stereo.disparity, stereo.confidence
             backend, max_disparity = stereo.backend or self.backend.name, int(stereo.max_disparity)
@@ -340,7 +347,8 @@ class Pipeline:
             coarse_trunk=coarse_trunk,
             right=right if shed_level < 2 else None,
             origin=origin,
-            keyframe_age_s=keyframe_age_s,
+            keyframe_age_s=None if keyframe_ns is None else round((timestamp_ns - keyframe_ns) / 1e9, 3),
+            keyframe_ns=keyframe_ns,
             working_scale=working_scale,
         )
 
@@ -353,21 +361,29 @@ class Pipeline:
         timestamp_ns: int,
         shed_level: int,
         timing: dict[str, float],
-    ) -> tuple[CoarseToFineResult, Origin | None, float | None]:
+    ) -> tuple[CoarseToFineResult, Origin | None, int | None]:
         """The roi mode's stereo half: a keyframe (the segmenter runs), or a tracked frame (the last frame's
         instances carried over, `branchrange.core.keyframes`); with masks given, those. Its origin and the
-        age (s) of the keyframe its instances descend from are None unless keyframes are on."""
+        capture time (ns) of the keyframe its instances descend from are None unless keyframes are on."""
         schedule, roi = self.keyframes, self.config.roi
         if masks is not None or roi.keyframe_interval_s <= 0:
             fine = self.coarse_to_fine.compute(left, right, masks, geometry, full_resolution_instances=shed_level < 1)
             return fine, None, None
         t = time.perf_counter()
         grey = grey_of(left)
-        carried = schedule.carry_from(timestamp_ns, roi.keyframe_interval_s)
+        if roi.keyframe_worker:
+            carried = self._from_worker(left, right, grey, timestamp_ns, shed_level)
+        else:
+            carried = schedule.carry_from(timestamp_ns, roi.keyframe_interval_s)
         moved = None
         if carried is not None:
             moved = propagate_labels(
-                carried.grey, carried.masks, grey, search_px=roi.track_search_px, min_ncc=roi.track_min_ncc
+                carried.grey,
+                carried.masks,
+                grey,
+                search_px=roi.track_search_px,
+                min_ncc=roi.track_min_ncc,
+                offsets=carried.offsets,
             )
             lap_ms(timing, "propagate", t)
         if moved is None or not moved.shifts:
@@ -375,7 +391,7 @@ class Pipeline:
             found = fine.masks
             gates = {} if found is None else branch_gates(found, fine.disparity, roi.track_gate_px)
             schedule.done(grey, found, gates, timestamp_ns, "keyframe", lost=False)
-            return fine, "keyframe", 0.0
+            return fine, "keyframe", timestamp_ns
         assert carried is not None
         fine = self.coarse_to_fine.compute(
             left, right, replace(carried.masks, labels=moved.labels), geometry, carried=True, gates=carried.gates
@@ -385,15 +401,67 @@ class Pipeline:
         kept = replace(fine.masks, labels=labels)
         fine = replace(fine, masks=kept)
         gates = branch_gates(kept, fine.disparity, roi.track_gate_px)
-        schedule.done(grey, kept, gates, timestamp_ns, "tracked", lost=bool(moved.lost or failed))
-        return fine, "tracked", round((timestamp_ns - carried.keyframe_ns) / 1e9, 3)
+        # the next frame is matched on the keyframe again (its image, its masks, less the branches lost since),
+        # from where this frame found each branch
+        gone = set(moved.lost) | set(failed)
+        anchor = carried.masks.labels
+        anchor = np.where(np.isin(anchor, list(gone)), 0, anchor) if gone else anchor
+        offsets = {k: v for k, v in moved.offsets.items() if k not in gone}
+        schedule.done(
+            carried.grey,
+            replace(carried.masks, labels=anchor),
+            gates,
+            timestamp_ns,
+            "tracked",
+            lost=bool(gone),
+            offsets=offsets,
+        )
+        return fine, "tracked", carried.keyframe_ns
 
-    def _without_jumps(self, cut: CutPointResult, origin: Origin) -> CutPointResult:
+    def _from_worker(
+        self, left: np.ndarray, right: np.ndarray, grey: np.ndarray, timestamp_ns: int, shed_level: int
+    ) -> CarriedFrame | None:
+        """With `roi.keyframe_worker`: what this frame tracks from — the worker's newest keyframe when one is
+        done (carried to this frame from where the whole image moved since), else the last anchor while it
+        is younger than `roi.track_max_age_s` — and the frame handed to the worker when a keyframe is due.
+        The stereo thread waits only when it has nothing to track and a keyframe is in flight; with nothing
+        at all (the first frame, every branch lost) the frame is a keyframe itself (None)."""
+        schedule, roi, worker = self.keyframes, self.config.roi, self.keyframe_worker
+        fresh = worker.take()
+        anchor = schedule.anchor(timestamp_ns, roi.track_max_age_s)
+        if fresh is None and anchor is None and worker.busy:
+            fresh = worker.take(wait_s=roi.track_max_age_s)
+        if fresh is not None and fresh.masks is not None:
+            schedule.adopt(fresh.grey, fresh.masks, fresh.gates, fresh.timestamp_ns, global_shift(fresh.grey, grey))
+            anchor = schedule.anchor(timestamp_ns, roi.track_max_age_s)
+        if anchor is not None and schedule.due(timestamp_ns, roi.keyframe_interval_s):
+            self._worker_shed_level = shed_level
+            if worker.submit(left, right, timestamp_ns):
+                schedule.submitted()
+        return anchor
+
+    def _keyframe(self, left: np.ndarray, right: np.ndarray, timestamp_ns: int) -> Keyframe:
+        """The keyframe worker's job: the segmenter's instances of a rectified pair, on its own matchers."""
+        if self._worker_coarse_to_fine is None:
+            self._worker_coarse_to_fine = CoarseToFine(
+                self.config.roi, self.config.stereo.build_backend(), self.segmenter, self.config.stereo.max_disp
+            )
+        geometry = self.geometry_for(left.shape[1], left.shape[0])
+        fine = self._worker_coarse_to_fine.compute(
+            left, right, None, geometry, full_resolution_instances=self._worker_shed_level < 1
+        )
+        found = fine.masks
+        gates = {} if found is None else branch_gates(found, fine.disparity, self.config.roi.track_gate_px)
+        return Keyframe(grey_of(left), found, gates, timestamp_ns)
+
+    def _without_jumps(self, cut: CutPointResult, origin: Origin, keyframe_ns: int | None) -> CutPointResult:
         """Keyframe mode: on a tracked frame, drop each cut point that is more than `roi.track_max_jump_m`
         from its branch's last trusted one (or has none) and ask for a keyframe; remember the trusted ones
-        (a keyframe's are all trusted: the segmenter measured them)."""
-        if origin == "keyframe":
+        (a keyframe's are all trusted: the segmenter measured them; so are those of the first frame carried
+        from a keyframe the worker finished, `keyframe_ns` new: its ids are new)."""
+        if origin == "keyframe" or keyframe_ns != self._trusted_keyframe_ns:
             self._trusted_cuts = {b.mask_id: b.cut_point_m for b in cut.branches}
+            self._trusted_keyframe_ns = keyframe_ns
             return cut
         kept, dropped = [], list(cut.dropped)
         limit = self.config.roi.track_max_jump_m
@@ -536,7 +604,7 @@ class Pipeline:
                 working_scales=working_scales,
             )
             if stage.origin is not None:
-                cut = self._without_jumps(cut, stage.origin)
+                cut = self._without_jumps(cut, stage.origin, stage.keyframe_ns)
             if not cut.branches:
                 reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
                     f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5]

@@ -371,8 +371,8 @@ class CoarseToFine:
             labels_full = instances.labels
             coarse_labels = on_coarse_grid(labels_full, scale, small)
             lap_ms(timing, "instances", t)
-        elif masks is None or carried:
-            refined = refine_labels(labels_full, scale, disparity, regions, instances.trunk_id)
+        elif masks is None or carried:  # carried masks are full-resolution ones already: not grown
+            refined = refine_labels(labels_full, 0 if carried else scale, disparity, regions, instances.trunk_id)
             instances = replace(instances, labels=refined)
             lap_ms(timing, "refine", t)
         trunk_from_coarse(disparity, confidence, labels_full, instances.trunk_id, coarse, scale)
