@@ -25,11 +25,14 @@ Throughout: /latest polled at 5 Hz, /estimate uploads at 1 Hz, /health at 1 Hz a
 stops at the first breach and names it.
 
     .venv/bin/python benchmarks/soak.py --minutes 30 --seed 1 --json out/soak.json
-    .venv/bin/python benchmarks/soak.py --quick          # the CI setting: 3 minutes, each fault once or twice
+    .venv/bin/python benchmarks/soak.py --quick --gate safety --keep-going   # CI (.ci/soak): 3 minutes
 
-Exit status 0: no breach; 1: a breach (the first is printed); 2: the soak could not run; 3: no breach but
-inconclusive — fewer than `MIN_JUDGED` of the faults had targets flowing before them (a CPU too busy for
-the daemon to meet `max_result_age_s`), so their recovery could not be judged.
+`--gate safety` fails on the invariants in `soak_invariants.SAFETY` only (those a busy machine cannot excuse)
+and reports the others (recovery times, the calm state back, RSS over a short run): CI runs on a shared
+2-core machine. Exit status 0: no breach that gates; 1: one (the first is printed); 2: the soak could not
+run; 3: no breach but inconclusive — no target went out at all, or (`--gate all`) fewer than `MIN_JUDGED`
+of the faults had targets flowing before them (a CPU too busy for the daemon to meet `max_result_age_s`),
+so their recovery could not be judged.
 """
 
 from __future__ import annotations
@@ -57,7 +60,20 @@ from pathlib import Path
 from typing import Any
 
 from machine import cpu_name  # a script's own folder is on its import path
-from soak_invariants import RESTARTS, Breach, Fault, Limits, Recording, Sent, Span, Stat, State, check, recoveries
+from soak_invariants import (
+    RESTARTS,
+    SAFETY,
+    Breach,
+    Fault,
+    Limits,
+    Recording,
+    Sent,
+    Span,
+    Stat,
+    State,
+    check,
+    recoveries,
+)
 from soak_invariants import resources as resource_summary
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -665,7 +681,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 tail.read(rec, lock)
                 with lock:
                     view = settled(rec, time.monotonic() - CHECK_LAG_S)
-                breaches = check(view, limits)
+                breaches = gated(check(view, limits), args.gate)
                 next_check = time.monotonic() + CHECK_PERIOD_S
                 if breaches and not args.keep_going:
                     first_breach = breaches[0]
@@ -681,7 +697,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         final = settled(rec, math.inf)
     breaches = check(final, limits)
     if first_breach is None:
-        first_breach = breaches[0] if breaches else None
+        first_breach = next(iter(gated(breaches, args.gate)), None)
     disk.close()
     dump(final, work / "recording.json", started)
     times, _ = recoveries(final, limits)
@@ -693,6 +709,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result["breaches"] = [[b.invariant, round(b.at - started, 2) if b.at else None, b.detail] for b in breaches[:50]]
     result["run_folder"] = str(work)
     return result
+
+
+def gated(breaches: list[Breach], gate: str) -> list[Breach]:
+    """The breaches that fail the soak: all of them, or with `gate` "safety" those in `SAFETY` only."""
+    return breaches if gate == "all" else [b for b in breaches if b.invariant in SAFETY]
 
 
 def dump(rec: Recording, path: Path, started: float) -> None:
@@ -733,6 +754,7 @@ def report(
         "minutes": args.minutes,
         "seed": args.seed,
         "quick": args.quick,
+        "gate": args.gate,
         "wall_s": round(time.monotonic() - started, 1),
         "load_average_1min": {"start": load_start, "end": os.getloadavg()[0]},
         "soak_cpu_s": round(time.process_time() - cpu_start, 1),
@@ -798,6 +820,9 @@ def print_report(result: dict[str, Any]) -> None:
     )
     if result.get("breaches_by_invariant"):
         print(f"breaches by invariant: {result['breaches_by_invariant']}")
+    if result["gate"] == "safety":
+        reported = {k: v for k, v in result["breaches_by_invariant"].items() if k not in SAFETY}
+        print(f"gated on the safety invariants only; reported, not gated: {reported or 'none'}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -813,6 +838,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument(
         "--keep-going", action="store_true", help="do not stop at the first breach: run on and count every breach"
+    )
+    parser.add_argument(
+        "--gate",
+        choices=("all", "safety"),
+        default="all",
+        help="which breaches fail the soak: all (default) or the safety invariants only (CI on a shared machine: "
+        "recovery times are reported, not gated)",
     )
     args = parser.parse_args(argv)
     if args.quick:
@@ -839,6 +871,11 @@ def main(argv: list[str] | None = None) -> int:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
     if result["breach"] is not None:
         return 1
+    if result["targets_received"] == 0:
+        print("inconclusive: no target went out, so the targets' invariants proved nothing", file=sys.stderr)
+        return 3
+    if args.gate == "safety":
+        return 0
     judged = result["recoveries_judged"]["all"] / max(1, result["faults_total"])
     if judged < MIN_JUDGED:
         print(f"inconclusive: the recovery of only {judged:.0%} of the faults could be judged", file=sys.stderr)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from soak_invariants import Fault, Limits, Recording, Sent, Span, Stat, State, check  # noqa: E402
+from soak_invariants import SAFETY, Fault, Limits, Recording, Sent, Span, Stat, State, check  # noqa: E402
 
 LIMITS = Limits()
 HEADER = {"schema": "branchrange/run-header/v1", "kind": "daemon"}
@@ -139,3 +139,15 @@ def test_a_clock_jump_that_did_not_reach_the_daemon_fails_it():
     assert names(rec) == []
     rec.wall_skews = [(t, 0.0) for t in range(5, 120)]  # the daemon's Date never moved
     assert set(names(rec)) == {"clock_jump_not_in_force"}
+
+
+def test_a_calm_state_not_back_is_a_slow_recovery_not_a_lie_and_only_lies_are_safety_breaches():
+    rec = calm_recording()
+    rec.states = [replace(s, mode="camera") if 90 <= s.at < 95 else s for s in rec.states]  # world mode late
+    assert names(rec) == ["health_not_back"] * 5
+    rec.sent = [s for s in rec.sent if not (61.5 <= s.at < 64.0 and s.kind == "target")]  # slow as well
+    rec.sent.append(Sent(61.2, "target"))  # and one stale send
+    rec.sent.sort(key=lambda s: s.at)
+    gated = [name for name in names(rec) if name in SAFETY]
+    assert gated == ["stale_target", "target_while_camera_lost"]
+    assert {"slow_recovery", "health_not_back"} <= set(names(rec))
