@@ -224,6 +224,41 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
 
 
+def test_a_stall_is_declared_a_stall_timeout_after_the_last_frame_however_long_its_processing(recording):
+    """The watchdog counts from the newest frame's arrival: on a loaded CPU a frame in processing took up to a
+    second, and waiting a full timeout after it told /health "camera ok" that long into an outage (soak)."""
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.5), stereo=StereoConfig(max_disp=64)
+    )
+    pipeline = Pipeline(
+        pipeline_config(cfg), calibration=from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))
+    )
+    source = FaultInjectingSource(ReplaySource(recording), FaultPlan(stall={4: 2.0}))  # frame 4 comes 2 s late
+    daemon = Daemon(cfg, open_source=lambda: source, pipeline=pipeline)
+    started: dict[int, float] = {}
+    done: dict[int, float] = {}
+    stereo_stage = pipeline.stereo_stage
+
+    def slow_stereo(*a):  # as on a CPU shared with other work: 0.4 s more a frame
+        started[a[3]] = time.monotonic()
+        time.sleep(0.4)
+        stage = stereo_stage(*a)
+        done[a[3]] = time.monotonic()
+        return stage
+
+    pipeline.stereo_stage = slow_stereo
+    lost_at: list[float] = []
+    set_lost = daemon._set_camera_lost
+    daemon._set_camera_lost = lambda lost: (lost and not lost_at and lost_at.append(time.monotonic())) or set_lost(lost)
+    try:
+        daemon.run(max_frames=6)
+    finally:
+        daemon.close()
+    last = max(index for index in started if index < 4)  # the last frame before the stall (it arrived before)
+    due = max(started[last] + 0.5, done[last])  # a stall timeout after it arrived, or when the thread is free
+    assert lost_at and lost_at[0] - due <= 0.15, lost_at[0] - due  # not a full timeout after its processing
+
+
 def test_a_repeated_or_older_frame_is_skipped_and_counted_not_passed_off_as_new(recording, caplog):
     """A frozen driver buffer delivers one image again and again, each time arriving now: processed, its
     result would look fresh and an old target would go out as current (issue 39 soak)."""

@@ -442,6 +442,9 @@ class Daemon:
         source = self._try_open()
         stalls = 0
         status_at, frames_then = time.monotonic(), self.frames
+        # the stall clock runs from the newest frame's arrival, not from when this thread is free to wait:
+        # a frame in processing (up to a second on a loaded CPU) must not delay "camera lost"
+        newest_at = status_at
         try:
             while not self._done(max_frames):
                 now = time.monotonic()
@@ -453,10 +456,12 @@ class Daemon:
                     self._set_camera_lost(True)
                     if not self._stop.wait(timeout):
                         source, stalls = self._try_open(quiet=True), 0
+                    newest_at = time.monotonic()
                     continue
                 else:
                     try:
-                        stamped = source.get_stamped(timeout=timeout)
+                        stamped = source.get_stamped(timeout=max(0.0, newest_at + timeout - time.monotonic()))
+                        newest_at = time.monotonic() if stamped is None else stamped[1]
                     except StopIteration:
                         log.info("source ended")
                         break
