@@ -17,7 +17,8 @@ each new file starting with the run header again. Threads:
   rectified rows are aligned (`branchrange.core.pair_check`: a warning with the fix when not); then
   rectification and disparity (`Pipeline.stereo_stage`; in
   `stereo.mode = "roi"` the coarse pass, the segmenter and the full-resolution regions); it is
-  also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
+  also the camera watchdog: no frame for `camera.stall_timeout_s` (from the newest frame's arrival, however
+  long its processing took), the source saying it is lost,
   or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
   results go stale → "no target"); after three stall timeouts it closes the source, opens a fresh
   one and forgets tracked branches; a camera that cannot be opened (unplugged) is tried again every
