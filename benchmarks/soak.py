@@ -92,6 +92,8 @@ CALM_S = (4.0, 6.0)
 #: Seconds the daemon runs before the first fault, and without faults at the end.
 WARMUP_S, COOLDOWN_S = 20.0, 8.0
 TMPFS_MB = 64
+#: Seconds after a fault's end (and before the next fault) not counted as fault-free for the target rate.
+CALM_MARGIN_S = 5.0
 #: How often a restart is drawn, against 1 for each other kind of fault.
 RESTART_WEIGHT = 0.25
 #: Share of the faults whose recovery must be judged for a soak without breaches to count as a pass.
@@ -662,7 +664,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     next_check = started + WARMUP_S + CHECK_PERIOD_S
     try:
         stop.wait(WARMUP_S)
-        for kind, seconds in schedule(rng, kinds):
+        for kind, seconds in schedule(rng, kinds) if not args.no_faults else ():
             now = time.monotonic()
             if now + seconds + CALM_S[1] + COOLDOWN_S > end:
                 break
@@ -687,7 +689,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     first_breach = breaches[0]
                     break
         if first_breach is None:
-            stop.wait(max(0.0, min(COOLDOWN_S, end - time.monotonic())))
+            stop.wait(max(0.0, (end if args.no_faults else min(COOLDOWN_S + time.monotonic(), end)) - time.monotonic()))
     finally:
         code = service.stop()
         stop.set()
@@ -709,6 +711,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result["breaches"] = [[b.invariant, round(b.at - started, 2) if b.at else None, b.detail] for b in breaches[:50]]
     result["run_folder"] = str(work)
     return result
+
+
+def calm_target_rate(rec: Recording, started: float, ended: float) -> tuple[float, float]:
+    """Targets a second the autopilot received in the fault-free stretches (from `CALM_MARGIN_S` after a
+    fault's end, or the warm-up's, to `CALM_MARGIN_S` before the next fault), and those stretches' seconds:
+    the fresh-target rate to compare with a run without faults."""
+    edges = [(started, started + WARMUP_S)] + [(f.start, f.end) for f in sorted(rec.faults, key=lambda f: f.start)]
+    stretches = []
+    for (_, end), (start, _) in zip(edges, [*edges[1:], (ended + CALM_MARGIN_S, ended)]):
+        a, b = end + CALM_MARGIN_S, start - CALM_MARGIN_S
+        if b > a:
+            stretches.append((a, b))
+    seconds = sum(b - a for a, b in stretches)
+    targets = sum(any(a <= s.at < b for a, b in stretches) for s in rec.sent if s.kind == "target")
+    return (targets / seconds if seconds else 0.0), seconds
 
 
 def gated(breaches: list[Breach], gate: str) -> list[Breach]:
@@ -747,6 +764,7 @@ def report(
 ) -> dict[str, Any]:
     """The figures of one soak (also its --json)."""
     injected = Counter(f.kind for f in rec.faults)
+    calm_rate = [round(v, 2) for v in calm_target_rate(rec, started, time.monotonic() - COOLDOWN_S)]
     every = [t for values in times.values() for t in values]
     longest = max(rec.spans, key=lambda s: (s.ended or time.monotonic()) - s.started)
     return {
@@ -768,6 +786,7 @@ def report(
         "unexpected_exits": service.unexpected_exits,
         "last_exit_code": exit_code,
         "targets_received": sum(s.kind == "target" for s in rec.sent),
+        **dict(zip(("calm_target_rate_hz", "calm_seconds"), calm_rate)),
         "results_logged_with_cut_points": len(rec.captures),
         "api_statuses": {name: dict(counts) for name, counts in observers.statuses.items()},
         "breach": None
@@ -812,6 +831,10 @@ def print_report(result: dict[str, Any]) -> None:
         f"targets received {result['targets_received']}, API answers by status {result['api_statuses']}"
     )
     print(f"not injected: {', '.join(result['not_injected'])}; the soak's own CPU {result['soak_cpu_s']} s")
+    print(
+        f"targets a second in fault-free stretches: {result['calm_target_rate_hz']} "
+        f"over {result['calm_seconds']} s ({CALM_MARGIN_S:.0f} s from any fault)"
+    )
     breach = result["breach"]
     print(
         "invariant breaches: 0"
@@ -838,6 +861,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument(
         "--keep-going", action="store_true", help="do not stop at the first breach: run on and count every breach"
+    )
+    parser.add_argument(
+        "--no-faults", action="store_true", help="no faults: the baseline for the fault-free target rate"
     )
     parser.add_argument(
         "--gate",
@@ -874,7 +900,7 @@ def main(argv: list[str] | None = None) -> int:
     if result["targets_received"] == 0:
         print("inconclusive: no target went out, so the targets' invariants proved nothing", file=sys.stderr)
         return 3
-    if args.gate == "safety":
+    if args.gate == "safety" or args.no_faults:
         return 0
     judged = result["recoveries_judged"]["all"] / max(1, result["faults_total"])
     if judged < MIN_JUDGED:
