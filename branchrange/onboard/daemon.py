@@ -76,6 +76,10 @@ CORRUPT_FRAMES_LOST = 5
 WARMUP_FRAMES = 3
 #: A frame's `timestamp_ns` is taken as its capture time when it is at most this long (s) before its arrival.
 CAPTURE_CLOCK_WINDOW_S = 5.0
+#: The least the stereo thread waits for a frame (s), even when the stall timeout since the newest frame has
+#: passed: the capture thread may have had no CPU (nor the interpreter lock) while this one worked, and must
+#: get the chance to hand over a frame that is there (without it a loaded CPU made "camera lost" blips).
+STALL_GRACE_S = 0.2
 
 
 def capture_time(frame: Any, arrived: float) -> float:
@@ -461,7 +465,8 @@ class Daemon:
                     continue
                 else:
                     try:
-                        stamped = source.get_stamped(timeout=max(0.0, newest_at + timeout - time.monotonic()))
+                        wait = max(STALL_GRACE_S, newest_at + timeout - time.monotonic())
+                        stamped = source.get_stamped(timeout=wait)
                         newest_at = time.monotonic() if stamped is None else stamped[1]
                     except StopIteration:
                         log.info("source ended")
