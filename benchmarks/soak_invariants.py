@@ -14,7 +14,14 @@ What is recorded (`Recording`):
 - `log_lines`: every line of the results log, oldest file first; `daemon_log`: the daemon's own log
   lines with when they arrived (the disk-full message is counted there);
 - `blind`: windows in which the results log cannot back a send (the disk is full: results are sent,
-  not logged), whose targets are not checked against captures.
+  not logged), whose targets are not checked against captures;
+- `clock`: each wall-clock jump injected into the daemon (when, and the offset from the real wall
+  clock from then on, s); `wall_skews`: the daemon's wall clock as its HTTP `Date` header showed it,
+  minus the real one (s), sampled — the proof a jump reached the daemon.
+
+Every result line of the results log is kept in `log_lines` as `{"t": capture time}` (the soak's
+reader shortens them), so their order can be judged: within one camera opening (between run headers
+and camera-reopened markers) capture times only increase, whatever the wall clock did.
 
 How a stale target is seen from outside: a target may only go out while the cut point it comes from
 was captured within `max_result_age_s`, so when a target arrives at `t`, the daemon now running must
@@ -121,6 +128,9 @@ class Limits:
     rss_growth: float = 0.05
     stopping_s: float = 3.0  # the samples of a daemon's last seconds (shutting down) are not judged
     max_set_gap_s: float = 1.0  # frame sets (target or not) must keep coming this often through a full disk
+    skew_tolerance_s: float = (
+        10.0  # whole seconds, renewed each second by a loop that lags under load; a jump is 3600 s
+    )
 
 
 @dataclass
@@ -136,6 +146,8 @@ class Recording:
     log_lines: list[str] = field(default_factory=list)
     daemon_log: list[tuple[float, str]] = field(default_factory=list)
     blind: list[tuple[float, float]] = field(default_factory=list)
+    clock: list[tuple[float, float]] = field(default_factory=list)
+    wall_skews: list[tuple[float, float]] = field(default_factory=list)
     horizon: float = math.inf  # what is known so far: a recovery due after it is not judged yet
 
 
@@ -330,7 +342,9 @@ def _disturbs(fault: Fault, field_name: str) -> bool:
 
 def states(rec: Recording, limits: Limits) -> list[Breach]:
     """/health and /metrics against the schedule: lost camera, link down and camera mode inside the faults
-    that must cause them; camera up, link up and world mode when no fault that could change them is near."""
+    that must cause them (`…_untrue` when not said: a status that hides a fault); camera up, link up and
+    world mode when no fault that could change them is near (`…_not_back` when not: a status, or the
+    daemon, slow to come back — on a loaded machine the world mode waits for results)."""
     calm = {"camera_lost": False, "link_connected": True, "mode": "world"}
     faults = sorted(rec.faults, key=lambda f: f.start)
     breaches = []
@@ -342,6 +356,7 @@ def states(rec: Recording, limits: Limits) -> list[Breach]:
         near_faults = _near(faults, state.at, limits.tolerance_s)
         for fault in near_faults:
             expected.update(_expected(fault, state, limits))
+        faulted = set(expected)
         for name, value in calm.items():
             near = any(
                 _disturbs(f, name) and f.start - limits.tolerance_s <= state.at <= f.end + limits.settle_s
@@ -351,12 +366,79 @@ def states(rec: Recording, limits: Limits) -> list[Breach]:
                 expected[name] = value
         for name, value in expected.items():
             if getattr(state, name) != value:
+                # a fault's state not said is a lie; the calm state not yet back is a slow recovery
+                lie = name in faulted
                 breaches.append(
                     Breach(
-                        f"{state.endpoint}_untrue", state.at, f"{name} = {getattr(state, name)!r}, expected {value!r}"
+                        f"{state.endpoint}_{'untrue' if lie else 'not_back'}",
+                        state.at,
+                        f"{name} = {getattr(state, name)!r}, expected {value!r}",
                     )
                 )
     return breaches
+
+
+def log_order(rec: Recording) -> list[Breach]:
+    """Within one camera opening of one run, each logged result was captured after the one before (the
+    results log is ordered by the monotonic capture time, not by the wall clock)."""
+    breaches, previous = [], -math.inf
+    for number, line in enumerate(rec.log_lines, start=1):
+        record = _parsed(line)
+        if record is None:
+            continue
+        if "t" not in record:  # a run header or a camera-reopened marker: a new opening
+            previous = -math.inf
+            continue
+        if record["t"] <= previous:
+            breaches.append(
+                Breach("log_out_of_order", record["t"], f"results-log line {number} captured before the line above")
+            )
+        previous = record["t"]
+    return breaches
+
+
+def wall_clock(rec: Recording, limits: Limits) -> list[Breach]:
+    """The injected wall-clock jumps reached the daemon: each `Date` it sent at least `skew_tolerance_s`
+    away from a jump shows the offset then in force (within that tolerance). Without this the soak
+    could report a clock fault it never made."""
+    breaches = []
+    jumps = sorted(rec.clock)
+    for at, skew in rec.wall_skews:
+        index = bisect.bisect_right([when for when, _ in jumps], at) - 1
+        offset = jumps[index][1] if index >= 0 else 0.0
+        near = any(abs(at - when) < limits.skew_tolerance_s for when, _ in jumps)
+        if not near and abs(skew - offset) > limits.skew_tolerance_s:
+            breaches.append(
+                Breach(
+                    "clock_jump_not_in_force", at, f"the daemon's Date is {skew:+.0f} s off, expected {offset:+.0f} s"
+                )
+            )
+    return breaches
+
+
+#: The invariants a soak on a busy machine can hold whatever its speed (`soak.py --gate safety`, the CI's):
+#: nothing stale, nothing while the camera is lost, nothing from before a restart; every log line whole and
+#: in order; a status that never hides a fault; descriptors and threads flat; the clock jumps in force.
+#: The others (recovery times, the calm state back, RSS over a short run, the output's pace through a full
+#: disk) depend on the CPU left to the daemon: reported, and gated by the full soak.
+SAFETY = frozenset(
+    {
+        "stale_target",
+        "target_without_daemon",
+        "target_from_before_restart",
+        "target_while_camera_lost",
+        "torn_line",
+        "false_torn_claim",
+        "log_out_of_order",
+        "health_untrue",
+        "metrics_untrue",
+        "fd_leak",
+        "thread_leak",
+        "disk_full_logged_twice",
+        "disk_error_outside_fault",
+        "clock_jump_not_in_force",
+    }
+)
 
 
 def check(rec: Recording, limits: Limits) -> list[Breach]:
@@ -369,5 +451,7 @@ def check(rec: Recording, limits: Limits) -> list[Breach]:
         *log_lines(rec),
         *disk_full(rec, limits),
         *states(rec, limits),
+        *log_order(rec),
+        *wall_clock(rec, limits),
     ]
     return sorted(breaches, key=lambda b: b.at)

@@ -35,7 +35,7 @@ from branchrange.core.config import (
 )
 from branchrange.core.frame_results import pipeline_for, read_results, read_runs
 from branchrange.core.pipeline import Pipeline
-from branchrange.onboard.daemon import Daemon, capture_time
+from branchrange.onboard.daemon import STALL_GRACE_S, Daemon, capture_time
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from camera.calibration import from_rectified
 from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, SourceUnavailable, StereoFrame
@@ -222,6 +222,41 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
     assert "link=down" in status_lines[-1]  # the loopback peer never sends a HEARTBEAT: no flight controller
     last = dict(field.split("=") for field in status_lines[-1].split()[1:])
     assert int(last["frames"]) == len(processed) and int(last["corrupt"]) == 1 and float(last["fps"]) >= 0
+
+
+def test_a_stall_is_declared_a_stall_timeout_after_the_last_frame_however_long_its_processing(recording):
+    """The watchdog counts from the newest frame's arrival: on a loaded CPU a frame in processing took up to a
+    second, and waiting a full timeout after it told /health "camera ok" that long into an outage (soak)."""
+    cfg = Config(
+        camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=1.0), stereo=StereoConfig(max_disp=64)
+    )
+    pipeline = Pipeline(
+        pipeline_config(cfg), calibration=from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (320, 256))
+    )
+    source = FaultInjectingSource(ReplaySource(recording), FaultPlan(stall={4: 6.0}))  # frame 4 comes 6 s late
+    daemon = Daemon(cfg, open_source=lambda: source, pipeline=pipeline)
+    started: dict[int, float] = {}
+    done: dict[int, float] = {}
+    stereo_stage = pipeline.stereo_stage
+
+    def slow_stereo(*a):  # as on a CPU shared with other work: 0.4 s more a frame
+        started[a[3]] = time.monotonic()
+        time.sleep(0.4)
+        stage = stereo_stage(*a)
+        done[a[3]] = time.monotonic()
+        return stage
+
+    pipeline.stereo_stage = slow_stereo
+    lost_at: list[float] = []
+    set_lost = daemon._set_camera_lost
+    daemon._set_camera_lost = lambda lost: (lost and not lost_at and lost_at.append(time.monotonic())) or set_lost(lost)
+    try:
+        daemon.run(max_frames=6)
+    finally:
+        daemon.close()
+    last = max(index for index in started if index < 4)  # the last frame before the stall (it arrived before)
+    due = max(started[last] + 1.0, done[last] + STALL_GRACE_S)  # a stall timeout after it arrived (or a grace)
+    assert lost_at and lost_at[0] - due <= 0.2, lost_at[0] - due  # not a full timeout after its processing
 
 
 def test_a_repeated_or_older_frame_is_skipped_and_counted_not_passed_off_as_new(recording, caplog):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import socket
 import time
 
@@ -9,7 +10,7 @@ import pytest
 from autopilot_sim import MAV_AUTOPILOT_INVALID, MAV_TYPE_GCS, AutopilotSim, approach_flight
 
 from branchrange.core.config import MavlinkConfig
-from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay, connection
 
 KEY = bytes(range(32))
 HOVER = approach_flight(0.0)
@@ -95,6 +96,23 @@ def test_a_peer_with_the_wrong_signing_key_is_never_connected(key_file):
         state = relay.link_state()
     assert state["connected"] is False and state["peer"] is None and state["received"] == 0
     assert state["signature_failures"] >= 4
+
+
+def test_a_wrong_key_is_said_once_per_episode_with_its_count_not_once_per_message(key_file, caplog, monkeypatch):
+    monkeypatch.setattr(connection, "SIGNATURE_EPISODE_GAP_S", 0.5)
+    caplog.set_level(logging.INFO)
+    with AutopilotSim(HOVER, heartbeat_period_s=0.02, signing_key=bytes(32)) as sim:
+        with relay_to(sim.port, signing_key_file=str(key_file)) as relay:
+            assert wait_for(lambda: relay.link_state()["signature_failures"] >= 20, 3.0)
+            sim.close()  # the wrong key stops: the episode ends after a calm gap
+            texts = lambda: [r.getMessage() for r in caplog.records]  # noqa: E731
+            assert wait_for(lambda: any("with a wrong signature dropped" in t for t in texts()), 3.0)
+            failures = relay.link_state()["signature_failures"]
+    assert not any("sig mismatch" in t for t in texts())  # pymavlink's line per message is gone
+    began = [t for t in texts() if "wrong signature arrive" in t]
+    summed = [t for t in texts() if "with a wrong signature dropped" in t]
+    assert len(began) == 1 and len(summed) == 1
+    assert int(summed[0].split(": ")[1].split()[0]) == failures >= 20
 
 
 def test_an_unsigned_peer_is_not_connected_to_a_signed_relay_but_a_signed_one_is(key_file):

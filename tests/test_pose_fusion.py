@@ -364,7 +364,7 @@ def test_when_the_pose_stops_the_relay_falls_back_to_the_camera_frame_and_warns(
     rng = np.random.default_rng(4)
     with AutopilotSim(approach_flight(0.5), heartbeat_period_s=0.2) as sim, relay_for(sim) as relay:
         wait_for_state(relay)
-        fly(sim, relay, 3, rng, latency_s=0.05)
+        fly(sim, relay, 4, rng, latency_s=0.05)  # world mode from the 3rd result fused in a row on (hand-over)
         world = relay.link_state()["mode"]
         sim.answer_interval_requests = False
         sim.rates_hz.clear()  # the autopilot stops streaming (and ignores new requests)
@@ -380,6 +380,30 @@ def test_when_the_pose_stops_the_relay_falls_back_to_the_camera_frame_and_warns(
     np.testing.assert_allclose(
         [sent[-1].msg.x, sent[-1].msg.y, sent[-1].msg.z], MOUNT.to_body(published[-1].target_cam_m), atol=1e-5
     )
+
+
+def test_when_vehicle_state_comes_back_the_target_does_not_pause_while_the_tracks_gather_evidence():
+    rng = np.random.default_rng(6)
+    tracking = TrackingConfig(stale_after_s=0.5, forget_after_s=1.0)
+    with AutopilotSim(approach_flight(0.3), heartbeat_period_s=0.2) as sim:
+        cfg = MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0)
+        relay = MavlinkRelay(cfg, MOUNT, tracking=tracking)
+        wait_for_state(relay)
+        fly(sim, relay, 6, rng, latency_s=0.05)
+        sim.answer_interval_requests = False
+        sim.rates_hz.clear()  # the state stops: camera mode, long enough for the world tracks to be forgotten
+        fly(sim, relay, 25, rng, latency_s=0.05)
+        assert relay.link_state()["mode"] == "camera"
+        sim.answer_interval_requests = True  # the relay asks again (every second) and the state comes back
+        wait_for_state(relay)
+        back = time.monotonic()
+        fly(sim, relay, 10, rng, latency_s=0.05)
+        end = time.monotonic()
+        state = relay.link_state()
+        relay.close()
+    sets = [r for r in sim.of_type("DEBUG_VECT") if back <= r.at <= end]
+    assert sets and all(not math.isnan(r.msg.x) for r in sets), [math.isnan(r.msg.x) for r in sets]
+    assert state["mode"] == "world"  # ... and the world tracks took over after their evidence
 
 
 def setpoints_between(sim: AutopilotSim, start: float, end: float):

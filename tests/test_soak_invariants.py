@@ -14,7 +14,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from soak_invariants import Fault, Limits, Recording, Sent, Span, Stat, State, check  # noqa: E402
+from soak_invariants import SAFETY, Fault, Limits, Recording, Sent, Span, Stat, State, check  # noqa: E402
 
 LIMITS = Limits()
 HEADER = {"schema": "branchrange/run-header/v1", "kind": "daemon"}
@@ -41,7 +41,7 @@ def calm_recording(seconds: float = 120.0) -> Recording:
     rec.sent.sort(key=lambda s: s.at)
     rec.stats = [Stat(float(t), 7, 400_000 + (t % 3), 40 + (t % 5 == 0), 30) for t in range(int(seconds))]
     rec.states = [State(float(t), "health", False, True, "world") for t in range(5, int(seconds))]
-    rec.log_lines = [_line(HEADER)] + [_line({"frame": {"index": i}, "branches": [{}]}) for i in range(50)]
+    rec.log_lines = [_line(HEADER)] + [_line({"t": i / 10}) for i in range(50)]  # results as the soak keeps them
     return rec
 
 
@@ -89,11 +89,11 @@ def test_memory_growing_past_five_percent_fails_it():
 
 def test_a_torn_middle_line_fails_it_but_a_torn_last_line_owned_up_to_by_the_restart_does_not():
     rec = calm_recording()
-    rec.log_lines[20] = rec.log_lines[20][:15]
+    rec.log_lines[20] = rec.log_lines[20][:5]
     assert names(rec) == ["torn_line"]
     rec.log_lines.insert(21, _line({**HEADER, "previous_line_torn": True}))  # a restart after a kill says so
     assert names(rec) == []
-    rec.log_lines[20] = _line({"frame": {"index": 19}})  # ... and claiming a torn line that is whole fails
+    rec.log_lines[20] = _line({"t": 1.9})  # ... and claiming a torn line that is whole fails
     assert names(rec) == ["false_torn_claim"]
 
 
@@ -120,3 +120,34 @@ def test_a_full_disk_logged_twice_or_stopping_the_targets_fails_it():
     rec.daemon_log.append((82.0, "results log /x: cannot write (No space left on device)"))
     rec.sent = [s for s in rec.sent if not (81.0 <= s.at < 83.5)]  # no frame set for 2.6 s
     assert sorted(names(rec)) == ["disk_full_logged_twice", "output_stopped_by_full_disk"]
+
+
+def test_results_logged_out_of_capture_order_fail_it_unless_a_reopened_camera_says_so():
+    rec = calm_recording()
+    rec.log_lines[30], rec.log_lines[31] = rec.log_lines[31], rec.log_lines[30]
+    assert names(rec) == ["log_out_of_order"]
+    rec = calm_recording()
+    rec.log_lines.insert(30, _line({"schema": "branchrange/camera-reopened/v1", "event": "camera_reopened"}))
+    rec.log_lines[31:31] = [_line({"t": 0.5})]  # a new opening may go on from lower times
+    assert names(rec) == []
+
+
+def test_a_clock_jump_that_did_not_reach_the_daemon_fails_it():
+    rec = calm_recording()
+    rec.clock = [(40.0, 3600.0), (90.0, 0.0)]
+    rec.wall_skews = [(t, 3600.0 if 40.0 < t < 90.0 else 0.0) for t in range(5, 120)]
+    assert names(rec) == []
+    rec.wall_skews = [(t, 0.0) for t in range(5, 120)]  # the daemon's Date never moved
+    assert set(names(rec)) == {"clock_jump_not_in_force"}
+
+
+def test_a_calm_state_not_back_is_a_slow_recovery_not_a_lie_and_only_lies_are_safety_breaches():
+    rec = calm_recording()
+    rec.states = [replace(s, mode="camera") if 90 <= s.at < 95 else s for s in rec.states]  # world mode late
+    assert names(rec) == ["health_not_back"] * 5
+    rec.sent = [s for s in rec.sent if not (61.5 <= s.at < 64.0 and s.kind == "target")]  # slow as well
+    rec.sent.append(Sent(61.2, "target"))  # and one stale send
+    rec.sent.sort(key=lambda s: s.at)
+    gated = [name for name in names(rec) if name in SAFETY]
+    assert gated == ["stale_target", "target_while_camera_lost"]
+    assert {"slow_recovery", "health_not_back"} <= set(names(rec))

@@ -17,7 +17,8 @@ each new file starting with the run header again. Threads:
   rectified rows are aligned (`branchrange.core.pair_check`: a warning with the fix when not); then
   rectification and disparity (`Pipeline.stereo_stage`; in
   `stereo.mode = "roi"` the coarse pass, the segmenter and the full-resolution regions); it is
-  also the camera watchdog: no frame for `camera.stall_timeout_s`, the source saying it is lost,
+  also the camera watchdog: no frame for `camera.stall_timeout_s` (from the newest frame's arrival, however
+  long its processing took), the source saying it is lost,
   or `CORRUPT_FRAMES_LOST` unreadable frames in a row mark the camera lost (HEARTBEAT CRITICAL,
   results go stale → "no target"); after three stall timeouts it closes the source, opens a fresh
   one and forgets tracked branches; a camera that cannot be opened (unplugged) is tried again every
@@ -75,6 +76,10 @@ CORRUPT_FRAMES_LOST = 5
 WARMUP_FRAMES = 3
 #: A frame's `timestamp_ns` is taken as its capture time when it is at most this long (s) before its arrival.
 CAPTURE_CLOCK_WINDOW_S = 5.0
+#: The least the stereo thread waits for a frame (s), even when the stall timeout since the newest frame has
+#: passed: the capture thread may have had no CPU (nor the interpreter lock) while this one worked, and must
+#: get the chance to hand over a frame that is there (without it a loaded CPU made "camera lost" blips).
+STALL_GRACE_S = 0.2
 
 
 def capture_time(frame: Any, arrived: float) -> float:
@@ -442,6 +447,9 @@ class Daemon:
         source = self._try_open()
         stalls = 0
         status_at, frames_then = time.monotonic(), self.frames
+        # the stall clock runs from the newest frame's arrival, not from when this thread is free to wait:
+        # a frame in processing (up to a second on a loaded CPU) must not delay "camera lost"
+        newest_at = status_at
         try:
             while not self._done(max_frames):
                 now = time.monotonic()
@@ -453,10 +461,13 @@ class Daemon:
                     self._set_camera_lost(True)
                     if not self._stop.wait(timeout):
                         source, stalls = self._try_open(quiet=True), 0
+                    newest_at = time.monotonic()
                     continue
                 else:
                     try:
-                        stamped = source.get_stamped(timeout=timeout)
+                        wait = max(STALL_GRACE_S, newest_at + timeout - time.monotonic())
+                        stamped = source.get_stamped(timeout=wait)
+                        newest_at = time.monotonic() if stamped is None else stamped[1]
                     except StopIteration:
                         log.info("source ended")
                         break

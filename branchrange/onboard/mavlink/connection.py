@@ -18,11 +18,15 @@ HEARTBEAT whose `autopilot` is not MAV_AUTOPILOT_INVALID and whose type is not a
 onboard computer names the peer (system and component id), and the link is lost
 `heartbeat_timeout_s` after its newest one. With signing on, pymavlink drops unsigned and
 wrong-key messages before they are decoded, so they never count as the peer; they are counted as
-signature failures.
+signature failures. pymavlink also logs each one at INFO ("sig mismatch", ~60 lines a second from an
+autopilot signing with another key): those lines are filtered out, and the link says it once per
+episode instead — a warning when the first arrives, and the count when none came for
+`SIGNATURE_EPISODE_GAP_S`.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Callable, Iterable
@@ -33,6 +37,19 @@ from typing import Any
 
 DIALECT = "ardupilotmega"
 SIGNING_KEY_BYTES = 32
+#: pymavlink's INFO lines for one rejected signature each (wrong key, replayed or too old a timestamp).
+PYMAVLINK_SIGNING_NOISE = frozenset({"sig mismatch", "old timestamp", "bad new stream %s %s"})
+#: An episode of signature failures ends when none arrived for this long (s); its count is logged then.
+SIGNATURE_EPISODE_GAP_S = 5.0
+
+log = logging.getLogger("branchrange.mavlink")
+
+
+class _SigningNoise(logging.Filter):
+    """Drops pymavlink's per-message signature lines (`MavlinkLink` counts them and says so per episode)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.msg not in PYMAVLINK_SIGNING_NOISE
 
 
 class SigningKeyError(ValueError):
@@ -46,6 +63,9 @@ def mavutil_v2() -> ModuleType:
 
     if mavutil.current_dialect != DIALECT or mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
         mavutil.set_dialect(DIALECT)
+    dialect_log = logging.getLogger(mavutil.mavlink.__name__)
+    if not any(isinstance(f, _SigningNoise) for f in dialect_log.filters):
+        dialect_log.addFilter(_SigningNoise())
     return mavutil
 
 
@@ -173,6 +193,7 @@ class MavlinkLink:
         self.send_errors = 0
         self.received = 0
         self.signature_failures = 0
+        self._episode: tuple[float, float, int] | None = None  # signature failures: first, newest (s), count
         self.peer: PeerHeartbeat | None = None
         self._ensure_open()
 
@@ -241,21 +262,45 @@ class MavlinkLink:
         """Read what arrived (non-blocking), noting the autopilot's heartbeats; [] when down."""
         if not self._ensure_open():
             return []
-        received = []
+        received, bad_signatures = [], 0
         try:
             for _ in range(max_messages):
                 msg = self._conn.recv_msg()
                 if msg is None:
                     break
                 if msg.get_type() == "BAD_DATA":
-                    self.signature_failures += "signature" in str(getattr(msg, "reason", "")).lower()
+                    bad_signatures += "signature" in str(getattr(msg, "reason", "")).lower()
                     continue
                 received.append(msg)
                 self._note_heartbeat(msg)
         except Exception as exc:  # noqa: BLE001 - a read error means the link is gone
             self._drop(exc)
         self.received += len(received)
+        self.signature_failures += bad_signatures
+        self._signature_episode(bad_signatures, self._clock())
         return received
+
+    def _signature_episode(self, failures: int, now: float) -> None:
+        """Say that wrongly signed messages arrive once when they begin, and how many when they stop."""
+        if failures:
+            if self._episode is None:
+                log.warning(
+                    "MAVLink %s: messages with a wrong signature arrive (the autopilot signs with another key, "
+                    "or not at all) and are dropped; their count follows when they stop",
+                    self.url,
+                )
+            first = now if self._episode is None else self._episode[0]
+            self._episode = (first, now, failures + (0 if self._episode is None else self._episode[2]))
+        elif self._episode is not None and now - self._episode[1] >= SIGNATURE_EPISODE_GAP_S:
+            self._end_signature_episode()
+
+    def _end_signature_episode(self) -> None:
+        if self._episode is not None:
+            first, newest, count = self._episode
+            log.warning(
+                "MAVLink %s: %d message(s) with a wrong signature dropped over %.1f s", self.url, count, newest - first
+            )
+            self._episode = None
 
     def _note_heartbeat(self, msg: Any) -> None:
         """Take an autopilot HEARTBEAT from the current peer, or from a new one once the old is lost."""
@@ -288,7 +333,8 @@ class MavlinkLink:
         }
 
     def close(self) -> None:
-        """Close the connection for good (no reopening after this)."""
+        """Close the connection for good (no reopening after this); an episode of bad signatures is summed up."""
+        self._end_signature_episode()
         if self._conn is not None:
             conn, self._conn = self._conn, None
             conn.close()

@@ -27,7 +27,9 @@ it was at capture (latency compensation). In this "world" mode the target is the
 evidence with hysteresis (`world_tracks`: consistent observations, recency-weighted confidence, a
 switching margin). Without a pose now, or
 for a result captured when there was none, the relay behaves as without vehicle state ("camera"
-mode: the result's cut points through the mount, valid for `max_result_age_s`); `link_state()`
+mode: the result's cut points through the mount, valid for `max_result_age_s`); when vehicle state
+comes (again), camera mode goes on until `tracking.target_min_observations` results in a row were
+fused, so the target does not pause while the world tracks gather their evidence; `link_state()`
 says which mode is in use. `targets()` gives the fused tracks for /latest and the results log.
 """
 
@@ -108,6 +110,7 @@ class MavlinkRelay:
         # camera mode's evidence rule: results in a row that held each branch id (the pipeline's stable ids)
         self._seen_in_a_row: dict[int, int] = {}
         self._latest_evidenced = False
+        self._fused_in_a_row = 0  # results fused in a row: the world tracks' evidence since vehicle state came
         self._mode: str | None = None  # "world" or "camera" from the first send on
         self._last_state_request = -math.inf
         self._link = MavlinkLink(
@@ -144,7 +147,9 @@ class MavlinkRelay:
             pose = self._vehicle.pose_at(captured_at)
             if pose is None:
                 self.unfused_results += self._vehicle.has_state
+                self._fused_in_a_row = 0
                 return False
+            self._fused_in_a_row += 1
             cam_to_ned = pose.rotation @ self._mount.camera_to_body
             camera_m = pose.body_to_ned(self._mount.translation_m)
             measurements = [
@@ -310,11 +315,16 @@ class MavlinkRelay:
         No target while the camera is lost, whatever the tracks or the newest result say: what the
         relay last saw may be the frame before a fall or a cover. Without vehicle state the newest
         result's target goes out only once `evidenced`: its branch id was in the last
-        `tracking.target_min_observations` results in a row (the world tracks' rule, on the pipeline's ids)."""
+        `tracking.target_min_observations` results in a row (the world tracks' rule, on the pipeline's ids).
+        Hand-over: when vehicle state comes (at start, after the link was lost), camera mode goes on until
+        that many results in a row were fused — the world tracks have had the observations their evidence
+        rule needs; switching at the first fused one left "no target" for as many results (seconds on a
+        busy machine) while the camera rule had its evidence."""
         with self._state_lock:
             pose = self._vehicle.pose_at(now)
             fresh_unfused = latest is not None and not fused and now - latest[1] <= self._cfg.max_result_age_s
-            if pose is not None and not fresh_unfused:
+            handing_over = self._mode != "world" and self._fused_in_a_row < self._tracking.target_min_observations
+            if pose is not None and not fresh_unfused and not handing_over:
                 self._set_mode("world")
                 target = None if camera_lost else self._tracks.target(now)
                 points = [
