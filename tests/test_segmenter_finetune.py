@@ -19,6 +19,7 @@ from branchrange.core.config import ApiConfig, load_config, pipeline_config
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK
 from branchrange.core.segmentation.branchnet_from_onnx import branchnet_from_onnx
+from branchrange.core.segmentation.branchnet_heldout import calibration_table, judged_cut_points, labelled_branches
 from branchrange.core.segmentation.bundle import MANIFEST_NAME, bundle_model
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.coco_labels import (
@@ -27,7 +28,7 @@ from branchrange.core.segmentation.coco_labels import (
     split_by_image,
     write_frame_stereo,
 )
-from branchrange.core.segmentation.learned import SHIPPED_MODEL
+from branchrange.core.segmentation.learned import SHIPPED_MODEL, calibrations_by_setting
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation doesn't accept a copy keyword")
@@ -244,3 +245,19 @@ def test_a_bundle_configured_in_the_toml_serves_the_http_api(bundle, tmp_path):
     )
     with pytest.raises(OnnxSegmenterError, match="made for the classes"):
         PipelineEstimator(bad).segmenter()
+
+
+def test_held_out_cut_points_are_judged_against_the_labels_and_calibrate_a_readable_table(dataset):
+    frame = read_labelled_frames(dataset / "annotations.json", dataset / "images", log=lambda _: None)[0]
+    frame.sample["classes"][90:, :10] = IGNORE
+    branch_v, branch_u = np.nonzero(frame.sample["classes"] == BRANCH)
+    on_branch = (branch_u[0] + 2.0, branch_v[0])  # 2 px off its first pixel: still on it
+    judged, found = judged_cut_points(frame, [on_branch, (74.0, 5.0), (3.0, 93.0), (3.0, 40.0)])
+    assert judged == [True, False, None, False] and found == {1}  # branch, trunk, ignored, background
+    assert labelled_branches(frame) == {1}
+    outcomes = [(c, c > 0.5) for c in np.linspace(0.05, 0.95, 40)]
+    assert calibration_table(outcomes[:19], 160, 0) is None
+    table = calibration_table(outcomes, 160, 40)
+    (setting,) = calibrations_by_setting({"confidence_calibrations": [table]})
+    assert setting == (160, 40, "normal") and table["target_min_confidence"] is not None
+    assert "labelled branch" in table["measure"]
