@@ -35,7 +35,7 @@ def add_finetune_arguments(p: argparse.ArgumentParser) -> None:
         "--start", type=Path, help="model (.onnx) or bundle folder to start from (default: the shipped model)"
     )
     g.add_argument("--steps", type=int, help="optimiser steps (default 1500: ~10 min on 2 cores)")
-    g.add_argument("--synthetic-share", type=float, help="share of each batch from synthetic scenes (default 0.25)")
+    g.add_argument("--synthetic-share", type=float, help="share of each batch from synthetic scenes (default 0.5)")
     g.add_argument(
         "--holdout-share", type=float, help="share of the frames held out to measure and calibrate (default 0.2)"
     )

@@ -79,7 +79,7 @@ class FineTuneConfig:
     crop: int = 192
     lr: float = 3e-4
     weight_decay: float = 1e-4
-    synthetic_share: float = 0.25
+    synthetic_share: float = 0.5
     synthetic_scenes: int = 200
     validation_scenes: int = 30
     holdout_share: float = 0.2
