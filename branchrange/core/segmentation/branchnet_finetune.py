@@ -172,7 +172,7 @@ def _train(
 
 
 def _write_curve(out_dir: Path, history: list[dict[str, Any]]) -> None:
-    """metrics.csv and training_curve.png of the rows `history`."""
+    """metrics.csv and training_curve.png of the rows `history` (a value None: not measured, left out)."""
     from stereo.io import write_rgb
     from stereo.training.curves import plot_panel
 
@@ -242,7 +242,7 @@ def finetune_branchnet(
     kept = kept_training_settings(start_meta)
     history = _train(model, config, kept, train, evaluate, data_dir, log)
     seconds = float(history[-1]["seconds"])
-    _write_curve(out_dir, history)
+    _write_curve(out_dir, [{"step": 0, "train_loss": None, **before, "seconds": 0.0}, *history])  # from the start
     torch.save(model.state_dict(), out_dir / "branchnet.pt")
     onnx_sha256 = export_onnx(model, out_dir / MODEL_NAME)
     after = history[-1]
