@@ -15,8 +15,8 @@ BUILTIN_SEGMENTERS = ("learned", "structure", "geometric")
 DEFAULT_SEGMENTER = BUILTIN_SEGMENTERS[0]
 #: The names `make_segmenter` accepts, for help texts and error messages.
 SEGMENTER_NAMES = (
-    "'learned', 'learned:BUNDLE' (a model bundle of train-segmenter --coco), 'geometric', 'structure' or "
-    "'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model)"
+    "'learned', 'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model); "
+    "'learned:BUNDLE' for a model bundle of train-segmenter --coco"
 )
 #: the prefixes of names that carry a path: your own ONNX model, a fine-tuned BranchNet's bundle
 _WITH_PATH = ("onnx:", "learned:")
