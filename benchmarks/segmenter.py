@@ -129,7 +129,7 @@ def benchmark_segmenter(name: str) -> Segmenter:
     read through the normal-light calibration (`light_calibration` off). Without a '/', the default band at the
     frame's own width and none at another width (a second look at twice 1280 is not a setting anyone runs).
     ValueError for a learned variant out of that grammar (a part misplaced would otherwise be dropped)."""
-    if name == "learned" or not name.startswith("learned"):
+    if name == "learned" or not name.startswith("learned") or name.startswith("learned:"):  # learned:BUNDLE too
         return make_segmenter(name)
     variant = LEARNED_VARIANT.fullmatch(name)
     if variant is None:

@@ -7,12 +7,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from synth_recording import FIRST_TIMESTAMP_NS, write_tree_recording
+from synth_recording import FIRST_TIMESTAMP_NS, HEIGHT, WIDTH, tree_scene, write_tree_recording
 
 from branchrange.cli import main
 from branchrange.commands.exit_codes import BAD_INPUT, DONE
 from branchrange.core.config import Config
 from branchrange.core.frame_results import run_header_line
+from branchrange.core.segmentation.branchnet_data import BRANCH
+from branchrange.core.segmentation.coco_labels import read_labelled_frames
 from branchrange.offline.frame_export import frames_source
 from branchrange.offline.frame_selection import FrameStats, mask_agreement, select_frames, with_flicker
 from camera.sources.image_files import read_mask, read_rgb
@@ -68,6 +70,15 @@ def test_export_round_trips_the_recordings_masks_exactly_through_pycocotools(rec
     assert first and all(isinstance(a["segmentation"], list) and len(a["segmentation"][0]) >= 6 for a in first)
     iou = [mask_agreement(polygons.annToMask(a).astype(bool), dataset.annToMask(a).astype(bool)) for a in first]
     assert min(iou) > 0.95  # holes aside, the outlines give the masks back
+    trainable = read_labelled_frames(out / "annotations.json", out / "images")  # what a fine-tune reads back
+    camera = tree_scene().camera
+    assert [f.name for f in trainable] == [image["file_name"] for image in images]
+    for frame in trainable:
+        assert (
+            frame.geometry.focal_px == pytest.approx(camera.focal_px) and frame.geometry.baseline_m == camera.baseline_m
+        )
+        assert frame.sample["disparity"].shape == (HEIGHT, WIDTH) and (frame.sample["disparity"] > 0).mean() > 0.5
+        assert frame.confidence.shape == (HEIGHT, WIDTH) and (frame.sample["classes"] == BRANCH).any()
 
 
 def test_without_masks_the_configured_segmenter_pre_annotates(tmp_path):

@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--segmenter",
         metavar="NAME",
         help="segmenter of the pre-annotations when the recording has no masks: 'learned' (default), "
-        "'structure', 'geometric' or 'onnx:FILE' (overrides segmenter.model)",
+        "'learned:BUNDLE', 'structure', 'geometric' or 'onnx:FILE' (overrides segmenter.model)",
     )
     add_config_arguments(
         p, required=False, sections="[camera] calibration, [stereo], [masks], [segmenter] as the daemon reads them"

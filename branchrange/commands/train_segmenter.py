@@ -7,7 +7,9 @@ to calibrate their confidence (scenes 2861–3100, SGBM, per `branchnet_calibrat
 branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
 "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256, validation IoU, confidence
 calibrations), metrics.csv, training_curve.png and branchnet.pt (the torch
-weights). --calibrate-only re-measures the calibration of the model already in --out; --int8 also writes
+weights). With --coco it fine-tunes the model on your labelled frames instead and writes a model bundle
+(`branchrange.commands.finetune_segmenter`). --calibrate-only re-measures the calibration of the model already
+in --out; --int8 also writes
 branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchnet_quantize`).
 
 Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
@@ -30,16 +32,20 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
+from branchrange.commands.finetune_segmenter import FINETUNE_ONLY, add_finetune_arguments, run_finetune
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `train-segmenter` to the `branchrange` command."""
     p = subparsers.add_parser(
         "train-segmenter",
-        help="train the learned branch segmenter on synthetic scenes (CPU)",
+        help="train the learned branch segmenter on synthetic scenes, or fine-tune it on your labels (--coco; CPU)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", required=True, type=Path, help="output directory (model, metadata, curve)")
+    p.add_argument(
+        "--out", required=True, type=Path, help="output directory (model, metadata, curve; with --coco: the bundle)"
+    )
     p.add_argument(
         "--data", type=Path, default=Path("out/segdata"), help="cache of rendered training scenes (default out/segdata)"
     )
@@ -54,7 +60,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override one training setting, e.g. --set steps=200 (JSON values; repeatable)",
+        help="override one training setting, e.g. --set steps=200 (JSON values; repeatable; with --coco the "
+        "fine-tune's settings, `FineTuneConfig`)",
     )
     p.add_argument(
         "--calibrate-only", action="store_true", help="only (re)calibrate the confidence of --out's branchnet.onnx"
@@ -76,6 +83,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="train only, no confidence calibration: for a stage whose model only starts the next (~6–10 min saved)",
     )
+    add_finetune_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -104,6 +112,17 @@ def training_config(config_file: Path | None, overrides: list[str], stage: int |
         except IndexError:
             raise ValueError(f"--stage {stage}: {config_file} has {len(meta['stages'])} stages") from None
     known = {f.name for f in fields(BranchNetTrainConfig)}
+    values.update(parsed_overrides(known, overrides))
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"unknown training setting(s) {unknown}; known: {', '.join(sorted(known))}")
+    return BranchNetTrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+def parsed_overrides(known: set[str], overrides: list[str]) -> dict:
+    """KEY=VALUE items (`--set`) as {key: JSON value}; ValueError naming an item whose key is not in `known` or
+    whose value is not JSON."""
+    values = {}
     for item in overrides:
         key, sep, text = item.partition("=")
         if not sep or key not in known:
@@ -112,10 +131,7 @@ def training_config(config_file: Path | None, overrides: list[str], stage: int |
             values[key] = json.loads(text)
         except ValueError:
             raise ValueError(f"--set {key}: {text!r} is not a JSON value (numbers as 3, lists as [1, 2])") from None
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"unknown training setting(s) {unknown}; known: {', '.join(sorted(known))}")
-    return BranchNetTrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+    return values
 
 
 def run(args: argparse.Namespace) -> int:
@@ -126,6 +142,11 @@ def run(args: argparse.Namespace) -> int:
     model = args.out / "branchnet.onnx"
     if args.workers < 1:
         return _refuse(f"--workers {args.workers}: at least 1")
+    if args.coco is not None:
+        return run_finetune(args)
+    alone = [f"--{n.replace('_', '-')}" for n in FINETUNE_ONLY if getattr(args, n) is not None]
+    if alone:
+        return _refuse(f"{', '.join(alone)}: options of a fine-tune, which needs --coco (your labels)")
     if args.calibrate_only and args.no_calibrate:
         return _refuse("--calibrate-only and --no-calibrate exclude each other")
     if args.calibrate_only and not model.is_file():

@@ -720,8 +720,9 @@ class MaskConfig(Settings):
 class SegmenterConfig(OnnxSegmenterConfig):
     """Which segmenter finds branches when no mask is given, and the settings of each.
 
-    `model`: 'learned' (the default: the shipped BranchNet network, `[segmenter.learned]`), 'structure'
-    (built in, 3D structure), 'geometric' (the older built-in one) or 'onnx:FILE' (your ONNX model,
+    `model`: 'learned' (the default: the shipped BranchNet network, `[segmenter.learned]`), 'learned:BUNDLE' (a
+    model bundle fine-tuned on your labels, `train-segmenter --coco`; `[segmenter.learned]`'s other settings),
+    'structure' (built in, 3D structure), 'geometric' (the older built-in one) or 'onnx:FILE' (your ONNX model,
     YOLOv8-seg or per-pixel logits). Your model's settings are the other `[segmenter]` keys
     (`OnnxSegmenterConfig`: `branch_classes` / `trunk_classes`, the model's class ids for branch and
     trunk; `score_threshold`, …); the built-in segmenters' are

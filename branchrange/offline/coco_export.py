@@ -8,6 +8,8 @@ DIR/images/frame_000123.png       the frames' (rectified) left views, lossless; 
 DIR/annotations.json              COCO: info, licenses, images, categories branch (1) / trunk (2),
                                   one annotation per instance, its mask as COCO RLE (exact)
 DIR/annotations_polygons.json     the same with each mask as polygons (its outer outlines)
+DIR/stereo/frame_000123.npz       the frame's disparity, stereo confidence and camera, which
+                                  `train-segmenter` reads beside the labels (`coco_labels`)
 ```
 
 Why two files: the masks are pre-annotations a person corrects, so they must arrive as they are.
@@ -29,7 +31,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
+from branchrange.core.segmentation.coco_labels import STEREO_DIR, write_frame_stereo
 
 #: COCO category ids of the two classes the pre-annotations carry.
 BRANCH_CATEGORY, TRUNK_CATEGORY = 1, 2
@@ -49,12 +53,16 @@ class CocoExportError(OSError):
 @dataclass(frozen=True)
 class LabelledFrame:
     """One frame to label: its left view (`uint8 H×W×3` RGB), today's masks on it (None: nothing to
-    segment, e.g. no valid disparity), its index and capture time (ns) in its source."""
+    segment, e.g. no valid disparity), its index and capture time (ns) in its source; and, for fine-tuning
+    on it later, its disparity (`float32 H×W` px), stereo confidence (`H×W`) and camera (None: not written)."""
 
     image: np.ndarray
     masks: BranchMasks | None
     index: int
     timestamp_ns: int
+    disparity: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    geometry: StereoGeometry | None = None
 
     @property
     def file_name(self) -> str:
@@ -144,6 +152,10 @@ def write_coco(out_dir: str | Path, frames: Iterable[LabelledFrame], source: str
     for image_id, frame in enumerate(frames, start=1):
         height, width = frame.image.shape[:2]
         _write_image(out / IMAGES_DIR / frame.file_name, frame.image)
+        if frame.disparity is not None and frame.confidence is not None and frame.geometry is not None:
+            (out / STEREO_DIR).mkdir(exist_ok=True)
+            stereo = out / STEREO_DIR / f"{Path(frame.file_name).stem}.npz"
+            write_frame_stereo(stereo, frame.disparity, frame.confidence, frame.geometry)
         images.append(
             {
                 "id": image_id,

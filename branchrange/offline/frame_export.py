@@ -97,10 +97,14 @@ class FrameAnalyser:
         self.references = {name: make_segmenter(name, learned=cfg.segmenter.learned) for name in REFERENCE_SEGMENTERS}
 
     def labelled(self, frame: StereoFrame) -> LabelledFrame:
-        """The frame's rectified left view and masks (the recording's, else the configured segmenter's)."""
+        """The frame's rectified left view and masks (the recording's, else the configured segmenter's), with its
+        disparity, stereo confidence and camera (what a fine-tune on the corrected labels reads)."""
         process_frame(self.pipeline, frame)
         last = self.pipeline.last
-        return LabelledFrame(last.left, last.masks, frame.index, frame.timestamp_ns)
+        geometry = self.pipeline.geometry_for(last.left.shape[1], last.left.shape[0])
+        return LabelledFrame(
+            last.left, last.masks, frame.index, frame.timestamp_ns, last.disparity, last.confidence, geometry
+        )
 
     def stats(self, frame: StereoFrame) -> FrameStats:
         """The frame's selection statistics (`FrameStats`)."""

@@ -21,6 +21,7 @@ import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -208,6 +209,15 @@ def class_iou(model: BranchNet, samples: list[dict[str, np.ndarray]]) -> dict[st
     return {name: float(intersection[k] / union[k]) if union[k] else float("nan") for k, name in enumerate(CLASSES)}
 
 
+def optimiser_step(loss: torch.Tensor, optimiser: torch.optim.Optimizer, schedule: Any) -> float:
+    """One step down `loss`'s gradient, then one of the learning-rate `schedule`; the loss's value."""
+    optimiser.zero_grad(set_to_none=True)
+    loss.backward()
+    optimiser.step()
+    schedule.step()
+    return float(loss.detach())
+
+
 def export_onnx(model: BranchNet, path: Path) -> str:
     """Write `model` as ONNX (input `image` (1, 5, H, W), dynamic H, W; output `logits`); its SHA-256."""
     model = model.eval().to(memory_format=torch.contiguous_format)
@@ -271,11 +281,7 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
         else:
             pixel_weights = torch.from_numpy(np.stack([c[2] for c in crops]))
             loss = weighted_cross_entropy(logits, targets, weights, pixel_weights)
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
-        schedule.step()
-        running.append(float(loss.detach()))
+        running.append(optimiser_step(loss, optimiser, schedule))
         if step % config.val_every == 0 or step == config.steps:
             iou = class_iou(model, validation)
             row = {

@@ -1,7 +1,9 @@
-"""`make_segmenter`: the segmenter a name asks for — 'learned', 'structure', 'geometric' or 'onnx:FILE'
-(your own model)."""
+"""`make_segmenter`: the segmenter a name asks for — 'learned', 'learned:BUNDLE' (a fine-tuned model bundle),
+'structure', 'geometric' or 'onnx:FILE' (your own model)."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
@@ -12,12 +14,17 @@ from branchrange.core.segmentation.structure import StructureSegmenter, Structur
 BUILTIN_SEGMENTERS = ("learned", "structure", "geometric")
 DEFAULT_SEGMENTER = BUILTIN_SEGMENTERS[0]
 #: The names `make_segmenter` accepts, for help texts and error messages.
-SEGMENTER_NAMES = "'learned', 'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model)"
+SEGMENTER_NAMES = (
+    "'learned', 'geometric', 'structure' or 'onnx:FILE' (an ONNX YOLOv8-seg or per-pixel-logits model); "
+    "'learned:BUNDLE' for a model bundle of train-segmenter --coco"
+)
+#: the prefixes of names that carry a path: your own ONNX model, a fine-tuned BranchNet's bundle
+_WITH_PATH = ("onnx:", "learned:")
 
 
 def check_segmenter_name(name: str) -> str:
     """`name` itself when it has an accepted form (the file is checked when the model is loaded)."""
-    if name in BUILTIN_SEGMENTERS or (name.startswith("onnx:") and len(name) > len("onnx:")):
+    if name in BUILTIN_SEGMENTERS or any(name.startswith(p) and len(name) > len(p) for p in _WITH_PATH):
         return name
     raise OnnxSegmenterError(f"segmenter {name!r}: expected {SEGMENTER_NAMES}")
 
@@ -37,4 +44,6 @@ def make_segmenter(
         return LearnedSegmenter(learned)
     if name == "structure":
         return StructureSegmenter(structure)
+    if name.startswith("learned:"):  # the bundle in place of [segmenter.learned] model, its other settings kept
+        return LearnedSegmenter(replace(learned, model=name[len("learned:") :], precision="fp32"))
     return OnnxSegmenter(name[len("onnx:") :], onnx)

@@ -30,7 +30,8 @@ Steps (one frame):
 The weights file ships inside the package (`weights/branchnet.onnx`, under 1 MB) and is checked
 against the SHA-256 recorded beside it (`weights/branchnet.json`, which also holds the training
 config, seed and validation IoU); `model=` takes another file trained with `branchrange
-train-segmenter`, checked against its own JSON when one sits beside it.
+train-segmenter`, checked against its own JSON when one sits beside it, or a model bundle folder (a
+fine-tune on a user's labels, `bundle`), checked against its manifest.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from branchrange.core.geometry import StereoGeometry, disparity_to_depth
 from branchrange.core.light_check import LIGHTS, LightReading, measure_light
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
 from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input
+from branchrange.core.segmentation.bundle import bundle_model
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
 from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
@@ -80,7 +82,8 @@ SCENE_WIDTH = 640
 class LearnedSegmenterConfig(Settings):
     """Settings of `LearnedSegmenter`.
 
-    - `model`: an ONNX `BranchNet` file; empty = the shipped one of `precision`.
+    - `model`: an ONNX `BranchNet` file, or a model bundle folder (`branchrange train-segmenter --coco`: checked
+      against its manifest, `bundle`); empty = the shipped one of `precision`.
     - `precision`: which shipped model, "fp32" or "int8" (a statically quantized copy: its network ~1.4×,
       the whole segmenter ~1.2× faster on CPU, same recall; `branchnet_quantize`); only with `model` empty.
     - `network_width`: the width (px) the network sees a frame at — the frame is resized to it, aspect
@@ -317,6 +320,8 @@ class LearnedSegmenter:
     def __init__(self, config: LearnedSegmenterConfig = LearnedSegmenterConfig()) -> None:
         self.config = config
         self.model_path = Path(config.model) if config.model else SHIPPED_MODELS[config.precision]
+        if self.model_path.is_dir():  # a model bundle (`bundle`): its manifest and files checked first
+            self.model_path = bundle_model(self.model_path)
         meta = verified_metadata(self.model_path)
         try:
             self.calibrations = calibrations_by_setting(meta) if config.calibrated else {}
