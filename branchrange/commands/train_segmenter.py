@@ -6,9 +6,10 @@ to calibrate their confidence (scenes 2861–3100, SGBM, per `branchnet_calibrat
 640 px with and without the second look at the trunk band, and at 1280 px), and writes to --out:
 branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
 "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256, validation IoU, confidence
-calibrations), metrics.csv, training_curve.png and branchnet.pt (the torch
-weights). --calibrate-only re-measures the calibration of the model already in --out; --int8 also writes
-branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchnet_quantize`).
+calibrations, the out-of-distribution reference "ood"), metrics.csv, training_curve.png and branchnet.pt (the
+torch weights). --calibrate-only re-measures the calibration (and the reference) of the model already in --out;
+--ood-only only its out-of-distribution reference (`branchnet_ood`: scenes 2861–3020, ~1 min); --int8 also
+writes branchnet_int8.onnx (+ .json), an int8 copy with its own calibration and reference (`branchnet_quantize`).
 
 Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
 the full-resolution feature branch; the first two need no calibration, `--no-calibrate`; 103 min on 2 cores
@@ -58,6 +59,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--calibrate-only", action="store_true", help="only (re)calibrate the confidence of --out's branchnet.onnx"
+    )
+    p.add_argument(
+        "--ood-only",
+        action="store_true",
+        help="only (re)measure the out-of-distribution reference of --out's branchnet.onnx (and its int8 copy with "
+        "--int8), stored in its JSON under 'ood'",
     )
     p.add_argument(
         "--int8",
@@ -128,7 +135,9 @@ def run(args: argparse.Namespace) -> int:
         return _refuse(f"--workers {args.workers}: at least 1")
     if args.calibrate_only and args.no_calibrate:
         return _refuse("--calibrate-only and --no-calibrate exclude each other")
-    if args.calibrate_only and not model.is_file():
+    if args.ood_only and (args.calibrate_only or args.no_calibrate):
+        return _refuse("--ood-only excludes --calibrate-only and --no-calibrate")
+    if (args.calibrate_only or args.ood_only) and not model.is_file():
         return _refuse(f"{model} does not exist (train first)")
     try:
         return _train_and_calibrate(args, model)
@@ -146,6 +155,8 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
     """`run` once the arguments are checked: train `model` (unless --calibrate-only), calibrate it (unless
     --no-calibrate) in --workers processes, and the int8 copy with --int8."""
     from branchrange.core.segmentation.branchnet_calibration import calibrate_model
+    from branchrange.core.segmentation.branchnet_ood import measure_model_reference
+    from branchrange.core.segmentation.branchnet_quantize import int8_path
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
     def log(line: str) -> None:
@@ -153,7 +164,14 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
 
     def calibrate(path: Path) -> None:
         calibrate_model(path, cache=args.data / "calibration", log=log, workers=args.workers)
+        measure_model_reference(path, args.data / "calibration", log=log)
 
+    if args.ood_only:
+        for path in [model, *([int8_path(model)] if args.int8 else [])]:
+            if not path.is_file():
+                return _refuse(f"{path} does not exist (train first)")
+            measure_model_reference(path, args.data / "calibration", log=log)
+        return 0
     if args.calibrate_only:
         calibrate(model)
     else:
@@ -170,7 +188,7 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
             f"branch {final['iou_branch']:.3f}, trunk {final['iou_trunk']:.3f}"
         )
     if args.int8:
-        from branchrange.core.segmentation.branchnet_quantize import int8_path, quantize_branchnet
+        from branchrange.core.segmentation.branchnet_quantize import quantize_branchnet
 
         quantized = quantize_branchnet(model, args.data)
         if not args.no_calibrate:

@@ -66,7 +66,10 @@ def orchard_bark_tile(rng: np.random.Generator, kind: str) -> np.ndarray:
         grain = 0.75 + 0.4 * unit_range(periodic_noise(rng, 40.0, 40.0, slope=1.5))
         colour = base_rgb[None, None, :] * grain[..., None]
         moss = np.clip((unit_range(periodic_noise(rng, 3.0, 5.0)) - 0.45) * 4.0, 0.0, 1.0)[..., None]
-        cushion = np.array([0.20, 0.42, 0.08]) * (0.7 + 0.5 * unit_range(periodic_noise(rng, 60.0, 60.0, slope=1.2)))[..., None]
+        cushion = (
+            np.array([0.20, 0.42, 0.08])
+            * (0.7 + 0.5 * unit_range(periodic_noise(rng, 60.0, 60.0, slope=1.2)))[..., None]
+        )
         colour = colour * (1 - moss) + cushion * moss
     return np.clip(colour, 0.0, 1.0).astype(np.float32)
 
