@@ -8,10 +8,10 @@ cut points at confidence ≥ 0.8 and the share of them within 5 cm, the issue's 
 expected calibration error).
 
 Out-of-distribution signal (`branchrange.core.segmentation.ood`): per model (the shipped fp32 and int8), each
-frame's distance from the model's reference (its JSON's "ood", measured on calibration scenes 2861–3100); the
-AUROC of that distance separating the shifted frames from the held-out park frames (target ≥ 0.9), and the
-share of each flagged. Its cost: the statistics and reading per frame against the network's first look, timed
-in the same run (ratio), on this machine (CPU and load printed).
+frame's statistic (hesitant background) read against the model's reference (its JSON's "ood", measured on
+calibration scenes 2861–3020); the AUROC of it separating the shifted frames from the held-out park frames
+(target ≥ 0.9), and the share of each flagged. Its cost: the statistic and reading per frame against the
+network's first look, timed in the same run (ratio), on this machine (CPU and load printed).
 
 Fine-tune proof (`--finetune 20,50,100`): for each N, N shifted-domain frames (seeds `FINETUNE_SEED`+, apart
 from the held-out ones) are written as a COCO data set labelled with their truth (`offline.synth_coco`: the
@@ -42,9 +42,9 @@ from branchrange.core.confidence import cut_point_outcomes, expected_calibration
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
-from branchrange.core.segmentation.branchnet_ood import first_look_statistics, model_reference
+from branchrange.core.segmentation.branchnet_ood import first_look_statistic, model_reference
 from branchrange.core.segmentation.learned import SHIPPED_MODELS, LearnedSegmenter, LearnedSegmenterConfig
-from branchrange.core.segmentation.ood import OodReference, frame_statistics, reference_in
+from branchrange.core.segmentation.ood import OodReference, frame_statistic, reference_in
 from branchrange.offline.evaluate_cuts import CutScores
 from branchrange.offline.synth_coco import export_domain_frames
 
@@ -88,10 +88,10 @@ def score_model(
     model: Path, seeds: Sequence[int], domain: str, cache: Path | None, reference: OodReference | None
 ) -> dict:
     """Recall within 5 cm, false cut points a frame (95 % intervals), cut points at ≥ 0.8 and the share right,
-    calibration error, and the OOD distances (against `reference`) of the ONNX `model` on scenes `seeds` of
+    calibration error, and the OOD statistics (flagged against `reference`) of the ONNX `model` on scenes `seeds` of
     `domain`, SGBM, whole frame."""
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), ood=False))
-    scores, outcomes, distances = CutScores("sgbm", model.name), [], []
+    scores, outcomes, statistics = CutScores("sgbm", model.name), [], []
     for seed in seeds:
         scene = evaluation_scene(seed, cache, domain=domain)
         f, b, cx, cy = (float(v) for v in scene["camera"])
@@ -105,7 +105,7 @@ def score_model(
         truth = [t["cut_point_m"] for t in scene["truth"]]
         outcomes += cut_point_outcomes([(x.confidence, x.cut_point_m) for x in result.branches], truth)
         if reference is not None:
-            distances.append(reference.distance(first_look_statistics(segmenter, scene["left"], scene["sgbm"])))
+            statistics.append(first_look_statistic(segmenter, scene["left"], scene["sgbm"]))
     interval = scores.interval()
     count, share = share_correct_above(outcomes, 0.8)
     return {
@@ -118,12 +118,10 @@ def score_model(
         "at_0.8": count,
         "share_right_at_0.8": share,
         "calibration_error": expected_calibration_error(outcomes),
-        "ood_distances": [round(d, 3) for d in distances],
+        "ood_statistics": [round(v, 4) for v in statistics],
         "ood_flagged": None
         if reference is None
-        else float(np.mean([d > reference.threshold for d in distances]))
-        if distances
-        else float("nan"),
+        else float(np.mean([reference.reading(v).flagged for v in statistics])),
     }
 
 
@@ -138,7 +136,7 @@ def ood_cost_ms(model: Path, cache: Path | None, seeds: Sequence[int]) -> dict:
         t = time.perf_counter()
         logits = segmenter.first_look(scene["left"], disparity)
         t1 = time.perf_counter()
-        segmenter.ood_reference.reading(frame_statistics(logits))
+        segmenter.ood_reference.reading(frame_statistic(logits))
         t2 = time.perf_counter()
         look.append(1000 * (t1 - t))
         ood.append(1000 * (t2 - t1))
@@ -233,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         reference = reference_in(json.loads(model.with_suffix(".json").read_text(encoding="utf-8")))
         park = score_model(model, scene_seeds("park", args.scenes), "park", args.cache, reference)
         shifted = score_model(model, scene_seeds(DOMAIN, args.shifted), DOMAIN, args.cache, reference)
-        area = auroc(park["ood_distances"], shifted["ood_distances"])
+        area = auroc(park["ood_statistics"], shifted["ood_statistics"])
         out["models"][precision] = {
             "park": park,
             DOMAIN: shifted,

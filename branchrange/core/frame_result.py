@@ -122,25 +122,29 @@ class LightInfo(JsonPart):
 @with_config(_STRICT)
 @dataclass(frozen=True)
 class SegmenterOod(JsonPart):
-    """Whether the learned segmenter's model looks like it knows this scene (`segmentation.ood`): how far its
-    class probabilities on the frame lie from those on its training domain (the reference in the model's JSON)."""
+    """Whether the learned segmenter's model looks like it knows this scene (`segmentation.ood`): how much more
+    it hesitates over open background than on its training domain (the reference in the model's JSON)."""
 
     score: Annotated[
         Fraction,
         Field(description="share of the reference's held-out training-domain frames that lie nearer (0.5 typical)"),
     ]
-    distance: Annotated[
-        NonNegFloat, Field(description="Mahalanobis distance of the frame's statistics from the training domain's")
+    z: Annotated[
+        float,
+        Field(
+            description="the frame's share of hesitant background (log) in standard deviations above the training "
+            "domain's mean"
+        ),
     ]
     flagged: Annotated[
         bool,
-        Field(description="true when the distance exceeds what 99 % of training-domain frames stay under"),
+        Field(description="true when the frame hesitates more than 99 % of training-domain frames"),
     ]
 
     @classmethod
     def from_reading(cls, reading: OodReading) -> SegmenterOod:
         """The written form of a `segmentation.ood.OodReading`."""
-        return cls(float(reading.score), float(reading.distance), bool(reading.flagged))
+        return cls(float(reading.score), float(reading.z), bool(reading.flagged))
 
 
 @with_config(_STRICT)

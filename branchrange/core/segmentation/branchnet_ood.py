@@ -2,8 +2,8 @@
 
 The shipped models' reference is measured on the first 160 calibration scenes (`OOD_SEEDS`: the training
 distribution, never trained on, in their own light), the network seeing each 640×360 scene at
-its own width as `LearnedSegmenter` does by default: the first two thirds fit the statistics' mean and
-covariance, the last third gives the distances a frame is read by and the flag threshold. A fine-tuned model
+its own width as `LearnedSegmenter` does by default: the first two thirds fit the statistic's mean and
+spread, the last third gives the values a frame is read by and the flag threshold. A fine-tuned model
 (a model bundle) has another training domain: measure its reference with `model_reference` on frames of it —
 its user frames together with the synthetic ones it was trained with — so that its flag clears where it
 learnt.
@@ -19,7 +19,7 @@ import numpy as np
 
 from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
-from branchrange.core.segmentation.ood import OOD_KEY, OodReference, fitted_reference, frame_statistics
+from branchrange.core.segmentation.ood import OOD_KEY, OodReference, fitted_reference, frame_statistic
 
 #: the scenes a model's reference is measured on: the first 160 of the calibration scenes (2861–3100), so a
 #: calibrated model's are rendered already
@@ -28,10 +28,10 @@ OOD_SEEDS = (2861, 3021)
 SHIPPED_DOMAIN = "synthetic park scenes {first}–{last}, 640×360, SGBM, own light"
 
 
-def first_look_statistics(segmenter: LearnedSegmenter, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
-    """`ood.frame_statistics` of a frame (`uint8 H×W×3`, disparity `float32 H×W` px) as `segmenter` computes
+def first_look_statistic(segmenter: LearnedSegmenter, left: np.ndarray, disparity: np.ndarray) -> float:
+    """`ood.frame_statistic` of a frame (`uint8 H×W×3`, disparity `float32 H×W` px) as `segmenter` computes
     them at run time: on its first look's logits (`LearnedSegmenter.first_look`)."""
-    return frame_statistics(segmenter.first_look(left, np.asarray(disparity, dtype=np.float32)))
+    return frame_statistic(segmenter.first_look(left, np.asarray(disparity, dtype=np.float32)))
 
 
 def model_reference(
@@ -40,7 +40,7 @@ def model_reference(
     """The `OodReference` of the ONNX `model` from training-domain `frames` (left image, disparity), in order:
     the first two thirds fit, the rest are held out (`ood.fitted_reference`)."""
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), calibrated=False, ood=False, threads=threads))
-    return fitted_reference((first_look_statistics(segmenter, left, d) for left, d in frames), domain)
+    return fitted_reference((first_look_statistic(segmenter, left, d) for left, d in frames), domain)
 
 
 def store_reference(model: Path, reference: OodReference) -> None:
@@ -64,7 +64,8 @@ def measure_model_reference(
     store_reference(model, reference)
     log(
         f"out-of-distribution reference of {model.name} from {reference.frames} frames (scenes {seeds[0]}–"
-        f"{seeds[1] - 1}): a frame is flagged beyond distance {reference.threshold:.2f} "
-        f"(held-out median {float(np.median(reference.distances)):.2f})"
+        f"{seeds[1] - 1}): a frame is flagged beyond {reference.threshold:.2f} "
+        f"(held-out median {float(np.median(reference.held_out)):.2f}, "
+        f"fitted {reference.mean:.2f} ± {reference.std:.2f})"
     )
     return reference

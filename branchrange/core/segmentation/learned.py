@@ -54,7 +54,7 @@ from branchrange.core.segmentation.ood import (
     OodReading,
     OodReference,
     OodReferenceError,
-    frame_statistics,
+    frame_statistic,
     reference_in,
 )
 from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
@@ -384,7 +384,7 @@ class LearnedSegmenter:
         what the reference was measured on whatever the trunk band — or None without a reference."""
         seen = self.seen_width(disparity.shape[1])
         logits = self.first_look(left, disparity)
-        ood = None if self.ood_reference is None else self.ood_reference.reading(frame_statistics(logits))
+        ood = None if self.ood_reference is None else self.ood_reference.reading(frame_statistic(logits))
         band = self.trunk_band(logits)
         if band is not None:  # the columns around the trunk once more, larger: both looks' probabilities averaged
             first, last = band
