@@ -79,9 +79,12 @@ def test_a_segmenter_with_the_signal_off_or_without_a_reference_reports_none(sce
     meta = json.loads(SHIPPED_MODELS["fp32"].with_suffix(".json").read_text(encoding="utf-8"))
     meta.pop(OOD_KEY)
     model.with_suffix(".json").write_text(json.dumps(meta), encoding="utf-8")
-    assert LearnedSegmenter(LearnedSegmenterConfig(model=str(model))).segment(
-        scene["left"], scene["sgbm"], _geometry(scene)
-    ).ood is None
+    assert (
+        LearnedSegmenter(LearnedSegmenterConfig(model=str(model)))
+        .segment(scene["left"], scene["sgbm"], _geometry(scene))
+        .ood
+        is None
+    )
 
 
 def test_a_damaged_reference_is_refused_with_a_clear_message(tmp_path):
