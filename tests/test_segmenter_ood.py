@@ -147,3 +147,35 @@ def _geometry(scene: dict) -> StereoGeometry:
 def test_reading_of_a_value_beyond_every_held_out_frame_scores_one():
     reference = fitted_reference(np.linspace(-7, -5, 30), "line")
     assert reference.reading(0.0).score == 1.0 and math.isfinite(reference.reading(0.0).z)
+
+
+def test_a_models_reference_is_measured_on_frames_stored_in_its_json_and_read_at_load(tmp_path):
+    from branchrange.core.segmentation.branchnet_ood import model_reference, store_reference
+
+    model = tmp_path / "branchnet.onnx"
+    shutil.copy(SHIPPED_MODELS["fp32"], model)
+    meta = json.loads(SHIPPED_MODELS["fp32"].with_suffix(".json").read_text(encoding="utf-8"))
+    meta.pop(OOD_KEY)
+    model.with_suffix(".json").write_text(json.dumps(meta), encoding="utf-8")
+    rng = np.random.default_rng(3)
+    frames = [
+        (rng.integers(0, 256, (96, 160, 3), dtype=np.uint8), rng.uniform(1, 20, (96, 160)).astype(np.float32))
+        for _ in range(12)
+    ]
+    reference = model_reference(model, frames, "noise frames")
+    assert reference.frames == 12 and reference.held_out.size == 4 and reference.domain == "noise frames"
+    store_reference(model, reference)
+    stored = json.loads(model.with_suffix(".json").read_text(encoding="utf-8"))
+    assert stored["onnx_sha256"] == meta["onnx_sha256"] and "confidence_calibrations" in stored  # the rest kept
+    loaded = LearnedSegmenter(LearnedSegmenterConfig(model=str(model))).ood_reference
+    assert loaded is not None and loaded.threshold == pytest.approx(reference.threshold, abs=1e-4)
+
+
+def test_ood_only_refuses_other_modes_and_a_missing_model(tmp_path, capsys):
+    from branchrange.cli import main
+
+    argv = ["train-segmenter", "--out", str(tmp_path), "--ood-only"]
+    assert main([*argv, "--calibrate-only"]) == 2
+    assert "--ood-only excludes" in capsys.readouterr().err
+    assert main(argv) == 2
+    assert "does not exist (train first)" in capsys.readouterr().err

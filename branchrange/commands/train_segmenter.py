@@ -164,7 +164,6 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
 
     def calibrate(path: Path) -> None:
         calibrate_model(path, cache=args.data / "calibration", log=log, workers=args.workers)
-        measure_model_reference(path, args.data / "calibration", log=log)
 
     if args.ood_only:
         for path in [model, *([int8_path(model)] if args.int8 else [])]:

@@ -21,9 +21,10 @@ from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.ood import OOD_KEY, OodReference, fitted_reference, frame_statistic
 
-#: the scenes a model's reference is measured on: the first 160 of the calibration scenes (2861–3100), so a
-#: calibrated model's are rendered already
-OOD_SEEDS = (2861, 3021)
+#: the scenes a model's reference is measured on: the first `OOD_FRAMES` of the calibration scenes (2861–3100),
+#: so a calibrated model's are rendered already
+OOD_FRAMES = 160
+OOD_SEEDS = (2861, 2861 + OOD_FRAMES)
 #: what the shipped models' reference frames are (`OodReference.domain`)
 SHIPPED_DOMAIN = "synthetic park scenes {first}–{last}, 640×360, SGBM, own light"
 
