@@ -6,6 +6,7 @@ it does before and around that call: the frame counts it accepts, what it refuse
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -51,3 +52,14 @@ def test_held_out_seeds_of_each_domain_stay_apart_from_the_fine_tune_frames():
     park, orchard = shifted_domain.scene_seeds("park", 240), shifted_domain.scene_seeds("orchard", 240)
     assert park.start == 50_000 and orchard.start == shifted_domain.SHIFTED_SEED
     assert orchard.stop <= shifted_domain.FINETUNE_SEED
+
+
+def test_export_only_writes_a_labelled_coco_set_and_refuses_none(tmp_path, capsys):
+    pytest.importorskip("pycocotools")
+    with pytest.raises(SystemExit):
+        shifted_domain.main(["--export", "0", "--work", str(tmp_path)])
+    assert "at least 1 frame" in capsys.readouterr().err
+    assert shifted_domain.main(["--export", "1", "--work", str(tmp_path), "--cache", str(tmp_path / "cache")]) == 0
+    coco = json.loads((tmp_path / "coco_1" / "annotations.json").read_text(encoding="utf-8"))
+    assert [image["frame_index"] for image in coco["images"]] == [shifted_domain.FINETUNE_SEED]
+    assert {a["category_id"] for a in coco["annotations"]} == {1, 2}  # branches and the trunk
