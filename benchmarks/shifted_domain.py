@@ -54,6 +54,8 @@ SHIFTED_SEED = 80_000
 #: the frames a fine-tune is given (labelled) start here, apart from every held-out seed
 FINETUNE_SEED = 90_000
 DOMAIN = "orchard"
+#: the whole segmenter is timed this many times a frame with the signal on and off, alternated (`ood_cost_ms`)
+REPEATS = 3
 
 
 def auroc(negatives: Sequence[float], positives: Sequence[float]) -> float:
@@ -128,8 +130,8 @@ def score_model(
 
 def ood_cost_ms(model: Path, cache: Path | None, seeds: Sequence[int]) -> dict:
     """Median ms per frame, same run, frames interleaved: the network's first look, the OOD statistic + reading on
-    it, and the whole segmenter (`segment`, default settings) with the signal on and off — the shipped path's
-    cost of the signal (on / off − 1)."""
+    it, and the whole segmenter (`segment`, default settings) with the signal on and off, each the least of
+    `REPEATS` alternated runs — the shipped path's cost of the signal (median of on / off per frame, − 1)."""
     segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model)))
     without = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), ood=False))
     assert segmenter.ood_reference is not None, "the shipped models carry a reference"
@@ -146,18 +148,23 @@ def ood_cost_ms(model: Path, cache: Path | None, seeds: Sequence[int]) -> dict:
         t2 = time.perf_counter()
         times["look"].append(1000 * (t1 - t))
         times["ood"].append(1000 * (t2 - t1))
-        for key, which in (("on", segmenter), ("off", without)):
-            t = time.perf_counter()
-            which.segment(scene["left"], disparity, geometry)
-            times[key].append(1000 * (time.perf_counter() - t))
+        best = {"on": np.inf, "off": np.inf}
+        for _ in range(REPEATS):  # alternated, the least of each: other processes' load only ever adds time
+            for key, which in (("on", segmenter), ("off", without)):
+                t = time.perf_counter()
+                which.segment(scene["left"], disparity, geometry)
+                best[key] = min(best[key], 1000 * (time.perf_counter() - t))
+        for key, ms in best.items():
+            times[key].append(ms)
     median = {key: float(np.median(values)) for key, values in times.items()}
+    median["ratio"] = float(np.median(np.divide(times["on"], times["off"])))
     return {
         "first_look_ms": median["look"],
         "ood_ms": median["ood"],
         "ratio": median["ood"] / median["look"],
         "segment_on_ms": median["on"],
         "segment_off_ms": median["off"],
-        "segment_ratio": median["on"] / median["off"],
+        "segment_ratio": median["ratio"],
     }
 
 
