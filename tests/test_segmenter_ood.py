@@ -175,7 +175,10 @@ def test_ood_only_refuses_other_modes_and_a_missing_model(tmp_path, capsys):
     from branchrange.cli import main
 
     argv = ["train-segmenter", "--out", str(tmp_path), "--ood-only"]
-    assert main([*argv, "--calibrate-only"]) == 2
-    assert "--ood-only excludes" in capsys.readouterr().err
     assert main(argv) == 2
     assert "does not exist (train first)" in capsys.readouterr().err
+    (tmp_path / "branchnet.onnx").write_bytes(b"a model")
+    assert main([*argv, "--no-calibrate"]) == 2
+    assert "--ood-only excludes" in capsys.readouterr().err
+    assert main([*argv, "--int8"]) == 2  # no int8 copy beside it
+    assert "branchnet_int8.onnx does not exist" in capsys.readouterr().err

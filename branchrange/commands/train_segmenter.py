@@ -6,10 +6,9 @@ to calibrate their confidence (scenes 2861–3100, SGBM, per `branchnet_calibrat
 640 px with and without the second look at the trunk band, and at 1280 px), and writes to --out:
 branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
 "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256, validation IoU, confidence
-calibrations, the out-of-distribution reference "ood"), metrics.csv, training_curve.png and branchnet.pt (the
-torch weights). --calibrate-only re-measures the calibration (and the reference) of the model already in --out;
---ood-only only its out-of-distribution reference (`branchnet_ood`: scenes 2861–3020, ~1 min); --int8 also
-writes branchnet_int8.onnx (+ .json), an int8 copy with its own calibration and reference (`branchnet_quantize`).
+calibrations), metrics.csv, training_curve.png and branchnet.pt (the torch
+weights). --calibrate-only re-measures the calibration of the model already in --out; --int8 also writes
+branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchnet_quantize`).
 
 Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
 the full-resolution feature branch; the first two need no calibration, `--no-calibrate`; 103 min on 2 cores
@@ -63,8 +62,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--ood-only",
         action="store_true",
-        help="only (re)measure the out-of-distribution reference of --out's branchnet.onnx (and its int8 copy with "
-        "--int8), stored in its JSON under 'ood'",
+        help="only (re)measure the out-of-distribution reference of --out's branchnet.onnx (and of its int8 copy "
+        "with --int8) on synthetic scenes 2861–3020, stored in its JSON under 'ood' (`branchnet_ood`; calibrating "
+        "measures it too)",
     )
     p.add_argument(
         "--int8",
@@ -135,11 +135,11 @@ def run(args: argparse.Namespace) -> int:
         return _refuse(f"--workers {args.workers}: at least 1")
     if args.calibrate_only and args.no_calibrate:
         return _refuse("--calibrate-only and --no-calibrate exclude each other")
-    if args.ood_only and (args.calibrate_only or args.no_calibrate):
-        return _refuse("--ood-only excludes --calibrate-only and --no-calibrate")
-    if (args.calibrate_only or args.ood_only) and not model.is_file():
+    if args.calibrate_only and not model.is_file():
         return _refuse(f"{model} does not exist (train first)")
     try:
+        if args.ood_only:
+            return _measure_ood(args, model)
         return _train_and_calibrate(args, model)
     except OnnxSegmenterError as exc:
         return _refuse(str(exc))
@@ -151,12 +151,28 @@ def _refuse(message: str) -> int:
     return 2
 
 
+def _measure_ood(args: argparse.Namespace, model: Path) -> int:
+    """--ood-only: measure the out-of-distribution reference of `model` (and its int8 copy with --int8) on the
+    scenes cached in --data (`branchnet_ood.measure_model_reference`); exit 2 naming a model that is missing or
+    a mode it excludes."""
+    from branchrange.core.segmentation.branchnet_ood import measure_model_reference
+    from branchrange.core.segmentation.branchnet_quantize import int8_path
+
+    if args.calibrate_only or args.no_calibrate:
+        return _refuse("--ood-only excludes --calibrate-only and --no-calibrate")
+    models = [model, *([int8_path(model)] if args.int8 else [])]
+    missing = [path for path in models if not path.is_file()]
+    if missing:
+        return _refuse(f"{missing[0]} does not exist (train first)")
+    for path in models:
+        measure_model_reference(path, args.data / "calibration", log=lambda line: print(line, flush=True))
+    return 0
+
+
 def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
     """`run` once the arguments are checked: train `model` (unless --calibrate-only), calibrate it (unless
     --no-calibrate) in --workers processes, and the int8 copy with --int8."""
     from branchrange.core.segmentation.branchnet_calibration import calibrate_model
-    from branchrange.core.segmentation.branchnet_ood import measure_model_reference
-    from branchrange.core.segmentation.branchnet_quantize import int8_path
     from branchrange.core.segmentation.branchnet_training import train_branchnet
 
     def log(line: str) -> None:
@@ -165,12 +181,6 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
     def calibrate(path: Path) -> None:
         calibrate_model(path, cache=args.data / "calibration", log=log, workers=args.workers)
 
-    if args.ood_only:
-        for path in [model, *([int8_path(model)] if args.int8 else [])]:
-            if not path.is_file():
-                return _refuse(f"{path} does not exist (train first)")
-            measure_model_reference(path, args.data / "calibration", log=log)
-        return 0
     if args.calibrate_only:
         calibrate(model)
     else:
@@ -187,7 +197,7 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
             f"branch {final['iou_branch']:.3f}, trunk {final['iou_trunk']:.3f}"
         )
     if args.int8:
-        from branchrange.core.segmentation.branchnet_quantize import quantize_branchnet
+        from branchrange.core.segmentation.branchnet_quantize import int8_path, quantize_branchnet
 
         quantized = quantize_branchnet(model, args.data)
         if not args.no_calibrate:
