@@ -58,6 +58,10 @@ WORDS_OR_NONE: frozenset[KeyPath] = frozenset({("model", "backend")})
 #: HELP texts of the series whose name does not say enough; the others get "/health's `path`".
 HELP: dict[KeyPath, str] = {
     ("camera", "lost"): "1 while the camera is lost (stalled, gone or unreadable); the relay sends no target.",
+    ("model", "segmenter_ood_flagged"): "1 when the segmenter's model did not look like it knew the last frame "
+    "(out of its training domain); NaN without the signal.",
+    ("model", "segmenter_ood_score"): "Share of the model's training-domain reference frames that hesitated less "
+    "than the last frame (0..1); NaN without the signal.",
     ("camera", "frames"): "Results published by the daemon.",
     ("camera", "dropped"): "Camera frames replaced by a newer one before the stereo stage took them.",
     ("camera", "skipped"): "Stereo outputs replaced before the geometry stage took them.",

@@ -108,3 +108,11 @@ def test_unknown_values_are_nan_and_free_text_is_no_label():
     assert 'branchrange_mavlink_connected{system_id="",component_id=""} 0' in lines
     assert not any("boom" in line or "last_error" in line for line in lines)
     assert 'branchrange_model_info{backend=""} 1' in health_metrics({"model": {"backend": None}})
+
+
+def test_the_segmenters_out_of_distribution_reading_is_in_health_and_metrics(endpoints):
+    health, metrics = endpoints
+    model = health["model"]
+    assert isinstance(model["segmenter_ood_flagged"], bool) and 0.0 <= model["segmenter_ood_score"] <= 1.0
+    samples = _samples(metrics)
+    assert any(k.split("{")[0] == "branchrange_model_segmenter_ood_flagged" for k in samples)

@@ -186,8 +186,10 @@ def test_the_learned_segmenters_instances_are_found_again_at_full_resolution_fro
             looks.append(next(iter(feeds.values())).shape)
             return run(names, feeds)
 
-        def instances_and_note(logits, left, disparity, geometry, light=None, instances=instances, steps=steps):
-            found = instances(logits, left, disparity, geometry, light)
+        def instances_and_note(
+            logits, left, disparity, geometry, light=None, ood=None, instances=instances, steps=steps
+        ):
+            found = instances(logits, left, disparity, geometry, light, ood)
             steps.append((id(logits), disparity.shape, found))
             return found
 
@@ -203,6 +205,7 @@ def test_the_learned_segmenters_instances_are_found_again_at_full_resolution_fro
             # the light is the frame's the network saw, as its calibration tables were measured (at full
             # resolution the noise reads higher: σ averages down when the frame is shrunk)
             assert final.light == steps[0][2].light is not None
+            assert final.ood == steps[0][2].ood is not None  # the one look's out-of-distribution reading
             assert "instances" in result.timing_ms and "refine" not in result.timing_ms
             assert {b.mask_id for b in result.branches} <= set(final.branch_ids())
         else:

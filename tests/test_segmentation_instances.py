@@ -196,12 +196,13 @@ def test_a_stem_crossing_a_limb_at_another_depth_keeps_its_base_when_pieces_foll
 
 
 class _ClassMapSegmenter(LearnedSegmenter):
-    """The learned segmenter's instance stage over a given class map (logits ±10), not the network's."""
+    """The learned segmenter's instance stage over a given class map (logits ±10), not the network's (both looks,
+    and no out-of-distribution reading: `looked` is where `segment` gets them)."""
 
     classes: np.ndarray
 
-    def logits(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
-        return np.stack([np.where(self.classes == k, 10.0, -10.0) for k in range(3)]).astype(np.float32)
+    def looked(self, left: np.ndarray, disparity: np.ndarray) -> tuple[np.ndarray, None]:
+        return np.stack([np.where(self.classes == k, 10.0, -10.0) for k in range(3)]).astype(np.float32), None
 
 
 def test_a_piece_that_stops_short_of_the_trunk_scores_lower_than_one_that_touches_it():

@@ -67,6 +67,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--calibrate-only", action="store_true", help="only (re)calibrate the confidence of --out's branchnet.onnx"
     )
     p.add_argument(
+        "--ood-only",
+        action="store_true",
+        help="only (re)measure the out-of-distribution reference of --out's branchnet.onnx (and of its int8 copy "
+        "with --int8) on synthetic scenes 2861–3020, stored in its JSON under 'ood' (`branchnet_ood`; calibrating "
+        "measures it too)",
+    )
+    p.add_argument(
         "--int8",
         action="store_true",
         help="also write branchnet_int8.onnx, a statically quantized copy (~1.4× faster on CPU), and calibrate it",
@@ -152,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
     if args.calibrate_only and not model.is_file():
         return _refuse(f"{model} does not exist (train first)")
     try:
+        if args.ood_only:
+            return _measure_ood(args, model)
         return _train_and_calibrate(args, model)
     except OnnxSegmenterError as exc:
         return _refuse(str(exc))
@@ -161,6 +170,24 @@ def _refuse(message: str) -> int:
     """Print `message` as the command's error and return its exit status, 2."""
     print(f"branchrange train-segmenter: error: {message}", file=sys.stderr)
     return 2
+
+
+def _measure_ood(args: argparse.Namespace, model: Path) -> int:
+    """--ood-only: measure the out-of-distribution reference of `model` (and its int8 copy with --int8) on the
+    scenes cached in --data (`branchnet_ood.measure_model_reference`); exit 2 naming a model that is missing or
+    a mode it excludes."""
+    from branchrange.core.segmentation.branchnet_ood import measure_model_reference
+    from branchrange.core.segmentation.branchnet_quantize import int8_path
+
+    if args.calibrate_only or args.no_calibrate:
+        return _refuse("--ood-only excludes --calibrate-only and --no-calibrate")
+    models = [model, *([int8_path(model)] if args.int8 else [])]
+    missing = [path for path in models if not path.is_file()]
+    if missing:
+        return _refuse(f"{missing[0]} does not exist (train first)")
+    for path in models:
+        measure_model_reference(path, args.data / "calibration", log=lambda line: print(line, flush=True))
+    return 0
 
 
 def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:

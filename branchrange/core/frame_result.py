@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from branchrange.core.light_check import LightReading
     from branchrange.core.pair_check import PairCheck
     from branchrange.core.roi import Region
+    from branchrange.core.segmentation.ood import OodReading
 
 SCHEMA_ID: Final = "branchrange/v1"
 #: The schema generated from these classes (`json_schema`), kept in the package for other languages' readers.
@@ -116,6 +117,34 @@ class LightInfo(JsonPart):
             round(reading.noise_grey, 2),
             reading.message,
         )
+
+
+@with_config(_STRICT)
+@dataclass(frozen=True)
+class SegmenterOod(JsonPart):
+    """Whether the learned segmenter's model looks like it knows this scene (`segmentation.ood`): how much more
+    it hesitates over open background than on its training domain (the reference in the model's JSON)."""
+
+    score: Annotated[
+        Fraction,
+        Field(description="share of the reference's held-out training-domain frames that lie nearer (0.5 typical)"),
+    ]
+    z: Annotated[
+        float,
+        Field(
+            description="the frame's share of hesitant background (log) in standard deviations above the training "
+            "domain's mean"
+        ),
+    ]
+    flagged: Annotated[
+        bool,
+        Field(description="true when the frame hesitates more than 99 % of training-domain frames"),
+    ]
+
+    @classmethod
+    def from_reading(cls, reading: OodReading) -> SegmenterOod:
+        """The written form of a `segmentation.ood.OodReading`."""
+        return cls(float(reading.score), float(reading.z), bool(reading.flagged))
 
 
 @with_config(_STRICT)
@@ -381,6 +410,7 @@ class FrameResult(JsonPart):
     keyframe_age_s: Annotated[
         NonNegFloat | None, Field(description="seconds from the keyframe its instances descend from (0 on a keyframe)")
     ] = None
+    segmenter_ood: SegmenterOod | None = None
 
     def __post_init__(self) -> None:
         if self.target_id is not None and all(b.id != self.target_id for b in self.branches):

@@ -18,6 +18,7 @@ import numpy as np
 
 from branchrange.core.confidence import ConfidenceCalibration, visible_length_factor
 from branchrange.core.light_check import LightReading
+from branchrange.core.segmentation.ood import OodReading
 
 #: The trunk's id in instance masks unless configured otherwise (the synthetic generator's value).
 DEFAULT_TRUNK_ID = 65535
@@ -202,7 +203,8 @@ class BranchMasks:
     least confidence a target needs in that light by its calibration, beyond the settings' own (0: none
     beyond them; `math.inf`: no confidence in that light was reliable enough for a target).
     `visible_length_scale_m` (> 0): a cut point's confidence is also scaled by how long its branch is seen
-    (`visible_length_factor`), as the segmenter's calibration was measured with it; 0: not. The
+    (`visible_length_factor`), as the segmenter's calibration was measured with it; 0: not. `ood`: the learned
+    segmenter's reading of whether its model knows the frame (`segmentation.ood`), None without one. The
     ids, sizes and bounding boxes are indexed once, on first use (`index`): treat `labels` as
     read-only after that.
     """
@@ -216,6 +218,7 @@ class BranchMasks:
     light: LightReading | None = None
     target_min_confidence: float = 0.0
     visible_length_scale_m: float = 0.0
+    ood: OodReading | None = None
 
     def reported_confidence(self, branch_id: int) -> Callable[[float, float], float] | None:
         """How a cut point's own confidence and its branch's visible length (m) become the reported confidence

@@ -41,6 +41,7 @@ from branchrange.core.frame_result import (
     PairCheckInfo,
     RoiInfo,
     RoiRegion,
+    SegmenterOod,
     StereoInfo,
 )
 from branchrange.core.geometry import StereoGeometry, offset_disparity, valid_disparity
@@ -57,6 +58,7 @@ from branchrange.core.masks import (
 from branchrange.core.pair_check import PairCheck, check_rectification
 from branchrange.core.region_budget import branch_scales
 from branchrange.core.roi import CoarseToFine, CoarseToFineResult, CoarseTrunk, Region, branch_gates
+from branchrange.core.segmentation.ood import OodWarnings
 from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.core.timing import lap_ms
 from branchrange.core.tracking import BranchTracker, TrackerConfig
@@ -216,6 +218,7 @@ class Pipeline:
         self._backend = backend
         self.segmenter: Segmenter = segmenter or self.config.segmenter.build()
         self.tracker = BranchTracker(self.config.tracker)
+        self.ood_warnings = OodWarnings()
         self.keyframes = KeyframeSchedule()
         self.keyframe_worker = KeyframeWorker(self._keyframe)  # its thread starts with the first keyframe handed over
         self._worker_coarse_to_fine: CoarseToFine | None = None  # the worker's own matchers, built on first use
@@ -620,6 +623,8 @@ class Pipeline:
         if target is None and cut.branches:
             reason = no_target_reason(needed, masks)
         timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
+        ood = None if masks is None else masks.ood
+        self.ood_warnings.note(ood)
         return FrameResult(
             frame=Frame(stage.index, stage.timestamp_ns, int(left.shape[1]), int(left.shape[0])),
             camera=CameraInfo(geometry.focal_px, geometry.baseline_m, geometry.cx, geometry.cy),
@@ -644,6 +649,7 @@ class Pipeline:
             pair_check=None if stage.pair_check is None else PairCheckInfo.from_check(stage.pair_check),
             origin=stage.origin,
             keyframe_age_s=stage.keyframe_age_s,
+            segmenter_ood=None if ood is None else SegmenterOod.from_reading(ood),
         )
 
 

@@ -332,8 +332,8 @@ class CoarseToFine:
         if masks is None:
             refind = self.config.full_resolution_instances and full_resolution_instances
             if refind and scale > 1 and hasattr(self.segmenter, "instances"):
-                coarse_logits = self.segmenter.logits(left_small, coarse.disparity)
-                found = self.segmenter.instances(coarse_logits, left_small, coarse.disparity, small_geometry)
+                coarse_logits, ood = self.segmenter.looked(left_small, coarse.disparity)
+                found = self.segmenter.instances(coarse_logits, left_small, coarse.disparity, small_geometry, ood=ood)
             else:
                 found = self.segmenter.segment(left_small, coarse.disparity, small_geometry, coarse.confidence)
             coarse_labels = found.labels
@@ -366,7 +366,12 @@ class CoarseToFine:
         t = lap_ms(timing, "roi_stereo", t)
         if coarse_logits is not None:
             instances = self.segmenter.instances(
-                coarse_logits, left, finest_disparity(disparity, coarse.disparity, scale), geometry, instances.light
+                coarse_logits,
+                left,
+                finest_disparity(disparity, coarse.disparity, scale),
+                geometry,
+                instances.light,
+                instances.ood,
             )
             labels_full = instances.labels
             coarse_labels = on_coarse_grid(labels_full, scale, small)

@@ -202,7 +202,8 @@ class Daemon:
         return replace(result, freshness=Freshness(round(age_s, 3), age_s > limit, limit))
 
     def health(self) -> dict[str, Any]:
-        """Model, camera and link state (for GET /health)."""
+        """Model, camera and link state (for GET /health); the model's state includes the last frame's
+        out-of-distribution reading (`FrameResult.segmenter_ood`: score and flag; None without one)."""
         camera = {
             "source": self.cfg.camera.source,
             "lost": self.camera_lost,
@@ -215,11 +216,15 @@ class Daemon:
             "late": self.late,
             "repeated": self.repeated,
         }
+        latest = self._latest
+        ood = None if latest is None else latest[0].segmenter_ood  # the last frame's: does the model know it?
         model = {
             "loaded": True,
             "backend": self.cfg.stereo.backend,
             "max_disp": self.cfg.stereo.max_disp,
             "mode": self.cfg.stereo.mode,
+            "segmenter_ood_score": None if ood is None else ood.score,
+            "segmenter_ood_flagged": None if ood is None else ood.flagged,
         }
         return {
             "model": model,

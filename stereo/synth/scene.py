@@ -22,6 +22,15 @@ from stereo.synth.cones import BarkMaterial, Cone
 from stereo.synth.hardware import orchard_hardware
 from stereo.synth.leaves import Leaf
 from stereo.synth.options import SynthOptions
+from stereo.synth.orchard import (
+    ESPALIER_AZIMUTH_DEG,
+    ESPALIER_ELEVATION_DEG,
+    ORCHARD_BARKS,
+    ORCHARD_LEAF_COLOURS,
+    TRUNK_LEAN,
+    orchard_bark_tile,
+    orchard_light,
+)
 from stereo.synth.planes import PlaneLayer
 from stereo.synth.primitives import Lighting, cross3, norm3, rowdot, unit, unit_rows
 from stereo.synth.sky import Sky
@@ -133,7 +142,11 @@ class _SceneBuilder:
         self.leaves: list[Leaf] = []
         self.leafy_twigs: list[tuple[np.ndarray, np.ndarray, float, int]] = []
         self.detail = MipTile(detail_tile(rng))
-        self.leaf_colour = np.array(_LEAF_COLOURS[str(rng.choice(list(_LEAF_COLOURS), p=[0.3, 0.4, 0.15, 0.15]))])
+        self.orchard = options.domain == "orchard"
+        if self.orchard:
+            self.leaf_colour = np.array(ORCHARD_LEAF_COLOURS[str(rng.choice(list(ORCHARD_LEAF_COLOURS)))])
+        else:
+            self.leaf_colour = np.array(_LEAF_COLOURS[str(rng.choice(list(_LEAF_COLOURS), p=[0.3, 0.4, 0.15, 0.15]))])
 
     # -- checks in the camera frame ---------------------------------------------------------
     def _in_image_fraction(self, points_cam: np.ndarray, margin: float = 0.0) -> float:
@@ -187,7 +200,8 @@ class _SceneBuilder:
         frac = rng.uniform(-0.8, 0.8) if rng.random() < 0.85 else rng.choice([-1, 1]) * rng.uniform(1.0, 1.3)
         target = distance * self.frame.forward + frac * distance * self.tan_half_h * self.frame.right
         ground_y = max(target[1], 0.0) + rng.uniform(*_GROUND_BELOW_M[self.pose])
-        axis = unit(np.array([rng.uniform(-0.12, 0.12), -1.0, rng.uniform(-0.12, 0.12)]))
+        lean = TRUNK_LEAN if self.orchard else 0.12
+        axis = unit(np.array([rng.uniform(-lean, lean), -1.0, rng.uniform(-lean, lean)]))
         foot = np.array([target[0], ground_y, target[2]])
         top_above_camera = rng.uniform(6.0, 12.0)
         length = (ground_y + top_above_camera) / -axis[1]
@@ -239,8 +253,12 @@ class _SceneBuilder:
         rng = self.rng
         for _ in range(40):
             s_att = rng.uniform(*span)
-            azimuth = rng.uniform(0, 2 * np.pi)
-            elevation = np.radians(rng.uniform(-20.0, 60.0))
+            if self.orchard:  # espalier: nearly level, along the row (world x) either way
+                along = rng.choice([0.0, np.pi]) + np.radians(rng.uniform(-ESPALIER_AZIMUTH_DEG, ESPALIER_AZIMUTH_DEG))
+                azimuth, elevation = along, np.radians(rng.uniform(*ESPALIER_ELEVATION_DEG))
+            else:
+                azimuth = rng.uniform(0, 2 * np.pi)
+                elevation = np.radians(rng.uniform(-20.0, 60.0))
             axis = np.array(
                 [np.cos(elevation) * np.cos(azimuth), -np.sin(elevation), np.cos(elevation) * np.sin(azimuth)]
             )
@@ -374,7 +392,7 @@ class _SceneBuilder:
     def _main_tree(self) -> tuple[list[BranchTruth], float]:
         """Trunk, branches, twigs and leaves of the tree being pruned; returns the truth and ground depth."""
         rng = self.rng
-        tile = MipTile(bark_tile(rng, str(rng.choice(list(BARK_KINDS)))))
+        tile = self._bark_tile()
         for _ in range(10):
             self.cones, self.leaves, self.leafy_twigs = [], [], []
             foot, trunk_axis, trunk_len, r_ground, r_top, ground_y = self._trunk()
@@ -423,6 +441,13 @@ class _SceneBuilder:
                 self._grow_leaves()
                 return truths, ground_y
         raise RuntimeError("could not place two branches in view after 10 tree layouts; the camera is too narrow")
+
+    def _bark_tile(self) -> MipTile:
+        """A bark of the scene's domain: one of `BARK_KINDS`, or of `ORCHARD_BARKS` in the orchard."""
+        rng = self.rng
+        if self.orchard:
+            return MipTile(orchard_bark_tile(rng, str(rng.choice(list(ORCHARD_BARKS)))))
+        return MipTile(bark_tile(rng, str(rng.choice(list(BARK_KINDS)))))
 
     def _crown(
         self, foot: np.ndarray, trunk_axis: np.ndarray, trunk_len: float, trunk_radius: RadiusProfile, tile: MipTile
@@ -484,8 +509,12 @@ class _SceneBuilder:
     def _ground(self, ground_y: float) -> PlaneLayer:
         """The ground plane `ground_y` m below the camera: grass and soil patches."""
         rng = self.rng
-        grass = np.array([0.26, 0.36, 0.12]) * rng.uniform(0.7, 1.2)
-        soil = np.array([0.36, 0.28, 0.19]) * rng.uniform(0.7, 1.2)
+        if self.orchard:  # a mown, yellowing alley over dark soil
+            grass = np.array([0.32, 0.35, 0.14]) * rng.uniform(0.8, 1.1)
+            soil = np.array([0.20, 0.16, 0.12]) * rng.uniform(0.7, 1.2)
+        else:
+            grass = np.array([0.26, 0.36, 0.12]) * rng.uniform(0.7, 1.2)
+            soil = np.array([0.36, 0.28, 0.19]) * rng.uniform(0.7, 1.2)
         return PlaneLayer(
             self.frame.point(np.array([0.0, ground_y, 0.0])),
             self.frame.direction(np.array([1.0, 0, 0])),
@@ -583,6 +612,8 @@ class _SceneBuilder:
     def _sky_and_light(self) -> tuple[Sky, Lighting]:
         """A sunny (65 %) or overcast sky with clouds, and the sun, ambient light and haze that go with it."""
         rng = self.rng
+        if self.orchard:
+            return self._orchard_sky_and_light()
         sunny = rng.random() < 0.65
         if sunny:
             zenith = np.array([0.25, 0.45, 0.85]) * rng.uniform(0.85, 1.1)
@@ -606,21 +637,66 @@ class _SceneBuilder:
         light = Lighting(unit(self.frame.direction(sun_world)), sun_rgb, ambient, horizon, rng.uniform(60.0, 200.0))
         return sky, light
 
+    def _orchard_sky_and_light(self) -> tuple[Sky, Lighting]:
+        """The orchard's low warm sun or dim overcast (`orchard.orchard_light`), the sun from any azimuth."""
+        rng = self.rng
+        drawn = orchard_light(rng)
+        elevation, azimuth = drawn.elevation_rad, rng.uniform(0, 2 * np.pi)
+        sun_world = np.array(
+            [np.cos(elevation) * np.sin(azimuth), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
+        )
+        sky = Sky(
+            self.frame.world_from_camera,
+            drawn.zenith,
+            drawn.horizon,
+            drawn.cloud_rgb,
+            cloud_tile(rng, drawn.cover),
+            rng.uniform(0.05, 0.2),
+        )
+        haze = rng.uniform(60.0, 200.0)
+        return sky, Lighting(unit(self.frame.direction(sun_world)), drawn.sun_rgb, drawn.ambient, drawn.horizon, haze)
+
+    def _row_behind(self, tile: MipTile, ground_y: float) -> None:
+        """The next row of espalier trees, 4.5–8 m away along the camera's right (mask id 0, beyond the working
+        range): upright trunks 1.2–2 m apart, each with level branches in tiers along the row."""
+        rng = self.rng
+        horizontal = unit(np.array([self.frame.forward[0], 0.0, self.frame.forward[2]]))
+        side = np.array([horizontal[2], 0.0, -horizontal[0]])
+        distance, spacing = rng.uniform(4.5, 8.0), rng.uniform(1.2, 2.0)
+        reach = distance * self.tan_half_h + 2.0
+        tint = np.full(3, rng.uniform(0.6, 0.9))
+        for offset in np.arange(-reach + rng.uniform(0.0, spacing), reach, spacing):
+            foot = distance * horizontal + offset * side
+            foot[1] = ground_y
+            r_ground = rng.uniform(0.06, 0.14)
+            height = ground_y + rng.uniform(1.0, 2.5)
+            self._cone(foot, UP, height, r_ground, 0.5 * r_ground, self._bark(tile, r_ground, tint), 0)
+            for tier in np.arange(rng.uniform(0.4, 0.7), height - 0.3, rng.uniform(0.4, 0.6)):
+                for direction in (side, -side):
+                    length, r0 = rng.uniform(0.5, 0.9) * spacing, rng.uniform(0.01, 0.025)
+                    start = foot + tier * UP
+                    if norm3(self._axis_points(start, direction, length, 8)).min() < BRANCH_RANGE_M[1] + 0.2:
+                        continue
+                    b_axis = unit(direction + np.array([0.0, rng.uniform(-0.1, 0.05), 0.0]))
+                    self._cone(start, b_axis, length, r0, 0.4 * r0, self._bark(tile, r0, tint), 0)
+
     def build(self) -> SceneDescription:
         """Draw the whole scene."""
         sky, light = self._sky_and_light()
         branches, ground_y = self._main_tree()
         tree_cones, tree_leaves = list(self.cones), list(self.leaves)
         self.cones, self.leaves = [], []
-        bark = MipTile(bark_tile(self.rng, str(self.rng.choice(list(BARK_KINDS)))))
-        if self.options.background_trees:
+        bark = self._bark_tile()
+        if self.orchard:
+            self._row_behind(bark, ground_y)
+        elif self.options.background_trees:
             self._background_trees(bark, ground_y)
         layers = [self._ground(ground_y), *self._tree_rows(ground_y, bark)]
         canopy = self._canopy()
         if canopy is not None:
             layers.append(canopy)
         exposure_target = float(self.rng.uniform(0.36, 0.5))
-        if self.options.orchard_hardware:  # drawn last: without it a seed's scene is what it always was
+        if self.options.orchard_hardware or self.orchard:  # drawn last: without it a seed's scene is what it always was
             self._hardware(ground_y)
         return SceneDescription(
             self.pose,

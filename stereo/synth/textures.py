@@ -45,7 +45,7 @@ def periodic_noise(
     return ((field - field.mean()) / (field.std() + 1e-12)).astype(np.float32)
 
 
-def _unit(noise: np.ndarray) -> np.ndarray:
+def unit_range(noise: np.ndarray) -> np.ndarray:
     """Map zero-mean unit-std noise to [0, 1] smoothly."""
     return (0.5 + 0.5 * np.tanh(0.8 * noise)).astype(np.float32)
 
@@ -55,8 +55,8 @@ def bark_tile(rng: np.random.Generator, kind: str) -> np.ndarray:
     base, furrow_depth, lenticels = BARK_KINDS[kind]
     base_rgb = np.clip(np.array(base) * rng.uniform(0.85, 1.15) + rng.normal(0, 0.03, 3), 0.05, 0.95)
     furrows = np.exp(-((periodic_noise(rng, 2.5, 22.0, slope=2.5) / 0.45) ** 2))
-    grain = _unit(periodic_noise(rng, 48.0, 48.0, slope=1.5))
-    patches = _unit(periodic_noise(rng, 2.0, 2.0))
+    grain = unit_range(periodic_noise(rng, 48.0, 48.0, slope=1.5))
+    patches = unit_range(periodic_noise(rng, 2.0, 2.0))
     shade = (0.72 + 0.42 * grain) * (1.0 - furrow_depth * furrows)
     colour = base_rgb[None, None, :] * shade[..., None] * (0.8 + 0.4 * patches[..., None])
     lichen = np.clip(patches - 0.62, 0.0, 1.0)[..., None] * rng.uniform(0.0, 2.0)
@@ -73,7 +73,7 @@ def foliage_tile(rng: np.random.Generator, hue: tuple[float, float, float], cove
     leaves = periodic_noise(rng, 36.0, 36.0, slope=1.5)
     density = clumps + 0.3 * leaves
     threshold = np.quantile(density, 1.0 - coverage)
-    light = _unit(0.9 * leaves + 0.7 * clumps)
+    light = unit_range(0.9 * leaves + 0.7 * clumps)
     colour = np.array(hue)[None, None, :] * (0.45 + 0.9 * light[..., None])
     alpha = (density > threshold).astype(np.float32)
     return np.concatenate([np.clip(colour, 0, 1), alpha[..., None]], axis=2).astype(np.float32)
@@ -83,8 +83,8 @@ def ground_tile(
     rng: np.random.Generator, grass: tuple[float, float, float], soil: tuple[float, float, float]
 ) -> np.ndarray:
     """RGB ground `S×S×3`: grass and soil patches with fine blades/litter."""
-    patches = _unit(periodic_noise(rng, 3.0, 3.0))
-    fine = _unit(periodic_noise(rng, 60.0, 60.0, slope=1.2))
+    patches = unit_range(periodic_noise(rng, 3.0, 3.0))
+    fine = unit_range(periodic_noise(rng, 60.0, 60.0, slope=1.2))
     mix = np.clip((patches - 0.45) * 1.8 + 0.5, 0.0, 1.0)[..., None]
     colour = (np.array(grass) * mix + np.array(soil) * (1 - mix)) * (0.55 + 0.9 * fine[..., None])
     return np.clip(colour, 0.0, 1.0).astype(np.float32)
@@ -99,7 +99,7 @@ def cloud_tile(rng: np.random.Generator, cover: float) -> np.ndarray:
 
 def detail_tile(rng: np.random.Generator) -> np.ndarray:
     """Fine grey detail `S×S×1` around 1.0 (leaf blades' veins and mottling)."""
-    return (0.8 + 0.4 * _unit(periodic_noise(rng, 24.0, 6.0, slope=1.6)))[..., None].astype(np.float32)
+    return (0.8 + 0.4 * unit_range(periodic_noise(rng, 24.0, 6.0, slope=1.6)))[..., None].astype(np.float32)
 
 
 def sample_tile(tile: np.ndarray, u_px: np.ndarray, v_px: np.ndarray) -> np.ndarray:

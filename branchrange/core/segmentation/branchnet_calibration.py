@@ -139,6 +139,7 @@ def calibrate_model(
     light_changes: Sequence[str] = CALIBRATION_LIGHT_CHANGES,
     min_cut_points: int = MIN_CUT_POINTS_PER_LIGHT,
     workers: int = 1,
+    measure_ood: bool = True,
 ) -> dict[tuple[int, int, str], ConfidenceCalibration]:
     """Fit the confidence calibration of the ONNX `model` for each (network width, trunk band) of `settings`
     and each class of light with at least `min_cut_points` cut points (the scenes in their own light and under
@@ -146,7 +147,9 @@ def calibrate_model(
     there). Each table records the least calibrated confidence at which ≥ 90 % of its cut points are right
     ("target_min_confidence", null when none is) and the highest that keeps ≥ 98 % of the right ones. A
     setting with which the model finds no cut point in normal light gets none (its confidences stay raw). The
-    scenes are measured in `workers` processes (`outcomes_in_workers`); the tables do not depend on how many."""
+    scenes are measured in `workers` processes (`outcomes_in_workers`); the tables do not depend on how many.
+    With `measure_ood`, the model's out-of-distribution reference is then measured on the first 160 of the
+    scenes and stored beside the tables (`measure_reference_on`, "ood")."""
     tables, calibrations = [], {}
     measured = outcomes_in_workers(model, seeds, cache, settings, light_changes, workers)
     for width, band in settings:
@@ -188,4 +191,23 @@ def calibrate_model(
     meta.pop("confidence_calibration", None)  # the single table of before widths were recorded
     meta["confidence_calibrations"] = tables
     meta_path.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    if measure_ood:
+        measure_reference_on(model, seeds, cache, log)
     return calibrations
+
+
+def measure_reference_on(model: Path, seeds: tuple[int, int], cache: Path | None, log: Callable[[str], object]) -> None:
+    """Measure the out-of-distribution reference of `model` on the first `OOD_FRAMES` of the calibration scenes
+    `seeds` (`branchnet_ood.measure_model_reference`); with fewer than `ood.MIN_REFERENCE_FRAMES` of them, say so
+    and leave the model's JSON as it is."""
+    from branchrange.core.segmentation.branchnet_ood import OOD_FRAMES, measure_model_reference  # imports the segmenter
+    from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES
+
+    first, last = seeds[0], min(seeds[1], seeds[0] + OOD_FRAMES)
+    if last - first < MIN_REFERENCE_FRAMES:
+        log(
+            f"only {last - first} scenes: too few for an out-of-distribution reference "
+            f"(at least {MIN_REFERENCE_FRAMES})"
+        )
+        return
+    measure_model_reference(model, cache, (first, last), log)

@@ -127,6 +127,11 @@ def _hardware_tag(hardware: bool) -> str:
     return "hw_" if hardware else ""
 
 
+def _domain_tag(domain: str) -> str:
+    """The part of a cached file's name that keeps scenes of another domain than the park apart."""
+    return "" if domain == "park" else f"{domain}_"
+
+
 def _size_tag(width: int, height: int) -> str:
     """The part of a cached file's name that keeps scenes of another size than 640×360 apart."""
     return "" if (width, height) == (640, 360) else f"{width}x{height}_"
@@ -142,17 +147,19 @@ def evaluation_max_disp(width: int) -> int:
     return EVALUATION_MAX_DISP * max(1, round(width / 640))
 
 
-def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640, 360), hardware: bool = False) -> dict:
+def evaluation_scene(
+    seed: int, cache: Path | None, size: tuple[int, int] = (640, 360), hardware: bool = False, domain: str = "park"
+) -> dict:
     """A scene as the segmenter is scored on it: the default renderer options at `size` (plus orchard hardware
-    when `hardware`), SGBM over `evaluation_max_disp(width)` px, truth cut points. Keys: left, right, disparity
-    (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px, B m, cx, cy), truth (list of {"cut_point_m",
-    "cut_visible"}). Cached in `cache` when given (a cached scene from before the right image was kept is
-    rendered again).
+    when `hardware`; of `domain`, `SynthOptions.domain`), SGBM over `evaluation_max_disp(width)` px, truth cut
+    points. Keys: left, right, disparity (exact), mask (renderer ids), sgbm, sgbm_conf, camera (f px, B m, cx,
+    cy), truth (list of {"cut_point_m", "cut_visible"}). Cached in `cache` when given (a cached scene from
+    before the right image was kept is rendered again).
 
     The same seed at another size is the same scene in most cases but not all: the renderer's random draws
     depend on what is visible in pixels, so about one seed in four (55 of the 240 held-out ones) places its
     branches elsewhere."""
-    tag = _hardware_tag(hardware) + _size_tag(size[0], size[1])
+    tag = _domain_tag(domain) + _hardware_tag(hardware) + _size_tag(size[0], size[1])
     path = cache / f"scene_{tag}{seed}.npz" if cache is not None else None
     if path is not None and path.is_file():
         with np.load(path, allow_pickle=False) as data:
@@ -163,7 +170,7 @@ def evaluation_scene(seed: int, cache: Path | None, size: tuple[int, int] = (640
     from stereo.backends import make_backend
     from stereo.synth import SynthCamera, render_scene
 
-    rendered = render_scene(seed, SynthCamera.zed_mini(*size), orchard_hardware=hardware)
+    rendered = render_scene(seed, SynthCamera.zed_mini(*size), orchard_hardware=hardware, domain=domain)
     stereo = make_backend("sgbm", max_disp=evaluation_max_disp(size[0])).compute(rendered.left, rendered.right)
     cam = rendered.camera
     truth = [{"cut_point_m": list(b.cut_point_m), "cut_visible": bool(b.cut_visible)} for b in rendered.branches]

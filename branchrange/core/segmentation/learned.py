@@ -52,6 +52,13 @@ from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
 from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input
 from branchrange.core.segmentation.bundle import bundle_model
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
+from branchrange.core.segmentation.ood import (
+    OodReading,
+    OodReference,
+    OodReferenceError,
+    frame_statistic,
+    reference_in,
+)
 from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
@@ -160,6 +167,10 @@ class LearnedSegmenterConfig(Settings):
       depth's precision entered the confidence every shipped table has one). Held out, calibration error at
       dusk 0.108 → 0.056 and at high gain 0.096 → 0.019 against the normal-light table (benchmarks/RESULTS.md);
       off = every frame through the normal-light calibration, as before lights were measured.
+    - `ood`: read each frame's out-of-distribution signal (`ood`: how far the network's class probabilities on
+      the frame lie from those on its training domain, against the reference in the model's JSON under "ood")
+      into the result (`segmenter_ood`) and warn when the model does not look like it knows the scene; off, or a
+      model whose JSON has no reference, = no signal. ~1–2 ms a 640×360 frame.
     - `threads`: onnxruntime intra-op threads. 1 by default: onboard the segmenter runs in the stereo
       thread while the geometry thread works on the other core (roi-sgbm on the synthetic flight:
       9.9–10.7 fresh Hz with 1 thread, 8.5–9.2 with 2); alone it costs 62 / 53 ms (1 / 2 threads) on a
@@ -202,6 +213,7 @@ class LearnedSegmenterConfig(Settings):
     piece_disparity_ratio: float = 0.0
     calibrated: bool = True
     light_calibration: bool = True
+    ood: bool = True
     threads: int = 1
     trunk_id: int = DEFAULT_TRUNK_ID
 
@@ -325,7 +337,8 @@ class LearnedSegmenter:
         meta = verified_metadata(self.model_path)
         try:
             self.calibrations = calibrations_by_setting(meta) if config.calibrated else {}
-        except ValueError as exc:
+            self.ood_reference: OodReference | None = reference_in(meta) if config.ood else None
+        except (ValueError, OodReferenceError) as exc:
             raise OnnxSegmenterError(f"learned segmenter: {self.model_path.with_suffix('.json')}: {exc}") from None
         # the int8 copy (metadata "quantization") gains from onnxruntime's blocked layout, fp32 loses (see there)
         self.session = onnx_session(self.model_path, config.threads, blocked_layout="quantization" in meta)
@@ -369,15 +382,27 @@ class LearnedSegmenter:
         network saw — and returned as log-probabilities (logits of the same softmax). In the `trunk_band`
         the network looks once more at `TRUNK_BAND_ZOOM` times that size, and there the log of the two
         looks' mean probabilities is returned."""
+        return self.looked(left, disparity)[0]
+
+    def looked(self, left: np.ndarray, disparity: np.ndarray) -> tuple[np.ndarray, OodReading | None]:
+        """`logits` of a frame and its out-of-distribution reading (`ood`), taken on the first look's logits —
+        what the reference was measured on whatever the trunk band — or None without a reference."""
         seen = self.seen_width(disparity.shape[1])
-        logits = self._logits_seen_at(left, disparity, seen)
+        logits = self.first_look(left, disparity)
+        ood = None if self.ood_reference is None else self.ood_reference.reading(frame_statistic(logits))
         band = self.trunk_band(logits)
         if band is not None:  # the columns around the trunk once more, larger: both looks' probabilities averaged
             first, last = band
             zoomed = band_seen_width(last - first, seen / disparity.shape[1])
             second = self._logits_seen_at(left[:, first:last], disparity[:, first:last], zoomed)
             logits[:, :, first:last] = log_mean_probability(logits[:, :, first:last], second)
-        return logits
+        return logits, ood
+
+    def first_look(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """`float32 (3, H, W)` logits of the network's first look at a frame, at `network_width` and brought back
+        to the frame's size (`logits` without the trunk band's second look): what the out-of-distribution
+        statistics are taken on, at run time and when a model's reference is measured (`branchnet_ood`)."""
+        return self._logits_seen_at(left, disparity, self.seen_width(disparity.shape[1]))
 
     def trunk_band(self, logits: np.ndarray) -> tuple[int, int] | None:
         """Columns [first, last) within `trunk_band_px` of the columns the `(3, H, W)` logits call trunk
@@ -414,7 +439,8 @@ class LearnedSegmenter:
         disparity = np.asarray(disparity, dtype=np.float32)
         if left.shape[:2] != disparity.shape:
             raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
-        return self.instances(self.logits(left, disparity), left, disparity, geometry)
+        logits, ood = self.looked(left, disparity)
+        return self.instances(logits, left, disparity, geometry, ood=ood)
 
     def instances(
         self,
@@ -423,6 +449,7 @@ class LearnedSegmenter:
         disparity: np.ndarray,
         geometry: StereoGeometry,
         light: LightReading | None = None,
+        ood: OodReading | None = None,
     ) -> BranchMasks:
         """`segment` given the network's class logits (`float32 (3, h, w)`, as `logits` returns them) of the frame
         `left` (`uint8 H×W×3`) with `disparity` (`float32 H×W` px) — or of that frame shrunk s = W / w times:
@@ -431,7 +458,8 @@ class LearnedSegmenter:
         pixels, `min_area_px` and the bridged gap grow s times (a thin stem's area grows with its length),
         and the light and the confidences are read as at the width the network saw (its tables' classes of
         light were measured there: shrinking a frame averages its noise down). `light`: that frame's light
-        when already measured (the coarse step's), else it is measured here."""
+        when already measured (the coarse step's), else it is measured here; `ood`: the frame's
+        out-of-distribution reading (`looked`), carried in the masks."""
         cfg = self.config
         size = (logits.shape[2], logits.shape[1])  # the frame's, or the coarse look's (W, H)
         width, scale = size[0], disparity.shape[1] / size[0]
@@ -507,6 +535,7 @@ class LearnedSegmenter:
             if measured is None or measured.light == "normal"
             else measured.target_min_confidence,
             visible_length_scale_m=cfg.visible_length_scale_m,
+            ood=ood,
         )
 
 
