@@ -30,6 +30,7 @@ from branchrange.core.segmentation.coco_labels import (
 )
 from branchrange.core.segmentation.learned import SHIPPED_MODEL, calibrations_by_setting
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
+from branchrange.core.segmentation.ood import reference_in
 
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation doesn't accept a copy keyword")
 mask_api = pytest.importorskip("pycocotools.mask", reason="pycocotools (the 'coco' extra) reads the labels")
@@ -67,7 +68,7 @@ def _rle(mask: np.ndarray, compressed: bool) -> dict:
     return {"size": list(mask.shape), "counts": np.diff(np.concatenate([[0], edges])).tolist()}
 
 
-def write_dataset(folder, count: int = 6) -> dict:
+def write_dataset(folder, count: int = 12) -> dict:
     """`count` drawn frames as export-frames lays them out: images/, stereo/, annotations.json with the trunk as
     RLE (compressed in even frames, plain in odd ones), the stem as a polygon, and a 'leaf' left to ignore."""
     (folder / "images").mkdir(parents=True)
@@ -114,7 +115,7 @@ def bundle(dataset, tmp_path_factory):
 def test_coco_polygons_and_rle_are_read_by_category_name_and_others_left_out(dataset):
     said = []
     frames = read_labelled_frames(dataset / "annotations.json", dataset / "images", log=said.append)
-    assert len(frames) == 6 and "['leaf'] left out" in said[0]
+    assert len(frames) == 12 and "['leaf'] left out" in said[0]
     for i, frame in enumerate(frames):
         _, disparity, trunk, branch = _frame(i)
         classes = frame.sample["classes"]
@@ -159,13 +160,16 @@ def test_a_fine_tune_changes_the_weights_and_writes_a_bundle_that_segments_a_fra
     tuned = branchnet_from_onnx(bundle / "branchnet.onnx", meta["width"], meta["fine_width"]).state_dict()
     assert any(not np.allclose(shipped[k].numpy(), tuned[k].numpy()) for k in shipped if k.endswith("weight"))
     metrics = json.loads((bundle / "metrics.json").read_text())
-    assert metrics["heldout"]["frames"] == 2 and metrics["training"]["steps"] == 3
+    assert metrics["heldout"]["frames"] == 4 and metrics["training"]["steps"] == 3
     assert set(metrics["heldout"]["before"]) == {"trunk_band_40", "trunk_band_0"}
     tuned_meta = json.loads((bundle / "branchnet.json").read_text())
-    assert tuned_meta["init_sha256"] == meta["onnx_sha256"] and len(tuned_meta["finetune"]["heldout_frames"]) == 2
+    assert tuned_meta["init_sha256"] == meta["onnx_sha256"] and len(tuned_meta["finetune"]["heldout_frames"]) == 4
     left, disparity, _, _ = _frame(0)
     masks = make_segmenter(f"learned:{bundle}").segment(left, disparity, GEOMETRY)
     assert masks.labels.shape == (HEIGHT, WIDTH) and masks.source == "learned"
+    # the bundle's own out-of-distribution reference, measured on the labelled frames: they read as known
+    assert reference_in(tuned_meta) is not None and "12 labelled frames" in reference_in(tuned_meta).domain
+    assert masks.ood is not None and not masks.ood.flagged
 
 
 def _copy(bundle, tmp_path, name="copy"):
