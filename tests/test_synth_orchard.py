@@ -81,3 +81,11 @@ def test_rendered_truth_round_trips_through_coco(tmp_path):
         kept = np.load(tmp_path / TRUTH_DIR / f"frame_{seed:06d}.npz")
         assert np.array_equal(kept["right"], scene["right"])
         assert json.loads(str(kept["truth"])) == scene["truth"]
+    # the simulated labelling writes what export-frames writes: train-segmenter --coco reads it as it is
+    from branchrange.core.segmentation.coco_labels import read_labelled_frames
+
+    labelled = read_labelled_frames(annotations, tmp_path / "images", log=lambda _: None)
+    assert [f.name for f in labelled] == [f"frame_{s:06d}.png" for s in seeds]
+    assert np.array_equal(
+        labelled[0].sample["disparity"], evaluation_scene(seeds[0], None, size=(320, 180), domain="orchard")["sgbm"]
+    )

@@ -5,7 +5,8 @@ CVAT or Label Studio). To measure that loop without a person, synthetic frames o
 (`SynthOptions.domain`) are written the same way with their truth masks as the labels: the same COCO layout
 and writer (`coco_export.write_coco`: images/, annotations.json with RLE masks, annotations_polygons.json),
 branch instances as "branch", the trunk as "trunk"; twigs and leaves are neither (a labeller leaves them).
-What scoring needs and a labelled set has not is kept beside it, one file a frame:
+Each frame's SGBM disparity, confidence and camera go to `stereo/` as `export-frames` writes them (what
+`train-segmenter --coco` reads). What scoring needs and a labelled set has not is kept beside it, one file a frame:
 
     DIR/truth/frame_000123.npz   right (uint8 H×W×3), disparity (exact, float32 px), sgbm, sgbm_conf, camera
                                  (f px, B m, cx, cy), truth (JSON: the branches' cut points and visibility)
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
 from branchrange.core.segmentation.branchnet_data import LEAF_ID, TRUNK_ID, TWIG_ID, evaluation_scene
 from branchrange.offline.coco_export import LabelledFrame, write_coco
@@ -52,7 +54,16 @@ def export_domain_frames(
     def frames() -> Iterable[LabelledFrame]:
         for seed in seeds:
             scene = evaluation_scene(seed, cache, size=size, domain=domain)
-            frame = LabelledFrame(scene["left"], truth_masks(scene["mask"]), seed, 0)
+            focal, baseline, cx, cy = (float(v) for v in scene["camera"])
+            frame = LabelledFrame(
+                scene["left"],
+                truth_masks(scene["mask"]),
+                seed,
+                0,
+                disparity=scene["sgbm"],  # what a user's export carries: the stereo as the vehicle measured it
+                confidence=scene["sgbm_conf"],
+                geometry=StereoGeometry(focal, baseline, cx, cy),
+            )
             np.savez_compressed(
                 truth_dir / f"{Path(frame.file_name).stem}.npz",
                 right=scene["right"],
