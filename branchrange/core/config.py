@@ -256,6 +256,9 @@ class RoiConfig(Settings):
     - `keyframe_worker`: run the keyframes' segmenter in its own worker (`branchrange.core.keyframe_worker`):
       the stereo thread never waits for it and carries its instances, a few frames old when they arrive, to
       its newest frame; false: a keyframe runs on the stereo thread (as slow as a frame without keyframes).
+      Experimental, not for flight: on a quiet 2-core machine its keyframes arrived 0.6–0.9 s old and 10 %
+      (0.3 m/s approach) to 38 % (0.8 m/s with 20 °/s yaw) of its targets were false
+      (`benchmarks/results/realtime.md`, 2026-11-28 22:05).
     - `track_max_age_s`: with the worker, a track whose keyframe is older than this (s) is dropped (the
       worker is slow, failed or being restarted): its branch goes unreported rather than guessed.
     """
