@@ -41,7 +41,7 @@ from branchrange.core.segmentation.branchnet_heldout import (
     heldout_outcomes,
     scores,
 )
-from branchrange.core.segmentation.branchnet_ood import model_reference, store_reference
+from branchrange.core.segmentation.branchnet_ood import model_reference
 from branchrange.core.segmentation.branchnet_training import (
     BranchNetTrainConfig,
     class_iou,
@@ -53,7 +53,7 @@ from branchrange.core.segmentation.branchnet_training import (
 from branchrange.core.segmentation.bundle import MODEL_NAME, write_manifest
 from branchrange.core.segmentation.coco_labels import LabelledSample, split_by_image
 from branchrange.core.segmentation.learned import verified_metadata
-from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES
+from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES, OOD_KEY
 from stereo.weights import sha256_of
 
 #: the first of the shipped training's validation scenes (2801–2830): what "nothing learnt is forgotten" is measured on
@@ -204,21 +204,23 @@ def _heldout(model: Path, frames: Sequence[LabelledSample], iou: dict[str, float
     return figures, outcomes
 
 
-def _store_ood_reference(model: Path, frames: Sequence[LabelledSample], log: Callable[[str], object]) -> None:
-    """Measure the fine-tuned `model`'s out-of-distribution reference (`branchnet_ood`) on the user's labelled
-    frames — the domain it was adapted to, with the stereo it was recorded with — and store it in the model's
-    JSON, so that at run time the signal says when a frame does not look like them. Too few frames: none stored
-    (the bundle then gives no signal) and the log says so."""
+def _ood_reference(
+    model: Path, frames: Sequence[LabelledSample], log: Callable[[str], object]
+) -> dict[str, Any] | None:
+    """The fine-tuned `model`'s out-of-distribution reference (`branchnet_ood`, as its JSON stores it under
+    `ood.OOD_KEY`), measured on the user's labelled frames — the domain it was adapted to, with the stereo it
+    was recorded with — so that at run time the signal says when a frame does not look like them. Too few
+    frames: None (the bundle then gives no signal) and the log says so."""
     if len(frames) < MIN_REFERENCE_FRAMES:
         log(
             f"{len(frames)} labelled frames: an out-of-distribution reference needs {MIN_REFERENCE_FRAMES}; "
             "this bundle gives no out-of-distribution signal"
         )
-        return
+        return None
     domain = f"{len(frames)} labelled frames of the fine-tune ({frames[0].name} …)"
     reference = model_reference(model, ((f.sample["left"], f.sample["disparity"]) for f in frames), domain)
-    store_reference(model, reference)
     log(f"out-of-distribution reference from {reference.frames} frames, flagged beyond {reference.threshold:.2f}")
+    return reference.to_json_dict()
 
 
 def finetune_branchnet(
@@ -295,8 +297,10 @@ def finetune_branchnet(
             )
         else:
             meta["confidence_calibrations"].append(table)
+    reference = _ood_reference(out_dir / MODEL_NAME, frames, log)
+    if reference is not None:
+        meta[OOD_KEY] = reference
     (out_dir / "branchnet.json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-    _store_ood_reference(out_dir / MODEL_NAME, frames, log)
     metrics = {
         "heldout": {"frames": len(held), "before": heldout_before, "after": heldout_after},
         "synthetic_validation": {
