@@ -89,6 +89,9 @@ FLIGHT = ROOT / "out" / "soak" / "hover"
 CHECK_PERIOD_S, CHECK_LAG_S = 20.0, 6.0
 #: Calm seconds after each fault (random in this range) before the next.
 CALM_S = (4.0, 6.0)
+#: A long fault-free stretch after every this many faults, of this many seconds (`--calm-every`, `--calm-s`):
+#: the fault-free target rate is measured there, against a run without faults (`--no-faults`).
+CALM_EVERY, CALM_STRETCH_S = 12, 45.0
 #: Seconds the daemon runs before the first fault, and without faults at the end.
 WARMUP_S, COOLDOWN_S = 20.0, 8.0
 TMPFS_MB = 64
@@ -679,6 +682,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 if kind == "disk.full":
                     rec.blind[-1] = (begun, ended)
             stop.wait(rng.uniform(*CALM_S))
+            if args.calm_every and len(rec.faults) % args.calm_every == 0:
+                print(f"{time.monotonic() - started:7.1f} s  calm {args.calm_s:.0f} s", file=sys.stderr)
+                stop.wait(min(args.calm_s, max(0.0, end - COOLDOWN_S - time.monotonic())))
             if time.monotonic() >= next_check:
                 tail.read(rec, lock)
                 with lock:
@@ -708,7 +714,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         args, final, times, resources, first_breach, service, observers, code, started, load_start, cpu_start
     )
     result["breaches_by_invariant"] = dict(Counter(b.invariant for b in breaches))
-    result["breaches"] = [[b.invariant, round(b.at - started, 2) if b.at else None, b.detail] for b in breaches[:50]]
+    result["breaches"] = [[b.invariant, round(b.at - started, 2) if b.at else None, b.detail] for b in breaches]
     result["run_folder"] = str(work)
     return result
 
@@ -773,6 +779,7 @@ def report(
         "seed": args.seed,
         "quick": args.quick,
         "gate": args.gate,
+        "calm_every": [args.calm_every, args.calm_s],
         "wall_s": round(time.monotonic() - started, 1),
         "load_average_1min": {"start": load_start, "end": os.getloadavg()[0]},
         "soak_cpu_s": round(time.process_time() - cpu_start, 1),
@@ -866,6 +873,16 @@ def main(argv: list[str] | None = None) -> int:
         "--no-faults", action="store_true", help="no faults: the baseline for the fault-free target rate"
     )
     parser.add_argument(
+        "--calm-every",
+        type=int,
+        default=CALM_EVERY,
+        help=f"a fault-free stretch after every N faults (default {CALM_EVERY}; 0: none), where the fault-free "
+        "target rate is measured",
+    )
+    parser.add_argument(
+        "--calm-s", type=float, default=CALM_STRETCH_S, help=f"its length (s, default {CALM_STRETCH_S:.0f})"
+    )
+    parser.add_argument(
         "--gate",
         choices=("all", "safety"),
         default="all",
@@ -874,7 +891,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     if args.quick:
-        args.minutes = 3.0
+        args.minutes, args.calm_every = 3.0, 0
     if not (args.flight / "flight.json").exists():
         print(
             f"soak.py: no rendered flight in {args.flight}; render it with: {render_hint(args.flight)}", file=sys.stderr

@@ -4,6 +4,7 @@ the model bundle it writes, and loading it (CLI name, config, API) — or refusi
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from dataclasses import replace
 
@@ -15,8 +16,10 @@ from fastapi.testclient import TestClient
 from api import create_app
 from api.estimator import PipelineEstimator
 from branchrange.cli import main
+from branchrange.core.confidence import ConfidenceCalibration
 from branchrange.core.config import ApiConfig, load_config, pipeline_config
 from branchrange.core.geometry import StereoGeometry
+from branchrange.core.pipeline import no_target_reason
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK
 from branchrange.core.segmentation.branchnet_from_onnx import branchnet_from_onnx
 from branchrange.core.segmentation.branchnet_heldout import calibration_table, judged_cut_points, labelled_branches
@@ -31,6 +34,7 @@ from branchrange.core.segmentation.coco_labels import (
 from branchrange.core.segmentation.learned import SHIPPED_MODEL, calibrations_by_setting
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 from branchrange.core.segmentation.ood import reference_in
+from stereo.weights import sha256_of
 
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation doesn't accept a copy keyword")
 mask_api = pytest.importorskip("pycocotools.mask", reason="pycocotools (the 'coco' extra) reads the labels")
@@ -39,7 +43,18 @@ WIDTH, HEIGHT = 160, 96
 GEOMETRY = StereoGeometry(100.0, 0.06, 79.5, 47.5)
 #: the fine-tune of the tests: a few tiny steps, one synthetic scene to mix in, one to validate on
 TINY = ["--steps", "3", "--set", "batch=2", "--set", "crop=64", "--set", "synthetic_scenes=1"]
-TINY += ["--set", "validation_scenes=1", "--set", "val_every=3", "--synthetic-share", "0.5", "--holdout-share", "0.34"]
+TINY += [
+    "--set",
+    "validation_scenes=1",
+    "--set",
+    "val_every=3",
+    "--set",
+    "depth_scenes=2",
+    "--synthetic-share",
+    "0.5",
+    "--holdout-share",
+    "0.34",
+]
 
 
 def _frame(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -260,8 +275,53 @@ def test_held_out_cut_points_are_judged_against_the_labels_and_calibrate_a_reada
     assert judged == [True, False, None, False] and found == {1}  # branch, trunk, ignored, background
     assert labelled_branches(frame) == {1}
     outcomes = [(c, c > 0.5) for c in np.linspace(0.05, 0.95, 40)]
-    assert calibration_table(outcomes[:19], 160, 0) is None
-    table = calibration_table(outcomes, 160, 40)
+    sure = ConfidenceCalibration((0.0, 1.0), (1.0, 1.0))  # every cut point on a branch within 5 cm
+    assert calibration_table(outcomes[:19], 160, 0, sure) is None
+    assert calibration_table(outcomes, 160, 0, None) is None  # "on a branch" alone is no confidence to fly on
+    table = calibration_table(outcomes, 160, 40, sure)
     (setting,) = calibrations_by_setting({"confidence_calibrations": [table]})
     assert setting == (160, 40, "normal") and table["target_min_confidence"] is not None
-    assert "labelled branch" in table["measure"]
+    assert "labelled branch" in table["measure"] and "within 5 cm" in table["measure"]
+    # on a branch, only 70 % within 5 cm: every confidence falls to 0.7 of "on a branch", and no threshold is
+    # ≥ 90 % right any more, so the bundle's cut points need more than any confidence reaches to be targets
+    depth = ConfidenceCalibration((0.0, 1.0), (0.7, 0.7))
+    shaky = calibration_table(outcomes, 160, 40, depth)
+    on_branch = ConfidenceCalibration.from_json_dict(shaky["on_branch"])
+    product = ConfidenceCalibration.from_json_dict(shaky)
+    for c in (0.1, 0.5, 0.9):
+        assert product(c) == pytest.approx(0.7 * on_branch(c), abs=1e-3)
+    assert shaky["target_min_confidence"] is None and shaky["share_within_5cm_expected"] == pytest.approx(0.35, 0.01)
+
+
+def test_the_depth_factor_is_measured_on_cut_points_that_lie_on_a_true_branch(tmp_path):
+    from branchrange.core.segmentation.branchnet_calibration import raw_outcomes
+    from branchrange.core.segmentation.branchnet_depth_factor import depth_factor
+
+    seeds, setting = (2861, 2864), (640, 0)
+    every = [o for group in raw_outcomes(SHIPPED_MODEL, seeds, tmp_path, [setting])[setting].values() for o in group]
+    on_branch = raw_outcomes(SHIPPED_MODEL, seeds, tmp_path, [setting], on_branch_only=True)[setting]
+    kept = [o for group in on_branch.values() for o in group]
+    assert 0 < len(kept) < len(every)  # some cut points of these scenes lie off every branch (trunk, leaves)
+    assert np.mean([ok for _, ok in kept]) >= np.mean([ok for _, ok in every])
+    lines: list[str] = []
+    factor = depth_factor(SHIPPED_MODEL, 3, 0, tmp_path, lines.append, min_cut_points=1)
+    assert factor is not None and all(0 < y < 1 for y in factor.calibrated)
+    assert "cut points on a branch in synthetic scenes 2861–2863" in lines[0]
+    assert depth_factor(SHIPPED_MODEL, 3, 0, tmp_path, lines.append, min_cut_points=len(kept) + 1) is None
+    assert "at least" in lines[-1]
+
+
+def test_a_model_without_a_confidence_calibration_reports_cut_points_but_never_a_target(bundle, tmp_path, caplog):
+    uncalibrated = _copy(bundle, tmp_path, "uncalibrated")
+    meta_path = uncalibrated / "branchnet.json"
+    meta = json.loads(meta_path.read_text())
+    meta["confidence_calibrations"] = []
+    meta_path.write_text(json.dumps(meta))
+    _edit_manifest(uncalibrated, files={**json.loads((uncalibrated / MANIFEST_NAME).read_text())["files"],
+                                        "branchnet.json": sha256_of(meta_path)})  # fmt: skip
+    segmenter = make_segmenter(f"learned:{uncalibrated}")
+    assert "carries no confidence calibration" in caplog.text
+    left, disparity, _, _ = _frame(1)
+    masks = segmenter.segment(left, disparity, GEOMETRY)
+    assert masks.calibration is None and math.isinf(masks.target_min_confidence)
+    assert "no confidence calibration" in no_target_reason(0.5, masks)

@@ -81,6 +81,15 @@ class ConfidenceCalibration:
             raise ValueError(f"confidence calibration: expected 'raw' and 'calibrated' lists ({exc})") from None
 
 
+def product_calibration(first: ConfidenceCalibration, second: ConfidenceCalibration) -> ConfidenceCalibration:
+    """The map c → `first`(c) × `second`(c), at the union of both maps' knots: the probability that two things
+    hold, the second measured given the first (a fine-tuned bundle's "on a branch" × "within 5 cm given on a
+    branch", `branchnet_depth_factor`). Both are monotone and in [0, 1], so the product is too."""
+    knots = np.union1d(first.raw, second.raw)
+    product = np.maximum.accumulate([first(float(c)) * second(float(c)) for c in knots])  # rounding kept monotone
+    return ConfidenceCalibration(tuple(float(c) for c in knots), tuple(float(p) for p in product))
+
+
 def fit_calibration(raw: Sequence[float], correct: Sequence[bool], min_count: int = 20) -> ConfidenceCalibration:
     """Isotonic fit of `correct` (0/1) on `raw` confidences; blocks of fewer than `min_count` cut points are
     pooled with their neighbour so that no knot rests on a handful of samples. Knots sit at each block's
@@ -107,7 +116,7 @@ def fit_calibration(raw: Sequence[float], correct: Sequence[bool], min_count: in
     return ConfidenceCalibration(tuple(knots_x), tuple(float(v) for v in knots_y))
 
 
-def share_correct_above(outcomes: Sequence[tuple[float, bool]], threshold: float) -> tuple[int, float]:
+def share_correct_above(outcomes: Sequence[tuple[float, float]], threshold: float) -> tuple[int, float]:
     """(cut points with confidence ≥ `threshold`, the share of them that are correct) of (confidence, correct)."""
     kept = [ok for c, ok in outcomes if c >= threshold]
     return len(kept), float(np.mean(kept)) if kept else float("nan")
@@ -137,9 +146,10 @@ THRESHOLD_STEP = 0.01
 _THRESHOLDS = np.round(np.arange(THRESHOLD_STEP, 1.0, THRESHOLD_STEP), 2)
 
 
-def lowest_reliable_threshold(outcomes: Sequence[tuple[float, bool]], share: float = 0.9) -> float | None:
+def lowest_reliable_threshold(outcomes: Sequence[tuple[float, float]], share: float = 0.9) -> float | None:
     """The lowest confidence (steps of `THRESHOLD_STEP`) at and above which at least `share` of the cut points
-    are correct — the default a target needs; None when no threshold reaches it."""
+    are correct — the default a target needs; None when no threshold reaches it. Each outcome's correct is
+    True/False, or the probability that it is (a fine-tuned bundle's, `branchnet_heldout.calibration_table`)."""
     for threshold in _THRESHOLDS:
         count, correct = share_correct_above(outcomes, float(threshold))
         if count and correct >= share:

@@ -178,8 +178,9 @@ class Branch(JsonPart):
     light_refuses_target: Annotated[
         bool | None,
         Field(
-            description="true when the frame's light asks more confidence of a target than this cut point has "
-            "(the segmenter's calibration in that light); left out otherwise"
+            description="true when the segmenter's calibration refuses this cut point as a target: the frame's light "
+            "asks more confidence than it has (the calibration in that light), or its model carries no calibration "
+            "at all; left out otherwise"
         ),
     ] = None
     disparity_scale: Annotated[

@@ -673,6 +673,8 @@ def no_target_reason(needed: float, masks: BranchMasks | None) -> str:
     """Why no cut point became the target: none reached the settings' minimum `needed`, or none what the
     frame's light asks (`BranchMasks.target_min_confidence`, from the calibration measured in that light)."""
     light_needs = target_minimum(needed, masks)
+    if masks is not None and masks.calibration is None and math.isinf(light_needs):
+        return "the segmenter's model carries no confidence calibration: its cut points are never targets"
     if masks is None or masks.light is None or light_needs <= needed:
         return f"no branch reaches the target confidence {needed}"
     light = masks.light

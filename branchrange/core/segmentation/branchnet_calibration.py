@@ -58,12 +58,17 @@ def raw_outcomes(
     cache: Path | None,
     settings: Sequence[tuple[int, int]],
     light_changes: Sequence[str] = (),
+    on_branch_only: bool = False,
 ) -> dict[tuple[int, int], OutcomesByLight]:
     """Per (network width px, trunk band px) of `settings`: (raw confidence, within 5 cm of a true cut point) of
     every cut point on scenes `seeds` [first, last), by the class of light each frame measures as
     (`light_check.LIGHTS`); each scene in its own light and under each of `light_changes`
-    (`branchnet_data.scene_in_light`), in seed order. Each scene is loaded once for all settings."""
+    (`branchnet_data.scene_in_light`), in seed order. Each scene is loaded once for all settings. With
+    `on_branch_only`, only the cut points whose pixel lies on a true branch (`branchnet_heldout.judged_pixels`,
+    as a user's labelled frames judge them): what "within 5 cm" is given "on a branch" (`branchnet_depth_factor`)."""
     from branchrange.core.pipeline import Pipeline, untracked_whole_frame
+    from branchrange.core.segmentation.branchnet_data import classes_from_instances
+    from branchrange.core.segmentation.branchnet_heldout import judged_pixels
     from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 
     segmenters = {
@@ -77,6 +82,7 @@ def raw_outcomes(
         scene = evaluation_scene(seed, cache)
         f, baseline, cx, cy = (float(v) for v in scene["camera"])
         truth = [t["cut_point_m"] for t in scene["truth"]]
+        classes = classes_from_instances(scene["mask"]) if on_branch_only else None
         pipelines = {  # untracked: each frame is measured on its own; one per setting for the scene's camera
             setting: Pipeline(
                 untracked_whole_frame(), focal_px=f, baseline_m=baseline, principal_point=(cx, cy), segmenter=segmenter
@@ -89,8 +95,12 @@ def raw_outcomes(
                     lit["left"], lit["sgbm"], lit["sgbm_conf"], backend="sgbm", right=lit["right"]
                 )
                 light = pipeline.last.masks.light if pipeline.last and pipeline.last.masks else None
+                branches = result.branches
+                if classes is not None:
+                    judged, _ = judged_pixels(classes, scene["mask"], [b.pixel for b in branches])
+                    branches = tuple(b for b, ok in zip(branches, judged, strict=True) if ok)
                 outcomes[setting].setdefault("normal" if light is None else light.light, []).extend(
-                    cut_point_outcomes([(b.confidence, b.cut_point_m) for b in result.branches], truth)
+                    cut_point_outcomes([(b.confidence, b.cut_point_m) for b in branches], truth)
                 )
     return outcomes
 

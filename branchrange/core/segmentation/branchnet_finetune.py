@@ -10,7 +10,8 @@
    scenes so that what the shipped model learnt is not forgotten, the rest from the user's frames;
 4. measures the starting model and the fine-tuned one on the held-out frames (`branchnet_heldout`: pixel
    IoU, cut points judged against the labels) and on the synthetic validation scenes (pixel IoU), and
-   calibrates the fine-tuned model's confidence on the held-out frames;
+   calibrates the fine-tuned model's confidence: "on a branch" on the held-out frames, times "within 5 cm
+   given on a branch" on synthetic calibration scenes (`branchnet_depth_factor`);
 5. writes the bundle (`bundle`): ONNX, torch weights, metadata JSON with the calibration, metrics,
    training curve, manifest.
 
@@ -33,9 +34,11 @@ import torch
 
 from branchrange.core.segmentation.branchnet import BranchNet
 from branchrange.core.segmentation.branchnet_data import cached_sample, render_samples
+from branchrange.core.segmentation.branchnet_depth_factor import DEPTH_FACTOR_SCENES, depth_factor
 from branchrange.core.segmentation.branchnet_from_onnx import branchnet_from_onnx
 from branchrange.core.segmentation.branchnet_heldout import (
     HELDOUT_TRUNK_BANDS,
+    MIN_CALIBRATION_CUT_POINTS,
     calibration_table,
     frame_width,
     heldout_outcomes,
@@ -73,6 +76,8 @@ class FineTuneConfig:
     - `validation_scenes`: the shipped training's validation scenes (from `SYNTHETIC_VALIDATION_FIRST`) the
       synthetic IoU is measured on, before, during and after (1..30).
     - `holdout_share`: share of the labelled frames held out (by image, seeded by `seed`).
+    - `depth_scenes`: synthetic calibration scenes the depth factor of the confidence is measured on
+      (`branchnet_depth_factor`; ~0.7 s each, rendered once into the data folder).
     - `seed`: split, crops, augmentation; `threads`: torch CPU threads; `val_every`: steps between validations.
     """
 
@@ -85,6 +90,7 @@ class FineTuneConfig:
     synthetic_scenes: int = 200
     validation_scenes: int = 30
     holdout_share: float = 0.2
+    depth_scenes: int = DEPTH_FACTOR_SCENES
     seed: int = 0
     threads: int = 2
     val_every: int = 100
@@ -102,6 +108,8 @@ class FineTuneConfig:
             raise ValueError(f"validation_scenes {self.validation_scenes}: 1..30 (the shipped training's)")
         if self.val_every < 1 or self.threads < 1:
             raise ValueError("val_every and threads must be ≥ 1")
+        if not 1 <= self.depth_scenes <= 240:
+            raise ValueError(f"depth_scenes {self.depth_scenes}: 1..240 (the calibration scenes)")
 
 
 #: the starting model's training settings a fine-tune keeps: the loss's class weights and how crops are drawn
@@ -289,12 +297,16 @@ def finetune_branchnet(
         out_dir / MODEL_NAME, held, {k[len("heldout_iou_") :]: v for k, v in after.items() if "heldout" in k}
     )
     for band in HELDOUT_TRUNK_BANDS:
-        table = calibration_table(outcomes[band], frame_width(held), band) if held else None
-        if table is None:
+        if len(outcomes.get(band, [])) < MIN_CALIBRATION_CUT_POINTS:
             log(
                 f"trunk band {band} px: {len(outcomes.get(band, []))} held-out cut points, too few to calibrate "
-                "their confidence (label more frames, or hold out a larger share): confidences stay raw"
+                "their confidence (label more frames, or hold out a larger share): its cut points are never targets"
             )
+            continue
+        depth = depth_factor(out_dir / MODEL_NAME, config.depth_scenes, band, data_dir, log)
+        table = calibration_table(outcomes[band], frame_width(held), band, depth)
+        if table is None:
+            log(f"trunk band {band} px: no depth factor, so no calibration: its cut points are never targets")
         else:
             meta["confidence_calibrations"].append(table)
     reference = _ood_reference(out_dir / MODEL_NAME, frames, log)

@@ -6,9 +6,10 @@ as the real pairs are (`benchmarks/segmenter.py`): it is **right** when its pixe
 there), on background, foliage, posts — and not counted on an `iscrowd` (ignored) region. Unlike the real
 pairs, whose hand polygons cover a few branches, a user's corrected labels are taken as complete, so a cut
 point on an unlabelled pixel is wrong. What this does not see: how far the cut point is in depth from the
-branch (a right pixel with a bad disparity is still right here). The calibration is therefore of "the cut
-point lies on a branch", not of "within 5 cm", the shipped model's synthetic measure; the bundle's JSON
-says which ("measure").
+branch (a right pixel with a bad disparity is still right here). So the calibration fitted here, "the cut
+point lies on a branch", is multiplied by how often the model's cut points on a branch are within 5 cm in
+synthetic scenes (`branchnet_depth_factor`, which says why): a bundle's confidence then means what the
+shipped model's does. The bundle's JSON says how it was measured ("measure", and both factors).
 
 Each held-out frame goes through the pipeline as on board in whole-frame mode (its exported disparity and
 stereo confidence, untracked, without the right view: branches are not refined on their own pixels), once
@@ -23,7 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from branchrange.core.confidence import fit_calibration, highest_inclusive_threshold, lowest_reliable_threshold
+from branchrange.core.confidence import (
+    ConfidenceCalibration,
+    fit_calibration,
+    highest_inclusive_threshold,
+    lowest_reliable_threshold,
+    product_calibration,
+)
 from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE
 from branchrange.core.segmentation.coco_labels import LabelledSample
 
@@ -40,7 +47,14 @@ MIN_CALIBRATION_CUT_POINTS = 20
 def judged_cut_points(frame: LabelledSample, pixels: Sequence[Sequence[float]]) -> tuple[list[bool | None], set[int]]:
     """Per cut point pixel [u, v]: True on a labelled branch (within `RIGHT_WITHIN_PX`), None on an ignored
     region, False elsewhere; and the ids of the labelled branches some right cut point lies on."""
-    classes, instances = frame.sample["classes"], frame.sample["instances"]
+    return judged_pixels(frame.sample["classes"], frame.sample["instances"], pixels)
+
+
+def judged_pixels(
+    classes: np.ndarray, instances: np.ndarray, pixels: Sequence[Sequence[float]]
+) -> tuple[list[bool | None], set[int]]:
+    """`judged_cut_points` on a class map `classes` (`uint8 H×W`, `branchnet_data` classes) and its instance ids
+    `instances` (`H×W`): labelled frames and synthetic scenes (`branchnet_depth_factor`) are judged alike."""
     height, width = classes.shape
     outcomes: list[bool | None] = []
     found: set[int] = set()
@@ -110,24 +124,33 @@ def scores(counts: dict[str, int], iou: dict[str, float]) -> dict[str, Any]:
     }
 
 
-def calibration_table(outcomes: list[tuple[float, bool]], width: int, band: int) -> dict[str, Any] | None:
+def calibration_table(
+    outcomes: list[tuple[float, bool]], width: int, band: int, depth: ConfidenceCalibration | None
+) -> dict[str, Any] | None:
     """The "confidence_calibrations" table (the shape `learned.calibrations_by_setting` reads, normal light) of
-    held-out `outcomes` seen at `width` px with trunk band `band` px; None with fewer than
-    `MIN_CALIBRATION_CUT_POINTS` cut points."""
-    if len(outcomes) < MIN_CALIBRATION_CUT_POINTS:
+    held-out `outcomes` seen at `width` px with trunk band `band` px: P(on a labelled branch) times `depth`,
+    P(within 5 cm | on a branch) (`branchnet_depth_factor`, which says why). None with fewer than
+    `MIN_CALIBRATION_CUT_POINTS` cut points, or without a depth factor: "on a branch" alone is not a confidence
+    to fly on. Its thresholds count a held-out cut point as right with the depth factor's probability."""
+    if len(outcomes) < MIN_CALIBRATION_CUT_POINTS or depth is None:
         return None
-    calibration = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes], min_count=10)
-    calibrated = [(calibration(c), ok) for c, ok in outcomes]
+    on_branch = fit_calibration([c for c, _ in outcomes], [ok for _, ok in outcomes], min_count=10)
+    calibration = product_calibration(on_branch, depth)
+    expected = [(calibration(c), ok * depth(c)) for c, ok in outcomes]  # right: on a branch and within 5 cm
     return {
         "network_width": width,
         "trunk_band_px": band,
         "light": "normal",
         **calibration.to_json_dict(),
-        "target_min_confidence": lowest_reliable_threshold(calibrated, 0.9),
-        "obstacle_min_confidence": highest_inclusive_threshold(calibrated, 0.98),
-        "measure": f"cut point within {RIGHT_WITHIN_PX} px of a labelled branch, held-out labelled frames",
+        "target_min_confidence": lowest_reliable_threshold(expected, 0.9),
+        "obstacle_min_confidence": highest_inclusive_threshold([(calibration(c), ok) for c, ok in outcomes], 0.98),
+        "measure": f"cut point within {RIGHT_WITHIN_PX} px of a labelled branch (held-out labelled frames) × within "
+        "5 cm given on a branch (synthetic calibration scenes, this model)",
+        "on_branch": on_branch.to_json_dict(),
+        "depth_given_on_branch": depth.to_json_dict(),
         "cut_points": len(outcomes),
         "share_correct": round(float(np.mean([ok for _, ok in outcomes])), 4),
+        "share_within_5cm_expected": round(float(np.mean([r for _, r in expected])), 4),
     }
 
 

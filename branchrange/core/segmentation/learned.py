@@ -37,6 +37,7 @@ fine-tune on a user's labels, `bundle`), checked against its manifest.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,6 +65,8 @@ from branchrange.core.segmentation.segmenter import depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
 from branchrange.core.settings_check import Checks, Limit, Settings
 from stereo.weights import sha256_of
+
+log = logging.getLogger(__name__)
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
 SHIPPED_MODEL = Path(__file__).with_name("weights") / "branchnet.onnx"
@@ -340,6 +343,12 @@ class LearnedSegmenter:
             self.ood_reference: OodReference | None = reference_in(meta) if config.ood else None
         except (ValueError, OodReferenceError) as exc:
             raise OnnxSegmenterError(f"learned segmenter: {self.model_path.with_suffix('.json')}: {exc}") from None
+        if config.calibrated and not self.calibrations:
+            log.warning(
+                "learned segmenter: %s carries no confidence calibration: its cut points are reported with raw "
+                "confidences and are never targets (calibrate it, or fine-tune with more held-out frames)",
+                self.model_path,
+            )
         # the int8 copy (metadata "quantization") gains from onnxruntime's blocked layout, fp32 loses (see there)
         self.session = onnx_session(self.model_path, config.threads, blocked_layout="quantization" in meta)
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
@@ -350,6 +359,15 @@ class LearnedSegmenter:
                 f"outputs {[(o.name, o.shape) for o in outputs]})"
             )
         self._input = inputs[0].name
+
+    def _target_minimum(self, measured: MeasuredCalibration | None) -> float:
+        """The least confidence a target needs beyond the settings' own by the calibration `measured` for a frame:
+        none in normal light (the settings' minimum stands: its default is that table's), its light's where it
+        asks more, and `math.inf` (never a target) for a model with no calibration at all — a raw confidence
+        says nothing measured, and the settings' minimum was chosen for a calibrated one."""
+        if measured is None:
+            return math.inf if self.config.calibrated and not self.calibrations else 0.0
+        return 0.0 if measured.light == "normal" else measured.target_min_confidence
 
     def calibration_at(self, seen_width: int, light: str = "normal") -> MeasuredCalibration | None:
         """The calibration measured at the width nearest (by ratio) `seen_width` px — with the trunk band nearest
@@ -530,10 +548,7 @@ class LearnedSegmenter:
             scores=scores,
             calibration=None if measured is None else measured.calibration,
             light=light,
-            # in normal light the settings' own minimum stands (its default is that table's)
-            target_min_confidence=0.0
-            if measured is None or measured.light == "normal"
-            else measured.target_min_confidence,
+            target_min_confidence=self._target_minimum(measured),
             visible_length_scale_m=cfg.visible_length_scale_m,
             ood=ood,
         )
