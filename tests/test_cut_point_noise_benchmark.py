@@ -1,0 +1,50 @@
+"""The measures of `benchmarks/cut_point_noise.py` on hand-made errors with known answers.
+
+Why: the benchmark sets `[tracking] disparity_sigma_px`, `lateral_sigma_px` and `bias_share` (what the fused
+tracks' σ claims); an error split wrongly or a bias share miscounted would set them wrong silently.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import cut_point_noise  # noqa: E402
+
+
+def test_an_error_along_the_line_of_sight_is_disparity_px_and_across_it_lateral_px() -> None:
+    f, b = 700.0, 0.063
+    true_m = np.array([0.0, 0.0, 2.0])
+    # 1 px of disparity at 2 m moves the depth by r² / (f·B)
+    depth_m = 2.0**2 / (f * b)
+    depth, lateral = cut_point_noise.observation_errors_px(true_m + [0, 0, depth_m], true_m, f, b, scale=1)
+    assert depth == pytest.approx(1.0) and np.allclose(lateral, 0.0)
+    # 3 px across at 2 m is 3·r / f metres; matched at half resolution (s = 2) it is 1.5 working px
+    across = np.array([3 * 2.0 / f, 0.0, 0.0])
+    depth, lateral = cut_point_noise.observation_errors_px(true_m + across, true_m, f, b, scale=2)
+    assert depth == pytest.approx(0.0, abs=1e-9) and np.linalg.norm(lateral) == pytest.approx(1.5)
+    # the line of sight is the true point's: off axis, an error along it is still all depth
+    off_axis = np.array([1.0, -0.5, 2.0])
+    los = off_axis / np.linalg.norm(off_axis)
+    depth, lateral = cut_point_noise.observation_errors_px(off_axis + 0.01 * los, off_axis, f, b, scale=1)
+    assert depth > 0 and np.allclose(lateral, 0.0, atol=1e-9)
+
+
+def test_the_bias_share_separates_what_views_of_one_spot_share_from_what_they_do_not() -> None:
+    rng = np.random.default_rng(0)
+    # per cut point a bias of σ 1 px shared by its 40 views, plus independent noise of σ 1 px: share 0.5
+    groups = {i: list(rng.normal(0, 1, 3) + rng.normal(0, 1, (40, 3))) for i in range(300)}
+    assert cut_point_noise.bias_share(groups) == pytest.approx(0.5, abs=0.06)
+    independent = {i: list(rng.normal(0, 1, (40, 3))) for i in range(300)}
+    assert cut_point_noise.bias_share(independent) == pytest.approx(0.0, abs=0.03)
+    assert cut_point_noise.bias_share({0: [np.zeros(3)] * 5}) is None  # one cut point: nothing to compare
+
+
+def test_one_sigma_is_the_68th_percentile_of_the_absolute_error() -> None:
+    rng = np.random.default_rng(1)
+    assert cut_point_noise.one_sigma(rng.normal(0, 0.7, 20000)) == pytest.approx(0.7, rel=0.03)
+    assert cut_point_noise.one_sigma([]) is None
