@@ -22,12 +22,15 @@ the bundle's own reference; one measured here on its training frames when the bu
 
     python benchmarks/shifted_domain.py [--scenes 60] [--shifted 60] [--cache out/shifted] [--json out.json]
                                         [--finetune 20,50,100 --work out/shifted/finetune]
+                                        [--train-args "--synthetic-share 0.25" --tag _s25]
+                                        [--shipped-from benchmarks/shifted_domain_finetune50.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -179,15 +182,16 @@ def bundle_model(bundle: Path) -> Path:
     return found[0]
 
 
-def finetune(count: int, work: Path, cache: Path | None) -> tuple[Path, str]:
-    """Export `count` labelled shifted-domain frames and fine-tune on them with the CLI; the bundle's model path
-    and the command's output."""
+def finetune(count: int, work: Path, cache: Path | None, extra: Sequence[str] = (), tag: str = "") -> tuple[Path, str]:
+    """Export `count` labelled shifted-domain frames and fine-tune on them with the CLI (`extra`: more of its
+    options, e.g. a synthetic share; the bundle folder named with `tag`); the bundle's model path and the
+    command's output."""
     data = work / f"coco_{count}"
     annotations = export_domain_frames(data, range(FINETUNE_SEED, FINETUNE_SEED + count), DOMAIN, cache)
-    bundle = work / f"bundle_{count}"
+    bundle = work / f"bundle_{count}{tag}"
     command = [
         sys.executable, "-m", "branchrange.cli", "train-segmenter",
-        "--coco", str(annotations), "--images", str(data / "images"), "--out", str(bundle),
+        "--coco", str(annotations), "--images", str(data / "images"), "--out", str(bundle), *extra,
     ]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
@@ -235,6 +239,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--work", type=Path, default=Path("out/shifted/finetune"), help="exported sets and bundles")
     parser.add_argument(
+        "--train-args",
+        default="",
+        help='more train-segmenter options for --finetune, e.g. "--synthetic-share 0.25 --set lr=0.001" (a lever)',
+    )
+    parser.add_argument("--tag", default="", help="a name for this lever: the bundle folder and the JSON key")
+    parser.add_argument(
+        "--shipped-from",
+        type=Path,
+        help="take the shipped models' figures from an earlier run's --json (same scenes) instead of scoring again",
+    )
+    parser.add_argument(
         "--export",
         type=int,
         metavar="N",
@@ -262,7 +277,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{'model':<34} {'domain':<8} {'n':>4} {'recall % [95 %]':<19} {'false/frame [95 %]':<19}"
         f" {'≥0.8':>5} {'right %':>6} {'ECE':>6} {'flagged':>8}"
     )
-    for precision, model in SHIPPED_MODELS.items():
+    if args.shipped_from is not None:
+        out["models"] = json.loads(args.shipped_from.read_text(encoding="utf-8"))["models"]
+        out["shipped_from"] = str(args.shipped_from)
+    for precision, model in SHIPPED_MODELS.items() if args.shipped_from is None else ():
         reference = reference_in(json.loads(model.with_suffix(".json").read_text(encoding="utf-8")))
         park = score_model(model, scene_seeds("park", args.scenes), "park", args.cache, reference)
         shifted = score_model(model, scene_seeds(DOMAIN, args.shifted), DOMAIN, args.cache, reference)
@@ -285,11 +303,17 @@ def main(argv: list[str] | None = None) -> int:
         )
     shipped = out["models"]["fp32"]
     for count in counts:
-        model, log = finetune(count, args.work, args.cache)
+        model, log = finetune(count, args.work, args.cache, shlex.split(args.train_args), args.tag)
         reference, origin = bundle_reference(model, count, args.cache)
         park = score_model(model, scene_seeds("park", args.scenes), "park", args.cache, reference)
         shifted = score_model(model, scene_seeds(DOMAIN, args.shifted), DOMAIN, args.cache, reference)
-        out["finetune"][str(count)] = {"park": park, DOMAIN: shifted, "reference": origin, "train_log": log[-4000:]}
+        out["finetune"][f"{count}{args.tag}"] = {
+            "park": park,
+            DOMAIN: shifted,
+            "reference": origin,
+            "train_args": args.train_args,
+            "train_log": log[-4000:],
+        }
         print(header)
         print_row("shipped fp32 (before)", shipped[DOMAIN])
         print_row(f"fine-tuned on {count} ({origin} reference)", shifted)
