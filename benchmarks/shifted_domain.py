@@ -5,7 +5,8 @@ of the shifted domain (`SynthOptions(domain="orchard")`: espalier trees along tr
 barks, leaves and light; seeds `SHIFTED_SEED`+), 640×360, SGBM, each through `Pipeline.process_disparity` as in
 `benchmarks/segmenter.py` (recall within 5 cm, false cut points a frame with 95 % intervals over scenes; the
 cut points at confidence ≥ 0.8 and the share of them within 5 cm, the issue's "≥ 0.8 → ≥ 90 % right"; the
-expected calibration error).
+actionable false cut points a frame, those more than 5 cm off at ≥ `cutpoints.target_min_confidence`'s
+default; the expected calibration error).
 
 Out-of-distribution signal (`branchrange.core.segmentation.ood`): per model (the shipped fp32 and int8), each
 frame's statistic (hesitant background) read against the model's reference (its JSON's "ood", measured on
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shlex
 import subprocess
 import sys
@@ -42,6 +44,7 @@ from machine import cpu_name  # a script's own folder is on its import path
 from segmenter import FIRST_SEED
 
 from branchrange.core.confidence import cut_point_outcomes, expected_calibration_error, share_correct_above
+from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
@@ -114,6 +117,7 @@ def score_model(
             statistics.append(first_look_statistic(segmenter, scene["left"], scene["sgbm"]))
     interval = scores.interval()
     count, share = share_correct_above(outcomes, 0.8)
+    actionable = CutPointConfig().target_min_confidence
     return {
         "domain": domain,
         "scenes": len(seeds),
@@ -121,6 +125,8 @@ def score_model(
         "recall_ci95": interval["recall"],
         "false_per_frame": scores.false_per_frame,
         "false_per_frame_ci95": interval["false_per_frame"],
+        "actionable_false_per_frame": sum(c >= actionable and not ok for c, ok in outcomes) / len(seeds),
+        "actionable_at": actionable,
         "at_0.8": count,
         "share_right_at_0.8": share,
         "calibration_error": expected_calibration_error(outcomes),
@@ -222,7 +228,8 @@ def print_row(name: str, s: dict) -> None:
     flagged = "—" if s["ood_flagged"] is None else f"{100 * s['ood_flagged']:.0f} %"
     print(
         f"{name:<34} {s['domain']:<8} {s['scenes']:>4} {100 * s['recall']:5.1f} [{100 * lo:4.1f}, {100 * hi:4.1f}]"
-        f" {s['false_per_frame']:5.2f} [{flo:4.2f}, {fhi:4.2f}] {s['at_0.8']:>5} {100 * s['share_right_at_0.8']:6.1f}"
+        f" {s['false_per_frame']:5.2f} [{flo:4.2f}, {fhi:4.2f}] {s.get('actionable_false_per_frame', math.nan):5.2f}"
+        f" {s['at_0.8']:>5} {100 * s['share_right_at_0.8']:6.1f}"
         f" {s['calibration_error']:6.3f} {flagged:>8}"
     )
 
@@ -275,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     out: dict = {"cpu": cpu_name(), "load": uptime, "models": {}, "finetune": {}}
     header = (
         f"{'model':<34} {'domain':<8} {'n':>4} {'recall % [95 %]':<19} {'false/frame [95 %]':<19}"
-        f" {'≥0.8':>5} {'right %':>6} {'ECE':>6} {'flagged':>8}"
+        f" {'act.':>5} {'≥0.8':>5} {'right %':>6} {'ECE':>6} {'flagged':>8}"
     )
     if args.shipped_from is not None:
         out["models"] = json.loads(args.shipped_from.read_text(encoding="utf-8"))["models"]
