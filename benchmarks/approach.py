@@ -26,7 +26,8 @@ and the daemon's published results (the results log's lines, with their fused `t
   eligible as the target by the results log (also `tracking.target_min_observations` consistent cut
   points, captured within `mavlink.max_result_age_s`); `ready`: every run eligible within 1 s or
   over sooner; `ready_delay_s` the longest such wait; when it was first confident, eligible and
-  sent as the target (`confident_s`, `eligible_s`, `target_s`, s after the first frame);
+  sent as the target (`confident_s`, `eligible_s`, `target_s`, s after the first frame); `held_back` counts
+  its confident results that were not eligible, by why (too few consistent observations, or late);
 - `setpoint_dev_mm` {median, max}: each setpoint against the standoff point computed by the daemon's
   own `ApproachPlanner` from the *true* cut point of the sent target and the true pose (step limit
   included, speed cap not); `setpoint_dev_free_mm` over setpoints the speed cap did not hold;
@@ -58,6 +59,7 @@ import json
 import math
 import re
 import sys
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -417,17 +419,17 @@ def readiness(
     when it first was confident, eligible and sent as the target (s after the first frame, None: never)."""
     cuts = flight.cuts_ned()
     samples = []
+    held_back: Counter[str] = Counter()  # why a confident result was not eligible
     for t, result in zip(timeline.times, timeline.results):
         tracks = [
             tr for tr in (result.targets.tracks if result.targets else ()) if is_of(np.asarray(tr.ned_m), cut_id, cuts)
         ]
-        confident = any(tr.confidence >= cfg.cutpoints.target_min_confidence for tr in tracks)
-        eligible = confident and any(
-            tr.consistent_observations >= cfg.tracking.target_min_observations
-            and tr.age_s <= cfg.mavlink.max_result_age_s
-            for tr in tracks
-        )
-        samples.append((round(t - flight.sim.start, 3), confident, eligible))
+        confident = [tr for tr in tracks if tr.confidence >= cfg.cutpoints.target_min_confidence]
+        consistent = [tr for tr in confident if tr.consistent_observations >= cfg.tracking.target_min_observations]
+        eligible = any(tr.age_s <= cfg.mavlink.max_result_age_s for tr in consistent)
+        if confident and not eligible:
+            held_back["too few consistent observations" if not consistent else "late"] += 1
+        samples.append((round(t - flight.sim.start, 3), bool(confident), eligible))
     end_s = round(timeline.times[-1] - flight.sim.start, 3) if timeline.times else 0.0
     runs = confident_runs(samples, end_s)
     target = next(
@@ -443,6 +445,7 @@ def readiness(
         "ready_delay_s": max(delays) if delays else None,
         "ready": ready_in_time(runs),
         "runs": runs,
+        "held_back": dict(held_back),
     }
 
 
