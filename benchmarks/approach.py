@@ -18,6 +18,7 @@ and the daemon's published results (the results log's lines, with their fused `t
 - `first_target_s`: first send with a target, seconds after the first frame was released;
 - `error_mm` {median, p90, max} and `off_5cm`: each sent target against the nearest true cut point,
   both in the body frame at the moment it arrived (the truth from flight.json, the pose the sim flew);
+  `off_target_events`: each send more than 5 cm off, with its range and the target track as the relay had it;
 - `border_targets`: sends whose target track's newest cut point lies within 2 % of the image width
   of the image border (the artefact of a branch the border cuts);
 - `nearest` (the true cut point nearest to the camera at the last frame) and `approached` (the one
@@ -365,6 +366,39 @@ def border_targets(sends: list[Send], timeline: ResultsTimeline) -> int:
     return count
 
 
+def off_target_events(
+    flight: DaemonFlight, sends: list[Send], timeline: ResultsTimeline, cuts_ned: dict[int, np.ndarray]
+) -> list[dict[str, Any]]:
+    """Each send whose target lies more than `OFF_TARGET_M` from every true cut point: when (s after the first
+    frame), how far off (mm), the range from the vehicle to that cut point (m), and the target track as the relay
+    had it (its age, observations, consistent ones, views, confidence, σ) — what made a wrong target go out."""
+    events = []
+    for send in sends:
+        if send.target_ned_m is None:
+            continue
+        cut_id, off = nearest_cut(send.target_ned_m, cuts_ned)
+        if off <= OFF_TARGET_M:
+            continue
+        found = timeline.target_track(send.at)
+        track = None if found is None else found[1]
+        pose = flight.sim.pose_at(send.at)
+        events.append(
+            {
+                "at_s": round(send.at - flight.sim.start, 3),
+                "off_mm": round(1000 * off, 1),
+                "cut_id": cut_id,
+                "range_m": round(float(np.linalg.norm(cuts_ned[cut_id] - pose.position_m)), 3),
+                "track": None
+                if track is None
+                else {
+                    k: getattr(track, k)
+                    for k in ("age_s", "observations", "consistent_observations", "views", "confidence", "sigma_m")
+                },
+            }
+        )
+    return events
+
+
 def sigma_of_sends(sends: list[Send], timeline: ResultsTimeline, cuts_ned: dict[int, np.ndarray]) -> dict[str, Any]:
     """`sigma_coverage` of the target track at every send with a target (actual error against the nearest cut)."""
     errors, covariances = [], []
@@ -554,6 +588,7 @@ def score_flight(flight: DaemonFlight, cfg: Config, target_id: int) -> dict[str,
         "first_target_s": round(targets[0].at - flight.sim.start, 3) if targets else None,
         "error_mm": stats_mm(errors),
         "off_5cm": sum(e > OFF_TARGET_M for e in errors),
+        "off_target_events": off_target_events(flight, sends, timeline, cuts),
         "border_targets": border_targets(sends, timeline),
         "nearest": readiness(flight, sends, timeline, nearest_at_arrival(flight), cfg),
         "approached": readiness(flight, sends, timeline, target_id, cfg),
