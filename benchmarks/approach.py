@@ -28,7 +28,8 @@ and the daemon's published results (the results log's lines, with their fused `t
   points, captured within `mavlink.max_result_age_s`); `ready`: every run eligible within 1 s or
   over sooner; `ready_delay_s` the longest such wait; when it was first confident, eligible and
   sent as the target (`confident_s`, `eligible_s`, `target_s`, s after the first frame); `held_back` counts
-  its confident results that were not eligible, by why (too few consistent observations, or late);
+  its confident results that were not eligible, by why (too few consistent observations, or late), and
+  `held_back_series` each of them: [s after the first frame, consistent observations, age s, track error mm];
 - `setpoint_dev_mm` {median, max}: each setpoint against the standoff point computed by the daemon's
   own `ApproachPlanner` from the *true* cut point of the sent target and the true pose (step limit
   included, speed cap not); `setpoint_dev_free_mm` over setpoints the speed cap did not hold;
@@ -454,6 +455,7 @@ def readiness(
     cuts = flight.cuts_ned()
     samples = []
     held_back: Counter[str] = Counter()  # why a confident result was not eligible
+    held_back_series: list[list[float]] = []  # [t s, consistent observations, age s, track error mm] of each
     for t, result in zip(timeline.times, timeline.results):
         tracks = [
             tr for tr in (result.targets.tracks if result.targets else ()) if is_of(np.asarray(tr.ned_m), cut_id, cuts)
@@ -463,6 +465,11 @@ def readiness(
         eligible = any(tr.age_s <= cfg.mavlink.max_result_age_s for tr in consistent)
         if confident and not eligible:
             held_back["too few consistent observations" if not consistent else "late"] += 1
+            track = confident[0]
+            off_mm = 1000 * float(np.linalg.norm(np.asarray(track.ned_m) - cuts[cut_id]))
+            held_back_series.append(
+                [round(t - flight.sim.start, 3), track.consistent_observations, round(track.age_s, 3), round(off_mm, 1)]
+            )
         samples.append((round(t - flight.sim.start, 3), bool(confident), eligible))
     end_s = round(timeline.times[-1] - flight.sim.start, 3) if timeline.times else 0.0
     runs = confident_runs(samples, end_s)
@@ -480,6 +487,7 @@ def readiness(
         "ready": ready_in_time(runs),
         "runs": runs,
         "held_back": dict(held_back),
+        "held_back_series": held_back_series,
     }
 
 
