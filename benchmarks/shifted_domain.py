@@ -14,6 +14,8 @@ calibration scenes 2861–3020); the AUROC of it separating the shifted frames f
 (target ≥ 0.9), and the share of each flagged. Its cost: the statistic and reading per frame against the
 network's first look, timed in the same run (ratio), on this machine (CPU and load printed).
 
+`--ceiling` also scores the scenes' truth masks the same way: the recall SGBM leaves any segmenter.
+
 Fine-tune proof (`--finetune 20,50,100`): for each N, N shifted-domain frames (seeds `FINETUNE_SEED`+, apart
 from the held-out ones) are written as a COCO data set labelled with their truth (`offline.synth_coco`: the
 labelling step, simulated), `branchrange train-segmenter --coco DIR/annotations.json --images DIR/images --out
@@ -94,26 +96,27 @@ def scene_seeds(domain: str, count: int) -> range:
 
 
 def score_model(
-    model: Path, seeds: Sequence[int], domain: str, cache: Path | None, reference: OodReference | None
+    model: Path | None, seeds: Sequence[int], domain: str, cache: Path | None, reference: OodReference | None
 ) -> dict:
     """Recall within 5 cm, false cut points a frame (95 % intervals), cut points at ≥ 0.8 and the share right,
     calibration error, and the OOD statistics (flagged against `reference`) of the ONNX `model` on scenes `seeds` of
-    `domain`, SGBM, whole frame."""
-    segmenter = LearnedSegmenter(LearnedSegmenterConfig(model=str(model), ood=False))
-    scores, outcomes, statistics = CutScores("sgbm", model.name), [], []
+    `domain`, SGBM, whole frame; `model` None: the scenes' truth masks (the ceiling SGBM leaves a segmenter)."""
+    segmenter = None if model is None else LearnedSegmenter(LearnedSegmenterConfig(model=str(model), ood=False))
+    scores, outcomes, statistics = CutScores("sgbm", "truth" if model is None else model.name), [], []
     for seed in seeds:
         scene = evaluation_scene(seed, cache, domain=domain)
         f, b, cx, cy = (float(v) for v in scene["camera"])
         pipeline = Pipeline(
             untracked_whole_frame(), focal_px=f, baseline_m=b, principal_point=(cx, cy), segmenter=segmenter
         )
+        mask = scene["mask"] if segmenter is None else None
         result = pipeline.process_disparity(
-            scene["left"], scene["sgbm"], scene["sgbm_conf"], backend="sgbm", right=scene["right"]
+            scene["left"], scene["sgbm"], scene["sgbm_conf"], mask=mask, backend="sgbm", right=scene["right"]
         )
         scores.add_frame(scene["truth"], result.branches, result.target)
         truth = [t["cut_point_m"] for t in scene["truth"]]
         outcomes += cut_point_outcomes([(x.confidence, x.cut_point_m) for x in result.branches], truth)
-        if reference is not None:
+        if reference is not None and segmenter is not None:
             statistics.append(first_look_statistic(segmenter, scene["left"], scene["sgbm"]))
     interval = scores.interval()
     count, share = share_correct_above(outcomes, 0.8)
@@ -250,6 +253,9 @@ def main(argv: list[str] | None = None) -> int:
         default="",
         help='more train-segmenter options for --finetune, e.g. "--synthetic-share 0.25 --set lr=0.001" (a lever)',
     )
+    parser.add_argument(
+        "--ceiling", action="store_true", help="also score the scenes' truth masks: what SGBM leaves any segmenter"
+    )
     parser.add_argument("--tag", default="", help="a name for this lever: the bundle folder and the JSON key")
     parser.add_argument(
         "--shipped-from",
@@ -308,6 +314,13 @@ def main(argv: list[str] | None = None) -> int:
             f"segmenter {cost['segment_on_ms']:.1f} ms with it, {cost['segment_off_ms']:.1f} ms without "
             f"({100 * (cost['segment_ratio'] - 1):+.1f} %)\n"
         )
+    if args.ceiling:
+        out["truth_masks"] = {d: score_model(None, scene_seeds(d, n), d, args.cache, None) for d, n in
+                              (("park", args.scenes), (DOMAIN, args.shifted))}  # fmt: skip
+        print(header)
+        for scores in out["truth_masks"].values():
+            print_row("truth masks (the ceiling)", scores)
+        print()
     shipped = out["models"]["fp32"]
     for count in counts:
         model, log = finetune(count, args.work, args.cache, shlex.split(args.train_args), args.tag)
