@@ -31,7 +31,12 @@ from branchrange.core.segmentation.coco_labels import (
     split_by_image,
     write_frame_stereo,
 )
-from branchrange.core.segmentation.learned import SHIPPED_MODEL, calibrations_by_setting
+from branchrange.core.segmentation.learned import (
+    SHIPPED_MODEL,
+    LearnedSegmenter,
+    LearnedSegmenterConfig,
+    calibrations_by_setting,
+)
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 from branchrange.core.segmentation.ood import reference_in
 from stereo.weights import sha256_of
@@ -119,11 +124,11 @@ def dataset(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def bundle(dataset, tmp_path_factory):
-    """A bundle fine-tuned through the command line on the drawn frames."""
+    """A bundle fine-tuned through the command line on the drawn frames, with its int8 copy."""
     out = tmp_path_factory.mktemp("tuned") / "bundle"
     data = tmp_path_factory.mktemp("segdata")
     args = ["train-segmenter", "--coco", str(dataset / "annotations.json"), "--out", str(out), "--data", str(data)]
-    assert main([*args, *TINY, "--workers", "1"]) == 0
+    assert main([*args, *TINY, "--workers", "1", "--int8"]) == 0
     return out
 
 
@@ -185,6 +190,27 @@ def test_a_fine_tune_changes_the_weights_and_writes_a_bundle_that_segments_a_fra
     # the bundle's own out-of-distribution reference, measured on the labelled frames: they read as known
     assert reference_in(tuned_meta) is not None and "12 labelled frames" in reference_in(tuned_meta).domain
     assert masks.ood is not None and not masks.ood.flagged
+
+
+def test_a_bundle_made_with_int8_runs_its_quantized_copy_and_one_without_says_so(bundle, tmp_path):
+    manifest = json.loads((bundle / MANIFEST_NAME).read_text())
+    assert {"branchnet_int8.onnx", "branchnet_int8.json"} <= set(manifest["files"])
+    int8_meta = json.loads((bundle / "branchnet_int8.json").read_text())
+    assert "labelled frames" in int8_meta["quantization"]["frames"] and "confidence_calibrations" in int8_meta
+    config = LearnedSegmenterConfig(model=str(bundle), precision="int8")  # a bundle folder may ask for int8
+    assert LearnedSegmenter(config).model_path == bundle / "branchnet_int8.onnx"
+    left, disparity, _, _ = _frame(0)
+    masks = LearnedSegmenter(config).segment(left, disparity, GEOMETRY)
+    assert masks.labels.shape == (HEIGHT, WIDTH)
+    # the shipped onboard file asks for int8: a bundle without the copy is refused with what to do
+    plain = _copy(bundle, tmp_path, "fp32-only")
+    for name in ("branchnet_int8.onnx", "branchnet_int8.json"):
+        (plain / name).unlink()
+    files = {k: v for k, v in manifest["files"].items() if "int8" not in k}
+    _edit_manifest(plain, files=files)
+    with pytest.raises(OnnxSegmenterError, match="has no int8 copy.*--int8"):
+        LearnedSegmenter(LearnedSegmenterConfig(model=str(plain), precision="int8"))
+    assert LearnedSegmenter(LearnedSegmenterConfig(model=str(plain))).model_path == plain / "branchnet.onnx"
 
 
 def _copy(bundle, tmp_path, name="copy"):

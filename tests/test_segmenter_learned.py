@@ -729,7 +729,7 @@ def test_the_fp32_model_runs_without_the_blocked_layout_and_gives_the_same_logit
     np.testing.assert_allclose(fp32.logits(rendered.left, stereo.disparity), first, atol=1e-4)
 
 
-def test_precision_names_a_shipped_model_only():
+def test_precision_names_a_shipped_model_or_a_bundle_copy_only():
     with pytest.raises(OnnxSegmenterError, match="precision"):
         LearnedSegmenterConfig(precision="int4")
     with pytest.raises(OnnxSegmenterError, match="precision"):

@@ -5,7 +5,7 @@ Reads the COCO file with pycocotools (polygons or RLE; categories named branch a
 each frame's disparity from `stereo/` beside the images (export-frames writes it), holds out a seeded share
 of the frames, starts from the shipped model (or --start, a model or bundle), mixes synthetic scenes into
 every batch, and writes the model bundle BUNDLE: load it with `--segmenter learned:BUNDLE` or
-`[segmenter.learned] model = "BUNDLE"`.
+`[segmenter.learned] model = "BUNDLE"`. `--int8` adds its int8 copy (`precision = "int8"` runs it).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import fields
 from pathlib import Path
 
 #: options of the synthetic-scene training that a fine-tune does not take
-_SYNTHETIC_ONLY = ("stage", "config", "calibrate_only", "int8", "no_calibrate")
+_SYNTHETIC_ONLY = ("stage", "config", "calibrate_only", "no_calibrate")
 #: options that only a fine-tune takes
 FINETUNE_ONLY = ("images", "stereo", "start", "steps", "synthetic_share", "holdout_share", "seed")
 
@@ -75,7 +75,15 @@ def run_finetune(args: argparse.Namespace) -> int:
         start = bundle_model(start) if start.is_dir() else start
         frames = read_labelled_frames(args.coco, images, args.stereo, log=log)
         metrics = finetune_branchnet(
-            config, frames, start, args.out, args.data, log=log, workers=args.workers, version=package_version()
+            config,
+            frames,
+            start,
+            args.out,
+            args.data,
+            log=log,
+            workers=args.workers,
+            version=package_version(),
+            int8=args.int8,
         )
     except (LabelsError, OnnxSegmenterError, ValueError, TypeError) as exc:
         return _refuse(str(exc))

@@ -13,7 +13,7 @@
    calibrates the fine-tuned model's confidence: "on a branch" on the held-out frames, times "within 5 cm
    given on a branch" on synthetic calibration scenes (`branchnet_depth_factor`);
 5. writes the bundle (`bundle`): ONNX, torch weights, metadata JSON with the calibration, metrics,
-   training curve, manifest.
+   training curve, manifest — with `int8`, also the model's int8 copy, calibrated on its own.
 
 Why hold the batch norms: their statistics are folded into the shipped convolutions, and batches of 8
 crops of a few dozen frames would measure them again badly; the fine-tune moves the weights only.
@@ -59,6 +59,8 @@ from branchrange.core.segmentation.learned import verified_metadata
 from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES, OOD_KEY
 from stereo.weights import sha256_of
 
+#: at most this many of the frames trained on set an int8 copy's activation ranges
+INT8_RANGE_FRAMES = 40
 #: the first of the shipped training's validation scenes (2801–2830): what "nothing learnt is forgotten" is measured on
 SYNTHETIC_VALIDATION_FIRST = 2801
 
@@ -231,6 +233,46 @@ def _ood_reference(
     return reference.to_json_dict()
 
 
+def _calibrated(
+    model: Path,
+    meta: dict[str, Any],
+    held: Sequence[LabelledSample],
+    frames: Sequence[LabelledSample],
+    iou: dict[str, float],
+    config: FineTuneConfig,
+    data_dir: Path,
+    log: Callable[[str], object],
+) -> dict[str, Any]:
+    """Calibrate the ONNX `model` (its JSON `meta` already beside it): per trunk band, its cut points on the
+    `held` frames ("on a labelled branch") times its depth factor on synthetic scenes (`branchnet_depth_factor`),
+    and its out-of-distribution reference on all labelled `frames`; `meta` with them is written again. Returns
+    its held-out figures per band (with the pixel `iou` given, measured in torch)."""
+    figures, outcomes = _heldout(model, held, iou)
+    meta["confidence_calibrations"] = []
+    for band in HELDOUT_TRUNK_BANDS:
+        if len(outcomes.get(band, [])) < MIN_CALIBRATION_CUT_POINTS:
+            log(
+                f"{model.name}, trunk band {band} px: {len(outcomes.get(band, []))} held-out cut points, too few to "
+                "calibrate their confidence (label more frames, or hold out a larger share): its cut points are "
+                "never targets"
+            )
+            continue
+        depth = depth_factor(model, config.depth_scenes, band, data_dir, log)
+        table = calibration_table(outcomes[band], frame_width(held), band, depth)
+        if table is None:
+            log(
+                f"{model.name}, trunk band {band} px: no depth factor, so no calibration: its cut points are never "
+                "targets"
+            )
+        else:
+            meta["confidence_calibrations"].append(table)
+    reference = _ood_reference(model, frames, log)
+    if reference is not None:
+        meta[OOD_KEY] = reference
+    model.with_suffix(".json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    return figures
+
+
 def finetune_branchnet(
     config: FineTuneConfig,
     frames: Sequence[LabelledSample],
@@ -240,9 +282,12 @@ def finetune_branchnet(
     log: Callable[[str], object] = print,
     workers: int = 1,
     version: str = "",
+    int8: bool = False,
 ) -> dict[str, Any]:
     """Fine-tune and write the bundle (module docstring) to `out_dir`; returns its metrics.json. Synthetic
-    scenes not yet in `data_dir` are rendered first in `workers` processes. ValueError for too few frames."""
+    scenes not yet in `data_dir` are rendered first in `workers` processes. With `int8`, also its statically
+    quantized copy (`branchnet_quantize`, activation ranges from the frames trained on), calibrated on its own.
+    ValueError for too few frames."""
     if len(frames) < 2 and config.holdout_share > 0:
         raise ValueError(f"{len(frames)} labelled frame: at least 2 (one to train on, one held out)")
     start_meta = verified_metadata(start)
@@ -293,28 +338,25 @@ def finetune_branchnet(
         "confidence_calibrations": [],
     }
     (out_dir / "branchnet.json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-    heldout_after, outcomes = _heldout(
-        out_dir / MODEL_NAME, held, {k[len("heldout_iou_") :]: v for k, v in after.items() if "heldout" in k}
-    )
-    for band in HELDOUT_TRUNK_BANDS:
-        if len(outcomes.get(band, [])) < MIN_CALIBRATION_CUT_POINTS:
-            log(
-                f"trunk band {band} px: {len(outcomes.get(band, []))} held-out cut points, too few to calibrate "
-                "their confidence (label more frames, or hold out a larger share): its cut points are never targets"
-            )
-            continue
-        depth = depth_factor(out_dir / MODEL_NAME, config.depth_scenes, band, data_dir, log)
-        table = calibration_table(outcomes[band], frame_width(held), band, depth)
-        if table is None:
-            log(f"trunk band {band} px: no depth factor, so no calibration: its cut points are never targets")
-        else:
-            meta["confidence_calibrations"].append(table)
-    reference = _ood_reference(out_dir / MODEL_NAME, frames, log)
-    if reference is not None:
-        meta[OOD_KEY] = reference
-    (out_dir / "branchnet.json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    heldout_iou = {k[len("heldout_iou_") :]: v for k, v in after.items() if "heldout" in k}
+    heldout_after = _calibrated(out_dir / MODEL_NAME, meta, held, frames, heldout_iou, config, data_dir, log)
+    heldout_int8 = None
+    if int8:
+        from branchrange.core.segmentation.branchnet_quantize import int8_path, quantize_branchnet
+
+        samples = [f.sample for f in train][:INT8_RANGE_FRAMES]
+        int8_meta = quantize_branchnet(
+            out_dir / MODEL_NAME, data_dir, samples=samples, samples_from=f"{len(samples)} labelled frames (trained on)"
+        )
+        log(f"wrote {int8_path(out_dir / MODEL_NAME).name}; calibrating it on its own")
+        heldout_int8 = _calibrated(int8_path(out_dir / MODEL_NAME), int8_meta, held, frames, {}, config, data_dir, log)
     metrics = {
-        "heldout": {"frames": len(held), "before": heldout_before, "after": heldout_after},
+        "heldout": {
+            "frames": len(held),
+            "before": heldout_before,
+            "after": heldout_after,
+            **({"after_int8": heldout_int8} if heldout_int8 is not None else {}),
+        },
         "synthetic_validation": {
             "seeds": [validation_seeds.start, validation_seeds.stop],
             "before": {k: round(v, 4) for k, v in before.items() if k.startswith("synthetic")},

@@ -12,7 +12,7 @@ different model, measured again. Needs the `onnx` package (the training extra), 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,18 +33,26 @@ def int8_path(model: Path) -> Path:
     return model.with_name(f"{model.stem}_int8{model.suffix}")
 
 
-def quantize_branchnet(model: Path, data_dir: Path, seeds: tuple[int, int] = QUANTIZATION_SEEDS) -> dict[str, Any]:
+def quantize_branchnet(
+    model: Path,
+    data_dir: Path,
+    seeds: tuple[int, int] = QUANTIZATION_SEEDS,
+    samples: Sequence[dict[str, np.ndarray]] = (),
+    samples_from: str = "",
+) -> dict[str, Any]:
     """Write the int8 copy of the fp32 ONNX `model` to `int8_path(model)` and its metadata JSON beside it
-    (the source's model, width and classes, its SHA-256, the seeds, the new file's SHA-256); returns that
-    metadata. Frames of scenes `seeds` [first, last) come from (or are rendered into) `data_dir`."""
+    (the source's model, width and classes, its SHA-256, what set the ranges, the new file's SHA-256); returns
+    that metadata. The activation ranges come from the frames of scenes `seeds` [first, last) (from, or rendered
+    into, `data_dir`) — or, when given, from `samples` (each with "left" and "disparity": a fine-tune's own
+    labelled frames, the domain it will see), described by `samples_from`."""
     import_onnxruntime()  # its telemetry off before onnxruntime.quantization loads the library
     import onnxruntime.quantization as quantization
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     source_meta = verified_metadata(model)  # the file quantized is the one its JSON describes
     out = int8_path(model)
-    samples = (cached_sample(data_dir, seed) for seed in range(*seeds))
-    inputs = [padded_to_stride(network_input(s["left"], s["disparity"]))[0][None] for s in samples]
+    frames = samples or [cached_sample(data_dir, seed) for seed in range(*seeds)]
+    inputs = [padded_to_stride(network_input(s["left"], s["disparity"]))[0][None] for s in frames]
 
     class Frames(quantization.CalibrationDataReader):  # type: ignore[misc]
         """The frames, one `{"image": (1, 5, H, W)}` feed at a time."""
@@ -74,7 +82,12 @@ def quantize_branchnet(model: Path, data_dir: Path, seeds: tuple[int, int] = QUA
         **{k: source_meta[k] for k in ("model", "width", "classes") if k in source_meta},
         "onnx_sha256": sha256_of(out),
         "quantized_from": {"file": model.name, "onnx_sha256": sha256_of(model)},
-        "quantization": {"seeds": list(seeds), "weights": "int8 per channel", "activations": "uint8", "format": "QDQ"},
+        "quantization": {
+            **({"frames": samples_from} if samples else {"seeds": list(seeds)}),
+            "weights": "int8 per channel",
+            "activations": "uint8",
+            "format": "QDQ",
+        },
     }
     out.with_suffix(".json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
     return meta

@@ -94,8 +94,9 @@ class LearnedSegmenterConfig(Settings):
 
     - `model`: an ONNX `BranchNet` file, or a model bundle folder (`branchrange train-segmenter --coco`: checked
       against its manifest, `bundle`); empty = the shipped one of `precision`.
-    - `precision`: which shipped model, "fp32" or "int8" (a statically quantized copy: its network ~1.4×,
-      the whole segmenter ~1.2× faster on CPU, same recall; `branchnet_quantize`); only with `model` empty.
+    - `precision`: "fp32" or "int8" (a statically quantized copy: its network ~1.4×, the whole segmenter
+      ~1.2× faster on CPU, same recall; `branchnet_quantize`): of the shipped model with `model` empty, or of
+      a bundle folder made with `--int8`; a `model` .onnx file is run as it is (fp32 only).
     - `network_width`: the width (px) the network sees a frame at — the frame is resized to it, aspect
       kept, and the class probabilities back to the frame's size; 0 (the default) = the frame's own
       width: the roi mode's 640×360 coarse frame as it is, what the onboard loop affords (8 fresh Hz on
@@ -224,8 +225,10 @@ class LearnedSegmenterConfig(Settings):
         """Range checks of the settings (`Settings`)."""
         return {
             "precision": (
-                self.precision in SHIPPED_MODELS and (self.precision == "fp32" or not self.model),
-                "'fp32' or 'int8' (the shipped models; a model file of your own is used as it is)",
+                self.precision in SHIPPED_MODELS
+                and (self.precision == "fp32" or not self.model.lower().endswith(".onnx")),
+                "'fp32' or 'int8' (the shipped models, or a bundle folder's int8 copy; a model file of your own "
+                "(.onnx) is used as it is: leave precision 'fp32')",
             ),
             "network_width": (
                 self.network_width == 0 or MIN_NETWORK_WIDTH <= self.network_width <= MAX_NETWORK_WIDTH,
@@ -336,7 +339,7 @@ class LearnedSegmenter:
         self.config = config
         self.model_path = Path(config.model) if config.model else SHIPPED_MODELS[config.precision]
         if self.model_path.is_dir():  # a model bundle (`bundle`): its manifest and files checked first
-            self.model_path = bundle_model(self.model_path)
+            self.model_path = bundle_model(self.model_path, config.precision)
         meta = verified_metadata(self.model_path)
         try:
             self.calibrations = calibrations_by_setting(meta) if config.calibrated else {}
