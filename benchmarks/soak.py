@@ -95,6 +95,8 @@ CALM_EVERY, CALM_STRETCH_S = 12, 45.0
 #: Seconds the daemon runs before the first fault, and without faults at the end.
 WARMUP_S, COOLDOWN_S = 20.0, 8.0
 TMPFS_MB = 64
+#: the results log's rotation on that disk: (3 + 1) × 8 MiB, half of it, so that it rotates during a long soak
+LOG_MAX_MB, LOG_KEEP = 8, 3
 #: Seconds after a fault's end (and before the next fault) not counted as fault-free for the target rate.
 CALM_MARGIN_S = 5.0
 #: How often a restart is drawn, against 1 for each other kind of fault.
@@ -638,6 +640,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "mavlink.signing_key_file": str(key_file),
         "api.port": str(api_port),
         "log.results_jsonl": str(results),
+        # the log and its rotated files must fit the tmpfs, as `results log … can fill the disk` asks: with the
+        # shipped 100 MiB × 11 the daemon's own log filled the 64 MiB disk after ~35 min of the 60-min run
+        "log.results_max_mb": str(LOG_MAX_MB),
+        "log.results_keep": str(LOG_KEEP),
     }
     limits = Limits(
         max_result_age_s=cfg.mavlink.max_result_age_s,

@@ -113,3 +113,25 @@ def test_a_line_torn_by_a_kill_is_ended_and_the_next_run_header_says_so(tmp_path
     assert json.loads(lines[3]) == {**json.loads(HEADER), "previous_line_torn": True}
     ResultsLog(path, HEADER).close()  # a clean end before: no claim of a torn line
     assert path.read_text(encoding="utf-8").endswith(HEADER)
+
+
+def test_a_log_whose_rotation_can_outgrow_its_filesystem_is_warned_at_start(tmp_path, monkeypatch, caplog):
+    """The 60-minute soak's 64 MiB log disk filled with the daemon's own rotated log (100 MiB × 11 allowed):
+    the start says so, with the sizes, before it happens."""
+    import shutil
+
+    from branchrange.onboard import results_log
+
+    def disk(free_mib: float):
+        return lambda _path: shutil._ntuple_diskusage(2**40, 0, int(free_mib * 2**20))  # type: ignore[attr-defined]
+
+    path = tmp_path / "results.jsonl"
+    monkeypatch.setattr(results_log.shutil, "disk_usage", disk(64))
+    ResultsLog(path, HEADER, max_bytes=100 * 2**20, keep=10).close()
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and "can grow to 1100 MiB" in warned[0] and "64 MiB left" in warned[0]
+    caplog.clear()
+    monkeypatch.setattr(results_log.shutil, "disk_usage", disk(2000))
+    ResultsLog(path, HEADER, max_bytes=100 * 2**20, keep=10).close()
+    ResultsLog(path, HEADER, max_bytes=0).close()  # never rotated: the size is the user's choice
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]

@@ -24,6 +24,7 @@ import io
 import json
 import logging
 import os
+import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -65,6 +66,29 @@ class ResultsLog:
             self._append("\n")
         # a restart appends to the same log: each run starts with its header
         self._append(json.dumps({**json.loads(header), TORN_KEY: True}) + "\n" if torn else header)
+        self.warn_if_it_can_fill_the_disk()
+
+    def warn_if_it_can_fill_the_disk(self) -> None:
+        """Log a warning when the log and its rotated files may grow past the space its filesystem has left:
+        `max_bytes` × (`keep` + 1) against the free space plus what the files hold already. A full disk does not
+        stop the daemon (lines are dropped), but the newest results are then lost, and the disk is full for
+        whatever else needs it. (Without rotation, `max_bytes` 0, the size is the user's choice: not warned.)"""
+        if not self.max_bytes:
+            return
+        files = (self.path, *map(self._numbered, range(1, self.keep + 1)))
+        held = sum(p.stat().st_size for p in files if p.exists())
+        try:
+            room = shutil.disk_usage(self.path.parent).free + held
+        except OSError:  # not a filesystem that says: nothing to compare
+            return
+        if self.max_bytes * (self.keep + 1) > room:
+            log.warning(
+                "results log %s can grow to %.0f MiB (results_max_mb × (results_keep + 1)) on a filesystem with "
+                "%.0f MiB left for it: it can fill the disk (lower [log] results_max_mb or results_keep)",
+                self.path,
+                self.max_bytes * (self.keep + 1) / 2**20,
+                room / 2**20,
+            )
 
     def _open(self) -> io.FileIO:
         """The log file, unbuffered: each line is one write, or cut off again; `_size` from the file."""
