@@ -22,14 +22,15 @@ and the daemon's published results (the results log's lines, with their fused `t
 - `border_targets`: sends whose target track's newest cut point lies within 2 % of the image width
   of the image border (the artefact of a branch the border cuts);
 - `nearest` (the true cut point nearest to the camera at the last frame) and `approached` (the one
-  the flight heads for): the `runs` of results in which its fused track had a confidence
-  ≥ `cutpoints.target_min_confidence`, each with the seconds from its start until the track was
-  eligible as the target by the results log (also `tracking.target_min_observations` consistent cut
-  points, captured within `mavlink.max_result_age_s`); `ready`: every run eligible within 1 s or
-  over sooner; `ready_delay_s` the longest such wait; when it was first confident, eligible and
+  the flight heads for): the `runs` of results in which its fused track was seen within
+  `mavlink.max_result_age_s` and had a confidence ≥ `cutpoints.target_min_confidence` (a track seen once and
+  not since keeps its confidence: that is the segmenter not finding the branch again, not a readiness
+  delay), each with the seconds from its start until the track was eligible as the target by the results
+  log (also `tracking.target_min_observations` consistent cut points); `ready`: every run eligible within
+  1 s or over sooner; `ready_delay_s` the longest such wait; when it was first confident, eligible and
   sent as the target (`confident_s`, `eligible_s`, `target_s`, s after the first frame); `held_back` counts
-  its confident results that were not eligible, by why (too few consistent observations, or late), and
-  `held_back_series` each of them: [s after the first frame, consistent observations, age s, track error mm];
+  its confident results that were not eligible, and `held_back_series` each of them: [s after the first
+  frame, consistent observations, age s, track error mm];
 - `setpoint_dev_mm` {median, max}: each setpoint against the standoff point computed by the daemon's
   own `ApproachPlanner` from the *true* cut point of the sent target and the true pose (step limit
   included, speed cap not); `setpoint_dev_free_mm` over setpoints the speed cap did not hold;
@@ -460,11 +461,13 @@ def readiness(
         tracks = [
             tr for tr in (result.targets.tracks if result.targets else ()) if is_of(np.asarray(tr.ned_m), cut_id, cuts)
         ]
-        confident = [tr for tr in tracks if tr.confidence >= cfg.cutpoints.target_min_confidence]
-        consistent = [tr for tr in confident if tr.consistent_observations >= cfg.tracking.target_min_observations]
-        eligible = any(tr.age_s <= cfg.mavlink.max_result_age_s for tr in consistent)
+        # confident now: seen within the age a target may have, and confident (a track seen once and not since
+        # keeps its confidence but is not a branch in view: that is a detection gap, not a readiness delay)
+        fresh = [tr for tr in tracks if tr.age_s <= cfg.mavlink.max_result_age_s]
+        confident = [tr for tr in fresh if tr.confidence >= cfg.cutpoints.target_min_confidence]
+        eligible = any(tr.consistent_observations >= cfg.tracking.target_min_observations for tr in confident)
         if confident and not eligible:
-            held_back["too few consistent observations" if not consistent else "late"] += 1
+            held_back["too few consistent observations"] += 1
             track = confident[0]
             off_mm = 1000 * float(np.linalg.norm(np.asarray(track.ned_m) - cuts[cut_id]))
             held_back_series.append(
