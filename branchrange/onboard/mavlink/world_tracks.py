@@ -127,7 +127,7 @@ class Track:
     observations: int = 1
     consistent_observations: int = 1
     light_allows_target: bool = True  # as its newest observation's frame said
-    bias_share: float = 0.5
+    bias_share: float = TrackingConfig.bias_share
     updated_at: float = field(default=0.0)
 
     @classmethod
