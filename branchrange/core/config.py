@@ -460,11 +460,11 @@ class TrackingConfig(Settings):
     shipped onboard file): the 68th percentile of one cut point's error with the built-in segmenter was 0.30 px
     along the line of sight and 4.5 px across it (its instances' ends move along the branch); with truth masks
     0.10 and 1.6 px, so σ is wider than their errors — it is set for what flies. `process_noise_m2_per_s` lets
-    a track follow a branch that sways or a slowly drifting local position. A cut point joins the nearest track within `gate_m`. A track whose
-    newest cut point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than that
-    are bridged by the filter) and is forgotten after `forget_after_s`. Ages count from the capture, so
-    `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU companion) by a frame or two:
-    1.5 s.
+    a track follow a branch that sways or a slowly drifting local position. A cut point joins the nearest track
+    within `gate_m`. A track whose newest cut point was captured more than `stale_after_s` ago is no longer sent
+    (occlusions shorter than that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count
+    from the capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU
+    companion) by a frame or two: 1.5 s.
 
     Honest covariance: `bias_share` of each cut point's variance is a stereo bias shared by views from
     (nearly) the same viewpoint — within `same_view_deg` of line of sight and `same_view_range_ratio`
