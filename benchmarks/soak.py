@@ -414,16 +414,24 @@ class LogTail:
 
     def __init__(self, path: Path) -> None:
         self.path, self.offset = path, 0
+        self.inode: int | None = None  # the file being read: the daemon rotates the log (NAME → NAME.1)
 
     def read(self, rec: Recording, lock: threading.Lock) -> None:
         try:
-            with self.path.open("rb") as file:
-                file.seek(self.offset)
-                data = file.read()
+            inode = self.path.stat().st_ino
         except OSError:
             return
-        whole = data[: data.rfind(b"\n") + 1]
+        data = b""
+        if self.inode is not None and inode != self.inode:  # rotated: the rest of the old file, then the new one
+            rotated = [p for p in self.path.parent.glob(f"{self.path.name}.*") if p.stat().st_ino == self.inode]
+            data = _tail(rotated[0], self.offset) if rotated else b""
+            data = data[: data.rfind(b"\n") + 1]  # rotation happens between whole lines
+            self.offset = 0
+        self.inode = inode
+        fresh = _tail(self.path, self.offset)
+        whole = fresh[: fresh.rfind(b"\n") + 1]
         self.offset += len(whole)
+        whole = data + whole
         captures, lines = [], []
         for raw in whole.decode("utf-8", "replace").splitlines():
             try:
@@ -441,6 +449,16 @@ class LogTail:
         with lock:
             rec.captures.extend(captures)
             rec.log_lines.extend(lines)
+
+
+def _tail(path: Path, offset: int) -> bytes:
+    """The bytes of `path` from `offset` on (none when it cannot be read)."""
+    try:
+        with path.open("rb") as file:
+            file.seek(offset)
+            return file.read()
+    except OSError:
+        return b""
 
 
 # --- faults ---------------------------------------------------------------------------------------------------------

@@ -151,3 +151,26 @@ def test_a_calm_state_not_back_is_a_slow_recovery_not_a_lie_and_only_lies_are_sa
     gated = [name for name in names(rec) if name in SAFETY]
     assert gated == ["stale_target", "target_while_camera_lost"]
     assert {"slow_recovery", "health_not_back"} <= set(names(rec))
+
+
+def test_the_log_tail_follows_the_daemons_rotation_without_tearing_a_line(tmp_path):
+    """The 43-minute soak of 2026-11-29 read the new file at the old file's offset after a rotation: torn
+    lines, and every later capture missed (thousands of stale targets that were not)."""
+    import threading
+
+    from soak import LogTail
+
+    path = tmp_path / "results.jsonl"
+
+    def line(i: int) -> str:
+        return json.dumps({"frame": {"timestamp_ns": i * 10**9}, "branches": [{"id": 1}]}) + "\n"
+
+    path.write_text(line(1) + line(2))
+    tail, rec, lock = LogTail(path), Recording(), threading.Lock()
+    tail.read(rec, lock)
+    path.write_text(path.read_text() + line(3))  # written after the read, then the file rotates
+    path.rename(tmp_path / "results.jsonl.1")
+    path.write_text(line(4))
+    tail.read(rec, lock)
+    assert rec.captures == [1.0, 2.0, 3.0, 4.0]
+    assert all(json.loads(raw) for raw in rec.log_lines)  # every line whole
