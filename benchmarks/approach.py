@@ -29,8 +29,8 @@ and the daemon's published results (the results log's lines, with their fused `t
   log (also `tracking.target_min_observations` consistent cut points); `ready`: every run eligible within
   1 s or over sooner; `ready_delay_s` the longest such wait; when it was first confident, eligible and
   sent as the target (`confident_s`, `eligible_s`, `target_s`, s after the first frame); `held_back` counts
-  its confident results that were not eligible, and `held_back_series` each of them: [s after the first
-  frame, consistent observations, age s, track error mm];
+  its confident results that were not eligible (too few consistent observations), and `held_back_series`
+  each of them: [s after the first frame, consistent observations, age s, track error mm];
 - `setpoint_dev_mm` {median, max}: each setpoint against the standoff point computed by the daemon's
   own `ApproachPlanner` from the *true* cut point of the sent target and the true pose (step limit
   included, speed cap not); `setpoint_dev_free_mm` over setpoints the speed cap did not hold;
@@ -62,7 +62,6 @@ import json
 import math
 import re
 import sys
-from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -455,7 +454,6 @@ def readiness(
     when it first was confident, eligible and sent as the target (s after the first frame, None: never)."""
     cuts = flight.cuts_ned()
     samples = []
-    held_back: Counter[str] = Counter()  # why a confident result was not eligible
     held_back_series: list[list[float]] = []  # [t s, consistent observations, age s, track error mm] of each
     for t, result in zip(timeline.times, timeline.results):
         tracks = [
@@ -467,7 +465,6 @@ def readiness(
         confident = [tr for tr in fresh if tr.confidence >= cfg.cutpoints.target_min_confidence]
         eligible = any(tr.consistent_observations >= cfg.tracking.target_min_observations for tr in confident)
         if confident and not eligible:
-            held_back["too few consistent observations"] += 1
             track = confident[0]
             off_mm = 1000 * float(np.linalg.norm(np.asarray(track.ned_m) - cuts[cut_id]))
             held_back_series.append(
@@ -489,7 +486,7 @@ def readiness(
         "ready_delay_s": max(delays) if delays else None,
         "ready": ready_in_time(runs),
         "runs": runs,
-        "held_back": dict(held_back),
+        "held_back": len(held_back_series),
         "held_back_series": held_back_series,
     }
 
