@@ -8,7 +8,10 @@ tests/autopilot_sim.py: `branchrange.onboard.daemon.Daemon` with deploy/onboard_
 `mavlink.setpoint_enabled = true`, a real `MavlinkRelay`) with frames released at their timestamps,
 while `AutopilotSim` (ArduCopter-like MAVLink 2: GUIDED, armed, ATTITUDE + LOCAL_POSITION_NED at
 30 Hz) flies the flight's poses and records every message it receives. `--masks truth` gives the
-daemon the recording's instance masks, `builtin` drops them so the built-in segmenter decides.
+daemon the recording's instance masks, `builtin` drops them so the built-in segmenter decides. The shipped
+`[tracking]` noise is the built-in segmenter's; truth-mask flights take the truth masks' own, measured by
+`benchmarks/cut_point_noise.py` on other scenes (`--truth-noise`), so that σ is judged on the cut points it
+describes.
 
 Reported per flight, all from what the autopilot received (DEBUG_VECT "CUT", SET_POSITION_TARGET_LOCAL_NED)
 and the daemon's published results (the results log's lines, with their fused `targets`):
@@ -39,7 +42,8 @@ and the daemon's published results (the results log's lines, with their fused `t
 - `sigma`: the target track's reported covariance against its actual error (local NED) per send:
   `axis` the share whose error along the covariance's largest axis is within its 1-σ (`sigma_m`,
   ideally 68 %); `radius` the share whose whole error is ≤ `sigma_m`, with `radius_expected`, the
-  share a Gaussian with the reported covariance would give (3-D, so below 68 %);
+  share a Gaussian with the reported covariance would give (3-D, so below 68 %); `sigma_mm` and
+  `axis_error_mm`, the medians of that σ and of the error along its axis (table: `σ mm`, `e∥ mm`);
 - `release_lag_ms` {median, max}: the daemon's arrival stamp of each frame after its release on the
   simulator's clock (frames are decoded into memory first, as a camera delivers raw frames; a large
   lag would mean the harness, not the daemon, fell behind);
@@ -102,6 +106,8 @@ BORDER_SHARE = 0.02
 CAP_TIME_TOLERANCE_S = 0.0015
 #: SET_POSITION_TARGET_LOCAL_NED positions are float32.
 CAP_LENGTH_TOLERANCE_M = 1e-5
+#: cut_point_noise.py's report: the per-view noise of truth masks (see `truth_mask_noise`)
+TRUTH_NOISE_FILE = ROOT / "benchmarks" / "results" / "cut_point_noise.json"
 #: Samples per send for the Gaussian share inside the 1-σ radius.
 RADIUS_SAMPLES = 4000
 
@@ -126,15 +132,25 @@ def sigma_coverage(errors_m: np.ndarray, covariances_m2: np.ndarray, seed: int =
     """How often the reported 1-σ covers the actual error; `errors_m` (N, 3), `covariances_m2` (N, 3, 3).
 
     `axis`: share with |error · u| ≤ σ, u the largest eigenvector, σ its root (a calibrated covariance: 68.3 %);
-    `radius`: share with |error| ≤ σ; `radius_expected`: the share a Gaussian with each covariance gives."""
+    `radius`: share with |error| ≤ σ; `radius_expected`: the share a Gaussian with each covariance gives;
+    `sigma_mm`, `axis_error_mm`: the medians of σ and of |error · u| (mm) — how far from calibrated, and which way."""
     if len(errors_m) == 0:
-        return {"axis": None, "radius": None, "radius_expected": None, "sends": 0}
+        return {
+            "axis": None,
+            "radius": None,
+            "radius_expected": None,
+            "sigma_mm": None,
+            "axis_error_mm": None,
+            "sends": 0,
+        }
     rng = np.random.default_rng(seed)
-    axis, radius, expected = [], [], []
+    axis, radius, expected, sigmas, axis_errors = [], [], [], [], []
     for error, covariance in zip(errors_m, covariances_m2):
         values, vectors = np.linalg.eigh(covariance)
         sigma = math.sqrt(max(float(values[-1]), 0.0))
-        axis.append(abs(float(error @ vectors[:, -1])) <= sigma)
+        sigmas.append(sigma)
+        axis_errors.append(abs(float(error @ vectors[:, -1])))
+        axis.append(axis_errors[-1] <= sigma)
         radius.append(float(np.linalg.norm(error)) <= sigma)
         samples = rng.multivariate_normal(np.zeros(3), covariance, RADIUS_SAMPLES)
         expected.append(float(np.mean(np.linalg.norm(samples, axis=1) <= sigma)))
@@ -142,6 +158,8 @@ def sigma_coverage(errors_m: np.ndarray, covariances_m2: np.ndarray, seed: int =
         "axis": round(float(np.mean(axis)), 3),
         "radius": round(float(np.mean(radius)), 3),
         "radius_expected": round(float(np.mean(expected)), 3),
+        "sigma_mm": round(1000 * float(np.median(sigmas)), 1),
+        "axis_error_mm": round(1000 * float(np.median(axis_errors)), 1),
         "sends": len(axis),
     }
 
@@ -606,6 +624,19 @@ def score_flight(flight: DaemonFlight, cfg: Config, target_id: int) -> dict[str,
     }
 
 
+def truth_mask_noise(path: Path | None) -> list[str]:
+    """`[tracking]` overrides for truth-mask flights: the per-view noise `benchmarks/cut_point_noise.py` measured
+    for truth masks (its "all" row, on other scenes than these) — the shipped values are the built-in segmenter's,
+    and a σ is honest only for the cut points it is measured on. [] without a file (or `path` None)."""
+    if path is None or not path.is_file():
+        return []
+    rows = [r for r in json.loads(path.read_text())["rows"] if r["flight"] == "all" and r["masks"] == "truth"]
+    if not rows:
+        return []
+    keys = ("disparity_sigma_px", "lateral_sigma_px", "bias_share")
+    return [f"tracking.{k}={rows[0][k]:.3g}" for k in keys if rows[0].get(k) is not None]
+
+
 def run_flight(directory: Path, masks: str, width: int, extra: Sequence[str] = ()) -> dict[str, Any]:
     """Fly one recording through the daemon with `masks` ('truth' or 'builtin') and score it."""
     cfg = daemon_config(directory, width, extra)
@@ -659,7 +690,7 @@ def flight_line(r: dict[str, Any]) -> str:
         f"{'yes' if n['ready'] else 'NO':>5} "
         f"{fmt(d['median'], 0):>6} {fmt(d['max'], 0):>6} {fmt(r['speed_capped'], 2):>6} "
         f"{fmt(s['axis'], 2):>6} {fmt(s['radius'], 2):>5} {fmt(s['radius_expected'], 2):>5} "
-        f"{fmt(r['release_lag_ms']['max']):>4}"
+        f"{fmt(s.get('sigma_mm'), 1):>5} {fmt(s.get('axis_error_mm'), 1):>5} {fmt(r['release_lag_ms']['max']):>4}"
     )
 
 
@@ -674,12 +705,13 @@ def print_report(report: dict[str, Any]) -> None:
     """The tables of the module docstring, and the targets met or not."""
     print(
         f"CPU: {report['cpu']}; {report['threads']} threads; {report['resolution']}; load {report['load']}; "
-        f"overrides: {' '.join(report.get('overrides', [])) or 'none'}"
+        f"overrides: {' '.join(report.get('overrides', [])) or 'none'}; "
+        f"truth masks: {' '.join(report.get('truth_overrides', [])) or 'the shipped noise'}"
     )
     print(
         f"{'flight':>8} {'masks':>7} {'sends':>5} {'tgt':>4} {'sw':>3} {'first s':>7} {'err med':>7} {'p90':>5} "
         f"{'max mm':>6} {'>5cm':>4} {'bord':>4} {'ready s':>7} {'ok':>5} {'sp med':>6} {'max mm':>6} "
-        f"{'capped':>6} {'σ axis':>6} {'σ rad':>5} {'exp':>5} {'lag':>4}"
+        f"{'capped':>6} {'σ axis':>6} {'σ rad':>5} {'exp':>5} {'σ mm':>5} {'e∥ mm':>5} {'lag':>4}"
     )
     for row in report["flights"]:
         print(flight_line(row))
@@ -710,6 +742,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="smoke run: 640x360, 0.5 m/s, truth masks")
     parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument(
+        "--truth-noise",
+        type=Path,
+        default=TRUTH_NOISE_FILE,
+        help="truth-mask flights take [tracking]'s per-view noise from this cut_point_noise.py report (default: "
+        "benchmarks/results/cut_point_noise.json; a missing file: the shipped values)",
+    )
+    parser.add_argument(
         "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override the deploy file (repeatable)"
     )
     args = parser.parse_args(argv)
@@ -736,6 +775,7 @@ def fly_all(args: argparse.Namespace) -> dict[str, Any]:
         "load": machine_load(),
         "config": str(DEPLOY_CONFIG.relative_to(ROOT)),
         "overrides": args.set,
+        "truth_overrides": truth_mask_noise(args.truth_noise),
         "flights": [],
     }
     for speed in speeds:
@@ -743,7 +783,13 @@ def fly_all(args: argparse.Namespace) -> dict[str, Any]:
         for mask in masks:
             print(f"flying {directory.name} with {mask} masks ...", file=sys.stderr)
             report["flights"].append(
-                {"speed_m_s": speed, "masks": mask, **run_flight(directory, mask, width, args.set)}
+                {
+                    "speed_m_s": speed,
+                    "masks": mask,
+                    **run_flight(
+                        directory, mask, width, [*(report["truth_overrides"] if mask == "truth" else []), *args.set]
+                    ),
+                }
             )
     report["targets"] = verdicts(report["flights"])
     return report

@@ -14,7 +14,9 @@ depth px = e_los · f·B / (s·r²), lateral px = |e_across| · f / (s·r) / √
 It prints, per masks: observations, the 1-σ of each (the 68.3 % quantile of |error| — robust to the few
 gross errors the match gate lets through), the RMS, and the share of the frame's cut points beyond the gate;
 then `bias_share` (from the hover alone in the "all" row): per true cut point, the variance of its views'
-mean error (shared) against the variance about that mean (independent), pooled over cut points, both in px.
+mean error (shared) against the variance about that mean (independent), pooled over cut points, both in px;
+then, per region `disparity_scale` s, the 1-σ in the scaled px `[tracking]` assumes and at full resolution:
+if the errors do not grow with s, σ should not either.
 
     .venv/bin/python benchmarks/cut_point_noise.py --json benchmarks/results/cut_point_noise.json
 """
@@ -96,7 +98,7 @@ def flight_observations(directory: Path, masks: str, width: int, extra: Sequence
         replay_recording(directory, cfg, out, progress=False, ignore_masks=masks != "truth")
         (_, results), *_ = read_runs(out)
     positions = frame_positions(truth)
-    depth, lateral, beyond, total = [], [], 0, 0
+    depth, lateral, scales, beyond, total = [], [], [], 0, 0
     by_cut: dict[int, list[np.ndarray]] = defaultdict(list)
     for result in results:
         position = positions.get(int(result["frame"]["index"]))
@@ -115,8 +117,36 @@ def flight_observations(directory: Path, masks: str, width: int, extra: Sequence
             d, lat = observation_errors_px(cut, true_m, camera["focal_px"], camera["baseline_m"], scale)
             depth.append(d)
             lateral.extend(lat.tolist())
+            scales.append(scale)
             by_cut[cut_id].append(np.array([d, *lat]))
-    return {"depth_px": depth, "lateral_px": lateral, "by_cut": by_cut, "beyond": beyond, "cut_points": total}
+    return {
+        "depth_px": depth,
+        "lateral_px": lateral,
+        "scales": scales,
+        "by_cut": by_cut,
+        "beyond": beyond,
+        "cut_points": total,
+    }
+
+
+def by_disparity_scale(found: dict[str, Any]) -> dict[str, dict[str, float | int | None]]:
+    """Per region `disparity_scale` s (the budget matches a near branch s× smaller): observations and the 1-σ
+    of depth and lateral error in the scaled px `[tracking]` assumes (error ∝ s) and in full-resolution px
+    (error independent of s) — which of the two the errors follow decides whether σ should grow with s."""
+    scales = np.asarray(found["scales"], dtype=np.int64)
+    depth = np.asarray(found["depth_px"], dtype=np.float64)
+    lateral = np.asarray(found["lateral_px"], dtype=np.float64).reshape(-1, 2)
+    rows: dict[str, dict[str, float | int | None]] = {}
+    for scale in sorted(set(scales.tolist())):
+        chosen = scales == scale
+        rows[str(scale)] = {
+            "observations": int(chosen.sum()),
+            "disparity_sigma_px": one_sigma(depth[chosen].tolist()),
+            "disparity_sigma_full_px": one_sigma((scale * depth[chosen]).tolist()),
+            "lateral_sigma_px": one_sigma(lateral[chosen].ravel().tolist()),
+            "lateral_sigma_full_px": one_sigma((scale * lateral[chosen]).ravel().tolist()),
+        }
+    return rows
 
 
 def summary(name: str, masks: str, found: dict[str, Any]) -> dict[str, Any]:
@@ -137,6 +167,7 @@ def summary(name: str, masks: str, found: dict[str, Any]) -> dict[str, Any]:
         "lateral_rms_px": rms(lateral),
         "beyond_gate_share": found["beyond"] / found["cut_points"] if found["cut_points"] else None,
         "bias_share": bias_share(found["by_cut"]),
+        "by_disparity_scale": by_disparity_scale(found),
     }
 
 
@@ -162,13 +193,21 @@ def main(argv: list[str] | None = None) -> int:
         flights.append(("hover", render_flight(args.resolution, None, args.hover_s, args.seed)))
     rows = []
     for masks in ("truth", "builtin") if args.masks == "both" else (args.masks,):
-        pooled: dict[str, Any] = {"depth_px": [], "lateral_px": [], "by_cut": {}, "beyond": 0, "cut_points": 0}
+        pooled: dict[str, Any] = {
+            "depth_px": [],
+            "lateral_px": [],
+            "scales": [],
+            "by_cut": {},
+            "beyond": 0,
+            "cut_points": 0,
+        }
         for name, directory in flights:
             print(f"replaying {directory.name} with {masks} masks ...", file=sys.stderr)
             found = flight_observations(directory, masks, width, args.set)
             rows.append(summary(name, masks, found))
             pooled["depth_px"] += found["depth_px"]
             pooled["lateral_px"] += found["lateral_px"]
+            pooled["scales"] += found["scales"]
             pooled["beyond"] += found["beyond"]
             pooled["cut_points"] += found["cut_points"]
             if name == "hover":  # views from one spot: what the bias share is about
@@ -187,6 +226,17 @@ def main(argv: list[str] | None = None) -> int:
             f"{fmt(r['disparity_rms_px']):>5} {fmt(r['lateral_sigma_px']):>8} {fmt(r['lateral_rms_px']):>5} "
             f"{fmt(r['beyond_gate_share']):>5} {fmt(r['bias_share']):>5}"
         )
+    print("\nby the region's disparity scale s, 1-σ px: as [tracking] scales it (× 1/s) / at full resolution")
+    print(f"{'masks':>7} {'s':>2} {'obs':>5} {'disp σ':>6} {'full':>5} {'lat σ':>6} {'full':>5}")
+    for r in rows:
+        if r["flight"] != "all":
+            continue
+        for scale, b in r["by_disparity_scale"].items():
+            print(
+                f"{r['masks']:>7} {scale:>2} {b['observations']:>5} {fmt(b['disparity_sigma_px']):>6} "
+                f"{fmt(b['disparity_sigma_full_px']):>5} {fmt(b['lateral_sigma_px']):>6} "
+                f"{fmt(b['lateral_sigma_full_px']):>5}"
+            )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {

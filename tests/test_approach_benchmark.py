@@ -8,6 +8,7 @@ tests. `benchmarks/` is not a package: the tests put it on the path as its scrip
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
@@ -58,7 +59,11 @@ def test_errors_drawn_from_the_reported_covariance_are_68_percent_covered() -> N
     covariance = np.array([[4e-4, 1e-4, 0.0], [1e-4, 1e-4, 0.0], [0.0, 0.0, 2e-5]])
     errors = np.random.default_rng(3).multivariate_normal(np.zeros(3), covariance, 2000)
     covariances = np.repeat(covariance[None], 2000, axis=0)
-    assert approach.sigma_coverage(errors, covariances)["axis"] == pytest.approx(0.683, abs=0.03)
+    result = approach.sigma_coverage(errors, covariances)
+    assert result["axis"] == pytest.approx(0.683, abs=0.03)
+    # the largest axis's σ is 20.7 mm, and the median |error| along it is 0.674 σ for a normal error
+    assert result["sigma_mm"] == pytest.approx(20.7, abs=0.1)
+    assert result["axis_error_mm"] == pytest.approx(0.674 * result["sigma_mm"], rel=0.08)
     # twice the error: the covariance is overconfident and the coverage says so
     assert approach.sigma_coverage(2 * errors, covariances)["axis"] == pytest.approx(0.383, abs=0.03)
 
@@ -153,3 +158,28 @@ def test_preloaded_replay_releases_the_recordings_frames_at_their_times(tmp_path
     assert all(np.array_equal(a.left, b.left) and np.array_equal(a.mask, b.mask) for a, b in zip(frames, expected))
     # paced by the recording: frame k no earlier than k periods after the first
     assert all(t - released[0] >= k * period_ns / 1e9 - 1e-3 for k, t in enumerate(released))
+
+
+def test_truth_mask_flights_take_the_noise_measured_for_truth_masks(tmp_path: Path) -> None:
+    report = tmp_path / "noise.json"
+    rows = [
+        {"flight": "all", "masks": "builtin", "disparity_sigma_px": 0.3, "lateral_sigma_px": 4.5, "bias_share": 0.24},
+        {"flight": "hover", "masks": "truth", "disparity_sigma_px": 0.2, "lateral_sigma_px": 1.0, "bias_share": 0.1},
+        {
+            "flight": "all",
+            "masks": "truth",
+            "disparity_sigma_px": 0.1012,
+            "lateral_sigma_px": 1.641,
+            "bias_share": 0.61,
+        },
+    ]
+    report.write_text(json.dumps({"rows": rows}))
+    assert approach.truth_mask_noise(report) == [
+        "tracking.disparity_sigma_px=0.101",
+        "tracking.lateral_sigma_px=1.64",
+        "tracking.bias_share=0.61",
+    ]
+    # each is a valid override of the deploy file
+    approach.daemon_config(tmp_path, 1280, approach.truth_mask_noise(report))
+    assert approach.truth_mask_noise(tmp_path / "missing.json") == []
+    assert approach.truth_mask_noise(None) == []

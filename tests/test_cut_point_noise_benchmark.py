@@ -48,3 +48,21 @@ def test_one_sigma_is_the_68th_percentile_of_the_absolute_error() -> None:
     rng = np.random.default_rng(1)
     assert cut_point_noise.one_sigma(rng.normal(0, 0.7, 20000)) == pytest.approx(0.7, rel=0.03)
     assert cut_point_noise.one_sigma([]) is None
+
+
+def test_errors_that_do_not_grow_with_the_disparity_scale_show_it_at_full_resolution() -> None:
+    rng = np.random.default_rng(2)
+    # full-resolution errors of σ 0.4 px whatever the scale: in scaled px they shrink as 1/s
+    scales = [1] * 4000 + [4] * 4000
+    full = rng.normal(0, 0.4, 8000)
+    lateral = rng.normal(0, 2.0, (8000, 2))
+    found = {
+        "scales": scales,
+        "depth_px": (full / np.asarray(scales)).tolist(),
+        "lateral_px": (lateral / np.asarray(scales)[:, None]).ravel().tolist(),
+    }
+    rows = cut_point_noise.by_disparity_scale(found)
+    assert rows["1"]["observations"] == rows["4"]["observations"] == 4000
+    assert rows["4"]["disparity_sigma_full_px"] == pytest.approx(0.4, rel=0.05)
+    assert rows["4"]["disparity_sigma_px"] == pytest.approx(0.1, rel=0.05)
+    assert rows["4"]["lateral_sigma_full_px"] == pytest.approx(rows["1"]["lateral_sigma_px"], rel=0.06)
