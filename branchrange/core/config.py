@@ -459,7 +459,8 @@ class TrackingConfig(Settings):
     (`benchmarks/cut_point_noise.py`, rendered flights of a scene seed apart from the approach benchmark's, the
     shipped onboard file): the 68th percentile of one cut point's error with the built-in segmenter was 0.30 px
     along the line of sight and 4.5 px across it (its instances' ends move along the branch); with truth masks
-    0.10 and 1.6 px, so σ is wider than their errors — it is set for what flies. `process_noise_m2_per_s` lets
+    0.10 and 1.6 px, so σ is wider than their errors — it is set for what flies (`benchmarks/approach.py` flies
+    truth masks with their own measured noise). `process_noise_m2_per_s` lets
     a track follow a branch that sways or a slowly drifting local position. A cut point joins the nearest track
     within `gate_m`. A track whose newest cut point was captured more than `stale_after_s` ago is no longer sent
     (occlusions shorter than that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count
