@@ -183,3 +183,37 @@ def test_truth_mask_flights_take_the_noise_measured_for_truth_masks(tmp_path: Pa
     approach.daemon_config(tmp_path, 1280, approach.truth_mask_noise(report))
     assert approach.truth_mask_noise(tmp_path / "missing.json") == []
     assert approach.truth_mask_noise(None) == []
+
+
+def _row(masks: str, axis: float | None, sends: int) -> dict:
+    return {"masks": masks, "sigma": {"axis": axis, "sends": sends}}
+
+
+def test_coverage_is_pooled_over_the_sends_of_every_flight_per_mask_source() -> None:
+    rows = [_row("truth", 1.0, 30), _row("truth", 0.25, 10), _row("builtin", 0.5, 4), _row("builtin", None, 0)]
+    # one track's error persists from send to send: a flight alone is nearly all or nothing
+    assert approach.pooled_coverage(rows) == {"truth": pytest.approx((30 + 2.5) / 40, abs=1e-3), "builtin": 0.5}
+
+
+def test_reports_of_other_seeds_pool_into_one_verdict(tmp_path: Path) -> None:
+    def flight(axis: float) -> dict:
+        return {
+            "speed_m_s": 0.5,
+            "masks": "truth",
+            "off_5cm": 0,
+            "border_targets": 0,
+            "switches": 0,
+            "nearest": {"ready": True},
+            "sigma": {"axis": axis, "sends": 10},
+            "latency_ms": [{"released": 5, "p95_ms": 100.0}],
+        }
+
+    paths = []
+    for seed, axis in ((1, 1.0), (2, 0.4)):
+        paths.append(tmp_path / f"seed{seed}.json")
+        paths[-1].write_text(json.dumps({"load": f"{seed}.0", "flights": [flight(axis)], "targets": {}}))
+    alone = approach.pool_reports(paths[:1])
+    assert not alone["targets"]["1-σ covers 68 ± 10 % (pooled per masks)"]  # 100 %: too wide
+    both = approach.pool_reports(paths)
+    assert len(both["flights"]) == 2 and both["load"] == "1.0 | 2.0"
+    assert both["targets"]["1-σ covers 68 ± 10 % (pooled per masks)"]  # 70 % over the two
