@@ -1,22 +1,23 @@
 """How noisy one cut point is, in the pixels `[tracking]` states its noise in — measured, not assumed.
 
 The fused tracks' covariance (`branchrange/onboard/mavlink/world_tracks.py`) takes each cut point's noise as
-`lateral_sigma_px`·r / f across the line of sight and `disparity_sigma_px`·r² / (f·B) along it (× the
-region's `disparity_scale` s, which the relay folds into f), and a `bias_share` of that variance as a bias
+`lateral_sigma_px`·r / f across the line of sight and `disparity_sigma_px`·r² / (f·B) along it (× s^α for a
+branch the region budget matched s times smaller, α = `tracking.scale_exponent`), and a `bias_share` of that
+variance as a bias
 that views from one spot share. This benchmark measures the three on rendered flights (`synth-flight`, the
 approach benchmark's recipe, but another scene seed — 2 by default — so that nothing is chosen on the
 flights `benchmarks/approach.py` judges, seed 1): each flight is replayed offline through the pipeline of
 `deploy/onboard_cpu.toml` (every frame, as the daemon's pipeline), with the recording's truth masks and with
 the built-in segmenter; every cut point within `MATCH_M` of a true cut point of its frame is an observation,
 its error split along the line of sight to the true point and across it and turned into px:
-depth px = e_los · f·B / (s·r²), lateral px = |e_across| · f / (s·r) / √2 (per axis).
+depth px = e_los · f·B / (s^α·r²), lateral px = |e_across| · f / (s^α·r) / √2 (per axis).
 
 It prints, per masks: observations, the 1-σ of each (the 68.3 % quantile of |error| — robust to the few
 gross errors the match gate lets through), the RMS, and the share of the frame's cut points beyond the gate;
 then `bias_share` (from the hover alone in the "all" row): per true cut point, the variance of its views'
 mean error (shared) against the variance about that mean (independent), pooled over cut points, both in px;
-then, per region `disparity_scale` s, the 1-σ in the scaled px `[tracking]` assumes and at full resolution:
-if the errors do not grow with s, σ should not either.
+then, per region `disparity_scale` s, the 1-σ in those px and at full resolution: if α is right, the first
+is the same at every s (α = 1 would be the shrunk image's px, α = 0 no growth).
 
     .venv/bin/python benchmarks/cut_point_noise.py --json benchmarks/results/cut_point_noise.json
 """
@@ -53,11 +54,12 @@ ONE_SIGMA_QUANTILE = 0.6827
 
 
 def observation_errors_px(
-    cut_m: np.ndarray, true_m: np.ndarray, focal_px: float, baseline_m: float, scale: int
+    cut_m: np.ndarray, true_m: np.ndarray, focal_px: float, baseline_m: float, noise_scale: float = 1.0
 ) -> tuple[float, np.ndarray]:
     """(depth error px, lateral error (2,) px) of a cut point `cut_m` (3,) m against the true `true_m` (3,) m,
-    both in the camera frame: the error along the line of sight to the true point scaled by f·B / (s·r²), and
-    across it (two axes) by f / (s·r) — the units `disparity_sigma_px` and `lateral_sigma_px` are in."""
+    both in the camera frame: the error along the line of sight to the true point scaled by f·B / (k·r²), and
+    across it (two axes) by f / (k·r), k = `noise_scale` (s^α) — the units `disparity_sigma_px` and
+    `lateral_sigma_px` are in (`focal_px` at full resolution)."""
     r = float(np.linalg.norm(true_m))
     los = true_m / r
     error = cut_m - true_m
@@ -67,8 +69,8 @@ def observation_errors_px(
     first = np.cross(los, helper)
     first /= np.linalg.norm(first)
     second = np.cross(los, first)
-    lateral = np.array([across @ first, across @ second]) * focal_px / (scale * r)
-    return along * focal_px * baseline_m / (scale * r * r), lateral
+    lateral = np.array([across @ first, across @ second]) * focal_px / (noise_scale * r)
+    return along * focal_px * baseline_m / (noise_scale * r * r), lateral
 
 
 def one_sigma(values: Sequence[float]) -> float | None:
@@ -98,6 +100,7 @@ def flight_observations(directory: Path, masks: str, width: int, extra: Sequence
         replay_recording(directory, cfg, out, progress=False, ignore_masks=masks != "truth")
         (_, results), *_ = read_runs(out)
     positions = frame_positions(truth)
+    exponent = cfg.tracking.scale_exponent
     depth, lateral, scales, beyond, total = [], [], [], 0, 0
     by_cut: dict[int, list[np.ndarray]] = defaultdict(list)
     for result in results:
@@ -114,7 +117,8 @@ def flight_observations(directory: Path, masks: str, width: int, extra: Sequence
                 beyond += 1
                 continue
             scale = int(branch.get("disparity_scale") or 1)
-            d, lat = observation_errors_px(cut, true_m, camera["focal_px"], camera["baseline_m"], scale)
+            noise_scale = scale**exponent
+            d, lat = observation_errors_px(cut, true_m, camera["focal_px"], camera["baseline_m"], noise_scale)
             depth.append(d)
             lateral.extend(lat.tolist())
             scales.append(scale)
@@ -123,6 +127,7 @@ def flight_observations(directory: Path, masks: str, width: int, extra: Sequence
         "depth_px": depth,
         "lateral_px": lateral,
         "scales": scales,
+        "exponent": exponent,
         "by_cut": by_cut,
         "beyond": beyond,
         "cut_points": total,
@@ -131,9 +136,10 @@ def flight_observations(directory: Path, masks: str, width: int, extra: Sequence
 
 def by_disparity_scale(found: dict[str, Any]) -> dict[str, dict[str, float | int | None]]:
     """Per region `disparity_scale` s (the budget matches a near branch s× smaller): observations and the 1-σ
-    of depth and lateral error in the scaled px `[tracking]` assumes (error ∝ s) and in full-resolution px
-    (error independent of s) — which of the two the errors follow decides whether σ should grow with s."""
+    of depth and lateral error in the px `[tracking]` states σ in (full resolution ÷ s^α, α the run's
+    `exponent`) and at full resolution — with the right α the first does not change with s."""
     scales = np.asarray(found["scales"], dtype=np.int64)
+    exponent = float(found["exponent"])
     depth = np.asarray(found["depth_px"], dtype=np.float64)
     lateral = np.asarray(found["lateral_px"], dtype=np.float64).reshape(-1, 2)
     rows: dict[str, dict[str, float | int | None]] = {}
@@ -142,9 +148,9 @@ def by_disparity_scale(found: dict[str, Any]) -> dict[str, dict[str, float | int
         rows[str(scale)] = {
             "observations": int(chosen.sum()),
             "disparity_sigma_px": one_sigma(depth[chosen].tolist()),
-            "disparity_sigma_full_px": one_sigma((scale * depth[chosen]).tolist()),
+            "disparity_sigma_full_px": one_sigma((scale**exponent * depth[chosen]).tolist()),
             "lateral_sigma_px": one_sigma(lateral[chosen].ravel().tolist()),
-            "lateral_sigma_full_px": one_sigma((scale * lateral[chosen]).ravel().tolist()),
+            "lateral_sigma_full_px": one_sigma((scale**exponent * lateral[chosen]).ravel().tolist()),
         }
     return rows
 
@@ -197,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
             "depth_px": [],
             "lateral_px": [],
             "scales": [],
+            "exponent": None,
             "by_cut": {},
             "beyond": 0,
             "cut_points": 0,
@@ -208,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
             pooled["depth_px"] += found["depth_px"]
             pooled["lateral_px"] += found["lateral_px"]
             pooled["scales"] += found["scales"]
+            pooled["exponent"] = found["exponent"]
             pooled["beyond"] += found["beyond"]
             pooled["cut_points"] += found["cut_points"]
             if name == "hover":  # views from one spot: what the bias share is about
@@ -226,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{fmt(r['disparity_rms_px']):>5} {fmt(r['lateral_sigma_px']):>8} {fmt(r['lateral_rms_px']):>5} "
             f"{fmt(r['beyond_gate_share']):>5} {fmt(r['bias_share']):>5}"
         )
-    print("\nby the region's disparity scale s, 1-σ px: as [tracking] scales it (× 1/s) / at full resolution")
+    exponent = pooled["exponent"]
+    print(f"\nby the region's disparity scale s, 1-σ px: as [tracking] states it (÷ s^{exponent:g}) / full resolution")
     print(f"{'masks':>7} {'s':>2} {'obs':>5} {'disp σ':>6} {'full':>5} {'lat σ':>6} {'full':>5}")
     for r in rows:
         if r["flight"] != "all":
@@ -244,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
             "seed": args.seed,
             "resolution": args.resolution,
             "overrides": args.set,
+            "scale_exponent": exponent,
             "rows": rows,
         }
         args.json.write_text(json.dumps(payload, indent=1) + "\n")

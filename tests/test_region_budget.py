@@ -155,9 +155,10 @@ def test_near_cut_points_at_reduced_scale_stay_within_5_mm_of_full_resolution_on
     assert pixels < sum((r.box[2] - r.box[0]) * (r.box[3] - r.box[1]) for r in full.roi.regions)
 
 
-def test_the_relay_fuses_a_reduced_scale_cut_point_with_a_sigma_as_many_times_larger():
-    """Two branches at the same range in one result, one matched at scale 2: its track's σ is twice the other's
-    (the disparity and lateral noise are px at the disparity's resolution, each 2 full-resolution px)."""
+@pytest.mark.parametrize("exponent", [0.5, 1.0])
+def test_the_relay_fuses_a_reduced_scale_cut_point_with_a_sigma_grown_by_the_scale_exponent(exponent: float):
+    """Two branches at the same range in one result, one matched at scale 2: its track's σ is 2^α times the
+    other's (α = `tracking.scale_exponent`: 0.5 as measured, 1 if an error were whole px of the shrunk image)."""
     import time
 
     from autopilot_sim import AutopilotSim, approach_flight
@@ -171,7 +172,7 @@ def test_the_relay_fuses_a_reduced_scale_cut_point_with_a_sigma_as_many_times_la
     scaled = replace(branch(2, (0.2, 0.0, 0.8), confidence=0.8), disparity_scale=2)
     with AutopilotSim(approach_flight(0.0), heartbeat_period_s=0.2) as sim:
         cfg = MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0)
-        with MavlinkRelay(cfg, mount, tracking=TrackingConfig()) as relay:
+        with MavlinkRelay(cfg, mount, tracking=TrackingConfig(scale_exponent=exponent)) as relay:
             deadline = time.monotonic() + 3.0
             while not relay.link_state()["vehicle_state"]["available"]:
                 assert time.monotonic() < deadline, relay.link_state()
@@ -180,7 +181,7 @@ def test_the_relay_fuses_a_reduced_scale_cut_point_with_a_sigma_as_many_times_la
             relay.publish(frame_result([full, scaled], focal_px=640.0, baseline_m=0.063), captured_at=captured)
             tracks = {t.branch_id: t for t in relay.targets().tracks}
     assert set(tracks) == {1, 2}
-    assert tracks[2].sigma_m == pytest.approx(2.0 * tracks[1].sigma_m, rel=0.02)
+    assert tracks[2].sigma_m == pytest.approx(2.0**exponent * tracks[1].sigma_m, rel=0.02)
 
 
 def test_the_pipeline_holds_a_tight_frame_budget_on_the_close_frame(close_frame):

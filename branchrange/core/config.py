@@ -450,22 +450,23 @@ class MavlinkConfig(Settings):
 class TrackingConfig(Settings):
     """World-frame target tracks (`branchrange.onboard.mavlink.world_tracks`), used when vehicle state arrives.
 
-    Each track is a Kalman filter on a static point in local NED. A cut point measured at range r (metres,
-    camera frame) by a camera of focal length f (px) and baseline B (m) has a standard deviation of
-    `lateral_sigma_px`·r / f across the line of sight and `disparity_sigma_px`·r² / (f·B) along it (a disparity
-    error δ moves the depth by Z²·δ / (f·B)): in pixels, so that one setting holds at every resolution — in
-    metres the same σ would be twice too small at half the resolution. 0.3 px and 4.5 px are 7.5 mm and 7 mm
-    at 1 m for a ZED Mini at HD720 (f·B ≈ 40 px·m, f ≈ 640 px). Both are measured, not assumed
+    Each track is a Kalman filter on a static point in local NED. A cut point measured at range r (metres, camera
+    frame) by a camera of focal length f (px) and baseline B (m) has a standard deviation of `lateral_sigma_px`·r /
+    f across the line of sight and `disparity_sigma_px`·r² / (f·B) along it (a disparity error δ moves the depth by
+    Z²·δ / (f·B)): in pixels, so that one setting holds at every resolution — in metres the same σ would be twice
+    too small at half the resolution. 0.3 px and 4.5 px are 7.5 mm and 7 mm at 1 m for a ZED Mini at HD720 (f·B ≈ 40
+    px·m, f ≈ 640 px). A branch the region budget matched s times smaller (near the tree) has both σ ×
+    s^`scale_exponent`: its pixels are s times coarser, but its cut point averages over more of them — measured, the
+    errors grow about as √s (0.5), not s (1, the worst case). Both σ are measured, not assumed
     (`benchmarks/cut_point_noise.py`, rendered flights of a scene seed apart from the approach benchmark's, the
     shipped onboard file): the 68th percentile of one cut point's error with the built-in segmenter was 0.30 px
-    along the line of sight and 4.5 px across it (its instances' ends move along the branch); with truth masks
-    0.10 and 1.6 px, so σ is wider than their errors — it is set for what flies (`benchmarks/approach.py` flies
-    truth masks with their own measured noise). `process_noise_m2_per_s` lets
-    a track follow a branch that sways or a slowly drifting local position. A cut point joins the nearest track
-    within `gate_m`. A track whose newest cut point was captured more than `stale_after_s` ago is no longer sent
-    (occlusions shorter than that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count
-    from the capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU
-    companion) by a frame or two: 1.5 s.
+    along the line of sight and 4.5 px across it (its instances' ends move along the branch); with truth masks 0.10
+    and 1.6 px, so σ is wider than their errors — it is set for what flies (`benchmarks/approach.py` flies truth
+    masks with their own measured noise). `process_noise_m2_per_s` lets a track follow a branch that sways or a
+    slowly drifting local position. A cut point joins the nearest track within `gate_m`. A track whose newest cut
+    point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than that are bridged by
+    the filter) and is forgotten after `forget_after_s`. Ages count from the capture, so `stale_after_s` must exceed
+    the capture → publish latency (up to 1 s on a CPU companion) by a frame or two: 1.5 s.
 
     Honest covariance: `bias_share` of each cut point's variance is a stereo bias shared by views from
     (nearly) the same viewpoint — within `same_view_deg` of line of sight and `same_view_range_ratio`
@@ -489,6 +490,7 @@ class TrackingConfig(Settings):
         "process_noise_m2_per_s": Limit(minimum=0),
         "stale_after_s": Limit(exclusive_minimum=0),
         "bias_share": Limit(minimum=0, maximum=0.95),
+        "scale_exponent": Limit(minimum=0, maximum=1),
         "same_view_deg": Limit(minimum=0, exclusive_maximum=90),
         "same_view_range_ratio": Limit(minimum=0, exclusive_maximum=1),
         "target_min_observations": Limit(minimum=1),
@@ -501,6 +503,7 @@ class TrackingConfig(Settings):
     lateral_sigma_px: float = 4.5
     disparity_sigma_px: float = 0.3
     process_noise_m2_per_s: float = 1e-5
+    scale_exponent: float = 0.5
     stale_after_s: float = 1.5
     forget_after_s: float = 5.0
     bias_share: float = 0.3
@@ -524,6 +527,7 @@ class TrackingConfig(Settings):
                 f"seconds >= tracking.stale_after_s ({self.stale_after_s})",
             ),
             "bias_share": (0 <= self.bias_share <= 0.95, "a share in [0, 0.95]"),
+            "scale_exponent": (0 <= self.scale_exponent <= 1, "an exponent in [0, 1]"),
             "same_view_deg": (0 <= self.same_view_deg < 90, "degrees in [0, 90)"),
             "same_view_range_ratio": (0 <= self.same_view_range_ratio < 1, "a ratio in [0, 1)"),
             "target_min_observations": (self.target_min_observations >= 1, "≥ 1 observation"),
@@ -532,12 +536,14 @@ class TrackingConfig(Settings):
             "target_switch_margin": (0 <= self.target_switch_margin < 1, "a share in [0, 1)"),
         }
 
-    def sigmas_m(self, range_m: float, focal_px: float, baseline_m: float) -> tuple[float, float]:
+    def sigmas_m(
+        self, range_m: float, focal_px: float, baseline_m: float, disparity_scale: int = 1
+    ) -> tuple[float, float]:
         """(lateral, along the line of sight) 1-σ of a cut point at `range_m` (m), metres, for a camera of
-        `focal_px` (px at the disparity's resolution) and `baseline_m` (m)."""
-        return self.lateral_sigma_px * range_m / focal_px, self.disparity_sigma_px * range_m**2 / (
-            focal_px * baseline_m
-        )
+        `focal_px` (px at full resolution) and `baseline_m` (m), its branch matched `disparity_scale` times
+        smaller (the region budget; 1: at full resolution)."""
+        px = float(disparity_scale) ** self.scale_exponent / focal_px
+        return self.lateral_sigma_px * range_m * px, self.disparity_sigma_px * range_m**2 * px / baseline_m
 
 
 @dataclass(frozen=True)

@@ -160,9 +160,9 @@ class MavlinkRelay:
                         np.asarray(b.cut_point_m),
                         cam_to_ned,
                         self._tracking,
-                        # a branch matched on the pair shrunk s times (region budget) saw a camera of focal f / s
-                        result.camera.focal_px / (b.disparity_scale or 1),
+                        result.camera.focal_px,
                         result.camera.baseline_m,
+                        b.disparity_scale or 1,
                     ),
                     b.confidence,
                     camera_m,

@@ -5,7 +5,8 @@ and a target chosen on evidence, with hysteresis.
 is a static point (3,) in local NED. A frame's cut point, measured in the camera frame and carried to
 NED through the mount and the vehicle pose at its capture time, is a measurement z with covariance R:
 `lateral σ = lateral_sigma_px · r / f` across the line of sight, `depth σ = disparity_sigma_px · r² /
-(f·B)` along it (stereo depth error ∝ range²; f, B the result's camera), rotated into NED.
+(f·B)` along it (stereo depth error ∝ range²; f, B the result's camera), both × s^`scale_exponent` for a
+branch the region budget matched s times smaller, rotated into NED.
 
 **Honest covariance.** Views of a branch from (nearly) the same viewpoint are not independent: they
 share the stereo bias of that viewpoint (the same disparity error on the same pixels), so 20 frames
@@ -88,14 +89,20 @@ class Measurement:
 
 
 def measurement_covariance(
-    point_cam_m: np.ndarray, cam_to_ned: np.ndarray, cfg: TrackingConfig, focal_px: float, baseline_m: float
+    point_cam_m: np.ndarray,
+    cam_to_ned: np.ndarray,
+    cfg: TrackingConfig,
+    focal_px: float,
+    baseline_m: float,
+    disparity_scale: int = 1,
 ) -> np.ndarray:
-    """NED covariance (3×3, m²) of a camera-frame cut point (3,) m measured by a camera of `focal_px` (px)
-    and `baseline_m` (m); `cam_to_ned` rotates camera → NED."""
+    """NED covariance (3×3, m²) of a camera-frame cut point (3,) m measured by a camera of `focal_px` (px, full
+    resolution) and `baseline_m` (m), its branch matched `disparity_scale` times smaller (the region budget);
+    `cam_to_ned` rotates camera → NED."""
     r = float(np.linalg.norm(point_cam_m))
     u = np.asarray(point_cam_m, dtype=np.float64) / max(r, 1e-6)
     along = np.outer(u, u)
-    lateral, depth = cfg.sigmas_m(r, focal_px, baseline_m)
+    lateral, depth = cfg.sigmas_m(r, focal_px, baseline_m, disparity_scale)
     cov_cam = lateral**2 * (np.eye(3) - along) + depth**2 * along
     rotated: np.ndarray = cam_to_ned @ cov_cam @ cam_to_ned.T
     return rotated
