@@ -139,3 +139,33 @@ def test_a_branch_split_in_two_this_frame_gets_one_track_not_two():
     assert len(tracks.tracks) == 1 and ids == {3: 0, 4: 0}
     tracks.update([seen(3, [1.5, 0.0, 0.0]), seen(5, [1.5, 0.12, 0.0])], 0.2)  # 12 cm: another branch
     assert len(tracks.tracks) == 2
+
+
+def test_a_track_too_uncertain_to_fly_to_is_not_the_target():
+    """From afar one view's depth σ is centimetres: three consistent views of σ 6 cm are not enough evidence
+    for a target that must be within 5 cm; as views add up (each from a new viewpoint) σ falls under the
+    bound and the track becomes the target."""
+    cfg = TrackingConfig(target_min_observations=3, target_max_sigma_m=0.02, bias_share=0.0, process_noise_m2_per_s=0)
+    tracks = WorldTracks(cfg, TargetRule(min_confidence=0.5))
+    far = np.eye(3) * 0.06**2
+    became = None
+    for k in range(20):
+        camera = np.array([0.0, 0.1 * k, 0.0])  # the vehicle moves: every view is a new viewpoint
+        z = Measurement(0, np.array([2.8, 0.0, 0.0]), far, 0.9, camera)
+        tracks.update([z], k / FPS)
+        (track,) = tracks.tracks
+        if tracks.target(k / FPS) is not None and became is None:
+            became = k
+        assert (tracks.target(k / FPS) is not None) == (track.sigma_m <= 0.02)
+    # n views of σ 6 cm fuse to 6 / √n cm: 2 cm at the 9th view
+    assert became == 8
+
+
+def test_a_target_whose_sigma_grows_past_the_bound_loses_its_claim():
+    cfg = TrackingConfig(target_min_observations=1, target_max_sigma_m=0.02, process_noise_m2_per_s=1e-3)
+    tracks = WorldTracks(cfg, TargetRule(min_confidence=0.5, max_age_s=2.0))
+    tracks.update([seen(0, [1.5, 0.0, 0.0])], 0.0)
+    assert tracks.target(0.0) is not None
+    # unseen for 0.4 s, a track drifting at 1e-3 m²/s has grown from σ 1 cm to ~2.2 cm: no longer the target
+    tracks.update([], 0.4)
+    assert tracks.target_id is None and tracks.target(0.4) is None

@@ -475,7 +475,9 @@ class TrackingConfig(Settings):
     by its views, `benchmarks/cut_point_noise.py`; `benchmarks/approach.py` reports σ against the actual error).
 
     The target (`world_tracks.TargetRule`): a track needs `target_min_observations` consistent cut
-    points in a row (each within `consistency_m` of the track) and a recency-weighted confidence
+    points in a row (each within `consistency_m` of the track), a fused 1-σ radius ≤ `target_max_sigma_m`
+    (2 cm: a target off by more than 5 cm is then a 2.5-σ event; one view from 2.8 m has a depth σ of ~6 cm,
+    and such a target was once 5.8 cm off on a rendered approach), and a recency-weighted confidence
     (weights halve every `confidence_half_life_s`) ≥ `cutpoints.target_min_confidence`, and its newest
     cut point must be captured within `mavlink.max_result_age_s`; the current target is kept unless
     another ranks better by `target_switch_margin` (a share of its score under `cutpoints.target_policy`).
@@ -494,6 +496,7 @@ class TrackingConfig(Settings):
         "same_view_deg": Limit(minimum=0, exclusive_maximum=90),
         "same_view_range_ratio": Limit(minimum=0, exclusive_maximum=1),
         "target_min_observations": Limit(minimum=1),
+        "target_max_sigma_m": Limit(exclusive_minimum=0),
         "consistency_m": Limit(exclusive_minimum=0),
         "confidence_half_life_s": Limit(exclusive_minimum=0),
         "target_switch_margin": Limit(minimum=0, exclusive_maximum=1),
@@ -510,6 +513,7 @@ class TrackingConfig(Settings):
     same_view_deg: float = 2.0
     same_view_range_ratio: float = 0.05
     target_min_observations: int = 3
+    target_max_sigma_m: float = 0.02
     consistency_m: float = 0.05
     confidence_half_life_s: float = 0.4
     target_switch_margin: float = 0.2
@@ -531,6 +535,7 @@ class TrackingConfig(Settings):
             "same_view_deg": (0 <= self.same_view_deg < 90, "degrees in [0, 90)"),
             "same_view_range_ratio": (0 <= self.same_view_range_ratio < 1, "a ratio in [0, 1)"),
             "target_min_observations": (self.target_min_observations >= 1, "≥ 1 observation"),
+            "target_max_sigma_m": (self.target_max_sigma_m > 0, "metres > 0"),
             "consistency_m": (self.consistency_m > 0, "metres > 0"),
             "confidence_half_life_s": (self.confidence_half_life_s > 0, "seconds > 0"),
             "target_switch_margin": (0 <= self.target_switch_margin < 1, "a share in [0, 1)"),

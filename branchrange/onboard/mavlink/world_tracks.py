@@ -31,6 +31,8 @@ a moment comes back with its id and history; after `forget_after_s` it is droppe
 - it has `target_min_observations` consistent observations in a row (each within `consistency_m` of
   the track before it was fused; an inconsistent one restarts the count), so a 1–3-frame artefact is
   never the target;
+- its fused 1-σ radius is ≤ `target_max_sigma_m`: a track seen a few times from afar, where one view's
+  depth σ is centimetres, is not certain enough to fly to (this also ends a target's claim);
 - its recency-weighted confidence (`confidence_half_life_s`: an observation's weight halves every
   half-life) is ≥ the rule's `min_confidence` (`cutpoints.target_min_confidence`), so a branch first
   seen uncertain from afar becomes eligible as soon as its recent views are good;
@@ -295,6 +297,7 @@ class WorldTracks:
             track.age(now) <= self.cfg.stale_after_s
             and track.confidence >= self.rule.min_confidence
             and track.light_allows_target
+            and track.sigma_m <= self.cfg.target_max_sigma_m
         )
 
     def sendable(self, track: Track, now: float) -> bool:
@@ -302,12 +305,13 @@ class WorldTracks:
         return 0.0 <= track.age(now) <= self.rule.max_age_s
 
     def eligible(self, track: Track, now: float) -> bool:
-        """Whether `track` may become the target at `now` (s): fresh, confident, and consistent enough."""
+        """Whether `track` may become the target at `now` (s): fresh, confident, consistent and certain enough."""
         return (
             self.sendable(track, now)
             and track.confidence >= self.rule.min_confidence
             and track.light_allows_target
             and track.consistent_observations >= self.cfg.target_min_observations
+            and track.sigma_m <= self.cfg.target_max_sigma_m
         )
 
     def _choose_target(self, now: float) -> None:
