@@ -455,9 +455,9 @@ class TrackingConfig(Settings):
     f across the line of sight and `disparity_sigma_px`·r² / (f·B) along it (a disparity error δ moves the depth by
     Z²·δ / (f·B)): in pixels, so that one setting holds at every resolution — in metres the same σ would be twice
     too small at half the resolution. 0.3 px and 4.5 px are 7.5 mm and 7 mm at 1 m for a ZED Mini at HD720 (f·B ≈ 40
-    px·m, f ≈ 640 px). A branch the region budget matched s times smaller (near the tree) has both σ ×
-    s^`scale_exponent`: its pixels are s times coarser, but its cut point averages over more of them — measured, the
-    errors grow about as √s (0.5), not s (1, the worst case). Both σ are measured, not assumed
+    px·m, f ≈ 640 px). A branch the region budget matched s times smaller (near the tree) has both σ multiplied by
+    s^`scale_exponent` (its pixels are s times coarser, but its cut point averages over more of them; measured, the
+    errors grow about as √s — 0.5 — not as s, the worst case of 1). Both σ are measured, not assumed
     (`benchmarks/cut_point_noise.py`, rendered flights of a scene seed apart from the approach benchmark's, the
     shipped onboard file): the 68th percentile of one cut point's error with the built-in segmenter was 0.30 px
     along the line of sight and 4.5 px across it (its instances' ends move along the branch); with truth masks 0.10
