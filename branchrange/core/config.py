@@ -454,19 +454,20 @@ class TrackingConfig(Settings):
     frame) by a camera of focal length f (px) and baseline B (m) has a standard deviation of `lateral_sigma_px`·r /
     f across the line of sight and `disparity_sigma_px`·r² / (f·B) along it (a disparity error δ moves the depth by
     Z²·δ / (f·B)): in pixels, so that one setting holds at every resolution — in metres the same σ would be twice
-    too small at half the resolution. 0.3 px and 4.5 px are 7.5 mm and 7 mm at 1 m for a ZED Mini at HD720 (f·B ≈ 40
-    px·m, f ≈ 640 px). A branch the region budget matched s times smaller (near the tree) has both σ multiplied by
-    s^`scale_exponent` (its pixels are s times coarser, but its cut point averages over more of them; measured, the
-    errors grow about as √s — 0.5 — not as s, the worst case of 1). Both σ are measured, not assumed
+    too small at half the resolution. 0.34 px and 5.1 px are 8.5 mm and 8 mm at 1 m for a ZED Mini at HD720 (f·B ≈
+    40 px·m, f ≈ 640 px). A branch the region budget matched s times smaller (near the tree) has both σ multiplied
+    by s^`scale_exponent` (its pixels are s times coarser, but its cut point averages over more of them; measured,
+    the errors grow about as √s — 0.5 — not as s, the worst case of 1). Both σ are measured, not assumed
     (`benchmarks/cut_point_noise.py`, rendered flights of a scene seed apart from the approach benchmark's, the
-    shipped onboard file): the 68th percentile of one cut point's error with the built-in segmenter was 0.30 px
-    along the line of sight and 4.5 px across it (its instances' ends move along the branch); with truth masks 0.10
-    and 1.6 px, so σ is wider than their errors — it is set for what flies (`benchmarks/approach.py` flies truth
-    masks with their own measured noise). `process_noise_m2_per_s` lets a track follow a branch that sways or a
-    slowly drifting local position. A cut point joins the nearest track within `gate_m`. A track whose newest cut
-    point was captured more than `stale_after_s` ago is no longer sent (occlusions shorter than that are bridged by
-    the filter) and is forgotten after `forget_after_s`. Ages count from the capture, so `stale_after_s` must exceed
-    the capture → publish latency (up to 1 s on a CPU companion) by a frame or two: 1.5 s.
+    shipped onboard file): the 68th percentile of one cut point's error with the built-in segmenter was 0.34 px
+    along the line of sight and 5.1 px across it (in these px, ÷ s^0.5) (its instances' ends move along the branch);
+    with truth masks 0.12 and 1.9 px, so σ is wider than their errors — it is set for what flies
+    (`benchmarks/approach.py` flies truth masks with their own measured noise). `process_noise_m2_per_s` lets a
+    track follow a branch that sways or a slowly drifting local position. A cut point joins the nearest track within
+    `gate_m`. A track whose newest cut point was captured more than `stale_after_s` ago is no longer sent
+    (occlusions shorter than that are bridged by the filter) and is forgotten after `forget_after_s`. Ages count
+    from the capture, so `stale_after_s` must exceed the capture → publish latency (up to 1 s on a CPU companion) by
+    a frame or two: 1.5 s.
 
     Honest covariance: `bias_share` of each cut point's variance is a stereo bias shared by views from
     (nearly) the same viewpoint — within `same_view_deg` of line of sight and `same_view_range_ratio`
@@ -503,8 +504,8 @@ class TrackingConfig(Settings):
     }
 
     gate_m: float = 0.15
-    lateral_sigma_px: float = 4.5
-    disparity_sigma_px: float = 0.3
+    lateral_sigma_px: float = 5.1
+    disparity_sigma_px: float = 0.34
     process_noise_m2_per_s: float = 1e-5
     scale_exponent: float = 0.5
     stale_after_s: float = 1.5
