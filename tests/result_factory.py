@@ -48,11 +48,12 @@ def frame_result(
     timestamp_ns: int = 0,
     width: int = 64,
     height: int = 48,
-    focal_px: float = 50.0,
-    baseline_m: float = 0.06,
+    focal_px: float = 700.0,
+    baseline_m: float = 0.063,
     reason: str | None = None,
 ) -> FrameResult:
-    """A result of `branches` (target `target_id`) in a `width × height` frame, timing 1 ms."""
+    """A result of `branches` (target `target_id`) in a `width × height` frame, timing 1 ms; the camera a ZED Mini
+    at HD720 (f 700 px, B 63 mm), so that a cut point within ~1.5 m is known to a target's σ bound."""
     return FrameResult(
         frame=Frame(index, timestamp_ns, width, height),
         camera=CameraInfo(focal_px, baseline_m, (width - 1) / 2, (height - 1) / 2),

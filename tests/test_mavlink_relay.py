@@ -164,3 +164,19 @@ def test_without_vehicle_state_a_target_needs_its_branch_in_results_in_a_row(pee
         )
     assert all(d.msg.current_distance != 142 for d in of_type(early + gap, "DISTANCE_SENSOR"))
     assert any(d.msg.current_distance == 142 for d in of_type(late, "DISTANCE_SENSOR"))
+
+
+def test_without_vehicle_state_a_target_too_far_for_one_view_is_withheld(peer):
+    """One view's σ is all a camera-mode target has: at 2.5 m (f 700 px, B 63 mm) its depth σ is
+    0.34 · 2.5² / (700 · 0.063) ≈ 4.8 cm, over `tracking.target_max_sigma_m` (2 cm): reported as a candidate,
+    never the target; at 1.2 m (σ ≈ 1.1 cm) the same branch is the target."""
+    far = frame_result([branch(5, [0.0, 0.1, 2.5])], target_id=5)
+    near = frame_result([branch(5, [0.0, 0.1, 1.2])], target_id=5)
+    with relay_for(peer, min_observations=1, send_rate_hz=10.0) as relay:
+        relay.publish(far)
+        withheld = peer.collect(0.4)
+        relay.publish(near)
+        sent = peer.collect(2.0, until=lambda r: any(not math.isnan(m.msg.x) for m in of_type(r, "DEBUG_VECT")))
+    assert of_type(withheld, "DEBUG_VECT") and all(math.isnan(m.msg.x) for m in of_type(withheld, "DEBUG_VECT"))
+    assert 5 in {o.msg.obstacle_id for o in of_type(withheld, "OBSTACLE_DISTANCE_3D")}  # still an obstacle
+    assert any(not math.isnan(m.msg.x) for m in of_type(sent, "DEBUG_VECT"))

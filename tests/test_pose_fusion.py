@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -307,9 +308,9 @@ def wait_for_state(relay: MavlinkRelay, seconds: float = 3.0) -> None:
         time.sleep(0.02)
 
 
-def relay_for(sim: AutopilotSim, **overrides) -> MavlinkRelay:
+def relay_for(sim: AutopilotSim, tracking: TrackingConfig = TRACKING, **overrides) -> MavlinkRelay:
     cfg = MavlinkConfig(url=f"udpout:127.0.0.1:{sim.port}", send_rate_hz=10.0, state_rate_hz=50.0, **overrides)
-    return MavlinkRelay(cfg, MOUNT, tracking=TRACKING)
+    return MavlinkRelay(cfg, MOUNT, tracking=tracking)
 
 
 def test_fused_target_and_latency_compensated_body_target_match_the_truth():
@@ -347,7 +348,9 @@ def test_without_vehicle_state_the_relay_stays_in_the_camera_frame_and_says_so(c
     rng = np.random.default_rng(2)
     with (
         AutopilotSim(approach_flight(0.5), heartbeat_period_s=0.2, answer_interval_requests=False) as sim,
-        relay_for(sim) as relay,
+        # the branch is ~2 m away, where one view's σ exceeds the shipped 2 cm bound: what is tested here is
+        # the frame the target goes out in (the bound: tests/test_mavlink_relay.py)
+        relay_for(sim, replace(TRACKING, target_max_sigma_m=0.1)) as relay,
     ):
         published = fly(sim, relay, 3, rng, latency_s=0.05)
         time.sleep(0.05)

@@ -475,13 +475,14 @@ class TrackingConfig(Settings):
     the bias at that range (0.3: measured in a hover, 0.24 of the built-in segmenter's error variance is shared
     by its views, `benchmarks/cut_point_noise.py`; `benchmarks/approach.py` reports σ against the actual error).
 
-    The target (`world_tracks.TargetRule`): a track needs `target_min_observations` consistent cut
-    points in a row (each within `consistency_m` of the track), a fused 1-σ radius ≤ `target_max_sigma_m`
-    (2 cm: a target off by more than 5 cm is then a 2.5-σ event; one view from 2.8 m has a depth σ of ~6 cm,
-    and such a target was once 5.8 cm off on a rendered approach), and a recency-weighted confidence
-    (weights halve every `confidence_half_life_s`) ≥ `cutpoints.target_min_confidence`, and its newest
-    cut point must be captured within `mavlink.max_result_age_s`; the current target is kept unless
-    another ranks better by `target_switch_margin` (a share of its score under `cutpoints.target_policy`).
+    The target (`world_tracks.TargetRule`): a track needs `target_min_observations` consistent cut points in a row
+    (each within `consistency_m` of the track), a fused 1-σ radius ≤ `target_max_sigma_m` (2 cm: a target off by
+    more than 5 cm is then a 2.5-σ event; one view from 2.8 m has a depth σ of ~6 cm, and such a target was once 5.8
+    cm off on a rendered approach; without vehicle state, where nothing is fused, one view's σ must be within it:
+    ~1.5 m at HD720), and a recency-weighted confidence (weights halve every `confidence_half_life_s`) ≥
+    `cutpoints.target_min_confidence`, and its newest cut point must be captured within `mavlink.max_result_age_s`;
+    the current target is kept unless another ranks better by `target_switch_margin` (a share of its score under
+    `cutpoints.target_policy`).
     """
 
     section = "tracking"

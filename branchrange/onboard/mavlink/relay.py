@@ -52,7 +52,13 @@ from branchrange.onboard.mavlink.approach import ApproachPlanner
 from branchrange.onboard.mavlink.connection import MavlinkLink, load_signing_key
 from branchrange.onboard.mavlink.frames import CameraMount, quaternion_wxyz
 from branchrange.onboard.mavlink.vehicle_state import VehicleState
-from branchrange.onboard.mavlink.world_tracks import Measurement, TargetRule, WorldTracks, measurement_covariance
+from branchrange.onboard.mavlink.world_tracks import (
+    Measurement,
+    TargetRule,
+    WorldTracks,
+    measurement_covariance,
+    one_view_sigma_m,
+)
 
 log = logging.getLogger("branchrange.mavlink")
 HEARTBEAT_PERIOD_S = 1.0
@@ -133,6 +139,7 @@ class MavlinkRelay:
         self._seen_in_a_row = {b.id: self._seen_in_a_row.get(b.id, 0) + 1 for b in result.branches}
         evidenced = result.target_id is not None and (
             self._seen_in_a_row[result.target_id] >= self._tracking.target_min_observations
+            and self._one_view_certain(result, result.target_id)
         )
         with self._cond:
             self._latest = (result, captured_at)
@@ -140,6 +147,20 @@ class MavlinkRelay:
             self._latest_evidenced = evidenced
             self._new_result = True
             self._cond.notify()
+
+    def _one_view_certain(self, result: FrameResult, branch_id: int) -> bool:
+        """Whether branch `branch_id`'s cut point, from this one view, is known to `tracking.target_max_sigma_m`:
+        without vehicle state nothing is fused, so one view's σ is all a camera-mode target has (its depth σ
+        grows with the square of the range: ~5 cm at 2.5 m with the built-in segmenter at HD720)."""
+        branch = next(b for b in result.branches if b.id == branch_id)
+        sigma = one_view_sigma_m(
+            np.asarray(branch.cut_point_m),
+            self._tracking,
+            result.camera.focal_px,
+            result.camera.baseline_m,
+            branch.disparity_scale or 1,
+        )
+        return sigma <= self._tracking.target_max_sigma_m
 
     def _fuse(self, result: FrameResult, captured_at: float) -> bool:
         """Fuse the result's cut points into the world tracks; False when there is no pose at capture."""
@@ -315,7 +336,8 @@ class MavlinkRelay:
         No target while the camera is lost, whatever the tracks or the newest result say: what the
         relay last saw may be the frame before a fall or a cover. Without vehicle state the newest
         result's target goes out only once `evidenced`: its branch id was in the last
-        `tracking.target_min_observations` results in a row (the world tracks' rule, on the pipeline's ids).
+        `tracking.target_min_observations` results in a row (the world tracks' rule, on the pipeline's ids)
+        and its one view's σ is within `tracking.target_max_sigma_m` (the world tracks' bound, unfused).
         Hand-over: when vehicle state comes (at start, after the link was lost), camera mode goes on until
         that many results in a row were fused — the world tracks have had the observations their evidence
         rule needs; switching at the first fused one left "no target" for as many results (seconds on a

@@ -110,6 +110,14 @@ def measurement_covariance(
     return rotated
 
 
+def one_view_sigma_m(
+    point_cam_m: np.ndarray, cfg: TrackingConfig, focal_px: float, baseline_m: float, disparity_scale: int = 1
+) -> float:
+    """The 1-σ radius (m) of one cut point (3,) m in the camera frame, unfused: the larger of its lateral and
+    line-of-sight σ (`TrackingConfig.sigmas_m`) — what a target without vehicle state is known to."""
+    return max(cfg.sigmas_m(float(np.linalg.norm(point_cam_m)), focal_px, baseline_m, disparity_scale))
+
+
 @dataclass
 class View:
     """A distinct viewpoint of a track: unit line of sight (3,) from the branch to the camera, range (m)."""
