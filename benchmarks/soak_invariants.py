@@ -400,17 +400,29 @@ def log_order(rec: Recording) -> list[Breach]:
 def wall_clock(rec: Recording, limits: Limits) -> list[Breach]:
     """The injected wall-clock jumps reached the daemon: each `Date` it sent at least `skew_tolerance_s`
     away from a jump shows the offset then in force (within that tolerance). Without this the soak
-    could report a clock fault it never made."""
+    could report a clock fault it never made. A breach is two readings in a row off the offset: a jump that
+    did not reach the daemon shows in every reading after it, while a lone reading without the offset among
+    ones with it is the shim's (libfaketime re-reads its offset file at every wall-clock read; once in a few
+    thousand `Date`s one came back without it — seen twice, an hour apart), not a clock that moved back."""
     breaches = []
     jumps = sorted(rec.clock)
-    for at, skew in rec.wall_skews:
+    run: list[tuple[float, float, float]] = []  # the current run of readings off the offset: (at, skew, offset)
+    for at, skew in sorted(rec.wall_skews):
+        if any(abs(at - when) < limits.skew_tolerance_s for when, _ in jumps):
+            continue
         index = bisect.bisect_right([when for when, _ in jumps], at) - 1
         offset = jumps[index][1] if index >= 0 else 0.0
-        near = any(abs(at - when) < limits.skew_tolerance_s for when, _ in jumps)
-        if not near and abs(skew - offset) > limits.skew_tolerance_s:
+        if abs(skew - offset) <= limits.skew_tolerance_s:
+            run = []
+            continue
+        run.append((at, skew, offset))
+        if len(run) == 2:  # the second in a row: one breach for the run, at its first reading
+            first_at, first_skew, first_offset = run[0]
             breaches.append(
                 Breach(
-                    "clock_jump_not_in_force", at, f"the daemon's Date is {skew:+.0f} s off, expected {offset:+.0f} s"
+                    "clock_jump_not_in_force",
+                    first_at,
+                    f"the daemon's Date is {first_skew:+.0f} s off, expected {first_offset:+.0f} s",
                 )
             )
     return breaches
