@@ -744,10 +744,11 @@ def print_report(report: dict[str, Any]) -> None:
 
 def pool_reports(paths: Sequence[Path]) -> dict[str, Any]:
     """Several runs' reports (`--json`, e.g. other scene seeds) as one: their flights together, the targets over
-    all of them; the first run's machine fields, each run's load and overrides kept."""
+    all of them; the first run's machine fields, each run's load and every run's overrides kept."""
     reports = [json.loads(path.read_text(encoding="utf-8")) for path in paths]
     pooled = {**reports[0], "flights": [f for r in reports for f in r["flights"]]}
     pooled["load"] = " | ".join(r["load"] for r in reports)
+    pooled["overrides"] = list(dict.fromkeys(o for r in reports for o in r.get("overrides", [])))
     pooled["pooled_from"] = [str(path) for path in paths]
     pooled["targets"] = verdicts(pooled["flights"])
     return pooled

@@ -198,12 +198,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.hover_s > 0:
         flights.append(("hover", render_flight(args.resolution, None, args.hover_s, args.seed)))
     rows = []
+    exponent = daemon_config(flights[0][1], width, args.set).tracking.scale_exponent
     for masks in ("truth", "builtin") if args.masks == "both" else (args.masks,):
         pooled: dict[str, Any] = {
             "depth_px": [],
             "lateral_px": [],
             "scales": [],
-            "exponent": None,
+            "exponent": exponent,
             "by_cut": {},
             "beyond": 0,
             "cut_points": 0,
@@ -215,7 +216,6 @@ def main(argv: list[str] | None = None) -> int:
             pooled["depth_px"] += found["depth_px"]
             pooled["lateral_px"] += found["lateral_px"]
             pooled["scales"] += found["scales"]
-            pooled["exponent"] = found["exponent"]
             pooled["beyond"] += found["beyond"]
             pooled["cut_points"] += found["cut_points"]
             if name == "hover":  # views from one spot: what the bias share is about
@@ -234,7 +234,6 @@ def main(argv: list[str] | None = None) -> int:
             f"{fmt(r['disparity_rms_px']):>5} {fmt(r['lateral_sigma_px']):>8} {fmt(r['lateral_rms_px']):>5} "
             f"{fmt(r['beyond_gate_share']):>5} {fmt(r['bias_share']):>5}"
         )
-    exponent = pooled["exponent"]
     print(f"\nby the region's disparity scale s, 1-σ px: as [tracking] states it (÷ s^{exponent:g}) / full resolution")
     print(f"{'masks':>7} {'s':>2} {'obs':>5} {'disp σ':>6} {'full':>5} {'lat σ':>6} {'full':>5}")
     for r in rows:

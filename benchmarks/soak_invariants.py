@@ -406,11 +406,12 @@ def wall_clock(rec: Recording, limits: Limits) -> list[Breach]:
     thousand `Date`s one came back without it — seen twice, an hour apart), not a clock that moved back."""
     breaches = []
     jumps = sorted(rec.clock)
+    times = [when for when, _ in jumps]
     run: list[tuple[float, float, float]] = []  # the current run of readings off the offset: (at, skew, offset)
     for at, skew in sorted(rec.wall_skews):
-        if any(abs(at - when) < limits.skew_tolerance_s for when, _ in jumps):
+        if any(abs(at - when) < limits.skew_tolerance_s for when in times):
             continue
-        index = bisect.bisect_right([when for when, _ in jumps], at) - 1
+        index = bisect.bisect_right(times, at) - 1
         offset = jumps[index][1] if index >= 0 else 0.0
         if abs(skew - offset) <= limits.skew_tolerance_s:
             run = []
