@@ -15,7 +15,7 @@ from api.estimator import Estimator
 from api.limits import BodySizeLimit, InferenceSlots, ShedWhenBusy
 from api.metrics import Metrics
 from api.routers import estimate, status
-from branchrange.core.config import ApiConfig
+from branchrange.config.sections import ApiConfig
 from branchrange.core.frame_result import FrameResult
 
 DESCRIPTION = """Cut points of tree branches, in metres, from a stereo pair.

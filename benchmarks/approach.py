@@ -82,7 +82,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 from autopilot_sim import DaemonFlight, SimPose, fly_daemon  # noqa: E402
 from machine import cpu_name  # noqa: E402
 
-from branchrange.core.config import Config, MavlinkConfig, TrackingConfig, load_config, parse_override  # noqa: E402
+from branchrange.config.loader import Config, load_config, parse_override  # noqa: E402
+from branchrange.config.sections import MavlinkConfig, TrackingConfig  # noqa: E402
 from branchrange.core.frame_result import FrameResult, WorldTrack  # noqa: E402
 from branchrange.onboard.mavlink import CameraMount  # noqa: E402
 

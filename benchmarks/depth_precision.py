@@ -7,7 +7,7 @@ segmenter with SGBM (the default setting, and one look as on board) on the calib
 (50000 on), with the factor left out and no calibration: the raw confidence, the cut point's depth and
 whether it is right. Then, for each σ_d of `--sigmas`, the score is that raw confidence
 times `cutpoints.depth_precision_score` at the cut point's depth, an isotonic map is fitted on the
-calibration scenes (as `branchnet_calibration` does) and read on the held-out ones. It prints:
+calibration scenes (as `branchrange.learning.calibration` does) and read on the held-out ones. It prints:
 - the share right by distance, over both sets, for all cut points and for the top quarter of raw
   confidence — why the factor exists;
 - per σ_d the area under the ROC curve on both sets (how well the score ranks right above wrong) and,
@@ -32,9 +32,9 @@ from branchrange.core.confidence import cut_point_outcomes, fit_calibration
 from branchrange.core.cutpoints import CutPointConfig, depth_precision_score
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame, with_exact_disparity
-from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
-from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.learning.calibration import CALIBRATION_SEEDS
+from branchrange.learning.samples import evaluation_scene
 
 #: the learned segmenter's settings compared: trunk band (px) of the default and of one look
 SETTINGS = {"default": 40, "one look": 0}

@@ -41,8 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _pipeline(config_path: Path, sequence: Path, interval_s: float) -> tuple[Any, Any]:
     """The shipped pipeline (keyframes every `interval_s` s, on the stereo thread) and the flight's frames reader."""
-    from branchrange.core.config import load_config, parse_override
-    from branchrange.core.frame_results import pipeline_for
+    from branchrange.config.loader import load_config, parse_override, pipeline_for
     from camera.sources.replay import _DirectoryFrames
 
     frames = _DirectoryFrames(sequence, with_masks=False)

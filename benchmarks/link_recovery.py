@@ -38,7 +38,7 @@ from autopilot_sim import (  # noqa: E402
 )
 from result_factory import branch, frame_result  # noqa: E402
 
-from branchrange.core.config import MavlinkConfig, TrackingConfig  # noqa: E402
+from branchrange.config.sections import MavlinkConfig, TrackingConfig  # noqa: E402
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay  # noqa: E402
 
 #: Seconds of targets flowing before each fault.

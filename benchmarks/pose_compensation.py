@@ -48,7 +48,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 from autopilot_sim import AutopilotSim, approach_flight, body_target_errors, fly_daemon, fly_frames  # noqa: E402
 from machine import cpu_name  # noqa: E402
 
-from branchrange.core.config import MavlinkConfig, TrackingConfig  # noqa: E402
+from branchrange.config.sections import MavlinkConfig, TrackingConfig  # noqa: E402
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay  # noqa: E402
 
 FPS = 15.0
@@ -88,7 +88,9 @@ def one_flight(speed: float, latency: float, frames: int, seed: int) -> tuple[li
 
 def daemon_flight(directory: Path, max_disp: int, stereo_mode: str) -> dict[str, Any]:
     """The daemon replays `directory` while the simulator flies its flight.json; errors in metres."""
-    from branchrange.core.config import CameraConfig, Config, LogConfig, StereoConfig
+    from branchrange.config.loader import Config
+    from branchrange.config.sections import CameraConfig, LogConfig
+    from branchrange.core.pipeline import StereoConfig
 
     cfg = Config(
         camera=CameraConfig(

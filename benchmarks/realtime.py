@@ -74,7 +74,7 @@ from score_flight import read_logged_runs, recording_view
 from branchrange.commands.config_args import add_config_arguments, config_from_args
 
 if TYPE_CHECKING:
-    from branchrange.core.config import Config
+    from branchrange.config.loader import Config
     from branchrange.core.frame_result import FrameResult
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,7 +169,7 @@ def render_flight(path: Path, args: argparse.Namespace) -> None:
 def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     """Replay `cfg.camera.source` in real time through the daemon as `branchrange daemon` builds it (the
     source aside); its results go to `cfg.log.results_jsonl`. Returns the daemon's own counters."""
-    from branchrange.core.frame_results import pipeline_for
+    from branchrange.config.loader import pipeline_for
     from branchrange.onboard.daemon import Daemon
     from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
     from camera.sources import ReplaySource
@@ -369,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     import torch
 
-    from branchrange.core.config import ConfigError
+    from branchrange.core.settings_check import ConfigError
     from branchrange.offline.flight import FlightTruth
     from branchrange.offline.flight_score import score_results
     from stereo.weights import sha256_of

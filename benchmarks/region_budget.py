@@ -44,7 +44,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 from approach import BAND_EDGES_M, approach_target_id, band_label, band_of, render_flight  # noqa: E402
 from machine import cpu_name  # noqa: E402
 
-from branchrange.core.config import Config, load_config, parse_override  # noqa: E402
+from branchrange.config.loader import Config, load_config, parse_override  # noqa: E402
 from branchrange.core.frame_result import FrameResult  # noqa: E402
 from branchrange.offline.flight import FlightTruth  # noqa: E402
 
@@ -126,7 +126,7 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run(directory: Path, variants: dict[str, str], masks: str, shed_level: int = 0) -> dict[str, Any]:
     """Every frame of the recording through each variant's pipeline (rotating order); per variant and band."""
-    from branchrange.core.frame_results import pipeline_for
+    from branchrange.config.loader import pipeline_for
     from camera.sources.replay import ReplaySource
 
     truth = FlightTruth.load(directory)

@@ -90,8 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     import numpy as np
 
-    from branchrange.core.config import Config, StereoConfig
-    from branchrange.core.frame_results import pipeline_for, process_frame
+    from branchrange.config.loader import Config, pipeline_for
+    from branchrange.core.frame_results import process_frame
+    from branchrange.core.pipeline import StereoConfig
     from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargets
     from camera.calibration import from_rectified
     from camera.sources import Recorder, StereoFrame

@@ -57,7 +57,7 @@ def recording_view(recording: Path, min_distance_m: float, max_distance_m: float
 
 
 def main(argv: list[str] | None = None) -> int:
-    from branchrange.core.config import MavlinkConfig
+    from branchrange.config.sections import MavlinkConfig
     from branchrange.offline.flight import FlightTruth
 
     band = MavlinkConfig()

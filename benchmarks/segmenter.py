@@ -30,7 +30,7 @@ points and the first 60 read 1–3 points easier than the next 180 (benchmarks/R
 ± 3.3, and the share right at ≥ 0.8 about ± 2.5: hence 240 scenes by default (a change smaller than
 that shows only in the paired figure; `--scenes 60` for a quicker look).
 
-Changed light (`--light dusk glare haze warm high_gain`, `branchrange.core.segmentation.light_changes`): each
+Changed light (`--light dusk glare haze warm high_gain`, `branchrange.learning.light_changes`): each
 change adds the stereo mode 'sgbm-<change>' — both images under that light, SGBM computed again — with its recall
 minus the same segmenter's in the scenes' own light, paired.
 
@@ -68,13 +68,13 @@ import cv2
 import numpy as np
 from machine import cpu_name  # a script's own folder is on its import path
 
+from branchrange.config.loader import load_config, pipeline_config
 from branchrange.core.confidence import (
     cut_point_outcomes,
     expected_calibration_error,
     lowest_reliable_threshold,
     share_correct_above,
 )
-from branchrange.core.config import load_config, pipeline_config
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import Branch, FrameResult
 from branchrange.core.masks import BranchMasks
@@ -86,11 +86,11 @@ from branchrange.core.pipeline import (
     with_exact_disparity,
 )
 from branchrange.core.segmentation.branchnet import CLASSES
-from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
-from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
 from branchrange.core.segmentation.segmenter import Segmenter
+from branchrange.learning.light_changes import LIGHT_CHANGES
+from branchrange.learning.samples import evaluation_scene, scene_in_light
 from branchrange.offline.evaluate_cuts import CutScores, recall_difference_interval
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -266,7 +266,7 @@ def run_synthetic(
     hd720: bool = False,
 ) -> dict:
     """Scores per 'stereo/segmenter' over `scenes` held-out scenes (with orchard hardware when `hardware`); each
-    change of `light` (`branchnet_data.scene_in_light`) adds the stereo mode 'sgbm-<change>': both images
+    change of `light` (`branchrange.learning.samples.scene_in_light`) adds the stereo mode 'sgbm-<change>': both images
     under that light, SGBM computed again, the pipeline as with 'sgbm'. `hd720` adds 'roi-hd720' and 'full-hd720': the
     scene rendered at 1280×720 through the pipeline as it flies (`onboard_roi`) and whole-frame (`score_hd720`)."""
     built = {name: benchmark_segmenter(name) for name in segmenters}

@@ -50,11 +50,11 @@ from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import FrameResult
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
-from branchrange.core.segmentation.branchnet_data import evaluation_scene
-from branchrange.core.segmentation.branchnet_ood import first_look_statistic, model_reference
 from branchrange.core.segmentation.learned import SHIPPED_MODELS, LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.ood import OodReference, frame_statistic, reference_in
+from branchrange.learning.calibration import CALIBRATION_SEEDS
+from branchrange.learning.ood_reference import first_look_statistic, model_reference
+from branchrange.learning.samples import evaluation_scene
 from branchrange.offline.evaluate_cuts import CutScores
 from branchrange.offline.synth_coco import export_domain_frames
 

@@ -614,7 +614,7 @@ def daemon_command(args: argparse.Namespace, control_port: int, epoch: float, ov
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """The soak (module docstring); the report."""
-    from branchrange.core.config import load_config, parse_override
+    from branchrange.config.loader import load_config, parse_override
     from branchrange.offline.flight import FlightTruth
     from branchrange.onboard.mavlink import CameraMount
     from camera.sources import ReplaySource
@@ -923,7 +923,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.minutes <= 0:
         parser.error(f"--minutes is {args.minutes}; expected a number of minutes > 0")
-    from branchrange.core.config import ConfigError, load_config
+    from branchrange.config.loader import load_config
+    from branchrange.core.settings_check import ConfigError
 
     try:
         load_config(str(args.config), [])

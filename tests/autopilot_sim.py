@@ -42,7 +42,8 @@ import numpy as np
 from mavlink_peer import Received
 from result_factory import branch, frame_result
 
-from branchrange.core.config import Config, TrackingConfig
+from branchrange.config.loader import Config
+from branchrange.config.sections import TrackingConfig
 from branchrange.core.frame_result import FrameResult, WorldTargets
 from branchrange.offline.flight import FlightPose, FlightTruth
 from branchrange.onboard.mavlink import MavlinkRelay
@@ -549,7 +550,7 @@ def fly_daemon(
 
 def _warm_pipeline(directory: Path, cfg: Config, ignore_masks: bool) -> Any:
     """The daemon's pipeline for `cfg`, run once on the recording's first frame and reset."""
-    from branchrange.core.frame_results import pipeline_for
+    from branchrange.config.loader import pipeline_for
 
     probe = ReplaySource(directory, pace="fast", ignore_masks=ignore_masks)
     try:

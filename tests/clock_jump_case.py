@@ -21,7 +21,7 @@ from mavlink_peer import LoopbackPeer, of_type
 from result_factory import branch, frame_result
 from wall_clock_shim import set_offset
 
-from branchrange.core.config import MavlinkConfig, TrackingConfig
+from branchrange.config.sections import MavlinkConfig, TrackingConfig
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 
 MAX_AGE_S = 0.3

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 
 from api import create_app
 from api.estimator import PipelineEstimator
-from branchrange.core.config import ApiConfig
+from branchrange.config.sections import ApiConfig
 from branchrange.core.frame_result import SCHEMA_PATH
 
 FB = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}

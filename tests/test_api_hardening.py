@@ -22,7 +22,8 @@ from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 from openapi_check import check_response
 
 from branchrange.cli import main as branchrange_main
-from branchrange.core.config import ConfigError, config_from_dict
+from branchrange.config.loader import config_from_dict
+from branchrange.core.settings_check import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 FB = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}

@@ -17,9 +17,9 @@ from api import create_app
 from api.estimator import PipelineEstimator
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.serve import ServeError, check_bind
-from branchrange.core.config import ApiConfig, StereoConfig
+from branchrange.config.sections import ApiConfig
 from branchrange.core.frame_results import result_line
-from branchrange.core.pipeline import Pipeline, PipelineConfig
+from branchrange.core.pipeline import Pipeline, PipelineConfig, StereoConfig
 
 TOKEN = "s3cret-token"
 UPLOAD_LIMIT_MB = 1.0

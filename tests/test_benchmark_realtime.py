@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from branchrange.commands.config_args import config_from_args
-from branchrange.core.config import pipeline_config
+from branchrange.config.loader import pipeline_config
 from stereo.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from branchrange.core.config import Config, ConfigError, config_from_dict, load_config
+from branchrange.config.loader import Config, config_from_dict, load_config
+from branchrange.core.settings_check import ConfigError
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
 

@@ -12,9 +12,10 @@ import pytest
 
 from branchrange.cli import main
 from branchrange.commands.exit_codes import BAD_INPUT, DONE
-from branchrange.core.config import ConfigError, config_from_dict, load_config
-from branchrange.core.config_check import check_config, key_lines
-from branchrange.core.config_schema import SCHEMA_PATH
+from branchrange.config.check import check_config, key_lines
+from branchrange.config.loader import config_from_dict, load_config
+from branchrange.config.schema import SCHEMA_PATH
+from branchrange.core.settings_check import ConfigError
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
 

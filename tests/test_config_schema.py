@@ -13,12 +13,14 @@ from typing import Any
 import jsonschema
 import pytest
 
-from branchrange.core.config import ApiConfig, Config, StereoConfig
-from branchrange.core.config_reference import config_reference, range_text, type_text
-from branchrange.core.config_schema import SCHEMA_PATH, config_schema, schema_text, unit_of
+from branchrange.config.descriptions import key_description
+from branchrange.config.loader import Config
+from branchrange.config.reference import config_reference, range_text, type_text
+from branchrange.config.schema import SCHEMA_PATH, config_schema, schema_text, unit_of
+from branchrange.config.sections import ApiConfig
+from branchrange.core.pipeline import StereoConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterConfig
 from branchrange.core.settings_check import Limit
-from branchrange.core.settings_docs import key_description
 from branchrange.core.tracking import TrackerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,7 +49,7 @@ def validator(schema) -> jsonschema.Draft202012Validator:
 
 
 def test_the_shipped_schema_is_the_generated_one(schema):
-    """Regenerate with `branchrange config schema > branchrange/core/schemas/config.schema.json`."""
+    """Regenerate with `branchrange config schema > branchrange/config/config.schema.json`."""
     assert SCHEMA_PATH.read_text(encoding="utf-8") == schema_text(schema)
 
 

@@ -13,16 +13,9 @@ from typing import Any
 import pytest
 
 from branchrange.cli import main
-from branchrange.core.config import (
-    Config,
-    ConfigError,
-    StereoConfig,
-    config_from_dict,
-    load_config,
-    parse_override,
-    pipeline_config,
-)
-from branchrange.core.pipeline import Pipeline
+from branchrange.config.loader import Config, config_from_dict, load_config, parse_override, pipeline_config
+from branchrange.core.pipeline import Pipeline, StereoConfig
+from branchrange.core.settings_check import ConfigError
 from stereo.backends import BACKEND_NAMES, PRECISIONS, BackendConfigError, SGBMBackend
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
@@ -252,7 +245,7 @@ def test_one_list_of_backends_and_precisions():
     for precision in PRECISIONS:
         assert StereoConfig(precision=precision).precision == precision
     from api import create_app
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     class _Unused:  # the OpenAPI document is built without an estimator being called
         backend_name = "sgbm"
@@ -272,7 +265,7 @@ def test_one_max_disp_rule_for_config_backend_api_and_command_line(max_disp, cap
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     with TestClient(create_app(ApiConfig(), PipelineEstimator())) as client:
         r = client.post(

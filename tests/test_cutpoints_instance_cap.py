@@ -12,9 +12,11 @@ from fastapi.testclient import TestClient
 
 from api import create_app
 from api.estimator import PipelineEstimator
-from branchrange.core.config import ApiConfig, ConfigError, config_from_dict, pipeline_config
+from branchrange.config.loader import config_from_dict, pipeline_config
+from branchrange.config.sections import ApiConfig
 from branchrange.core.cutpoints import CutPointConfig, CutPointConfigError, estimate_cut_points
 from branchrange.core.masks import MaskError, masks_from_array
+from branchrange.core.settings_check import ConfigError
 
 
 def runs_of_ids(height: int, width: int, count: int, run_px: int = 5) -> np.ndarray:

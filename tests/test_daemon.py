@@ -23,18 +23,11 @@ from mavlink_peer import LoopbackPeer, of_type
 from synth_recording import tree_scene, truth_of, write_tree_recording
 
 from branchrange.cli import main as branchrange_main
-from branchrange.core.config import (
-    CameraConfig,
-    Config,
-    LogConfig,
-    MavlinkConfig,
-    SegmenterConfig,
-    StereoConfig,
-    TrackingConfig,
-    pipeline_config,
-)
-from branchrange.core.frame_results import pipeline_for, read_results, read_runs
-from branchrange.core.pipeline import Pipeline
+from branchrange.config.loader import Config, pipeline_config, pipeline_for
+from branchrange.config.sections import CameraConfig, LogConfig, MavlinkConfig, TrackingConfig
+from branchrange.core.frame_results import read_results, read_runs
+from branchrange.core.pipeline import Pipeline, StereoConfig
+from branchrange.core.segmentation.choose import SegmenterConfig
 from branchrange.onboard.daemon import STALL_GRACE_S, Daemon, capture_time
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from camera.calibration import from_rectified
@@ -526,7 +519,7 @@ def test_latest_says_how_old_the_served_result_is_and_when_it_became_stale(recor
     from fastapi.testclient import TestClient
 
     from api import create_app
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     max_age_s = 2.0  # well above the time a loaded machine takes from the last frame to the first request
     cfg = Config(

@@ -11,10 +11,10 @@ from synth_recording import FIRST_TIMESTAMP_NS, HEIGHT, WIDTH, tree_scene, write
 
 from branchrange.cli import main
 from branchrange.commands.exit_codes import BAD_INPUT, DONE
-from branchrange.core.config import Config
+from branchrange.config.loader import Config
 from branchrange.core.frame_results import run_header_line
-from branchrange.core.segmentation.branchnet_data import BRANCH
-from branchrange.core.segmentation.coco_labels import read_labelled_frames
+from branchrange.learning.coco_labels import read_labelled_frames
+from branchrange.learning.samples import BRANCH
 from branchrange.offline.frame_export import frames_source
 from branchrange.offline.frame_selection import FrameStats, mask_agreement, select_frames, with_flicker
 from camera.sources.image_files import read_mask, read_rgb
@@ -82,8 +82,8 @@ def test_export_round_trips_the_recordings_masks_exactly_through_pycocotools(rec
 
 
 def test_without_masks_the_configured_segmenter_pre_annotates(tmp_path):
-    from branchrange.core.config import SegmenterConfig, StereoConfig
-    from branchrange.core.pipeline import Pipeline, PipelineConfig
+    from branchrange.core.pipeline import Pipeline, PipelineConfig, StereoConfig
+    from branchrange.core.segmentation.choose import SegmenterConfig
     from camera.sources import open_source
 
     recording = write_tree_recording(tmp_path / "plain", count=1, period_ns=SECOND, with_masks=False)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from result_factory import branch, frame_result
 
-from branchrange.core.config import load_config
+from branchrange.config.loader import load_config
 from branchrange.core.frame_result import FrameResult, Latency
 from branchrange.core.frame_results import result_line, run_header_line
 from branchrange.offline.flight import FlightCutPoint, FlightPose, FlightTruth

@@ -22,10 +22,11 @@ from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, writ
 from websockets.sync.client import connect
 
 from branchrange.cli import main as branchrange_main
-from branchrange.core.config import Config, StereoConfig
+from branchrange.config.loader import Config
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import FrameResult
 from branchrange.core.frame_results import read_results
+from branchrange.core.pipeline import StereoConfig
 from branchrange.offline.replay import replay_recording
 from branchrange.onboard.foxglove_layout import layout, layout_text
 from branchrange.onboard.foxglove_sink import (

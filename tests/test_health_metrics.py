@@ -11,8 +11,9 @@ from test_link_health import wait_for
 
 from api import create_app
 from api.health_metrics import FREE_TEXT, health_leaves, health_metrics, metric_name
-from branchrange.core.config import ApiConfig, CameraConfig, Config, MavlinkConfig, StereoConfig
-from branchrange.core.frame_results import pipeline_for
+from branchrange.config.loader import Config, pipeline_for
+from branchrange.config.sections import ApiConfig, CameraConfig, MavlinkConfig
+from branchrange.core.pipeline import StereoConfig
 from branchrange.onboard.daemon import Daemon
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from camera.calibration import from_rectified

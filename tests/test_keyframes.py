@@ -11,10 +11,11 @@ from synth_recording import tree_scene
 
 import branchrange.core.pipeline as pipeline_module
 from branchrange.core.branch_propagation import Propagation, propagate_labels, verify_support
-from branchrange.core.config import RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.masks import BranchMasks
-from branchrange.core.pipeline import Pipeline, PipelineConfig
+from branchrange.core.pipeline import Pipeline, PipelineConfig, StereoConfig
+from branchrange.core.roi import RoiConfig
+from branchrange.core.segmentation.choose import SegmenterConfig
 
 PERIOD_NS = 66_666_667  # 15 fps
 TRUNK = 65535

@@ -1,17 +1,21 @@
-"""The layers of the code base: no module imports from a layer above its own.
+"""The layers of the code base: no module imports from a layer above its own, and no import cycle anywhere.
 
     command line   branchrange/cli.py, branchrange/commands/   (may import everything below)
     ─────────────────────────────────────────────────────────────────────────────────────────
-    api/           onboard runtime            offline tools       (siblings: none imports another)
-                   branchrange/onboard/       branchrange/offline/
+    api/           onboard runtime            offline tools          (siblings: none imports another;
+                   branchrange/onboard/       branchrange/offline/    offline may use learning's formats)
+                                              learning workshop
+                                              branchrange/learning/
     ─────────────────────────────────────────────────────────────────────────────────────────
-    core           branchrange/core/: geometry, masks, segmentation, cut points, tracking,
-                   FrameResult, pipeline, config
+    config         branchrange/config/: the file's sections gathered, loaded, checked, documented
+    ─────────────────────────────────────────────────────────────────────────────────────────
+    core           branchrange/core/: what runs on every frame — geometry, masks, segmenters as they run,
+                   cut points, tracking, FrameResult, pipeline (each module owns its settings section)
     ─────────────────────────────────────────────────────────────────────────────────────────
     leaves         stereo/, camera/   (know nothing of each other or of the application)
 
 Every import is read from the source with `ast` (function-level and TYPE_CHECKING imports included),
-so a lazy import cannot hide a dependency on a higher layer.
+so a lazy import cannot hide a dependency on a higher layer, nor a cycle.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ LAYER_OF = {
     "camera": "camera",
     "branchrange": "package",
     "branchrange.core": "core",
+    "branchrange.config": "config",
+    "branchrange.learning": "learning",
     "branchrange.onboard": "onboard",
     "branchrange.offline": "offline",
     "api": "api",
@@ -39,10 +45,12 @@ MAY_IMPORT = {
     "camera": {"camera"},
     "package": set(),  # branchrange/__init__.py: a docstring, nothing that ties the layers together
     "core": {"stereo", "camera", "core"},
-    "onboard": {"stereo", "camera", "core", "onboard"},
-    "offline": {"stereo", "camera", "core", "offline"},
-    "api": {"stereo", "camera", "core", "api"},
-    "cli": {"stereo", "camera", "core", "onboard", "offline", "api", "cli"},
+    "config": {"stereo", "camera", "core", "config"},
+    "learning": {"stereo", "camera", "core", "config", "learning"},
+    "onboard": {"stereo", "camera", "core", "config", "onboard"},
+    "offline": {"stereo", "camera", "core", "config", "learning", "offline"},
+    "api": {"stereo", "camera", "core", "config", "api"},
+    "cli": {"stereo", "camera", "core", "config", "learning", "onboard", "offline", "api", "cli"},
 }
 PACKAGES = ("stereo", "camera", "branchrange", "api")
 
@@ -58,7 +66,7 @@ def layer(dotted: str) -> str | None:
 
 
 def module_name(path: Path) -> str:
-    """`branchrange/core/config.py` → `branchrange.core.config`; a package's `__init__.py` → the package."""
+    """`branchrange/core/masks.py` → `branchrange.core.masks`; a package's `__init__.py` → the package."""
     parts = path.relative_to(ROOT).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
@@ -146,8 +154,105 @@ def test_an_import_from_a_higher_layer_is_named(path, source, offending):
 
 def test_imports_from_the_same_or_a_lower_layer_pass():
     source = (
-        "from branchrange.core.config import Config\nfrom . import newest_slot\nimport numpy\n"
+        "from branchrange.config.loader import Config\nfrom . import newest_slot\nimport numpy\n"
         "from stereo.backends.base import validate_pair\nfrom camera.sources import StereoSource\n"
     )
     assert violations(ROOT / "branchrange/onboard/daemon.py", source) == []
     assert violations(ROOT / "branchrange/commands/daemon.py", "from api.metrics import Metrics\n") == []
+
+
+def imported_modules(source: str, module: str, is_package: bool, known: set[str]) -> set[str]:
+    """The project modules among `known` that `source` imports: `from a.b import c` is the module `a.b.c` when
+    there is one (a submodule), else `a.b`."""
+    found = set()
+    for _, name in imported_names(source, module, is_package):
+        while name and name not in known:
+            name = name.rpartition(".")[0]
+        if name and name != module:
+            found.add(name)
+    return found
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module of `graph` (module → modules it imports),
+    each sorted: every such component is an import cycle (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    cycles.append(sorted(component))
+    return cycles
+
+
+def project_graph() -> dict[str, set[str]]:
+    """module → the project modules it imports, over `PACKAGES`."""
+    paths = {module_name(p): p for p in project_modules()}
+    known = set(paths)
+    return {
+        module: imported_modules(path.read_text(encoding="utf-8"), module, path.name == "__init__.py", known)
+        for module, path in paths.items()
+    }
+
+
+def test_no_import_cycle_in_the_project():
+    cycles = import_cycles(project_graph())
+    assert cycles == [], "import cycles:\n" + "\n".join(" ↔ ".join(c) for c in cycles)
+
+
+def test_a_cycle_through_a_lazy_import_is_found():
+    known = {"pkg.a", "pkg.b", "pkg.c", "pkg.d"}
+    sources = {
+        "pkg.a": "from pkg.b import thing\n",
+        "pkg.b": "def f():\n    from pkg import c\n",
+        "pkg.c": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .a import Other\n",
+        "pkg.d": "import pkg.a\n",
+    }
+    graph = {m: imported_modules(src, m, False, known) for m, src in sources.items()}
+    assert graph["pkg.b"] == {"pkg.c"} and graph["pkg.c"] == {"pkg.a"}
+    assert import_cycles(graph) == [["pkg.a", "pkg.b", "pkg.c"]]
+    del graph["pkg.c"]
+    assert import_cycles(graph) == []
+
+
+def test_the_per_frame_core_never_imports_the_workshop_or_the_layers_above():
+    above = ("branchrange.learning", "branchrange.config", "branchrange.onboard", "branchrange.offline")
+    found = [
+        f"{module} imports {target}"
+        for module, targets in project_graph().items()
+        if module.startswith("branchrange.core")
+        for target in targets
+        if target.startswith((*above, "api", "branchrange.commands", "branchrange.cli"))
+    ]
+    assert found == []

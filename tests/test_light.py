@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from branchrange.core.segmentation.light_changes import LIGHT_CHANGES, changed_light
+from branchrange.learning.light_changes import LIGHT_CHANGES, changed_light
 
 
 @pytest.fixture

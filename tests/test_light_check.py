@@ -71,7 +71,7 @@ def test_estimate_and_the_api_report_the_light_and_warn_out_of_normal_light(tmp_
     from api import create_app
     from api.estimator import PipelineEstimator
     from branchrange.cli import main
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     scene = bar_scene()
     dusk = {side: (getattr(scene, side) * 0.3).astype(np.uint8) for side in ("left", "right")}

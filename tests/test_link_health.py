@@ -9,7 +9,7 @@ import time
 import pytest
 from autopilot_sim import MAV_AUTOPILOT_INVALID, MAV_TYPE_GCS, AutopilotSim, approach_flight
 
-from branchrange.core.config import MavlinkConfig
+from branchrange.config.sections import MavlinkConfig
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay, connection
 
 KEY = bytes(range(32))
@@ -150,7 +150,7 @@ def test_health_hides_source_and_url_without_the_token_and_metrics_report_the_li
     from fastapi.testclient import TestClient
 
     from api import create_app
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     with AutopilotSim(HOVER, heartbeat_period_s=0.1) as sim, relay_to(sim.port) as relay:
         assert wait_for(lambda: relay.link_state()["connected"], 2.0)

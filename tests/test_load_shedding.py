@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from branchrange.core.config import SheddingConfig
+from branchrange.config.sections import SheddingConfig
 from branchrange.onboard.load_shedding import LoadShedder
 
 LIMIT_S = 0.5

@@ -11,7 +11,7 @@ import pytest
 from mavlink_peer import LoopbackPeer, of_type
 from result_factory import branch, frame_result
 
-from branchrange.core.config import MavlinkConfig, TrackingConfig
+from branchrange.config.sections import MavlinkConfig, TrackingConfig
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from branchrange.onboard.mavlink.connection import SigningKeyError, load_signing_key, mavutil_v2
 

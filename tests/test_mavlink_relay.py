@@ -10,7 +10,7 @@ import pytest
 from mavlink_peer import LoopbackPeer, of_type
 from result_factory import branch, frame_result
 
-from branchrange.core.config import MavlinkConfig, TrackingConfig
+from branchrange.config.sections import MavlinkConfig, TrackingConfig
 from branchrange.core.frame_result import FrameResult
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 

@@ -67,7 +67,7 @@ def test_api_reports_the_check_and_refuses_with_422(scene):
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     data = {"focal_px": str(FOCAL_PX), "baseline_m": str(BASELINE_M), "max_disp": "64"}
     with TestClient(create_app(ApiConfig(), PipelineEstimator())) as client:

@@ -8,11 +8,11 @@ import jsonschema
 import numpy as np
 import pytest
 
-from branchrange.core.config import SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.frame_result import SCHEMA_PATH, Frame
 from branchrange.core.masks import MaskError, masks_from_array
-from branchrange.core.pipeline import Pipeline, PipelineConfig, PipelineInputError
+from branchrange.core.pipeline import Pipeline, PipelineConfig, PipelineInputError, StereoConfig
+from branchrange.core.segmentation.choose import SegmenterConfig
 from branchrange.core.segmentation.segmenter import Segmenter
 from camera import StereoCalibration
 from stereo.synth import SynthCamera, render_scene

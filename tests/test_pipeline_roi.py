@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from synth_recording import tree_scene, truth_of
 
-from branchrange.core.config import RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
-from branchrange.core.pipeline import Pipeline, PipelineConfig
+from branchrange.core.pipeline import Pipeline, PipelineConfig, StereoConfig
+from branchrange.core.roi import RoiConfig
+from branchrange.core.segmentation.choose import SegmenterConfig
 
 UNTRACKED = CutPointConfig(tracking=False)
 ROI = RoiConfig(coarse_width=240)  # 480×270 frames: a coarse pass at 240×135 (scale 2), as HD720 → 640×360

@@ -29,7 +29,7 @@ from autopilot_sim import (
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from result_factory import frame_result
 
-from branchrange.core.config import MavlinkConfig, TrackingConfig
+from branchrange.config.sections import MavlinkConfig, TrackingConfig
 from branchrange.offline.flight import FlightCutPoint, FlightPose, FlightTruth
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from branchrange.onboard.mavlink.approach import ApproachPlanner
@@ -486,7 +486,8 @@ def test_setpoints_only_while_guided_armed_and_the_target_fresh():
     ],
 )
 def test_pose_and_tracking_settings_name_the_key_and_the_range(data, message):
-    from branchrange.core.config import ConfigError, config_from_dict
+    from branchrange.config.loader import config_from_dict
+    from branchrange.core.settings_check import ConfigError
 
     with pytest.raises(ConfigError, match=message):
         config_from_dict(data)

@@ -13,8 +13,9 @@ import pytest
 from synth_recording import still_camera_frames, tree_scene, write_tree_recording
 
 from branchrange.cli import main as branchrange_main
-from branchrange.core.config import Config, StereoConfig
+from branchrange.config.loader import Config
 from branchrange.core.frame_results import RUN_HEADER_SCHEMA, config_sha256, read_results, read_runs, run_header_line
+from branchrange.core.pipeline import StereoConfig
 from camera.sources import ReplaySource
 from camera.sources.image_files import write_mask, write_rgb
 from stereo.progress import progress_bar

@@ -14,10 +14,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from branchrange.core.config import RoiConfig, StereoConfig, TrackingConfig
+from branchrange.config.sections import TrackingConfig
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.masks import BranchMasks
-from branchrange.core.pipeline import Pipeline, PipelineConfig
+from branchrange.core.pipeline import Pipeline, PipelineConfig, StereoConfig
 from branchrange.core.region_budget import (
     RegionNeed,
     branch_scales,
@@ -27,7 +27,7 @@ from branchrange.core.region_budget import (
     region_cost,
     working_scale,
 )
-from branchrange.core.roi import Region
+from branchrange.core.roi import Region, RoiConfig
 from stereo.backends import make_backend
 
 ON = RoiConfig()
@@ -164,7 +164,7 @@ def test_the_relay_fuses_a_reduced_scale_cut_point_with_a_sigma_grown_by_the_sca
     from autopilot_sim import AutopilotSim, approach_flight
     from result_factory import branch, frame_result
 
-    from branchrange.core.config import MavlinkConfig
+    from branchrange.config.sections import MavlinkConfig
     from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 
     mount = CameraMount.from_rpy((0.0, -10.0, 0.0), (0.12, 0.0, 0.04))

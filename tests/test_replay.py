@@ -16,9 +16,10 @@ from synth_recording import HEIGHT, WIDTH, still_camera_frames, tree_scene, trut
 
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.replay import summary_path
-from branchrange.core.config import Config, StereoConfig
+from branchrange.config.loader import Config, pipeline_for
 from branchrange.core.frame_result import SCHEMA_PATH
-from branchrange.core.frame_results import pipeline_for, read_results, read_runs
+from branchrange.core.frame_results import read_results, read_runs
+from branchrange.core.pipeline import StereoConfig
 from branchrange.offline.overlay_video import (
     DEFAULT_CODECS,
     OverlayVideoWriter,

@@ -8,8 +8,11 @@ import json
 import pytest
 from api_scene import BASELINE_M, FOCAL_PX, bar_scene
 
-from branchrange.core.config import CameraConfig, Config, ConfigError, LogConfig, StereoConfig
-from branchrange.core.frame_results import is_run_header, pipeline_for, read_results, read_runs
+from branchrange.config.loader import Config, pipeline_for
+from branchrange.config.sections import CameraConfig, LogConfig
+from branchrange.core.frame_results import is_run_header, read_results, read_runs
+from branchrange.core.pipeline import StereoConfig
+from branchrange.core.settings_check import ConfigError
 from branchrange.onboard.daemon import Daemon
 from branchrange.onboard.results_log import ResultsLog
 from camera.calibration import from_rectified

@@ -5,17 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from branchrange.core.config import ConfigError, RoiConfig
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
 from branchrange.core.roi import (
     DISPARITY_STEP,
+    RoiConfig,
     coarse_scale,
     disparity_window,
     plan_regions,
     refine_labels,
     scaled_geometry,
 )
+from branchrange.core.settings_check import ConfigError
 
 
 def test_disparity_window_covers_the_instance_in_whole_steps():

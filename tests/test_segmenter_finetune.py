@@ -16,21 +16,13 @@ from fastapi.testclient import TestClient
 from api import create_app
 from api.estimator import PipelineEstimator
 from branchrange.cli import main
+from branchrange.config.loader import load_config, pipeline_config
+from branchrange.config.sections import ApiConfig
 from branchrange.core.confidence import ConfidenceCalibration
-from branchrange.core.config import ApiConfig, load_config, pipeline_config
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.pipeline import no_target_reason
-from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK
-from branchrange.core.segmentation.branchnet_from_onnx import branchnet_from_onnx
-from branchrange.core.segmentation.branchnet_heldout import calibration_table, judged_cut_points, labelled_branches
 from branchrange.core.segmentation.bundle import MANIFEST_NAME, bundle_model
 from branchrange.core.segmentation.choose import make_segmenter
-from branchrange.core.segmentation.coco_labels import (
-    LabelsError,
-    read_labelled_frames,
-    split_by_image,
-    write_frame_stereo,
-)
 from branchrange.core.segmentation.learned import (
     SHIPPED_MODEL,
     LearnedSegmenter,
@@ -39,6 +31,15 @@ from branchrange.core.segmentation.learned import (
 )
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 from branchrange.core.segmentation.ood import reference_in
+from branchrange.learning.coco_labels import (
+    LabelsError,
+    read_labelled_frames,
+    split_by_image,
+    write_frame_stereo,
+)
+from branchrange.learning.from_onnx import branchnet_from_onnx
+from branchrange.learning.heldout import calibration_table, judged_cut_points, labelled_branches
+from branchrange.learning.samples import BRANCH, IGNORE, TRUNK
 from stereo.weights import sha256_of
 
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation doesn't accept a copy keyword")
@@ -320,8 +321,8 @@ def test_held_out_cut_points_are_judged_against_the_labels_and_calibrate_a_reada
 
 
 def test_the_depth_factor_is_measured_on_cut_points_that_lie_on_a_true_branch(tmp_path):
-    from branchrange.core.segmentation.branchnet_calibration import raw_outcomes
-    from branchrange.core.segmentation.branchnet_depth_factor import depth_factor
+    from branchrange.learning.calibration import raw_outcomes
+    from branchrange.learning.depth_factor import depth_factor
 
     seeds, setting = (2861, 2864), (640, 0)
     every = [o for group in raw_outcomes(SHIPPED_MODEL, seeds, tmp_path, [setting])[setting].values() for o in group]

@@ -30,7 +30,6 @@ from branchrange.core.light_check import LIGHTS
 from branchrange.core.masks import BranchMasks
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, network_input
-from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK, classes_from_instances
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import (
     MAX_NETWORK_WIDTH,
@@ -42,6 +41,7 @@ from branchrange.core.segmentation.learned import (
     trunk_and_branch_probabilities,
 )
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
+from branchrange.learning.samples import BRANCH, IGNORE, TRUNK, classes_from_instances
 
 #: torch's TorchScript exporter builds the ONNX file in the training test; its deprecation notice is not ours
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -64,7 +64,7 @@ def test_classes_from_instances_maps_renderer_ids():
 
 
 def test_evaluation_scenes_of_another_size_are_cached_apart_and_matched_over_a_range_as_wide(tmp_path):
-    from branchrange.core.segmentation.branchnet_data import evaluation_max_disp, evaluation_scene, scene_in_light
+    from branchrange.learning.samples import evaluation_max_disp, evaluation_scene, scene_in_light
 
     assert (evaluation_max_disp(640), evaluation_max_disp(1280)) == (192, 384)  # the same depths at twice the width
     small = evaluation_scene(7, tmp_path, size=(320, 180))
@@ -194,7 +194,7 @@ def test_training_config_errors_name_the_key(tmp_path):
 
 
 def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
-    from branchrange.core.segmentation.branchnet_training import train_branchnet
+    from branchrange.learning.training import train_branchnet
 
     config = training_config(
         None,
@@ -230,7 +230,7 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
 
 
 def test_training_scenes_rendered_in_two_processes_are_the_ones_one_process_renders(tmp_path):
-    from branchrange.core.segmentation.branchnet_data import render_samples, sample_path
+    from branchrange.learning.samples import render_samples, sample_path
 
     seeds = [(11, False), (12, False), (13, True)]
     assert render_samples(tmp_path / "two", seeds, workers=2) == 3
@@ -302,7 +302,7 @@ def test_calibrating_a_damaged_model_in_two_processes_is_an_error_message_not_a_
 
 
 def test_a_hardware_stage_also_trains_on_scenes_with_orchard_hardware(tmp_path):
-    from branchrange.core.segmentation.branchnet_training import train_branchnet
+    from branchrange.learning.training import train_branchnet
 
     settings = ["train_seeds=[1, 2]", "val_seeds=[2, 3]", "batch=3", "crop=64", "width=4", "threads=1", "steps=2"]
     train_branchnet(training_config(None, [*settings, "hardware_seeds=[5, 7]"]), tmp_path / "run", tmp_path / "data")
@@ -494,7 +494,7 @@ def test_calibration_in_the_model_json_maps_the_reported_confidence_at_its_netwo
 
 
 def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmenter_applies_it(tmp_path):
-    from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SETTINGS, calibrate_model
+    from branchrange.learning.calibration import CALIBRATION_SETTINGS, calibrate_model
 
     for name in ("branchnet.onnx", "branchnet.json"):
         shutil.copy(SHIPPED_MODEL.with_name(name), tmp_path / name)
@@ -574,7 +574,7 @@ def test_calibrating_a_model_stores_a_fit_per_setting_and_light_and_the_segmente
     ],
 )
 def test_the_calibration_scenes_split_into_contiguous_ranges_in_order(seeds, parts, ranges):
-    from branchrange.core.segmentation.branchnet_calibration import seed_ranges
+    from branchrange.learning.calibration import seed_ranges
 
     assert seed_ranges(seeds, parts) == ranges
 
@@ -624,7 +624,7 @@ def test_a_frame_is_read_through_the_calibration_of_its_light_and_dark_light_giv
 
 
 def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
-    from branchrange.core.config import MavlinkConfig
+    from branchrange.config.sections import MavlinkConfig
     from branchrange.core.cutpoints import CutPointConfig
 
     tables = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())["confidence_calibrations"]
@@ -636,7 +636,7 @@ def test_target_and_obstacle_defaults_come_from_the_shipped_calibration_table():
 
 
 def test_instance_balance_weighs_a_small_branch_up_and_plain_weights_match_cross_entropy():
-    from branchrange.core.segmentation.branchnet_training import instance_weights, weighted_cross_entropy
+    from branchrange.learning.training import instance_weights, weighted_cross_entropy
 
     instances = np.zeros((40, 60), np.uint16)
     instances[5:35, 5:25] = 1  # a thick limb, 600 px
@@ -661,7 +661,7 @@ def test_instance_balance_weighs_a_small_branch_up_and_plain_weights_match_cross
 
 
 def test_a_second_stage_starts_from_the_given_weights_and_records_their_hash(tmp_path):
-    from branchrange.core.segmentation.branchnet_training import train_branchnet
+    from branchrange.learning.training import train_branchnet
 
     settings = ["train_seeds=[1, 2]", "val_seeds=[2, 3]", "batch=1", "crop=64", "width=4", "threads=1"]
     first = tmp_path / "first"
@@ -737,8 +737,8 @@ def test_precision_names_a_shipped_model_or_a_bundle_copy_only():
 
 
 def test_a_trained_model_quantizes_to_an_int8_copy_that_segments(tmp_path):
-    from branchrange.core.segmentation.branchnet_quantize import int8_path, quantize_branchnet
-    from branchrange.core.segmentation.branchnet_training import train_branchnet
+    from branchrange.learning.quantize import int8_path, quantize_branchnet
+    from branchrange.learning.training import train_branchnet
 
     settings = ["train_seeds=[1, 2]", "val_seeds=[2, 3]", "steps=2", "batch=1", "crop=64", "width=4", "threads=1"]
     train_branchnet(training_config(None, settings), tmp_path / "run", tmp_path / "data", log=lambda _: None)

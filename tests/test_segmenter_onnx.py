@@ -9,12 +9,11 @@ import pytest
 import torch
 from torch import nn
 
-from branchrange.core.config import SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import CutPointConfig
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import DEFAULT_TRUNK_ID
-from branchrange.core.pipeline import Pipeline, PipelineConfig
-from branchrange.core.segmentation.choose import make_segmenter
+from branchrange.core.pipeline import Pipeline, PipelineConfig, StereoConfig
+from branchrange.core.segmentation.choose import SegmenterConfig, make_segmenter
 from branchrange.core.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
 
 #: torch's TorchScript exporter is what builds these tiny graphs; its deprecation notice is not ours
@@ -258,7 +257,8 @@ def test_bad_names_models_and_settings_are_clear_errors(models, tmp_path):
 
 
 def test_config_section_reaches_the_pipeline(models, tmp_path):
-    from branchrange.core.config import ConfigError, load_config, pipeline_config
+    from branchrange.config.loader import load_config, pipeline_config
+    from branchrange.core.settings_check import ConfigError
 
     path = tmp_path / "c.toml"
     path.write_text(f'[segmenter]\nmodel = "onnx:{models["yolo"]}"\nbranch_classes = [0]\ntrunk_classes = [1]\n')
@@ -278,7 +278,7 @@ def test_api_segmenter_field_picks_the_configured_model_or_the_geometric_one(mod
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     config = PipelineConfig(
         stereo=StereoConfig(mode="full", max_disp=64),

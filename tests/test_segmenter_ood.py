@@ -13,7 +13,6 @@ import pytest
 from branchrange.core.frame_result import FrameResult, json_schema
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.learned import SHIPPED_MODELS, LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 from branchrange.core.segmentation.ood import (
@@ -26,6 +25,7 @@ from branchrange.core.segmentation.ood import (
     frame_statistic,
     reference_in,
 )
+from branchrange.learning.samples import evaluation_scene
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +150,7 @@ def test_reading_of_a_value_beyond_every_held_out_frame_scores_one():
 
 
 def test_a_models_reference_is_measured_on_frames_stored_in_its_json_and_read_at_load(tmp_path):
-    from branchrange.core.segmentation.branchnet_ood import model_reference, store_reference
+    from branchrange.learning.ood_reference import model_reference, store_reference
 
     model = tmp_path / "branchnet.onnx"
     shutil.copy(SHIPPED_MODELS["fp32"], model)

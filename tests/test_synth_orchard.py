@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from branchrange.core.segmentation.branchnet_data import LEAF_ID, TRUNK_ID, TWIG_ID
+from branchrange.learning.samples import LEAF_ID, TRUNK_ID, TWIG_ID
 from branchrange.offline.coco_export import BRANCH_CATEGORY, TRUNK_CATEGORY
 from branchrange.offline.synth_coco import TRUTH_DIR, export_domain_frames
 from stereo.synth import SynthCamera, SynthOptions, render_scene
@@ -62,7 +62,7 @@ def test_rendered_truth_round_trips_through_coco(tmp_path):
     pytest.importorskip("pycocotools")
     from pycocotools.coco import COCO
 
-    from branchrange.core.segmentation.branchnet_data import evaluation_scene
+    from branchrange.learning.samples import evaluation_scene
 
     seeds = [80_000, 80_001]
     annotations = export_domain_frames(tmp_path, seeds, "orchard", size=(320, 180))
@@ -82,7 +82,7 @@ def test_rendered_truth_round_trips_through_coco(tmp_path):
         assert np.array_equal(kept["right"], scene["right"])
         assert json.loads(str(kept["truth"])) == scene["truth"]
     # the simulated labelling writes what export-frames writes: train-segmenter --coco reads it as it is
-    from branchrange.core.segmentation.coco_labels import read_labelled_frames
+    from branchrange.learning.coco_labels import read_labelled_frames
 
     labelled = read_labelled_frames(annotations, tmp_path / "images", log=lambda _: None)
     assert [f.name for f in labelled] == [f"frame_{s:06d}.png" for s in seeds]

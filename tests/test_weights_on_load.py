@@ -118,7 +118,7 @@ def test_cli_refuses_a_mismatching_release_and_loads_it_with_no_verify_weights(t
 
 
 def test_stereo_config_passes_verify_weights_to_the_backend(tmp_path):
-    from branchrange.core.config import StereoConfig
+    from branchrange.core.pipeline import StereoConfig
 
     path = save_checkpoint(small_model(0), tmp_path / RELEASE.filename)
     config = StereoConfig(backend="emcstereo", weights=str(path), max_disp=16, mode="full")

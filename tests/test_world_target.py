@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from branchrange.core.config import TrackingConfig
+from branchrange.config.sections import TrackingConfig
 from branchrange.onboard.mavlink.world_tracks import Measurement, TargetRule, WorldTracks
 
 CAMERA = np.zeros(3)

@@ -35,7 +35,7 @@ def openapi_document() -> dict[str, Any]:
     made once per build."""
     from api.app import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.core.config import ApiConfig
+    from branchrange.config.sections import ApiConfig
 
     return create_app(ApiConfig(), PipelineEstimator()).openapi()
 

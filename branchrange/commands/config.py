@@ -3,7 +3,7 @@
 - `check FILE [--set K=V ...]`: every problem at once, each with its key and line; exit 0 when none.
 - `show [FILE] [--set K=V ...] [--json]`: every key in effect and where its value came from.
 - `schema`: the JSON Schema editors check the TOML with (the package ships it:
-  branchrange/core/schemas/config.schema.json, `#:schema` line of deploy/*.toml).
+  branchrange/config/config.schema.json, `#:schema` line of deploy/*.toml).
 - `reference`: the Markdown reference of every key (docs/configuration.md).
 """
 
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 from branchrange.commands.exit_codes import BAD_INPUT, DONE
 
 if TYPE_CHECKING:
-    from branchrange.core.config_check import ConfigCheck, ConfigProblem
+    from branchrange.config.check import ConfigCheck, ConfigProblem
 
 EPILOG = f"""exit codes:
   {DONE}  the configuration is valid (check), or was printed (show, schema, reference)
@@ -63,8 +63,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _checked(args: argparse.Namespace) -> ConfigCheck:
     """The `ConfigCheck` of args.file with args.set; a malformed --set is a problem like any other."""
-    from branchrange.core.config import ConfigError, parse_override
-    from branchrange.core.config_check import FROM_SET, ConfigCheck, ConfigProblem, check_config
+    from branchrange.config.check import FROM_SET, ConfigCheck, ConfigProblem, check_config
+    from branchrange.config.loader import parse_override
+    from branchrange.core.settings_check import ConfigError
 
     try:
         overrides = [parse_override(text) for text in args.set]
@@ -95,7 +96,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 def run_show(args: argparse.Namespace) -> int:
     """Print the configuration in effect, each value's source beside it."""
-    from branchrange.core.config_show import as_json, as_toml, effective_settings
+    from branchrange.config.show import as_json, as_toml, effective_settings
 
     result = _checked(args)
     if result.problems or result.config is None:
@@ -110,8 +111,8 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_schema(args: argparse.Namespace) -> int:
-    """Print the JSON Schema (`branchrange config schema > branchrange/core/schemas/config.schema.json`)."""
-    from branchrange.core.config_schema import config_schema, schema_text
+    """Print the JSON Schema (`branchrange config schema > branchrange/config/config.schema.json`)."""
+    from branchrange.config.schema import config_schema, schema_text
 
     print(schema_text(config_schema()), end="")
     return DONE
@@ -119,8 +120,8 @@ def run_schema(args: argparse.Namespace) -> int:
 
 def run_reference(args: argparse.Namespace) -> int:
     """Print the Markdown reference (`branchrange config reference > docs/configuration.md`)."""
-    from branchrange.core.config_reference import config_reference
-    from branchrange.core.config_schema import config_schema
+    from branchrange.config.reference import config_reference
+    from branchrange.config.schema import config_schema
 
     print(config_reference(config_schema()), end="")
     return DONE

@@ -30,9 +30,9 @@ def add_config_arguments(parser: argparse.ArgumentParser, *, required: bool, sec
 
 
 def config_from_args(args: argparse.Namespace, flags: Mapping[str, Any] = {}) -> Any:
-    """The `branchrange.core.config.Config` of --config, then `flags` (dotted key → value; None: the flag
+    """The `branchrange.config.loader.Config` of --config, then `flags` (dotted key → value; None: the flag
     was not given), then --set. Raises `ConfigError` naming the key (and the file, for its errors)."""
-    from branchrange.core.config import load_config, parse_override
+    from branchrange.config.loader import load_config, parse_override
 
     overrides = [(key, value) for key, value in flags.items() if value is not None]
     return load_config(args.config, overrides + [parse_override(text) for text in args.set])

@@ -16,7 +16,7 @@ from branchrange.commands.serve import TOKEN_ENV, ServeError, check_bind
 
 if TYPE_CHECKING:  # imported when the command runs: `branchrange --help` stays fast
     from api.metrics import Metrics
-    from branchrange.core.config import Config
+    from branchrange.config.loader import Config
     from branchrange.onboard.daemon import Daemon
 
 
@@ -59,8 +59,8 @@ def _start_api(cfg: Config, daemon: Daemon, metrics: Metrics) -> tuple[Any, thre
 def run(args: argparse.Namespace) -> int:
     """Build source, pipeline, relay and log from the config; run until the source ends or a signal."""
     from api.metrics import Metrics
-    from branchrange.core.config import ConfigError
-    from branchrange.core.frame_results import pipeline_for
+    from branchrange.config.loader import pipeline_for
+    from branchrange.core.settings_check import ConfigError
     from branchrange.onboard.daemon import Daemon, relay_for
     from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
     from branchrange.onboard.mavlink import CameraMount

@@ -71,7 +71,7 @@ def chosen_backend(args: argparse.Namespace) -> str:
 def whole_frame_stereo(args: argparse.Namespace) -> Any:
     """The `[stereo]` settings of --backend/--weights/--max-disp for one pair: whole-frame matching
     (ConfigError naming `stereo.max_disp` … for a value out of range)."""
-    from branchrange.core.config import StereoConfig
+    from branchrange.core.pipeline import StereoConfig
 
     return StereoConfig(
         backend=chosen_backend(args), weights=str(args.weights or ""), max_disp=args.max_disp, mode="full"
@@ -143,8 +143,7 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, optional_value: 
 
 def segmenter_settings(args: argparse.Namespace) -> Any:
     """The `[segmenter]` settings of the segmenter options (ValueError on bad ones)."""
-    from branchrange.core.config import SegmenterConfig
-    from branchrange.core.segmentation.choose import DEFAULT_SEGMENTER
+    from branchrange.core.segmentation.choose import DEFAULT_SEGMENTER, SegmenterConfig
 
     return SegmenterConfig(
         model=args.segmenter or DEFAULT_SEGMENTER,
@@ -193,8 +192,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _settings(args: argparse.Namespace) -> Any:
     """The `PipelineConfig` of the options: one pair, untracked, its rectification checked
     (`ConfigError` naming the key of a bad option)."""
-    from branchrange.core.config import MaskConfig
     from branchrange.core.cutpoints import CutPointConfig
+    from branchrange.core.masks import MaskConfig
     from branchrange.core.pipeline import PipelineConfig
 
     return PipelineConfig(

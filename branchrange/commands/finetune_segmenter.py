@@ -1,5 +1,5 @@
 """`branchrange train-segmenter --coco annotations.json --images DIR --out BUNDLE`: fine-tune the learned segmenter
-on your labelled frames (the labelling → fine-tune → check → deploy loop; `branchnet_finetune`).
+on your labelled frames (the labelling → fine-tune → check → deploy loop; `branchrange.learning.finetune`).
 
 Reads the COCO file with pycocotools (polygons or RLE; categories named branch and trunk, others left out),
 each frame's disparity from `stereo/` beside the images (export-frames writes it), holds out a seeded share
@@ -50,12 +50,12 @@ def _refuse(message: str) -> int:
 
 def run_finetune(args: argparse.Namespace) -> int:
     """Fine-tune on --coco and write the bundle --out; 2 with a clear message for bad input."""
-    from branchrange.commands.train_segmenter import parsed_overrides
-    from branchrange.core.segmentation.branchnet_finetune import FineTuneConfig, finetune_branchnet
+    from branchrange.commands.training_overrides import parsed_overrides
     from branchrange.core.segmentation.bundle import bundle_model
-    from branchrange.core.segmentation.coco_labels import LabelsError, read_labelled_frames
     from branchrange.core.segmentation.learned import SHIPPED_MODEL
     from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
+    from branchrange.learning.coco_labels import LabelsError, read_labelled_frames
+    from branchrange.learning.finetune import FineTuneConfig, finetune_branchnet
     from stereo.cli import package_version
 
     given = [f"--{name.replace('_', '-')}" for name in _SYNTHETIC_ONLY if getattr(args, name)]

@@ -122,7 +122,7 @@ def summary_path(out: str | Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """Load the config with the command line's overrides, replay, print and write the summary."""
-    from branchrange.core.config import ConfigError
+    from branchrange.core.settings_check import ConfigError
     from branchrange.offline.overlay_video import VideoWriteError
     from branchrange.offline.replay import replay_recording, source_spec
     from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets

@@ -51,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
 
     from api import create_app
     from api.estimator import PipelineEstimator
-    from branchrange.core.config import ConfigError, pipeline_config
+    from branchrange.config.loader import pipeline_config
+    from branchrange.core.settings_check import ConfigError
 
     try:
         cfg = config_from_args(args, {"api.host": args.host, "api.port": args.port})

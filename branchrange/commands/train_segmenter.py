@@ -2,7 +2,7 @@
 
 Renders the scenes it needs into --data first, in --workers processes (cached: a second run, or a resumed
 one, renders nothing), trains, validates on scenes kept apart, measures how often its cut points are right
-to calibrate their confidence (scenes 2861–3100, SGBM, per `branchnet_calibration.CALIBRATION_SETTINGS`: at
+to calibrate their confidence (scenes 2861–3100, SGBM, per `branchrange.learning.calibration.CALIBRATION_SETTINGS`: at
 640 px with and without the second look at the trunk band, and at 1280 px), and writes to --out:
 branchnet.onnx (what `--segmenter learned` runs with `[segmenter.learned] model =
 "DIR/branchnet.onnx"`), branchnet.json (config, seed, SHA-256, validation IoU, confidence
@@ -10,7 +10,7 @@ calibrations), metrics.csv, training_curve.png and branchnet.pt (the torch
 weights). With --coco it fine-tunes the model on your labelled frames instead and writes a model bundle
 (`branchrange.commands.finetune_segmenter`). --calibrate-only re-measures the calibration of the model already
 in --out; --int8 also writes
-branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchnet_quantize`).
+branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchrange.learning.quantize`).
 
 Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
 the full-resolution feature branch; the first two need no calibration, `--no-calibrate`; 103 min on 2 cores
@@ -33,6 +33,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from branchrange.commands.finetune_segmenter import FINETUNE_ONLY, add_finetune_arguments, run_finetune
+from branchrange.commands.training_overrides import parsed_overrides
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -70,8 +71,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--ood-only",
         action="store_true",
         help="only (re)measure the out-of-distribution reference of --out's branchnet.onnx (and of its int8 copy "
-        "with --int8) on synthetic scenes 2861–3020, stored in its JSON under 'ood' (`branchnet_ood`; calibrating "
-        "measures it too)",
+        "with --int8) on synthetic scenes 2861–3020, stored in its JSON under 'ood' "
+        "(`branchrange.learning.ood_reference`; calibrating measures it too)",
     )
     p.add_argument(
         "--int8",
@@ -103,7 +104,7 @@ def usable_cores() -> int:
 def training_config(config_file: Path | None, overrides: list[str], stage: int | None = None):
     """`BranchNetTrainConfig` from a branchnet.json's 'config' (or its 'stages'[`stage` − 1]) and KEY=VALUE
     overrides; ValueError naming the key."""
-    from branchrange.core.segmentation.branchnet_training import BranchNetTrainConfig
+    from branchrange.learning.training import BranchNetTrainConfig
 
     values: dict = {}
     if stage is not None and config_file is None:
@@ -124,21 +125,6 @@ def training_config(config_file: Path | None, overrides: list[str], stage: int |
     if unknown:
         raise ValueError(f"unknown training setting(s) {unknown}; known: {', '.join(sorted(known))}")
     return BranchNetTrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
-
-
-def parsed_overrides(known: set[str], overrides: list[str]) -> dict:
-    """KEY=VALUE items (`--set`) as {key: JSON value}; ValueError naming an item whose key is not in `known` or
-    whose value is not JSON."""
-    values = {}
-    for item in overrides:
-        key, sep, text = item.partition("=")
-        if not sep or key not in known:
-            raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(known))}")
-        try:
-            values[key] = json.loads(text)
-        except ValueError:
-            raise ValueError(f"--set {key}: {text!r} is not a JSON value (numbers as 3, lists as [1, 2])") from None
-    return values
 
 
 def run(args: argparse.Namespace) -> int:
@@ -174,10 +160,10 @@ def _refuse(message: str) -> int:
 
 def _measure_ood(args: argparse.Namespace, model: Path) -> int:
     """--ood-only: measure the out-of-distribution reference of `model` (and its int8 copy with --int8) on the
-    scenes cached in --data (`branchnet_ood.measure_model_reference`); exit 2 naming a model that is missing or
-    a mode it excludes."""
-    from branchrange.core.segmentation.branchnet_ood import measure_model_reference
-    from branchrange.core.segmentation.branchnet_quantize import int8_path
+    scenes cached in --data (`branchrange.learning.ood_reference.measure_model_reference`); exit 2 naming a model that
+    is missing or a mode it excludes."""
+    from branchrange.learning.ood_reference import measure_model_reference
+    from branchrange.learning.quantize import int8_path
 
     if args.calibrate_only or args.no_calibrate:
         return _refuse("--ood-only excludes --calibrate-only and --no-calibrate")
@@ -193,8 +179,8 @@ def _measure_ood(args: argparse.Namespace, model: Path) -> int:
 def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
     """`run` once the arguments are checked: train `model` (unless --calibrate-only), calibrate it (unless
     --no-calibrate) in --workers processes, and the int8 copy with --int8."""
-    from branchrange.core.segmentation.branchnet_calibration import calibrate_model
-    from branchrange.core.segmentation.branchnet_training import train_branchnet
+    from branchrange.learning.calibration import calibrate_model
+    from branchrange.learning.training import train_branchnet
 
     def log(line: str) -> None:
         print(line, flush=True)
@@ -218,7 +204,7 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
             f"branch {final['iou_branch']:.3f}, trunk {final['iou_trunk']:.3f}"
         )
     if args.int8:
-        from branchrange.core.segmentation.branchnet_quantize import int8_path, quantize_branchnet
+        from branchrange.learning.quantize import int8_path, quantize_branchnet
 
         quantized = quantize_branchnet(model, args.data)
         if not args.no_calibrate:

@@ -84,7 +84,7 @@ class ConfidenceCalibration:
 def product_calibration(first: ConfidenceCalibration, second: ConfidenceCalibration) -> ConfidenceCalibration:
     """The map c → `first`(c) × `second`(c), at the union of both maps' knots: the probability that two things
     hold, the second measured given the first (a fine-tuned bundle's "on a branch" × "within 5 cm given on a
-    branch", `branchnet_depth_factor`). Both are monotone and in [0, 1], so the product is too."""
+    branch", `branchrange.learning.depth_factor`). Both are monotone and in [0, 1], so the product is too."""
     knots = np.union1d(first.raw, second.raw)
     product = np.maximum.accumulate([first(float(c)) * second(float(c)) for c in knots])  # rounding kept monotone
     return ConfidenceCalibration(tuple(float(c) for c in knots), tuple(float(p) for p in product))
@@ -149,7 +149,8 @@ _THRESHOLDS = np.round(np.arange(THRESHOLD_STEP, 1.0, THRESHOLD_STEP), 2)
 def lowest_reliable_threshold(outcomes: Sequence[tuple[float, float]], share: float = 0.9) -> float | None:
     """The lowest confidence (steps of `THRESHOLD_STEP`) at and above which at least `share` of the cut points
     are correct — the default a target needs; None when no threshold reaches it. Each outcome's correct is
-    True/False, or the probability that it is (a fine-tuned bundle's, `branchnet_heldout.calibration_table`)."""
+    True/False, or the probability that it is (a fine-tuned bundle's,
+    `branchrange.learning.heldout.calibration_table`)."""
     for threshold in _THRESHOLDS:
         count, correct = share_correct_above(outcomes, float(threshold))
         if count and correct >= share:

@@ -110,21 +110,21 @@ class CutPointConfig(Settings):
     error = CutPointConfigError
     limits = {
         "cut_offset_m": Limit.physical("cut_offset_m"),
-        "erode_px": Limit(minimum=0),
-        "min_points": Limit(minimum=3),
-        "min_valid_fraction": Limit(minimum=0, maximum=1),
-        "min_confidence": Limit(minimum=0, maximum=1),
-        "disparity_noise_px": Limit(exclusive_minimum=0),
-        "cut_tolerance_m": Limit(exclusive_minimum=0, maximum=1),
-        "cut_disparity_noise_px": Limit(minimum=0, exclusive_maximum=10),
-        "min_inlier_band_m": Limit(exclusive_minimum=0),
+        "erode_px": Limit(minimum=0, expected="≥ 0 px"),
+        "min_points": Limit(minimum=3, expected="≥ 3 points"),
+        "min_valid_fraction": Limit(minimum=0, maximum=1, expected="a fraction in [0, 1]"),
+        "min_confidence": Limit(minimum=0, maximum=1, expected="a confidence in [0, 1]"),
+        "disparity_noise_px": Limit(exclusive_minimum=0, expected="> 0 px"),
+        "cut_tolerance_m": Limit(exclusive_minimum=0, maximum=1, expected="> 0 and ≤ 1 m"),
+        "cut_disparity_noise_px": Limit(minimum=0, exclusive_maximum=10, expected="in [0, 10) px (0: left out)"),
+        "min_inlier_band_m": Limit(exclusive_minimum=0, expected="> 0 m"),
         "min_range_m": Limit.physical("distance_m"),
         "max_range_m": Limit.physical("distance_m"),
-        "max_instances": Limit(minimum=1),
-        "target_policy": Limit(enum=TARGET_POLICIES),
-        "target_min_confidence": Limit(minimum=0, maximum=1),
-        "max_cut_beyond_tip_m": Limit(minimum=0),
-        "base_occluder_gap_m": Limit(exclusive_minimum=0),
+        "max_instances": Limit(minimum=1, expected="≥ 1 instance"),
+        "target_policy": Limit(enum=TARGET_POLICIES, expected="one of " + ", ".join(repr(p) for p in TARGET_POLICIES)),
+        "target_min_confidence": Limit(minimum=0, maximum=1, expected="a confidence in [0, 1]"),
+        "max_cut_beyond_tip_m": Limit(minimum=0, expected="≥ 0 m (a large value keeps every cut point)"),
+        "base_occluder_gap_m": Limit(exclusive_minimum=0, expected="> 0 m (a large value turns the check off)"),
     }
 
     cut_offset_m: float = 0.05
@@ -152,27 +152,11 @@ class CutPointConfig(Settings):
         far_ok, _ = in_physical_range("distance_m", self.max_range_m)
         return {
             "cut_offset_m": in_physical_range("cut_offset_m", self.cut_offset_m),
-            "erode_px": (self.erode_px >= 0, "≥ 0 px"),
-            "min_points": (self.min_points >= 3, "≥ 3 points"),
-            "min_valid_fraction": (0 <= self.min_valid_fraction <= 1, "a fraction in [0, 1]"),
-            "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
-            "disparity_noise_px": (self.disparity_noise_px > 0, "> 0 px"),
-            "cut_tolerance_m": (0 < self.cut_tolerance_m <= 1, "> 0 and ≤ 1 m"),
-            "cut_disparity_noise_px": (0 <= self.cut_disparity_noise_px < 10, "in [0, 10) px (0: left out)"),
-            "min_inlier_band_m": (self.min_inlier_band_m > 0, "> 0 m"),
             "min_range_m": (near_ok, distances),
             "max_range_m": (
                 far_ok and self.max_range_m > self.min_range_m,
                 f"> min_range_m ({self.min_range_m} m), {distances}",
             ),
-            "max_instances": (self.max_instances >= 1, "≥ 1 instance"),
-            "target_policy": (
-                self.target_policy in TARGET_POLICIES,
-                "one of " + ", ".join(repr(p) for p in TARGET_POLICIES),
-            ),
-            "target_min_confidence": (0 <= self.target_min_confidence <= 1, "a confidence in [0, 1]"),
-            "max_cut_beyond_tip_m": (self.max_cut_beyond_tip_m >= 0, "≥ 0 m (a large value keeps every cut point)"),
-            "base_occluder_gap_m": (self.base_occluder_gap_m > 0, "> 0 m (a large value turns the check off)"),
         }
 
 

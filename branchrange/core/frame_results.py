@@ -1,7 +1,7 @@
 """One source frame → its `branchrange/v1` result and JSONL line, shared by the daemon and the offline replay.
 
-Both build their pipeline with `pipeline_for` and hand every frame to it through `stereo_stage`
-(the daemon then runs `geometry_stage` on its own thread; the replay runs both in `process_frame`),
+Both build their pipeline with `branchrange.config.loader.pipeline_for` and hand every frame to it through
+`stereo_stage` (the daemon then runs `geometry_stage` on its own thread; the replay runs both in `process_frame`),
 so replaying a recording after a flight gives the results the daemon computed in the air (the
 timing aside), and both write the same log lines.
 
@@ -25,30 +25,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from branchrange.core.config import Config, pipeline_config
 from branchrange.core.frame_result import FrameResult
-from camera.sources import SourceError, StereoFrame
-
-
-def pipeline_for(cfg: Config, calibration: Any) -> Any:
-    """The `Pipeline` that the pipeline's sections of `cfg` describe, for a source's calibration,
-    with its stereo backend already built: a calibration outside the physical ranges, a missing
-    checkpoint or a max_disp the backend cannot use fails here, at start-up, rather than as a
-    rejected frame on every frame.
-
-    Raises `SourceError` naming `camera.source` when the source brought no calibration, `RangeError`
-    for a focal length or baseline out of range, and the backend's `ValueError`
-    (`BackendConfigError`, `CheckpointError`) when it cannot be built.
-    """
-    from branchrange.core.pipeline import Pipeline
-    from branchrange.core.settings_check import check_calibration
-
-    if calibration is None:
-        raise SourceError(f"{cfg.camera.source}: no calibration; set camera.calibration")
-    check_calibration(calibration, tuple(calibration.image_size), f"{cfg.camera.source}: calibration")
-    pipeline = Pipeline(pipeline_config(cfg), calibration=calibration)
-    _ = pipeline.backend  # the property builds it
-    return pipeline
+from camera.sources import StereoFrame
 
 
 def stereo_stage(pipeline: Any, frame: StereoFrame, shed_level: int = 0) -> Any:
@@ -84,7 +62,7 @@ def result_line(result: FrameResult) -> str:
 RUN_HEADER_SCHEMA = "branchrange/run-header/v1"
 
 
-def config_sha256(cfg: Config) -> str:
+def config_sha256(cfg: Any) -> str:
     """SHA-256 (hex) of the effective configuration, every key sorted: equal hashes, equal settings."""
     text = json.dumps(dataclasses.asdict(cfg), sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
@@ -95,7 +73,7 @@ def utc_now() -> str:
     return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
-def run_header(kind: str, cfg: Config, source: str) -> dict[str, Any]:
+def run_header(kind: str, cfg: Any, source: str) -> dict[str, Any]:
     """The header of one run: what wrote it (`kind`, e.g. "replay" or "daemon"), the package
     version, the configuration's hash, the UTC start time (ISO 8601, ms) and the source spec."""
     from stereo.cli import package_version
@@ -110,7 +88,7 @@ def run_header(kind: str, cfg: Config, source: str) -> dict[str, Any]:
     }
 
 
-def run_header_line(kind: str, cfg: Config, source: str) -> str:
+def run_header_line(kind: str, cfg: Any, source: str) -> str:
     """`run_header(...)` as one JSON line, newline included: the first line a run writes to its log."""
     return json_line(run_header(kind, cfg, source))
 

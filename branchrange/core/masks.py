@@ -19,6 +19,7 @@ import numpy as np
 from branchrange.core.confidence import ConfidenceCalibration, visible_length_factor
 from branchrange.core.light_check import LightReading
 from branchrange.core.segmentation.ood import OodReading
+from branchrange.core.settings_check import Checks, ConfigError, Limit, Settings, one_of
 
 #: The trunk's id in instance masks unless configured otherwise (the synthetic generator's value).
 DEFAULT_TRUNK_ID = 65535
@@ -404,3 +405,36 @@ def erode(mask: np.ndarray, pixels: int, keep_fraction: float = 0.3) -> np.ndarr
     kernel = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     eroded = cv2.erode(mask.astype(np.uint8), kernel, iterations=pixels).astype(bool)
     return eroded if eroded.sum() >= keep_fraction * mask.sum() else mask
+
+
+#: `masks.kind`: how a mask file or array is read (`branchrange.core.masks.masks_from_array`).
+MASK_KINDS: tuple[str, ...] = ("auto", "instance", "binary")
+
+
+@dataclass(frozen=True)
+class MaskConfig(Settings):
+    """How instance masks (files, arrays, recordings' masks) are read (`branchrange.core.masks.masks_from_array`).
+
+    `trunk_id`: the trunk's id in instance masks (1..65535); `ignored_ids`: ids that are neither
+    branch nor trunk (twigs, leaves); `kind`: 'auto' (binary when the mask holds only 0 and one
+    value), 'instance' or 'binary' (connected components are the instances).
+    """
+
+    section = "masks"
+    error = ConfigError
+    limits = {
+        "trunk_id": Limit(minimum=1, maximum=65535),
+        "ignored_ids": Limit(minimum=1, maximum=65535),
+        "kind": Limit(enum=MASK_KINDS, expected=one_of(MASK_KINDS)),
+    }
+
+    trunk_id: int = DEFAULT_TRUNK_ID
+    ignored_ids: tuple[int, ...] = DEFAULT_IGNORED_IDS
+    kind: str = "auto"
+
+    def checks(self) -> Checks:
+        """The rules beyond each key's `Limit`."""
+        return {
+            "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535 (0 is background)"),
+            "ignored_ids": (all(0 < i <= 65535 for i in self.ignored_ids), "ids in 1..65535"),
+        }

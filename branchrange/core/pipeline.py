@@ -19,7 +19,6 @@ import numpy as np
 
 from branchrange.core.branch_disparity import refine_branch_disparity
 from branchrange.core.branch_propagation import propagate_labels, verify_support
-from branchrange.core.config import MaskConfig, RoiConfig, SegmenterConfig, StereoConfig
 from branchrange.core.cutpoints import (
     DEFAULT_TARGET_POLICY,
     CutPointConfig,
@@ -49,6 +48,7 @@ from branchrange.core.keyframe_worker import Keyframe, KeyframeWorker, global_sh
 from branchrange.core.keyframes import CarriedFrame, KeyframeSchedule, Origin, grey_of
 from branchrange.core.masks import (
     BranchMasks,
+    MaskConfig,
     MaskKind,
     check_instance_count,
     masks_from_array,
@@ -57,12 +57,95 @@ from branchrange.core.masks import (
 )
 from branchrange.core.pair_check import PairCheck, check_rectification
 from branchrange.core.region_budget import branch_scales
-from branchrange.core.roi import CoarseToFine, CoarseToFineResult, CoarseTrunk, Region, branch_gates
+from branchrange.core.roi import CoarseToFine, CoarseToFineResult, CoarseTrunk, Region, RoiConfig, branch_gates
+from branchrange.core.segmentation.choose import SegmenterConfig
 from branchrange.core.segmentation.ood import OodWarnings
 from branchrange.core.segmentation.segmenter import Segmenter
+from branchrange.core.settings_check import Checks, ConfigError, Limit, Settings, one_of
 from branchrange.core.timing import lap_ms
 from branchrange.core.tracking import BranchTracker, TrackerConfig
-from stereo.backends.base import validate_image, validate_pair
+from stereo.backends import (
+    BACKEND_NAMES,
+    MAX_DISP_EXPECTED,
+    PRECISIONS,
+    WEIGHTED_BACKENDS,
+    StereoBackend,
+    is_valid_max_disp,
+)
+from stereo.backends.base import MAX_DISP_LIMIT, MAX_DISP_STEP, validate_image, validate_pair
+
+#: `stereo.mode`: 'full' matches the whole frame at full resolution; 'roi' coarse-to-fine (`branchrange.core.roi`).
+STEREO_MODES: tuple[str, ...] = ("full", "roi")
+
+
+@dataclass(frozen=True)
+class StereoConfig(Settings):
+    """Which stereo backend computes disparity (`stereo.backends.make_backend` arguments), and how.
+
+    `backend`: one of `stereo.backends.BACKEND_NAMES`. `emcstereo` and `onnx` need `weights` (a
+    checkpoint; the exported .onnx file): a network without them gives meaningless disparities,
+    which the daemon would send to the flight controller as cut points. `max_disp`: the disparity
+    search range in px at full resolution (`stereo.backends.check_max_disp`'s rule). `precision`:
+    one of `stereo.backends.PRECISIONS` (fp16/bf16 need a CUDA `device` and emcstereo). `device`: the torch
+    device a network backend runs on ('cpu', 'cuda', 'cuda:1'). `mode`:
+    'roi' matches the frame at low resolution and each branch at full resolution in its box and
+    disparity window (`[roi]`, `branchrange.core.roi`) — the real-time onboard default; 'full' matches
+    the whole frame. `verify_weights`: check a registered release's weights against its SHA-256 on load.
+    `refine_branches`: once the masks are known, match each branch on its own pixels for a sub-pixel
+    disparity free of the background's pull (`branchrange.core.branch_disparity`; ~1 ms per branch).
+    """
+
+    section = "stereo"
+    error = ConfigError
+    limits = {
+        "backend": Limit(enum=BACKEND_NAMES, expected=one_of(BACKEND_NAMES)),
+        "max_disp": Limit(minimum=MAX_DISP_STEP, maximum=MAX_DISP_LIMIT, multiple_of=MAX_DISP_STEP),
+        "precision": Limit(enum=PRECISIONS, expected=one_of(PRECISIONS)),
+        "mode": Limit(
+            enum=STEREO_MODES,
+            expected="'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)",
+        ),
+    }
+
+    backend: str = "sgbm"
+    weights: str = ""
+    max_disp: int = 192
+    device: str = "cpu"
+    precision: str = "fp32"
+    mode: str = "roi"
+    verify_weights: bool = True
+    refine_branches: bool = True
+
+    def checks(self) -> Checks:
+        """The backend, its weights, search range and precision, and the mode."""
+        return {
+            "weights": (
+                self.backend not in WEIGHTED_BACKENDS or bool(self.weights.strip()),
+                f"a checkpoint path when stereo.backend = {self.backend!r}",
+            ),
+            "max_disp": (is_valid_max_disp(self.max_disp), MAX_DISP_EXPECTED),
+        }
+
+    def build_backend(self) -> StereoBackend:
+        """The `stereo.backends` backend these settings name (`make_backend`); weights whose file name is a
+        registered release are checked against its SHA-256 unless `verify_weights` is false (a local file
+        that kept a release's name)."""
+        from stereo.backends import make_backend
+
+        return make_backend(
+            self.backend,
+            weights=self.weights_path,
+            max_disp=self.max_disp,
+            device=self.device,
+            precision=self.precision,
+            verify_sha256=self.verify_weights,
+        )
+
+    @property
+    def weights_path(self) -> str | None:
+        """`weights` as `make_backend` takes it (None when empty)."""
+        return self.weights or None
+
 
 MaskInput = BranchMasks | np.ndarray | str | Path | None
 
@@ -74,7 +157,7 @@ class PipelineInputError(ValueError):
 @dataclass(frozen=True)
 class PipelineConfig:
     """Settings of the whole per-frame chain: the pipeline's TOML sections themselves
-    (`branchrange.core.config.pipeline_config` hands them over from a file), and `check_pair`.
+    (`branchrange.config.loader.pipeline_config` hands them over from a file), and `check_pair`.
 
     - `stereo` (`[stereo]`): the backend (`stereo.backends.make_backend` arguments) and `mode`:
       'full' matches the whole frame at full resolution, 'roi' (`branchrange.core.roi`) the whole frame

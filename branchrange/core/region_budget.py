@@ -36,20 +36,35 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
 from branchrange.core.masks import BranchMasks
 
-if TYPE_CHECKING:  # config imports the cut-point settings, which take `on_working_grid` from here
-    from branchrange.core.config import RoiConfig
-
 #: SGBM searches disparities in whole steps of this many pixels (a window's cost follows the rounded count).
 DISPARITY_STEP = 16
 #: Rows of context (px at the working scale) kept above and below a scaled region's box for the SGM paths.
 STRIP_CONTEXT_PX = 16
+
+
+class BudgetSettings(Protocol):
+    """The budget's keys of `[roi]` (`branchrange.core.roi.RoiConfig` has them; the roi module builds on this one,
+    so the budget names what it reads rather than importing the section)."""
+
+    @property
+    def budget(self) -> bool: ...
+    @property
+    def budget_min_disparity_px(self) -> float: ...
+    @property
+    def budget_min_diameter_px(self) -> float: ...
+    @property
+    def budget_max_scale(self) -> int: ...
+    @property
+    def budget_max_pixels(self) -> int: ...
+    @property
+    def budget_max_cost_mpd(self) -> float: ...
 
 
 @dataclass(frozen=True)
@@ -61,7 +76,7 @@ class RegionNeed:
     width_px: float
 
 
-def working_scale(need: RegionNeed, config: RoiConfig) -> int:
+def working_scale(need: RegionNeed, config: BudgetSettings) -> int:
     """The largest power of two s ≤ `budget_max_scale` with need.disparity_px / s ≥ `budget_min_disparity_px`
     and need.width_px / s ≥ `budget_min_diameter_px` (module docstring); 1 when the budget is off."""
     scale = 1
@@ -113,7 +128,7 @@ def region_needs(
     return needs
 
 
-def fit_budget(regions: list[Any], needs: list[RegionNeed], config: RoiConfig) -> list[Any]:
+def fit_budget(regions: list[Any], needs: list[RegionNeed], config: BudgetSettings) -> list[Any]:
     """`regions` (`roi.Region`s) with their working `scale` set by the rule, then within the frame's budget
     (module docstring): further halved nearest-first, then the farthest left out. Order is kept."""
     scales = [working_scale(need, config) for need in needs]

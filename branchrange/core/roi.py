@@ -35,12 +35,137 @@ from typing import Any
 import cv2
 import numpy as np
 
-from branchrange.core.config import RoiConfig
 from branchrange.core.cutpoints import CutPointConfig, TrunkModel, fit_trunk
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks, MaskCrop
 from branchrange.core.region_budget import fit_budget, match_region, region_needs
+from branchrange.core.settings_check import Checks, ConfigError, Limit, Settings
 from branchrange.core.timing import lap_ms
+
+
+@dataclass(frozen=True)
+class RoiConfig(Settings):
+    """The coarse-to-fine settings of `stereo.mode = "roi"` (`branchrange.core.roi`; px at full resolution).
+
+    - `coarse_width`: width of the coarse pass in px (frames narrower than 1.5× this are matched
+      coarsely at full resolution, scale 1).
+    - `box_margin_px`: how far each instance's box grows on every side (the matcher's block and the
+      silhouette's edges need context).
+    - `window_margin_px`: how far the disparity window grows beyond the instance's coarse range.
+    - `max_regions`: only the nearest this many branches (by coarse disparity) get a fine pass
+      (the trunk keeps its coarse disparity); the others are dropped. A bound on a pathological frame,
+      not a budget: an SGBM region costs ~1–2 ms, and the learned segmenter gives more than 12 instances
+      (fragments and doubtful pieces too) in a quarter of the calibration frames and up to 38 — with 12
+      (the setting until 2026-11-26) the pipeline at HD720 lost 7–12 points of recall (benchmarks/RESULTS.md).
+    - `network_regions`: with a network backend (emcstereo), only the nearest this many regions —
+      the target's candidates — are matched by the network, the others by SGBM (a network region
+      costs about 0.4 s at 200×200 px on 2 CPU cores); 0: every region by the network.
+    - `full_resolution_instances`: with the learned segmenter, once the regions are matched its instance
+      step runs again at full resolution (`LearnedSegmenter.instances`: the coarse look's class
+      probabilities brought to full resolution, each branch's fine disparity, the coarse one around it),
+      so branches are cut apart at full-resolution depth jumps and their silhouettes are full-resolution
+      ones; off = the coarse instances brought up (`roi.refine_labels`). The network still runs once, on the
+      coarse frame. On 240 held-out scenes at HD720 recall within 5 cm 65 → 68 % looking once and 70 → 76 %
+      with the default second look; on the synthetic HD720 flight (2 cores, one look) a target in 97–100
+      instead of 80–85 % of the frames, for ~42 ms a frame on the stereo thread: 5.6–6.1 instead of 8.7–9.6
+      fresh results a second (benchmarks/RESULTS.md).
+    - `keyframe_interval_s`: with the segmenter (no masks given), run it on keyframes only, this far apart
+      (s), and carry each branch's mask over to the frames between by image alignment
+      (`branchrange.core.keyframes`); 0: the segmenter on every frame.
+    - `track_search_px`: how far (px at full resolution) a carried branch is searched from where it was.
+    - `track_min_ncc`: the image match's score (normalised cross-correlation) a carried branch needs;
+      under it the branch is lost and the next frame is a keyframe.
+    - `track_min_support`: the share of a carried branch's pixels the new frame's disparity must keep (within
+      its window); under it the branch was carried to the wrong place: left out, and a keyframe is due.
+    - `track_gate_px`: how far (px) a carried branch's disparity may move from the range its pixels had in
+      the last frame (median ± 3 robust σ) before the search window's margin: one frame's motion near the tree.
+    - `track_max_jump_m`: a carried branch's cut point more than this far (m, camera frame) from its own in
+      the last frame is dropped and a keyframe is due: a carried mask that slid onto other pixels (a
+      silhouette with much background, the fit taking the background's depth) gives a cut point far off,
+      and a tracked result must never jump (one frame's motion at 0.8 m/s moves it 5 cm).
+    - `budget`: the region budget (`branchrange.core.region_budget`): each branch's region is matched at the
+      coarsest working scale (1, 2, 4 … times smaller) its cut point can afford, and the frame's regions within
+      the two caps below; false: every region at full resolution.
+    - `budget_min_disparity_px`: a region is shrunk only while its branch's disparity at the working scale stays
+      ≥ this (px): relative depth precision σ_d/d at least that of a full-resolution branch at this disparity
+      (16 px at HD720 with the ZED Mini is ~2.5 m; regions shrink from ~1.3 m in).
+    - `budget_min_diameter_px`: … and while the branch's width at the working scale stays ≥ this (px): a stem the
+      matcher still sees (this one is never relaxed to meet the caps).
+    - `budget_max_scale`: the coarsest working scale (a power of two; 1: the budget never shrinks a region).
+    - `budget_max_pixels`: the frame's region pixels at their working scales at most (px); over it, regions are
+      shrunk further nearest-first (the disparity rule gives way, the width rule does not), then the farthest
+      are left out. 120,000: above every frame of the rendered HD720 approaches under the two rules (p95 100k,
+      max 112k; 156k before the budget), so it bounds a pathological frame (a dense tree close up) and
+      never costs a branch on those.
+    - `budget_max_cost_mpd`: the frame's matching cost at most, in million pixel-disparities (Σ region pixels ×
+      disparities searched, at the working scales): SGBM's time is proportional to it. 6: the same approaches
+      need at most 4.75 (p95 4.2; 9.1 before the budget).
+    - `budget_trunk_points`: the trunk's cylinder (fitted on the coarse pass) takes at most about this many of its
+      pixels (every k-th); 0 (the default): all of them. Its mask grows from ~11,000 coarse px at 3 m to ~41,000
+      at 0.8 m at HD720, so deploy/onboard_cpu.toml sets 12,000: near the tree it is fitted on as many points
+      as at the start of the approach, each with far less depth noise (the same cut points, the stage flat).
+      The count depends on the coarse pass's size, hence no default for every camera.
+    - `keyframe_worker`: run the keyframes' segmenter in its own worker (`branchrange.core.keyframe_worker`):
+      the stereo thread never waits for it and carries its instances, a few frames old when they arrive, to
+      its newest frame; false: a keyframe runs on the stereo thread (as slow as a frame without keyframes).
+      Experimental, not for flight: on a quiet 2-core machine its keyframes arrived 0.6–0.9 s old and 10 %
+      (0.3 m/s approach) to 38 % (0.8 m/s with 20 °/s yaw) of its targets were false
+      (`benchmarks/results/realtime.md`, 2026-11-28 22:05).
+    - `track_max_age_s`: with the worker, a track whose keyframe is older than this (s) is dropped (the
+      worker is slow, failed or being restarted): its branch goes unreported rather than guessed.
+    """
+
+    section = "roi"
+    error = ConfigError
+    limits = {
+        "coarse_width": Limit(minimum=64, expected="at least 64 px"),
+        "box_margin_px": Limit(minimum=0, maximum=256, expected="0..256 px"),
+        "window_margin_px": Limit(minimum=0, maximum=64, expected="0..64 px"),
+        "max_regions": Limit(minimum=1, maximum=256, expected="1..256"),
+        "network_regions": Limit(minimum=0, maximum=256, expected="0..256 (0: all)"),
+        "keyframe_interval_s": Limit(minimum=0, maximum=10, expected="seconds in [0, 10] (0: every frame)"),
+        "track_search_px": Limit(minimum=1, maximum=256, expected="1..256 px"),
+        "track_min_ncc": Limit(minimum=-1, maximum=1, expected="a score in [-1, 1]"),
+        "track_min_support": Limit(minimum=0, maximum=1, expected="a share in [0, 1]"),
+        "track_gate_px": Limit(minimum=0, maximum=64, expected="px in [0, 64]"),
+        "track_max_jump_m": Limit(exclusive_minimum=0, expected="metres > 0"),
+        "budget_min_disparity_px": Limit(minimum=1, maximum=256, expected="px in [1, 256]"),
+        "budget_min_diameter_px": Limit(minimum=1, maximum=64, expected="px in [1, 64]"),
+        "budget_max_scale": Limit(minimum=1, maximum=8),
+        "budget_max_pixels": Limit(minimum=1000, expected="at least 1000 px"),
+        "budget_max_cost_mpd": Limit(exclusive_minimum=0, expected="million pixel-disparities > 0"),
+        "budget_trunk_points": Limit(minimum=0, expected="a count ≥ 0 (0: every pixel)"),
+        "track_max_age_s": Limit(exclusive_minimum=0, maximum=10, expected="seconds in (0, 10]"),
+    }
+
+    coarse_width: int = 640
+    box_margin_px: int = 16
+    window_margin_px: int = 8
+    max_regions: int = 48
+    network_regions: int = 1
+    full_resolution_instances: bool = True
+    keyframe_interval_s: float = 0.0
+    track_search_px: int = 32
+    track_min_ncc: float = 0.6
+    track_min_support: float = 0.5
+    track_gate_px: float = 2.0
+    track_max_jump_m: float = 0.1
+    budget: bool = True
+    budget_min_disparity_px: float = 16.0
+    budget_min_diameter_px: float = 4.0
+    budget_max_scale: int = 4
+    budget_max_pixels: int = 120_000
+    budget_max_cost_mpd: float = 6.0
+    budget_trunk_points: int = 0
+    keyframe_worker: bool = False
+    track_max_age_s: float = 0.5
+
+    def checks(self) -> Checks:
+        """The rules beyond each key's `Limit`."""
+        return {
+            "budget_max_scale": (self.budget_max_scale in (1, 2, 4, 8), "1, 2, 4 or 8"),
+        }
+
 
 #: SGBM searches disparities in steps of this many pixels.
 DISPARITY_STEP = 16

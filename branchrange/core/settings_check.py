@@ -2,13 +2,13 @@
 and the one table of physical ranges (baseline, focal length, image size, depth) that the API
 request, the CLI options (`estimate`, `demo`) and the TOML configuration all validate against.
 
-Every settings dataclass — one per TOML section (`branchrange.core.config`) — extends `Settings`:
+Every settings dataclass — one per TOML section (`branchrange.config.loader.Config` gathers them) — extends `Settings`:
 it names its `section` and lists its range checks in `checks()`; constructing it runs them, so
 a value from a file, from `--set`, from a command-line flag or from Python is checked by the same
 rule and refused with the same message: `cutpoints.min_points = 1: expected ≥ 3 points`.
 
 A subclass also declares the plain part of those ranges as data, `limits` (`Limit`: bounds or the
-accepted values), from which `branchrange.core.config_schema` writes the JSON Schema that editors
+accepted values), from which `branchrange.config.schema` writes the JSON Schema that editors
 complete and check the TOML with. `checks()` stays the rule that refuses a value, with its message
 and the ranges that depend on other keys; tests/test_config_schema.py probes that every `Limit`
 agrees with it, so the schema cannot promise what the loader refuses, or the reverse.
@@ -22,7 +22,7 @@ entry, so nothing downstream has to guard against it.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -34,6 +34,16 @@ Checks = dict[str, tuple[bool, str]]
 
 class SettingsError(ValueError):
     """A setting outside what it accepts; the message names `section.key`, the value and what is accepted."""
+
+
+class ConfigError(SettingsError):
+    """A configuration file or value that cannot be used; the message names the key at fault."""
+
+
+def one_of(choices: Iterable[str]) -> str:
+    """'a', 'b' or 'c' — the accepted values of a setting, for messages."""
+    quoted = [repr(c) for c in choices]
+    return ", ".join(quoted[:-1]) + f" or {quoted[-1]}" if len(quoted) > 1 else quoted[0]
 
 
 def check_settings(section: str, settings: object, checks: Checks, error: type[ValueError]) -> None:
@@ -49,22 +59,63 @@ def check_settings(section: str, settings: object, checks: Checks, error: type[V
 
 @dataclass(frozen=True)
 class Limit:
-    """The plain range of one setting, in JSON Schema's words: bounds for a number (or for each item
-    of a list of numbers) or the accepted strings. What the generated schema states; `checks()`
-    refuses the value."""
+    """The plain range of one setting, stated once: bounds for a number (or for each item of a list of numbers)
+    or the accepted values, and `expected`, what the refusal says is accepted (`"0..64 px"`). Constructing a
+    `Settings` subclass refuses a value outside it; `as_schema` states it in the generated JSON Schema; its
+    meaning is the class docstring's bullet and its unit the key's suffix (`branchrange.config.schema`)."""
 
     minimum: float | None = None
     maximum: float | None = None
     exclusive_minimum: float | None = None
     exclusive_maximum: float | None = None
     multiple_of: int | None = None
-    enum: tuple[str, ...] = ()
+    enum: tuple[Any, ...] = ()
+    expected: str = ""
 
     @classmethod
-    def physical(cls, quantity: str) -> Limit:
+    def physical(cls, quantity: str, expected: str = "") -> Limit:
         """The closed interval of `PHYSICAL_RANGES[quantity]` (`in_physical_range`'s rule)."""
         accepted = PHYSICAL_RANGES[quantity]
-        return cls(minimum=accepted.low, maximum=accepted.high)
+        return cls(minimum=accepted.low, maximum=accepted.high, expected=expected or accepted.describe())
+
+    def admits(self, value: Any) -> bool:
+        """Whether `value` (a number, a string, or a tuple of numbers: each item) is within this limit."""
+        items = value if isinstance(value, tuple) and not self.enum else (value,)
+        try:
+            return all(self._admits_one(item) for item in items)
+        except TypeError:  # a value of another type than the key's (Python callers; the loader checks types first)
+            return False
+
+    def _admits_one(self, value: Any) -> bool:
+        if self.enum:
+            return value in self.enum
+        bounds = (
+            self.minimum is None or value >= self.minimum,
+            self.maximum is None or value <= self.maximum,
+            self.exclusive_minimum is None or value > self.exclusive_minimum,
+            self.exclusive_maximum is None or value < self.exclusive_maximum,
+            self.multiple_of is None or value % self.multiple_of == 0,
+        )
+        return all(bounds)
+
+    def describe(self) -> str:
+        """What is accepted, for a refusal: `expected`, else the bounds or the choices in words."""
+        if self.expected:
+            return self.expected
+        if self.enum:
+            return one_of(str(choice) for choice in self.enum)
+        words = [
+            f"{word} {bound:g}"
+            for word, bound in (
+                ("≥", self.minimum),
+                ("≤", self.maximum),
+                (">", self.exclusive_minimum),
+                ("<", self.exclusive_maximum),
+                ("a multiple of", self.multiple_of),
+            )
+            if bound is not None
+        ]
+        return ", ".join(words)
 
     def as_schema(self) -> dict[str, Any]:
         """The JSON Schema keywords of this limit (`minimum`, `exclusiveMaximum`, `enum` …)."""
@@ -81,12 +132,14 @@ class Limit:
 
 @dataclass(frozen=True)
 class Settings:
-    """Base of the settings dataclasses: construction runs `checks()` (`check_settings`).
+    """Base of the settings dataclasses: construction refuses a value outside its key's `Limit` or failing one of
+    `checks()` (`check_settings`), naming `section.key`, the value and what is accepted.
 
-    A subclass sets `section` (its TOML section, the prefix of its keys in messages), may set
-    `error` (the exception type its callers catch) and returns its range checks from `checks()`;
-    a subclass of a subclass extends them with `{**super().checks(), ...}`. `limits` declares the
-    plain ranges among them for the JSON Schema (a subclass of a subclass: `{**Base.limits, ...}`).
+    A subclass sets `section` (its TOML section, the prefix of its keys in messages), may set `error` (the
+    exception type its callers catch), declares each key's plain range once in `limits` (a subclass of a
+    subclass: `{**Base.limits, ...}`), and returns from `checks()` only the rules a `Limit` cannot state: a
+    range that depends on another key, a rule computed by a function (`{**super().checks(), ...}` in a subclass
+    of a subclass). Where a key has both, the `checks()` rule is the one applied.
     """
 
     section: ClassVar[str] = ""
@@ -94,10 +147,11 @@ class Settings:
     limits: ClassVar[Mapping[str, Limit]] = {}
 
     def __post_init__(self) -> None:
-        check_settings(self.section, self, self.checks(), self.error)
+        plain = {key: (limit.admits(getattr(self, key)), limit.describe()) for key, limit in self.limits.items()}
+        check_settings(self.section, self, {**plain, **self.checks()}, self.error)
 
     def checks(self) -> Checks:
-        """Field name → (passed, what is expected); none here."""
+        """Field name → (passed, what is expected) for the rules `limits` cannot state; none here."""
         return {}
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from branchrange.core.cutpoints import BranchEstimate
-from branchrange.core.settings_check import Checks, Limit, Settings
+from branchrange.core.settings_check import Limit, Settings
 
 
 class TrackerConfigError(ValueError):
@@ -40,22 +40,14 @@ class TrackerConfig(Settings):
     section = "branch_tracking"
     error = TrackerConfigError
     limits = {
-        "gate_m": Limit(exclusive_minimum=0),
-        "max_missed": Limit(minimum=0),
-        "max_axis_angle_deg": Limit(exclusive_minimum=0, maximum=180),
+        "gate_m": Limit(exclusive_minimum=0, expected="> 0 m"),
+        "max_missed": Limit(minimum=0, expected="≥ 0 frames"),
+        "max_axis_angle_deg": Limit(exclusive_minimum=0, maximum=180, expected="an angle in (0, 180] degrees"),
     }
 
     gate_m: float = 0.10
     max_missed: int = 5
     max_axis_angle_deg: float = 35.0
-
-    def checks(self) -> Checks:
-        """The range of every setting."""
-        return {
-            "gate_m": (self.gate_m > 0, "> 0 m"),
-            "max_missed": (self.max_missed >= 0, "≥ 0 frames"),
-            "max_axis_angle_deg": (0 < self.max_axis_angle_deg <= 180, "an angle in (0, 180] degrees"),
-        }
 
 
 @dataclass

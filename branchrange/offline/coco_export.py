@@ -33,7 +33,7 @@ import numpy as np
 
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
-from branchrange.core.segmentation.coco_labels import STEREO_DIR, write_frame_stereo
+from branchrange.learning.coco_labels import STEREO_DIR, write_frame_stereo
 
 #: COCO category ids of the two classes the pre-annotations carry.
 BRANCH_CATEGORY, TRUNK_CATEGORY = 1, 2

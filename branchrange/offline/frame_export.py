@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from branchrange.core.config import Config
-from branchrange.core.frame_results import pipeline_for, process_frame, read_runs
+from branchrange.config.loader import Config, pipeline_for
+from branchrange.core.frame_results import process_frame, read_runs
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.offline.coco_export import LabelledFrame, write_coco
 from branchrange.offline.frame_selection import (

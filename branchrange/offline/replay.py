@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from branchrange.core.config import Config
+from branchrange.config.loader import Config, pipeline_for
 from branchrange.core.frame_result import FrameResult
-from branchrange.core.frame_results import pipeline_for, process_frame, result_line, run_header_line
+from branchrange.core.frame_results import process_frame, result_line, run_header_line
 from branchrange.core.overlay import draw_overlay
 from branchrange.offline.overlay_video import OverlayVideoWriter, check_video
 from camera.sources import CorruptFrameError, ReplaySource, open_source

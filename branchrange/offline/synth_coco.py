@@ -22,7 +22,7 @@ import numpy as np
 
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
-from branchrange.core.segmentation.branchnet_data import LEAF_ID, TRUNK_ID, TWIG_ID, evaluation_scene
+from branchrange.learning.samples import LEAF_ID, TRUNK_ID, TWIG_ID, evaluation_scene
 from branchrange.offline.coco_export import LabelledFrame, write_coco
 
 TRUTH_DIR = "truth"
@@ -44,8 +44,8 @@ def export_domain_frames(
     version: str = "",
     size: tuple[int, int] = (640, 360),
 ) -> Path:
-    """Render scenes `seeds` of `domain` at `size` (`branchnet_data.evaluation_scene`: SGBM, truth cut points;
-    cached in `cache`), write them to `out_dir` as a COCO data set labelled with their truth (`truth_masks`) and
+    """Render scenes `seeds` of `domain` at `size` (`branchrange.learning.samples.evaluation_scene`: SGBM, truth cut
+    points; cached in `cache`), write them to `out_dir` as a COCO data set labelled with their truth (`truth_masks`) and
     each frame's right view, disparities, camera and truth cut points under `TRUTH_DIR`; the annotations.json
     path. A frame's index in the set is its seed."""
     truth_dir = out_dir / TRUTH_DIR

@@ -56,7 +56,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
-from branchrange.core.config import Config
+from branchrange.config.loader import Config
 from branchrange.core.frame_result import FrameResult, Freshness, Latency
 from branchrange.core.frame_results import camera_reopened_line, result_line, run_header_line, stereo_stage, utc_now
 from branchrange.core.pair_check import check_rectification

@@ -25,7 +25,7 @@ import statistics
 from collections import deque
 from dataclasses import dataclass
 
-from branchrange.core.config import SheddingConfig
+from branchrange.config.sections import SheddingConfig
 
 #: What each level turns off, for the log, the status line and /health.
 LEVEL_ACTIONS: tuple[str, ...] = (

@@ -16,7 +16,7 @@ computed. What it changes against the plain eval forward, all exact up to float 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 
@@ -27,8 +27,23 @@ from .onednn import fuse_convolutions
 from .regression import upsampled_soft_argmin
 from .stages import StagedStereo
 
-if TYPE_CHECKING:  # a runtime import would be circular: EMCStereo builds its FastInference
-    from .emcstereo import EMCStereo
+
+class _Wiring(Protocol):
+    @property
+    def align_corners(self) -> bool: ...
+
+
+class TrainedStereo(Protocol):
+    """What `FastInference` copies from a trained model: `stereo.model.emcstereo.EMCStereo` has it all (EMCStereo
+    builds its own fast copy, so this module names what it reads rather than importing the model)."""
+
+    max_disp: int
+    backbone: torch.nn.Module
+    aggregation: torch.nn.Module
+    regression: torch.nn.Module
+
+    @property
+    def config(self) -> _Wiring: ...
 
 
 class FastInference(StagedStereo):
@@ -39,7 +54,7 @@ class FastInference(StagedStereo):
     `use_onednn=False` keeps PyTorch's public convolution calls (what runs on CUDA anyway).
     """
 
-    def __init__(self, model: EMCStereo, rows_per_chunk: int = 32, use_onednn: bool = True) -> None:
+    def __init__(self, model: TrainedStereo, rows_per_chunk: int = 32, use_onednn: bool = True) -> None:
         super().__init__()
         values = model.regression.weight.detach().reshape(-1)
         if not torch.equal(values, torch.arange(values.numel(), dtype=values.dtype, device=values.device)):

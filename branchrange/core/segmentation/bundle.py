@@ -1,7 +1,7 @@
 """A model bundle: one folder holding a fine-tuned `BranchNet` and everything that says what it is.
 
-Layout (`branchrange train-segmenter --coco … --out DIR` writes it; `--segmenter learned:DIR` and
-`[segmenter.learned] model = "DIR"` load it):
+Layout (`branchrange train-segmenter --coco … --out DIR` writes it with `branchrange.learning.bundle_writer`;
+`--segmenter learned:DIR` and `[segmenter.learned] model = "DIR"` load it):
 
 ```
 DIR/manifest.json        format, class set, input (channels, stride, frame sizes), the SHA-256 of every file below
@@ -10,7 +10,7 @@ DIR/branchnet.json       its metadata: config, the weights it started from, conf
                          frames' table), validation figures — the same keys as the shipped model's JSON
 DIR/branchnet_int8.onnx  with --int8: its statically quantized copy (~1.4× faster on CPU), with its own
 DIR/branchnet_int8.json  calibration; `precision = "int8"` runs it
-DIR/branchnet.pt         the torch weights (batch norms folded: `branchnet_from_onnx`), to fine-tune further
+DIR/branchnet.pt         the torch weights (batch norms folded: `branchrange.learning.from_onnx`), to fine-tune further
 DIR/metrics.json         held-out frames before (the starting model) and after, synthetic validation IoU
 DIR/metrics.csv          the training curve's rows; DIR/training_curve.png its plot
 ```
@@ -24,7 +24,6 @@ with an `OnnxSegmenterError` that says what differs.
 from __future__ import annotations
 
 import json
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -35,37 +34,8 @@ from stereo.weights import sha256_of
 MANIFEST_NAME = "manifest.json"
 BUNDLE_FORMAT = "branchrange/segmenter-bundle/v1"
 MODEL_NAME = "branchnet.onnx"
-#: the bundle's int8 copy (`train-segmenter --coco … --int8`: `branchnet_quantize`, calibrated on its own)
+#: the bundle's int8 copy (`train-segmenter --coco … --int8`: `branchrange.learning.quantize`, calibrated on its own)
 INT8_MODEL_NAME = "branchnet_int8.onnx"
-
-
-def bundle_input(frame_sizes: list[tuple[int, int]]) -> dict[str, Any]:
-    """The manifest's "input": what the network takes, and the (width, height) px of the frames it was tuned on."""
-    return {
-        "channels": IN_CHANNELS,
-        "stride": STRIDE,
-        "channel_order": ["red", "green", "blue", "disparity / its 95th percentile", "disparity valid"],
-        "frame_sizes": [list(size) for size in sorted(set(frame_sizes))],
-    }
-
-
-def write_manifest(folder: Path, frame_sizes: list[tuple[int, int]], version: str) -> dict[str, Any]:
-    """Write `MANIFEST_NAME` over every other file in `folder` (their SHA-256) and return it."""
-    files = {p.name: sha256_of(p) for p in sorted(folder.iterdir()) if p.is_file() and p.name != MANIFEST_NAME}
-    if MODEL_NAME not in files:
-        raise OnnxSegmenterError(f"{folder}: no {MODEL_NAME} to bundle")
-    manifest = {
-        "format": BUNDLE_FORMAT,
-        "model": "BranchNet",
-        "classes": list(CLASSES),
-        "input": bundle_input(frame_sizes),
-        "onnx": MODEL_NAME,
-        "files": files,
-        "created": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
-        "branchrange": version,
-    }
-    (folder / MANIFEST_NAME).write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
-    return manifest
 
 
 def read_manifest(folder: Path) -> dict[str, Any]:

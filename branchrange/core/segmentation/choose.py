@@ -3,12 +3,13 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.onnx_model import OnnxSegmenter, OnnxSegmenterConfig, OnnxSegmenterError
 from branchrange.core.segmentation.segmenter import GeometricSegmenter, GeometricSegmenterConfig, Segmenter
 from branchrange.core.segmentation.structure import StructureSegmenter, StructureSegmenterConfig
+from branchrange.core.settings_check import Checks, ConfigError
 
 #: The segmenters that ship with the package, by name; the first is the default.
 BUILTIN_SEGMENTERS = ("learned", "structure", "geometric")
@@ -47,3 +48,39 @@ def make_segmenter(
     if name.startswith("learned:"):  # the bundle in place of [segmenter.learned] model, its other settings kept
         return LearnedSegmenter(replace(learned, model=name[len("learned:") :], precision="fp32"))
     return OnnxSegmenter(name[len("onnx:") :], onnx)
+
+
+@dataclass(frozen=True)
+class SegmenterConfig(OnnxSegmenterConfig):
+    """Which segmenter finds branches when no mask is given, and the settings of each.
+
+    `model`: 'learned' (the default: the shipped BranchNet network, `[segmenter.learned]`), 'learned:BUNDLE' (a
+    model bundle fine-tuned on your labels, `train-segmenter --coco`; `[segmenter.learned]`'s other settings),
+    'structure' (built in, 3D structure), 'geometric' (the older built-in one) or 'onnx:FILE' (your ONNX model,
+    YOLOv8-seg or per-pixel logits). Your model's settings are the other `[segmenter]` keys
+    (`OnnxSegmenterConfig`: `branch_classes` / `trunk_classes`, the model's class ids for branch and
+    trunk; `score_threshold`, …); the built-in segmenters' are
+    the sub-tables `[segmenter.learned]` (`LearnedSegmenterConfig`), `[segmenter.structure]`
+    (`StructureSegmenterConfig`) and `[segmenter.geometric]` (`GeometricSegmenterConfig`).
+    """
+
+    section = "segmenter"
+    error = ConfigError
+
+    model: str = DEFAULT_SEGMENTER
+    structure: StructureSegmenterConfig = field(default_factory=StructureSegmenterConfig)
+    geometric: GeometricSegmenterConfig = field(default_factory=GeometricSegmenterConfig)
+    learned: LearnedSegmenterConfig = field(default_factory=LearnedSegmenterConfig)
+
+    def checks(self) -> Checks:
+        """The model's settings and the model's name (its file is checked when it is loaded)."""
+        try:
+            named = bool(check_segmenter_name(self.model))
+        except ValueError:
+            named = False
+        return {**super().checks(), "model": (named, SEGMENTER_NAMES)}
+
+    def build(self, name: str | None = None) -> Segmenter:
+        """The segmenter `name` names ('structure', 'geometric', 'onnx:FILE'; default `model`) with
+        its settings from this section; `OnnxSegmenterError` for a model that cannot be loaded."""
+        return make_segmenter(name or self.model, self.geometric, self, self.structure, self.learned)

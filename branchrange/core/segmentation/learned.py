@@ -22,7 +22,7 @@ Steps (one frame):
    `BranchMasks.scores` and multiplied into its cut point's confidence, so a doubtful instance
    never produces a confident cut point; that product goes through the model's measured
    calibration at the width and trunk band the network saw the frame with and in the frame's light
-   (`branchnet_calibration`, `branchrange.core.light_check`), so a reported confidence is the share of such
+   (`branchrange.learning.calibration`, `branchrange.core.light_check`), so a reported confidence is the share of such
    cut points that lie within 5 cm of a true one (SGBM, held-out synthetic scenes); where that light's
    calibration found a higher least confidence for ≥ 90 % right targets, or none, the masks carry it
    (`BranchMasks.target_min_confidence`).
@@ -70,7 +70,7 @@ log = logging.getLogger(__name__)
 
 #: the shipped model and its metadata (SHA-256, training config, validation IoU)
 SHIPPED_MODEL = Path(__file__).with_name("weights") / "branchnet.onnx"
-#: the shipped model per `LearnedSegmenterConfig.precision` (int8: `branchnet_quantize`, its own calibration)
+#: the shipped model per `LearnedSegmenterConfig.precision` (int8: `branchrange.learning.quantize`, its own calibration)
 SHIPPED_MODELS = {"fp32": SHIPPED_MODEL, "int8": SHIPPED_MODEL.with_name("branchnet_int8.onnx")}
 _BACKGROUND, _TRUNK, _BRANCH = (CLASSES.index(name) for name in ("background", "trunk", "branch"))
 #: the range of `LearnedSegmenterConfig.network_width` (px)
@@ -95,7 +95,7 @@ class LearnedSegmenterConfig(Settings):
     - `model`: an ONNX `BranchNet` file, or a model bundle folder (`branchrange train-segmenter --coco`: checked
       against its manifest, `bundle`); empty = the shipped one of `precision`.
     - `precision`: "fp32" or "int8" (a statically quantized copy: its network ~1.4×, the whole segmenter
-      ~1.2× faster on CPU, same recall; `branchnet_quantize`): of the shipped model with `model` empty, or of
+      ~1.2× faster on CPU, same recall; `branchrange.learning.quantize`): of the shipped model with `model` empty, or of
       a bundle folder made with `--int8`; a `model` .onnx file is run as it is (fp32 only).
     - `network_width`: the width (px) the network sees a frame at — the frame is resized to it, aspect
       kept, and the class probabilities back to the frame's size; 0 (the default) = the frame's own
@@ -187,17 +187,27 @@ class LearnedSegmenterConfig(Settings):
     limits = {
         "precision": Limit(enum=tuple(SHIPPED_MODELS)),
         "network_width": Limit(minimum=0, maximum=MAX_NETWORK_WIDTH),  # 0, or from MIN_NETWORK_WIDTH: checks()
-        "branch_threshold": Limit(exclusive_minimum=0, exclusive_maximum=1),
-        "min_area_px": Limit(minimum=1),
-        "depth_edge_ratio": Limit(exclusive_minimum=0),
-        "front_of_trunk_ratio": Limit(minimum=0, maximum=1),
-        "trunk_band_px": Limit(minimum=0, maximum=MAX_TRUNK_BAND_PX),
-        "bridge_px": Limit(minimum=0, maximum=20),
-        "piece_disparity_ratio": Limit(minimum=0, maximum=1),
-        "max_trunk_gap_m": Limit(minimum=0, maximum=10),
-        "attachment_scale_m": Limit(minimum=0, maximum=1),
-        "visible_length_scale_m": Limit(minimum=0, maximum=10),
-        "threads": Limit(minimum=1, maximum=64),
+        "branch_threshold": Limit(exclusive_minimum=0, exclusive_maximum=1, expected="a probability in (0, 1)"),
+        "min_area_px": Limit(minimum=1, expected="≥ 1 pixel"),
+        "depth_edge_ratio": Limit(exclusive_minimum=0, expected="> 0 (relative depth jump)"),
+        "front_of_trunk_ratio": Limit(
+            minimum=0, maximum=1, expected="0..1 (share of the bark's disparity; 0 = stems before the trunk stay trunk)"
+        ),
+        "trunk_band_px": Limit(
+            minimum=0, maximum=MAX_TRUNK_BAND_PX, expected=f"0..{MAX_TRUNK_BAND_PX} px (0 = the network looks once)"
+        ),
+        "bridge_px": Limit(minimum=0, maximum=20, expected="0..20 px (0 = regions as 8-connected)"),
+        "piece_disparity_ratio": Limit(
+            minimum=0, maximum=1, expected="0..1 (share of a line's disparity; 0 = pieces follow the image alone)"
+        ),
+        "max_trunk_gap_m": Limit(minimum=0, maximum=10, expected="0..10 m (0 = keep instances away from the trunk)"),
+        "attachment_scale_m": Limit(
+            minimum=0, maximum=1, expected="0..1 m (0 = a piece's gap to the trunk is not scored)"
+        ),
+        "visible_length_scale_m": Limit(
+            minimum=0, maximum=10, expected="0..10 m (0 = how long a branch is seen is not scored)"
+        ),
+        "threads": Limit(minimum=1, maximum=64, expected="1..64 threads"),
         "trunk_id": Limit(minimum=1, maximum=65535),
     }
 
@@ -234,32 +244,6 @@ class LearnedSegmenterConfig(Settings):
                 self.network_width == 0 or MIN_NETWORK_WIDTH <= self.network_width <= MAX_NETWORK_WIDTH,
                 f"0 (the frame's own width) or {MIN_NETWORK_WIDTH}..{MAX_NETWORK_WIDTH} px",
             ),
-            "branch_threshold": (0 < self.branch_threshold < 1, "a probability in (0, 1)"),
-            "min_area_px": (self.min_area_px >= 1, "≥ 1 pixel"),
-            "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
-            "front_of_trunk_ratio": (
-                0 <= self.front_of_trunk_ratio <= 1,
-                "0..1 (share of the bark's disparity; 0 = stems before the trunk stay trunk)",
-            ),
-            "trunk_band_px": (
-                0 <= self.trunk_band_px <= MAX_TRUNK_BAND_PX,
-                f"0..{MAX_TRUNK_BAND_PX} px (0 = the network looks once)",
-            ),
-            "bridge_px": (0 <= self.bridge_px <= 20, "0..20 px (0 = regions as 8-connected)"),
-            "piece_disparity_ratio": (
-                0 <= self.piece_disparity_ratio <= 1,
-                "0..1 (share of a line's disparity; 0 = pieces follow the image alone)",
-            ),
-            "max_trunk_gap_m": (0 <= self.max_trunk_gap_m <= 10, "0..10 m (0 = keep instances away from the trunk)"),
-            "attachment_scale_m": (
-                0 <= self.attachment_scale_m <= 1,
-                "0..1 m (0 = a piece's gap to the trunk is not scored)",
-            ),
-            "visible_length_scale_m": (
-                0 <= self.visible_length_scale_m <= 10,
-                "0..10 m (0 = how long a branch is seen is not scored)",
-            ),
-            "threads": (1 <= self.threads <= 64, "1..64 threads"),
             "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
         }
 
@@ -422,7 +406,8 @@ class LearnedSegmenter:
     def first_look(self, left: np.ndarray, disparity: np.ndarray) -> np.ndarray:
         """`float32 (3, H, W)` logits of the network's first look at a frame, at `network_width` and brought back
         to the frame's size (`logits` without the trunk band's second look): what the out-of-distribution
-        statistics are taken on, at run time and when a model's reference is measured (`branchnet_ood`)."""
+        statistics are taken on, at run time and when a model's reference is measured
+        (`branchrange.learning.ood_reference`)."""
         return self._logits_seen_at(left, disparity, self.seen_width(disparity.shape[1]))
 
     def trunk_band(self, logits: np.ndarray) -> tuple[int, int] | None:

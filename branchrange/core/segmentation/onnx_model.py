@@ -83,12 +83,12 @@ class OnnxSegmenterConfig(Settings):
     limits = {
         "branch_classes": Limit(minimum=0),
         "trunk_classes": Limit(minimum=0),
-        "score_threshold": Limit(minimum=0, maximum=1),
-        "mask_threshold": Limit(exclusive_minimum=0, exclusive_maximum=1),
-        "nms_iou": Limit(exclusive_minimum=0, maximum=1),
-        "min_area_px": Limit(minimum=1),
-        "stride": Limit(minimum=1),
-        "threads": Limit(minimum=1),
+        "score_threshold": Limit(minimum=0, maximum=1, expected="a score in [0, 1]"),
+        "mask_threshold": Limit(exclusive_minimum=0, exclusive_maximum=1, expected="a probability in (0, 1)"),
+        "nms_iou": Limit(exclusive_minimum=0, maximum=1, expected="an IoU in (0, 1]"),
+        "min_area_px": Limit(minimum=1, expected="≥ 1 pixel"),
+        "stride": Limit(minimum=1, expected="≥ 1 pixel"),
+        "threads": Limit(minimum=1, expected="≥ 1"),
         "trunk_id": Limit(minimum=1, maximum=65535),
     }
 
@@ -104,16 +104,10 @@ class OnnxSegmenterConfig(Settings):
                 not overlap and all(c >= 0 for c in self.trunk_classes),
                 f"class ids ≥ 0 that are not also branch classes (both: {sorted(overlap)})",
             ),
-            "score_threshold": (0 <= self.score_threshold <= 1, "a score in [0, 1]"),
-            "mask_threshold": (0 < self.mask_threshold < 1, "a probability in (0, 1)"),
-            "nms_iou": (0 < self.nms_iou <= 1, "an IoU in (0, 1]"),
             "input_size": (
                 self.input_size == 0 or self.stride <= self.input_size <= MAX_INPUT_SIDE_PX,
                 f"0 (the model's export size) or {self.stride}..{MAX_INPUT_SIDE_PX} px",
             ),
-            "min_area_px": (self.min_area_px >= 1, "≥ 1 pixel"),
-            "stride": (self.stride >= 1, "≥ 1 pixel"),
-            "threads": (self.threads >= 1, "≥ 1"),
             "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
         }
 

@@ -11,8 +11,8 @@ hesitates where it should not:
    branches; on a scene it does not know — other bark, a post or wire, a tree form or light it never saw — it
    hesitates over open background too.
 2. `OodReference`: that statistic's mean and spread over frames of the model's training domain, stored in the
-   model's JSON under "ood" (`branchnet_ood.measure_model_reference`; `branchrange train-segmenter --out DIR
-   --ood-only`), and its values on more such frames kept apart from the fit, to read a frame's value by.
+   model's JSON under "ood" (`branchrange.learning.ood_reference.measure_model_reference`; `branchrange train-segmenter
+   --out DIR --ood-only`), and its values on more such frames kept apart from the fit, to read a frame's value by.
 3. `OodReference.reading`: a frame's `z` (its statistic in standard deviations above the training frames'
    mean), its `score` — the share of the reference's held-out frames below it (0..1: 0.5 is a typical training
    frame, 1 beyond all of them) — and `flagged` when it exceeds the held-out frames' `FLAG_QUANTILE` quantile

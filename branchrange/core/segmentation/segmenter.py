@@ -105,11 +105,11 @@ class BuiltinSegmenterConfig(Settings):
     limits = {
         "min_range_m": Limit.physical("distance_m"),
         "max_range_m": Limit.physical("distance_m"),
-        "max_branch_diameter_m": Limit(exclusive_minimum=0),
-        "min_branch_length_m": Limit(exclusive_minimum=0),
-        "min_elongation": Limit(minimum=1),
-        "depth_edge_ratio": Limit(exclusive_minimum=0),
-        "min_confidence": Limit(minimum=0, maximum=1),
+        "max_branch_diameter_m": Limit(exclusive_minimum=0, expected="> 0 m"),
+        "min_branch_length_m": Limit(exclusive_minimum=0, expected="> 0 m"),
+        "min_elongation": Limit(minimum=1, expected="≥ 1 (length / width)"),
+        "depth_edge_ratio": Limit(exclusive_minimum=0, expected="> 0 (relative depth jump)"),
+        "min_confidence": Limit(minimum=0, maximum=1, expected="a confidence in [0, 1]"),
         "trunk_id": Limit(minimum=1, maximum=65535),
     }
 
@@ -123,11 +123,6 @@ class BuiltinSegmenterConfig(Settings):
                 far_ok and self.max_range_m > self.min_range_m,
                 f"> min_range_m ({self.min_range_m} m), {distances}",
             ),
-            "max_branch_diameter_m": (self.max_branch_diameter_m > 0, "> 0 m"),
-            "min_branch_length_m": (self.min_branch_length_m > 0, "> 0 m"),
-            "min_elongation": (self.min_elongation >= 1, "≥ 1 (length / width)"),
-            "depth_edge_ratio": (self.depth_edge_ratio > 0, "> 0 (relative depth jump)"),
-            "min_confidence": (0 <= self.min_confidence <= 1, "a confidence in [0, 1]"),
             "trunk_id": (0 < self.trunk_id <= 65535, "an id in 1..65535"),
         }
 

@@ -68,14 +68,14 @@ class StructureSegmenterConfig(BuiltinSegmenterConfig):
     section = "segmenter.structure"
     limits = {
         **BuiltinSegmenterConfig.limits,
-        "plane_min_share": Limit(exclusive_minimum=0, maximum=1),
-        "plane_tolerance_m": Limit(exclusive_minimum=0),
-        "plane_min_extent_m": Limit(exclusive_minimum=0),
-        "min_depth_consistency": Limit(minimum=0, maximum=1),
-        "max_trunk_tilt_deg": Limit(exclusive_minimum=0, maximum=90),
-        "min_piece_px": Limit(minimum=2),
-        "max_trunk_gap_m": Limit(minimum=0),
-        "ridge_strength": Limit(minimum=0),
+        "plane_min_share": Limit(exclusive_minimum=0, maximum=1, expected="a share in (0, 1]"),
+        "plane_tolerance_m": Limit(exclusive_minimum=0, expected="> 0 m"),
+        "plane_min_extent_m": Limit(exclusive_minimum=0, expected="> 0 m"),
+        "min_depth_consistency": Limit(minimum=0, maximum=1, expected="a share in [0, 1]"),
+        "max_trunk_tilt_deg": Limit(exclusive_minimum=0, maximum=90, expected="degrees in (0, 90]"),
+        "min_piece_px": Limit(minimum=2, expected="≥ 2 pixels"),
+        "max_trunk_gap_m": Limit(minimum=0, expected="≥ 0 m (0 = keep pieces away from the trunk)"),
+        "ridge_strength": Limit(minimum=0, expected="≥ 0 grey levels (0 = no image ridge test)"),
     }
 
     max_range_m: float = 4.0
@@ -93,14 +93,6 @@ class StructureSegmenterConfig(BuiltinSegmenterConfig):
         """The shared checks and those of the structure steps."""
         return {
             **super().checks(),
-            "plane_min_share": (0 < self.plane_min_share <= 1, "a share in (0, 1]"),
-            "plane_tolerance_m": (self.plane_tolerance_m > 0, "> 0 m"),
-            "plane_min_extent_m": (self.plane_min_extent_m > 0, "> 0 m"),
-            "min_depth_consistency": (0 <= self.min_depth_consistency <= 1, "a share in [0, 1]"),
-            "max_trunk_tilt_deg": (0 < self.max_trunk_tilt_deg <= 90, "degrees in (0, 90]"),
-            "min_piece_px": (self.min_piece_px >= 2, "≥ 2 pixels"),
-            "max_trunk_gap_m": (self.max_trunk_gap_m >= 0, "≥ 0 m (0 = keep pieces away from the trunk)"),
-            "ridge_strength": (self.ridge_strength >= 0, "≥ 0 grey levels (0 = no image ridge test)"),
         }
 
 

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from branchrange.core.config import MavlinkConfig
+from branchrange.config.sections import MavlinkConfig
 from branchrange.onboard.mavlink.connection import PeerHeartbeat
 from branchrange.onboard.mavlink.vehicle_state import Pose
 from branchrange.onboard.mavlink.world_tracks import Track

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from branchrange.core.config import MavlinkConfig
+from branchrange.config.sections import MavlinkConfig
 from branchrange.core.frame_result import FrameResult
 from branchrange.onboard.mavlink.frames import MAV_SENSOR_ROTATION_CUSTOM, CameraMount
 

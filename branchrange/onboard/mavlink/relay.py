@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from branchrange.core.config import MavlinkConfig, TrackingConfig
+from branchrange.config.sections import MavlinkConfig, TrackingConfig
 from branchrange.core.cutpoints import DEFAULT_TARGET_POLICY, CutPointConfig
 from branchrange.core.frame_result import FrameResult, WorldTargets
 from branchrange.onboard.mavlink import messages

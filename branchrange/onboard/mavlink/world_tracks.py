@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from branchrange.core.config import TrackingConfig
+from branchrange.config.sections import TrackingConfig
 from branchrange.core.cutpoints import DEFAULT_TARGET_POLICY, target_score
 from branchrange.core.frame_result import WorldTrack
 

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from branchrange.core.segmentation.branchnet_data import evaluation_scene
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
 from branchrange.core.segmentation.ood import OOD_KEY, OodReference, fitted_reference, frame_statistic
+from branchrange.learning.samples import evaluation_scene
 
 #: the scenes a model's reference is measured on: the first `OOD_FRAMES` of the calibration scenes (2861–3100),
 #: so a calibrated model's are rendered already

@@ -6,7 +6,7 @@ weights and a bias. Read back in graph order — the order the forward pass runs
 the export traced — each goes into its torch convolution, and the batch norm after it becomes the
 identity plus that bias (running mean 0, running variance 1 − eps, scale 1). The network then computes
 what the ONNX file computes (checked on a random input before it is handed back). Its batch norms must
-stay in eval mode while it is fine-tuned (`branchnet_finetune` keeps them so): their statistics are folded
+stay in eval mode while it is fine-tuned (`branchrange.learning.finetune` keeps them so): their statistics are folded
 away, and a few dozen frames in batches of 8 would be too few to measure them again anyway.
 """
 

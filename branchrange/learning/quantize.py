@@ -5,7 +5,7 @@ int8 per output channel, activations uint8 with ranges measured on `QUANTIZATION
 validation scenes: never trained on, and apart from the confidence calibration's), QDQ format so the
 file stays a plain ONNX graph. On 2 AVX-512 cores one 640×360 frame takes 22 ms instead of 30, with the
 same recall on the calibration scenes (sgbm 52.7 % against 53.5 %, exact disparity 72.1 % against 71.9 %).
-The int8 model's confidence calibration is its own (`branchnet_calibration.calibrate_model`): a
+The int8 model's confidence calibration is its own (`branchrange.learning.calibration.calibrate_model`): a
 different model, measured again. Needs the `onnx` package (the training extra), not at run time.
 """
 
@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from branchrange.core.segmentation.branchnet import network_input, padded_to_stride
-from branchrange.core.segmentation.branchnet_data import cached_sample
 from branchrange.core.segmentation.learned import verified_metadata
+from branchrange.learning.samples import cached_sample
 from stereo.onnx_runtime import import_onnxruntime
 from stereo.weights import sha256_of
 

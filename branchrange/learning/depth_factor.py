@@ -1,6 +1,6 @@
 """What a fine-tuned bundle's confidence means: "on a branch" (the user's labels) × "within 5 cm given on a branch".
 
-A user's labelled frames say whether a cut point lies on a branch (`branchnet_heldout`), not whether its 3-D
+A user's labelled frames say whether a cut point lies on a branch (`branchrange.learning.heldout`), not whether its 3-D
 position is right: that needs true depth, which a user's frames do not have. A confidence of "on a branch"
 alone is over-confident for flying — a cut point on the right pixels with a poor disparity is 10 cm off and
 would still read 0.95, and `cutpoints.target_min_confidence` (chosen for the shipped model's "within 5 cm")
@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from branchrange.core.confidence import ConfidenceCalibration, fit_calibration
-from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS, raw_outcomes
 from branchrange.core.segmentation.learned import SCENE_WIDTH
+from branchrange.learning.calibration import CALIBRATION_SEEDS, raw_outcomes
 
 #: how many of the calibration scenes (from the first of `CALIBRATION_SEEDS`) the depth factor is measured on
 DEPTH_FACTOR_SCENES = 60

@@ -1,9 +1,9 @@
 """The JSON Schema of the TOML configuration, generated from the settings dataclasses.
 
-The dataclasses of `branchrange.core.config` stay the one description of the configuration: each
-key's type comes from its annotation, its default from the class, its range from the class's
+The settings dataclasses that `branchrange.config.loader.Config` gathers stay the one description of the configuration:
+each key's type comes from its annotation, its default from the class, its range from the class's
 `limits` (`branchrange.core.settings_check.Limit`), its unit from its name's suffix (`_m`, `_s`,
-`_px` …) and its description from the class docstring (`branchrange.core.settings_docs`). Why
+`_px` …) and its description from the class docstring (`branchrange.config.descriptions`). Why
 generated and not written: the schema then cannot drift from what the loader accepts, and a key
 added to a dataclass is in the editor's completion the day it is added.
 
@@ -21,12 +21,12 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from branchrange.core.config import Config
+from branchrange.config.descriptions import class_summary, key_description
+from branchrange.config.loader import Config
 from branchrange.core.settings_check import Limit
-from branchrange.core.settings_docs import class_summary, key_description
 
-#: The schema shipped in the package (package data `schemas/*.json`).
-SCHEMA_PATH = Path(__file__).with_name("schemas") / "config.schema.json"
+#: The schema shipped in the package (package data `branchrange/config/*.json`).
+SCHEMA_PATH = Path(__file__).with_name("config.schema.json")
 #: The JSON Schema dialect of the generated schema.
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
 

@@ -1,9 +1,9 @@
 """`branchrange config check`: every problem of a configuration file at once, each with its key and line.
 
-The loader (`branchrange.core.config.load_config`) stops at the first error, which is right for a
+The loader (`branchrange.config.loader.load_config`) stops at the first error, which is right for a
 daemon starting on the drone; a person editing the file wants all of them, where they are. So the
 file (with the command line's `--set`s applied) is validated against the generated JSON Schema
-(`branchrange.core.config_schema`: types, ranges, unknown keys with the nearest known name), then,
+(`branchrange.config.schema`: types, ranges, unknown keys with the nearest known name), then,
 section by section, by the settings classes themselves for what the schema cannot say (the checks
 between keys). tomllib gives no positions, so each key's line is found by reading the file for its
 table header and `key =` line (`key_lines`); a key set with `--set` is reported as such.
@@ -20,16 +20,16 @@ from typing import Any
 
 import jsonschema
 
-from branchrange.core.config import (
+from branchrange.config.loader import (
     Config,
-    ConfigError,
     Override,
     config_from_dict,
     unknown_option,
     unknown_section,
     with_overrides,
 )
-from branchrange.core.config_schema import config_schema
+from branchrange.config.schema import config_schema
+from branchrange.core.settings_check import ConfigError
 
 #: A table header line: `[section]` or `[section.sub]`, perhaps with a comment after it.
 _TABLE_HEADER = re.compile(r"^\s*\[\s*([\w.\- ]+?)\s*\]\s*(?:#.*)?$")

@@ -4,7 +4,7 @@
 trains with random crops and strong photometric randomisation, validates on scenes kept apart from
 training, writes `metrics.csv`, `training_curve.png`, `branchnet.pt` (torch weights), `branchnet.onnx`
 and `branchnet.json` (config, seed, per-class IoU, the ONNX file's SHA-256); the confidence
-calibration is a separate step (`branchnet_calibration`), run by `branchrange train-segmenter`. Same
+calibration is a separate step (`branchrange.learning.calibration`), run by `branchrange train-segmenter`. Same
 config + same cached scenes → the same weights (torch's CPU kernels are deterministic at a fixed thread
 count; a test trains twice and compares).
 
@@ -29,8 +29,8 @@ import torch
 from torch.nn import functional as F
 
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
-from branchrange.core.segmentation.branchnet_calibration import CALIBRATION_SEEDS
-from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample, render_samples
+from branchrange.learning.calibration import CALIBRATION_SEEDS
+from branchrange.learning.samples import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample, render_samples
 from stereo.weights import sha256_of
 
 
@@ -40,7 +40,7 @@ class BranchNetTrainConfig:
 
     - `train_seeds`, `val_seeds`: [first, last) scene seeds for training and validation; both below
       `TRAIN_SEED_LIMIT`, disjoint, and the seeds trained on apart from the calibration's
-      (`branchnet_calibration.CALIBRATION_SEEDS`).
+      (`branchrange.learning.calibration.CALIBRATION_SEEDS`).
     - `steps`, `batch`, `crop`: optimiser steps, crops per step, crop side in px.
     - `lr`, `weight_decay`: AdamW with a cosine decay to 2 % of `lr`.
     - `class_weights`: cross-entropy weights of background, trunk, branch (branch pixels are ~1 %).

@@ -8,7 +8,7 @@ pairs, whose hand polygons cover a few branches, a user's corrected labels are t
 point on an unlabelled pixel is wrong. What this does not see: how far the cut point is in depth from the
 branch (a right pixel with a bad disparity is still right here). So the calibration fitted here, "the cut
 point lies on a branch", is multiplied by how often the model's cut points on a branch are within 5 cm in
-synthetic scenes (`branchnet_depth_factor`, which says why): a bundle's confidence then means what the
+synthetic scenes (`branchrange.learning.depth_factor`, which says why): a bundle's confidence then means what the
 shipped model's does. The bundle's JSON says how it was measured ("measure", and both factors).
 
 Each held-out frame goes through the pipeline as on board in whole-frame mode (its exported disparity and
@@ -31,8 +31,8 @@ from branchrange.core.confidence import (
     lowest_reliable_threshold,
     product_calibration,
 )
-from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE
-from branchrange.core.segmentation.coco_labels import LabelledSample
+from branchrange.learning.coco_labels import LabelledSample
+from branchrange.learning.samples import BRANCH, IGNORE
 
 #: a cut point within this many px of a labelled branch pixel is on it (SGBM fattens edges by a pixel or two)
 RIGHT_WITHIN_PX = 3
@@ -53,8 +53,9 @@ def judged_cut_points(frame: LabelledSample, pixels: Sequence[Sequence[float]]) 
 def judged_pixels(
     classes: np.ndarray, instances: np.ndarray, pixels: Sequence[Sequence[float]]
 ) -> tuple[list[bool | None], set[int]]:
-    """`judged_cut_points` on a class map `classes` (`uint8 H×W`, `branchnet_data` classes) and its instance ids
-    `instances` (`H×W`): labelled frames and synthetic scenes (`branchnet_depth_factor`) are judged alike."""
+    """`judged_cut_points` on a class map `classes` (`uint8 H×W`, `branchrange.learning.samples` classes) and its
+    instance ids `instances` (`H×W`): labelled frames and synthetic scenes (`branchrange.learning.depth_factor`)
+    are judged alike."""
     height, width = classes.shape
     outcomes: list[bool | None] = []
     found: set[int] = set()
@@ -129,7 +130,7 @@ def calibration_table(
 ) -> dict[str, Any] | None:
     """The "confidence_calibrations" table (the shape `learned.calibrations_by_setting` reads, normal light) of
     held-out `outcomes` seen at `width` px with trunk band `band` px: P(on a labelled branch) times `depth`,
-    P(within 5 cm | on a branch) (`branchnet_depth_factor`, which says why). None with fewer than
+    P(within 5 cm | on a branch) (`branchrange.learning.depth_factor`, which says why). None with fewer than
     `MIN_CALIBRATION_CUT_POINTS` cut points, or without a depth factor: "on a branch" alone is not a confidence
     to fly on. Its thresholds count a held-out cut point as right with the depth factor's probability."""
     if len(outcomes) < MIN_CALIBRATION_CUT_POINTS or depth is None:

@@ -194,7 +194,7 @@ def scene_in_light(scene: dict, seed: int, change: str, cache: Path | None, hard
     """`evaluation_scene(seed, ...)`'s `scene` under the named change of light (`light_changes.LIGHT_CHANGES`):
     both images changed alike (the noise seeded by the seed and the change's name, so a run repeats), SGBM over
     `evaluation_max_disp(width)` px computed again; the other keys as they were. Cached in `cache` when given."""
-    from branchrange.core.segmentation.light_changes import changed_light
+    from branchrange.learning.light_changes import changed_light
 
     height, width = scene["left"].shape[:2]
     tag = _hardware_tag(hardware) + _size_tag(width, height)

@@ -6,12 +6,12 @@
    keeping its training's class weights and crop draws (`KEPT_TRAINING_SETTINGS`);
 2. splits the frames by image, seeded: `holdout_share` of them are never trained on;
 3. trains `steps` steps of `batch` crops (the shipped training's crops and augmentation,
-   `branchnet_training.training_crop`), a `synthetic_share` of each batch from the synthetic training
+   `branchrange.learning.training.training_crop`), a `synthetic_share` of each batch from the synthetic training
    scenes so that what the shipped model learnt is not forgotten, the rest from the user's frames;
-4. measures the starting model and the fine-tuned one on the held-out frames (`branchnet_heldout`: pixel
+4. measures the starting model and the fine-tuned one on the held-out frames (`branchrange.learning.heldout`: pixel
    IoU, cut points judged against the labels) and on the synthetic validation scenes (pixel IoU), and
    calibrates the fine-tuned model's confidence: "on a branch" on the held-out frames, times "within 5 cm
-   given on a branch" on synthetic calibration scenes (`branchnet_depth_factor`);
+   given on a branch" on synthetic calibration scenes (`branchrange.learning.depth_factor`);
 5. writes the bundle (`bundle`): ONNX, torch weights, metadata JSON with the calibration, metrics,
    training curve, manifest — with `int8`, also the model's int8 copy, calibrated on its own.
 
@@ -33,10 +33,14 @@ import numpy as np
 import torch
 
 from branchrange.core.segmentation.branchnet import BranchNet
-from branchrange.core.segmentation.branchnet_data import cached_sample, render_samples
-from branchrange.core.segmentation.branchnet_depth_factor import DEPTH_FACTOR_SCENES, depth_factor
-from branchrange.core.segmentation.branchnet_from_onnx import branchnet_from_onnx
-from branchrange.core.segmentation.branchnet_heldout import (
+from branchrange.core.segmentation.bundle import MODEL_NAME
+from branchrange.core.segmentation.learned import verified_metadata
+from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES, OOD_KEY
+from branchrange.learning.bundle_writer import write_manifest
+from branchrange.learning.coco_labels import LabelledSample, split_by_image
+from branchrange.learning.depth_factor import DEPTH_FACTOR_SCENES, depth_factor
+from branchrange.learning.from_onnx import branchnet_from_onnx
+from branchrange.learning.heldout import (
     HELDOUT_TRUNK_BANDS,
     MIN_CALIBRATION_CUT_POINTS,
     calibration_table,
@@ -44,8 +48,9 @@ from branchrange.core.segmentation.branchnet_heldout import (
     heldout_outcomes,
     scores,
 )
-from branchrange.core.segmentation.branchnet_ood import model_reference
-from branchrange.core.segmentation.branchnet_training import (
+from branchrange.learning.ood_reference import model_reference
+from branchrange.learning.samples import cached_sample, render_samples
+from branchrange.learning.training import (
     BranchNetTrainConfig,
     class_iou,
     export_onnx,
@@ -53,10 +58,6 @@ from branchrange.core.segmentation.branchnet_training import (
     training_crop,
     weighted_cross_entropy,
 )
-from branchrange.core.segmentation.bundle import MODEL_NAME, write_manifest
-from branchrange.core.segmentation.coco_labels import LabelledSample, split_by_image
-from branchrange.core.segmentation.learned import verified_metadata
-from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES, OOD_KEY
 from stereo.weights import sha256_of
 
 #: at most this many of the frames trained on set an int8 copy's activation ranges
@@ -79,7 +80,7 @@ class FineTuneConfig:
       synthetic IoU is measured on, before, during and after (1..30).
     - `holdout_share`: share of the labelled frames held out (by image, seeded by `seed`).
     - `depth_scenes`: synthetic calibration scenes the depth factor of the confidence is measured on
-      (`branchnet_depth_factor`; ~0.7 s each, rendered once into the data folder).
+      (`branchrange.learning.depth_factor`; ~0.7 s each, rendered once into the data folder).
     - `seed`: split, crops, augmentation; `threads`: torch CPU threads; `val_every`: steps between validations.
     """
 
@@ -217,9 +218,9 @@ def _heldout(model: Path, frames: Sequence[LabelledSample], iou: dict[str, float
 def _ood_reference(
     model: Path, frames: Sequence[LabelledSample], log: Callable[[str], object]
 ) -> dict[str, Any] | None:
-    """The fine-tuned `model`'s out-of-distribution reference (`branchnet_ood`, as its JSON stores it under
-    `ood.OOD_KEY`), measured on the user's labelled frames — the domain it was adapted to, with the stereo it
-    was recorded with — so that at run time the signal says when a frame does not look like them. Too few
+    """The fine-tuned `model`'s out-of-distribution reference (`branchrange.learning.ood_reference`, as its JSON
+    stores it under `ood.OOD_KEY`), measured on the user's labelled frames — the domain it was adapted to, with
+    the stereo it was recorded with — so that at run time the signal says when a frame does not look like them. Too few
     frames: None (the bundle then gives no signal) and the log says so."""
     if len(frames) < MIN_REFERENCE_FRAMES:
         log(
@@ -244,9 +245,10 @@ def _calibrated(
     log: Callable[[str], object],
 ) -> dict[str, Any]:
     """Calibrate the ONNX `model` (its JSON `meta` already beside it): per trunk band, its cut points on the
-    `held` frames ("on a labelled branch") times its depth factor on synthetic scenes (`branchnet_depth_factor`),
-    and its out-of-distribution reference on all labelled `frames`; `meta` with them is written again. Returns
-    its held-out figures per band (with the pixel `iou` given, measured in torch)."""
+    `held` frames ("on a labelled branch") times its depth factor on synthetic scenes
+    (`branchrange.learning.depth_factor`), and its out-of-distribution reference on all labelled `frames`; `meta`
+    with them is written again. Returns its held-out figures per band (with the pixel `iou` given, measured in
+    torch)."""
     figures, outcomes = _heldout(model, held, iou)
     meta["confidence_calibrations"] = []
     for band in HELDOUT_TRUNK_BANDS:
@@ -286,8 +288,8 @@ def finetune_branchnet(
 ) -> dict[str, Any]:
     """Fine-tune and write the bundle (module docstring) to `out_dir`; returns its metrics.json. Synthetic
     scenes not yet in `data_dir` are rendered first in `workers` processes. With `int8`, also its statically
-    quantized copy (`branchnet_quantize`, activation ranges from the frames trained on), calibrated on its own.
-    ValueError for too few frames."""
+    quantized copy (`branchrange.learning.quantize`, activation ranges from the frames trained on), calibrated on its
+    own. ValueError for too few frames."""
     if len(frames) < 2 and config.holdout_share > 0:
         raise ValueError(f"{len(frames)} labelled frame: at least 2 (one to train on, one held out)")
     start_meta = verified_metadata(start)
@@ -342,7 +344,7 @@ def finetune_branchnet(
     heldout_after = _calibrated(out_dir / MODEL_NAME, meta, held, frames, heldout_iou, config, data_dir, log)
     heldout_int8 = None
     if int8:
-        from branchrange.core.segmentation.branchnet_quantize import int8_path, quantize_branchnet
+        from branchrange.learning.quantize import int8_path, quantize_branchnet
 
         samples = [f.sample for f in train][:INT8_RANGE_FRAMES]
         int8_meta = quantize_branchnet(

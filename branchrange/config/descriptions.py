@@ -5,7 +5,7 @@ ways, and `key_description` reads them in this order, the class first and then i
 a bullet (`- \\`key\\`: text`, or `- \\`a\\`, \\`b\\`: text` for keys that share it), an inline
 definition in prose (`\\`key\\`: text` up to the end of its sentence or the next definition), and
 last any sentence that names the key. The generated JSON Schema and the configuration reference
-(`branchrange.core.config_schema`, `branchrange.core.config_reference`) take their descriptions
+(`branchrange.config.schema`, `branchrange.config.reference`) take their descriptions
 from here, so a key documented in its class is documented in the editor and the manual.
 """
 

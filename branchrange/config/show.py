@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from branchrange.core.config import Config
+from branchrange.config.loader import Config
 
 #: Keys whose value is a secret: shown as set or not, never echoed.
 SECRET_KEYS = frozenset({"api.token"})

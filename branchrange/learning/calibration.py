@@ -31,8 +31,8 @@ from branchrange.core.confidence import (
     highest_inclusive_threshold,
     lowest_reliable_threshold,
 )
-from branchrange.core.segmentation.branchnet_data import evaluation_scene, scene_in_light, spawned_pool
-from branchrange.core.segmentation.light_changes import LIGHT_CHANGES
+from branchrange.learning.light_changes import LIGHT_CHANGES
+from branchrange.learning.samples import evaluation_scene, scene_in_light, spawned_pool
 
 #: 240 scenes: fitted on either half, the default's ≥ 90 %-right threshold reads 0.65 or 0.76 (0.70 on all; one look
 #: 0.72 or 0.73); in one process per core (`outcomes_in_workers`) they take about what 120 took in one
@@ -63,13 +63,14 @@ def raw_outcomes(
     """Per (network width px, trunk band px) of `settings`: (raw confidence, within 5 cm of a true cut point) of
     every cut point on scenes `seeds` [first, last), by the class of light each frame measures as
     (`light_check.LIGHTS`); each scene in its own light and under each of `light_changes`
-    (`branchnet_data.scene_in_light`), in seed order. Each scene is loaded once for all settings. With
-    `on_branch_only`, only the cut points whose pixel lies on a true branch (`branchnet_heldout.judged_pixels`,
-    as a user's labelled frames judge them): what "within 5 cm" is given "on a branch" (`branchnet_depth_factor`)."""
+    (`branchrange.learning.samples.scene_in_light`), in seed order. Each scene is loaded once for all settings.
+    With `on_branch_only`, only the cut points whose pixel lies on a true branch
+    (`branchrange.learning.heldout.judged_pixels`, as a user's labelled frames judge them): what "within 5 cm" is
+    given "on a branch" (`branchrange.learning.depth_factor`)."""
     from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-    from branchrange.core.segmentation.branchnet_data import classes_from_instances
-    from branchrange.core.segmentation.branchnet_heldout import judged_pixels
     from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
+    from branchrange.learning.heldout import judged_pixels
+    from branchrange.learning.samples import classes_from_instances
 
     segmenters = {
         (width, band): LearnedSegmenter(
@@ -208,10 +209,10 @@ def calibrate_model(
 
 def measure_reference_on(model: Path, seeds: tuple[int, int], cache: Path | None, log: Callable[[str], object]) -> None:
     """Measure the out-of-distribution reference of `model` on the first `OOD_FRAMES` of the calibration scenes
-    `seeds` (`branchnet_ood.measure_model_reference`); with fewer than `ood.MIN_REFERENCE_FRAMES` of them, say so
-    and leave the model's JSON as it is."""
-    from branchrange.core.segmentation.branchnet_ood import OOD_FRAMES, measure_model_reference  # imports the segmenter
+    `seeds` (`branchrange.learning.ood_reference.measure_model_reference`); with fewer than `ood.MIN_REFERENCE_FRAMES`
+    of them, say so and leave the model's JSON as it is."""
     from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES
+    from branchrange.learning.ood_reference import OOD_FRAMES, measure_model_reference  # imports the segmenter
 
     first, last = seeds[0], min(seeds[1], seeds[0] + OOD_FRAMES)
     if last - first < MIN_REFERENCE_FRAMES:

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from branchrange.core.geometry import StereoGeometry
-from branchrange.core.segmentation.branchnet_data import BRANCH, IGNORE, TRUNK
+from branchrange.learning.samples import BRANCH, IGNORE, TRUNK
 
 #: the folder beside the images that holds each frame's stereo (`<stem>.npz`), as `export-frames` writes it
 STEREO_DIR = "stereo"
@@ -43,7 +43,7 @@ class LabelsError(ValueError):
 class LabelledSample:
     """One labelled frame: its `file_name`, COCO image id, the training sample (`left` `uint8 H×W×3`,
     `disparity` `float32 H×W` px, `classes` `uint8 H×W`, `instances` `uint16 H×W`: branches 1..K, as
-    `branchnet_data` samples), the stereo confidence `H×W` and the camera it was recorded with."""
+    `branchrange.learning.samples` samples), the stereo confidence `H×W` and the camera it was recorded with."""
 
     name: str
     image_id: int
