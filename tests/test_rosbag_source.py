@@ -438,3 +438,14 @@ def test_no_camera_info_next_to_the_images_names_what_was_looked_for_and_the_bag
     write_opencv_file(CALIBRATION, calib_file)  # with a calibration file no CameraInfo is needed
     with open_source(f"rosbag:{path}?left=/cam/left/image&right=/cam/right/image", calibration=calib_file) as source:
         assert source.topics.left_info == "" and len(list(source)) == 1
+
+
+def test_replay_of_a_bag_before_5_1_with_only_its_compressed_image_topics_named_exits_0(tmp_path, capsys):
+    """The issue's case: `branchrange replay 'rosbag:BAG?left=…/image_rect_color/compressed&right=…'` exited 2."""
+    topics = compressed(ZED_TOPICS_BEFORE_5_1)
+    write_bag(frames(2), CALIBRATION, tmp_path / "bag", encoding="png", topics=topics)
+    spec = f"rosbag:{tmp_path / 'bag'}?left={topics.left}&right={topics.right}"
+    assert branchrange_main(["replay", spec, "--out", str(tmp_path / "r.jsonl")]) == 0
+    header, *results = [json.loads(line) for line in (tmp_path / "r.jsonl").read_text().splitlines()]
+    assert header["source"] == spec and len(results) == 2
+    assert all(r["camera"]["baseline_m"] == pytest.approx(BASELINE) for r in results)  # from its camera_info
