@@ -12,7 +12,7 @@ from result_factory import branch, frame_result
 
 from branchrange.config.sections import MavlinkConfig, TrackingConfig
 from branchrange.core.frame_result import FrameResult
-from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
+from branchrange.onboard.mavlink import CameraMount, MavlinkRelay, messages
 
 RESULT = frame_result(
     [branch(0, [0.1, -0.2, 1.4]), branch(3, [0.5, 0.25, 2.0]), branch(7, [-0.6, 0.1, 3.0])], target_id=0
@@ -74,6 +74,21 @@ def test_frame_messages_decode_with_body_frd_positions_and_centimetres(peer):
     assert all(m.msg.get_msgbuf()[0] == 0xFD for m in frame)  # MAVLink 2 start byte
 
 
+def test_the_targets_confidence_reaches_the_autopilot_as_signal_quality(peer):
+    result = frame_result([branch(0, [0.1, -0.2, 1.4], confidence=0.834), branch(3, [0.5, 0.25, 2.0])], target_id=0)
+    with relay_for(peer) as relay:
+        frame = first_frame_after_publish(peer, relay, result)
+    (dist,) = of_type(frame, "DISTANCE_SENSOR")
+    assert (dist.msg.current_distance, dist.msg.signal_quality) == (142, 83)  # 0.834 → 83 %
+
+
+@pytest.mark.parametrize("confidence, quality", [(1.0, 100), (0.7, 70), (0.005, 1), (0.0, 1), (0.996, 100), (0.024, 2)])
+def test_signal_quality_is_the_confidence_in_percent_and_never_reads_as_unknown(confidence, quality):
+    target = messages.BodyPoint(0, np.array([1.0, 0.0, 0.0]), confidence)
+    assert messages.signal_quality(target) == quality
+    assert messages.signal_quality(None) == 0  # no target: nothing measured, MAVLink's "unknown"
+
+
 def test_target_as_obstacle_adds_it_and_uses_the_forward_orientation(peer):
     with relay_for(peer, target_as_obstacle=True) as relay:
         frame = first_frame_after_publish(peer, relay, RESULT)
@@ -92,6 +107,7 @@ def test_stale_result_becomes_no_target_and_sending_continues_at_the_rate(peer):
     stale = [d for d in dists if d.at - t0 > 0.45]
     assert fresh and all(d.msg.current_distance == 142 for d in fresh)
     assert stale and all(d.msg.current_distance == 1001 for d in stale)  # max_distance + 1: nothing in range
+    assert all(d.msg.signal_quality == 100 for d in fresh) and all(d.msg.signal_quality == 0 for d in stale)
     gaps = np.diff([d.at for d in dists])
     assert gaps.max() < 0.35, f"sets must go out at >= 2 Hz without new results, longest gap {gaps.max():.3f} s"
     late_vects = [v for v in of_type(got, "DEBUG_VECT") if v.at - t0 > 0.45]

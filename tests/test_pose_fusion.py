@@ -331,6 +331,9 @@ def test_fused_target_and_latency_compensated_body_target_match_the_truth():
     assert np.linalg.norm(np.array(target.ned_m) - CUT_NED) < 0.02
     (other,) = [t for t in targets.tracks if t.id != target.id]
     assert np.linalg.norm(np.array(other.ned_m) - OTHER_NED) < 0.02
+    # the fused target's recency-weighted confidence (every observation 0.8) goes out as signal_quality
+    with_target = [r.msg for r in sim.of_type("DISTANCE_SENSOR") if r.msg.current_distance <= r.msg.max_distance]
+    assert with_target and {m.signal_quality for m in with_target} == {round(100 * target.confidence)} == {80}
 
     # every DEBUG_VECT from the 6th frame on, against the truth in the body frame of its arrival
     compensated, uncompensated = body_target_errors(sim, published, MOUNT, CUT_NED, skip_frames=5)

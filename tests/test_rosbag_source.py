@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from camera.sources.rosbag import (
     RosbagSource,
     parse_rosbag_spec,
 )
+from camera.sources.rosbag_topics import camera_info_candidates, find_camera_info
 from camera.sources.rosbag_writer import camera_info_message, image_message, write_bag
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
@@ -271,7 +273,7 @@ def test_camera_info_with_a_baseline_in_the_wrong_unit_is_refused(tmp_path):
 
 def test_without_camera_info_a_calibration_file_is_needed_and_used(tmp_path):
     path = write_messages(tmp_path / "bag", [image_row("left", pattern(0), 0), image_row("right", pattern(1), 0)])
-    with pytest.raises(SourceConfigError, match="camera_info is not in the bag"):
+    with pytest.raises(SourceConfigError, match="no sensor_msgs/msg/CameraInfo topic next to the image topic"):
         open_source(f"rosbag:{path}")
     calib_file = tmp_path / "calib.yaml"
     write_opencv_file(from_rectified(FOCAL, 19.5, 11.5, 0.2, SIZE), calib_file)
@@ -318,14 +320,17 @@ def test_bag_from_recording_command_and_its_errors(tmp_path, capsys):
                 "--storage",
                 "sqlite3",
                 "--left-topic",
-                "/l",
+                "/cam/left/image",
+                "--left-info-topic",
+                "/cam/left/camera_info",
             ]
         )
         == 0
     )
     assert "wrote 2 pairs" in capsys.readouterr().out
-    with open_source(f"rosbag:{tmp_path / 'bag'}?left=/l", pace="fast") as source:
+    with open_source(f"rosbag:{tmp_path / 'bag'}?left=/cam/left/image", pace="fast") as source:
         assert [f.index for f in source] == [0, 1]
+        assert source.topics.left_info == "/cam/left/camera_info"  # found next to the left image
     assert branchrange_main(["bag-from-recording", str(tmp_path / "rec"), "--out", str(tmp_path / "bag")]) == 2
     assert "exists already" in capsys.readouterr().err
     assert (
@@ -349,3 +354,98 @@ def test_a_bag_spec_takes_the_replay_options(tmp_path):
     assert start["first_timestamp_ns"] == first.timestamp_ns == sent[0].timestamp_ns
     with pytest.raises(SourceConfigError, match="ignore_masks is 'maybe'"):
         open_source(f"rosbag:{tmp_path / 'bag'}?ignore_masks=maybe")
+
+
+def compressed(topics: BagTopics) -> BagTopics:
+    """The same camera's topics as image_transport's compressed plugin publishes its images."""
+    return replace(topics, left=f"{topics.left}/compressed", right=f"{topics.right}/compressed")
+
+
+@pytest.mark.parametrize(
+    "topics, encoding",
+    [
+        (TOPICS, "bgra8"),
+        (compressed(TOPICS), "png"),
+        (ZED_TOPICS_BEFORE_5_1, "bgra8"),
+        (compressed(ZED_TOPICS_BEFORE_5_1), "png"),
+    ],
+    ids=["5.1-raw", "5.1-compressed", "before-5.1-raw", "before-5.1-compressed"],
+)
+def test_a_zed_bag_of_either_wrapper_replays_with_only_its_image_topics_named(tmp_path, topics, encoding):
+    sent = frames(2)
+    write_bag(sent, CALIBRATION, tmp_path / "bag", encoding=encoding, topics=topics)
+    with open_source(f"rosbag:{tmp_path / 'bag'}?left={topics.left}&right={topics.right}", pace="fast") as source:
+        got = list(source)
+        assert source.topics == topics  # the camera_info topics found next to the images
+        rect = Rectifier(source.calibration)
+    assert rect.focal_px == pytest.approx(FOCAL) and rect.baseline_m == pytest.approx(BASELINE)
+    assert [f.timestamp_ns for f in got] == [f.timestamp_ns for f in sent]
+    assert all(np.array_equal(g.left, s.left) and np.array_equal(g.right, s.right) for g, s in zip(got, sent))
+
+
+def test_the_camera_info_topics_looked_for_walk_up_to_the_namespace_the_images_share():
+    left, right = "/zed/zed_node/left/color/rect/image/compressed", "/zed/zed_node/right/color/rect/image/compressed"
+    assert camera_info_candidates(left, right) == [
+        "/zed/zed_node/left/color/rect/image/camera_info",
+        "/zed/zed_node/left/color/rect/camera_info",
+        "/zed/zed_node/left/color/camera_info",
+        "/zed/zed_node/left/camera_info",
+    ]  # not /zed/zed_node/camera_info: it would be both cameras' calibration
+    assert camera_info_candidates("/cam/left_image", "/cam/right_image") == []
+    infos = {"/zed/zed_node/left/camera_info", "/zed/zed_node/left/color/rect/camera_info"}
+    assert find_camera_info(left, right, infos) == "/zed/zed_node/left/color/rect/camera_info"  # the nearest
+    assert find_camera_info(right, left, infos) is None
+
+
+def test_a_camera_info_topic_named_in_the_spec_wins_over_the_one_next_to_the_image(tmp_path):
+    rect = Rectifier(CALIBRATION)
+    wide = Rectifier(from_rectified(FOCAL, 19.5, 11.5, 0.3, SIZE))
+    rows = [
+        ("/cam/left/camera_info", CAMERA_INFO_TYPE, camera_info_message(STORE.types, rect.P1, SIZE, 0, "l"), 0),
+        ("/cam/right/camera_info", CAMERA_INFO_TYPE, camera_info_message(STORE.types, rect.P2, SIZE, 0, "r"), 0),
+        ("/calib/right", CAMERA_INFO_TYPE, camera_info_message(STORE.types, wide.P2, SIZE, 0, "r"), 0),
+        ("/cam/left/image", IMAGE_TYPE, image_message(STORE.types, pattern(0), 0, "l", "rgb8"), 0),
+        ("/cam/right/image", IMAGE_TYPE, image_message(STORE.types, pattern(1), 0, "r", "rgb8"), 0),
+    ]
+    path = write_messages(tmp_path / "bag", rows)
+    images = "left=/cam/left/image&right=/cam/right/image"
+    with open_source(f"rosbag:{path}?{images}", pace="fast") as found:
+        assert Rectifier(found.calibration).baseline_m == pytest.approx(BASELINE)
+    with open_source(f"rosbag:{path}?{images}&right_info=/calib/right", pace="fast") as named:
+        assert named.topics.right_info == "/calib/right" and named.topics.left_info == "/cam/left/camera_info"
+        assert Rectifier(named.calibration).baseline_m == pytest.approx(0.3)
+
+
+def test_no_camera_info_next_to_the_images_names_what_was_looked_for_and_the_bag_topics(tmp_path):
+    rows = [
+        ("/cam/left/image", IMAGE_TYPE, image_message(STORE.types, pattern(0), 0, "l", "rgb8"), 0),
+        ("/cam/right/image", IMAGE_TYPE, image_message(STORE.types, pattern(1), 0, "r", "rgb8"), 0),
+        (
+            "/cam/camera_info",
+            CAMERA_INFO_TYPE,
+            camera_info_message(STORE.types, Rectifier(CALIBRATION).P1, SIZE, 0, "l"),
+            0,
+        ),
+    ]
+    path = write_messages(tmp_path / "bag", rows)
+    with pytest.raises(SourceConfigError) as error:
+        open_source(f"rosbag:{path}?left=/cam/left/image&right=/cam/right/image")
+    message = str(error.value)
+    assert "no sensor_msgs/msg/CameraInfo topic next to the image topic /cam/left/image" in message
+    assert "(looked for /cam/left/camera_info)" in message and "rosbag:PATH?left_info=TOPIC" in message
+    assert "/cam/camera_info (sensor_msgs/msg/CameraInfo, 1 messages)" in message  # the bag's topics
+    calib_file = tmp_path / "calib.yaml"
+    write_opencv_file(CALIBRATION, calib_file)  # with a calibration file no CameraInfo is needed
+    with open_source(f"rosbag:{path}?left=/cam/left/image&right=/cam/right/image", calibration=calib_file) as source:
+        assert source.topics.left_info == "" and len(list(source)) == 1
+
+
+def test_replay_of_a_bag_before_5_1_with_only_its_compressed_image_topics_named_exits_0(tmp_path, capsys):
+    """The issue's case: `branchrange replay 'rosbag:BAG?left=…/image_rect_color/compressed&right=…'` exited 2."""
+    topics = compressed(ZED_TOPICS_BEFORE_5_1)
+    write_bag(frames(2), CALIBRATION, tmp_path / "bag", encoding="png", topics=topics)
+    spec = f"rosbag:{tmp_path / 'bag'}?left={topics.left}&right={topics.right}"
+    assert branchrange_main(["replay", spec, "--out", str(tmp_path / "r.jsonl")]) == 0
+    header, *results = [json.loads(line) for line in (tmp_path / "r.jsonl").read_text().splitlines()]
+    assert header["source"] == spec and len(results) == 2
+    assert all(r["camera"]["baseline_m"] == pytest.approx(BASELINE) for r in results)  # from its camera_info

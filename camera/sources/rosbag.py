@@ -6,12 +6,14 @@ or `sensor_msgs/CompressedImage`) and their calibration on two `sensor_msgs/Came
 stamps both views of a grab alike, other drivers nearly so), counts the images that found no
 partner, and takes the calibration from the rectified projection matrices P of the two
 CameraInfo messages (focal length and principal point from the left P, the baseline from the
-right P's `Tx = -fx·B`) unless a calibration file is given. Topic names default to the ZED
+right P's `Tx = -fx·B`) unless a calibration file is given. Image topics default to the ZED
 ROS 2 wrapper's rectified colour topics: those of wrapper 5.1 and later
 (`/zed/zed_node/left/color/rect/image`, …), or, in a bag that has only them, those of the wrappers
-before 5.1 (`/zed/zed_node/left/image_rect_color`, …; logged). Topics named in the spec are used as
-given. A bag cut short (a recording killed before rosbag2 finished it, a copy interrupted) is
-reported as "truncated or unfinished", with what to do.
+before 5.1 (`/zed/zed_node/left/image_rect_color`, …; logged). Each CameraInfo topic not named is the
+`camera_info` topic next to its image topic, found by walking up the image topic's namespace
+(camera.sources.rosbag_topics: either wrapper generation, raw or compressed, and other drivers' layouts).
+Topics named in the spec are used as given. A bag cut short (a recording killed before rosbag2 finished it,
+a copy interrupted) is reported as "truncated or unfinished", with what to do.
 
 Spec (camera.sources.open_source): `rosbag:PATH[?left=TOPIC&right=TOPIC&left_info=TOPIC&right_info=TOPIC
 &tolerance_ms=MS]`, PATH a bag directory (metadata.yaml), a `.mcap` or a `.db3` file; also the replay
@@ -22,8 +24,8 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +36,7 @@ from camera.calibration import CalibrationError, StereoCalibration, from_rectifi
 from camera.sources.clock_sync import ClockSync
 from camera.sources.frame import CorruptFrameError, SourceConfigError, SourceUnavailable, StereoFrame
 from camera.sources.replay import DEFAULT_PERIOD_NS, FrameStamp, ReplaySource
+from camera.sources.rosbag_topics import camera_info_candidates, find_camera_info
 from camera.sources.spec_options import REPLAY_KEYS, split_spec
 
 log = logging.getLogger("camera.sources.rosbag")
@@ -59,7 +62,8 @@ BASELINE_RANGE_M = (0.005, 5.0)
 @dataclass(frozen=True)
 class BagTopics:
     """The four topics of a stereo camera in a bag; the defaults are the ZED ROS 2 wrapper's since its
-    version 5.1 (namespace `/zed`, node `zed_node`), rectified colour images."""
+    version 5.1 (namespace `/zed`, node `zed_node`), rectified colour images. A source that reads no
+    CameraInfo (a calibration file given) holds "" for an info topic it neither was given nor found."""
 
     left: str = "/zed/zed_node/left/color/rect/image"
     right: str = "/zed/zed_node/right/color/rect/image"
@@ -82,17 +86,17 @@ TOPIC_KEYS = ("left", "right", "left_info", "right_info")
 SPEC_KEYS = (*TOPIC_KEYS, "tolerance_ms")
 
 
-def parse_rosbag_spec(rest: str) -> tuple[Path, BagTopics | None, float, list[tuple[str, str]]]:
-    """(bag path, topics, pairing tolerance in ms, the replay options) from what follows `rosbag:` (see the module
-    docstring and camera.sources.spec_options). Topics are None (the ZED wrapper's, either naming) unless the
-    spec names one; the others then keep the current wrapper's names."""
+def parse_rosbag_spec(rest: str) -> tuple[Path, dict[str, str], float, list[tuple[str, str]]]:
+    """(bag path, the topics the spec names by role (TOPIC_KEYS), pairing tolerance in ms, the replay options)
+    from what follows `rosbag:` (see the module docstring and camera.sources.spec_options)."""
     path_text, options = split_spec(f"rosbag:{rest}", rest, (*SPEC_KEYS, *REPLAY_KEYS))
     if not path_text:
         raise SourceConfigError(
             f"source spec 'rosbag:{rest}': expected rosbag:PATH[?left=TOPIC&right=TOPIC&"
             "left_info=TOPIC&right_info=TOPIC&tolerance_ms=MS]"
         )
-    topics, tolerance_ms = None, DEFAULT_TOLERANCE_MS
+    topics: dict[str, str] = {}
+    tolerance_ms = DEFAULT_TOLERANCE_MS
     for key, value in options:
         if key in REPLAY_KEYS:
             continue
@@ -111,7 +115,7 @@ def parse_rosbag_spec(rest: str) -> tuple[Path, BagTopics | None, float, list[tu
                 f"source spec 'rosbag:{rest}': {key} is {value!r}; expected a topic name starting with /"
             )
         else:
-            topics = replace(topics or BagTopics(), **{key: value})
+            topics[key] = value
     return Path(path_text), topics, tolerance_ms, [(k, v) for k, v in options if k in REPLAY_KEYS]
 
 
@@ -192,7 +196,7 @@ class _BagFrames:
     """Stereo pairs of a bag in stamp order, for ReplaySource's pacing and looping (same reader protocol as
     its recording-directory and video readers)."""
 
-    def __init__(self, path: Path, topics: BagTopics | None, tolerance_ns: int, use_camera_info: bool) -> None:
+    def __init__(self, path: Path, named: Mapping[str, str], tolerance_ns: int, use_camera_info: bool) -> None:
         from rosbags.highlevel import AnyReader, AnyReaderError
         from rosbags.typesys import Stores, get_typestore
 
@@ -205,18 +209,17 @@ class _BagFrames:
         except (AnyReaderError, OSError, ValueError, KeyError) as error:
             raise _unreadable(path, error) from error
         self._by_topic = {c.topic: c for c in self._reader.connections}
-        self.topics = self._zed_topics() if topics is None else topics
-        wanted: dict[str, tuple[str, tuple[str, ...]]] = {
-            "left": (self.topics.left, (IMAGE_TYPE, COMPRESSED_TYPE)),
-            "right": (self.topics.right, (IMAGE_TYPE, COMPRESSED_TYPE)),
+        left, right = self._image_topics(named)
+        self._check_topic("left", left, (IMAGE_TYPE, COMPRESSED_TYPE))
+        self._check_topic("right", right, (IMAGE_TYPE, COMPRESSED_TYPE))
+        infos = {
+            role: named.get(role) or self._camera_info_next_to(role, image, other, use_camera_info)
+            for role, image, other in (("left_info", left, right), ("right_info", right, left))
         }
         if use_camera_info:
-            wanted |= {
-                "left_info": (self.topics.left_info, (CAMERA_INFO_TYPE,)),
-                "right_info": (self.topics.right_info, (CAMERA_INFO_TYPE,)),
-            }
-        for role, (topic, types) in wanted.items():
-            self._check_topic(role, topic, types)
+            for role, topic in infos.items():
+                self._check_topic(role, topic, (CAMERA_INFO_TYPE,))
+        self.topics = BagTopics(left, right, infos["left_info"], infos["right_info"])
         self.count: int | None = None  # pairs are known only once read
         self.unpaired = {"left": 0, "right": 0}
         self.use_camera_info = use_camera_info
@@ -225,31 +228,47 @@ class _BagFrames:
         self._pending: tuple[Any, Any, int] | None = None  # the pair `peek` read ahead
         self.seek(0)
 
-    def _zed_topics(self) -> BagTopics:
-        """The ZED wrapper's topics in this bag: those since 5.1, or those before when only they are there."""
+    def _image_topics(self, named: Mapping[str, str]) -> tuple[str, str]:
+        """(left, right) image topics: as named; one not named is the current ZED wrapper's; with neither named,
+        the ZED wrapper's in this bag: those since 5.1, or those before when only they are there."""
         current, older = BagTopics(), ZED_TOPICS_BEFORE_5_1
+        if "left" in named or "right" in named:
+            return named.get("left", current.left), named.get("right", current.right)
         topics = self._by_topic.keys()
         if {current.left, current.right} <= topics or not {older.left, older.right} <= topics:
-            return current
+            return current.left, current.right
         log.info(
             "%s: reading the ZED wrapper's topics of before version 5.1 (%s, %s)", self.path, older.left, older.right
         )
-        return older
+        return older.left, older.right
+
+    def _camera_info_next_to(self, role: str, image: str, other_image: str, needed: bool) -> str:
+        """The bag's CameraInfo topic next to `image` (camera.sources.rosbag_topics); "" when there is none and
+        it is not `needed`, else SourceConfigError naming the topics looked for and those the bag has."""
+        infos = [t for t, c in self._by_topic.items() if c.msgtype == CAMERA_INFO_TYPE]
+        found = find_camera_info(image, other_image, infos)
+        if found is not None or not needed:
+            return found or ""
+        looked_for = ", ".join(camera_info_candidates(image, other_image)) or "none: both images share a namespace"
+        self.close()
+        raise SourceConfigError(
+            f"{self.path}: no {CAMERA_INFO_TYPE} topic next to the image topic {image} (looked for {looked_for}); "
+            f"its topics are: {self._listing()}. Name it in the spec (rosbag:PATH?{role}=TOPIC) "
+            "or pass a calibration file"
+        )
+
+    def _listing(self) -> str:
+        """The bag's topics with their types and message counts, for error messages."""
+        connections = sorted(self._by_topic.values(), key=lambda c: c.topic)
+        return "; ".join(f"{c.topic} ({c.msgtype}, {c.msgcount} messages)" for c in connections) or "none"
 
     def _check_topic(self, role: str, topic: str, types: tuple[str, ...]) -> None:
         connection = self._by_topic.get(topic)
         if connection is None:
-            listing = (
-                "; ".join(
-                    f"{c.topic} ({c.msgtype}, {c.msgcount} messages)"
-                    for c in sorted(self._by_topic.values(), key=lambda c: c.topic)
-                )
-                or "none"
-            )
             self.close()
             raise SourceConfigError(
                 f"{self.path}: the {role} topic {topic} is not in the bag; its topics are: "
-                f"{listing}. Name the topics in the spec: rosbag:PATH?{role}=TOPIC"
+                f"{self._listing()}. Name the topics in the spec: rosbag:PATH?{role}=TOPIC"
             )
         if connection.msgtype not in types:
             self.close()
@@ -405,8 +424,10 @@ class RosbagSource(ReplaySource):
     """Replays the stereo pairs of a ROS 2 bag (see the module docstring), with ReplaySource's options:
     `pace` "recorded" (at the stamps' rate) or "fast", `loop`, `start` (pairs skipped). `calibration`
     overrides the CameraInfo topics; with `use_camera_info=False` they are neither needed nor read (the
-    caller sets `calibration` after reading a file at `frame_size`). `topics` None reads the ZED wrapper's,
-    in either naming (`topics` then holds those found). `clock_sync`, `max_late_ms` as ReplaySource.
+    caller sets `calibration` after reading a file at `frame_size`). `topics` names topics by role
+    (TOPIC_KEYS); those not named are found in the bag: the ZED wrapper's images in either naming, the
+    CameraInfo next to each image topic (`topics` then holds the BagTopics read). `clock_sync`,
+    `max_late_ms` as ReplaySource.
     Frame timestamps are the left images' header stamps, indices the pairs' positions in the bag.
     `unpaired` counts the images without a partner within `tolerance_ms` ({"left": n, "right": n},
     complete at the end of the bag).
@@ -416,7 +437,7 @@ class RosbagSource(ReplaySource):
         self,
         path: str | Path,
         *,
-        topics: BagTopics | None = None,
+        topics: Mapping[str, str] | None = None,
         tolerance_ms: float = DEFAULT_TOLERANCE_MS,
         use_camera_info: bool = True,
         pace: str = "recorded",
@@ -427,7 +448,8 @@ class RosbagSource(ReplaySource):
         max_late_ms: float | None = None,
         clock: Callable[[], int] | None = None,
     ) -> None:
-        self.topics, self.tolerance_ms, self.use_camera_info = topics, tolerance_ms, use_camera_info
+        self._named_topics = dict(topics or {})
+        self.tolerance_ms, self.use_camera_info = tolerance_ms, use_camera_info
         options: dict[str, Any] = {} if clock is None else {"clock": clock}
         super().__init__(
             path,
@@ -442,7 +464,7 @@ class RosbagSource(ReplaySource):
 
     def _open_frames(self, fps: float | None) -> _BagFrames:
         # Kept under its own type too: the bag reader has more to say than a FrameReader.
-        self._bag = _BagFrames(self.path, self.topics, int(round(self.tolerance_ms * 1e6)), self.use_camera_info)
+        self._bag = _BagFrames(self.path, self._named_topics, int(round(self.tolerance_ms * 1e6)), self.use_camera_info)
         self.topics = self._bag.topics
         return self._bag
 

@@ -4,8 +4,10 @@
 sending*: from a `branchrange/v1` result through the mount alone (`targets_from_result`, no
 vehicle state) or from world tracks re-expressed in the newest pose (the relay). One send gives,
 all stamped with the same `time_boot_ms`:
-- DISTANCE_SENSOR (132): distance from the camera to the target cut point in centimetres; no
-  target → `current_distance = max_distance + 1` (the MAVLink "nothing in range" value).
+- DISTANCE_SENSOR (132): distance from the camera to the target cut point in centimetres, and its
+  confidence as `signal_quality` (see `signal_quality`); no target → `current_distance = max_distance + 1`
+  (the MAVLink "nothing in range" value) and `signal_quality` 0 (unknown). The only confidence the
+  autopilot gets: OBSTACLE_DISTANCE_3D and DEBUG_VECT have no field for one.
 - OBSTACLE_DISTANCE_3D (11037, ardupilotmega): one per cut point, body FRD (frame 12), metres,
   `obstacle_id` = branch id. ArduPilot starts a new obstacle set when `time_boot_ms` changes and
   ignores points outside [min, max]: a frame with nothing to report sends one point beyond
@@ -102,10 +104,20 @@ def obstacles(targets: FrameTargets, cfg: MavlinkConfig, duplicate_radius_m: flo
     return chosen
 
 
+def signal_quality(target: BodyPoint | None) -> int:
+    """DISTANCE_SENSOR.signal_quality (uint8, %) of a target: its confidence in [0, 1] as 1..100, rounded and
+    never below 1, since MAVLink reads 0 as "unknown" and a confidence was measured (1 is MAVLink's "invalid
+    signal", ArduPilot's worst quality: a confidence under 1.5 %); 0 without a target (nothing was measured)."""
+    if target is None:
+        return 0
+    return min(100, max(1, round(target.confidence * 100)))
+
+
 def distance_sensor(
     target: BodyPoint | None, mount: CameraMount, cfg: MavlinkConfig, time_boot_ms: int
 ) -> mavlink2.MAVLink_distance_sensor_message:
-    """DISTANCE_SENSOR for the target (camera → cut point, cm), or "nothing in range"."""
+    """DISTANCE_SENSOR for the target (camera → cut point, cm; its confidence as signal_quality), or "nothing in
+    range"."""
     max_cm = round(cfg.max_distance_m * 100)
     if target is None:
         current_cm = max_cm + 1
@@ -128,7 +140,7 @@ def distance_sensor(
         0.0,
         0.0,
         quaternion,
-        0,
+        signal_quality(target),
     )
 
 
