@@ -69,6 +69,11 @@ class KeyPlaces:
         """`--set`, `FILE:LINE` or `FILE` for dotted `key` (`_where`)."""
         return _where(key, self.path, self.lines, self.set_keys)
 
+    def order(self, problem: ConfigProblem) -> tuple[bool, int]:
+        """Where `problem` is in reading order: the file's lines first (its table's line for a key it does not
+        write), then the command line's."""
+        return problem.where == FROM_SET, self.lines.get(_without_index(problem.key), 0)
+
 
 @dataclass(frozen=True)
 class ConfigCheck:
@@ -245,7 +250,7 @@ def check_config(path: str | Path | None, overrides: Iterable[Override] = ()) ->
     found = list(_schema_problems(tree)) or list(_semantic_problems(tree))
     if found:
         problems = [ConfigProblem(key, message, places.of(key)) for key, message in found]
-        problems.sort(key=lambda p: (p.where == FROM_SET, places.lines.get(_without_index(p.key), 0)))
+        problems.sort(key=places.order)
         return ConfigCheck(problems, tree=tree, places=places)
     sources = {key: "file" for key in leaf_keys(data)} | {key: FROM_SET for key in set_keys}
     return ConfigCheck([], sources, config_from_dict(tree), tree, places)

@@ -78,12 +78,13 @@ def _writable_log(key: str, value: str) -> Iterator[Need]:
         yield key, f"{key} = {value!r}: a folder, expected a file name"
         return
     existing = next(p for p in (path, *path.parents) if p.exists())  # "/" or "." at the latest
-    if existing == path:
-        writable = os.access(path, os.W_OK)
-    else:
-        writable = existing.is_dir() and os.access(existing, os.W_OK | os.X_OK)
-    if not writable:
-        yield key, f"{key} = {value!r}: {existing} is not writable by this user (the run appends the results there)"
+    if existing == path and not os.access(path, os.W_OK):
+        yield key, f"{key} = {value!r}: not writable by this user (the run appends to it)"
+    elif existing != path and not (existing.is_dir() and os.access(existing, os.W_OK | os.X_OK)):
+        yield (
+            key,
+            f"{key} = {value!r}: {existing} is not a folder this user can write in (the run creates the log there)",
+        )
 
 
 def _segmenter_model(cfg: Config) -> Iterator[Need]:
@@ -97,7 +98,10 @@ def _segmenter_model(cfg: Config) -> Iterator[Need]:
         yield from _readable("segmenter.model", path, folder_allowed=True, what="a bundle of train-segmenter --coco")
     elif kind == "learned" and cfg.segmenter.learned.model:
         yield from _readable(
-            "segmenter.learned.model", cfg.segmenter.learned.model, folder_allowed=True, what="a model or bundle"
+            "segmenter.learned.model",
+            cfg.segmenter.learned.model,
+            folder_allowed=True,
+            what="an ONNX model or a bundle folder",
         )
     elif kind == "learned":
         shipped = str(SHIPPED_MODELS[cfg.segmenter.learned.precision])
@@ -164,4 +168,4 @@ def check_run(
     ]
     if not unmet:
         return check
-    return dataclasses.replace(check, problems=check.problems + unmet, config=None)
+    return dataclasses.replace(check, problems=check.problems + sorted(unmet, key=check.places.order), config=None)
