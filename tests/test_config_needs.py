@@ -145,6 +145,9 @@ def test_a_cross_key_problem_names_the_key_that_was_set_not_its_default_partner(
     written = tmp_path / "range.toml"  # both written in the file: the check's own key, at its line
     written.write_text("[cutpoints]\nmin_range_m = 20.0\nmax_range_m = 10.0\n")
     assert check_config(written).problems[0].where == f"{written}:3"
+    (problem,) = check_config(written, [("cutpoints.min_range_m", 12.5)]).problems  # the file's value, --set's fault
+    assert (problem.key, problem.where) == ("cutpoints.min_range_m", "--set")
+    assert problem.message.startswith("cutpoints.min_range_m = 12.5 puts cutpoints.max_range_m (the file's) out of")
 
 
 def test_the_daemon_reports_every_problem_at_once_and_exits_2(capsys, tmp_path, monkeypatch):

@@ -89,29 +89,27 @@ def test_each_shipped_threshold_agrees_with_the_shipped_calibration(path):
     assert disagreements(path.read_text(encoding="utf-8")) == []
 
 
+def onboard_with_obstacle_line(line: str) -> str:
+    """deploy/onboard.toml with its `obstacle_min_confidence` line replaced by `line` ('' : left out)."""
+    text = (DEPLOY / "onboard.toml").read_text(encoding="utf-8")
+    edited = re.sub(r"^obstacle_min_confidence = .*\n", line + "\n" if line else "", text, flags=re.MULTILINE)
+    assert edited != text
+    return edited
+
+
 def test_a_threshold_left_behind_by_the_calibration_is_found():
     """The onboard file as it was before issue 49: 0.3 where the calibration says 0.16."""
-    text = (DEPLOY / "onboard.toml").read_text(encoding="utf-8")
-    stale = re.sub(
-        r"^obstacle_min_confidence = .*$",
-        "obstacle_min_confidence = 0.3    # less confident cut points are not fenced as obstacles",
-        text,
-        flags=re.MULTILINE,
-    )
-    assert stale != text
+    stale = onboard_with_obstacle_line("obstacle_min_confidence = 0.3    # less confident cut points are not fenced")
     (problem,) = disagreements(stale)
     assert "mavlink.obstacle_min_confidence = 0.3 differs from the calibration's 0.16" in problem
 
 
 def test_a_departure_with_its_reason_passes_and_a_default_that_differs_does_not():
-    text = (DEPLOY / "onboard.toml").read_text(encoding="utf-8")
-    reasoned = re.sub(
-        r"^obstacle_min_confidence = .*$",
-        "obstacle_min_confidence = 0.2   # above the calibration's 0.16: this orchard's twigs are fenced off anyway",
-        text,
-        flags=re.MULTILINE,
+    reasoned = onboard_with_obstacle_line(
+        "obstacle_min_confidence = 0.2   # above the calibration's 0.16: this orchard's twigs are fenced off anyway"
     )
-    assert reasoned != text and disagreements(reasoned) == []
-    without = re.sub(r"^obstacle_min_confidence = .*\n", "", text, flags=re.MULTILINE)
-    (problem,) = disagreements(without)  # the default (0.18) is the trunk band's value, not one look's
+    assert disagreements(reasoned) == []
+    (problem,) = disagreements(
+        onboard_with_obstacle_line("")
+    )  # the default (0.18) is the trunk band's value, not one look's
     assert problem.startswith("mavlink.obstacle_min_confidence: the default 0.18 differs from the calibration's 0.16")

@@ -162,18 +162,20 @@ def _without(tree: dict[str, Any], key: str) -> dict[str, Any]:
     return copy
 
 
-def _blamed(tree: dict[str, Any], key: str, message: str) -> tuple[str, str]:
-    """(key, message) of a failed check on `key`. A check between keys is attached to one of them; when
-    that one is not written (it holds its default: `--set cutpoints.min_range_m=20` against the default
-    `max_range_m = 10`), the written key of its table without which the check passes is the one to name."""
+def _blamed(tree: dict[str, Any], key: str, message: str, set_keys: set[str]) -> tuple[str, str]:
+    """(key, message) of a failed check on `key`. A check between keys is attached to one of them, which may
+    not be the one written wrong: when `key` holds its default (`--set cutpoints.min_range_m=20` against the
+    default `max_range_m = 10`), or comes from the file while a key of its table came from `--set`, the
+    written key without which the check passes is the one to name, and its place the one to show."""
     written = set(leaf_keys(tree))
-    if key in written:
+    if key in set_keys:
         return key, message
+    suspects, origin = (set_keys, "the file's") if key in written else (written, "its default")
     section, table = key.partition(".")[0], key.rpartition(".")[0]
-    for other in sorted(k for k in written if k.rpartition(".")[0] == table):
+    for other in sorted(k for k in suspects if k.rpartition(".")[0] == table and k != key):
         if _failing_key(section, _without(tree, other).get(section, {})) is None:
             value = _value_of(tree, other)
-            return other, f"{other} = {value!r} puts {key} (its default) out of range: {message}"
+            return other, f"{other} = {value!r} puts {key} ({origin}) out of range: {message}"
     return key, message
 
 
@@ -185,12 +187,13 @@ def _value_of(tree: dict[str, Any], key: str) -> Any:
     return node
 
 
-def _semantic_problems(data: dict[str, Any]) -> Iterator[tuple[str, str]]:
-    """(dotted key, message) of the settings classes' own checks, the first failing one of each section."""
+def _semantic_problems(data: dict[str, Any], set_keys: set[str]) -> Iterator[tuple[str, str]]:
+    """(dotted key, message) of the settings classes' own checks, the first failing one of each section
+    (`_blamed`: the key to name when the check is between keys; `set_keys` came from the command line)."""
     for name, table in data.items():
         failed = _failing_key(name, table)
         if failed is not None:
-            yield _blamed(data, *failed)
+            yield _blamed(data, *failed, set_keys)
 
 
 def _without_index(key: str) -> str:
@@ -247,7 +250,7 @@ def check_config(path: str | Path | None, overrides: Iterable[Override] = ()) ->
     except ConfigError as exc:
         return ConfigCheck([ConfigProblem("", str(exc), FROM_SET)])
     places = KeyPlaces(path, key_lines(text), set_keys)
-    found = list(_schema_problems(tree)) or list(_semantic_problems(tree))
+    found = list(_schema_problems(tree)) or list(_semantic_problems(tree, set_keys))
     if found:
         problems = [ConfigProblem(key, message, places.of(key)) for key, message in found]
         problems.sort(key=places.order)
