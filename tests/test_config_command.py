@@ -185,5 +185,7 @@ def test_show_without_a_file_gives_the_defaults_and_the_set_keys(capsys):
     assert status == DONE and shown["tracking.gate_m"] == {"value": 0.2, "source": "--set"}
     assert {s["source"] for key, s in shown.items() if key != "tracking.gate_m"} == {"default"}
     status, out, err = run(capsys, "show", "--set", "cutpoints.min_range_m=20")  # beyond max_range_m (10)
-    assert status == BAD_INPUT and out.startswith("--set: cutpoints.min_range_m = 20 puts cutpoints.max_range_m")
+    assert status == BAD_INPUT and out.startswith(
+        "--set: cutpoints.min_range_m = 20 conflicts with cutpoints.max_range_m"
+    )
     assert err == "the defaults with --set: 1 problem\n"

@@ -139,7 +139,7 @@ def test_a_cross_key_problem_names_the_key_that_was_set_not_its_default_partner(
     status, out, _ = check(capsys, str(installed(tmp_path, "onboard.toml")), "--set", "cutpoints.min_range_m=20")
     assert status == BAD_INPUT
     assert out == [
-        "--set: cutpoints.min_range_m = 20 puts cutpoints.max_range_m (its default) out of range: "
+        "--set: cutpoints.min_range_m = 20 conflicts with cutpoints.max_range_m (its default): "
         "cutpoints.max_range_m = 10.0: expected > min_range_m (20.0 m), a distance in metres from 0 to 655 m"
     ]
     written = tmp_path / "range.toml"  # both written in the file: the check's own key, at its line
@@ -147,7 +147,7 @@ def test_a_cross_key_problem_names_the_key_that_was_set_not_its_default_partner(
     assert check_config(written).problems[0].where == f"{written}:3"
     (problem,) = check_config(written, [("cutpoints.min_range_m", 12.5)]).problems  # the file's value, --set's fault
     assert (problem.key, problem.where) == ("cutpoints.min_range_m", "--set")
-    assert problem.message.startswith("cutpoints.min_range_m = 12.5 puts cutpoints.max_range_m (the file's) out of")
+    assert problem.message.startswith("cutpoints.min_range_m = 12.5 conflicts with cutpoints.max_range_m (the file's)")
 
 
 def test_the_daemon_reports_every_problem_at_once_and_exits_2(capsys, tmp_path, monkeypatch):

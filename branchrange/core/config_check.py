@@ -175,7 +175,7 @@ def _blamed(tree: dict[str, Any], key: str, message: str, set_keys: set[str]) ->
     for other in sorted(k for k in suspects if k.rpartition(".")[0] == table and k != key):
         if _failing_key(section, _without(tree, other).get(section, {})) is None:
             value = _value_of(tree, other)
-            return other, f"{other} = {value!r} puts {key} ({origin}) out of range: {message}"
+            return other, f"{other} = {value!r} conflicts with {key} ({origin}): {message}"
     return key, message
 
 
