@@ -208,3 +208,33 @@ def test_the_defaults_need_nothing_a_machine_may_lack():
 )
 def test_only_loopback_may_serve_without_a_token(host, token, refused):
     assert bool(open_bind_refusal(host, token)) == refused
+
+
+@pytest.mark.parametrize(
+    "settings, key, says",
+    [
+        (lambda tmp: {"segmenter": {"model": f"onnx:{tmp}/yolo.onnx"}}, "segmenter.model", "no such file (your ONNX"),
+        (
+            lambda tmp: {"segmenter": {"model": f"learned:{tmp}/b"}},
+            "segmenter.model",
+            "no such file or folder (a bundle",
+        ),
+        (lambda tmp: {"segmenter": {"model": f"onnx:{tmp}"}}, "segmenter.model", "a folder, expected a file"),
+        (lambda tmp: {"mavlink": {"signing_key_file": f"{tmp}/m.key"}}, "mavlink.signing_key_file", "no such file"),
+        (lambda tmp: {"log": {"results_jsonl": str(tmp)}}, "log.results_jsonl", "a folder, expected a file name"),
+        (lambda tmp: {"stereo": {"backend": "onnx", "weights": f"{tmp}/s.onnx"}}, "stereo.weights", "no such file"),
+    ],
+)
+def test_each_path_the_run_reads_or_writes_is_a_need(tmp_path, settings, key, says):
+    from branchrange.core.config import config_from_dict
+
+    ((found, message),) = unmet_needs(config_from_dict(settings(tmp_path)), "daemon")
+    assert found == key and says in message and message.startswith(f"{key} = ")
+
+
+def test_serve_has_no_camera_to_need(tmp_path):
+    from branchrange.core.config import CameraConfig
+
+    cfg = Config(camera=CameraConfig(calibration=str(tmp_path / "SN1.conf")))
+    assert [key for key, _ in unmet_needs(cfg, "daemon")] == ["camera.calibration"]
+    assert unmet_needs(cfg, "serve") == []
