@@ -62,6 +62,7 @@ def _line_of(path: Path, prefix: str) -> int:
 
 
 def _edit(path: Path, old: str, new: str) -> None:
+    """Replace the first `old` of the file `path` (which must hold it) by `new`."""
     text = path.read_text(encoding="utf-8")
     assert old in text
     path.write_text(text.replace(old, new, 1), encoding="utf-8")
@@ -126,8 +127,7 @@ def test_each_deploy_file_passes_where_everything_it_names_is_there(capsys, tmp_
 
 
 @pytest.mark.parametrize("name, breakage", BREAKAGES, ids=lambda v: getattr(v, "__name__", v))
-def test_config_check_fails_each_broken_deploy_file_naming_the_key(capsys, tmp_path, monkeypatch, name, breakage):
-    monkeypatch.setattr("torch.cuda.is_available", lambda: True)  # undone after the test, whatever `no_cuda` sets
+def test_config_check_fails_each_broken_deploy_file_naming_the_key(capsys, tmp_path, name, breakage):
     path = installed(tmp_path, name)
     extra, key, where = breakage(path)
     status, out, err = check(capsys, str(path), *extra)
@@ -150,7 +150,7 @@ def test_a_cross_key_problem_names_the_key_that_was_set_not_its_default_partner(
     assert problem.message.startswith("cutpoints.min_range_m = 12.5 conflicts with cutpoints.max_range_m (the file's)")
 
 
-def test_the_daemon_reports_every_problem_at_once_and_exits_2(capsys, tmp_path, monkeypatch):
+def test_the_daemon_reports_every_problem_at_once_and_exits_2(capsys, tmp_path):
     path = installed(tmp_path, "onboard.toml")
     for breakage in (missing_calibration, missing_weights, public_api_without_token, no_cuda):
         breakage(path)
