@@ -16,7 +16,6 @@ from openapi_check import check_response
 from api import create_app
 from api.estimator import PipelineEstimator
 from branchrange.cli import main as branchrange_main
-from branchrange.commands.serve import ServeError, check_bind
 from branchrange.config.sections import ApiConfig
 from branchrange.core.frame_results import result_line
 from branchrange.core.pipeline import Pipeline, PipelineConfig, StereoConfig
@@ -164,18 +163,13 @@ def test_serve_refuses_a_public_address_without_a_token(capsys, monkeypatch):
     monkeypatch.delenv("BRANCHRANGE_API_TOKEN", raising=False)
     assert branchrange_main(["serve", "--host", "0.0.0.0", "--port", "0"]) == 2
     assert "refusing to serve on 0.0.0.0 without a token" in capsys.readouterr().err
-    check_bind("127.0.0.1", "")
-    check_bind("::1", "")
-    check_bind("0.0.0.0", "tok")
-    with pytest.raises(ServeError):
-        check_bind("192.168.1.5", "")
 
 
 def test_serve_fails_at_start_when_the_stereo_backend_cannot_be_built(tmp_path, capsys):
     config = tmp_path / "serve.toml"
     config.write_text(f'[stereo]\nbackend = "emcstereo"\nweights = "{tmp_path / "missing.pth"}"\n')
     assert branchrange_main(["serve", "--config", str(config), "--port", "0"]) == 2
-    assert "missing.pth: no such checkpoint file" in capsys.readouterr().err
+    assert f"stereo.weights = '{tmp_path / 'missing.pth'}': no such file" in capsys.readouterr().err
 
 
 def test_every_route_answers_as_the_served_openapi_document_says(server, live):

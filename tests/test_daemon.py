@@ -607,8 +607,8 @@ def test_daemon_fails_at_start_when_the_stereo_backend_cannot_be_built(recording
         f'[camera]\nsource = "replay:{recording}"\n[mavlink]\nenabled = false\n'
         f'[stereo]\nbackend = "emcstereo"\nweights = "{tmp_path / "missing.pth"}"\n'
     )
-    assert branchrange_main(["daemon", "--config", str(config)]) == 1
-    assert "missing.pth: no such checkpoint file" in capsys.readouterr().err
+    assert branchrange_main(["daemon", "--config", str(config)]) == 2  # a configuration problem: not restarted
+    assert f"stereo.weights = '{tmp_path / 'missing.pth'}': no such file" in capsys.readouterr().err
 
 
 def test_daemon_refuses_an_open_api_on_a_public_address(tmp_path, capsys, monkeypatch):

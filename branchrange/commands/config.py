@@ -1,9 +1,12 @@
 """`branchrange config check|show|schema|reference`: the configuration file, checked and explained.
 
-- `check FILE [--set K=V ...]`: every problem at once, each with its key and line; exit 0 when none.
+- `check FILE [--set K=V ...] [--for daemon|serve] [--file-only]`: every problem at once, each with its key
+  and line: the file's own, then what the run will need from this machine (files that exist and can be read,
+  a token for a public `[api] host`, the CUDA device asked for; `branchrange.config.needs`); exit 0 when
+  none.
 - `show [FILE] [--set K=V ...] [--json]`: every key in effect and where its value came from.
 - `schema`: the JSON Schema editors check the TOML with (the package ships it:
-  branchrange/config/config.schema.json, `#:schema` line of deploy/*.toml).
+  branchrange/core/schemas/config.schema.json, `#:schema` line of deploy/*.toml).
 - `reference`: the Markdown reference of every key (docs/configuration.md).
 """
 
@@ -11,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import TYPE_CHECKING
 
@@ -19,9 +23,13 @@ from branchrange.commands.exit_codes import BAD_INPUT, DONE
 if TYPE_CHECKING:
     from branchrange.config.check import ConfigCheck, ConfigProblem
 
+#: the commands whose run `check --for` checks the needs of (`branchrange.config.needs.unmet_needs`)
+RUN_COMMANDS = ("daemon", "serve")
+
 EPILOG = f"""exit codes:
   {DONE}  the configuration is valid (check), or was printed (show, schema, reference)
-  {BAD_INPUT}  the configuration has problems (each printed with its key and line) or cannot be read"""
+  {BAD_INPUT}  the configuration has problems (each printed with its key and line), needs what this machine
+     lacks (check without --file-only), or cannot be read"""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -57,20 +65,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         )
         p.set_defaults(func=func)
     sub.choices["show"].add_argument("--json", action="store_true", help="print JSON: key → {value, source}")
+    sub.choices["check"].add_argument(
+        "--for",
+        dest="command",
+        choices=RUN_COMMANDS,
+        help="check what this command's run needs (default: what either would need)",
+    )
+    sub.choices["check"].add_argument(
+        "--file-only",
+        action="store_true",
+        help="check the file's keys and values only, not this machine (a file meant for another one)",
+    )
     sub.add_parser("schema", help="print the configuration's JSON Schema").set_defaults(func=run_schema)
     sub.add_parser("reference", help="print the Markdown reference of every key").set_defaults(func=run_reference)
 
 
-def _checked(args: argparse.Namespace) -> ConfigCheck:
-    """The `ConfigCheck` of args.file with args.set; a malformed --set is a problem like any other."""
+def _checked(args: argparse.Namespace, *, needs: bool = False) -> ConfigCheck:
+    """The `ConfigCheck` of args.file with args.set — with `needs`, also what the run of args.command needs
+    from this machine (`check_run`); a malformed --set is a problem like any other."""
     from branchrange.config.check import FROM_SET, ConfigCheck, ConfigProblem, check_config
     from branchrange.config.loader import parse_override
+    from branchrange.config.needs import TOKEN_ENV, check_run
     from branchrange.core.settings_check import ConfigError
 
     try:
         overrides = [parse_override(text) for text in args.set]
     except ConfigError as exc:
         return ConfigCheck([ConfigProblem("", str(exc), FROM_SET)])
+    if needs:
+        return check_run(args.file, overrides, args.command, os.environ.get(TOKEN_ENV, ""))
     return check_config(args.file, overrides)
 
 
@@ -86,8 +109,8 @@ def _report_problems(file: str | None, problems: list[ConfigProblem]) -> int:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    """Print every problem of the file, or `OK: FILE (N keys)`."""
-    result = _checked(args)
+    """Print every problem of the file and, unless --file-only, of the run's needs; or `OK: FILE (N keys)`."""
+    result = _checked(args, needs=not args.file_only)
     if result.problems:
         return _report_problems(args.file, result.problems)
     print(f"OK: {args.file} ({len(result.sources)} keys)")
@@ -111,7 +134,7 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_schema(args: argparse.Namespace) -> int:
-    """Print the JSON Schema (`branchrange config schema > branchrange/config/config.schema.json`)."""
+    """Print the JSON Schema (`branchrange config schema > branchrange/core/schemas/config.schema.json`)."""
     from branchrange.config.schema import config_schema, schema_text
 
     print(schema_text(config_schema()), end="")

@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
-import os
 import signal
 import sys
 import threading
 from typing import TYPE_CHECKING, Any
 
-from branchrange.commands.config_args import add_config_arguments, config_from_args
-from branchrange.commands.serve import TOKEN_ENV, ServeError, check_bind
+from branchrange.commands.config_args import add_config_arguments, checked_config, refuse_config
 
 if TYPE_CHECKING:  # imported when the command runs: `branchrange --help` stays fast
     from api.metrics import Metrics
@@ -60,24 +57,19 @@ def run(args: argparse.Namespace) -> int:
     """Build source, pipeline, relay and log from the config; run until the source ends or a signal."""
     from api.metrics import Metrics
     from branchrange.config.loader import pipeline_for
-    from branchrange.core.settings_check import ConfigError
     from branchrange.onboard.daemon import Daemon, relay_for
     from branchrange.onboard.foxglove_sink import FoxgloveSink, FoxgloveTargetError, parse_targets
     from branchrange.onboard.mavlink import CameraMount
     from branchrange.onboard.mavlink.connection import SigningKeyError
     from camera.sources import SourceError, open_source
 
+    cfg, problems = checked_config(args, {"camera.source": args.source, "mavlink.url": args.mavlink}, "daemon")
     try:
-        cfg = config_from_args(args, {"camera.source": args.source, "mavlink.url": args.mavlink})
-        cfg = dataclasses.replace(
-            cfg, api=dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, ""))
-        )
-        if cfg.api.enabled:
-            check_bind(cfg.api.host, cfg.api.token)
         targets = parse_targets(args.foxglove) if args.foxglove else None
-    except (ConfigError, ServeError, FoxgloveTargetError) as exc:
-        print(f"branchrange daemon: {exc}", file=sys.stderr)
-        return 2
+    except FoxgloveTargetError as exc:
+        problems.append(str(exc))
+    if cfg is None or problems:
+        return refuse_config("daemon", problems)
     logging.basicConfig(level=cfg.log.level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     calibration = cfg.camera.calibration or None
 

@@ -3,37 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import ipaddress
-import os
-import sys
 
-from branchrange.commands.config_args import add_config_arguments, config_from_args
-
-#: Environment variable read (here, at the command line layer only) when the config has no token.
-TOKEN_ENV = "BRANCHRANGE_API_TOKEN"
-
-
-class ServeError(ValueError):
-    """A service setting that must not be used (e.g. a public address without a token)."""
-
-
-def is_loopback(host: str) -> bool:
-    """Whether `host` names this machine only (localhost, 127.0.0.0/8, ::1)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def check_bind(host: str, token: str) -> None:
-    """Refuse a non-loopback address without a bearer token: the API would be open to the network."""
-    if not token and not is_loopback(host):
-        raise ServeError(
-            f"refusing to serve on {host} without a token: set [api] token or {TOKEN_ENV}, or bind 127.0.0.1"
-        )
+from branchrange.commands.config_args import add_config_arguments, checked_config, refuse_config
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -46,28 +17,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Load the config, check the bind address, build the app and serve until interrupted."""
+    """Check the config and what the service needs (a token on a public address, its model files: every
+    problem at once, exit 2), build the app and serve until interrupted."""
     import uvicorn
 
     from api import create_app
     from api.estimator import PipelineEstimator
     from branchrange.config.loader import pipeline_config
-    from branchrange.core.settings_check import ConfigError
 
-    try:
-        cfg = config_from_args(args, {"api.host": args.host, "api.port": args.port})
-        api = dataclasses.replace(cfg.api, token=cfg.api.token or os.environ.get(TOKEN_ENV, ""))
-        check_bind(api.host, api.token)
-    except (ConfigError, ServeError) as exc:
-        print(f"branchrange serve: {exc}", file=sys.stderr)
-        return 2
+    cfg, problems = checked_config(args, {"api.host": args.host, "api.port": args.port}, "serve")
+    if cfg is None:
+        return refuse_config("serve", problems)
     estimator = PipelineEstimator(pipeline_config(cfg))
     try:
         estimator.backend()  # a missing checkpoint or an unusable max_disp fails now, not on every request
         estimator.segmenter()  # so does an unreadable [segmenter] model
     except ValueError as exc:
-        print(f"branchrange serve: {exc}", file=sys.stderr)
-        return 2
-    app = create_app(api, estimator)
-    uvicorn.run(app, host=api.host, port=api.port, log_level=cfg.log.level.lower())
+        return refuse_config("serve", [str(exc)])
+    app = create_app(cfg.api, estimator)
+    uvicorn.run(app, host=cfg.api.host, port=cfg.api.port, log_level=cfg.log.level.lower())
     return 0

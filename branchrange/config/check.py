@@ -57,13 +57,35 @@ class ConfigProblem:
 
 
 @dataclass(frozen=True)
+class KeyPlaces:
+    """Where the keys of a checked file were written: the file, its keys' lines (`key_lines`) and the keys
+    the command line set; `of(key)` says where a problem of `key` is to be looked for."""
+
+    path: Path | None
+    lines: dict[str, int]
+    set_keys: set[str]
+
+    def of(self, key: str) -> str:
+        """`--set`, `FILE:LINE` or `FILE` for dotted `key` (`_where`)."""
+        return _where(key, self.path, self.lines, self.set_keys)
+
+    def order(self, problem: ConfigProblem) -> tuple[bool, int]:
+        """Where `problem` is in reading order: the file's lines first (its table's line for a key it does not
+        write), then the command line's."""
+        return problem.where == FROM_SET, self.lines.get(_without_index(problem.key), 0)
+
+
+@dataclass(frozen=True)
 class ConfigCheck:
     """The outcome of checking a file: its problems (none: `config` is the effective configuration)
-    and where each key it or the command line sets came from (dotted key → 'file' or '--set')."""
+    and where each key it or the command line sets came from (dotted key → 'file' or '--set'); once the
+    file could be read, its TOML tree with the overrides applied and where each key was written."""
 
     problems: list[ConfigProblem]
     sources: dict[str, str] = field(default_factory=dict)
     config: Config | None = None
+    tree: dict[str, Any] = field(default_factory=dict)
+    places: KeyPlaces | None = None
 
 
 def key_lines(text: str) -> dict[str, int]:
@@ -119,14 +141,59 @@ def _schema_problems(data: dict[str, Any]) -> Iterator[tuple[str, str]]:
             yield table, f"{table}: {error.message}"
 
 
-def _semantic_problems(data: dict[str, Any]) -> Iterator[tuple[str, str]]:
-    """(dotted key, message) of the settings classes' own checks, the first failing one of each section."""
+def _failing_key(section: str, table: Any) -> tuple[str, str] | None:
+    """(dotted key, message) of the first failing check of the section `[section]` = `table`; None: it passes."""
+    try:
+        config_from_dict({section: table})
+    except ConfigError as exc:
+        found = _MESSAGE_KEY.match(str(exc))
+        return (found.group(1) if found else section), str(exc)
+    return None
+
+
+def _without(tree: dict[str, Any], key: str) -> dict[str, Any]:
+    """A copy of the TOML tree `tree` without the value of dotted `key` (its tables copied along the way)."""
+    *tables, last = key.split(".")
+    copy = dict(tree)
+    node = copy
+    for name in tables:
+        node[name] = node = dict(node[name])
+    del node[last]
+    return copy
+
+
+def _blamed(tree: dict[str, Any], key: str, message: str, set_keys: set[str]) -> tuple[str, str]:
+    """(key, message) of a failed check on `key`. A check between keys is attached to one of them, which may
+    not be the one written wrong: when `key` holds its default (`--set cutpoints.min_range_m=20` against the
+    default `max_range_m = 10`), or comes from the file while a key of its table came from `--set`, the
+    written key without which the check passes is the one to name, and its place the one to show."""
+    written = set(leaf_keys(tree))
+    if key in set_keys:
+        return key, message
+    suspects, origin = (set_keys, "the file's") if key in written else (written, "its default")
+    section, table = key.partition(".")[0], key.rpartition(".")[0]
+    for other in sorted(k for k in suspects if k.rpartition(".")[0] == table and k != key):
+        if _failing_key(section, _without(tree, other).get(section, {})) is None:
+            value = _value_of(tree, other)
+            return other, f"{other} = {value!r} conflicts with {key} ({origin}): {message}"
+    return key, message
+
+
+def _value_of(tree: dict[str, Any], key: str) -> Any:
+    """The value of dotted `key` in the TOML tree `tree`."""
+    node: Any = tree
+    for name in key.split("."):
+        node = node[name]
+    return node
+
+
+def _semantic_problems(data: dict[str, Any], set_keys: set[str]) -> Iterator[tuple[str, str]]:
+    """(dotted key, message) of the settings classes' own checks, the first failing one of each section
+    (`_blamed`: the key to name when the check is between keys; `set_keys` came from the command line)."""
     for name, table in data.items():
-        try:
-            config_from_dict({name: table})
-        except ConfigError as exc:
-            found = _MESSAGE_KEY.match(str(exc))
-            yield (found.group(1) if found else name), str(exc)
+        failed = _failing_key(name, table)
+        if failed is not None:
+            yield _blamed(data, *failed, set_keys)
 
 
 def _without_index(key: str) -> str:
@@ -182,11 +249,11 @@ def check_config(path: str | Path | None, overrides: Iterable[Override] = ()) ->
         tree = with_overrides(data, overrides)
     except ConfigError as exc:
         return ConfigCheck([ConfigProblem("", str(exc), FROM_SET)])
-    found = list(_schema_problems(tree)) or list(_semantic_problems(tree))
+    places = KeyPlaces(path, key_lines(text), set_keys)
+    found = list(_schema_problems(tree)) or list(_semantic_problems(tree, set_keys))
     if found:
-        lines = key_lines(text)
-        problems = [ConfigProblem(key, message, _where(key, path, lines, set_keys)) for key, message in found]
-        problems.sort(key=lambda p: (p.where == FROM_SET, lines.get(_without_index(p.key), 0)))
-        return ConfigCheck(problems)
+        problems = [ConfigProblem(key, message, places.of(key)) for key, message in found]
+        problems.sort(key=places.order)
+        return ConfigCheck(problems, tree=tree, places=places)
     sources = {key: "file" for key in leaf_keys(data)} | {key: FROM_SET for key in set_keys}
-    return ConfigCheck([], sources, config_from_dict(tree))
+    return ConfigCheck([], sources, config_from_dict(tree), tree, places)
