@@ -23,7 +23,7 @@ EPILOG = f"""exit codes:
   {CHECK_FAILED}  at least one check failed (each printed with its fix)"""
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `preflight` to the `branchrange` command."""
     p = subparsers.add_parser(
         "preflight",

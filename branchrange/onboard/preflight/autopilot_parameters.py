@@ -55,6 +55,10 @@ def _equals(expected: float) -> Callable[[float], bool]:
     return lambda value: value == expected
 
 
+def _at_least(minimum: float) -> Callable[[float], bool]:
+    return lambda value: value >= minimum
+
+
 def ardupilot_rules(mavlink: MavlinkConfig) -> tuple[ParameterRule, ...]:
     """ArduPilot Copter's table (see the module docstring) for the `[mavlink]` settings in use."""
     max_range = mavlink.max_distance_m
@@ -120,10 +124,6 @@ def px4_rules(mavlink: MavlinkConfig) -> tuple[ParameterRule, ...]:
             _equals(PX4_MAV_MODE_ONBOARD),
         ),
     )
-
-
-def _at_least(minimum: float) -> Callable[[float], bool]:
-    return lambda value: value >= minimum
 
 
 def rules_for(autopilot: int, mavlink: MavlinkConfig) -> tuple[ParameterRule, ...] | None:

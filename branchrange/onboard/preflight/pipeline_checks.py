@@ -29,7 +29,9 @@ if TYPE_CHECKING:
     from branchrange.core.config import Config
 
 MODELS, LATENCY = "models", "pipeline latency"
-MODEL_FIX = "copy the model files again from the release (a whole bundle folder, not single files); their SHA-256 must match"
+MODEL_FIX = (
+    "copy the model files again from the release (a whole bundle folder, not single files); their SHA-256 must match"
+)
 
 
 def check_models(cfg: Config) -> tuple[CheckResult, tuple[Any, Any] | None]:
@@ -37,7 +39,7 @@ def check_models(cfg: Config) -> tuple[CheckResult, tuple[Any, Any] | None]:
     weights = Path(cfg.stereo.weights) if cfg.stereo.weights else None
     release = registered_as(weights) if weights is not None else None
     if weights is not None and weights.is_file() and release is not None and cached_sha256(weights) != release.sha256:
-        found = f"stereo weights {weights} have SHA-256 {cached_sha256(weights)}, release {release.name} has {release.sha256}"
+        found = f"stereo weights {weights}: SHA-256 {cached_sha256(weights)}, release {release.name}: {release.sha256}"
         return CheckResult.failed(MODELS, found, MODEL_FIX), None
     try:
         backend = cfg.stereo.build_backend()
@@ -84,7 +86,8 @@ def check_latency(cfg: Config, sample: CameraSample, models: tuple[Any, Any]) ->
     except ValueError as exc:  # the calibration out of range, or a frame the pipeline refuses
         return CheckResult.failed(LATENCY, str(exc), "check camera.calibration and camera.source, then run again")
     worst = max(seconds)
-    found = f"worst {worst * 1000:.0f} ms of {len(seconds)} frame(s), budget mavlink.max_result_age_s = {budget_s * 1000:.0f} ms"
+    found = f"worst {worst * 1000:.0f} ms of {len(seconds)} frame(s), "
+    found += f"budget mavlink.max_result_age_s = {budget_s * 1000:.0f} ms"
     if worst > budget_s:
         return CheckResult.failed(
             LATENCY,
