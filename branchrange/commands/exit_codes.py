@@ -1,4 +1,5 @@
-"""Exit codes shared by `branchrange record`, `replay` and `export-frames`, and the `--help` epilog that states them."""
+"""Exit codes shared by `branchrange record`, `replay`, `export-frames` and `preflight`, and the `--help` epilog
+of the first three."""
 
 from __future__ import annotations
 
