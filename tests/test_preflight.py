@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 import socket
+import time
 from pathlib import Path
 
 import pytest
@@ -15,9 +16,10 @@ from autopilot_sim import MAV_AUTOPILOT_PX4, AutopilotSim, approach_flight
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.exit_codes import BAD_INPUT, CHECK_FAILED, DONE
 from branchrange.core.segmentation.learned import SHIPPED_MODELS
+from branchrange.onboard.preflight.camera_checks import SAMPLED_FRAMES, read_frames
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
-from camera.sources import Recorder, StereoFrame
+from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
 
 FRAMES, PERIOD_NS = 6, 100_000_000  # 10 fps: four frames are read in 0.3 s
 WIDTH, HEIGHT = 320, 256
@@ -95,6 +97,32 @@ def test_a_missing_camera_is_caught_with_its_fix(autopilot, tmp_path, capsys):
     assert "no-such-recording" in failed(report)["camera"]["found"]
     assert "plug the camera in" in failed(report)["camera"]["fix"]
     assert [by_name(report)[name]["status"] for name in ("calibration", "pipeline latency")] == ["skip", "skip"]
+
+
+def test_frames_slower_than_the_configured_rate_are_caught(autopilot, tmp_path, capsys):
+    """A recording at 10 fps (its median period) whose first frames came 0.8 s apart, as from a camera on USB 2."""
+    scene = bar_scene(WIDTH, HEIGHT)
+    stamps_ms = [0, 800, 1600, 2400, 2500, 2600, 2700, 2800, 2900]
+    calibration = from_rectified(FOCAL_PX, 159.5, 127.5, BASELINE_M, (WIDTH, HEIGHT))
+    with Recorder(tmp_path / "slow", calibration=calibration, source_spec="synthetic bar") as recorder:
+        for i, ms in enumerate(stamps_ms):
+            recorder.write(StereoFrame(scene.left, scene.right, 1_000_000_000 + ms * 1_000_000, i))
+    code, report = preflight(capsys, write_config(tmp_path, f"replay:{tmp_path / 'slow'}", autopilot.port))
+    assert code == CHECK_FAILED and set(failed(report)) == {"camera"}
+    check = failed(report)["camera"]
+    assert "at 1.2 fps, configured 10 fps" in check["found"] or "at 1.3 fps, configured 10 fps" in check["found"]
+    assert "USB 3" in check["fix"]
+
+
+def test_a_camera_that_stops_is_declared_lost_after_the_stall_timeout(recording):
+    plan = FaultPlan(stall={2: 5.0})
+    with FaultInjectingSource(ReplaySource(recording, pace="fast"), plan) as source:
+        start = time.monotonic()
+        arrivals, problem = read_frames(source, SAMPLED_FRAMES, stall_timeout_s=0.3)
+        waited = time.monotonic() - start
+    assert [frame.index for frame, _ in arrivals] == [0, 1]
+    assert problem == "no frame for camera.stall_timeout_s (0.3 s)"
+    assert 0.3 <= waited < 1.5
 
 
 def test_a_calibration_of_another_size_is_caught_with_its_fix(recording, autopilot, tmp_path, capsys):
