@@ -15,7 +15,9 @@ from autopilot_sim import MAV_AUTOPILOT_PX4, AutopilotSim, approach_flight
 
 from branchrange.cli import main as branchrange_main
 from branchrange.commands.exit_codes import BAD_INPUT, CHECK_FAILED, DONE
+from branchrange.core.config import MavlinkConfig
 from branchrange.core.segmentation.learned import SHIPPED_MODELS
+from branchrange.onboard.preflight.autopilot_parameters import ardupilot_rules
 from branchrange.onboard.preflight.camera_checks import SAMPLED_FRAMES, read_frames
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
@@ -226,6 +228,21 @@ def test_an_autopilot_signing_with_another_key_is_caught(recording, tmp_path, ca
     assert failed(report)["MAVLink signing"]["fix"] == (
         "load the same signing key on the autopilot and in mavlink.signing_key_file"
     )
+
+
+@pytest.mark.parametrize(("avoid_enable", "ok"), [(0, False), (1, False), (2, True), (3, True), (7, True)])
+def test_avoid_enable_needs_its_proximity_bit(avoid_enable, ok):
+    (rule,) = [rule for rule in ardupilot_rules(MavlinkConfig()) if rule.name == "AVOID_ENABLE"]
+    assert rule.accepts(float(avoid_enable)) is ok
+
+
+def test_a_guided_approach_adds_the_speed_limit_in_cm_per_s():
+    rules = {
+        rule.name: rule for rule in ardupilot_rules(MavlinkConfig(setpoint_enabled=True, setpoint_max_speed_m_s=0.5))
+    }
+    assert rules["WPNAV_SPEED"].wanted == "50"
+    assert rules["WPNAV_SPEED"].accepts(50.0) and not rules["WPNAV_SPEED"].accepts(500.0)
+    assert "WPNAV_SPEED" not in {rule.name for rule in ardupilot_rules(MavlinkConfig())}
 
 
 def test_an_unreadable_configuration_is_bad_input(tmp_path, capsys):

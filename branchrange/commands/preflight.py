@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_config_arguments(p, required=True, sections="every section the daemon reads; see deploy/onboard.toml")
+    add_config_arguments(p, required=True, sections="every section the daemon reads")
     p.add_argument("--source", help="frame source spec, overrides camera.source (as for `branchrange daemon`)")
     p.add_argument("--mavlink", help="MAVLink connection string, overrides mavlink.url")
     p.add_argument(

@@ -1,14 +1,14 @@
 """The autopilot parameters BranchRange needs, per autopilot: one table each, as data.
 
 Each `ParameterRule` names a parameter, what value it must have (`accepts`), the value to set
-(`wanted`, as the operator types it into a ground station) and why. The values come from the
-[onboard guide](../../../docs/onboard.md#ardupilot-parameters) and the MAVLink reference:
+(`wanted`, as the operator types it into a ground station) and why. The values come from the onboard
+guide (docs/onboard.md, "ArduPilot parameters" and "PX4 parameters") and the MAVLink reference:
 BranchRange sends OBSTACLE_DISTANCE_3D and DISTANCE_SENSOR for the other branches and
 DISTANCE_SENSOR + DEBUG_VECT `CUT` for the target.
 
 ArduPilot Copter ≥ 4.3 (`PRX1_TYPE` was `PRX_TYPE` before):
 - `PRX1_TYPE` = 2: the MAVLink proximity backend, which reads OBSTACLE_DISTANCE_3D into the fence;
-- `AVOID_ENABLE` with bit 2 (4, "use proximity sensor") set, 7 as documented;
+- `AVOID_ENABLE` with bit 1 (2, "UseProximitySensor") set, 7 (fence, proximity, beacons) as documented;
 - `AVOID_MARGIN` above 0 and below `mavlink.max_distance_m`: a margin beyond the farthest obstacle
   BranchRange reports would never hold the drone;
 - `SYSID_THISMAV` = `mavlink.system_id`: BranchRange sends as the vehicle's system;
@@ -37,8 +37,8 @@ MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4 = 3, 12
 AUTOPILOT_NAMES = {MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot", MAV_AUTOPILOT_PX4: "PX4"}
 #: MAVLink instance mode "Onboard" of PX4's `MAV_n_MODE`.
 PX4_MAV_MODE_ONBOARD = 2
-#: ArduPilot's `AVOID_ENABLE` bit for proximity sensors.
-AVOID_USE_PROXIMITY = 4
+#: ArduPilot's `AVOID_ENABLE` bit for proximity sensors (bit 1, "UseProximitySensor").
+AVOID_USE_PROXIMITY = 2
 
 
 @dataclass(frozen=True)
@@ -67,8 +67,8 @@ def ardupilot_rules(mavlink: MavlinkConfig) -> tuple[ParameterRule, ...]:
         ParameterRule(
             "AVOID_ENABLE",
             "7",
-            "bit 2 (4) makes the fence use proximity obstacles",
-            lambda value: int(value) & AVOID_USE_PROXIMITY != 0,
+            "bit 1 (2) makes avoidance use proximity obstacles",
+            lambda value: (int(value) & AVOID_USE_PROXIMITY) != 0,
         ),
         ParameterRule(
             "AVOID_MARGIN",
