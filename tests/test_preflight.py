@@ -17,8 +17,10 @@ from branchrange.cli import main as branchrange_main
 from branchrange.commands.exit_codes import BAD_INPUT, CHECK_FAILED, DONE
 from branchrange.core.config import MavlinkConfig
 from branchrange.core.segmentation.learned import SHIPPED_MODELS
+from branchrange.onboard.mavlink.connection import open_connection
 from branchrange.onboard.preflight.autopilot_parameters import ardupilot_rules
 from branchrange.onboard.preflight.camera_checks import SAMPLED_FRAMES, read_frames
+from branchrange.onboard.preflight.parameter_read import read_parameter
 from camera.calibration import from_rectified
 from camera.opencv_file import write_opencv_file
 from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
@@ -228,6 +230,19 @@ def test_an_autopilot_signing_with_another_key_is_caught(recording, tmp_path, ca
     assert failed(report)["MAVLink signing"]["fix"] == (
         "load the same signing key on the autopilot and in mavlink.signing_key_file"
     )
+
+
+def test_a_parameter_read_is_retried_and_a_parameter_nobody_holds_reads_as_none(autopilot):
+    conn = open_connection(f"udpout:127.0.0.1:{autopilot.port}", source_component=191)
+    try:
+        autopilot.silence(0.25)  # the first request is lost, as on a radio
+        assert read_parameter(conn, (1, 1), "AVOID_MARGIN", bytewise=False, timeout_s=0.2, attempts=3) == 1.0
+        asked = len(autopilot.of_type("PARAM_REQUEST_READ"))
+        assert read_parameter(conn, (1, 1), "NO_SUCH_PARAM", bytewise=False, timeout_s=0.1, attempts=3) is None
+    finally:
+        conn.close()
+    assert asked >= 2
+    assert [r.msg.param_id for r in autopilot.of_type("PARAM_REQUEST_READ")][asked:] == ["NO_SUCH_PARAM"] * 3
 
 
 @pytest.mark.parametrize(("avoid_enable", "ok"), [(0, False), (1, False), (2, True), (3, True), (7, True)])
