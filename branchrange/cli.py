@@ -14,6 +14,7 @@ from stereo.cli import run
 COMMAND_MODULES: tuple[str, ...] = (
     "branchrange.commands.serve",
     "branchrange.commands.daemon",
+    "branchrange.commands.preflight",
     "branchrange.commands.replay",
     "branchrange.commands.export_frames",
     "branchrange.commands.config",

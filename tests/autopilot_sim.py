@@ -7,6 +7,10 @@ from its own thread, at the wall-clock times they are due:
 - answers COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL with COMMAND_ACK and from then on streams that
   message (ATTITUDE, LOCAL_POSITION_NED) at the requested rate, stamped with its own time_boot_ms
   (it "booted" `boot_age_s` before the test started, so the relay must align clocks);
+- answers PARAM_REQUEST_READ (by name or index) with PARAM_VALUE from its `params`: the parameters
+  BranchRange needs, at the values it needs (`ARDUPILOT_PARAMS`, or `PX4_PARAMS` as PX4), overridden
+  by the `params` given; a name it does not hold gets no answer, as on a real autopilot. As PX4
+  (`autopilot=MAV_AUTOPILOT_PX4`) it sends integers bytewise in the float, as PX4 does;
 - records every message it receives with its arrival time (`time.monotonic()`), or hands each to
   `listener` instead (a soak of an hour would hold hundreds of thousands of messages).
 With `signing_key` it signs what it sends and rejects what is not signed with that key.
@@ -31,9 +35,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,7 +60,11 @@ from camera.sources.replay import FrameReader, FrameStamp
 
 ARDUCOPTER_GUIDED, ARDUCOPTER_LOITER = 4, 5
 MAV_TYPE_QUADROTOR, MAV_TYPE_GCS = 2, 6
-MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_INVALID = 3, 8
+MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_INVALID, MAV_AUTOPILOT_PX4 = 3, 8, 12
+#: What a correctly set up autopilot holds (branchrange.onboard.preflight.autopilot_parameters).
+ARDUPILOT_PARAMS: dict[str, float] = {"PRX1_TYPE": 2, "AVOID_ENABLE": 7, "AVOID_MARGIN": 1.0, "SYSID_THISMAV": 1}
+PX4_PARAMS: dict[str, float] = {"CP_DIST": -1.0, "MAV_SYS_ID": 1, "MAV_1_MODE": 2}
+MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32 = 6, 9
 ATTITUDE_ID, LOCAL_POSITION_NED_ID = 30, 32
 
 
@@ -157,11 +166,14 @@ class AutopilotSim:
         boot_age_s: float = 100.0,
         listener: Callable[[Received], None] | None = None,
         poll_s: float = 0.001,
+        params: Mapping[str, float] | None = None,
     ):
         self.trajectory = trajectory
         self.heartbeat_period_s = heartbeat_period_s
         self.mode, self.armed, self.mav_type, self.autopilot = mode, armed, mav_type, autopilot
         self.answer_interval_requests = answer_interval_requests
+        defaults = PX4_PARAMS if autopilot == MAV_AUTOPILOT_PX4 else ARDUPILOT_PARAMS
+        self.params: dict[str, float] = {**defaults, **(params or {})}
         self.heartbeats_on = True
         self.heartbeats_sent = 0
         self.received: list[Received] = []
@@ -255,6 +267,20 @@ class AutopilotSim:
                 boot_ms, *(float(v) for v in pose.position_m), *(float(v) for v in velocity)
             )
 
+    def _send_param(self, index: int) -> None:
+        """PARAM_VALUE of the parameter at `index` of `params`: an int as INT32 (PX4: its bytes in the float)."""
+        name, value = list(self.params.items())[index]
+        kind = MAV_PARAM_TYPE_INT32 if isinstance(value, int) else MAV_PARAM_TYPE_REAL32
+        if kind == MAV_PARAM_TYPE_INT32 and self.autopilot == MAV_AUTOPILOT_PX4:
+            value = struct.unpack("<f", struct.pack("<i", value))[0]
+        self.conn.mav.param_value_send(name.encode("ascii"), float(value), kind, len(self.params), index)
+
+    def _answer_param_read(self, msg) -> None:
+        names = list(self.params)
+        index = names.index(msg.param_id) if msg.param_index < 0 and msg.param_id in names else msg.param_index
+        if 0 <= index < len(names):
+            self._send_param(index)
+
     def _handle(self, msg, now: float) -> None:
         if self.listener is not None:
             self.listener(Received(msg, now))
@@ -263,6 +289,8 @@ class AutopilotSim:
                 self.received.append(Received(msg, now))
         if now < self._silent_until:
             return
+        if msg.get_type() == "PARAM_REQUEST_READ":
+            self._answer_param_read(msg)
         if msg.get_type() == "COMMAND_LONG" and msg.command == self.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             if not self.answer_interval_requests:
                 return

@@ -1,4 +1,5 @@
-"""Exit codes shared by `branchrange record`, `replay` and `export-frames`, and the `--help` epilog that states them."""
+"""Exit codes shared by `branchrange record`, `replay`, `export-frames` and `preflight`, and the `--help` epilog
+of the first three."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ STOPPED_ON_ERROR = 1
 #: Bad input, nothing done: an option out of range, a missing, deleted, truncated or unreadable
 #: recording, a source that cannot be opened, or a source none of whose frames could be read.
 BAD_INPUT = 2
+#: `branchrange preflight`: it ran, and at least one check failed (not ready to arm).
+CHECK_FAILED = 3
 
 EPILOG = f"""exit codes (the same for record, replay and export-frames):
   {DONE}  done: every frame was handled (corrupt frames skipped and counted)
