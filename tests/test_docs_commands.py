@@ -1,0 +1,66 @@
+"""Every shell block of the manual marked `<!-- runnable -->` runs and exits 0 on small replay data
+(`tests/doc_commands.py` says how a block is marked and run)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+from doc_commands import DOCS, MARKER, example_id, make_sandbox, markers_without_shell_block, runnable_examples
+from sybil import Example
+
+PAGES = sorted(DOCS.rglob("*.md"))
+EXAMPLES = list(runnable_examples(PAGES))
+
+
+@pytest.fixture(scope="session")
+def docs_sandbox(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The data the runnable blocks name, made once per test run."""
+    return make_sandbox(tmp_path_factory.mktemp("docs-sandbox") / "sandbox")
+
+
+def run_in_copy(example: Example, sandbox: Path, workdir: Path) -> None:
+    """Evaluate `example` in a fresh copy of the sandbox (a block's outputs never meet another's)."""
+    shutil.copytree(sandbox, workdir, symlinks=True)
+    example.namespace["workdir"] = workdir
+    example.evaluate()
+
+
+@pytest.mark.parametrize("example", EXAMPLES, ids=example_id)
+def test_runnable_block_exits_zero(example: Example, docs_sandbox: Path, tmp_path: Path) -> None:
+    """The block runs as a reader would paste it, in a directory holding the data it names."""
+    run_in_copy(example, docs_sandbox, tmp_path / "work")
+
+
+def test_the_runnable_blocks_are_found() -> None:
+    """The scan sees the replay, synthetic-flight and estimate blocks (a broken scan would pass vacuously)."""
+    pages = {Path(example.path).name for example in EXAMPLES}
+    assert {"recordings.md", "synthetic.md", "getting-started.md"} <= pages
+    assert len(EXAMPLES) >= 4
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda page: page.relative_to(DOCS).as_posix())
+def test_every_marker_opens_a_shell_block(page: Path) -> None:
+    """A marker stands right before an `sh`/`bash` fence: elsewhere it would mark nothing."""
+    orphans = markers_without_shell_block(page.read_text(encoding="utf-8"))
+    assert not orphans, f"{page.name}: {MARKER} not followed by a ```sh block at lines {orphans}"
+
+
+def test_a_failing_block_fails(tmp_path: Path, docs_sandbox: Path) -> None:
+    """A block whose command fails (here: replay without its required --out, the old docs' mistake) raises,
+    naming the page and line and quoting the command's error."""
+    page = tmp_path / "page.md"
+    page.write_text(f"Intro.\n\n{MARKER}\n```sh\nbranchrange replay flights/2024-05-03\n```\n", encoding="utf-8")
+    (example,) = runnable_examples([page])
+    with pytest.raises(AssertionError, match=r"exit status 2[\s\S]*--out"):
+        run_in_copy(example, docs_sandbox, tmp_path / "work")
+
+
+def test_unmarked_blocks_are_not_run(tmp_path: Path) -> None:
+    """Only the marked block of a page is an example; a `text` block after a marker is reported."""
+    text = f"```sh\nexit 1\n```\n\n{MARKER}\n```bash\ntrue\n```\n\n{MARKER}\n```text\nnot a command\n```\n"
+    page = tmp_path / "page.md"
+    page.write_text(text, encoding="utf-8")
+    assert [str(example.parsed) for example in runnable_examples([page])] == ["true\n"]
+    assert markers_without_shell_block(text) == [10]
