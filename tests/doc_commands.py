@@ -1,7 +1,9 @@
 """The manual's runnable shell blocks: found with Sybil, run in a sandbox of small replay data.
 
 A fenced `sh` or `bash` block of a page under `docs/` is runnable when the line before its opening fence is
-the marker `<!-- runnable -->` (an HTML comment: neither GitHub nor the built site shows it). It runs as a
+the marker `<!-- runnable -->` (an HTML comment: neither GitHub nor the built site shows it), or
+`<!-- runnable: needs rosbags mcap -->` for a block that needs an optional extra's modules (skipped, saying
+which, where they are not installed). It runs as a
 `bash -e` script in a copy of the sandbox (the data its commands name, made once per test run by
 `make_sandbox`), with the test's Python environment first on PATH, so `branchrange` and `emcstereo` are the
 checkout's; a non-zero exit or more than `BLOCK_TIMEOUT_S` seconds fails it, with the end of its output.
@@ -23,6 +25,8 @@ from sybil.parsers.markdown.lexers import FencedCodeBlockLexer
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 MARKER = "<!-- runnable -->"
+#: The marker, with the optional extra's modules a block needs (`needs`: importable names, space-separated).
+MARKER_LINE = re.compile(r"^\s*<!-- runnable(?:: needs (?P<needs>[\w. ]+?))? -->\s*$")
 #: Seconds one block may run (its commands start Python, each about 2 s, on tiny data).
 BLOCK_TIMEOUT_S = 60
 #: Characters of a failing block's output quoted in the failure.
@@ -34,22 +38,24 @@ RECORDING_FRAMES, RECORDING_SIZE = 3, "320x180"
 PAIR_WIDTH, PAIR_HEIGHT, PAIR_SEED = 640, 360, 9
 
 
-def _is_marked(document: Document, region: Region) -> bool:
-    """Whether the last non-blank line before the block's opening fence is the marker."""
-    before = document.text[: region.start].rstrip().rsplit("\n", 1)[-1]
-    return before.strip() == MARKER
+def _marker_before(document: Document, region: Region) -> re.Match[str] | None:
+    """The marker when it is the last non-blank line before the block's opening fence."""
+    return MARKER_LINE.match(document.text[: region.start].rstrip().rsplit("\n", 1)[-1])
 
 
 class RunnableShellParser:
-    """Sybil parser: one example per marked shell block, evaluated by `run_shell_block`."""
+    """Sybil parser: one example per marked shell block, evaluated by `run_shell_block`; the example's
+    `parsed` is the block's source, and the modules it needs go to the namespace as `needs`."""
 
     def __init__(self) -> None:
         self.lexer = FencedCodeBlockLexer(language=SHELL_LANGUAGES)
 
     def __call__(self, document: Document) -> Iterable[Region]:
         for region in self.lexer(document):
-            if _is_marked(document, region):
-                yield Region(region.start, region.end, region.lexemes["source"], run_shell_block)
+            marker = _marker_before(document, region)
+            if marker is not None:
+                needs = tuple((marker["needs"] or "").split())
+                yield Region(region.start, region.end, (region.lexemes["source"], needs), run_shell_block)
 
 
 def markers_without_shell_block(text: str) -> list[int]:
@@ -59,7 +65,7 @@ def markers_without_shell_block(text: str) -> list[int]:
     fence = re.compile(rf"^\s*(?:[-*+]|\d+[.)])?\s*(`{{3,}}|~{{3,}})({SHELL_LANGUAGES})\s*$")
     orphans = []
     for number, line in enumerate(lines, start=1):
-        if line.strip() != MARKER:
+        if not MARKER_LINE.match(line):
             continue
         following = next((later for later in lines[number:] if later.strip()), "")
         if not fence.match(following):
@@ -80,6 +86,16 @@ def example_id(example: Example) -> str:
     return f"{path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else path}:{example.line}"
 
 
+def block_source(example: Example) -> str:
+    """The shell commands of a runnable block, as written."""
+    return str(example.parsed[0])
+
+
+def modules_needed(example: Example) -> tuple[str, ...]:
+    """The importable modules the block's marker says it needs (an optional extra's)."""
+    return tuple(example.parsed[1])
+
+
 def run_shell_block(example: Example) -> None:
     """Run the block with bash -e in the directory `example.namespace["workdir"]`; raise when it fails."""
     workdir: Path = example.namespace["workdir"]
@@ -88,7 +104,7 @@ def run_shell_block(example: Example) -> None:
     environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), environment.get("PYTHONPATH")]))
     try:
         done = subprocess.run(
-            ["bash", "-e", "-o", "pipefail", "-c", str(example.parsed)],
+            ["bash", "-e", "-o", "pipefail", "-c", block_source(example)],
             cwd=workdir,
             env=environment,
             capture_output=True,

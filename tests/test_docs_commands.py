@@ -7,7 +7,16 @@ import shutil
 from pathlib import Path
 
 import pytest
-from doc_commands import DOCS, MARKER, example_id, make_sandbox, markers_without_shell_block, runnable_examples
+from doc_commands import (
+    DOCS,
+    MARKER,
+    block_source,
+    example_id,
+    make_sandbox,
+    markers_without_shell_block,
+    modules_needed,
+    runnable_examples,
+)
 from sybil import Example
 
 PAGES = sorted(DOCS.rglob("*.md"))
@@ -30,14 +39,16 @@ def run_in_copy(example: Example, sandbox: Path, workdir: Path) -> None:
 @pytest.mark.parametrize("example", EXAMPLES, ids=example_id)
 def test_runnable_block_exits_zero(example: Example, docs_sandbox: Path, tmp_path: Path) -> None:
     """The block runs as a reader would paste it, in a directory holding the data it names."""
+    for module in modules_needed(example):
+        pytest.importorskip(module, reason=f"{example_id(example)} needs {module} (an optional extra)")
     run_in_copy(example, docs_sandbox, tmp_path / "work")
 
 
 def test_the_runnable_blocks_are_found() -> None:
     """The scan sees the replay, synthetic-flight and estimate blocks (a broken scan would pass vacuously)."""
     pages = {Path(example.path).name for example in EXAMPLES}
-    assert {"recordings.md", "synthetic.md", "getting-started.md"} <= pages
-    assert len(EXAMPLES) >= 4
+    assert {"recordings.md", "synthetic.md", "getting-started.md", "ros-foxglove.md"} <= pages
+    assert len(EXAMPLES) >= 5
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda page: page.relative_to(DOCS).as_posix())
@@ -58,9 +69,15 @@ def test_a_failing_block_fails(tmp_path: Path, docs_sandbox: Path) -> None:
 
 
 def test_unmarked_blocks_are_not_run(tmp_path: Path) -> None:
-    """Only the marked block of a page is an example; a `text` block after a marker is reported."""
-    text = f"```sh\nexit 1\n```\n\n{MARKER}\n```bash\ntrue\n```\n\n{MARKER}\n```text\nnot a command\n```\n"
+    """Only the marked blocks of a page are examples, with the modules their marker needs; a `text` block
+    after a marker is reported."""
+    text = (
+        f"```sh\nexit 1\n```\n\n{MARKER}\n```bash\ntrue\n```\n\n{MARKER}\n```text\nnot a command\n```\n\n"
+        "<!-- runnable: needs rosbags mcap -->\n```sh\nbranchrange bag-from-recording\n```\n"
+    )
     page = tmp_path / "page.md"
     page.write_text(text, encoding="utf-8")
-    assert [str(example.parsed) for example in runnable_examples([page])] == ["true\n"]
+    examples = list(runnable_examples([page]))
+    assert [block_source(example) for example in examples] == ["true\n", "branchrange bag-from-recording\n"]
+    assert [modules_needed(example) for example in examples] == [(), ("rosbags", "mcap")]
     assert markers_without_shell_block(text) == [10]
