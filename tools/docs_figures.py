@@ -40,6 +40,8 @@ FIGURE = re.compile(
     r"<!--\s*fig\s+(?P<file>\S+)\s+(?P<path>.+?)(?:\s+×(?P<factor>[0-9.]+))?\s+(?P<spec>[,_]?(?:\.\d+)?[dfeg%])\s*-->"
     r"(?P<shown>.*?)<!--\s*/fig\s*-->"
 )
+#: Where a figure starts, well formed or not.
+FIGURE_START = re.compile(r"<!--\s*fig\s")
 
 
 class FigureError(ValueError):
@@ -91,8 +93,21 @@ def _figure_of(page: Path, text: str, match: re.Match[str]) -> Figure:
     )
 
 
+def _check_syntax(page: Path, text: str) -> None:
+    """`FigureError` for a figure comment that is not well formed (it would otherwise be left as it is)."""
+    starts = {match.start() for match in FIGURE.finditer(text)}
+    for start in FIGURE_START.finditer(text):
+        if start.start() not in starts:
+            line = text.count("\n", 0, start.start()) + 1
+            raise FigureError(
+                f"{Figure(page, line, '', '', None, '', '').where()}: not a figure: write "
+                "<!-- fig FILE PATH [×N] FORMAT -->TEXT<!-- /fig --> on one line (FORMAT as .1f, .0f, d)"
+            )
+
+
 def figures_in(page: Path, text: str) -> list[Figure]:
-    """Every figure of a page's Markdown, in order."""
+    """Every figure of a page's Markdown, in order; `FigureError` for one that is not well formed."""
+    _check_syntax(page, text)
     return [_figure_of(page, text, match) for match in FIGURE.finditer(text)]
 
 
@@ -114,6 +129,7 @@ def value_of(figure: Figure) -> str:
 
 def render(page: Path, text: str) -> str:
     """The page's Markdown with each figure replaced by its value from its result file (the built manual)."""
+    _check_syntax(page, text)
     return FIGURE.sub(lambda match: value_of(_figure_of(page, text, match)), text)
 
 
@@ -129,6 +145,7 @@ def rewrite(page: Path, text: str) -> str:
         value = value_of(_figure_of(page, text, match))
         return match[0][: match.start("shown") - match.start()] + value + match[0][match.end("shown") - match.start() :]
 
+    _check_syntax(page, text)
     return FIGURE.sub(typed, text)
 
 
