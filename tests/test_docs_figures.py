@@ -81,3 +81,9 @@ def test_a_figure_that_cannot_be_read_says_why(tmp_path: Path, figure: str, mess
     with pytest.raises(FigureError, match=message) as error:
         drifted(tmp_path / "page.md", f"intro\n\n{figure}\n")
     assert "page.md:3" in str(error.value)
+
+
+def test_a_figure_quoted_in_a_code_span_is_text(tmp_path: Path) -> None:
+    """The syntax shown right after a backtick (the contributing page explains it so) is neither read nor replaced."""
+    text = f"write `{_figure(LEARNED_RECALL, '65.3')}` and `<!-- fig FILE PATH FORMAT -->TEXT<!-- /fig -->`"
+    assert figures_in(tmp_path / "page.md", text) == [] and render(tmp_path / "page.md", text) == text

@@ -11,6 +11,7 @@ A figure is written in a page's Markdown as
 - optionally `×N`, a factor (`×100`: a fraction shown in percent, the `%` sign is the page's);
 - a Python format spec for the number (`.1f`, `.0f`, `,.0f`).
 
+A figure right after a backtick (a code span quoting the syntax, as on the contributing page) is text.
 Between the two comments stands the figure as the page shows it on GitHub, typed by `python
 tools/docs_figures.py --write`, never by hand; the built manual (`tools/docs_hooks.py`) shows the value read
 from the file at build time, and the build and `tests/test_docs_figures.py` fail when the typed figure differs
@@ -37,11 +38,11 @@ ROOT = Path(__file__).resolve().parents[1]
 #: The pages that may quote figures: the manual and the benchmark logs it serves.
 PAGE_GLOBS = ("docs/**/*.md", "benchmarks/results/*.md", "benchmarks/RESULTS.md")
 FIGURE = re.compile(
-    r"<!--\s*fig\s+(?P<file>\S+)\s+(?P<path>.+?)(?:\s+×(?P<factor>[0-9.]+))?\s+(?P<spec>[,_]?(?:\.\d+)?[dfeg%])\s*-->"
+    r"(?<!`)<!--\s*fig\s+(?P<file>\S+)\s+(?P<path>.+?)(?:\s+×(?P<factor>[0-9.]+))?\s+(?P<spec>[,_]?(?:\.\d+)?[dfeg%])\s*-->"
     r"(?P<shown>.*?)<!--\s*/fig\s*-->"
 )
 #: Where a figure starts, well formed or not.
-FIGURE_START = re.compile(r"<!--\s*fig\s")
+FIGURE_START = re.compile(r"(?<!`)<!--\s*fig\s")
 
 
 class FigureError(ValueError):
