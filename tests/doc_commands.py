@@ -7,13 +7,18 @@ which, where they are not installed). It runs as a
 `bash -e` script in a copy of the sandbox (the data its commands name, made once per test run by
 `make_sandbox`), with the test's Python environment first on PATH, so `branchrange` and `emcstereo` are the
 checkout's; a non-zero exit or more than `BLOCK_TIMEOUT_S` seconds fails it, with the end of its output.
-Blocks that need a camera, a network, the vehicle's own files or minutes of CPU stay unmarked.
+Blocks that need a camera, a network, the vehicle's own files or minutes of CPU stay unmarked; their
+`branchrange` and `emcstereo` command lines are still parsed by the commands' own argument parsers
+(`command_line_error`), so a missing required option or a renamed one shows without running anything.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import re
+import shlex
 import subprocess
 import sys
 from collections.abc import Iterable, Iterator
@@ -94,6 +99,37 @@ def block_source(example: Example) -> str:
 def modules_needed(example: Example) -> tuple[str, ...]:
     """The importable modules the block's marker says it needs (an optional extra's)."""
     return tuple(example.parsed[1])
+
+
+def shell_command_lines(page: Path) -> list[tuple[int, list[str]]]:
+    """(line of the block's opening fence, argv) of each `branchrange` or `emcstereo` command in every `sh`/`bash`
+    block of the page, marked or not: continuation lines joined, comments dropped."""
+    document = Document(page.read_text(encoding="utf-8"), str(page))
+    commands = []
+    for region in FencedCodeBlockLexer(language=SHELL_LANGUAGES)(document):
+        line = document.text.count("\n", 0, region.start) + 1
+        for command in re.sub(r"\\\n\s*", " ", region.lexemes["source"]).splitlines():
+            argv = shlex.split(command, comments=True)
+            if argv and argv[0] in ("branchrange", "emcstereo"):
+                commands.append((line, argv))
+    return commands
+
+
+def command_line_error(argv: list[str]) -> str | None:
+    """What the command's argument parser says about `argv` (`branchrange …` or `emcstereo …`), or None when it
+    accepts it; nothing runs."""
+    from branchrange.cli import COMMAND_MODULES as BRANCHRANGE_COMMANDS
+    from stereo.cli import COMMAND_MODULES as EMCSTEREO_COMMANDS
+    from stereo.cli import build_parser
+
+    modules = {"branchrange": BRANCHRANGE_COMMANDS, "emcstereo": EMCSTEREO_COMMANDS}[argv[0]]
+    errors = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(errors), contextlib.redirect_stdout(io.StringIO()):
+            build_parser(argv[0], "", modules).parse_args(argv[1:])
+    except SystemExit as exit_:
+        return errors.getvalue().strip().splitlines()[-1] if exit_.code else None
+    return None
 
 
 def run_shell_block(example: Example) -> None:

@@ -11,11 +11,13 @@ from doc_commands import (
     DOCS,
     MARKER,
     block_source,
+    command_line_error,
     example_id,
     make_sandbox,
     markers_without_shell_block,
     modules_needed,
     runnable_examples,
+    shell_command_lines,
 )
 from sybil import Example
 
@@ -56,6 +58,35 @@ def test_every_marker_opens_a_shell_block(page: Path) -> None:
     """A marker stands right before an `sh`/`bash` fence: elsewhere it would mark nothing."""
     orphans = markers_without_shell_block(page.read_text(encoding="utf-8"))
     assert not orphans, f"{page.name}: {MARKER} not followed by a ```sh block at lines {orphans}"
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda page: page.relative_to(DOCS).as_posix())
+def test_every_command_line_of_a_shell_block_parses(page: Path) -> None:
+    """Each `branchrange`/`emcstereo` command of the page's shell blocks, runnable or not (a camera, a network,
+    minutes of CPU), has the options its parser requires and no unknown one."""
+    errors = [
+        (line, " ".join(argv), error) for line, argv in shell_command_lines(page) if (error := command_line_error(argv))
+    ]
+    assert not errors, "\n".join(
+        f"{page.name}, block at line {line}: {command}\n  {error}" for line, command, error in errors
+    )
+
+
+def test_a_command_line_missing_a_required_option_is_reported(tmp_path: Path) -> None:
+    """The old docs' replay without --out is caught without running it; a complete one and a comment pass."""
+    page = tmp_path / "page.md"
+    page.write_text(
+        "```sh\nbranchrange replay flights/x \\\n    --summary   # no --out\nbranchrange replay x --out r.jsonl\n```\n",
+        encoding="utf-8",
+    )
+    commands = shell_command_lines(page)
+    assert commands == [
+        (1, ["branchrange", "replay", "flights/x", "--summary"]),
+        (1, ["branchrange", "replay", "x", "--out", "r.jsonl"]),
+    ]
+    assert "required: --out" in (command_line_error(commands[0][1]) or "")
+    assert command_line_error(commands[1][1]) is None
+    assert "invalid choice" in (command_line_error(["emcstereo", "no-such-command"]) or "")
 
 
 def test_a_failing_block_fails(tmp_path: Path, docs_sandbox: Path) -> None:
