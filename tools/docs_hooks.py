@@ -5,7 +5,10 @@
 - the `--help` epilog of `branchrange record` / `replay` replaces `<!-- generated: exit-codes -->`
   (the troubleshooting page);
 - the benchmark logs (`benchmarks/results/*.md`) and the overlays they show become pages of the site
-  at the same paths, so the manual links to them as they lie in the repository.
+  at the same paths, so the manual links to them as they lie in the repository;
+- each figure a page quotes from a benchmark's JSON result file (`<!-- fig FILE PATH FORMAT -->…<!-- /fig -->`,
+  `docs_figures.py`) is read from that file; one that cannot be read, or whose typed text differs from the
+  file, is a warning, so the strict build fails.
 
 Nothing here downloads anything or needs a camera, a model file or the network.
 """
@@ -13,11 +16,13 @@ Nothing here downloads anything or needs a camera, a model file or the network.
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Callable
 from functools import cache
 from pathlib import Path
 from typing import Any
 
+from docs_figures import FigureError, drifted, render
 from mkdocs.config.defaults import MkDocsConfig
 from mkdocs.structure.files import File, Files
 from mkdocs.structure.pages import Page
@@ -27,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXTRA_FILES = ("benchmarks/results/*.md", "benchmarks/segmenter_overlays/*.png", "benchmarks/branchnet_training/*/*")
 OPENAPI_FILE = "openapi.json"
 HTTP_METHODS = ("get", "post", "put", "patch", "delete")
+log = logging.getLogger("mkdocs.hooks.docs_figures")
 
 
 @cache
@@ -119,8 +125,22 @@ def on_files(files: Files, config: MkDocsConfig) -> Files:
 
 
 def on_page_markdown(markdown: str, page: Page, config: MkDocsConfig, files: Files) -> str:
-    """Replace each generation marker in a page by what the code says today."""
+    """Replace each generation marker in a page by what the code says today, and each figure by its value in
+    its result file."""
     for marker, make in GENERATED.items():
         if marker in markdown:
             markdown = markdown.replace(marker, make())
-    return markdown
+    source = Path(page.file.abs_src_path or page.file.src_uri)
+    try:
+        for figure, value in drifted(source, markdown):
+            log.warning(
+                "%s: the page shows %s, %s says %s (python tools/docs_figures.py --write)",
+                figure.where(),
+                figure.shown,
+                figure.file,
+                value,
+            )
+        return render(source, markdown)
+    except FigureError as error:
+        log.warning("%s", error)
+        return markdown
