@@ -206,8 +206,12 @@ def test_daemon_survives_dropped_corrupt_and_stalled_frames(recording, caplog):
         listener.finish()
         daemon.close()
     assert daemon.corrupt == 1 and daemon.reopens == 1 and len(opened) == 2
-    assert 2 not in processed and 4 not in processed and processed == sorted(processed)
-    assert max(processed) == FRAMES - 1 and {0, 1, 3, 5} <= set(processed)
+    # 2 dropped and 4 corrupt by the plan, 6–7 gone with the camera: what reached the daemon is the rest
+    delivered = {0, 1, 3, 5, *range(8, FRAMES)}
+    assert set(processed) <= delivered and processed == sorted(processed) and max(processed) == FRAMES - 1
+    # on a loaded machine the stereo thread may be too slow for a frame: the newest replaces it, and is counted
+    unprocessed = delivered - set(processed)
+    assert len(unprocessed) <= daemon.dropped, (unprocessed, daemon.dropped)
     statuses = [h.msg.system_status for h in of_type(peer.received, "HEARTBEAT")]
     assert 5 in statuses, "no CRITICAL heartbeat while the camera was gone"
     assert statuses[-1] == 4 and daemon.camera_lost is False
