@@ -19,6 +19,7 @@ readonly UNIT_NAME=branchrange-daemon.service
 readonly RULES_NAME=99-branchrange-cameras.rules
 readonly CPU_TORCH_INDEX=https://download.pytorch.org/whl/cpu
 readonly JETSON_UART=/dev/ttyTHS1
+readonly PYTHON_IS_RECENT='import sys; sys.exit(sys.version_info < (3, 11))'  # tomllib
 DEPLOY_DIR=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 readonly DEPLOY_DIR
 
@@ -63,9 +64,11 @@ options:
 EOF
 }
 
-die() {  # die STATUS MESSAGE: the reason on stderr, then exit
-    echo "install.sh: $2" >&2
-    exit "$1"
+die() {  # die STATUS MESSAGE...: the reason on stderr, then exit
+    local status=$1
+    shift
+    echo "install.sh: $*" >&2
+    exit "$status"
 }
 
 need_value() {  # need_value OPTION ARGC: an option that takes a value must have one
@@ -220,7 +223,8 @@ if [[ $TORCH == auto ]]; then
     if [[ $JETPACK -eq 1 && -n $TORCH_SPEC ]] || [[ $JETPACK -eq 0 && $NVIDIA_DRIVER -eq 1 ]]; then TORCH=cuda; fi
 fi
 [[ $TORCH == cuda && $JETPACK -eq 1 && -z $TORCH_SPEC && -z $WHEEL_DIR ]] &&
-    die 2 "a CUDA torch on JetPack needs --torch-spec WHEEL: no public index has one for JetPack 6 and CPython 3.11 (see deploy/Dockerfile.jetson), or take --torch cpu"
+    die 2 "a CUDA torch on JetPack needs --torch-spec WHEEL: no public index has one for JetPack 6 and" \
+        "CPython 3.11 (see deploy/Dockerfile.jetson), or take --torch cpu"
 PINNED_TORCH=$(grep -E '^torch==' "$DEPLOY_DIR/constraints.txt")
 [[ -n $TORCH_SPEC ]] || TORCH_SPEC=$PINNED_TORCH
 if [[ -z $TORCH_INDEX ]]; then
@@ -236,14 +240,15 @@ fi
 [[ -f $CONFIG ]] || die 2 "--config $CONFIG: no such file"
 if [[ -z $PYTHON ]]; then
     for candidate in python3.11 python3.12 python3.13 python3; do
-        if command -v "$candidate" >/dev/null && "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+        if command -v "$candidate" >/dev/null && "$candidate" -c "$PYTHON_IS_RECENT"; then
             PYTHON=$candidate
             break
         fi
     done
-    [[ -n $PYTHON ]] || die 2 "no CPython 3.11 or newer found (BranchRange reads TOML with tomllib): install python3.11 and python3.11-venv (JetPack 6: from the deadsnakes PPA, see docs/onboard.md), or give --python"
+    [[ -n $PYTHON ]] || die 2 "no CPython 3.11 or newer found (BranchRange reads TOML with tomllib): install" \
+        "python3.11 and python3.11-venv (JetPack 6: from the deadsnakes PPA, see docs/onboard.md), or give --python"
 fi
-"$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null ||
+"$PYTHON" -c "$PYTHON_IS_RECENT" 2>/dev/null ||
     die 2 "--python $PYTHON: not a CPython 3.11 or newer"
 PYTHON_VERSION=$("$PYTHON" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
 
@@ -254,7 +259,8 @@ TORCH_FROM=("${PIP_SOURCE[@]}")
 
 echo "BranchRange install: system ${SYSTEM}$([[ $JETPACK -eq 1 ]] && echo ' (JetPack)'), $(uname -m)," \
     "NVIDIA driver $([[ $NVIDIA_DRIVER -eq 1 ]] && echo yes || echo no), torch $TORCH ($TORCH_SPEC)," \
-    "config $(basename "$CONFIG"), python $PYTHON ($PYTHON_VERSION), prefix $ROOT$([[ $DRY_RUN -eq 1 ]] && echo ', dry run')"
+    "config $(basename "$CONFIG"), python $PYTHON ($PYTHON_VERSION), prefix $ROOT" \
+    "$([[ $DRY_RUN -eq 1 ]] && echo '(dry run)')"
 
 WORK=$(mktemp -d)
 trap 'rm -rf "$WORK"' EXIT
@@ -277,7 +283,9 @@ for assignment in "${SETS[@]}"; do
 done
 CONFIG_DEVICE=$(toml_get "$CANDIDATE" stereo device)
 [[ $CONFIG_DEVICE == cuda && $TORCH == cpu ]] &&
-    die 2 "$(basename "$CONFIG") runs the network on CUDA (stereo.device = \"cuda\") but this install takes a CPU torch: the daemon would refuse to start; use --config onboard_cpu.toml, or a CUDA torch (--torch cuda; on JetPack with --torch-spec)"
+    die 2 "$(basename "$CONFIG") runs the network on CUDA (stereo.device = \"cuda\") but this install takes a" \
+        "CPU torch: the daemon would refuse to start; use --config onboard_cpu.toml, or a CUDA torch" \
+        "(--torch cuda; on JetPack with --torch-spec)"
 WEIGHTS_NAMED=$(toml_get "$CANDIDATE" stereo weights)
 
 # ---------------------------------------------------------------- the steps
@@ -286,7 +294,8 @@ step "system packages: libusb for the cameras, the venv module"
 if [[ $SYSTEM_INSTALL -eq 1 ]] && command -v apt-get >/dev/null; then
     run apt-get install -y --no-install-recommends libusb-1.0-0 "python${PYTHON_VERSION}-venv"
 else
-    note "skipped: needs root on / with apt-get (prefix $ROOT); have libusb-1.0-0 and python${PYTHON_VERSION}-venv installed"
+    note "skipped: needs root on / with apt-get (prefix $ROOT);" \
+        "have libusb-1.0-0 and python${PYTHON_VERSION}-venv installed"
 fi
 
 step "service user $SERVICE_USER (groups $SERVICE_GROUPS: the camera and the serial port)"
@@ -308,7 +317,7 @@ if [[ $SYSTEM_INSTALL -eq 1 ]]; then
 fi
 
 step "venv: $VENV (the unit's ExecStart)"
-if [[ -x $VENV/bin/python ]] && "$VENV/bin/python" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+if [[ -x $VENV/bin/python ]] && "$VENV/bin/python" -c "$PYTHON_IS_RECENT"; then
     note "kept: $VENV already holds a CPython 3.11 or newer"
 else
     run "$PYTHON" -m venv "$VENV"
@@ -330,7 +339,8 @@ CUDA_CHECK='import sys, torch; sys.exit(torch.version.cuda is None)'
 if [[ $CONFIG_DEVICE == cuda ]]; then
     note "$(basename "$CONFIG") runs on CUDA: the installed torch must be a CUDA build"
     run "$VENV_PYTHON" -c "$CUDA_CHECK" ||
-        die 1 "the torch in $VENV is a CPU build but $(basename "$CONFIG") needs CUDA: use --config onboard_cpu.toml or a CUDA torch"
+        die 1 "the torch in $VENV is a CPU build but $(basename "$CONFIG") needs CUDA:" \
+            "use --config onboard_cpu.toml or a CUDA torch"
 fi
 
 step "branchrange with extras [$EXTRAS], versions pinned by deploy/constraints.txt"
@@ -355,7 +365,8 @@ else
     elif [[ -f $OPT/weights/$WEIGHTS_FILE ]]; then
         note "kept: $OPT/weights/$WEIGHTS_FILE"
     else
-        note "missing: $OPT/weights/$WEIGHTS_FILE; give --weights-from DIR or --fetch-weights (preflight fails without it)"
+        note "missing: $OPT/weights/$WEIGHTS_FILE;" \
+            "give --weights-from DIR or --fetch-weights (preflight fails without it)"
     fi
 fi
 
@@ -363,7 +374,8 @@ step "calibration: the camera's factory SN<serial>.conf"
 if [[ -n $CALIBRATION ]]; then
     put_file 0640 "$CALIBRATION" "$CALIBRATION_DEST"
 else
-    note "none given: put the camera's file where camera.calibration says ($(toml_get "$CANDIDATE" camera calibration)),"
+    note "none given: put the camera's file where camera.calibration says:" \
+        "$(toml_get "$CANDIDATE" camera calibration),"
     note "or give --calibration FILE (an OAK or a replay: source needs none)"
 fi
 
@@ -398,7 +410,9 @@ put_file 0644 "$SOURCE/README.md" "$OPT/README.md"  # the unit's Documentation=
 
 step "systemd and udev: reload, enable the daemon"
 if [[ $SYSTEMD -eq 0 || $SYSTEM_INSTALL -eq 0 ]]; then
-    note "skipped ($([[ $SYSTEMD -eq 0 ]] && echo --no-systemd || echo "prefix $ROOT, not root on /")): files written, nothing reloaded"
+    REASON="prefix $ROOT, not root on /"
+    [[ $SYSTEMD -eq 0 ]] && REASON=--no-systemd
+    note "skipped ($REASON): files written, nothing reloaded"
 else
     run udevadm control --reload
     run udevadm trigger --subsystem-match=video4linux --subsystem-match=usb --subsystem-match=hidraw
