@@ -373,10 +373,11 @@ fi
 step "calibration: the camera's factory SN<serial>.conf"
 if [[ -n $CALIBRATION ]]; then
     put_file 0640 "$CALIBRATION" "$CALIBRATION_DEST"
+elif [[ -n $(toml_get "$CANDIDATE" camera calibration) ]]; then
+    note "none given: put the camera's file where camera.calibration says," \
+        "$(toml_get "$CANDIDATE" camera calibration), or give --calibration FILE"
 else
-    note "none given: put the camera's file where camera.calibration says:" \
-        "$(toml_get "$CANDIDATE" camera calibration),"
-    note "or give --calibration FILE (an OAK or a replay: source needs none)"
+    note "none: camera.calibration is empty (an OAK or a replay: source brings its own)"
 fi
 
 step "configuration: $ETC/onboard.toml from $(basename "$CONFIG")"
