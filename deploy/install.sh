@@ -291,8 +291,19 @@ WEIGHTS_NAMED=$(toml_get "$CANDIDATE" stereo weights)
 # ---------------------------------------------------------------- the steps
 
 step "system packages: libusb for the cameras, the venv module"
+SYSTEM_PACKAGES=(libusb-1.0-0 "python${PYTHON_VERSION}-venv")
 if [[ $SYSTEM_INSTALL -eq 1 ]] && command -v apt-get >/dev/null; then
-    run apt-get install -y --no-install-recommends libusb-1.0-0 "python${PYTHON_VERSION}-venv"
+    MISSING=()
+    for package in "${SYSTEM_PACKAGES[@]}"; do
+        dpkg-query --show --showformat='${Status}' "$package" 2>/dev/null | grep --quiet 'ok installed' ||
+            MISSING+=("$package")
+    done
+    if [[ ${#MISSING[@]} -gt 0 ]]; then  # offline, apt-get update fails: have them installed beforehand
+        run apt-get update
+        run apt-get install -y --no-install-recommends "${MISSING[@]}"
+    else
+        note "kept: ${SYSTEM_PACKAGES[*]} already installed"
+    fi
 else
     note "skipped: needs root on / with apt-get (prefix $ROOT);" \
         "have libusb-1.0-0 and python${PYTHON_VERSION}-venv installed"
@@ -357,9 +368,9 @@ else
     WEIGHTS_FILE=$(basename "$WEIGHTS_NAMED")
     if [[ -n $WEIGHTS_FROM ]]; then
         [[ -f $WEIGHTS_FROM/$WEIGHTS_FILE ]] || die 2 "--weights-from $WEIGHTS_FROM: no $WEIGHTS_FILE there"
+        run "$VENV/bin/emcstereo" weights verify "$WEIGHTS_FROM/$WEIGHTS_FILE" ||
+            die 1 "$WEIGHTS_FROM/$WEIGHTS_FILE is not the released $WEIGHTS_FILE (SHA-256); nothing copied"
         put_file 0644 "$WEIGHTS_FROM/$WEIGHTS_FILE" "$OPT/weights/$WEIGHTS_FILE"
-        run "$VENV/bin/emcstereo" weights verify "$OPT/weights/$WEIGHTS_FILE" ||
-            die 1 "$WEIGHTS_FROM/$WEIGHTS_FILE is not the released $WEIGHTS_FILE (SHA-256)"
     elif [[ $FETCH_WEIGHTS -eq 1 ]]; then
         run "$VENV/bin/emcstereo" weights fetch emcstereo-virtualtree --dest "$OPT/weights" --quiet
     elif [[ -f $OPT/weights/$WEIGHTS_FILE ]]; then
@@ -398,7 +409,9 @@ else
     put_file 0644 "$WORK/config.schema.json" "$ETC/config.schema.json"
 fi
 if [[ $SYSTEM_INSTALL -eq 1 ]]; then  # readable by the service, by nobody else
-    run chown "root:$SERVICE_USER" "$ETC"/onboard.toml* ${CALIBRATION:+"$CALIBRATION_DEST"}
+    READABLE=("$ETC/onboard.toml" ${CALIBRATION:+"$CALIBRATION_DEST"})
+    [[ -f $ETC/onboard.toml.new ]] && READABLE+=("$ETC/onboard.toml.new")
+    run chown "root:$SERVICE_USER" "${READABLE[@]}"
 fi
 run "$VENV/bin/branchrange" config check "$ETC/onboard.toml" ||
     die 1 "$ETC/onboard.toml has problems (listed above): edit it and run the line above again"
