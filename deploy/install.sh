@@ -187,7 +187,6 @@ put_file() {  # put_file MODE CANDIDATE DEST: install CANDIDATE as DEST (printed
 
 # ---------------------------------------------------------------- options and the machine
 
-[[ -d $PREFIX ]] || [[ $DRY_RUN -eq 1 ]] || mkdir -p "$PREFIX" || die 2 "--prefix $PREFIX: cannot create it"
 ROOT=$(realpath -m "$PREFIX")
 ROOT=${ROOT%/}/
 readonly ROOT

@@ -173,6 +173,15 @@ def test_bad_options_stop_before_any_step_with_exit_status_2(tmp_path, args, mes
     assert "==>" not in result.stdout and "Traceback" not in result.stderr
 
 
+def test_a_refused_install_leaves_the_prefix_untouched(tmp_path):
+    prefix = tmp_path / "prefix"
+    result = install(
+        "--prefix", prefix, "--detect-root", fake_machine(tmp_path / "machine"), "--config", "onboard.toml"
+    )
+    assert result.returncode == 2 and "the daemon would refuse to start" in result.stderr
+    assert not prefix.exists()
+
+
 def premade_venv(prefix: Path) -> Path:
     """The venv at the unit's path, made without pip: this checkout and the test's packages on its path,
     and `branchrange`/`emcstereo` commands as pip would have written them."""
