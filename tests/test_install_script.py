@@ -305,3 +305,22 @@ def test_weights_that_are_not_the_released_file_stop_the_install(tmp_path):
     assert "matches no registered weights" in result.stderr  # emcstereo weights verify said why
     assert not (tmp_path / "prefix" / "opt" / "branchrange" / "weights" / "emcstereo_virtualtree_best.pth").exists()
     assert not (tmp_path / "prefix" / "etc" / "branchrange" / "onboard.toml").exists()  # stopped before the config
+
+
+def test_the_jetson_container_and_the_install_pair_torch_and_configuration_alike():
+    """Both take the CUDA configuration only with a CUDA torch, and give the CPU one the Jetson's UART."""
+    onboard, cpu = load_config(ROOT / "deploy" / "onboard.toml"), load_config(ROOT / "deploy" / "onboard_cpu.toml")
+    assert (onboard.stereo.device, cpu.stereo.device) == ("cuda", "cpu")
+    script_uart = re.search(r"^readonly JETSON_UART=(\S+)$", SCRIPT.read_text(), re.MULTILINE).group(1)
+    assert script_uart == onboard.mavlink.url
+    docker = (ROOT / "deploy" / "Dockerfile.jetson").read_text()
+    choice = re.search(
+        r"if \.venv/bin/python -c '(.*?)'; then\s*\\\s*cp deploy/onboard\.toml /etc/branchrange/onboard\.toml;"
+        r"\s*\\\s*else\s*\\\s*sed 's#\^url = \"(.*?)\"#url = \"(.*?)\"#' deploy/onboard_cpu\.toml",
+        docker,
+    )
+    assert choice, "Dockerfile.jetson no longer picks the configuration by its torch"
+    cuda_check, replaced, uart = choice.groups()
+    script_cuda_check = re.search(r"^CUDA_CHECK='(.*)'$", SCRIPT.read_text(), re.MULTILINE).group(1)
+    assert cuda_check == script_cuda_check and "torch.version.cuda is None" in cuda_check
+    assert (replaced, uart) == (cpu.mavlink.url, script_uart)
