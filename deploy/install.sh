@@ -181,10 +181,6 @@ relocate() {  # relocate SOURCE DEST: copy a deploy file with /opt, /etc and /va
         -e "s#/var/lib/branchrange#${ROOT}var/lib/branchrange#g" "$1" >"$2"
 }
 
-put_file() {  # put_file MODE CANDIDATE DEST: install CANDIDATE as DEST (printed; nothing under --dry-run)
-    run install -m "$1" "$2" "$3"
-}
-
 # ---------------------------------------------------------------- options and the machine
 
 ROOT=$(realpath -m "$PREFIX")
@@ -369,7 +365,7 @@ else
         [[ -f $WEIGHTS_FROM/$WEIGHTS_FILE ]] || die 2 "--weights-from $WEIGHTS_FROM: no $WEIGHTS_FILE there"
         run "$VENV/bin/emcstereo" weights verify "$WEIGHTS_FROM/$WEIGHTS_FILE" ||
             die 1 "$WEIGHTS_FROM/$WEIGHTS_FILE is not the released $WEIGHTS_FILE (SHA-256); nothing copied"
-        put_file 0644 "$WEIGHTS_FROM/$WEIGHTS_FILE" "$OPT/weights/$WEIGHTS_FILE"
+        run install -m 0644 "$WEIGHTS_FROM/$WEIGHTS_FILE" "$OPT/weights/$WEIGHTS_FILE"
     elif [[ $FETCH_WEIGHTS -eq 1 ]]; then
         run "$VENV/bin/emcstereo" weights fetch emcstereo-virtualtree --dest "$OPT/weights" --quiet
     elif [[ -f $OPT/weights/$WEIGHTS_FILE ]]; then
@@ -382,7 +378,7 @@ fi
 
 step "calibration: the camera's factory SN<serial>.conf"
 if [[ -n $CALIBRATION ]]; then
-    put_file 0640 "$CALIBRATION" "$CALIBRATION_DEST"
+    run install -m 0640 "$CALIBRATION" "$CALIBRATION_DEST"
 elif [[ -n $(toml_get "$CANDIDATE" camera calibration) ]]; then
     note "none given: put the camera's file where camera.calibration says," \
         "$(toml_get "$CANDIDATE" camera calibration), or give --calibration FILE"
@@ -396,16 +392,16 @@ for assignment in "${SETS[@]}"; do
 done
 if [[ -f $ETC/onboard.toml ]] && ! cmp -s "$CANDIDATE" "$ETC/onboard.toml"; then
     note "kept: $ETC/onboard.toml differs from this install's; the new one is $ETC/onboard.toml.new"
-    put_file 0640 "$CANDIDATE" "$ETC/onboard.toml.new"
+    run install -m 0640 "$CANDIDATE" "$ETC/onboard.toml.new"
 else
-    put_file 0640 "$CANDIDATE" "$ETC/onboard.toml"
+    run install -m 0640 "$CANDIDATE" "$ETC/onboard.toml"
 fi
 if [[ $DRY_RUN -eq 1 ]]; then
     printf '    $ %s >%s\n' "$(shell_words "$VENV/bin/branchrange" config schema)" "$ETC/config.schema.json"
 else
     "$VENV/bin/branchrange" config schema >"$WORK/config.schema.json" ||
         die 1 "$VENV cannot run branchrange (was the project installed? see the steps above)"
-    put_file 0644 "$WORK/config.schema.json" "$ETC/config.schema.json"
+    run install -m 0644 "$WORK/config.schema.json" "$ETC/config.schema.json"
 fi
 if [[ $SYSTEM_INSTALL -eq 1 ]]; then  # readable by the service, by nobody else
     READABLE=("$ETC/onboard.toml" ${CALIBRATION:+"$CALIBRATION_DEST"})
@@ -417,9 +413,9 @@ run "$VENV/bin/branchrange" config check "$ETC/onboard.toml" ||
 
 step "systemd unit and udev rules"
 relocate "$DEPLOY_DIR/$UNIT_NAME" "$WORK/$UNIT_NAME"
-put_file 0644 "$WORK/$UNIT_NAME" "$UNIT_DIR/$UNIT_NAME"
-put_file 0644 "$DEPLOY_DIR/$RULES_NAME" "$UDEV_DIR/$RULES_NAME"
-put_file 0644 "$SOURCE/README.md" "$OPT/README.md"  # the unit's Documentation=
+run install -m 0644 "$WORK/$UNIT_NAME" "$UNIT_DIR/$UNIT_NAME"
+run install -m 0644 "$DEPLOY_DIR/$RULES_NAME" "$UDEV_DIR/$RULES_NAME"
+run install -m 0644 "$SOURCE/README.md" "$OPT/README.md"  # the unit's Documentation=
 
 step "systemd and udev: reload, enable the daemon"
 if [[ $SYSTEMD -eq 0 || $SYSTEM_INSTALL -eq 0 ]]; then
