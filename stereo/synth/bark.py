@@ -114,7 +114,7 @@ def _lenticels(rng: np.random.Generator, colour: np.ndarray) -> np.ndarray:
     """Short dashes around the stem (long across the axis), lighter or darker than the bark."""
     marks = periodic_noise(rng, 40.0, 5.0, slope=3.0) > 1.8
     colour = colour.copy()
-    colour[marks] *= rng.choice([0.45, 1.6])
+    colour[marks] *= rng.choice([0.5, 1.3])
     return colour
 
 

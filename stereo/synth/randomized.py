@@ -36,7 +36,7 @@ from stereo.synth.planes import PlaneLayer
 from stereo.synth.primitives import norm3, unit
 from stereo.synth.render import render_views
 from stereo.synth.scene import CameraFrame, SceneDescription
-from stereo.synth.season import SEASON_WEIGHTS, SEASONS, foliage
+from stereo.synth.season import SEASON_WEIGHTS, SEASONS, foliage, fruit_skin
 from stereo.synth.stereo_effects import Dropout, dropped_out, sgbm_disparity
 from stereo.synth.surroundings import (
     BACKDROPS,
@@ -65,6 +65,8 @@ _SPACING_M = {
     "whip": (0.8, 1.5),
     "gnarled": (4.0, 8.0),
 }
+#: no wood comes nearer the lens than this (m): a shoot across the lens would hide the scene
+MIN_RANGE_M = 0.3
 #: the most trees grown for the rows behind (they reuse a few grown templates) and nodes per tree there
 _MAX_TREES_BEHIND = 30
 _BEHIND_NODES = 220
@@ -275,6 +277,7 @@ class _Builder:
 
     camera: SynthCamera
     frame: CameraFrame
+    skin: MipTile
     cones: list[Cone] = field(default_factory=list)
     leaves: list[Leaf] = field(default_factory=list)
 
@@ -295,7 +298,8 @@ class _Builder:
         ids = self._ids(skeleton, start, end, labels)
         # segments thinner than a fifth of a pixel across (far twigs) are left out: they cost casting, not looks
         visible = skeleton.r0 * self.camera.focal_px / np.maximum(np.minimum(start[:, 2], end[:, 2]), 1e-3) >= 0.2
-        keep = np.flatnonzero(visible & (np.maximum(start[:, 2], end[:, 2]) > 0.05))
+        clear = _distance_to_origin(start, end) >= MIN_RANGE_M + skeleton.r0
+        keep = np.flatnonzero(visible & clear & (np.maximum(start[:, 2], end[:, 2]) > 0.05))
         old, young = materials
         for k in keep:
             axis = end[k] - start[k]
@@ -313,7 +317,8 @@ class _Builder:
         rng, name, per_tip = season
         tips = np.flatnonzero(skeleton.tip)
         headings = end[tips] - start[tips]
-        leaves, fruit = foliage(rng, name, end[tips], headings / np.maximum(norm3(headings), 1e-9)[:, None], per_tip)
+        leaves, fruit = foliage(rng, name, end[tips], headings / np.maximum(norm3(headings), 1e-9)[:, None], per_tip,
+                               self.skin)  # fmt: skip
         self.leaves.extend(leaf for leaf in leaves if leaf.centre[2] > 0.1)
         self.cones.extend(cone for cone in fruit if cone.base[2] > 0.1)
 
@@ -333,6 +338,13 @@ class _Builder:
             ids[mine & (skeleton.order == 1)] = labels.take()
             ids[mine & (skeleton.order > 1)] = TWIG_ID
         return ids
+
+
+def _distance_to_origin(start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """`(N,)` distance (m) from the camera to each segment `start`→`end` (`(N, 3)` each)."""
+    along = end - start
+    t = np.clip(-np.sum(start * along, axis=1) / np.maximum(np.sum(along * along, axis=1), 1e-12), 0.0, 1.0)
+    return norm3(start + t[:, None] * along)
 
 
 def _wrapped(material: BarkMaterial, radius: float) -> BarkMaterial:
@@ -359,7 +371,7 @@ def build_randomized_scene(plan: ScenePlan, camera: SynthCamera, switches: Rando
     ground_y = float(np.clip(height * layout.uniform(0.25, 0.85), 0.4, 12.0))
     pitch = np.radians(layout.uniform(-30.0, 35.0))
     frame = CameraFrame(pitch, np.radians(layout.uniform(-5.0, 5.0)))
-    builder = _Builder(camera, frame)
+    builder = _Builder(camera, frame, fruit_skin(_stream(seed, "season", 3)))
     yaw_row = np.radians(layout.uniform(-35.0, 35.0))
     row_axis = np.array([np.cos(yaw_row), 0.0, np.sin(yaw_row)])
     distance = layout.uniform(*switches.near_row_m) + float(near.r0.max())

@@ -29,18 +29,22 @@ _LEAF_RGB = {
 _FRUIT_RGB = ((0.60, 0.06, 0.05), (0.45, 0.60, 0.12), (0.80, 0.65, 0.15))
 
 
+def fruit_skin(rng: np.random.Generator) -> MipTile:
+    """The skin of a scene's fruit: red, green or yellow."""
+    return MipTile(surface_tile(rng, _FRUIT_RGB[int(rng.integers(len(_FRUIT_RGB)))]))
+
+
 def foliage(
-    rng: np.random.Generator, season: str, tips: np.ndarray, headings: np.ndarray, per_tip: int
+    rng: np.random.Generator, season: str, tips: np.ndarray, headings: np.ndarray, per_tip: int, skin: MipTile
 ) -> tuple[list[Leaf], list[Cone]]:
-    """Leaves (and blossom) and fruit cones of `season` around shoot `tips` `(N, 3)` growing along unit
-    `headings` `(N, 3)`, camera frame (m); about `per_tip` leaves on each tip."""
+    """Leaves (and blossom) and fruit cones (of `skin`, `fruit_skin`) of `season` around shoot `tips` `(N, 3)`
+    growing along unit `headings` `(N, 3)`, camera frame (m); about `per_tip` leaves on each tip."""
     if season == "dormant" or len(tips) == 0:
         return [], []
     leaves: list[Leaf] = []
     cones: list[Cone] = []
     hue = np.array(_LEAF_RGB[season]) * rng.uniform(0.75, 1.25, 3)
     size = rng.uniform(0.025, 0.05)
-    fruit_tile = MipTile(surface_tile(rng, _FRUIT_RGB[int(rng.integers(len(_FRUIT_RGB)))]))
     petal = np.array([0.95, 0.9, 0.92]) if rng.random() < 0.6 else np.array([0.95, 0.7, 0.8])
     for tip, heading in zip(tips, headings):
         count = int(rng.integers(max(1, per_tip // 2), per_tip + 1))
@@ -56,7 +60,7 @@ def foliage(
             radius = rng.uniform(0.025, 0.04)
             centre = tip + heading * radius + np.array([0.0, radius, 0.0])
             toward = -unit(centre) if np.linalg.norm(centre) > 0 else np.array([0.0, 0.0, -1.0])
-            material = BarkMaterial(fruit_tile, 1, 0.3)
+            material = BarkMaterial(skin, 1, 0.3)
             cones.append(Cone(centre - toward * radius, toward, 1.6 * radius, radius, 0.85 * radius, material, 0))
     return leaves, cones
 

@@ -48,7 +48,7 @@ def wood_layer(rng: np.random.Generator, frame: CameraFrame, ground_y: float, di
     """A wall of far foliage `distance_m` ahead, its crown line 6–20 m up, reaching down to the ground."""
     hue = np.clip(np.array([0.16, 0.28, 0.10]) * rng.uniform(0.6, 1.3) + rng.normal(0, 0.03, 3), 0.02, 1)
     foliage = foliage_tile(rng, tuple(hue), rng.uniform(0.8, 0.97))
-    bumps = np.abs(np.sin(np.linspace(0.0, np.pi * rng.uniform(25.0, 50.0), 512)))  # crowns 4–8 m across
+    bumps = np.abs(np.sin(np.linspace(0.0, np.pi * rng.integers(25, 50), 512, endpoint=False)))  # crowns 4–8 m
     profile = rng.uniform(6.0, 18.0) + 2.0 * bumps + 1.5 * periodic_noise(rng, 4.0, 4.0, size=512)[0]
     return PlaneLayer(
         frame.point(np.array([0.0, ground_y, distance_m])),
@@ -101,8 +101,9 @@ def _facade_tile(rng: np.random.Generator, wall: np.ndarray) -> np.ndarray:
 
 
 def net_layer(rng: np.random.Generator, frame: CameraFrame, ground_y: float, row_distance_m: float) -> PlaneLayer:
-    """A net: hail netting 3–4.5 m above the ground over the rows, or a wind/bird net hanging along the row
-    just behind the near trees; its mesh (3–8 cm cells of dark or white thread) is the layer's alpha."""
+    """A net: hail netting 3–4.5 m above the ground over the rows (at least 1 m above the camera, which flies
+    under it), or a wind/bird net hanging along the row just behind the near trees; its mesh (3–8 cm cells of
+    dark or white thread) is the layer's alpha."""
     cell_m = rng.uniform(0.03, 0.08)
     cells = 8
     rows, cols = np.mgrid[0:TILE_SIZE, 0:TILE_SIZE]
@@ -112,7 +113,7 @@ def net_layer(rng: np.random.Generator, frame: CameraFrame, ground_y: float, row
     tile = np.broadcast_to(shade, (TILE_SIZE, TILE_SIZE, 3)).astype(np.float32)
     alpha = thread.astype(np.float32)[..., None]
     if rng.random() < 0.5:  # hail netting overhead
-        point, eu, ev = np.array([0.0, ground_y - rng.uniform(3.0, 4.5), 0.0]), _X, _Z
+        point, eu, ev = np.array([0.0, min(ground_y - rng.uniform(3.0, 4.5), -1.0), 0.0]), _X, _Z
     else:
         point, eu, ev = np.array([0.0, ground_y, row_distance_m + rng.uniform(0.3, 1.0)]), _X, -_Y
     return PlaneLayer(
