@@ -37,7 +37,7 @@ from stereo.synth.primitives import norm3, unit
 from stereo.synth.render import render_views
 from stereo.synth.scene import CameraFrame, SceneDescription
 from stereo.synth.season import SEASON_WEIGHTS, SEASONS, foliage, fruit_skin
-from stereo.synth.stereo_effects import Dropout, dropped_out, sgbm_disparity
+from stereo.synth.stereo_effects import Dropout, dropout_kind, dropped_out, sgbm_disparity
 from stereo.synth.surroundings import (
     BACKDROPS,
     DEFAULT_COVER,
@@ -90,7 +90,7 @@ class RandomizedSwitches:
     - `noise`: ZED Mini-like read and shot noise scaled by the gain; off: none.
     - `motion_blur`: a streak of up to `motion_blur_px`; off: none.
     - `defocus`: depth of field up to `defocus_px_per_dioptre`; off: all sharp.
-    - `vignetting`: up to `vignetting` darkening in the corners; off: none.
+    - `vignetting`: up to `vignetting_strength` darkening in the corners; off: none.
     - `compression`: JPEG (quality `jpeg_quality`) or H.264-like (step `h264_step`) or none; off: none.
     - `capture`: captured at 640×360-like or at HD720 and scaled down (noise and artefacts at that
       size); off: at the output size.
@@ -120,7 +120,7 @@ class RandomizedSwitches:
     white_balance_drift: float = 0.1
     motion_blur_px: float = 8.0
     defocus_px_per_dioptre: float = 3.0
-    vignetting: float = 0.5
+    vignetting_strength: float = 0.5
     jpeg_quality: tuple[int, int] = (35, 95)
     h264_step: tuple[float, float] = (4.0, 24.0)
     dropout_rates: Dropout = field(default_factory=Dropout)
@@ -155,6 +155,7 @@ class ScenePlan:
 
     seed: int
     form: str
+    bark: bool
     neighbours: int
     row_gaps_m: tuple[float, ...]
     ground_cover: str
@@ -174,6 +175,7 @@ class ScenePlan:
     compression: str
     compression_level: float
     capture: str
+    dropout: str
 
 
 def _stream(seed: int, factor: str, part: int = 0) -> np.random.Generator:
@@ -208,6 +210,7 @@ def draw_plan(seed: int, switches: RandomizedSwitches) -> ScenePlan:
     return ScenePlan(
         int(seed),
         pick("tree_form", s.tree_form, FORM_NAMES, DEFAULT_FORM),
+        s.bark,
         int(_stream(seed, "tree_count").integers(1, 6)) if s.tree_count else 0,
         tuple(gaps),
         pick("ground_cover", s.ground_cover, tuple(GROUND_COVERS), DEFAULT_COVER),
@@ -223,10 +226,11 @@ def draw_plan(seed: int, switches: RandomizedSwitches) -> ScenePlan:
         float(blur.uniform(0.0, s.motion_blur_px) * (blur.random() < 0.6)) if s.motion_blur else 0.0,
         float(blur.uniform(0.0, np.pi)),
         float(_stream(seed, "defocus").uniform(0.0, s.defocus_px_per_dioptre)) if s.defocus else 0.0,
-        float(_stream(seed, "vignetting").uniform(0.0, s.vignetting)) if s.vignetting else 0.0,
+        float(_stream(seed, "vignetting").uniform(0.0, s.vignetting_strength)) if s.vignetting else 0.0,
         codec,
         level,
         pick("capture", s.capture, ("vga", "hd720"), "vga"),
+        dropout_kind(_stream(seed, "dropout"), s.dropout_rates) if s.dropout else "none",
     )
 
 
@@ -481,8 +485,7 @@ def render_randomized(
     )  # fmt: skip
     max_disp = max(16, 16 * round(camera.width * 128 / 640 / 16))
     disparity = sgbm_disparity(left, right, max_disp)
-    if switches.dropout:
-        disparity = dropped_out(disparity, _stream(seed, "dropout", 1), switches.dropout_rates)
+    disparity = dropped_out(disparity, _stream(seed, "dropout", 1), plan.dropout, switches.dropout_rates)
     return RandomizedSample(left, right, disparity, camera.disparity_from_depth(views.depth), views.ids, plan)
 
 

@@ -17,9 +17,9 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Dropout:
-    """How disparity drops out: the whole frame with probability `frame_probability`, else 0 to
-    `max_regions` elliptic regions, each up to `max_region_fraction` of the image width across, with
-    probability `region_probability`."""
+    """How disparity drops out: the whole frame with probability `frame_probability`, 1 to `max_regions`
+    elliptic regions, each up to `max_region_fraction` of the image width across, with probability
+    `region_probability`, else not at all."""
 
     frame_probability: float = 0.1
     region_probability: float = 0.3
@@ -34,13 +34,22 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, max_disp: int) -> np.nda
     return make_backend("sgbm", max_disp=max_disp).compute(left, right).disparity.astype(np.float32)
 
 
-def dropped_out(disparity: np.ndarray, rng: np.random.Generator, dropout: Dropout) -> np.ndarray:
-    """`disparity` `H×W` with the frame or some regions set to 0 (invalid), as `dropout` draws them."""
+def dropout_kind(rng: np.random.Generator, dropout: Dropout) -> str:
+    """Whether a frame's disparity drops out: 'frame' (all of it), 'regions' or 'none', as `dropout` draws it."""
+    draw = rng.random()
+    if draw < dropout.frame_probability:
+        return "frame"
+    return "regions" if draw < dropout.frame_probability + dropout.region_probability else "none"
+
+
+def dropped_out(disparity: np.ndarray, rng: np.random.Generator, kind: str, dropout: Dropout) -> np.ndarray:
+    """`disparity` `H×W` with the whole frame (`kind` 'frame') or 1 to `dropout.max_regions` elliptic regions
+    ('regions') set to 0 (invalid); as it was for 'none'."""
     out = disparity.copy()
-    if rng.random() < dropout.frame_probability:
+    if kind == "frame":
         out[:] = 0.0
         return out
-    if rng.random() >= dropout.region_probability:
+    if kind != "regions":
         return out
     height, width = out.shape
     holes = np.zeros((height, width), dtype=np.uint8)
