@@ -67,7 +67,9 @@ def test_each_factor_is_seedable_and_its_switch_changes_the_scene(factor):
         assert np.array_equal(changed.left, neutral.left), "dropout touches the disparity only"
         return
     # what a factor changes may be out of view (the ground of a camera looking up): one of a few seeds must show it
-    shown = [s for s in seeds_changing(factor)[:4] if not np.array_equal(rendered(s, only).left, rendered(s, NEUTRAL).left)]
+    shown = [
+        s for s in seeds_changing(factor)[:4] if not np.array_equal(rendered(s, only).left, rendered(s, NEUTRAL).left)
+    ]
     assert shown, f"switching {factor} on must change the image"
 
 

@@ -139,4 +139,4 @@ def _finished(colour: np.ndarray, look: BarkLook) -> np.ndarray:
     if look.wet:
         grey = colour.mean(axis=2, keepdims=True)
         colour = (grey + 1.4 * (colour - grey)) * 0.55
-    return np.clip(colour, 0.0, 1.0).astype(np.float32)
+    return np.asarray(np.clip(colour, 0.0, 1.0), dtype=np.float32)

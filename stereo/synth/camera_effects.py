@@ -40,7 +40,7 @@ def vignetted(image: np.ndarray, strength: float) -> np.ndarray:
     y = (np.arange(height, dtype=np.float32) - (height - 1) / 2) / ((height - 1) / 2)
     x = (np.arange(width, dtype=np.float32) - (width - 1) / 2) / ((width - 1) / 2)
     r2 = (x[None, :] ** 2 * width**2 + y[:, None] ** 2 * height**2) / (width**2 + height**2)
-    return image * (1.0 - np.float32(strength) * r2)[..., None]
+    return np.asarray(image * (1.0 - np.float32(strength) * r2)[..., None], dtype=np.float32)
 
 
 def defocused(image: np.ndarray, depth_m: np.ndarray, focus_m: float, blur_px_per_dioptre: float) -> np.ndarray:
@@ -95,7 +95,10 @@ def jpeg_compressed(image: np.ndarray, quality: int) -> np.ndarray:
     ok, data = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise RuntimeError("OpenCV could not JPEG-encode the image")
-    return cv2.cvtColor(cv2.imdecode(data, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    decoded = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if decoded is None:
+        raise RuntimeError("OpenCV could not decode its own JPEG")
+    return cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
 
 
 def h264_like(image: np.ndarray, step: float) -> np.ndarray:

@@ -129,7 +129,7 @@ class Skeleton:
         for axis in range(self.axis_parent.size):  # parents are numbered before their children
             parent = self.axis_parent[axis]
             root[axis] = axis if order_of_axis[axis] == 1 else (root[parent] if parent >= 0 else -1)
-        return root[self.axis_id]
+        return np.asarray(root[self.axis_id])
 
 
 def _envelope(form: GrowthForm, height: float, base: float, half_width: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -155,7 +155,7 @@ def _envelope(form: GrowthForm, height: float, base: float, half_width: float) -
             shape = (np.minimum(tier, 0.5 - tier) <= 0.06) & (np.abs(p[:, 0]) <= half_width)
         if form.planar:
             shape &= np.abs(p[:, 2]) <= 0.2
-        return in_height & shape
+        return np.asarray(in_height & shape)
 
     return inside
 

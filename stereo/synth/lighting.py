@@ -42,7 +42,7 @@ class SunSky(Sky):
         cosine = dot3(directions.astype(np.float64), self.sun_direction) / norm3(directions.astype(np.float64))
         angle = np.arccos(np.clip(cosine, -1.0, 1.0))
         glow = np.exp(-((angle / self.glow_width_rad) ** 2)) + 0.25 * np.exp(-angle / (4 * self.glow_width_rad))
-        return base + glow[:, None].astype(np.float32) * self.glow_rgb[None, :].astype(np.float32)
+        return np.asarray(base + glow[:, None] * self.glow_rgb[None, :], dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,9 @@ class DrawnLight:
 def _sun_world(elevation_deg: float, azimuth_rad: float) -> np.ndarray:
     """Unit vector toward the sun in the world frame (y down); azimuth 0 is world +z."""
     elevation = np.radians(elevation_deg)
-    return np.array([np.cos(elevation) * np.sin(azimuth_rad), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth_rad)])
+    return np.array(
+        [np.cos(elevation) * np.sin(azimuth_rad), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth_rad)]
+    )
 
 
 def draw_light(

@@ -19,6 +19,7 @@ are `LEAF_ID`.
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 from dataclasses import asdict, dataclass, field, fields
 
@@ -141,7 +142,8 @@ class RandomizedSwitches:
         unknown = sorted(set(names) - set(factors))
         if unknown:
             raise ValueError(f"unknown factor(s) {unknown}; known factors: {', '.join(factors)}")
-        return cls(**{name: name in names for name in factors})
+        flags: dict[str, object] = {name: name in names for name in factors}
+        return dataclasses.replace(cls(), **flags)  # type: ignore[arg-type]
 
 
 def switch_names() -> tuple[str, ...]:
@@ -315,8 +317,15 @@ class _Builder:
             back = min(float(skeleton.r0[k]), 0.3 * length)
             material = old if skeleton.r0[k] > 0.012 else young
             self.cones.append(
-                Cone(start[k] - back * axis, axis, length + back, float(skeleton.r0[k]), float(skeleton.r1[k]),
-                     _wrapped(material, float(skeleton.r0[k])), int(ids[k]))  # fmt: skip
+                Cone(
+                    start[k] - back * axis,
+                    axis,
+                    length + back,
+                    float(skeleton.r0[k]),
+                    float(skeleton.r1[k]),
+                    _wrapped(material, float(skeleton.r0[k])),
+                    int(ids[k]),
+                )  # fmt: skip
             )
         rng, name, per_tip = season
         tips = np.flatnonzero(skeleton.tip)

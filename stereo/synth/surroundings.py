@@ -139,5 +139,7 @@ def structures(
         offset = rng.uniform(-0.2, 0.2) * np.array([row_axis[2], 0.0, -row_axis[0]])
         start = trunk_foot + offset - 12.0 * row_axis - height * _Y
         colour = HARDWARE_COLOURS["black_plastic"]
-        pieces.append(HardwarePiece("pipe", start, row_axis, 24.0, rng.uniform(0.006, 0.011), surface_tile(rng, colour)))
+        pieces.append(
+            HardwarePiece("pipe", start, row_axis, 24.0, rng.uniform(0.006, 0.011), surface_tile(rng, colour))
+        )
     return pieces
