@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from functools import lru_cache
 
 import numpy as np
 import pytest
 
+from branchrange.core.segmentation.branchnet_data import render_randomized_sample
+from stereo.cli import main as emcstereo
+from stereo.io import read_rgb
 from stereo.synth import SynthCamera
 from stereo.synth.randomized import (
     RandomizedSample,
@@ -115,7 +119,7 @@ def test_leaves_and_blossom_are_leaves_not_wood():
 
 
 def test_training_sample_keeps_branchnet_datas_format():
-    sample = rendered(4, RandomizedSwitches()).training_sample()
+    sample = render_randomized_sample(4, (160, 90))
     assert set(sample) == {"left", "disparity", "classes", "instances"}
     assert sample["left"].dtype == np.uint8 and sample["left"].shape == (90, 160, 3)
     assert sample["disparity"].dtype == np.float16 and sample["disparity"].shape == (90, 160)
@@ -128,3 +132,33 @@ def test_bad_switches_are_refused_with_the_name():
         RandomizedSwitches.only("weather")
     with pytest.raises(ValueError, match="rows_behind_m"):
         RandomizedSwitches(rows_behind_m=(20.0, 10.0))
+
+
+def test_synth_command_writes_randomized_samples_and_a_contact_sheet(tmp_path, capsys):
+    sheet = tmp_path / "sheet.png"
+    out = tmp_path / "randomized"
+    status = emcstereo(
+        [
+            "synth",
+            "--randomized",
+            "--out",
+            str(out),
+            "--scenes",
+            "2",
+            "--seed",
+            "5",
+            "--size",
+            "96x64",
+            "--supersample",
+            "1",
+            "--preview",
+            str(sheet),
+        ]  # fmt: skip
+    )
+    assert status == 0
+    assert "wrote 2 randomized scenes" in capsys.readouterr().out
+    with np.load(out / "randomized_6.npz") as saved:
+        again = render_randomized(6, SynthCamera.zed_mini(96, 64), RandomizedSwitches(), supersample=1)
+        assert np.array_equal(saved["left"], again.left) and np.array_equal(saved["instances"], again.instances)
+    assert json.loads((out / "randomized_5.json").read_text())["seed"] == 5
+    assert read_rgb(sheet).shape == (64, 3 * 2 * 96, 3)

@@ -253,17 +253,6 @@ class RandomizedSample:
     instances: np.ndarray
     plan: ScenePlan
 
-    def training_sample(self) -> dict[str, np.ndarray]:
-        """The sample in `branchnet_data.render_sample`'s format: left, disparity (float16), classes, instances."""
-        from branchrange.core.segmentation.branchnet_data import classes_from_instances
-
-        return {
-            "left": self.left,
-            "disparity": self.disparity.astype(np.float16),
-            "classes": classes_from_instances(self.instances),
-            "instances": self.instances,
-        }
-
 
 class _Labels:
     """Hands out instance ids to the near row's first-order branches, 1..MAX_BRANCH_ID."""
