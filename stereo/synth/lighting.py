@@ -15,7 +15,7 @@ are not drawn.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,11 +30,15 @@ DEFAULT_REGIME = "sun"
 
 @dataclass(frozen=True)
 class SunSky(Sky):
-    """A `Sky` with the sun's glow around `sun_direction` (unit, camera frame), `glow_rgb` at its peak."""
+    """A `Sky` with the sun's glow around `sun_direction` (unit, camera frame), `glow_rgb` at its peak, seen
+    through a veil of `veil_opacity` (0: none) and colour `veil_rgb`: hail netting overhead, whose mesh is far
+    finer than a pixel, so what reaches the camera is the sky dimmed and tinted by the threads."""
 
     sun_direction: np.ndarray
     glow_rgb: np.ndarray
     glow_width_rad: float
+    veil_rgb: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    veil_opacity: float = 0.0
 
     def colour(self, directions: np.ndarray) -> np.ndarray:
         """RGB `(N, 3)` seen along camera-frame `directions` `(N, 3)` (any length)."""
@@ -42,7 +46,8 @@ class SunSky(Sky):
         cosine = dot3(directions.astype(np.float64), self.sun_direction) / norm3(directions.astype(np.float64))
         angle = np.arccos(np.clip(cosine, -1.0, 1.0))
         glow = np.exp(-((angle / self.glow_width_rad) ** 2)) + 0.25 * np.exp(-angle / (4 * self.glow_width_rad))
-        return np.asarray(base + glow[:, None] * self.glow_rgb[None, :], dtype=np.float32)
+        seen = (base + glow[:, None] * self.glow_rgb[None, :]) * (1.0 - self.veil_opacity)
+        return np.asarray(seen + self.veil_opacity * self.veil_rgb[None, :], dtype=np.float32)
 
 
 @dataclass(frozen=True)

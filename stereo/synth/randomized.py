@@ -83,7 +83,7 @@ class RandomizedSwitches:
     - `rows_behind`: rows of trees `rows_behind_m` behind the near row, grown like it; off: none.
     - `ground_cover`: grass, dry grass, bare soil, mulch or snow; off: grass.
     - `backdrop`: a far wood, buildings, or open land to the horizon; off: a wood.
-    - `structures`: posts, wires, stakes, rods, irrigation pipes and nets; off: none.
+    - `structures`: posts, wires, stakes, rods, irrigation pipes, hail netting overhead and side nets; off: none.
     - `season`: dormant, blossom, leaf, fruit or autumn (`season.SEASON_WEIGHTS`); off: dormant.
     - `light`: sun, backlight, low sun, overcast or dusk (`lighting`); off: sun.
     - `exposure_drift`: auto-exposure off by up to `exposure_drift_ev` and white balance by up to
@@ -163,7 +163,7 @@ class ScenePlan:
     ground_cover: str
     backdrop: str
     structures: bool
-    net: bool
+    net: str
     season: str
     light: str
     exposure_ev: float
@@ -218,7 +218,9 @@ def draw_plan(seed: int, switches: RandomizedSwitches) -> ScenePlan:
         pick("ground_cover", s.ground_cover, tuple(GROUND_COVERS), DEFAULT_COVER),
         pick("backdrop", s.backdrop, BACKDROPS, "wood", (0.5, 0.25, 0.25)),
         s.structures and _stream(seed, "structures").random() < 0.7,
-        s.structures and _stream(seed, "structures", 1).random() < 0.3,
+        str(_stream(seed, "structures", 1).choice(["none", "hail", "side"], p=[0.6, 0.25, 0.15]))
+        if s.structures
+        else "none",
         pick("season", s.season, SEASONS, "dormant", SEASON_WEIGHTS),
         pick("light", s.light, LIGHT_REGIMES, DEFAULT_REGIME, (0.3, 0.2, 0.2, 0.2, 0.1)),
         float(drift[0] * s.exposure_drift_ev) if s.exposure_drift else 0.0,
@@ -393,6 +395,11 @@ def build_randomized_scene(plan: ScenePlan, camera: SynthCamera, switches: Rando
         builder.tree(skeleton, spot, layout.uniform(0, 2 * np.pi), materials, labels, (season_rng, plan.season, 6))
     _rows_behind(builder, plan, foot, row_axis, spacing, switches, tan_half)
     light = draw_light(_stream(seed, "light", 1), plan.light, frame.world_from_camera, 0.0)
+    sky = light.sky
+    if plan.net == "hail":
+        veil = _stream(seed, "structures", 4)
+        shade = np.full(3, 0.05) if veil.random() < 0.5 else np.full(3, 0.85)  # black or white netting
+        sky = dataclasses.replace(sky, veil_rgb=shade, veil_opacity=float(veil.uniform(0.2, 0.5)))
     layers = _layers(plan, frame, ground_y, distance)
     if plan.structures:
         for piece in structures(_stream(seed, "structures", 2), foot, float(near.r0.max()), ground_y, row_axis):
@@ -406,7 +413,7 @@ def build_randomized_scene(plan: ScenePlan, camera: SynthCamera, switches: Rando
         tuple(builder.cones),
         tuple(builder.leaves),
         tuple(layers),
-        light.sky,
+        sky,
         light.lighting,
         (),
         light.exposure_target,
@@ -455,7 +462,7 @@ def _layers(plan: ScenePlan, frame: CameraFrame, ground_y: float, distance: floa
         layers.append(wood_layer(backdrop, frame, ground_y, far))
     elif plan.backdrop == "buildings":
         layers.append(buildings_layer(backdrop, frame, ground_y, far))
-    if plan.net:
+    if plan.net == "side":
         layers.append(net_layer(_stream(plan.seed, "structures", 3), frame, ground_y, distance))
     return layers
 

@@ -101,9 +101,8 @@ def _facade_tile(rng: np.random.Generator, wall: np.ndarray) -> np.ndarray:
 
 
 def net_layer(rng: np.random.Generator, frame: CameraFrame, ground_y: float, row_distance_m: float) -> PlaneLayer:
-    """A net: hail netting 3–4.5 m above the ground over the rows (at least 1 m above the camera, which flies
-    under it), or a wind/bird net hanging along the row just behind the near trees; its mesh (3–8 cm cells of
-    dark or white thread) is the layer's alpha."""
+    """A wind or bird net hanging along the row 0.3–1 m behind the near trees; its mesh (3–8 cm cells of dark
+    or white thread) is the layer's alpha. (Hail netting overhead is a veil over the sky: `lighting.SunSky`.)"""
     cell_m = rng.uniform(0.03, 0.08)
     cells = 8
     rows, cols = np.mgrid[0:TILE_SIZE, 0:TILE_SIZE]
@@ -112,14 +111,10 @@ def net_layer(rng: np.random.Generator, frame: CameraFrame, ground_y: float, row
     shade = np.array([0.08, 0.08, 0.09]) if rng.random() < 0.5 else np.array([0.85, 0.86, 0.86])
     tile = np.broadcast_to(shade, (TILE_SIZE, TILE_SIZE, 3)).astype(np.float32)
     alpha = thread.astype(np.float32)[..., None]
-    if rng.random() < 0.5:  # hail netting overhead
-        point, eu, ev = np.array([0.0, min(ground_y - rng.uniform(3.0, 4.5), -1.0), 0.0]), _X, _Z
-    else:
-        point, eu, ev = np.array([0.0, ground_y, row_distance_m + rng.uniform(0.3, 1.0)]), _X, -_Y
     return PlaneLayer(
-        frame.point(point),
-        frame.direction(eu),
-        frame.direction(ev),
+        frame.point(np.array([0.0, ground_y, row_distance_m + rng.uniform(0.3, 1.0)])),
+        frame.direction(_X),
+        frame.direction(-_Y),
         MipTile(tile),
         cells * cell_m,
         0.8,
