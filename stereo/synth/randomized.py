@@ -213,7 +213,7 @@ def draw_plan(seed: int, switches: RandomizedSwitches) -> ScenePlan:
         int(seed),
         pick("tree_form", s.tree_form, FORM_NAMES, DEFAULT_FORM),
         s.bark,
-        int(_stream(seed, "tree_count").integers(1, 6)) if s.tree_count else 0,
+        int(_stream(seed, "tree_count").integers(0, 6)) if s.tree_count else 0,
         tuple(gaps),
         pick("ground_cover", s.ground_cover, tuple(GROUND_COVERS), DEFAULT_COVER),
         pick("backdrop", s.backdrop, BACKDROPS, "wood", (0.5, 0.25, 0.25)),
