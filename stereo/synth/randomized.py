@@ -372,7 +372,9 @@ def build_randomized_scene(plan: ScenePlan, camera: SynthCamera, switches: Rando
     trees = _stream(seed, "trees")
     near = grow_tree(trees, plan.form)
     height = float(-near.end[:, 1].min())
-    ground_y = float(np.clip(height * layout.uniform(0.25, 0.85), 0.4, 12.0))
+    lowest_branch = float(-near.start[near.order == 1, 1].max()) if (near.order == 1).any() else 0.5 * height
+    # the drone flies among the branches: from just under the crown to near the top
+    ground_y = float(np.clip(layout.uniform(0.6 * lowest_branch, 0.9 * height), 0.4, 14.0))
     pitch = np.radians(layout.uniform(-30.0, 35.0))
     frame = CameraFrame(pitch, np.radians(layout.uniform(-5.0, 5.0)))
     builder = _Builder(camera, frame, fruit_skin(_stream(seed, "season", 3)))
