@@ -7,8 +7,13 @@ import pytest
 
 from stereo.synth import bark
 from stereo.synth import camera_effects as effects
+from stereo.synth.cones import BarkMaterial, Cone
 from stereo.synth.growth import FORM_NAMES, FORMS, grow_tree
+from stereo.synth.planes import PlaneLayer
+from stereo.synth.primitives import Lighting
+from stereo.synth.shadows import ShadowedPlane, cast_on_ground
 from stereo.synth.stereo_effects import Dropout, dropped_out
+from stereo.synth.textures import MipTile
 
 
 @pytest.mark.parametrize("form", FORM_NAMES)
@@ -90,3 +95,25 @@ def test_dropout_blanks_the_frame_or_regions():
     regions = dropped_out(disparity, rng, "regions", Dropout())
     assert 0 < (regions == 0).mean() < 1
     assert np.array_equal(dropped_out(disparity, rng, "none", Dropout()), disparity)
+
+
+def test_a_pole_casts_a_shadow_as_long_as_the_sun_is_low():
+    ground = PlaneLayer(
+        np.array([0.0, 1.5, 0.0]), np.array([1.0, 0, 0]), np.array([0.0, 0, 1.0]), MipTile(np.ones((8, 8, 3))), 1.0, 1.0
+    )  # the ground 1.5 m below a level camera (y down); its normal points up
+    material = BarkMaterial(MipTile(np.ones((8, 8, 3))), 1, 0.3)
+    pole = Cone(np.array([0.0, 1.5, 5.0]), np.array([0.0, -1.0, 0.0]), 2.0, 0.05, 0.05, material, 0)
+    elevation = np.radians(30.0)
+    sun = np.array([0.0, -np.sin(elevation), np.cos(elevation)])  # ahead of the camera, 30° up
+    shadow = cast_on_ground([pole], ground, sun)
+    along = np.linspace(0.0, 5.0, 101)  # from the pole's foot toward the camera (away from the sun)
+    coverage = shadow.at(np.zeros_like(along), 5.0 - along)  # plane coordinates: u = x, v = z
+    length = along[coverage > 0.5].max()
+    assert length == pytest.approx(2.0 / np.tan(elevation), abs=0.1)
+    assert shadow.at(np.array([1.0]), np.array([4.0]))[0] == 0.0, "beside the shadow, sunlit"
+    assert cast_on_ground([pole], ground, np.array([0.0, 0.1, 1.0]) / np.hypot(0.1, 1.0)) is None, "sun below horizon"
+    light = Lighting(sun, np.ones(3), np.full(3, 0.25), np.ones(3), 1e9)
+    shaded = ShadowedPlane.of(ground, shadow)
+    points = np.array([[0.0, 1.5, 4.0], [1.0, 1.5, 4.0]])  # in the shadow, then beside it
+    colour = shaded.shade(points, np.zeros(2, dtype=np.int64), light, 1e-3)
+    assert colour[0, 0] == pytest.approx(0.25, abs=0.02) and colour[1, 0] == pytest.approx(1.25, abs=0.02)

@@ -14,7 +14,7 @@ gets its own instance id 1..K when any of it comes within the 4 m working range,
 growing from such a branch are `TWIG_ID`. A near-row branch entirely beyond 4 m, every tree in the
 rows behind (however much they look like the near tree: they are the next rows, not this one),
 posts, wires, pipes, nets, buildings, ground, fruit and sky are background (0); leaves and blossom
-are `LEAF_ID`.
+are `LEAF_ID`. The wood casts its shadow on the ground (`shadows`).
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from stereo.synth.primitives import norm3, unit
 from stereo.synth.render import render_views
 from stereo.synth.scene import CameraFrame, SceneDescription
 from stereo.synth.season import SEASON_WEIGHTS, SEASONS, foliage, fruit_skin
+from stereo.synth.shadows import ShadowedPlane, cast_on_ground
 from stereo.synth.stereo_effects import Dropout, dropout_kind, dropped_out, sgbm_disparity
 from stereo.synth.surroundings import (
     BACKDROPS,
@@ -408,6 +409,7 @@ def build_randomized_scene(plan: ScenePlan, camera: SynthCamera, switches: Rando
             material = BarkMaterial(MipTile(piece.tile), 1, max(0.3, 2 * np.pi * piece.radius))
             base, axis = frame.point(piece.base), unit(frame.direction(piece.axis))
             builder.cones.append(Cone(base, axis, piece.length, piece.radius, piece.radius, material, 0))
+    layers[0] = ShadowedPlane.of(layers[0], cast_on_ground(builder.cones, layers[0], light.lighting.sun_direction))
     return SceneDescription(
         "randomized",
         plan.season,
