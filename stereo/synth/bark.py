@@ -2,7 +2,7 @@
 
 A `BarkLook` is drawn per tree: a base colour from grey through brown and red-brown to olive and
 silver, furrow depth and spacing (smooth cherry to deeply ridged old wood), lenticels, lichen,
-moss on one side, pruning wounds (pale wood in a dark callus ring), and wet bark (darker, more
+moss on one side, a pruning wound (pale wood in a dark callus ring; the tile repeats round the stem, so one is plenty), and wet bark (darker, more
 saturated). Young shoots get their own tile: smooth, lighter or redder than the old wood, with
 lenticels. Tiles follow `stereo.synth.textures`: columns run along the branch axis, rows around it,
 so one band of rows is one side of the trunk (where moss grows).
@@ -66,7 +66,7 @@ def draw_look(rng: np.random.Generator) -> BarkLook:
         bool(rng.random() < 0.4),
         float(rng.uniform(0.0, 0.5) if rng.random() < 0.5 else 0.0),
         float(rng.uniform(0.0, 0.6) if rng.random() < 0.35 else 0.0),
-        int(rng.integers(0, 3)),
+        int(rng.random() < 0.3),
         bool(rng.random() < 0.25),
         tuple(float(c) for c in np.clip(young, 0.04, 0.9)),  # type: ignore[arg-type]
     )
@@ -114,7 +114,7 @@ def _lenticels(rng: np.random.Generator, colour: np.ndarray) -> np.ndarray:
     """Short dashes around the stem (long across the axis), lighter or darker than the bark."""
     marks = periodic_noise(rng, 40.0, 5.0, slope=3.0) > 1.8
     colour = colour.copy()
-    colour[marks] *= rng.choice([0.5, 1.3])
+    colour[marks] *= rng.choice([0.6, 1.2])
     return colour
 
 
@@ -124,7 +124,7 @@ def _wound(rng: np.random.Generator, colour: np.ndarray) -> np.ndarray:
     centre = rng.uniform(0, TILE_SIZE, 2)
     d_row = np.minimum(np.abs(rows - centre[0]), TILE_SIZE - np.abs(rows - centre[0]))
     d_col = np.minimum(np.abs(cols - centre[1]), TILE_SIZE - np.abs(cols - centre[1]))
-    radius = rng.uniform(8.0, 30.0)
+    radius = rng.uniform(6.0, 16.0)
     distance = np.hypot(d_row, d_col)
     wood = _WOUND * rng.uniform(0.6, 1.1) * rng.uniform(0.5, 1.0)  # pale fresh, or greyed old cut
     colour = colour.copy()
