@@ -162,3 +162,10 @@ def test_synth_command_writes_randomized_samples_and_a_contact_sheet(tmp_path, c
         assert np.array_equal(saved["left"], again.left) and np.array_equal(saved["instances"], again.instances)
     assert json.loads((out / "randomized_5.json").read_text())["seed"] == 5
     assert read_rgb(sheet).shape == (64, 3 * 2 * 96, 3)
+
+
+def test_synth_command_names_a_bad_randomized_flag(tmp_path):
+    with pytest.raises(SystemExit, match="--supersample must be 1 to 4"):
+        emcstereo(["synth", "--randomized", "--preview", str(tmp_path / "s.png"), "--supersample", "9"])
+    with pytest.raises(SystemExit, match="give --out DIR"):
+        emcstereo(["synth", "--randomized"])
