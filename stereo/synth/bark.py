@@ -2,10 +2,11 @@
 
 A `BarkLook` is drawn per tree: a base colour from grey through brown and red-brown to olive and
 silver, furrow depth and spacing (smooth cherry to deeply ridged old wood), lenticels, lichen,
-moss on one side, a pruning wound (pale wood in a dark callus ring; the tile repeats round the stem, so one is plenty), and wet bark (darker, more
-saturated). Young shoots get their own tile: smooth, lighter or redder than the old wood, with
-lenticels. Tiles follow `stereo.synth.textures`: columns run along the branch axis, rows around it,
-so one band of rows is one side of the trunk (where moss grows).
+moss on one side, a pruning wound (pale wood in a dark callus ring; the tile repeats round the
+stem, so one is plenty), and wet bark (darker, more saturated). Young shoots get their own tile:
+smooth, lighter or redder than the old wood, with lenticels. Tiles follow `stereo.synth.textures`:
+columns run along the branch axis, rows around it, so one band of rows is one side of the trunk
+(where moss grows).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def draw_look(rng: np.random.Generator) -> BarkLook:
     colour = np.clip(np.array(family) * rng.uniform(0.7, 1.3) + rng.normal(0.0, 0.03, 3), 0.04, 0.9)
     young = colour * rng.uniform(1.0, 1.5) + np.array([rng.uniform(0.0, 0.2), rng.uniform(-0.05, 0.08), 0.0])
     return BarkLook(
-        tuple(float(c) for c in colour),  # type: ignore[arg-type]
+        _rgb(colour),
         float(rng.uniform(0.0, 0.8)),
         float(rng.uniform(6.0, 30.0)),
         bool(rng.random() < 0.4),
@@ -68,8 +69,13 @@ def draw_look(rng: np.random.Generator) -> BarkLook:
         float(rng.uniform(0.0, 0.6) if rng.random() < 0.35 else 0.0),
         int(rng.random() < 0.3),
         bool(rng.random() < 0.25),
-        tuple(float(c) for c in np.clip(young, 0.04, 0.9)),  # type: ignore[arg-type]
+        _rgb(np.clip(young, 0.04, 0.9)),
     )
+
+
+def _rgb(colour: np.ndarray) -> tuple[float, float, float]:
+    """An RGB array `(3,)` as a tuple of floats."""
+    return float(colour[0]), float(colour[1]), float(colour[2])
 
 
 def old_wood_tile(rng: np.random.Generator, look: BarkLook) -> np.ndarray:

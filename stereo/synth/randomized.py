@@ -210,6 +210,7 @@ def draw_plan(seed: int, switches: RandomizedSwitches) -> ScenePlan:
         "h264": float(compression.uniform(*s.h264_step)),
     }[codec]
     drift = exposure.uniform(-1.0, 1.0, 4)
+    balance = (1.0 + drift[1:] * s.white_balance_drift) if s.exposure_drift else np.ones(3)
     return ScenePlan(
         int(seed),
         pick("tree_form", s.tree_form, FORM_NAMES, DEFAULT_FORM),
@@ -225,7 +226,7 @@ def draw_plan(seed: int, switches: RandomizedSwitches) -> ScenePlan:
         pick("season", s.season, SEASONS, "dormant", SEASON_WEIGHTS),
         pick("light", s.light, LIGHT_REGIMES, DEFAULT_REGIME, (0.3, 0.2, 0.2, 0.2, 0.1)),
         float(drift[0] * s.exposure_drift_ev) if s.exposure_drift else 0.0,
-        tuple(float(1.0 + d * s.white_balance_drift) for d in drift[1:]) if s.exposure_drift else (1.0, 1.0, 1.0),  # type: ignore[arg-type]
+        (float(balance[0]), float(balance[1]), float(balance[2])),
         float(noise.uniform(0.5, 3.0)) if s.noise else 0.0,
         float(noise.uniform(0.02, 0.2)) if s.noise else 0.0,
         float(blur.uniform(0.0, s.motion_blur_px) * (blur.random() < 0.6)) if s.motion_blur else 0.0,
