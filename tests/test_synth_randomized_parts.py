@@ -8,12 +8,14 @@ import pytest
 from stereo.synth import bark
 from stereo.synth import camera_effects as effects
 from stereo.synth.cones import BarkMaterial, Cone
-from stereo.synth.growth import FORM_NAMES, FORMS, grow_tree
+from stereo.synth.growth import FORM_NAMES, FORMS, Skeleton, grow_tree
 from stereo.synth.planes import PlaneLayer
 from stereo.synth.primitives import Lighting
+from stereo.synth.randomized import BranchLabels, near_row_ids
 from stereo.synth.shadows import ShadowedPlane, cast_on_ground
 from stereo.synth.stereo_effects import Dropout, dropped_out
 from stereo.synth.textures import MipTile
+from stereo.synth.truth import TRUNK_ID, TWIG_ID
 
 
 @pytest.mark.parametrize("form", FORM_NAMES)
@@ -117,3 +119,21 @@ def test_a_pole_casts_a_shadow_as_long_as_the_sun_is_low():
     points = np.array([[0.0, 1.5, 4.0], [1.0, 1.5, 4.0]])  # in the shadow, then beside it
     colour = shaded.shade(points, np.zeros(2, dtype=np.int64), light, 1e-3)
     assert colour[0, 0] == pytest.approx(0.25, abs=0.02) and colour[1, 0] == pytest.approx(1.25, abs=0.02)
+
+
+def test_near_row_labels_a_branch_within_4_m_and_its_shoots_but_not_one_beyond():
+    start = np.array([[0, 0, 1], [0, -1, 1], [0.5, -1, 1], [0, -1, 6], [0.5, -1, 6]], dtype=float)
+    end = np.array([[0, -1, 1], [0.5, -1, 1], [0.6, -1.1, 1], [0.5, -1, 6], [0.6, -1.1, 6]], dtype=float)
+    skeleton = Skeleton(
+        "central_leader",
+        start,
+        end,
+        np.full(5, 0.02),
+        np.full(5, 0.01),
+        order=np.array([0, 1, 2, 1, 2]),
+        axis_id=np.array([0, 1, 2, 3, 4]),
+        axis_parent=np.array([-1, 0, 1, 0, 3]),
+        tip=np.array([False, False, True, False, True]),
+    )
+    ids = near_row_ids(skeleton, start, end, BranchLabels())
+    assert ids.tolist() == [TRUNK_ID, 1, TWIG_ID, 0, 0]

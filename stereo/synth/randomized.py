@@ -258,13 +258,14 @@ class RandomizedSample:
     plan: ScenePlan
 
 
-class _Labels:
+class BranchLabels:
     """Hands out instance ids to the near row's first-order branches, 1..MAX_BRANCH_ID."""
 
     def __init__(self) -> None:
         self.next_id = 1
 
     def take(self) -> int:
+        """The next id (the last one again once all are taken)."""
         taken = min(self.next_id, MAX_BRANCH_ID)
         self.next_id += 1
         return taken
@@ -286,7 +287,7 @@ class _Builder:
         foot: np.ndarray,
         yaw: float,
         materials: tuple[BarkMaterial, BarkMaterial],
-        labels: _Labels | None,
+        labels: BranchLabels | None,
         season: tuple[np.random.Generator, str, int],
     ) -> None:
         """Place `skeleton` with its foot at world `foot`, turned `yaw` rad about the vertical; label it when
@@ -294,7 +295,7 @@ class _Builder:
         turn = np.array([[np.cos(yaw), 0.0, -np.sin(yaw)], [0.0, 1.0, 0.0], [np.sin(yaw), 0.0, np.cos(yaw)]])
         start = self.frame.point(foot + skeleton.start @ turn.T)
         end = self.frame.point(foot + skeleton.end @ turn.T)
-        ids = self._ids(skeleton, start, end, labels)
+        ids = near_row_ids(skeleton, start, end, labels) if labels is not None else np.zeros(len(start), np.int64)
         # segments thinner than a fifth of a pixel across (far twigs) are left out: they cost casting, not looks
         visible = skeleton.r0 * self.camera.focal_px / np.maximum(np.minimum(start[:, 2], end[:, 2]), 1e-3) >= 0.2
         clear = _distance_to_origin(start, end) >= MIN_RANGE_M + skeleton.r0
@@ -328,22 +329,23 @@ class _Builder:
         self.leaves.extend(leaf for leaf in leaves if leaf.centre[2] > 0.1)
         self.cones.extend(cone for cone in fruit if cone.base[2] > 0.1)
 
-    @staticmethod
-    def _ids(skeleton: Skeleton, start: np.ndarray, end: np.ndarray, labels: _Labels | None) -> np.ndarray:
-        """Mask id of every segment (module docstring)."""
-        ids = np.zeros(len(skeleton.start), dtype=np.int64)
-        if labels is None:
-            return ids
-        ids[skeleton.order == 0] = TRUNK_ID
-        root = skeleton.first_order_root
-        near = np.minimum(norm3(start), norm3(end)) <= WORKING_RANGE_M
-        for axis in np.unique(root[root >= 0]):
-            mine = root == axis
-            if not (near & mine & (skeleton.order == 1)).any():
-                continue
-            ids[mine & (skeleton.order == 1)] = labels.take()
-            ids[mine & (skeleton.order > 1)] = TWIG_ID
-        return ids
+
+def near_row_ids(skeleton: Skeleton, start: np.ndarray, end: np.ndarray, labels: BranchLabels) -> np.ndarray:
+    """Mask id `(N,)` of each segment of a near-row tree whose segments run `start` → `end` (`(N, 3)` each,
+    camera frame, m): trunk and leaders `TRUNK_ID`; each first-order branch with any segment within
+    `WORKING_RANGE_M` a new id from `labels`, its shoots `TWIG_ID`; branches wholly beyond the range, with their
+    shoots, 0."""
+    ids = np.zeros(len(skeleton.start), dtype=np.int64)
+    ids[skeleton.order == 0] = TRUNK_ID
+    root = skeleton.first_order_root
+    near = np.minimum(norm3(start), norm3(end)) <= WORKING_RANGE_M
+    for axis in np.unique(root[root >= 0]):
+        mine = root == axis
+        if not (near & mine & (skeleton.order == 1)).any():
+            continue
+        ids[mine & (skeleton.order == 1)] = labels.take()
+        ids[mine & (skeleton.order > 1)] = TWIG_ID
+    return ids
 
 
 def _distance_to_origin(start: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -389,7 +391,7 @@ def build_randomized_scene(plan: ScenePlan, camera: SynthCamera, switches: Rando
     spacing = layout.uniform(*_SPACING_M[plan.form])
     season_rng = _stream(seed, "season", 1)
     bark_rng = _stream(seed, "bark", 1)
-    labels = _Labels()
+    labels = BranchLabels()
     materials = _materials(bark_rng, switches.bark)
     builder.tree(near, foot, layout.uniform(0, 2 * np.pi), materials, labels, (season_rng, plan.season, 6))
     for k in range(1, plan.neighbours + 1):  # neighbours alternate left and right of the near tree
