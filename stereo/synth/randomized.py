@@ -69,6 +69,9 @@ _SPACING_M = {
 }
 #: no wood comes nearer the lens than this (m): a shoot across the lens would hide the scene
 MIN_RANGE_M = 0.3
+#: the exposure gain of a daylit scene (the renderer's linear colours are dim): the sensor's analogue gain, which
+#: scales its noise, is the exposure gain over this, at least 1
+NOMINAL_GAIN = 2.0
 #: the most trees grown for the rows behind (they reuse a few grown templates) and nodes per tree there
 _MAX_TREES_BEHIND = 30
 _BEHIND_NODES = 220
@@ -89,7 +92,7 @@ class RandomizedSwitches:
     - `light`: sun, backlight, low sun, overcast or dusk (`lighting`); off: sun.
     - `exposure_drift`: auto-exposure off by up to `exposure_drift_ev` and white balance by up to
       `white_balance_drift` per channel; off: exact metering, neutral white balance.
-    - `noise`: ZED Mini-like read and shot noise scaled by the gain; off: none.
+    - `noise`: ZED Mini-like read and shot noise scaled by the analogue gain (`NOMINAL_GAIN`); off: none.
     - `motion_blur`: a streak of up to `motion_blur_px`; off: none.
     - `defocus`: depth of field up to `defocus_px_per_dioptre`; off: all sharp.
     - `vignetting`: up to `vignetting_strength` darkening in the corners; off: none.
@@ -515,7 +518,7 @@ def _developed(
     if plan.capture == "hd720":
         out = cv2.resize(out, (2 * width, 2 * height), interpolation=cv2.INTER_LINEAR)
     if plan.read_noise > 0:
-        out = effects.noisy(out, noise, plan.read_noise, plan.shot_noise, gain)
+        out = effects.noisy(out, noise, plan.read_noise, plan.shot_noise, max(1.0, gain / NOMINAL_GAIN))
     recorded = effects.quantised(out)
     if plan.compression == "jpeg":
         recorded = effects.jpeg_compressed(recorded, int(plan.compression_level))
