@@ -21,8 +21,12 @@ from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from itertools import repeat
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from stereo.synth.randomized import RandomizedSwitches
 
 BACKGROUND, TRUNK, BRANCH, IGNORE = 0, 1, 2, 255
 #: renderer ids (`stereo.synth`): trunk, twigs, leaves; 1..K are branches, 0 everything else
@@ -55,6 +59,23 @@ def render_sample(
         "disparity": stereo.disparity.astype(np.float16),
         "classes": classes_from_instances(scene.instance_mask),
         "instances": scene.instance_mask,
+    }
+
+
+def render_randomized_sample(
+    seed: int, size: tuple[int, int] = (640, 360), switches: RandomizedSwitches | None = None
+) -> dict[str, np.ndarray]:
+    """One training sample (the format of `render_sample`) of the randomized domain's scene `seed` at `size`
+    (width, height) px: `stereo.synth.randomized`, every factor drawn per scene unless `switches` holds it."""
+    from stereo.synth import SynthCamera
+    from stereo.synth.randomized import render_randomized
+
+    scene = render_randomized(seed, SynthCamera.zed_mini(*size), switches)
+    return {
+        "left": scene.left,
+        "disparity": scene.disparity.astype(np.float16),
+        "classes": classes_from_instances(scene.instances),
+        "instances": scene.instances,
     }
 
 

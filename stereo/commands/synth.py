@@ -1,4 +1,5 @@
-"""`emcstereo synth`: render synthetic stereo tree-branch scenes in the VirtualTree layout, or a preview."""
+"""`emcstereo synth`: render synthetic stereo tree-branch scenes in the VirtualTree layout, or a preview;
+with `--randomized`, scenes of the randomized domain (`stereo.synth.randomized`) and a contact sheet."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ from stereo.io import StereoIOError, write_rgb
 from stereo.synth import SynthCamera, SynthOptions, render_scene
 from stereo.synth.options import FOLIAGE, LEAF_SHAPES, POSES
 from stereo.synth.preview import preview_image
+from stereo.synth.randomized import RandomizedSwitches, render_randomized
+from stereo.synth.randomized_output import randomized_contact_sheet, write_randomized
 from stereo.synth.writer import scene_seed, write_dataset
 
 #: Largest side accepted (px): a 2×2-supersampled 4096² render already needs a few GB of memory.
@@ -67,6 +70,8 @@ def _run(args: argparse.Namespace) -> int:
         )
     width, height = args.size
     camera = SynthCamera.zed_mini(width, height)
+    if args.randomized:
+        return _run_randomized(args, camera)
     options = _options(args)
     if args.out is not None:
         start = time.perf_counter()
@@ -106,6 +111,36 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_randomized(args: argparse.Namespace, camera: SynthCamera) -> int:
+    """`--randomized`: write the samples to `--out` and/or a contact sheet of the first `--preview-scenes`."""
+    count = args.scenes if args.out is not None else min(args.scenes, args.preview_scenes)
+    seeds = [args.seed + index for index in range(count)]
+    if not 1 <= args.supersample <= 4:
+        raise SystemExit(f"emcstereo synth: --supersample must be 1 to 4 rays per pixel side, got {args.supersample}")
+    start = time.perf_counter()
+    if args.out is not None:
+        try:
+            samples = write_randomized(args.out, seeds, camera, RandomizedSwitches(), args.supersample)
+        except OSError as exc:
+            raise SystemExit(f"emcstereo synth: cannot write the samples under --out {args.out}: {exc}") from exc
+        seconds = time.perf_counter() - start
+        print(
+            f"wrote {count} randomized scenes (seeds {seeds[0]}..{seeds[-1]}) to {args.out} in {seconds:.1f} s "
+            f"({seconds / count:.2f} s/scene)"
+        )
+    else:
+        samples = [render_randomized(seed, camera, RandomizedSwitches(), args.supersample) for seed in seeds]
+    if args.preview is not None:
+        shown = samples[: args.preview_scenes]
+        try:
+            args.preview.parent.mkdir(parents=True, exist_ok=True)
+            write_rgb(args.preview, randomized_contact_sheet(shown))
+        except (OSError, StereoIOError) as exc:
+            raise SystemExit(f"emcstereo synth: cannot write --preview {args.preview}: {exc}") from exc
+        print(f"wrote a contact sheet of {len(shown)} randomized scenes to {args.preview} (left | mask)")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `synth` to the `emcstereo` command."""
     parser = sub.add_parser(
@@ -140,6 +175,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--orchard-hardware",
         action="store_true",
         help="add trellis wires, posts, a stake and painted rods around the tree (background, not targets)",
+    )
+    parser.add_argument(
+        "--randomized",
+        action="store_true",
+        help="scenes of the randomized domain (every factor drawn per scene): --out gets randomized_<seed>.npz "
+        "and .json per scene, --preview a contact sheet; seeds are --seed, --seed+1, …",
     )
     parser.add_argument("--exr-half", action="store_true", help="store depth as fp16 like the UE5 originals")
     parser.add_argument("--workers", type=int, default=1, help="render in this many processes (default 1)")

@@ -20,6 +20,8 @@ def colorize_mask(mask: np.ndarray) -> np.ndarray:
     for value, colour in _RESERVED_COLOURS.items():
         out[mask == value] = colour
     branch = is_branch_id(mask)
+    if not branch.any():
+        return out
     hues = ((mask[branch].astype(np.int64) * 0.618034) % 1.0 * 180).astype(np.uint8)
     hsv = np.stack([hues, np.full_like(hues, 230), np.full_like(hues, 255)], axis=-1)[None]
     out[branch] = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0]
@@ -48,3 +50,14 @@ def preview_image(scenes: Sequence[SyntheticScene]) -> np.ndarray:
     if not scenes:
         raise ValueError("preview_image needs at least one scene")
     return np.concatenate([preview_row(scene) for scene in scenes], axis=0)
+
+
+def contact_sheet(lefts: Sequence[np.ndarray], masks: Sequence[np.ndarray], columns: int = 3) -> np.ndarray:
+    """RGB grid of scenes, each its left image (`H×W×3` uint8) beside its coloured instance mask (uint16 `H×W`),
+    `columns` scenes a row (a short last row is filled with black); all scenes share one size."""
+    if not lefts or len(lefts) != len(masks):
+        raise ValueError("contact_sheet needs one mask per left image and at least one scene")
+    tiles = [np.concatenate([left, colorize_mask(mask)], axis=1) for left, mask in zip(lefts, masks)]
+    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % columns)
+    rows = [np.concatenate(tiles[i : i + columns], axis=1) for i in range(0, len(tiles), columns)]
+    return np.concatenate(rows, axis=0)

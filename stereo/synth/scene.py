@@ -99,7 +99,7 @@ class _DrawnBranch(NamedTuple):
     r1: float
 
 
-class _Frame:
+class CameraFrame:
     """The camera's pose: carries world points and directions (y down) into the camera frame."""
 
     def __init__(self, pitch_rad: float, roll_rad: float) -> None:
@@ -137,7 +137,7 @@ class _SceneBuilder:
         )
         self.leaf_shape = options.leaf_shape if options.leaf_shape != "auto" else str(rng.choice(["broad", "needles"]))
         pitch = np.radians(rng.uniform(*_PITCH_DEG[self.pose]))
-        self.frame = _Frame(pitch, np.radians(rng.uniform(-6.0, 6.0)))
+        self.frame = CameraFrame(pitch, np.radians(rng.uniform(-6.0, 6.0)))
         self.cones: list[Cone] = []
         self.leaves: list[Leaf] = []
         self.leafy_twigs: list[tuple[np.ndarray, np.ndarray, float, int]] = []
