@@ -253,7 +253,7 @@ def test_a_stage_trained_with_no_calibrate_writes_its_model_without_calibrating(
     """`train-segmenter --no-calibrate`: an intermediate stage, whose model only starts the next, skips the
     confidence calibration (~5 min of the reproduction's 2 hours); it and --calibrate-only exclude each other."""
     from branchrange.cli import main
-    from branchrange.core.segmentation import branchnet_calibration
+    from branchrange.learning import calibration as branchnet_calibration
 
     def refuse(*args, **kwargs):
         raise AssertionError("calibrate_model must not run with --no-calibrate")
@@ -270,7 +270,7 @@ def test_a_stage_trained_with_no_calibrate_writes_its_model_without_calibrating(
 
 def test_train_segmenter_calibrates_in_the_workers_it_is_given_and_refuses_none(tmp_path, monkeypatch, capsys):
     from branchrange.cli import main
-    from branchrange.core.segmentation import branchnet_calibration
+    from branchrange.learning import calibration as branchnet_calibration
 
     calls: list[tuple[Path, int]] = []
     monkeypatch.setattr(
