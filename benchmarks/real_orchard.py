@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -178,7 +179,7 @@ def write_overlay(path: Path, panels: list[np.ndarray]) -> None:
     cv2.imwrite(str(path), np.concatenate(rows, axis=0), [cv2.IMWRITE_JPEG_QUALITY, 80])
 
 
-def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays: Path | None = None) -> dict:
+def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays: Path | None = None) -> dict[str, Any]:
     """Counts per sample, season and disparity mode, pooled per season ("seasons"), with overlays of
     `overlay_ids` written to `overlays` (`<id>.jpg`: rows winter / summer, columns 'depth' / 'none').
     FileNotFoundError when `folder` holds no samples."""
@@ -187,7 +188,7 @@ def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays
         raise FileNotFoundError(f"no real orchard samples in {folder / 'samples'}")
     drawn = set(overlay_ids([p.stem for p in paths]))
     pooled: dict[str, dict[str, dict[str, PixelCounts]]] = {}
-    samples: dict[str, dict] = {}
+    samples: dict[str, dict[str, Any]] = {}
     for path in paths:
         panels = []
         for season, (rgb, depth, mask) in read_sample(path).items():
@@ -211,7 +212,7 @@ def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays
     return {"samples": len(paths), "overlay_ids": sorted(drawn), "seasons": seasons, "per_sample": samples}
 
 
-def print_real_orchard(name: str, result: dict) -> None:
+def print_real_orchard(name: str, result: dict[str, Any]) -> None:
     """The per-season table of `run_real_orchard`'s `result` for segmenter `name`."""
     print(
         f"\nreal orchard RGB-D, {result['samples']} samples, segmenter {name}: labelled trunk+leader pixels found as "

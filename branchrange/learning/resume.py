@@ -12,9 +12,8 @@ in place (`stereo.checkpoints.atomic_torch_save`): a kill at any moment leaves t
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,26 +21,24 @@ import torch
 from stereo.checkpoints import atomic_torch_save
 from stereo.training.checkpoint import capture_rng_state, restore_rng_state
 
-if TYPE_CHECKING:
-    from branchrange.learning.training import BranchNetTrainConfig
-
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
 def save_training_state(
     path: Path,
-    config: BranchNetTrainConfig,
+    settings: dict[str, Any],
     step: int,
     model: torch.nn.Module,
     optimiser: torch.optim.Optimizer,
     schedule: Any,
     rng: np.random.Generator,
-    history: list[dict],
+    history: list[dict[str, Any]],
 ) -> None:
-    """Write the run's state after `step` optimiser steps to `path` (weights-only loadable: the config, the
-    generator's state and the metrics rows travel as JSON text)."""
+    """Write the state of the run of `settings` (its `BranchNetTrainConfig` as a dict) after `step` optimiser
+    steps to `path` (weights-only loadable: the settings, the generator's state and the metrics rows travel as
+    JSON text)."""
     state = {
-        "config": json.dumps(asdict(config), sort_keys=True),
+        "config": json.dumps(settings, sort_keys=True),
         "step": step,
         "model": model.state_dict(),
         "optimiser": optimiser.state_dict(),
@@ -55,15 +52,15 @@ def save_training_state(
 
 def restore_training_state(
     path: Path,
-    config: BranchNetTrainConfig,
+    settings: dict[str, Any],
     model: torch.nn.Module,
     optimiser: torch.optim.Optimizer,
     schedule: Any,
     rng: np.random.Generator,
-) -> tuple[int, list[dict]]:
+) -> tuple[int, list[dict[str, Any]]]:
     """Put the state saved at `path` back into `model`, `optimiser`, `schedule`, `rng` and torch's generators;
     (steps done, metrics rows so far). ValueError for a missing or unreadable file, or one saved by a run of
-    another config (resuming it would mix two runs)."""
+    other `settings` (resuming it would mix two runs)."""
     if not path.is_file():
         raise ValueError(f"resume: no checkpoint {path} (a run writes one at its first validation)")
     try:
@@ -71,7 +68,7 @@ def restore_training_state(
         saved = json.loads(state["config"])
     except (OSError, RuntimeError, KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"resume: {path} is not a train-segmenter checkpoint ({exc})") from None
-    changed = sorted(key for key, value in json.loads(json.dumps(asdict(config))).items() if saved.get(key) != value)
+    changed = sorted(key for key, value in json.loads(json.dumps(settings)).items() if saved.get(key) != value)
     if changed:
         raise ValueError(f"resume: {path} was saved by a run with other settings ({', '.join(changed)})")
     model.load_state_dict(state["model"])

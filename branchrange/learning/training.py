@@ -287,7 +287,7 @@ def train_branchnet(
     done = 0
     checkpoint = out_dir / CHECKPOINT_NAME
     if resume:
-        done, history = restore_training_state(checkpoint, config, model, optimiser, schedule, rng)
+        done, history = restore_training_state(checkpoint, asdict(config), model, optimiser, schedule, rng)
         log(f"resumed from {checkpoint} after step {done}")
     running, start = [], time.perf_counter()
     for step in range(done + 1, config.steps + 1):
@@ -315,7 +315,7 @@ def train_branchnet(
             }
             history.append(row)
             torch.save(model.state_dict(), out_dir / "branchnet.pt")  # the newest weights, for a look before the end
-            save_training_state(checkpoint, config, step, model, optimiser, schedule, rng, history)
+            save_training_state(checkpoint, asdict(config), step, model, optimiser, schedule, rng, history)
             running = []
             log(" ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
     with (out_dir / "metrics.csv").open("w", newline="") as handle:
