@@ -67,9 +67,10 @@ KILLED_RUN = textwrap.dedent(
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory) -> Path:
-    """A cache holding the three randomized scenes of `SETTINGS` (rendered once for the module: ~2 s each)."""
+    """A cache holding the three randomized scenes of `SETTINGS`, rendered once for the module in two processes
+    (the pool's path; ~2 s a scene)."""
     data = tmp_path_factory.mktemp("data")
-    assert render_samples(data, [(1, False), (2, False), (3, False)], workers=1, domain="randomized") == 3
+    assert render_samples(data, [(1, False), (2, False), (3, False)], workers=2, domain="randomized") == 3
     return data
 
 
