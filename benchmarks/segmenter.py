@@ -48,6 +48,13 @@ polygon; also how many of those lie on a trunk polygon (a main stem, which a pru
 the branches holding the annotation's cut candidates got one, and per annotated region where its pixels went
 (`region_pixels`); overlays (polygons, instances, cut points) are written to --overlays.
 
+Real orchard RGB-D (`--real-orchard`, alone: no synthetic scenes): `../shared/data/real_orchard_rgbd`, per season
+the share of the hand-labelled trunk+leader pixels called trunk or branch and of the pixels far from that mask
+called trunk / branch, with a relative disparity from the depth and with none (`benchmarks/real_orchard.py`);
+--segmenters default to the shipped 'learned' there, overlays of six samples fixed by id go to --overlays.
+
+    python benchmarks/segmenter.py --real-orchard [--segmenters learned] [--json out.json]
+                                   [--overlays benchmarks/segmenter_overlays/real_orchard]
     python benchmarks/segmenter.py [--scenes 240] [--segmenters learned learned@1280 learned-int8 structure]
                                    [--light dusk ...] [--hd720] [--json out.json]
                                    [--overlays benchmarks/segmenter_overlays] [--cache out/segbench]
@@ -67,6 +74,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from machine import cpu_name  # a script's own folder is on its import path
+from real_orchard import REAL_ORCHARD, print_real_orchard, run_real_orchard
 
 from branchrange.config.loader import load_config, pipeline_config
 from branchrange.core.confidence import (
@@ -617,7 +625,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=240, help="held-out synthetic scenes (default 240)")
     parser.add_argument(
-        "--segmenters", nargs="+", default=["learned", "structure"], help="segmenter names (default learned structure)"
+        "--segmenters",
+        nargs="+",
+        help="segmenter names (default learned structure; with --real-orchard: learned)",
     )
     parser.add_argument("--cache", type=Path, help="folder caching rendered scenes and their sgbm disparity")
     parser.add_argument("--overlays", type=Path, help="write real-pair overlays here")
@@ -639,9 +649,17 @@ def main(argv: list[str] | None = None) -> int:
         help="also score the scenes rendered at 1280×720 through the onboard pipeline (stereo 'roi-hd720')",
     )
     parser.add_argument("--skip-real", action="store_true", help="leave out the real pairs")
+    parser.add_argument(
+        "--real-orchard",
+        action="store_true",
+        help="only the real orchard RGB-D samples (../shared/data/real_orchard_rgbd): trunk+leader pixels found",
+    )
     parser.add_argument("--json", type=Path, help="write all numbers here")
     args = parser.parse_args(argv)
     print(f"CPU: {cpu_name()} (shared machine: absolute times are noisy)")
+    if args.real_orchard:
+        return main_real_orchard(args.segmenters or ["learned"], args.overlays, args.json)
+    args.segmenters = args.segmenters or ["learned", "structure"]
     start = time.perf_counter()
     synthetic = run_synthetic(args.segmenters, args.scenes, args.cache, args.hardware, args.light, args.hd720)
     real = {} if args.skip_real else run_real(args.segmenters, args.overlays)
@@ -652,10 +670,39 @@ def main(argv: list[str] | None = None) -> int:
         f"{time.perf_counter() - start:.0f} s"
     )
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         numbers = {"cpu": cpu_name(), "orchard_hardware": args.hardware, "synthetic": synthetic, "real": real}
-        args.json.write_text(json.dumps(numbers, indent=1) + "\n")
+        write_json(args.json, numbers)
     return 0
+
+
+def main_real_orchard(
+    segmenters: list[str], overlays: Path | None, json_path: Path | None, folder: Path = REAL_ORCHARD
+) -> int:
+    """`--real-orchard`: each segmenter on the real orchard samples in `folder` (`real_orchard.run_real_orchard`),
+    its table printed, overlays in `overlays`/<segmenter> when more than one is run; 0 (a message and nothing run
+    when the data set is absent: a checkout without ../shared skips it)."""
+    if not (folder / "samples").is_dir():
+        print(f"real orchard RGB-D: no data set at {folder} (skipped; see its README for the format)", file=sys.stderr)
+        return 0
+    start = time.perf_counter()
+    results = {}
+    for name in segmenters:
+        where = None if overlays is None else overlays / name if len(segmenters) > 1 else overlays
+        results[name] = run_real_orchard(benchmark_segmenter(name), folder, where)
+        print_real_orchard(name, results[name])
+    print(
+        f"\n{time.perf_counter() - start:.0f} s; the 'depth' disparity's scale is picked with the hand mask "
+        "(allowed for a measurement, not what a robot has)"
+    )
+    if json_path is not None:
+        write_json(json_path, {"cpu": cpu_name(), "real_orchard": results})
+    return 0
+
+
+def write_json(path: Path, numbers: dict) -> None:
+    """`numbers` as indented JSON at `path` (its folder made)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(numbers, indent=1) + "\n")
 
 
 if __name__ == "__main__":

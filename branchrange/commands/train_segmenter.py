@@ -12,6 +12,10 @@ weights). With --coco it fine-tunes the model on your labelled frames instead an
 in --out; --int8 also writes
 branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchrange.learning.quantize`).
 
+A run saves its whole state (model, optimiser, schedule, random generators, step) to --out's checkpoint.pt at
+every validation; killed, the same command with --resume continues it to the weights it would have had.
+`--set domain='"randomized"'` trains on the randomized domain (`BranchNetTrainConfig.domain`).
+
 Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
 the full-resolution feature branch; the first two need no calibration, `--no-calibrate`; 103 min on 2 cores
 from nothing cached, bit for bit the shipped files: `benchmarks/segmenter_recipe.py` runs and checks them):
@@ -87,6 +91,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(default: one per core it may use)",
     )
     p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run killed in --out from its last checkpoint (written at every validation), with the same "
+        "settings: the weights end as an uninterrupted run's",
+    )
+    p.add_argument(
         "--no-calibrate",
         action="store_true",
         help="train only, no confidence calibration: for a stage whose model only starts the next (~6–10 min saved)",
@@ -142,6 +152,8 @@ def run(args: argparse.Namespace) -> int:
         return _refuse(f"{', '.join(alone)}: options of a fine-tune, which needs --coco (your labels)")
     if args.calibrate_only and args.no_calibrate:
         return _refuse("--calibrate-only and --no-calibrate exclude each other")
+    if args.resume and (args.calibrate_only or args.ood_only):
+        return _refuse("--resume continues a training run: it excludes --calibrate-only and --ood-only")
     if args.calibrate_only and not model.is_file():
         return _refuse(f"{model} does not exist (train first)")
     try:
@@ -193,7 +205,7 @@ def _train_and_calibrate(args: argparse.Namespace, model: Path) -> int:
     else:
         try:
             config = training_config(args.config, args.set, args.stage)
-            meta = train_branchnet(config, args.out, args.data, log=log, workers=args.workers)
+            meta = train_branchnet(config, args.out, args.data, log=log, workers=args.workers, resume=args.resume)
         except (ValueError, TypeError) as exc:
             return _refuse(str(exc))
         if not args.no_calibrate:

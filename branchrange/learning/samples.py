@@ -8,16 +8,19 @@ A sample is one `stereo.synth.render_scene` frame (its seed decides everything) 
 - `instances` `uint16 H×W`: the renderer's instance mask (branches 1..K, twigs/leaves/trunk ids).
 
 Samples are cached as compressed `.npz` files so training, its resumption and the benchmark's
-held-out scenes never render the same seed twice. Training seeds start at 1; the segmenter
+held-out scenes never render the same seed twice; the randomized domain's (`render_randomized_sample`) under
+names of their own, keyed by seed, size and switches. Training seeds start at 1; the segmenter
 benchmark's held-out seeds start at 50,000 (`TRAIN_SEED_LIMIT` keeps them apart).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import multiprocessing
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from itertools import repeat
 from pathlib import Path
@@ -89,35 +92,87 @@ def cached_sample(
 ) -> dict[str, np.ndarray]:
     """The sample of `seed` (with orchard hardware when `hardware`) from `folder`, rendered and stored there first
     when absent."""
-    path = sample_path(folder, seed, hardware)
+    return _cached(sample_path(folder, seed, hardware), lambda: render_sample(seed, size, hardware=hardware))
+
+
+def randomized_sample_path(
+    folder: Path, seed: int, size: tuple[int, int] = (640, 360), switches: RandomizedSwitches | None = None
+) -> Path:
+    """Where `cached_randomized_sample` keeps the randomized domain's sample of `seed`: keyed by the seed, the size
+    and a digest of the switches' values (`RandomizedSwitches`, the default ones when None), so neither the
+    generator's scenes nor those of other switches or sizes ever share a file."""
+    from stereo.synth.randomized import RandomizedSwitches
+
+    values = json.dumps(dataclasses.asdict(switches or RandomizedSwitches()), sort_keys=True)
+    digest = hashlib.sha256(values.encode()).hexdigest()[:12]
+    return folder / f"randomized_{digest}_{size[0]}x{size[1]}_{seed:06d}.npz"
+
+
+def cached_randomized_sample(
+    folder: Path, seed: int, size: tuple[int, int] = (640, 360), switches: RandomizedSwitches | None = None
+) -> dict[str, np.ndarray]:
+    """`render_randomized_sample(seed, size, switches)` from `folder`, rendered and stored there first when
+    absent (`randomized_sample_path`)."""
+    path = randomized_sample_path(folder, seed, size, switches)
+    return _cached(path, lambda: render_randomized_sample(seed, size, switches))
+
+
+#: where training scenes come from (`BranchNetTrainConfig.domain`): `render_sample`'s scenes (with orchard
+#: hardware where asked) or `render_randomized_sample`'s (every factor drawn per scene)
+DOMAINS = ("generator", "randomized")
+
+
+def training_sample_path(folder: Path, seed: int, hardware: bool = False, domain: str = "generator") -> Path:
+    """Where `training_sample` keeps a scene of `domain` (`DOMAINS`) at 640×360."""
+    return randomized_sample_path(folder, seed) if domain == "randomized" else sample_path(folder, seed, hardware)
+
+
+def training_sample(
+    folder: Path, seed: int, hardware: bool = False, domain: str = "generator"
+) -> dict[str, np.ndarray]:
+    """The 640×360 training sample of scene `seed` of `domain` (`DOMAINS`; `hardware` only counts for the
+    generator's), cached in `folder`."""
+    return (
+        cached_randomized_sample(folder, seed)
+        if domain == "randomized"
+        else cached_sample(folder, seed, hardware=hardware)
+    )
+
+
+def _cached(path: Path, render: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The arrays stored at `path`, or `render()`'s, stored there first (`save_atomically`)."""
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
-    sample = render_sample(seed, size, hardware=hardware)
+    sample = render()
     save_atomically(path, sample)
     return sample
 
 
-def render_samples(folder: Path, seeds: Sequence[tuple[int, bool]], workers: int) -> int:
-    """Render into `folder` the training samples of `seeds` — (seed, with orchard hardware) pairs — that are
-    not cached there yet, in `workers` processes (`spawned_pool`); how many were rendered.
+def render_samples(folder: Path, seeds: Sequence[tuple[int, bool]], workers: int, domain: str = "generator") -> int:
+    """Render into `folder` the training samples of `seeds` — (seed, with orchard hardware) pairs of `domain`
+    (`DOMAINS`) — that are not cached there yet, in `workers` processes (`spawned_pool`); how many were rendered.
 
     Why: training draws its scenes one by one and would render each on first use, ~0.7 s a scene on one
-    core (1,200 scenes: ~15 min of a recipe that must fit in 2 hours). A sample depends on its seed alone,
-    so the cache is the one a single process writes."""
-    missing = [(seed, hardware) for seed, hardware in seeds if not sample_path(folder, seed, hardware).is_file()]
+    core (1,200 scenes: ~15 min of a recipe that must fit in 2 hours; a randomized scene takes ~2 s). A
+    sample depends on its seed alone, so the cache is the one a single process writes."""
+    missing = [
+        (seed, hardware)
+        for seed, hardware in seeds
+        if not training_sample_path(folder, seed, hardware, domain).is_file()
+    ]
     if workers > 1 and len(missing) > 1:
         with spawned_pool(min(workers, len(missing))) as pool:
-            list(pool.map(_render_into, repeat(folder), *zip(*missing), chunksize=4))
+            list(pool.map(_render_into, repeat(folder), *zip(*missing), repeat(domain), chunksize=4))
     else:
         for seed, hardware in missing:
-            _render_into(folder, seed, hardware)
+            _render_into(folder, seed, hardware, domain)
     return len(missing)
 
 
-def _render_into(folder: Path, seed: int, hardware: bool) -> None:
-    """`cached_sample` without handing the arrays back (a worker's result crosses a pipe)."""
-    cached_sample(folder, seed, hardware=hardware)
+def _render_into(folder: Path, seed: int, hardware: bool, domain: str = "generator") -> None:
+    """`training_sample` without handing the arrays back (a worker's result crosses a pipe)."""
+    training_sample(folder, seed, hardware, domain)
 
 
 def spawned_pool(workers: int) -> ProcessPoolExecutor:

@@ -30,7 +30,8 @@ from torch.nn import functional as F
 
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
 from branchrange.learning.calibration import CALIBRATION_SEEDS
-from branchrange.learning.samples import BRANCH, IGNORE, TRAIN_SEED_LIMIT, cached_sample, render_samples
+from branchrange.learning.resume import CHECKPOINT_NAME, restore_training_state, save_training_state
+from branchrange.learning.samples import BRANCH, DOMAINS, IGNORE, TRAIN_SEED_LIMIT, render_samples, training_sample
 from stereo.weights import sha256_of
 
 
@@ -59,6 +60,11 @@ class BranchNetTrainConfig:
       that a straight thin cylinder near the trunk is not always a branch; (0, 0) = none.
     - `fine_width`: channels of `BranchNet`'s full-resolution feature branch (0: none, the head reads
       the raw input).
+    - `domain`: where the training and validation scenes come from (`samples.DOMAINS`): "generator", the
+      `stereo.synth.render_scene` scenes the shipped model learnt, or "randomized", the randomized domain
+      (`samples.render_randomized_sample`, every factor drawn per scene: tree forms, bark, rows behind, ground,
+      structures, seasons, light, sensor), whose seeds are a space of their own (cached under other names,
+      never mixed with the generator's); `hardware_seeds` are generator scenes, so none with it.
     """
 
     train_seeds: tuple[int, int] = (1, 1201)
@@ -78,8 +84,13 @@ class BranchNetTrainConfig:
     init_weights: str = ""
     fine_width: int = 0
     hardware_seeds: tuple[int, int] = (0, 0)
+    domain: str = "generator"
 
     def __post_init__(self) -> None:
+        if self.domain not in DOMAINS:
+            raise ValueError(f"domain must be one of {', '.join(DOMAINS)}, not {self.domain!r}")
+        if self.domain == "randomized" and self.hardware_seeds != (0, 0):
+            raise ValueError("hardware_seeds are generator scenes: the randomized domain draws its own structures")
         drawn_from = ["train_seeds"] + (["hardware_seeds"] if self.hardware_seeds != (0, 0) else [])
         for name in [*drawn_from, "val_seeds"]:
             first, last = getattr(self, name)
@@ -235,9 +246,13 @@ def export_onnx(model: BranchNet, path: Path) -> str:
     return sha256_of(path)
 
 
-def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path, log=print, workers: int = 1) -> dict:
+def train_branchnet(
+    config: BranchNetTrainConfig, out_dir: Path, data_dir: Path, log=print, workers: int = 1, resume: bool = False
+) -> dict:
     """Train, validate and export (see the module docstring); returns the metadata written to `branchnet.json`.
-    The scenes not yet in `data_dir` are rendered first, in `workers` processes (`render_samples`)."""
+    The scenes not yet in `data_dir` are rendered first, in `workers` processes (`render_samples`). At every
+    validation the run's whole state is saved to `out_dir`/`CHECKPOINT_NAME`; `resume` continues from it (same
+    config: ValueError otherwise) and ends with the weights the run would have had uninterrupted."""
     from stereo.io import write_rgb
     from stereo.training.curves import plot_panel
 
@@ -249,10 +264,12 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     train_seeds = [(s, False) for s in range(*config.train_seeds)]
     train_seeds += [(s, True) for s in range(*config.hardware_seeds)]
-    rendered = render_samples(data_dir, [*train_seeds, *((s, False) for s in range(*config.val_seeds))], workers)
+    scenes = [*train_seeds, *((s, False) for s in range(*config.val_seeds))]
+    rendered = render_samples(data_dir, scenes, workers, config.domain)
     if rendered:
-        log(f"rendered {rendered} scenes into {data_dir} ({workers} process{'es' if workers > 1 else ''})")
-    validation = [cached_sample(data_dir, int(s)) for s in range(*config.val_seeds)]
+        kind = "randomized " if config.domain == "randomized" else ""
+        log(f"rendered {rendered} {kind}scenes into {data_dir} ({workers} process{'es' if workers > 1 else ''})")
+    validation = [training_sample(data_dir, int(s), domain=config.domain) for s in range(*config.val_seeds)]
     model = BranchNet(config.width, config.fine_width)
     init_sha256 = None
     if config.init_weights:
@@ -267,12 +284,18 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
     )
     weights = torch.tensor(config.class_weights, dtype=torch.float32)
     history: list[dict] = []
+    done = 0
+    checkpoint = out_dir / CHECKPOINT_NAME
+    if resume:
+        done, history = restore_training_state(checkpoint, asdict(config), model, optimiser, schedule, rng)
+        log(f"resumed from {checkpoint} after step {done}")
     running, start = [], time.perf_counter()
-    for step in range(1, config.steps + 1):
+    for step in range(done + 1, config.steps + 1):
         crops = []
         for _ in range(config.batch):
             seed, hardware = train_seeds[int(rng.choice(len(train_seeds)))]  # the draws of np.arange's choice
-            crops.append(training_crop(cached_sample(data_dir, seed, hardware=hardware), config, rng))
+            sample = training_sample(data_dir, seed, hardware, config.domain)
+            crops.append(training_crop(sample, config, rng))
         inputs = torch.from_numpy(np.stack([c[0] for c in crops])).contiguous(memory_format=torch.channels_last)
         targets = torch.from_numpy(np.stack([c[1] for c in crops]))
         logits = model(inputs)
@@ -292,6 +315,7 @@ def train_branchnet(config: BranchNetTrainConfig, out_dir: Path, data_dir: Path,
             }
             history.append(row)
             torch.save(model.state_dict(), out_dir / "branchnet.pt")  # the newest weights, for a look before the end
+            save_training_state(checkpoint, asdict(config), step, model, optimiser, schedule, rng, history)
             running = []
             log(" ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
     with (out_dir / "metrics.csv").open("w", newline="") as handle:
