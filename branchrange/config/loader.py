@@ -1,33 +1,34 @@
-"""BranchRange's one configuration file: each TOML section is the settings dataclass its code uses.
+"""BranchRange's one configuration file: `Config` gathers the sections, each the settings dataclass of the code that
+reads it, and `load_config` reads the TOML file into it.
 
 | section | dataclass | used by |
 |---|---|---|
-| `[camera]` | `CameraConfig` | the daemon's frame source, its mount and watchdog |
-| `[stereo]` | `StereoConfig` | `Pipeline.backend` (`stereo.backends.make_backend`), roi or full mode |
-| `[roi]` | `RoiConfig` | `branchrange.core.roi.CoarseToFine` |
+| `[camera]` | `branchrange.config.sections.CameraConfig` | the daemon's frame source, its mount and watchdog |
+| `[stereo]` | `branchrange.core.pipeline.StereoConfig` | `Pipeline.backend` (`make_backend`), roi or full mode |
+| `[roi]` | `branchrange.core.roi.RoiConfig` | `branchrange.core.roi.CoarseToFine`, the region budget |
 | `[cutpoints]` | `branchrange.core.cutpoints.CutPointConfig` | cut-point estimation, target choice, tracking on/off |
 | `[branch_tracking]` | `branchrange.core.tracking.TrackerConfig` | the per-frame branch ids (`BranchTracker`) |
-| `[masks]` | `MaskConfig` | how mask files and arrays are read |
-| `[segmenter]` | `SegmenterConfig` (+ `[segmenter.structure]`, `[segmenter.geometric]`) | `SegmenterConfig.build` |
-| `[mavlink]` | `MavlinkConfig` | `branchrange.onboard.mavlink.MavlinkRelay` |
-| `[tracking]` | `TrackingConfig` | world-frame target tracks (`branchrange.onboard.mavlink.world_tracks`) |
-| `[api]` | `ApiConfig` | the HTTP service |
-| `[log]` | `LogConfig` | the results log and status reports |
+| `[masks]` | `branchrange.core.masks.MaskConfig` | how mask files and arrays are read |
+| `[segmenter]` | `branchrange.core.segmentation.choose.SegmenterConfig` (+ sub-tables) | `SegmenterConfig.build` |
+| `[mavlink]` | `branchrange.config.sections.MavlinkConfig` | `branchrange.onboard.mavlink.MavlinkRelay` |
+| `[tracking]` | `branchrange.config.sections.TrackingConfig` | the world-frame target tracks (`world_tracks`) |
+| `[api]` | `branchrange.config.sections.ApiConfig` | the HTTP service |
+| `[log]` | `branchrange.config.sections.LogConfig` | the results log and status reports |
+| `[shedding]` | `branchrange.config.sections.SheddingConfig` | the daemon's load shedding |
 
-The pipeline's sections reach it together as `pipeline_config(cfg)`, which hands over the section
-objects themselves. Every option has a default, so an empty file is a valid configuration. Every
-option can be set in the file and on the command line (`--set section.key=value`, a TOML value;
-`--set segmenter.structure.max_range_m=3`); an unknown key, a value of the wrong type or out of
-range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected.
-Examples live in `deploy/*.toml`.
+The per-frame core never imports this module: the pipeline's sections reach it together as
+`pipeline_config(cfg)`, which hands over the section objects themselves. Every option has a default, so an empty
+file is a valid configuration. Every option can be set in the file and on the command line (`--set
+section.key=value`, a TOML value; `--set segmenter.structure.max_range_m=3`); an unknown key, a value of the wrong
+type or out of range raises `ConfigError` naming the key (`mavlink.send_rate_hz`) and what was expected. Examples
+live in `deploy/*.toml`.
 
-To add an option: add a typed field with a default to its section's dataclass, its range to that
-class's `checks()` and its plain bounds or choices to its `limits` (`branchrange.core.settings_check`),
-and say what it does in a bullet of the class docstring (`branchrange.config.descriptions`). The
-loader reads the field list; a field whose type is itself a settings dataclass is a sub-table. The
-JSON Schema that editors check the file with and the reference `docs/configuration.md` are
-generated from the same classes (`branchrange config schema`, `branchrange config reference`); tests
-say when they need regenerating.
+To add an option: add a typed field with a default to its section's dataclass, its plain range once to the class's
+`limits` (a `branchrange.core.settings_check.Limit` with its `expected` message), a rule no `Limit` can state to
+its `checks()`, and say what it does in a bullet of the class docstring (`branchrange.config.descriptions`). The
+loader reads the field list; a field whose type is itself a settings dataclass is a sub-table. The JSON Schema that
+editors check the file with and the reference `docs/configuration.md` are generated from the same classes
+(`branchrange config schema`, `branchrange config reference`); tests say when they need regenerating.
 """
 
 from __future__ import annotations

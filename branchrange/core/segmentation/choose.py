@@ -1,5 +1,6 @@
 """`make_segmenter`: the segmenter a name asks for — 'learned', 'learned:BUNDLE' (a fine-tuned model bundle),
-'structure', 'geometric' or 'onnx:FILE' (your own model)."""
+'structure', 'geometric' or 'onnx:FILE' (your own model) — and `SegmenterConfig`, the `[segmenter]` section that
+names it with the settings of each."""
 
 from __future__ import annotations
 
