@@ -294,9 +294,10 @@ def finetune_branchnet(
         raise ValueError(f"{len(frames)} labelled frame: at least 2 (one to train on, one held out)")
     start_meta = verified_metadata(start)
     width, fine_width = int(start_meta.get("width", 12)), int(start_meta.get("fine_width", 0))
+    deep_blocks = int(start_meta.get("deep_blocks", 0))
     torch.manual_seed(config.seed)
     torch.set_num_threads(config.threads)
-    model = branchnet_from_onnx(start, width, fine_width)
+    model = branchnet_from_onnx(start, width, fine_width, deep_blocks)
     train_at, held_at = split_by_image(len(frames), config.holdout_share, config.seed)
     train, held = [frames[i] for i in train_at], [frames[i] for i in held_at]
     log(f"{len(train)} frames to train on, {len(held)} held out: {', '.join(f.name for f in held) or 'none'}")
@@ -329,6 +330,7 @@ def finetune_branchnet(
         "model": "BranchNet",
         "width": width,
         "fine_width": fine_width,
+        "deep_blocks": deep_blocks,
         "classes": start_meta.get("classes"),
         "onnx_sha256": onnx_sha256,
         "config": asdict(config),

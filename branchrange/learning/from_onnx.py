@@ -41,8 +41,8 @@ def _conv_order(model: BranchNet) -> list[str]:
     return order
 
 
-def branchnet_from_onnx(path: Path, width: int, fine_width: int) -> BranchNet:
-    """The `BranchNet(width, fine_width)` whose weights are those of the ONNX file `path` (see the module
+def branchnet_from_onnx(path: Path, width: int, fine_width: int, deep_blocks: int = 0) -> BranchNet:
+    """The `BranchNet(width, fine_width, deep_blocks)` whose weights are those of the ONNX file `path` (see the module
     docstring), in eval mode; `OnnxSegmenterError` when the file is not such a network."""
     try:
         import onnx
@@ -57,7 +57,7 @@ def branchnet_from_onnx(path: Path, width: int, fine_width: int) -> BranchNet:
         raise OnnxSegmenterError(f"{path}: not an ONNX file ({exc})") from None
     weights = {init.name: numpy_helper.to_array(init) for init in graph.initializer}
     convs = [node for node in graph.node if node.op_type == "Conv"]
-    model = BranchNet(width, fine_width)
+    model = BranchNet(width, fine_width, deep_blocks)
     order = _conv_order(model)
     modules = dict(model.named_modules())
     if len(convs) != len(order):

@@ -60,6 +60,10 @@ class BranchNetTrainConfig:
       that a straight thin cylinder near the trunk is not always a branch; (0, 0) = none.
     - `fine_width`: channels of `BranchNet`'s full-resolution feature branch (0: none, the head reads
       the raw input).
+    - `deep_blocks`: inverted residual blocks at each of the encoder's 1/4, 1/8 and 1/16 scales (`BranchNet`;
+      0: none, the shipped network): capacity for a broad domain where pixels are few. `init_weights` of a
+      network without them leaves the blocks at their random start (each adds to its input, so the start is
+      the old network plus a perturbation).
     - `domain`: where the training and validation scenes come from (`samples.DOMAINS`): "generator", the
       `stereo.synth.render_scene` scenes the shipped model learnt, or "randomized", the randomized domain
       (`samples.render_randomized_sample`, every factor drawn per scene: tree forms, bark, rows behind, ground,
@@ -83,6 +87,7 @@ class BranchNetTrainConfig:
     val_every: int = 500
     init_weights: str = ""
     fine_width: int = 0
+    deep_blocks: int = 0
     hardware_seeds: tuple[int, int] = (0, 0)
     domain: str = "generator"
 
@@ -109,6 +114,8 @@ class BranchNetTrainConfig:
             raise ValueError("steps and batch must be ≥ 1 and crop a multiple of 16, ≥ 64")
         if not 0 <= self.fine_width <= 64:
             raise ValueError("fine_width must lie in [0, 64] (0 = no full-resolution branch)")
+        if not 0 <= self.deep_blocks <= 4:
+            raise ValueError("deep_blocks must lie in [0, 4] (0 = the shipped encoder)")
         if not 0 <= self.instance_balance <= 2:
             raise ValueError("instance_balance must lie in [0, 2] (an exponent; 0 = off)")
 
@@ -270,7 +277,7 @@ def train_branchnet(
         kind = "randomized " if config.domain == "randomized" else ""
         log(f"rendered {rendered} {kind}scenes into {data_dir} ({workers} process{'es' if workers > 1 else ''})")
     validation = [training_sample(data_dir, int(s), domain=config.domain) for s in range(*config.val_seeds)]
-    model = BranchNet(config.width, config.fine_width)
+    model = BranchNet(config.width, config.fine_width, config.deep_blocks)
     init_sha256 = None
     if config.init_weights:
         init_sha256 = sha256_of(Path(config.init_weights))
@@ -339,6 +346,7 @@ def train_branchnet(
         "model": "BranchNet",
         "width": config.width,
         "fine_width": config.fine_width,
+        "deep_blocks": config.deep_blocks,
         "classes": list(CLASSES),
         "onnx_sha256": sha256,
         "config": asdict(config),
