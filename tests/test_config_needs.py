@@ -20,18 +20,22 @@ from branchrange.config.loader import Config
 from branchrange.config.needs import TOKEN_ENV, open_bind_refusal, unmet_needs
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
-DEPLOY_FILES = ("onboard.toml", "onboard_cpu.toml", "serve.toml")
+DEPLOY_FILES = ("onboard.toml", "onboard_cpu.toml", "onboard_gpu.toml", "serve.toml")
 #: an absolute path a deploy file names on the drone (/etc/branchrange/…, /opt/…, /var/lib/…)
 INSTALLED_PATH = re.compile(r'"(/(?:etc|opt|var/lib)/branchrange/[^"]+)"')
 
 
 @pytest.fixture(autouse=True)
 def machine(monkeypatch):
-    """A machine with CUDA (the test machine's own does not decide the outcome) and no token in the
-    environment."""
+    """A machine with CUDA for torch and onnxruntime (the test machine's own does not decide the outcome) and no
+    token in the environment."""
     import torch
 
+    from stereo.onnx_runtime import import_onnxruntime
+
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    gpu_providers = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+    monkeypatch.setattr(import_onnxruntime(), "get_available_providers", lambda: gpu_providers)
     monkeypatch.delenv(TOKEN_ENV, raising=False)
 
 
@@ -56,9 +60,9 @@ def check(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, list[str
     return status, out.splitlines(), err
 
 
-def _line_of(path: Path, prefix: str) -> int:
-    """The 1-based line of `path` that starts with `prefix`."""
-    return next(n for n, line in enumerate(path.read_text().splitlines(), 1) if line.startswith(prefix))
+def _line_of(path: Path, prefix: str, after: int = 0) -> int:
+    """The first 1-based line of `path` after line `after` that starts with `prefix`."""
+    return next(n for n, line in enumerate(path.read_text().splitlines(), 1) if n > after and line.startswith(prefix))
 
 
 def _edit(path: Path, old: str, new: str) -> None:
@@ -101,6 +105,14 @@ def no_cuda(path: Path) -> tuple[list[str], str, str]:
     return [], "stereo.device", f"{path}:{_line_of(path, 'device =')}"
 
 
+def no_gpu_onnxruntime(path: Path) -> tuple[list[str], str, str]:
+    from stereo.onnx_runtime import import_onnxruntime
+
+    import_onnxruntime().get_available_providers = lambda: ["CPUExecutionProvider"]  # restored by `machine`
+    line = _line_of(path, "device =", after=_line_of(path, "[segmenter.learned]"))
+    return [], "segmenter.learned.device", f"{path}:{line}"
+
+
 def unwritable_results(path: Path) -> tuple[list[str], str, str]:
     blocker = path.parent / "not_a_folder"
     blocker.write_text("")
@@ -109,13 +121,14 @@ def unwritable_results(path: Path) -> tuple[list[str], str, str]:
 
 
 BREAKAGES: list[tuple[str, Callable[[Path], tuple[list[str], str, str]]]] = [
-    *[(name, missing_calibration) for name in ("onboard.toml", "onboard_cpu.toml")],
-    ("onboard.toml", missing_weights),
+    *[(name, missing_calibration) for name in ("onboard.toml", "onboard_cpu.toml", "onboard_gpu.toml")],
+    *[(name, missing_weights) for name in ("onboard.toml", "onboard_gpu.toml")],
     *[(name, missing_bundle) for name in DEPLOY_FILES],
     *[(name, public_api_without_token) for name in DEPLOY_FILES],
     *[(name, range_broken_by_set) for name in DEPLOY_FILES],
-    ("onboard.toml", no_cuda),
-    *[(name, unwritable_results) for name in ("onboard.toml", "onboard_cpu.toml")],
+    *[(name, no_cuda) for name in ("onboard.toml", "onboard_gpu.toml")],
+    ("onboard_gpu.toml", no_gpu_onnxruntime),
+    *[(name, unwritable_results) for name in ("onboard.toml", "onboard_cpu.toml", "onboard_gpu.toml")],
 ]
 
 

@@ -107,6 +107,21 @@ def _segmenter_model(cfg: Config) -> Iterator[Need]:
     elif kind == "learned":
         shipped = str(SHIPPED_MODELS[cfg.segmenter.learned.precision])
         yield from _readable("segmenter.model", shipped, what="the shipped model: reinstall the package")
+    if kind == "learned" and cfg.segmenter.learned.device != "cpu":
+        yield from _segmenter_device(cfg.segmenter.learned.device)
+
+
+def _segmenter_device(device: str) -> Iterator[Need]:
+    """The need of a learned segmenter on a GPU: onnxruntime's provider for `device` (onnxruntime-gpu)."""
+    from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, execution_providers
+    from stereo.onnx_runtime import import_onnxruntime
+
+    try:
+        execution_providers(device, list(import_onnxruntime().get_available_providers()))
+    except ImportError:
+        yield "segmenter.learned.device", f"segmenter.learned.device = {device!r}: onnxruntime is not installed"
+    except OnnxSegmenterError as exc:
+        yield "segmenter.learned.device", f"segmenter.learned.device = {device!r}: {exc}"
 
 
 def _stereo(cfg: Config) -> Iterator[Need]:

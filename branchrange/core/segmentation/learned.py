@@ -52,7 +52,7 @@ from branchrange.core.light_check import LIGHTS, LightReading, measure_light
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
 from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input
 from branchrange.core.segmentation.bundle import bundle_model
-from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
+from branchrange.core.segmentation.onnx_model import EXECUTION_PROVIDERS, OnnxSegmenterError, onnx_session
 from branchrange.core.segmentation.ood import (
     OodReading,
     OodReference,
@@ -63,7 +63,7 @@ from branchrange.core.segmentation.ood import (
 from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
 from branchrange.core.segmentation.segmenter import depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
-from branchrange.core.settings_check import Checks, Limit, Settings
+from branchrange.core.settings_check import Checks, Limit, Settings, one_of
 from stereo.weights import sha256_of
 
 log = logging.getLogger(__name__)
@@ -97,6 +97,11 @@ class LearnedSegmenterConfig(Settings):
     - `precision`: "fp32" or "int8" (a statically quantized copy: its network ~1.4×, the whole segmenter
       ~1.2× faster on CPU, same recall; `branchrange.learning.quantize`): of the shipped model with `model` empty, or of
       a bundle folder made with `--int8`; a `model` .onnx file is run as it is (fp32 only).
+    - `device`: where the network runs: "cpu" (the default), "cuda" (onnxruntime's CUDA provider) or "tensorrt"
+      (its TensorRT provider, which also runs the int8 copy), both from onnxruntime-gpu on a CUDA companion
+      (`onnx_model.EXECUTION_PROVIDERS`); a device whose provider the installed onnxruntime lacks is refused when
+      the segmenter is built, never run on the CPU instead. The int8 copy is a CPU or TensorRT model: with
+      "cuda", use `precision = "fp32"`.
     - `network_width`: the width (px) the network sees a frame at — the frame is resized to it, aspect
       kept, and the class probabilities back to the frame's size; 0 (the default) = the frame's own
       width: the roi mode's 640×360 coarse frame as it is, what the onboard loop affords (8 fresh Hz on
@@ -186,6 +191,7 @@ class LearnedSegmenterConfig(Settings):
     error = OnnxSegmenterError
     limits = {
         "precision": Limit(enum=tuple(SHIPPED_MODELS)),
+        "device": Limit(enum=tuple(EXECUTION_PROVIDERS)),
         "network_width": Limit(minimum=0, maximum=MAX_NETWORK_WIDTH),  # 0, or from MIN_NETWORK_WIDTH: checks()
         "branch_threshold": Limit(exclusive_minimum=0, exclusive_maximum=1, expected="a probability in (0, 1)"),
         "min_area_px": Limit(minimum=1, expected="≥ 1 pixel"),
@@ -213,6 +219,7 @@ class LearnedSegmenterConfig(Settings):
 
     model: str = ""
     precision: str = "fp32"
+    device: str = "cpu"
     network_width: int = 0
     branch_threshold: float = 0.5
     min_area_px: int = 12
@@ -239,6 +246,10 @@ class LearnedSegmenterConfig(Settings):
                 and (self.precision == "fp32" or not self.model.lower().endswith(".onnx")),
                 "'fp32' or 'int8' (the shipped models, or a bundle folder's int8 copy; a model file of your own "
                 "(.onnx) is used as it is: leave precision 'fp32')",
+            ),
+            "device": (
+                self.device in EXECUTION_PROVIDERS and not (self.device == "cuda" and self.precision == "int8"),
+                f"{one_of(EXECUTION_PROVIDERS)}; the int8 copy runs on 'cpu' or 'tensorrt', not 'cuda'",
             ),
             "network_width": (
                 self.network_width == 0 or MIN_NETWORK_WIDTH <= self.network_width <= MAX_NETWORK_WIDTH,
@@ -337,7 +348,9 @@ class LearnedSegmenter:
                 self.model_path,
             )
         # the int8 copy (metadata "quantization") gains from onnxruntime's blocked layout, fp32 loses (see there)
-        self.session = onnx_session(self.model_path, config.threads, blocked_layout="quantization" in meta)
+        self.session = onnx_session(
+            self.model_path, config.threads, blocked_layout="quantization" in meta, device=config.device
+        )
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         if len(inputs) != 1 or inputs[0].shape[1:2] != [IN_CHANNELS] or outputs[0].shape[1:2] != [len(CLASSES)]:
             raise OnnxSegmenterError(

@@ -176,9 +176,34 @@ def _export_size(text: str) -> tuple[int, int] | None:
     return sides[-1], sides[0]
 
 
-def onnx_session(path: Path, threads: int, blocked_layout: bool = True) -> onnxruntime.InferenceSession:  # noqa: F821 - optional import
-    """An onnxruntime CPU session of the model file `path` with `threads` intra-op threads;
-    `OnnxSegmenterError` naming the file when it is missing or unreadable, or onnxruntime is absent.
+#: A segmenter's `device` → the onnxruntime execution providers it asks for, best first; the CPU's last takes the
+#: nodes a GPU provider leaves. TensorRT (NVIDIA's, in the Jetson builds of onnxruntime-gpu) also runs an int8 copy.
+EXECUTION_PROVIDERS: dict[str, tuple[str, ...]] = {
+    "cpu": ("CPUExecutionProvider",),
+    "cuda": ("CUDAExecutionProvider", "CPUExecutionProvider"),
+    "tensorrt": ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"),
+}
+
+
+def execution_providers(device: str, available: list[str]) -> list[str]:
+    """The providers of `device` (`EXECUTION_PROVIDERS`) that onnxruntime has (`available`); `OnnxSegmenterError`
+    when it lacks the device's own: a model asked to run on the GPU never runs on the CPU unnoticed."""
+    wanted = EXECUTION_PROVIDERS[device]
+    if wanted[0] not in available:
+        raise OnnxSegmenterError(
+            f"segmenter device {device!r} needs onnxruntime's {wanted[0]}, and the installed onnxruntime has "
+            f"{', '.join(available) or 'none'}: install onnxruntime-gpu (on a Jetson, NVIDIA's JetPack build), "
+            'or set [segmenter.learned] device = "cpu"'
+        )
+    return [provider for provider in wanted if provider in available]
+
+
+def onnx_session(
+    path: Path, threads: int, blocked_layout: bool = True, device: str = "cpu"
+) -> onnxruntime.InferenceSession:  # noqa: F821 - optional import
+    """An onnxruntime session of the model file `path` on `device` (`EXECUTION_PROVIDERS`) with `threads`
+    intra-op threads; `OnnxSegmenterError` naming the file when it is missing or unreadable, onnxruntime is
+    absent or lacks the device's provider.
 
     `blocked_layout` False stops one graph optimisation: the NCHWc layout (channels in blocks of 8 or 16
     for the AVX2 / AVX-512 convolution kernels). A network of few channels at full resolution pays more
@@ -198,14 +223,15 @@ def onnx_session(path: Path, threads: int, blocked_layout: bool = True) -> onnxr
     options.inter_op_num_threads = 1
     if not blocked_layout:
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    providers = execution_providers(device, list(ort.get_available_providers()))
     try:
-        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(str(path), options, providers=providers)
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable model
         raise OnnxSegmenterError(f"onnx:{path}: not a model onnxruntime can load ({exc})") from None
 
 
 class OnnxSegmenter:
-    """`Segmenter` over an ONNX model (YOLOv8-seg or per-pixel logits), onnxruntime on CPU."""
+    """`Segmenter` over an ONNX model (YOLOv8-seg or per-pixel logits), onnxruntime on the CPU."""
 
     def __init__(self, path: str | Path, config: OnnxSegmenterConfig = OnnxSegmenterConfig()) -> None:
         path = Path(path)
