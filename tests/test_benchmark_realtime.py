@@ -78,3 +78,36 @@ def test_the_flight_asked_for_is_rendered_in_its_own_folder(capsys: pytest.Captu
     with pytest.raises(SystemExit):
         realtime.parse_args(["--sequence", "out/flight", "--speed", "0.8"])
     assert "not with --sequence" in capsys.readouterr().err
+
+
+def test_the_loop_profile_reads_py_spy_stacks_into_stage_and_function_shares():
+    import profile_loop  # benchmarks/ is on the path (above)
+
+    raw = (
+        "thread (1): MainThread;run (daemon.py:450);stereo_stage (pipeline.py:400);compute (sgbm.py:60) 6\n"
+        "thread (2): geometry-send;_geometry_worker (daemon.py:290);estimate_cut_points (cutpoints.py:830) 3\n"
+        "thread (2): geometry-send;_geometry_worker (daemon.py:291);estimate_cut_points (cutpoints.py:840);"
+        "fit (cylinder_section.py:20) 1\n"
+        "not a stack line\n"
+    )
+    stacks = profile_loop.parse_raw(raw)
+    assert [(thread, count) for thread, _, count in stacks] == [
+        ("MainThread", 6),
+        ("geometry-send", 3),
+        ("geometry-send", 1),
+    ]
+    table = profile_loop.profile_table(stacks, top=10)
+    assert table["samples"] == 10
+    assert {r["name"]: r["share"] for r in table["stages"]} == {
+        "stereo (daemon main thread)": 0.6,
+        "geometry + send": 0.4,
+    }
+    own = {r["name"]: r["share"] for r in table["self"]}
+    assert own == {
+        "compute (sgbm.py)": 0.6,
+        "estimate_cut_points (cutpoints.py)": 0.3,
+        "fit (cylinder_section.py)": 0.1,
+    }
+    inclusive = {r["name"]: r["share"] for r in table["total"]}
+    assert inclusive["estimate_cut_points (cutpoints.py)"] == 0.4  # two lines of one function: counted once a stack
+    assert inclusive["_geometry_worker (daemon.py)"] == 0.4 and inclusive["run (daemon.py)"] == 0.6

@@ -1,0 +1,161 @@
+"""Where the onboard loop's CPU goes: the shipped configuration's real-time run (`benchmarks/realtime.py`, frames
+released at their timestamps through the daemon's own threads) sampled by py-spy, per stage and per function.
+
+py-spy (`pip install py-spy`) samples every thread of the run `--rate` times a second without stopping it, idle
+threads left out. The table reads its raw stacks: each sample's thread is its stage — the daemon's main thread is
+the stereo stage (`Pipeline.stereo_stage`: coarse pass, segmenter, regions), `geometry-send` the geometry stage
+and the send (`Pipeline.geometry_stage`: branch disparity, cut points, tracking; the relay's publish),
+`latest-frame-capture` the camera, `mavlink-relay` the link — and each function's share is of all samples: its
+own (`self`: the function was running, native code it called included) and inclusive (`total`: anywhere on the
+stack). The flame graph (SVG) is py-spy's own, from a second run of the same command.
+
+    .venv/bin/python benchmarks/profile_loop.py --sequence out/bench/flight_hd720 \\
+        --json benchmarks/results/profile_loop.json --flamegraph benchmarks/results/profile_loop.svg
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections import Counter
+from pathlib import Path
+
+from machine import cpu_name  # a script's own folder is on its import path
+
+BENCHMARKS = Path(__file__).resolve().parent
+#: a sampled thread's name → the loop's stage it runs
+STAGES = {
+    "MainThread": "stereo (daemon main thread)",
+    "geometry-send": "geometry + send",
+    "latest-frame-capture": "camera capture",
+    "mavlink-relay": "MAVLink relay",
+}
+
+
+def parse_raw(text: str) -> list[tuple[str, list[str], int]]:
+    """py-spy's raw (collapsed) stacks with thread names (`record -t -f raw`): (thread name, frames root first,
+    samples) per line; a frame is `function (file:line)`."""
+    stacks = []
+    for line in text.splitlines():
+        stack, _, count = line.rpartition(" ")
+        if not stack or not count.isdigit():
+            continue
+        thread, *frames = stack.split(";")
+        name = thread.partition(": ")[2] or thread
+        stacks.append((name, frames, int(count)))
+    return stacks
+
+
+def function_of(frame: str) -> str:
+    """`estimate_cut_points (branchrange/core/cutpoints.py:830)` → `estimate_cut_points (cutpoints.py)`: a function
+    counted once whatever line of it was sampled."""
+    name, _, where = frame.partition(" (")
+    path = where.rstrip(")").rpartition(":")[0]
+    return f"{name} ({Path(path).name})" if path else name
+
+
+def profile_table(stacks: list[tuple[str, list[str], int]], top: int) -> dict:
+    """Shares of all samples per stage and per function (self and inclusive), the `top` functions by each."""
+    total = sum(count for _, _, count in stacks) or 1
+    stages: Counter[str] = Counter()
+    own: Counter[str] = Counter()
+    inclusive: Counter[str] = Counter()
+    for thread, frames, count in stacks:
+        stages[STAGES.get(thread, "other")] += count
+        if frames:
+            own[function_of(frames[-1])] += count
+        for function in {function_of(frame) for frame in frames}:
+            inclusive[function] += count
+
+    def shares(counter: Counter[str], n: int | None = None) -> list[dict]:
+        return [{"name": k, "share": v / total, "samples": v} for k, v in counter.most_common(n)]
+
+    return {"samples": total, "stages": shares(stages), "self": shares(own, top), "total": shares(inclusive, top)}
+
+
+def run_py_spy(py_spy: str, fmt: str, out: Path, rate: int, command: list[str]) -> None:
+    """`py-spy record` of `command` (thread names on, idle threads off) into `out` in `fmt`."""
+    subprocess.run(
+        [py_spy, "record", "-t", "-r", str(rate), "-f", fmt, "-o", str(out), "--", *command],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
+
+
+def print_table(table: dict, cpu: str) -> None:
+    print(f"{table['samples']} samples — {cpu}")
+    print(f"{'stage':<32} {'share':>7}")
+    for row in table["stages"]:
+        print(f"{row['name']:<32} {row['share']:>7.1%}")
+    for kind in ("self", "total"):
+        print(f"\n{'function (' + kind + ')':<72} {'share':>7}")
+        for row in table[kind]:
+            print(f"{row['name'][:72]:<72} {row['share']:>7.1%}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sequence", type=Path, required=True, help="a `branchrange synth-flight` recording")
+    parser.add_argument("--config", type=Path, default=Path("deploy/onboard_cpu.toml"), help="the deploy file")
+    parser.add_argument("--segmenter", default="builtin", choices=("builtin", "truth"), help="as realtime.py's")
+    parser.add_argument("--rate", type=int, default=100, help="samples a second (default 100)")
+    parser.add_argument("--top", type=int, default=25, help="functions listed (default 25)")
+    parser.add_argument("--json", type=Path, help="write the table here")
+    parser.add_argument("--flamegraph", type=Path, help="also write py-spy's flame graph (SVG) of a second run here")
+    args = parser.parse_args(argv)
+    py_spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
+    if not Path(py_spy).exists() and shutil.which(py_spy) is None:
+        print("py-spy is not installed: pip install py-spy", file=sys.stderr)
+        return 2
+    if not args.sequence.is_dir():
+        print(f"--sequence {args.sequence}: no such recording (branchrange synth-flight --out DIR writes one)")
+        return 2
+    with tempfile.TemporaryDirectory() as folder:
+        command = [
+            sys.executable,
+            str(BENCHMARKS / "realtime.py"),
+            "--config",
+            str(args.config),
+            "--sequence",
+            str(args.sequence),
+            "--segmenter",
+            args.segmenter,
+            "--modes",
+            "config",
+            "--json",
+            str(Path(folder) / "realtime.json"),
+        ]
+        raw = Path(folder) / "profile.raw"
+        run_py_spy(py_spy, "raw", raw, args.rate, command)
+        table = profile_table(parse_raw(raw.read_text(encoding="utf-8")), args.top)
+        realtime = json.loads((Path(folder) / "realtime.json").read_text(encoding="utf-8"))
+        if args.flamegraph:
+            args.flamegraph.parent.mkdir(parents=True, exist_ok=True)
+            run_py_spy(py_spy, "flamegraph", args.flamegraph, args.rate, command)
+    cpu = cpu_name()
+    print_table(table, cpu)
+    run = next(iter(realtime["modes"].values()))
+    print(
+        f"\nthe profiled run: {run['fresh_rate_hz']:.2f} fresh Hz, capture → send p95 {run['latency_ms']['p95']:.0f} ms"
+    )
+    if args.json:
+        report = {
+            "cpu": cpu,
+            "config": str(args.config),
+            "sequence": str(args.sequence),
+            "segmenter": args.segmenter,
+            "rate": args.rate,
+            "run": {"fresh_rate_hz": run["fresh_rate_hz"], "latency_ms": run["latency_ms"]},
+            **table,
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
