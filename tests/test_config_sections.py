@@ -34,6 +34,7 @@ STRINGS = {
     "segmenter.model": "geometric",
     "segmenter.learned.model": "my_branchnet.onnx",
     "segmenter.learned.precision": "int8",
+    "segmenter.learned.device": "tensorrt",  # accepted by the settings; its provider is checked when it is built
     "segmenter.learned.network_width": 1280,  # 0 (the frame's own) or 160..4096
     "segmenter.input_size": 320,  # 0 (the model's export size) or stride..8192
     "mavlink.url": "tcp:127.0.0.1:5760",
