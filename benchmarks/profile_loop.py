@@ -107,8 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the table here")
     parser.add_argument("--flamegraph", type=Path, help="also write py-spy's flame graph (SVG) of a second run here")
     args = parser.parse_args(argv)
-    py_spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
-    if not Path(py_spy).exists() and shutil.which(py_spy) is None:
+    py_spy = shutil.which("py-spy") or shutil.which("py-spy", path=str(Path(sys.executable).parent))
+    if py_spy is None:
         print("py-spy is not installed: pip install py-spy", file=sys.stderr)
         return 2
     if not args.sequence.is_dir():

@@ -15,18 +15,8 @@ from branchrange.core.segmentation.branchnet import STRIDE, BranchNet, InvertedR
 from branchrange.core.segmentation.learned import SHIPPED_MODEL
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 
-
-def _randomized_norms(model: BranchNet, seed: int = 0) -> BranchNet:
-    """`model` with random batch-norm statistics and affine values: an export then folds something real."""
-    generator = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for norm in (m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)):
-            assert norm.running_mean is not None and norm.running_var is not None
-            norm.running_mean.copy_(torch.randn(norm.num_features, generator=generator) * 0.1)
-            norm.running_var.copy_(torch.rand(norm.num_features, generator=generator) + 0.5)
-            norm.weight.copy_(torch.rand(norm.num_features, generator=generator) + 0.5)
-            norm.bias.copy_(torch.randn(norm.num_features, generator=generator) * 0.1)
-    return model.eval()
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import branchnet_capacity  # noqa: E402
 
 
 def test_without_deep_blocks_the_network_is_the_shipped_one_layer_for_layer():
@@ -68,7 +58,7 @@ def test_a_deep_network_exported_to_onnx_reads_back_with_the_same_logits(tmp_pat
     from branchrange.learning.from_onnx import branchnet_from_onnx
     from branchrange.learning.training import export_onnx
 
-    model = _randomized_norms(BranchNet(4, 4, deep_blocks))
+    model = branchnet_capacity.random_network(4, 4, deep_blocks)  # random batch-norm statistics to fold
     export_onnx(model, tmp_path / "deep.onnx")
     read = branchnet_from_onnx(tmp_path / "deep.onnx", 4, 4, deep_blocks)  # raises unless its logits match
     x = torch.from_numpy(np.random.default_rng(1).normal(size=(1, 5, 32, 48)).astype(np.float32))
@@ -93,9 +83,6 @@ def test_training_with_deep_blocks_records_them_and_refuses_too_many(tmp_path):
 
 def test_the_capacity_benchmark_times_each_variant_against_the_shipped_model(tmp_path, capsys):
     pytest.importorskip("onnx")
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import branchnet_capacity
-
     out = tmp_path / "capacity.json"
     argv = ["--deep-blocks", "0", "1", "--repeats", "1", "--threads", "1", "--data", str(tmp_path / "data")]
     assert branchnet_capacity.main([*argv, "--json", str(out)]) == 0
