@@ -1,5 +1,7 @@
 """Where the onboard loop's CPU goes: the shipped configuration's real-time run (`benchmarks/realtime.py`, frames
 released at their timestamps through the daemon's own threads) sampled by py-spy, per stage and per function.
+The frames are decoded into memory before the clock starts, as realtime.py does by default, so a replay's PNG
+decoding (a quarter of the samples on 2 cores) is not counted as the loop's; `--decode-on-the-fly` counts it.
 
 py-spy (`pip install py-spy`) samples every thread of the run `--rate` times a second without stopping it, idle
 threads left out. The table reads its raw stacks: each sample's thread is its stage — the daemon's main thread is
@@ -102,6 +104,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequence", type=Path, required=True, help="a `branchrange synth-flight` recording")
     parser.add_argument("--config", type=Path, default=Path("deploy/onboard_cpu.toml"), help="the deploy file")
     parser.add_argument("--segmenter", default="builtin", choices=("builtin", "truth"), help="as realtime.py's")
+    parser.add_argument(
+        "--decode-on-the-fly",
+        action="store_true",
+        help="realtime.py's flag: decode each frame at its release (default: all decoded into memory first)",
+    )
     parser.add_argument("--rate", type=int, default=100, help="samples a second (default 100)")
     parser.add_argument("--top", type=int, default=25, help="functions listed (default 25)")
     parser.add_argument("--json", type=Path, help="write the table here")
@@ -128,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
             "config",
             "--json",
             str(Path(folder) / "realtime.json"),
+            *(["--decode-on-the-fly"] if args.decode_on_the_fly else []),
         ]
         raw = Path(folder) / "profile.raw"
         run_py_spy(py_spy, "raw", raw, args.rate, command)
@@ -149,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             "sequence": str(args.sequence),
             "segmenter": args.segmenter,
             "rate": args.rate,
+            "preloaded": not args.decode_on_the_fly,
             "run": {"fresh_rate_hz": run["fresh_rate_hz"], "latency_ms": run["latency_ms"]},
             **table,
         }

@@ -1,8 +1,10 @@
 """Real-time onboard benchmark: a flight sequence replayed at its own frame rate through the daemon.
 
-Each frame is released at its recorded timestamp (as a 15 fps camera would deliver it; decoding
-starts ahead of the release, as a camera delivers raw frames, and a frame that cannot be on time is
-dropped: `camera.sources.ReplaySource`), and goes through the daemon's own
+Each frame is released at its recorded timestamp (as a 15 fps camera would deliver it; a frame that
+cannot be on time is dropped: `camera.sources.ReplaySource`). The frames are decoded into memory before the
+clock starts (`camera.sources.PreloadedReplay`: a camera delivers raw frames, so the figures are the loop's
+alone, not the replay's PNG decoding, a quarter of a 2-core machine's CPU); `--decode-on-the-fly` decodes
+each frame ahead of its release instead, as the plain replay does. Each frame goes through the daemon's own
 code path — `branchrange.onboard.daemon.Daemon` with its capture, stereo and geometry+send threads, the
 pipeline of `branchrange.core.frame_results.pipeline_for` and a real `MavlinkRelay` sending to a UDP
 socket on 127.0.0.1 — on `--threads` CPU threads (OpenCV and torch). Nothing waits for the slow
@@ -42,9 +44,12 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
   frame reached each thread (the result's `latency`): the waits between the stages;
 - `config_sha256`: the effective configuration's hash (its run header in the results log);
 - `load_average_1min`: the machine's load when the mode started (shared machines: read the timings by it), `wall_s`;
+- `cpu_s`: the process's CPU time (user + system, every thread) while the daemon ran, s; `cpu_s_per_fresh_result`:
+  that over the fresh results published (what one result costs, whatever the machine's other load);
 - `ratio_to_baseline.{fresh_rate,latency_p50}`: against `full-sgbm` with the same segmenter.
-Also `cpu` (model and vector extensions), `threads`, `sequence`, `flight` (the render options when
-rendered here), `config` (`path`, `sha256` of the file), `overrides`, `results_jsonl`, `max_result_age_s`.
+Also `cpu` (model and vector extensions), `threads`, `preloaded` (frames decoded ahead), `sequence`, `flight`
+(the render options when rendered here), `config` (`path`, `sha256` of the file), `overrides`, `results_jsonl`,
+`max_result_age_s`.
 
 Without `--sequence` a flight is rendered once under out/bench (`branchrange synth-flight`, HD720,
 15 fps, 3.0 → 0.8 m, seed 1), at `--speed M/S` and `--yaw-rate DEG/S` when given.
@@ -60,6 +65,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import socket
 import sys
 import tempfile
@@ -166,18 +172,19 @@ def render_flight(path: Path, args: argparse.Namespace) -> None:
         raise SystemExit(f"synth-flight failed with exit code {code}")
 
 
-def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
+def run_mode(cfg: Config, segmenter: str, preload: bool) -> dict[str, Any]:
     """Replay `cfg.camera.source` in real time through the daemon as `branchrange daemon` builds it (the
-    source aside); its results go to `cfg.log.results_jsonl`. Returns the daemon's own counters."""
+    source aside; `preload`: its frames decoded into memory before the clock starts); its results go to
+    `cfg.log.results_jsonl`. Returns the daemon's own counters and the process's CPU seconds over the run."""
     from branchrange.config.loader import pipeline_for
     from branchrange.onboard.daemon import Daemon
     from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
-    from camera.sources import ReplaySource
+    from camera.sources import PreloadedReplay, ReplaySource
 
     sequence = cfg.camera.source.removeprefix("replay:")
-
-    def open_source() -> Any:
-        return ReplaySource(sequence, pace="recorded", ignore_masks=segmenter != "truth")
+    replay = (PreloadedReplay if preload else ReplaySource)(
+        sequence, pace="recorded", ignore_masks=segmenter != "truth"
+    )  # opened (and with `preload` decoded) here; its clock starts at the first frame the daemon reads
 
     probe = ReplaySource(sequence, pace="fast")
     pipeline = pipeline_for(cfg, probe.calibration)
@@ -187,9 +194,9 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     probe.close()
     mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
     relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking) if cfg.mavlink.enabled else None
-    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay, results_path=cfg.log.results_jsonl)
+    daemon = Daemon(cfg, open_source=lambda: replay, pipeline=pipeline, relay=relay, results_path=cfg.log.results_jsonl)
     load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
-    started = time.monotonic()
+    started, cpu_started = time.monotonic(), process_cpu_s()
     try:
         daemon.run()
     finally:
@@ -198,8 +205,15 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
         "frames_dropped": int(daemon.dropped + daemon.skipped + daemon.dropped_late),
         "late": daemon.late,
         "wall_s": round(time.monotonic() - started, 2),
+        "cpu_s": round(process_cpu_s() - cpu_started, 2),
         "load_average_1min": load,
     }
+
+
+def process_cpu_s() -> float:
+    """This process's CPU time so far, user + system over every thread (native ones included), s."""
+    times = os.times()
+    return times.user + times.system
 
 
 def random_weights() -> Path:
@@ -280,6 +294,7 @@ def table_cells(row: dict[str, Any]) -> list[tuple[str, str]]:
         ("found", f"{first['branches_found']}/{first['branches_in_view']}"),
         ("× fresh", fmt(ratios.get("fresh_rate"), 1, 2)),
         ("× p50", fmt(ratios.get("latency_p50"), 1, 2)),
+        ("CPU s/fresh", fmt(row["cpu_s_per_fresh_result"], 1, 3)),
         ("load", fmt(row["load_average_1min"], 1, 1)),
     ]
 
@@ -290,7 +305,8 @@ def print_table(report: dict[str, Any]) -> None:
         f"\nreal-time replay of {report['sequence']} on {report['cpu']}, {report['threads']} threads, "
         f"config {config['path'] if config else 'defaults'}"
         + (f" (sha256 {config['sha256'][:12]}…)" if config else "")
-        + f", max_result_age_s {report['max_result_age_s']}"
+        + f", max_result_age_s {report['max_result_age_s']}, frames "
+        + ("decoded into memory before the clock starts" if report["preloaded"] else "decoded on the fly")
     )
     rows = {name: table_cells(row) for name, row in report["modes"].items()}
     headers = [header for header, _ in next(iter(rows.values()), [])]
@@ -345,6 +361,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--max-result-age-s", type=float, help="mavlink.max_result_age_s (default: the file's, else 0.5)"
     )
     parser.add_argument("--threads", type=int, default=2, help="OpenCV and torch threads")
+    parser.add_argument(
+        "--decode-on-the-fly",
+        action="store_true",
+        help="decode each frame ahead of its release (default: every frame decoded into memory first)",
+    )
     parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument("--results-jsonl", type=Path, help="write every published result here (overwritten)")
     add_config_arguments(parser, required=False, sections="every section, as `branchrange daemon` reads it")
@@ -371,7 +392,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from branchrange.core.settings_check import ConfigError
     from branchrange.offline.flight import FlightTruth
-    from branchrange.offline.flight_score import score_results
+    from branchrange.offline.flight_score import publish_age_s, score_results
     from stereo.weights import sha256_of
 
     try:
@@ -391,6 +412,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {
         "cpu": cpu_name(),
         "threads": args.threads,
+        "preloaded": not args.decode_on_the_fly,
         "sequence": str(sequence),
         "flight": {"speed_mps": args.speed, "yaw_rate_dps": args.yaw_rate} if args.sequence is None else None,
         "config": {"path": args.config, "sha256": sha256_of(Path(args.config))} if args.config else None,
@@ -409,14 +431,18 @@ def main(argv: list[str] | None = None) -> int:
             counters = []
             for mode, segmenter in runs:
                 print(f"{mode}/{segmenter} ...", file=sys.stderr)
-                counters.append(run_mode(run_config(base, mode, sequence, sink.port, log, weights), segmenter))
+                cfg = run_config(base, mode, sequence, sink.port, log, weights)
+                counters.append(run_mode(cfg, segmenter, preload=not args.decode_on_the_fly))
         finally:
             sink.close()
         logged = read_logged_runs(log)
     for (mode, segmenter), counted, (header, results) in zip(runs, counters, logged, strict=True):
+        scores = score_results(results, truth, view, base.mavlink.max_result_age_s)
+        fresh = sum(age <= base.mavlink.max_result_age_s for age in map(publish_age_s, results) if age is not None)
         report["modes"][f"{mode}/{segmenter}"] = {
-            **score_results(results, truth, view, base.mavlink.max_result_age_s),
+            **scores,
             **counted,
+            "cpu_s_per_fresh_result": round(counted["cpu_s"] / fresh, 4) if fresh else None,
             **timings(results),
             "config_sha256": header["config_sha256"] if header else None,
         }

@@ -139,10 +139,9 @@ def test_stats_in_millimetres() -> None:
 
 
 def test_preloaded_replay_releases_the_recordings_frames_at_their_times(tmp_path: Path) -> None:
-    from autopilot_sim import PreloadedReplay
     from synth_recording import write_tree_recording
 
-    from camera.sources import ReplaySource
+    from camera.sources import PreloadedReplay, ReplaySource
 
     period_ns = 50_000_000
     directory = write_tree_recording(tmp_path / "rec", 4, period_ns)

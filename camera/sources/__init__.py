@@ -1,4 +1,5 @@
-"""Frame sources: live cameras (ZED over UVC, OAK over depthai), replay of recordings, and wrappers.
+"""Frame sources: live cameras (ZED over UVC, OAK over depthai), replay of recordings (`PreloadedReplay`: decoded
+into memory first, for benchmarks of the loop alone), and wrappers.
 
 Every source is an iterator of `StereoFrame` with `close()`, `calibration` and `is_lost` (see
 camera.sources.frame). `OakSource`/`OakConfig` import depthai on first use only, `RosbagSource`/`BagTopics`
@@ -22,6 +23,7 @@ from camera.sources.frame import (
     StereoSource,
 )
 from camera.sources.latest import LatestFrameSource
+from camera.sources.preloaded import PreloadedReplay
 from camera.sources.recorder import Recorder, record
 from camera.sources.recording_format import RecordingFormatError
 from camera.sources.replay import ReplaySource
@@ -37,6 +39,7 @@ __all__ = [
     "LatestFrameSource",
     "OakConfig",
     "OakSource",
+    "PreloadedReplay",
     "Recorder",
     "RecordingFormatError",
     "ReplaySource",
