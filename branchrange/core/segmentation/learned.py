@@ -61,7 +61,7 @@ from branchrange.core.segmentation.ood import (
     reference_in,
 )
 from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
-from branchrange.core.segmentation.segmenter import depth_edges
+from branchrange.core.segmentation.segmenter import foreground_depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
 from branchrange.core.settings_check import Checks, Limit, Settings, one_of
 from stereo.weights import sha256_of
@@ -487,7 +487,7 @@ class LearnedSegmenter:
         depth = disparity_to_depth(disparity, geometry)  # inf where invalid
         trunk_px = (trunk_p > 1.0 - trunk_p - branch_p) & (trunk_p > branch_p)  # the arg-max class
         branch = (branch_p >= cfg.branch_threshold) & ~trunk_px
-        branch &= ~depth_edges(np.where(branch, depth, np.inf), cfg.depth_edge_ratio)
+        branch &= ~foreground_depth_edges(branch, depth, cfg.depth_edge_ratio)
         trunk = tree_trunk(trunk_px, branch, depth, geometry, cfg.max_trunk_gap_m)
         bridge_px = round(self.bridge_px(width) * scale)
         min_area_px = round(cfg.min_area_px * scale)

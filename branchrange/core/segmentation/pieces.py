@@ -118,29 +118,51 @@ def straight_pieces_of(
     with at least `min_px` pixels; a line's band is 1.2× the largest inscribed radius (≥ 1.5 px) within
     `LOCAL_WIDTH_PX` of the pixels it is drawn through — the local width of the branch there. With the
     `H×W` `disparity` (px; ≤ 0 or not finite = unknown) and `disparity_ratio` > 0, a line's pixels also follow its
-    disparity (`straight_pieces`)."""
-    inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
+    disparity (`straight_pieces`).
+
+    The work is done in the mask's bounding box grown by the bridge and a pixel of background (`padded_box`):
+    a mask's distances to its edge, its bridged regions and their raster order are the same there as in the
+    whole frame, and an HD720 frame's full-resolution branches fill a fraction of it."""
+    rows, cols = padded_box(mask, bridge_px + 1)
+    if rows.stop == rows.start:
+        return
+    window = mask[rows, cols]
+    inside = cv2.distanceTransform(window.astype(np.uint8), cv2.DIST_L2, 3)
     local_radius = cv2.dilate(inside, np.ones((2 * LOCAL_WIDTH_PX + 1,) * 2, np.uint8))
     # connectedComponentsWithStats costs ~10× more: its statistics cover the background too
-    count, components = bridged_regions(mask, bridge_px)
-    pixels = np.flatnonzero(mask)
+    count, components = bridged_regions(window, bridge_px)
+    pixels = np.flatnonzero(window)
     region = components.ravel()[pixels]
     pixels = pixels[np.argsort(region, kind="stable")]  # by region, each region's in raster order
     ends = np.cumsum(np.bincount(region, minlength=count))
+    known_disparity = None
+    if disparity is not None and disparity_ratio > 0:
+        own = disparity[rows, cols]
+        known_disparity = np.where(np.isfinite(own) & (own > 0), own, np.nan)
+    gap = max(4.0, 2.0 * bridge_px + 1.0)
     for i in range(1, count):
         if ends[i] - ends[i - 1] < min_px:
             continue
-        v, u = np.divmod(pixels[ends[i - 1] : ends[i]], mask.shape[1])
+        v, u = np.divmod(pixels[ends[i - 1] : ends[i]], window.shape[1])
         band = np.maximum(1.5, 1.2 * local_radius[v, u])
-        known = None
-        if disparity is not None and disparity_ratio > 0:
-            own = disparity[v, u]
-            known = np.where(np.isfinite(own) & (own > 0), own, np.nan)
-        gap = max(4.0, 2.0 * bridge_px + 1.0)
+        known = None if known_disparity is None else known_disparity[v, u]
         for piece in straight_pieces(
             u, v, band, min_px, rng, min_gap_px=gap, disparity=known, disparity_ratio=disparity_ratio
         ):
-            yield u[piece], v[piece]
+            yield u[piece] + cols.start, v[piece] + rows.start
+
+
+def padded_box(mask: np.ndarray, margin_px: int) -> tuple[slice, slice]:
+    """(rows, columns) of the boolean `H×W` `mask`'s bounding box grown by `margin_px` on every side, clipped to
+    the frame; empty slices when the mask is empty."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return slice(0, 0), slice(0, 0)
+    height, width = mask.shape
+    return (
+        slice(max(int(rows[0]) - margin_px, 0), min(int(rows[-1]) + margin_px + 1, height)),
+        slice(max(int(cols[0]) - margin_px, 0), min(int(cols[-1]) + margin_px + 1, width)),
+    )
 
 
 def bridged_regions(mask: np.ndarray, bridge_px: int) -> tuple[int, np.ndarray]:

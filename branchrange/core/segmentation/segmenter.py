@@ -71,7 +71,7 @@ def working_foreground(
     depth = disparity_to_depth(disparity, geometry)
     depth[~valid] = np.inf
     foreground = valid & (depth >= cfg.min_range_m) & (depth <= cfg.max_range_m)
-    foreground &= ~depth_edges(np.where(foreground, depth, np.inf), cfg.depth_edge_ratio)
+    foreground &= ~foreground_depth_edges(foreground, depth, cfg.depth_edge_ratio)
     return foreground, depth
 
 
@@ -135,21 +135,47 @@ class GeometricSegmenterConfig(BuiltinSegmenterConfig):
     section = "segmenter.geometric"
 
 
-def depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
-    """Boolean `H×W`: pixels whose depth differs from a 4-neighbour's by more than `ratio` (relative)."""
-    edges = np.zeros(depth.shape, dtype=bool)
-    with np.errstate(invalid="ignore"):
-        # each pixel and its neighbour below, then to the right: views, no copies
-        for a, b, edges_a, edges_b in (
-            (depth[:-1], depth[1:], edges[:-1], edges[1:]),
-            (depth[:, :-1], depth[:, 1:], edges[:, :-1], edges[:, 1:]),
-        ):
-            jump = np.abs(a - b) > ratio * np.minimum(a, b)
-            # mark the farther pixel of the pair: the nearer one keeps its full silhouette
-            far_is_a = a > b
-            edges_a |= jump & far_is_a
-            edges_b |= jump & ~far_is_a
+def foreground_depth_edges(foreground: np.ndarray, depth: np.ndarray, ratio: float) -> np.ndarray:
+    """Boolean `H×W`: the pixels of the boolean `H×W` `foreground` on a depth edge — whose depth (m, `H×W`,
+    inf unknown) exceeds a foreground 4-neighbour's by more than `ratio` of the nearer one. Only the farther
+    pixel of a pair is marked (the nearer keeps its full silhouette); a pixel of unknown depth beside a known
+    one is the farther. Background neighbours count as unknown, so they mark nothing.
+
+    Why per foreground pixel, not per frame pixel: the foreground is a few % of an HD720 frame, and the
+    frame-wide comparison (four shifted `H×W` arrays) cost 12 ms a call in the roi mode's instance step."""
+    height, width = foreground.shape
+    pixels = np.flatnonzero(foreground)
+    flat_foreground, flat_depth = foreground.ravel(), depth.ravel()
+    own = flat_depth[pixels]
+    column = pixels % width
+    edge = np.zeros(len(pixels), dtype=bool)
+    for step, inside in ((-width, pixels >= width), (width, pixels < (height - 1) * width)):
+        _mark_farther(edge, inside, pixels + step, own, flat_foreground, flat_depth, ratio)
+    for step, inside in ((-1, column > 0), (1, column < width - 1)):
+        _mark_farther(edge, inside, pixels + step, own, flat_foreground, flat_depth, ratio)
+    edges = np.zeros(foreground.shape, dtype=bool)
+    edges.ravel()[pixels[edge]] = True
     return edges
+
+
+def _mark_farther(
+    edge: np.ndarray,
+    inside: np.ndarray,
+    neighbour: np.ndarray,
+    own: np.ndarray,
+    flat_foreground: np.ndarray,
+    flat_depth: np.ndarray,
+    ratio: float,
+) -> None:
+    """Set `edge` `(N,)` where a foreground pixel (depth `own` `(N,)`) lies farther than its neighbour at the
+    flat index `neighbour` `(N,)` by more than `ratio` of the nearer depth; `inside` `(N,)`: the neighbour is
+    in the frame."""
+    near = neighbour[inside]
+    other = np.where(flat_foreground[near], flat_depth[near], np.inf)
+    mine = own[inside]
+    with np.errstate(invalid="ignore"):  # inf − inf: two unknown depths are no edge
+        jump = (np.abs(mine - other) > ratio * np.minimum(mine, other)) & (mine > other)
+    edge[inside] |= jump
 
 
 def elongation(component: np.ndarray) -> tuple[float, float]:

@@ -191,19 +191,46 @@ def _branch_support(
     """`(regions,)`: per trunk region (`components` `int32 H×W`, 0 = none; `trunk_pixels` `(N,)` the flat
     indices of its nonzero pixels, `trunk_region` `(N,)` their regions; `depths` each region's median depth,
     inf when not a candidate), the branch pixels whose nearest trunk pixel is that region's, within
-    `max_gap_m` in the image and within `TRUNK_DEPTH_TOLERANCE` of the region's depth."""
+    `max_gap_m` in the image and within `TRUNK_DEPTH_TOLERANCE` of the region's depth.
+
+    The distances are taken in the bounding box of the trunk and the branch pixels (`pixel_box`): a 3×3
+    chamfer distance between two pixels runs inside their own bounding box, so it is the frame's there."""
+    branch = np.flatnonzero(branch_px & np.isfinite(depth))
+    box = pixel_box(components.shape, trunk_pixels, branch)
     gap_px, nearest = cv2.distanceTransformWithLabels(
-        (components == 0).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+        (components[box.rows, box.cols] == 0).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
     )
     region_of = np.zeros(int(nearest.max()) + 1, dtype=np.int64)
-    region_of[nearest.ravel()[trunk_pixels]] = trunk_region
-    branch = np.flatnonzero(branch_px & np.isfinite(depth))
-    region = region_of[nearest.ravel()[branch]]
+    region_of[nearest.ravel()[box.local(trunk_pixels)]] = trunk_region
+    in_box = box.local(branch)
+    region = region_of[nearest.ravel()[in_box]]
     z = depth.ravel()[branch]
-    close = gap_px.ravel()[branch] * z / geometry.focal_px <= max_gap_m
+    close = gap_px.ravel()[in_box] * z / geometry.focal_px <= max_gap_m
     with np.errstate(invalid="ignore"):  # regions that are not candidates have no depth: never the same
         same_depth = np.abs(depths[region] - z) <= TRUNK_DEPTH_TOLERANCE * depths[region]
     return np.bincount(region[close & same_depth & np.isfinite(depths[region])], minlength=len(depths))
+
+
+@dataclass(frozen=True)
+class PixelBox:
+    """A box of an `H×W` frame (`rows`, `cols` slices) and the frame's `width` (px)."""
+
+    rows: slice
+    cols: slice
+    width: int
+
+    def local(self, pixels: np.ndarray) -> np.ndarray:
+        """The frame's flat indices `pixels` `(N,)` (inside the box) as flat indices of the box."""
+        rows, cols = np.divmod(pixels, self.width)
+        return (rows - self.rows.start) * (self.cols.stop - self.cols.start) + (cols - self.cols.start)
+
+
+def pixel_box(shape: tuple[int, ...], *pixels: np.ndarray) -> PixelBox:
+    """The bounding box of the flat indices `pixels` (arrays `(N_i,)`, not all empty) of an `H×W` frame."""
+    every = np.concatenate(pixels)
+    width = shape[1]
+    rows, cols = np.divmod(every, width)
+    return PixelBox(slice(int(rows.min()), int(rows.max()) + 1), slice(int(cols.min()), int(cols.max()) + 1), width)
 
 
 def trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry, pixels: np.ndarray) -> np.ndarray:
@@ -213,7 +240,12 @@ def trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry, 
     What a pruner cuts grows from the trunk: a piece far from it is a twig, the far part of a branch
     whose base is hidden, a leaf or background — its cut point would be wrong, so it is not reported.
     """
-    gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3).ravel()[pixels]
+    if not trunk.any() or pixels.size == 0:  # no trunk: every gap is OpenCV's "far"
+        gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3).ravel()[pixels]
+    else:  # in the bounding box of the trunk and the pixels, as `_branch_support`
+        box = pixel_box(trunk.shape, np.flatnonzero(trunk), pixels)
+        window = trunk[box.rows, box.cols]
+        gap_px = cv2.distanceTransform((~window).astype(np.uint8), cv2.DIST_L2, 3).ravel()[box.local(pixels)]
     z = depth.ravel()[pixels]
     with np.errstate(invalid="ignore"):
         return np.where(np.isfinite(z), gap_px * z / geometry.focal_px, np.inf)

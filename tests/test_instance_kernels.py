@@ -1,0 +1,196 @@
+"""The instance step's kernels, rewritten to work on a frame's foreground pixels or their bounding box, against
+the frame-wide implementations they replaced (kept here, named `reference_*`, as the definition of the result):
+`foreground_depth_edges`, `straight_pieces_of`, `_branch_support` and `trunk_gap_m`, on random masks and
+depths and on rendered scenes (branch and trunk pixels of the renderer's own instance masks)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import cv2
+import numpy as np
+import pytest
+
+from branchrange.core.geometry import StereoGeometry
+from branchrange.core.segmentation.pieces import (
+    LOCAL_WIDTH_PX,
+    bridged_regions,
+    padded_box,
+    straight_pieces,
+    straight_pieces_of,
+)
+from branchrange.core.segmentation.segmenter import foreground_depth_edges
+from branchrange.core.segmentation.trunk import TRUNK_DEPTH_TOLERANCE, _branch_support, trunk_gap_m
+from stereo.synth import TRUNK_ID, SynthCamera, is_branch_id, render_scene
+
+GEOMETRY = StereoGeometry(focal_px=500.0, baseline_m=0.063, cx=240.0, cy=135.0)
+
+
+def reference_depth_edges(depth: np.ndarray, ratio: float) -> np.ndarray:
+    """The frame-wide depth edges as the instance step computed them before (every pixel against the one
+    below and the one to the right, the farther of a pair marked)."""
+    edges = np.zeros(depth.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        for a, b, edges_a, edges_b in (
+            (depth[:-1], depth[1:], edges[:-1], edges[1:]),
+            (depth[:, :-1], depth[:, 1:], edges[:, :-1], edges[:, 1:]),
+        ):
+            jump = np.abs(a - b) > ratio * np.minimum(a, b)
+            far_is_a = a > b
+            edges_a |= jump & far_is_a
+            edges_b |= jump & ~far_is_a
+    return edges
+
+
+def reference_straight_pieces_of(
+    mask: np.ndarray,
+    min_px: int,
+    rng: np.random.Generator,
+    bridge_px: int = 0,
+    disparity: np.ndarray | None = None,
+    disparity_ratio: float = 0.0,
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """`straight_pieces_of` as it was: distances, bridged regions and disparities over the whole frame."""
+    inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
+    local_radius = cv2.dilate(inside, np.ones((2 * LOCAL_WIDTH_PX + 1,) * 2, np.uint8))
+    count, components = bridged_regions(mask, bridge_px)
+    pixels = np.flatnonzero(mask)
+    region = components.ravel()[pixels]
+    pixels = pixels[np.argsort(region, kind="stable")]
+    ends = np.cumsum(np.bincount(region, minlength=count))
+    for i in range(1, count):
+        if ends[i] - ends[i - 1] < min_px:
+            continue
+        v, u = np.divmod(pixels[ends[i - 1] : ends[i]], mask.shape[1])
+        band = np.maximum(1.5, 1.2 * local_radius[v, u])
+        known = None
+        if disparity is not None and disparity_ratio > 0:
+            own = disparity[v, u]
+            known = np.where(np.isfinite(own) & (own > 0), own, np.nan)
+        gap = max(4.0, 2.0 * bridge_px + 1.0)
+        for piece in straight_pieces(
+            u, v, band, min_px, rng, min_gap_px=gap, disparity=known, disparity_ratio=disparity_ratio
+        ):
+            yield u[piece], v[piece]
+
+
+def reference_branch_support(
+    components: np.ndarray,
+    trunk_pixels: np.ndarray,
+    trunk_region: np.ndarray,
+    depths: np.ndarray,
+    branch_px: np.ndarray,
+    depth: np.ndarray,
+    geometry: StereoGeometry,
+    max_gap_m: float,
+) -> np.ndarray:
+    """`_branch_support` as it was: the distance transform (with labels) over the whole frame."""
+    gap_px, nearest = cv2.distanceTransformWithLabels(
+        (components == 0).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    region_of = np.zeros(int(nearest.max()) + 1, dtype=np.int64)
+    region_of[nearest.ravel()[trunk_pixels]] = trunk_region
+    branch = np.flatnonzero(branch_px & np.isfinite(depth))
+    region = region_of[nearest.ravel()[branch]]
+    z = depth.ravel()[branch]
+    close = gap_px.ravel()[branch] * z / geometry.focal_px <= max_gap_m
+    with np.errstate(invalid="ignore"):
+        same_depth = np.abs(depths[region] - z) <= TRUNK_DEPTH_TOLERANCE * depths[region]
+    return np.bincount(region[close & same_depth & np.isfinite(depths[region])], minlength=len(depths))
+
+
+def reference_trunk_gap_m(trunk: np.ndarray, depth: np.ndarray, geometry: StereoGeometry, pixels: np.ndarray):
+    """`trunk_gap_m` as it was: the distance transform over the whole frame."""
+    gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 3).ravel()[pixels]
+    z = depth.ravel()[pixels]
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(z), gap_px * z / geometry.focal_px, np.inf)
+
+
+def random_case(seed: int, shape=(180, 320)) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(branch mask, trunk mask, depth m with inf holes, disparity px) of random blobs and strokes: thin lines at
+    random depths (some touching the frame's border), a trunk band, speckle and unknown depths."""
+    rng = np.random.default_rng(seed)
+    height, width = shape
+    branch = np.zeros(shape, np.uint8)
+    for _ in range(rng.integers(3, 9)):
+        a, b = rng.integers(-20, [width + 20, height + 20], size=(2, 2))
+        cv2.line(branch, tuple(int(x) for x in a), tuple(int(x) for x in b), 1, int(rng.integers(1, 6)))
+    branch = branch.astype(bool) | (rng.random(shape) < 0.01)
+    trunk = np.zeros(shape, bool)
+    x0 = int(rng.integers(0, width - 40))
+    trunk[int(rng.integers(0, 40)) :, x0 : x0 + int(rng.integers(8, 40))] = True
+    trunk &= ~branch
+    depth = rng.uniform(0.5, 3.0, shape).astype(np.float32)
+    depth = cv2.GaussianBlur(depth, (0, 0), 4) + rng.choice([0.0, 0.6], shape, p=[0.9, 0.1]).astype(np.float32)
+    depth[rng.random(shape) < 0.05] = np.inf
+    disparity = np.where(np.isfinite(depth), GEOMETRY.focal_px * GEOMETRY.baseline_m / depth, 0.0)
+    return branch, trunk, depth, disparity.astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def rendered() -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """(branch mask, trunk mask, depth m, disparity px) of two rendered 480×270 scenes."""
+    cases = []
+    for seed in (0, 1):
+        scene = render_scene(seed, SynthCamera.zed_mini(480, 270))
+        ids = scene.instance_mask
+        depth = np.where(scene.disparity > 0, scene.depth_m, np.inf).astype(np.float32)
+        cases.append((is_branch_id(ids), ids == TRUNK_ID, depth, scene.disparity.astype(np.float32)))
+    return cases
+
+
+def all_cases(rendered) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    return [random_case(seed) for seed in range(6)] + rendered
+
+
+@pytest.mark.parametrize("ratio", [0.0, 0.05, 0.15])
+def test_foreground_depth_edges_equal_the_frame_wide_ones_on_the_foreground(rendered, ratio: float) -> None:
+    marked = 0
+    for branch, _, depth, _ in all_cases(rendered):
+        expected = reference_depth_edges(np.where(branch, depth, np.inf), ratio) & branch
+        found = foreground_depth_edges(branch, depth, ratio)
+        assert np.array_equal(found, expected)
+        marked += int(found.sum())
+    assert marked > 100  # the cases hold edges to find
+    empty = np.zeros((5, 7), bool)
+    assert not foreground_depth_edges(empty, np.ones((5, 7), np.float32), 0.1).any()
+
+
+@pytest.mark.parametrize(("bridge_px", "ratio"), [(0, 0.0), (2, 0.0), (3, 0.2)])
+def test_straight_pieces_in_the_masks_box_equal_those_of_the_whole_frame(rendered, bridge_px, ratio) -> None:
+    for branch, _, _, disparity in all_cases(rendered):
+        ours = list(straight_pieces_of(branch, 20, np.random.default_rng(0), bridge_px, disparity, ratio))
+        theirs = list(reference_straight_pieces_of(branch, 20, np.random.default_rng(0), bridge_px, disparity, ratio))
+        assert len(ours) == len(theirs) > 0
+        for (u, v), (ru, rv) in zip(ours, theirs, strict=True):
+            assert np.array_equal(u, ru) and np.array_equal(v, rv)
+    assert list(straight_pieces_of(np.zeros((9, 9), bool), 3, np.random.default_rng(0))) == []
+
+
+def test_the_padded_box_holds_the_mask_and_stays_in_the_frame() -> None:
+    mask = np.zeros((10, 12), bool)
+    mask[0, 3] = mask[4, 11] = True
+    assert padded_box(mask, 2) == (slice(0, 7), slice(1, 12))
+    assert padded_box(np.zeros((3, 3), bool), 1) == (slice(0, 0), slice(0, 0))
+
+
+def test_branch_support_and_trunk_gaps_in_the_box_equal_the_frame_wide_ones(rendered) -> None:
+    for branch, trunk, depth, _ in all_cases(rendered):
+        count, components = cv2.connectedComponents(trunk.astype(np.uint8), connectivity=8)
+        pixels = np.flatnonzero(components)
+        region = components.ravel()[pixels]
+        depths = np.array([np.inf] + [float(np.median(depth.ravel()[pixels[region == k]])) for k in range(1, count)])
+        for max_gap_m in (0.02, 0.1, 1.0):
+            arguments = (components, pixels, region, depths, branch, depth, GEOMETRY, max_gap_m)
+            assert np.array_equal(_branch_support(*arguments), reference_branch_support(*arguments))
+        branch_pixels = np.flatnonzero(branch)
+        ours = trunk_gap_m(trunk, depth, GEOMETRY, branch_pixels)
+        # OpenCV's float distances of a smaller image may differ in the last bit (measured: 1 float32 ulp)
+        np.testing.assert_allclose(ours, reference_trunk_gap_m(trunk, depth, GEOMETRY, branch_pixels), rtol=1e-6)
+    branch, _, depth, _ = random_case(0)
+    no_trunk = np.zeros(branch.shape, bool)
+    pixels = np.flatnonzero(branch)
+    np.testing.assert_allclose(
+        trunk_gap_m(no_trunk, depth, GEOMETRY, pixels), reference_trunk_gap_m(no_trunk, depth, GEOMETRY, pixels)
+    )
