@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from branchrange.core.geometry import StereoGeometry
+from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.core.segmentation.pieces import (
     LOCAL_WIDTH_PX,
     bridged_regions,
@@ -194,3 +194,23 @@ def test_branch_support_and_trunk_gaps_in_the_box_equal_the_frame_wide_ones(rend
     np.testing.assert_allclose(
         trunk_gap_m(no_trunk, depth, GEOMETRY, pixels), reference_trunk_gap_m(no_trunk, depth, GEOMETRY, pixels)
     )
+
+
+def reference_disparity_to_depth(disparity: np.ndarray, geometry: StereoGeometry) -> np.ndarray:
+    """`disparity_to_depth` as it was: the valid disparities gathered, divided and scattered back."""
+    disparity = np.asarray(disparity, dtype=np.float32)
+    depth = np.full(disparity.shape, np.inf, dtype=np.float32)
+    valid = valid_disparity(disparity)
+    depth[valid] = geometry.focal_px * geometry.baseline_m / disparity[valid]
+    return depth
+
+
+def test_depth_divided_in_place_equals_the_gathered_division(rendered) -> None:
+    rng = np.random.default_rng(3)
+    noisy = rng.uniform(-5.0, 120.0, (90, 160)).astype(np.float32)
+    noisy[rng.random(noisy.shape) < 0.05] = np.nan
+    noisy[rng.random(noisy.shape) < 0.05] = np.inf
+    for disparity in [noisy, *(case[3] for case in rendered)]:
+        assert np.array_equal(
+            disparity_to_depth(disparity, GEOMETRY), reference_disparity_to_depth(disparity, GEOMETRY)
+        )
