@@ -7,11 +7,13 @@ py-spy (`pip install py-spy`) samples every thread of the run `--rate` times a s
 threads left out. The table reads its raw stacks: each sample's thread is its stage — the daemon's main thread is
 the stereo stage (`Pipeline.stereo_stage`: coarse pass, segmenter, regions), `geometry-send` the geometry stage
 and the send (`Pipeline.geometry_stage`: branch disparity, cut points, tracking; the relay's publish),
-`latest-frame-capture` the camera, `mavlink-relay` the link — and each function's share is of all samples: its
-own (`self`: the function was running, native code it called included) and inclusive (`total`: anywhere on the
-stack). The flame graph (SVG) is py-spy's own, from a second run of the same command.
+`latest-frame-capture` the camera, `mavlink-relay` the link, the frames' decoding ahead a stage of its own — and
+each function's share is of the samples that are not that decoding: its own (`self`: the function was running,
+native code it called included) and inclusive (`total`: anywhere on the stack). The flame graph (SVG) is py-spy's
+own, from a second run of the same command.
 
-    .venv/bin/python benchmarks/profile_loop.py --sequence out/bench/flight_hd720 \\
+    .venv/bin/branchrange synth-flight --out out/bench/flight_hd720_150 --seed 1 --frames 150 --start-m 3 --end-m 0.8
+    .venv/bin/python benchmarks/profile_loop.py --sequence out/bench/flight_hd720_150 \\
         --json benchmarks/results/profile_loop.json --flamegraph benchmarks/results/profile_loop.svg
 """
 
@@ -29,6 +31,8 @@ from pathlib import Path
 from machine import cpu_name  # a script's own folder is on its import path
 
 BENCHMARKS = Path(__file__).resolve().parent
+#: the function (as py-spy names it) that decodes the replay's frames into memory before the clock starts
+DECODING_AHEAD = "DecodedFrames.__init__ "
 #: a sampled thread's name → the loop's stage it runs
 STAGES = {
     "MainThread": "stereo (daemon main thread)",
@@ -61,22 +65,35 @@ def function_of(frame: str) -> str:
 
 
 def profile_table(stacks: list[tuple[str, list[str], int]], top: int) -> dict:
-    """Shares of all samples per stage and per function (self and inclusive), the `top` functions by each."""
+    """Shares of all samples per stage, and per function (self and inclusive, the `top` functions by each) of
+    the samples that are not the frames' decoding ahead of the clock (`DECODING_AHEAD`): that work is the
+    replay's, before the loop starts, and would otherwise top the table."""
     total = sum(count for _, _, count in stacks) or 1
     stages: Counter[str] = Counter()
     own: Counter[str] = Counter()
     inclusive: Counter[str] = Counter()
     for thread, frames, count in stacks:
+        if any(frame.startswith(DECODING_AHEAD) for frame in frames):
+            stages["frames decoded ahead (before the clock)"] += count
+            continue
         stages[STAGES.get(thread, "other")] += count
         if frames:
             own[function_of(frames[-1])] += count
         for function in {function_of(frame) for frame in frames}:
             inclusive[function] += count
 
-    def shares(counter: Counter[str], n: int | None = None) -> list[dict]:
-        return [{"name": k, "share": v / total, "samples": v} for k, v in counter.most_common(n)]
+    loop = total - stages["frames decoded ahead (before the clock)"] or 1
 
-    return {"samples": total, "stages": shares(stages), "self": shares(own, top), "total": shares(inclusive, top)}
+    def shares(counter: Counter[str], n: int | None = None, of: int = total) -> list[dict]:
+        return [{"name": k, "share": v / of, "samples": v} for k, v in counter.most_common(n)]
+
+    return {
+        "samples": total,
+        "loop_samples": loop,
+        "stages": shares(stages),
+        "self": shares(own, top, loop),
+        "total": shares(inclusive, top, loop),
+    }
 
 
 def run_py_spy(py_spy: str, fmt: str, out: Path, rate: int, command: list[str]) -> None:
@@ -93,6 +110,7 @@ def print_table(table: dict, cpu: str) -> None:
     print(f"{'stage':<32} {'share':>7}")
     for row in table["stages"]:
         print(f"{row['name']:<32} {row['share']:>7.1%}")
+    print(f"\nfunctions: shares of the {table['loop_samples']} samples not decoding frames ahead")
     for kind in ("self", "total"):
         print(f"\n{'function (' + kind + ')':<72} {'share':>7}")
         for row in table[kind]:

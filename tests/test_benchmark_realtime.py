@@ -88,6 +88,8 @@ def test_the_loop_profile_reads_py_spy_stacks_into_stage_and_function_shares():
         "thread (2): geometry-send;_geometry_worker (daemon.py:290);estimate_cut_points (cutpoints.py:830) 3\n"
         "thread (2): geometry-send;_geometry_worker (daemon.py:291);estimate_cut_points (cutpoints.py:840);"
         "fit (cylinder_section.py:20) 1\n"
+        "thread (1): MainThread;run_mode (realtime.py:200);DecodedFrames.__init__ (preloaded.py:30);"
+        "read_rgb (image_files.py:50) 10\n"
         "not a stack line\n"
     )
     stacks = profile_loop.parse_raw(raw)
@@ -95,13 +97,15 @@ def test_the_loop_profile_reads_py_spy_stacks_into_stage_and_function_shares():
         ("MainThread", 6),
         ("geometry-send", 3),
         ("geometry-send", 1),
+        ("MainThread", 10),
     ]
     table = profile_loop.profile_table(stacks, top=10)
-    assert table["samples"] == 10
+    assert table["samples"] == 20 and table["loop_samples"] == 10
     assert {r["name"]: r["share"] for r in table["stages"]} == {
-        "stereo (daemon main thread)": 0.6,
-        "geometry + send": 0.4,
-    }
+        "frames decoded ahead (before the clock)": 0.5,
+        "stereo (daemon main thread)": 0.3,
+        "geometry + send": 0.2,
+    }  # the functions' shares are of the 10 samples that are not the decoding ahead
     own = {r["name"]: r["share"] for r in table["self"]}
     assert own == {
         "compute (sgbm.py)": 0.6,
