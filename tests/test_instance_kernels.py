@@ -14,6 +14,7 @@ import pytest
 from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.core.segmentation.pieces import (
     LOCAL_WIDTH_PX,
+    bridged_region_of,
     bridged_regions,
     padded_box,
     straight_pieces,
@@ -214,3 +215,13 @@ def test_depth_divided_in_place_equals_the_gathered_division(rendered) -> None:
         assert np.array_equal(
             disparity_to_depth(disparity, GEOMETRY), reference_disparity_to_depth(disparity, GEOMETRY)
         )
+
+
+@pytest.mark.parametrize("bridge_px", [0, 2, 5])
+def test_bridged_regions_of_pixels_in_the_box_equal_the_frame_wide_labels(rendered, bridge_px: int) -> None:
+    for branch, _, _, _ in all_cases(rendered):
+        pixels = np.flatnonzero(branch)
+        count, labels = bridged_regions(branch, bridge_px)  # the frame-wide labelling, as the step had it
+        region, region_count = bridged_region_of(branch, bridge_px, pixels)
+        assert region_count == count and np.array_equal(region, labels.ravel()[pixels])
+    assert bridged_region_of(np.zeros((4, 4), bool), 2, np.zeros(0, np.int64))[0].size == 0

@@ -60,7 +60,7 @@ from branchrange.core.segmentation.ood import (
     frame_statistic,
     reference_in,
 )
-from branchrange.core.segmentation.pieces import bridged_regions, straight_pieces_of
+from branchrange.core.segmentation.pieces import bridged_region_of, straight_pieces_of
 from branchrange.core.segmentation.segmenter import foreground_depth_edges
 from branchrange.core.segmentation.trunk import in_front_of_trunk, tree_trunk, trunk_gap_m
 from branchrange.core.settings_check import Checks, Limit, Settings, one_of
@@ -500,8 +500,7 @@ class LearnedSegmenter:
         pixels = np.flatnonzero(branch)  # the branch pixels as flat indices: a few % of the frame
         if near_trunk:  # drop whole regions far from the trunk before the (costlier) splitting
             gap_m = trunk_gap_m(trunk, depth, geometry, pixels)
-            region_count, regions = bridged_regions(branch, bridge_px)
-            region = regions.ravel()[pixels]
+            region, region_count = bridged_region_of(branch, bridge_px, pixels)
             near = _nearest(region, gap_m, region_count)[region] <= cfg.max_trunk_gap_m
             branch.flat[pixels[~near]] = False
             pixels, gap_m = pixels[near], gap_m[near]
