@@ -222,7 +222,7 @@ class PixelBox:
     def local(self, pixels: np.ndarray) -> np.ndarray:
         """The frame's flat indices `pixels` `(N,)` (inside the box) as flat indices of the box."""
         rows, cols = np.divmod(pixels, self.width)
-        return (rows - self.rows.start) * (self.cols.stop - self.cols.start) + (cols - self.cols.start)
+        return np.asarray((rows - self.rows.start) * (self.cols.stop - self.cols.start) + (cols - self.cols.start))
 
 
 def pixel_box(shape: tuple[int, ...], *pixels: np.ndarray) -> PixelBox:
