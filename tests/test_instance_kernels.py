@@ -218,10 +218,11 @@ def test_depth_divided_in_place_equals_the_gathered_division(rendered) -> None:
 
 
 @pytest.mark.parametrize("bridge_px", [0, 2, 5])
-def test_bridged_regions_of_pixels_in_the_box_equal_the_frame_wide_labels(rendered, bridge_px: int) -> None:
+def test_bridged_regions_of_pixels_in_the_box_equal_the_frame_wide_regions(rendered, bridge_px: int) -> None:
     for branch, _, _, _ in all_cases(rendered):
         pixels = np.flatnonzero(branch)
         count, labels = bridged_regions(branch, bridge_px)  # the frame-wide labelling, as the step had it
         region, region_count = bridged_region_of(branch, bridge_px, pixels)
-        assert region_count == count and np.array_equal(region, labels.ravel()[pixels])
+        pairs = np.unique(np.stack([region, labels.ravel()[pixels]]), axis=1)  # the same regions, any numbering
+        assert region_count == count and pairs.shape[1] == len(np.unique(region)) == len(np.unique(pairs[1]))
     assert bridged_region_of(np.zeros((4, 4), bool), 2, np.zeros(0, np.int64))[0].size == 0

@@ -120,9 +120,11 @@ def straight_pieces_of(
     `H×W` `disparity` (px; ≤ 0 or not finite = unknown) and `disparity_ratio` > 0, a line's pixels also follow its
     disparity (`straight_pieces`).
 
-    The work is done in the mask's bounding box grown by the bridge and a pixel of background (`padded_box`):
-    a mask's distances to its edge, its bridged regions and their raster order are the same there as in the
-    whole frame, and an HD720 frame's full-resolution branches fill a fraction of it."""
+    The distances are taken in the mask's bounding box grown by the bridge and a pixel of background
+    (`padded_box`): a mask's distances to its edge are the same there as in the whole frame, and an HD720
+    frame's full-resolution branches fill a fraction of it. The regions are labelled over the whole frame:
+    their order sets the random lines each is tried with, and OpenCV numbers a box's regions in another order
+    than the frame's (its labelling runs in stripes)."""
     rows, cols = padded_box(mask, bridge_px + 1)
     if rows.stop == rows.start:
         return
@@ -130,9 +132,9 @@ def straight_pieces_of(
     inside = cv2.distanceTransform(window.astype(np.uint8), cv2.DIST_L2, 3)
     local_radius = cv2.dilate(inside, np.ones((2 * LOCAL_WIDTH_PX + 1,) * 2, np.uint8))
     # connectedComponentsWithStats costs ~10× more: its statistics cover the background too
-    count, components = bridged_regions(window, bridge_px)
+    count, components = bridged_regions(mask, bridge_px)
     pixels = np.flatnonzero(window)
-    region = components.ravel()[pixels]
+    region = components[rows, cols].ravel()[pixels]
     pixels = pixels[np.argsort(region, kind="stable")]  # by region, each region's in raster order
     ends = np.cumsum(np.bincount(region, minlength=count))
     known_disparity = None
@@ -155,7 +157,8 @@ def straight_pieces_of(
 def bridged_region_of(mask: np.ndarray, bridge_px: int, pixels: np.ndarray) -> tuple[np.ndarray, int]:
     """(`int32 (N,)` bridged region of each of the flat indices `pixels` of the boolean `H×W` `mask`'s pixels,
     the count of labels): `bridged_regions` found in the mask's box grown by the bridge and a pixel
-    (`padded_box`), where the regions are those of the whole frame, at a fraction of its cost."""
+    (`padded_box`), where the regions are those of the whole frame (numbered in another order), at a
+    fraction of its cost."""
     if pixels.size == 0:
         return np.zeros(0, dtype=np.int32), 1
     rows, cols = padded_box(mask, bridge_px + 1)
