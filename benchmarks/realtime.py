@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import socket
 import sys
@@ -187,7 +188,14 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     probe.close()
     mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
     relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking) if cfg.mavlink.enabled else None
-    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay, results_path=cfg.log.results_jsonl)
+    daemon = Daemon(
+        cfg,
+        open_source=open_source,
+        pipeline=pipeline,
+        relay=relay,
+        results_path=cfg.log.results_jsonl,
+        pipeline_factory=functools.partial(pipeline_for, cfg, probe.calibration),  # each stereo worker's own
+    )
     load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
     started = time.monotonic()
     try:
