@@ -105,7 +105,10 @@ def test_shared_memory_transport_round_trip_grows_its_block():
     try:
         for size in (64, 256):  # the second frame does not fit the first block
             frame = StereoFrame(
-                np.full((size, size, 3), 7, np.uint8), np.arange(size * size * 3, dtype=np.uint8).reshape(size, size, 3), 5, 2
+                np.full((size, size, 3), 7, np.uint8),
+                np.arange(size * size * 3, dtype=np.uint8).reshape(size, size, 3),
+                5,
+                2,
             )
             packed = writer.pack(frame)
             assert packed.block is not None and len(packed.data) < 1024  # the pixels are not in the pickle
@@ -144,7 +147,9 @@ def test_outputs_are_handed_on_in_capture_order_when_a_later_frame_finishes_firs
     assert all(output.stage is not None and output.error is None for output in outputs)
     pipeline = pipeline_for(cfg, CALIBRATION)
     for frame, output in zip(frames, outputs):
-        assert np.array_equal(output.stage.disparity, pipeline.stereo_stage(frame.left, frame.right, None, frame.index).disparity)
+        assert np.array_equal(
+            output.stage.disparity, pipeline.stereo_stage(frame.left, frame.right, None, frame.index).disparity
+        )
 
 
 def test_workers_publish_in_capture_order_with_todays_results(recording, caplog):

@@ -111,4 +111,3 @@ class ShmReader:
                 except FileNotFoundError:  # the writer freed it after all
                     pass
         self._blocks.clear()
-

@@ -302,4 +302,3 @@ def _sendable(error: Exception) -> Exception:
         except Exception:  # noqa: BLE001 — an exception class that does not pickle
             return ValueError(str(error))
     return RuntimeError("in a stereo worker:\n" + "".join(traceback.format_exception(error)))
-
