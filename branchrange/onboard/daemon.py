@@ -188,6 +188,7 @@ class Daemon:
         self._pipeline_factory = pipeline_factory
         self.workers = self._worker_count()
         self._pool: StereoWorkers | None = None
+        self._warmed = False  # whether the workers ran a first frame (`StereoWorkers.warm`)
 
     def _worker_count(self) -> int:
         """How many processes run the stereo stage (`stereo.workers`; 1: the run() thread itself)."""
@@ -318,11 +319,33 @@ class Daemon:
             return
         self._slot.put(_StereoOutput(stage, captured_at, started, time.monotonic()))
 
+    def _start_workers(self) -> None:
+        """With `stereo.workers` > 1: the worker processes, started and their pipelines built (once per run)."""
+        if self.workers < 2 or (self._pool is not None and not self._pool.closed):
+            return
+        assert self._pipeline_factory is not None
+        self._pool = StereoWorkers(self.workers, self._pipeline_factory, self._from_worker)
+        self._warmed = False
+        self._pool.wait_ready(self._stop)
+        log.info("stereo stage in %d worker processes", self.workers)
+
+    def warm_up(self, frame: Any) -> None:
+        """Before `run`: start the stereo workers and run `frame` (a `StereoFrame`) once in each, as a caller
+        warms its own pipeline, so that what a pipeline builds on its first frame is not timed; else the
+        first frame of the run does it. Nothing to do with one worker (the caller's pipeline is the one used)."""
+        self._start_workers()
+        if self._pool is not None:
+            self._pool.warm(frame, self._stop)
+            self._warmed = True
+
     def _dispatch(self, frame: Any, captured_at: float) -> None:
         """The stereo half of one frame, handed to a worker process (`stereo.workers` > 1)."""
         if not self._pair_checked:
             self._check_pair(frame)
         assert self._pool is not None
+        if not self._warmed:
+            self._warmed = True
+            self._pool.warm(frame, self._stop)
         self._pool.submit(frame, captured_at, self.shedder.level)
 
     def _from_worker(self, output: WorkerOutput) -> None:
@@ -503,11 +526,7 @@ class Daemon:
         worker = threading.Thread(target=self._geometry_worker, name="geometry-send", daemon=True)
         self._slot = NewestSlot()
         worker.start()
-        if self.workers > 1:
-            assert self._pipeline_factory is not None
-            self._pool = StereoWorkers(self.workers, self._pipeline_factory, self._from_worker)
-            self._pool.wait_ready(self._stop)
-            log.info("stereo stage in %d worker processes", self.workers)
+        self._start_workers()
         timeout = self.cfg.camera.stall_timeout_s
         source = self._try_open()
         stalls = 0

@@ -39,6 +39,8 @@ from branchrange.onboard.shm_transport import ShmReader, ShmWriter
 log = logging.getLogger("branchrange.daemon")
 #: How long (s) a closing pool waits for a worker to finish its frame and exit before terminating it.
 CLOSE_TIMEOUT_S = 5.0
+#: The sequence number of a warm-up frame (`StereoWorkers.warm`): its output is dropped.
+WARM_UP = -1
 #: The pause (s) before starting again a worker that died before it was ready (its pipeline could not be built).
 RESTART_PAUSE_S = 1.0
 #: How often (s) the collector thread wakes without news, to notice a pool being closed.
@@ -115,6 +117,11 @@ class StereoWorkers:
         self._collector = threading.Thread(target=self._collect, name="stereo-workers", daemon=True)
         self._collector.start()
 
+    @property
+    def closed(self) -> bool:
+        """Whether `close` was called (the workers are gone)."""
+        return self._closing
+
     def pids(self) -> list[int]:
         """The workers' process ids (for tests and diagnosis)."""
         with self._condition:
@@ -128,7 +135,10 @@ class StereoWorkers:
     def _start(self, slot: int) -> _Worker:
         ours, theirs = self._context.Pipe()
         process = self._context.Process(
-            target=_serve, args=(theirs, self._factory), name=f"stereo-worker-{slot}", daemon=True
+            target=_serve,
+            args=(theirs, self._factory, max(1, usable_cores() // self.count)),
+            name=f"stereo-worker-{slot}",
+            daemon=True,
         )
         process.start()
         theirs.close()
@@ -148,6 +158,20 @@ class StereoWorkers:
         """Block until a worker is free for the next frame (or `stop` is set)."""
         with self._condition:
             while self._free() is None and not stop.is_set() and not self._closing:
+                self._condition.wait(POLL_S)
+
+    def warm(self, frame: Any, stop: threading.Event) -> None:
+        """Run `frame` once in every worker and drop the outputs: what a pipeline builds on its first frame (the
+        matchers, the model's first inference) is then built before the first frame that counts."""
+        with self._condition:
+            for worker in self._workers:
+                if worker.ready and worker.busy is None:
+                    worker.busy = (WARM_UP, int(frame.index), 0.0, time.monotonic())
+                    try:
+                        worker.conn.send((WARM_UP, worker.writer.pack(frame), 0))
+                    except (BrokenPipeError, EOFError, OSError):  # the collector starts it again
+                        pass
+            while any(w.busy is not None for w in self._workers) and not stop.is_set() and not self._closing:
                 self._condition.wait(POLL_S)
 
     def submit(self, frame: Any, captured_at: float, shed_level: int) -> None:
@@ -226,7 +250,7 @@ class StereoWorkers:
         with self._condition:
             self._workers[worker.slot] = fresh
             self.restarts += 1
-        if busy is not None:
+        if busy is not None and busy[0] != WARM_UP:
             seq, index, captured_at, dispatched_at = busy
             with self._condition:
                 self.lost += 1
@@ -237,6 +261,9 @@ class StereoWorkers:
         with self._condition:
             if worker.busy is not None and worker.busy[0] == output.seq:
                 worker.busy = None
+            if output.seq == WARM_UP:
+                self._condition.notify_all()
+                return
             self._done[output.seq] = output
             ready = []
             while self._release_seq in self._done:
@@ -268,9 +295,14 @@ class StereoWorkers:
             worker.reader.close(unlink=worker.process.exitcode != 0)
 
 
-def _serve(conn: Connection, pipeline_factory: Callable[[], Any]) -> None:
-    """A worker process: build the pipeline, then the stereo stage of each frame it gets until told to stop."""
+def _serve(conn: Connection, pipeline_factory: Callable[[], Any], cv_threads: int) -> None:
+    """A worker process: build the pipeline, then the stereo stage of each frame it gets until told to stop.
+    `cv_threads`: OpenCV's threads here, the usable cores shared among the workers (OpenCV would otherwise
+    start one per core in every worker, and the workers' threads would fight for the same cores)."""
+    import cv2
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the daemon stops its workers
+    cv2.setNumThreads(cv_threads)
     pipeline = pipeline_factory()
     reader, writer = ShmReader(), ShmWriter()
     conn.send("ready")
