@@ -128,9 +128,9 @@ class StereoWorkers:
             return [worker.process.pid for worker in self._workers]
 
     def busy_pids(self) -> list[int]:
-        """The process ids of the workers that have a frame now."""
+        """The process ids of the workers that have a frame now (not counting the warm-up frame)."""
         with self._condition:
-            return [worker.process.pid for worker in self._workers if worker.busy is not None]
+            return [w.process.pid for w in self._workers if w.busy is not None and w.busy[0] != WARM_UP]
 
     def _start(self, slot: int) -> _Worker:
         ours, theirs = self._context.Pipe()
@@ -202,6 +202,8 @@ class StereoWorkers:
                 waitables = {w.conn: w for w in self._workers} | {w.process.sentinel: w for w in self._workers}
             for ready in wait(list(waitables), timeout=POLL_S):
                 worker = waitables[ready]
+                if self._workers[worker.slot] is not worker:  # its pipe and its end both ready: restarted already
+                    continue
                 if ready is worker.conn:
                     self._receive(worker)
                 elif not worker.conn.poll():  # dead, with no answer left to read
