@@ -26,7 +26,9 @@ each new file starting with the run header again. Threads:
   A frame whose `timestamp_ns` is not newer than the previous frame's from the same opened camera
   (a frozen driver buffer delivering one image again, frames arriving out of order) is skipped and
   counted (`repeated`): it would pass an old image off as fresh, and the tracker must never go back
-  in time;
+  in time. With `stereo.workers` other than 1 this thread only dispatches: each frame goes to the next free
+  stereo worker process (`stereo_workers`, started with the run and warmed on its first frame or by
+  `warm_up`), whose outputs come back in capture order; a dead worker's frame counts as dropped;
 - **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
   on the newest stereo output (one slot: an output the worker had no time for is replaced by the
   next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
