@@ -53,7 +53,20 @@ def config(recording, workers: int, max_age_s: float = 30.0, **mavlink) -> Confi
     )
 
 
-def run_daemon(cfg: Config, recording, factory, relay=None, during=None) -> tuple[Daemon, list]:
+class Errors:
+    """A `DaemonMetrics` that keeps the errors counted."""
+
+    def __init__(self) -> None:
+        self.kinds: list[str] = []
+
+    def observe_frame(self, seconds: float, source: str) -> None:
+        pass
+
+    def count_error(self, kind: str) -> None:
+        self.kinds.append(kind)
+
+
+def run_daemon(cfg: Config, recording, factory, relay=None, during=None, metrics=None) -> tuple[Daemon, list]:
     """Replay the recording at its own pace through a daemon with `factory`'s workers; its published results.
     `during(daemon)`, when given, runs in another thread while the daemon does."""
     published: list = []
@@ -62,6 +75,7 @@ def run_daemon(cfg: Config, recording, factory, relay=None, during=None) -> tupl
         open_source=lambda: ReplaySource(recording, pace="recorded"),
         pipeline=pipeline_for(cfg, CALIBRATION),
         relay=relay,
+        metrics=metrics,
         observers=[lambda result, _: published.append(result)],
         pipeline_factory=factory,
     )
@@ -200,7 +214,8 @@ def test_a_killed_worker_is_started_again_and_its_frame_counted_as_dropped(recor
                 killed.append(busy[0])
             time.sleep(0.02)
 
-    daemon, published = run_daemon(cfg, recording, factory, during=kill_one)
+    errors = Errors()
+    daemon, published = run_daemon(cfg, recording, factory, during=kill_one, metrics=errors)
     assert killed
     workers = daemon.health()["stereo_workers"]
     assert workers == {"count": 2, "restarts": 1, "lost_frames": 1}
@@ -213,6 +228,7 @@ def test_a_killed_worker_is_started_again_and_its_frame_counted_as_dropped(recor
     assert len(published) + daemon.dropped + daemon.dropped_late + daemon.skipped + daemon.rejected == FRAMES
     died = [r.getMessage() for r in caplog.records if "died" in r.getMessage()]
     assert len(died) == 1 and f"pid {killed[0]}" in died[0] and "counts as dropped" in died[0]
+    assert errors.kinds.count("stereo_worker_lost") == 1  # and in /metrics' error counts
 
 
 def test_keyframes_keep_the_stereo_stage_in_one_thread(recording, caplog):
