@@ -58,9 +58,10 @@ class ShmWriter:
             return Packed(data, None, ())
         raws = [buffer.raw() for buffer in buffers]
         block = self._room(sum(raw.nbytes for raw in raws))
+        view = _view(block)
         spans, offset = [], 0
         for raw in raws:
-            block.buf[offset : offset + raw.nbytes] = raw
+            view[offset : offset + raw.nbytes] = raw
             spans.append((offset, raw.nbytes))
             offset += raw.nbytes
         return Packed(data, block.name, tuple(spans))
@@ -89,8 +90,8 @@ class ShmReader:
         """The object, its buffers copied out of the block (so the writer may reuse it at once)."""
         if packed.block is None:
             return pickle.loads(packed.data)
-        block = self._attach(packed.block)
-        buffers = [bytearray(block.buf[offset : offset + size]) for offset, size in packed.spans]
+        view = _view(self._attach(packed.block))
+        buffers = [bytearray(view[offset : offset + size]) for offset, size in packed.spans]
         return pickle.loads(packed.data, buffers=buffers)
 
     def _attach(self, name: str) -> shared_memory.SharedMemory:
@@ -111,3 +112,10 @@ class ShmReader:
                 except FileNotFoundError:  # the writer freed it after all
                     pass
         self._blocks.clear()
+
+
+def _view(block: shared_memory.SharedMemory) -> memoryview:
+    """The bytes of an open block (its `buf` is None only once closed)."""
+    view = block.buf
+    assert view is not None, "a closed shared-memory block"
+    return view
