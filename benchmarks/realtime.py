@@ -53,12 +53,18 @@ Without `--sequence` a flight is rendered once under out/bench (`branchrange syn
     .venv/bin/python benchmarks/realtime.py --config deploy/onboard_cpu.toml --segmenter builtin --speed 0.8 \\
         --results-jsonl out/realtime.jsonl --json out/realtime_shipped.json
     .venv/bin/python benchmarks/realtime.py --sequence out/flight --modes roi-sgbm --segmenter builtin
+    taskset -c 0,1 .venv/bin/python benchmarks/realtime.py --config deploy/onboard_cpu.toml --modes config \
+        --segmenter builtin --speed 0.8 --set stereo.workers=0   # the stereo stage in one process per core
+
+The daemon's stereo workers (`stereo.workers` other than 1) are started and run the warm-up frame before
+the clock starts, as the daemon's own pipeline does.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import socket
 import sys
@@ -187,10 +193,19 @@ def run_mode(cfg: Config, segmenter: str) -> dict[str, Any]:
     probe.close()
     mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
     relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking) if cfg.mavlink.enabled else None
-    daemon = Daemon(cfg, open_source=open_source, pipeline=pipeline, relay=relay, results_path=cfg.log.results_jsonl)
-    load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
-    started = time.monotonic()
+    daemon = Daemon(
+        cfg,
+        open_source=open_source,
+        pipeline=pipeline,
+        relay=relay,
+        results_path=cfg.log.results_jsonl,
+        pipeline_factory=functools.partial(pipeline_for, cfg, probe.calibration),  # each stereo worker's own
+    )
     try:
+        # the stereo workers' pipelines too (`stereo.workers`), before the clock starts
+        daemon.warm_up(warm if segmenter == "truth" else dataclasses.replace(warm, mask=None))
+        load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
+        started = time.monotonic()
         daemon.run()
     finally:
         daemon.close()
