@@ -31,6 +31,8 @@ COUNTERS: frozenset[KeyPath] = frozenset(
         ("camera", "reopens"),
         ("camera", "late"),
         ("camera", "repeated"),
+        ("stereo_workers", "restarts"),
+        ("stereo_workers", "lost_frames"),
         ("mavlink", "reconnects"),
         ("mavlink", "sent"),
         ("mavlink", "send_errors"),
@@ -63,7 +65,11 @@ HELP: dict[KeyPath, str] = {
     ("model", "segmenter_ood_score"): "Share of the model's training-domain reference frames that hesitated less "
     "than the last frame (0..1); NaN without the signal.",
     ("camera", "frames"): "Results published by the daemon.",
-    ("camera", "dropped"): "Camera frames replaced by a newer one before the stereo stage took them.",
+    ("camera", "dropped"): "Camera frames replaced by a newer one before the stereo stage took them, and frames a "
+    "stereo worker took with it when it died.",
+    ("stereo_workers", "count"): "Processes running the stereo stage (stereo.workers; 1: the daemon's own thread).",
+    ("stereo_workers", "restarts"): "Stereo worker processes that died and were started again.",
+    ("stereo_workers", "lost_frames"): "Frames a dying stereo worker took with it (counted in camera dropped too).",
     ("camera", "skipped"): "Stereo outputs replaced before the geometry stage took them.",
     ("camera", "corrupt"): "Camera frames that could not be decoded.",
     ("camera", "reopens"): "Times the watchdog closed the stalled camera and opened it again.",

@@ -51,6 +51,7 @@ def random_network(width: int, fine_width: int, deep_blocks: int, seed: int = 0)
             assert norm.running_mean is not None and norm.running_var is not None
             norm.running_mean.normal_(0.0, 0.1)
             norm.running_var.uniform_(0.5, 1.5)
+            norm.weight.uniform_(0.5, 1.5)  # a trained scale (a fresh residual block's is zero)
     return model.eval()
 
 

@@ -12,6 +12,12 @@ Per sample and season the segmenter runs on the image with two disparities:
 - 'none': no disparity at all (every pixel invalid): what the image alone gives.
 Geometry: the ZED Mini scaled to the tile (f 128 px, B 0.063 m), so the tree's 8 px stand about 1 m away.
 
+Frame size: each tile is first enlarged to `frame_width` px (default `PRODUCT_FRAME_WIDTH`, 640: the smallest
+frame the product runs on — 640×360 from the ZED Mini — where that geometry's focal length is the camera's own
+320 px), the image linearly, depth and mask by nearest neighbour, and the tree's median disparity and the far
+distance grow with it: the scene as the camera would hand it to the segmenter. A 256 px tile as it is shows every
+stem 2.5 times thinner than any frame the product sees (`frame_width` 256 keeps the tiles as they are).
+
 Counted per image, as pixels: the labelled ones (the mask), those of them the final masks call trunk or branch
 ('found'); the far ones (more than `FAR_PX` px from the mask by a distance transform: posts, wires, grass, soil,
 sky) called trunk and called branch. Side branches near the tree are neither: only the trunk is judged far from
@@ -42,8 +48,16 @@ TREE_MEDIAN_DISPARITY_PX = 8.0
 #: pixels farther than this from the mask count as surely not the labelled structure (px)
 FAR_PX = 10.0
 DISPARITY_MODES = ("depth", "none")
-#: ZED Mini at 1920 px (f 960 px, B 0.063 m) scaled to a 256 px tile
-TILE_GEOMETRY = StereoGeometry(focal_px=960.0 * TILE / 1920, baseline_m=0.063, cx=(TILE - 1) / 2, cy=(TILE - 1) / 2)
+#: the smallest frame width the product runs on (px): the ZED Mini's 640×360
+PRODUCT_FRAME_WIDTH = 640
+
+
+def tile_geometry(width: int = TILE) -> StereoGeometry:
+    """The ZED Mini at 1920 px (f 960 px, B 0.063 m) scaled to a square frame `width` px wide."""
+    return StereoGeometry(focal_px=960.0 * width / 1920, baseline_m=0.063, cx=(width - 1) / 2, cy=(width - 1) / 2)
+
+
+TILE_GEOMETRY = tile_geometry()
 OVERLAY_COUNT = 6
 TRUNK_CLASS, BRANCH_CLASS = CLASSES.index("trunk"), CLASSES.index("branch")
 
@@ -89,17 +103,34 @@ def read_sample(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarra
     return out
 
 
-def relative_disparity(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def enlarged(
+    rgb: np.ndarray, depth: np.ndarray, mask: np.ndarray, width: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A tile's (RGB, depth, mask) as a `width`×`width` frame: the image linearly, depth and mask by nearest
+    neighbour (no depth is invented between a stem and what lies behind it); unchanged at the tile's own size."""
+    if width == rgb.shape[1]:
+        return rgb, depth, mask
+    size = (width, width)
+    return (
+        cv2.resize(rgb, size, interpolation=cv2.INTER_LINEAR),
+        cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST),
+        cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool),
+    )
+
+
+def relative_disparity(
+    depth: np.ndarray, mask: np.ndarray, tree_median_px: float = TREE_MEDIAN_DISPARITY_PX
+) -> np.ndarray:
     """`float32` 1 / `depth` where depth > 0 (0 elsewhere), scaled so its median over the `mask` pixels with a
-    depth is `TREE_MEDIAN_DISPARITY_PX` (over all pixels with a depth when the mask has none; all zero without
-    any depth)."""
+    depth is `tree_median_px` (over all pixels with a depth when the mask has none; all zero without any
+    depth)."""
     valid = depth > 0
     inverse = np.zeros(depth.shape, np.float32)
     inverse[valid] = 1.0 / depth[valid].astype(np.float32)
     reference = inverse[valid & mask] if np.any(valid & mask) else inverse[valid]
     if reference.size == 0:
         return inverse
-    return inverse * np.float32(TREE_MEDIAN_DISPARITY_PX / float(np.median(reference)))
+    return inverse * np.float32(tree_median_px / float(np.median(reference)))
 
 
 def far_from(mask: np.ndarray, distance_px: float = FAR_PX) -> np.ndarray:
@@ -110,9 +141,10 @@ def far_from(mask: np.ndarray, distance_px: float = FAR_PX) -> np.ndarray:
     return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5) > distance_px
 
 
-def count_pixels(trunk: np.ndarray, branch: np.ndarray, mask: np.ndarray) -> PixelCounts:
-    """`PixelCounts` of a prediction (`trunk`, `branch`: `bool H×W`) against a hand `mask` (`bool H×W`)."""
-    far = far_from(mask)
+def count_pixels(trunk: np.ndarray, branch: np.ndarray, mask: np.ndarray, far_px: float = FAR_PX) -> PixelCounts:
+    """`PixelCounts` of a prediction (`trunk`, `branch`: `bool H×W`) against a hand `mask` (`bool H×W`), far
+    meaning more than `far_px` from it."""
+    far = far_from(mask, far_px)
     return PixelCounts(
         labelled=int(np.count_nonzero(mask)),
         found=int(np.count_nonzero(mask & (trunk | branch))),
@@ -130,25 +162,30 @@ def masks_trunk_branch(masks: BranchMasks) -> tuple[np.ndarray, np.ndarray]:
     return trunk, np.isin(masks.labels, masks.branch_ids())
 
 
-def disparity_inputs(mode: str, depth: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def disparity_inputs(
+    mode: str, depth: np.ndarray, mask: np.ndarray, tree_median_px: float = TREE_MEDIAN_DISPARITY_PX
+) -> tuple[np.ndarray, np.ndarray]:
     """(disparity `float32 H×W` px, confidence `float32 H×W`) of a `DISPARITY_MODES` mode."""
     if mode == "none":
         empty = np.zeros(depth.shape, np.float32)
         return empty, empty
-    return relative_disparity(depth, mask), (depth > 0).astype(np.float32)
+    return relative_disparity(depth, mask, tree_median_px), (depth > 0).astype(np.float32)
 
 
 def score_image(
     segmenter: Segmenter, rgb: np.ndarray, depth: np.ndarray, mask: np.ndarray, mode: str
 ) -> tuple[dict[str, PixelCounts], np.ndarray, np.ndarray]:
     """{"final": counts of the final masks, "network": of the learned network's arg-max (learned segmenters
-    only)} and the final (trunk, branch) masks of one image in one disparity mode."""
-    disparity, confidence = disparity_inputs(mode, depth, mask)
-    trunk, branch = masks_trunk_branch(segmenter.segment(rgb, disparity, TILE_GEOMETRY, confidence))
-    counts = {"final": count_pixels(trunk, branch, mask)}
+    only)} and the final (trunk, branch) masks of one square image (a tile, or one `enlarged`: the disparity,
+    geometry and far distance scale with its width) in one disparity mode."""
+    scale = rgb.shape[1] / TILE
+    disparity, confidence = disparity_inputs(mode, depth, mask, TREE_MEDIAN_DISPARITY_PX * scale)
+    geometry = tile_geometry(rgb.shape[1])
+    trunk, branch = masks_trunk_branch(segmenter.segment(rgb, disparity, geometry, confidence))
+    counts = {"final": count_pixels(trunk, branch, mask, FAR_PX * scale)}
     if isinstance(segmenter, LearnedSegmenter):
         classes = segmenter.logits(rgb, disparity).argmax(axis=0)
-        counts["network"] = count_pixels(classes == TRUNK_CLASS, classes == BRANCH_CLASS, mask)
+        counts["network"] = count_pixels(classes == TRUNK_CLASS, classes == BRANCH_CLASS, mask, FAR_PX * scale)
     return counts, trunk, branch
 
 
@@ -179,10 +216,15 @@ def write_overlay(path: Path, panels: list[np.ndarray]) -> None:
     cv2.imwrite(str(path), np.concatenate(rows, axis=0), [cv2.IMWRITE_JPEG_QUALITY, 80])
 
 
-def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays: Path | None = None) -> dict[str, Any]:
-    """Counts per sample, season and disparity mode, pooled per season ("seasons"), with overlays of
-    `overlay_ids` written to `overlays` (`<id>.jpg`: rows winter / summer, columns 'depth' / 'none').
-    FileNotFoundError when `folder` holds no samples."""
+def run_real_orchard(
+    segmenter: Segmenter,
+    folder: Path = REAL_ORCHARD,
+    overlays: Path | None = None,
+    frame_width: int = PRODUCT_FRAME_WIDTH,
+) -> dict[str, Any]:
+    """Counts per sample, season and disparity mode, pooled per season ("seasons"), each tile seen `enlarged` to
+    `frame_width` px, with overlays of `overlay_ids` written to `overlays` (`<id>.jpg`: rows winter / summer,
+    columns 'depth' / 'none', at the tiles' size). FileNotFoundError when `folder` holds no samples."""
     paths = sorted((folder / "samples").glob("*.png"))
     if not paths:
         raise FileNotFoundError(f"no real orchard samples in {folder / 'samples'}")
@@ -191,7 +233,8 @@ def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays
     samples: dict[str, dict[str, Any]] = {}
     for path in paths:
         panels = []
-        for season, (rgb, depth, mask) in read_sample(path).items():
+        for season, tile in read_sample(path).items():
+            rgb, depth, mask = enlarged(*tile, frame_width)
             for mode in DISPARITY_MODES:
                 counts, trunk, branch = score_image(segmenter, rgb, depth, mask, mode)
                 samples.setdefault(path.stem, {}).setdefault(season, {})[mode] = {
@@ -200,7 +243,7 @@ def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays
                 for kind, c in counts.items():
                     total = pooled.setdefault(season, {}).setdefault(mode, {}).setdefault(kind, PixelCounts())
                     total += c
-                panels.append(tinted(rgb, mask, trunk, branch))
+                panels.append(cv2.resize(tinted(rgb, mask, trunk, branch), (TILE, TILE), interpolation=cv2.INTER_AREA))
         if overlays is not None and path.stem in drawn:
             write_overlay(overlays / f"{path.stem}.jpg", panels)
     seasons = {
@@ -209,14 +252,21 @@ def run_real_orchard(segmenter: Segmenter, folder: Path = REAL_ORCHARD, overlays
         }
         for season, modes in pooled.items()
     }
-    return {"samples": len(paths), "overlay_ids": sorted(drawn), "seasons": seasons, "per_sample": samples}
+    return {
+        "samples": len(paths),
+        "frame_width": frame_width,
+        "overlay_ids": sorted(drawn),
+        "seasons": seasons,
+        "per_sample": samples,
+    }
 
 
 def print_real_orchard(name: str, result: dict[str, Any]) -> None:
     """The per-season table of `run_real_orchard`'s `result` for segmenter `name`."""
     print(
-        f"\nreal orchard RGB-D, {result['samples']} samples, segmenter {name}: labelled trunk+leader pixels found as "
-        f"trunk or branch; pixels > {FAR_PX:g} px from the mask called trunk / branch"
+        f"\nreal orchard RGB-D, {result['samples']} samples seen {result['frame_width']} px wide, segmenter {name}: "
+        f"labelled trunk+leader pixels found as trunk or branch; pixels > {FAR_PX:g} px of the tile from the mask "
+        "called trunk / branch"
     )
     print(f"{'season':<8} {'disparity':<10} {'counted':<8} {'found':>7} {'far trunk':>10} {'far branch':>11}")
     for season, modes in result["seasons"].items():

@@ -44,8 +44,9 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
   frame reached each thread (the result's `latency`): the waits between the stages;
 - `config_sha256`: the effective configuration's hash (its run header in the results log);
 - `load_average_1min`: the machine's load when the mode started (shared machines: read the timings by it), `wall_s`;
-- `cpu_s`: the process's CPU time (user + system, every thread) while the daemon ran, s; `cpu_s_per_fresh_result`:
-  that over the fresh results published (what one result costs, whatever the machine's other load);
+- `cpu_s`: the process's CPU time (user + system, every thread) while the daemon ran, s, with the stereo workers'
+  (`stereo.workers` other than 1: their whole lifetime, start-up included); `cpu_s_per_fresh_result`: that over
+  the fresh results published (what one result costs, whatever the machine's other load);
 - `ratio_to_baseline.{fresh_rate,latency_p50}`: against `full-sgbm` with the same segmenter.
 Also `cpu` (model and vector extensions), `threads`, `preloaded` (frames decoded ahead), `sequence`, `flight`
 (the render options when rendered here), `config` (`path`, `sha256` of the file), `overrides`, `results_jsonl`,
@@ -58,12 +59,18 @@ Without `--sequence` a flight is rendered once under out/bench (`branchrange syn
     .venv/bin/python benchmarks/realtime.py --config deploy/onboard_cpu.toml --segmenter builtin --speed 0.8 \\
         --results-jsonl out/realtime.jsonl --json out/realtime_shipped.json
     .venv/bin/python benchmarks/realtime.py --sequence out/flight --modes roi-sgbm --segmenter builtin
+    taskset -c 0,1 .venv/bin/python benchmarks/realtime.py --config deploy/onboard_cpu.toml --modes config \
+        --segmenter builtin --speed 0.8 --set stereo.workers=0   # the stereo stage in one process per core
+
+The daemon's stereo workers (`stereo.workers` other than 1) are started and run the warm-up frame before
+the clock starts, as the daemon's own pipeline does.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import socket
@@ -194,10 +201,19 @@ def run_mode(cfg: Config, segmenter: str, preload: bool) -> dict[str, Any]:
     probe.close()
     mount = CameraMount.from_rpy(cfg.camera.mount_rpy_deg, cfg.camera.mount_xyz_m)
     relay = MavlinkRelay(cfg.mavlink, mount, tracking=cfg.tracking) if cfg.mavlink.enabled else None
-    daemon = Daemon(cfg, open_source=lambda: replay, pipeline=pipeline, relay=relay, results_path=cfg.log.results_jsonl)
-    load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
-    started, cpu_started = time.monotonic(), process_cpu_s()
+    daemon = Daemon(
+        cfg,
+        open_source=lambda: replay,
+        pipeline=pipeline,
+        relay=relay,
+        results_path=cfg.log.results_jsonl,
+        pipeline_factory=functools.partial(pipeline_for, cfg, probe.calibration),  # each stereo worker's own
+    )
     try:
+        # the stereo workers' pipelines too (`stereo.workers`), before the clock starts
+        daemon.warm_up(warm if segmenter == "truth" else dataclasses.replace(warm, mask=None))
+        load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
+        started, cpu_started = time.monotonic(), process_cpu_s()
         daemon.run()
     finally:
         daemon.close()
@@ -211,9 +227,11 @@ def run_mode(cfg: Config, segmenter: str, preload: bool) -> dict[str, Any]:
 
 
 def process_cpu_s() -> float:
-    """This process's CPU time so far, user + system over every thread (native ones included), s."""
+    """CPU time so far, s: this process's (user + system over every thread, native ones included) and its
+    ended children's — the stereo workers (`stereo.workers` other than 1) once `daemon.close()` has joined
+    them, their start-up and warm-up included."""
     times = os.times()
-    return times.user + times.system
+    return times.user + times.system + times.children_user + times.children_system
 
 
 def random_weights() -> Path:

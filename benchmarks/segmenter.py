@@ -51,9 +51,10 @@ the branches holding the annotation's cut candidates got one, and per annotated 
 Real orchard RGB-D (`--real-orchard`, alone: no synthetic scenes): `../shared/data/real_orchard_rgbd`, per season
 the share of the hand-labelled trunk+leader pixels called trunk or branch and of the pixels far from that mask
 called trunk / branch, with a relative disparity from the depth and with none (`benchmarks/real_orchard.py`);
---segmenters default to the shipped 'learned' there, overlays of six samples fixed by id go to --overlays.
+--segmenters default to the shipped 'learned' there, overlays of six samples fixed by id go to --overlays. Each
+256 px tile is seen enlarged to --real-orchard-width px (default 640, the product's smallest frame; 256: as it is).
 
-    python benchmarks/segmenter.py --real-orchard [--segmenters learned] [--json out.json]
+    python benchmarks/segmenter.py --real-orchard [--segmenters learned] [--json out.json] [--real-orchard-width 640]
                                    [--overlays benchmarks/segmenter_overlays/real_orchard]
     python benchmarks/segmenter.py [--scenes 240] [--segmenters learned learned@1280 learned-int8 structure]
                                    [--light dusk ...] [--hd720] [--json out.json]
@@ -74,7 +75,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from machine import cpu_name  # a script's own folder is on its import path
-from real_orchard import REAL_ORCHARD, print_real_orchard, run_real_orchard
+from real_orchard import PRODUCT_FRAME_WIDTH, REAL_ORCHARD, TILE, print_real_orchard, run_real_orchard
 
 from branchrange.config.loader import load_config, pipeline_config
 from branchrange.core.confidence import (
@@ -654,11 +655,20 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only the real orchard RGB-D samples (../shared/data/real_orchard_rgbd): trunk+leader pixels found",
     )
+    parser.add_argument(
+        "--real-orchard-width",
+        type=int,
+        default=PRODUCT_FRAME_WIDTH,
+        help=f"the real orchard tiles enlarged to this width, px (default {PRODUCT_FRAME_WIDTH}: the product's "
+        f"smallest frame; {TILE}: the tiles as they are)",
+    )
     parser.add_argument("--json", type=Path, help="write all numbers here")
     args = parser.parse_args(argv)
     print(f"CPU: {cpu_name()} (shared machine: absolute times are noisy)")
     if args.real_orchard:
-        return main_real_orchard(args.segmenters or ["learned"], args.overlays, args.json)
+        if not TILE <= args.real_orchard_width <= 4096:
+            parser.error(f"--real-orchard-width must lie in {TILE}..4096 px")
+        return main_real_orchard(args.segmenters or ["learned"], args.overlays, args.json, args.real_orchard_width)
     args.segmenters = args.segmenters or ["learned", "structure"]
     start = time.perf_counter()
     synthetic = run_synthetic(args.segmenters, args.scenes, args.cache, args.hardware, args.light, args.hd720)
@@ -676,7 +686,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def main_real_orchard(
-    segmenters: list[str], overlays: Path | None, json_path: Path | None, folder: Path = REAL_ORCHARD
+    segmenters: list[str],
+    overlays: Path | None,
+    json_path: Path | None,
+    frame_width: int = PRODUCT_FRAME_WIDTH,
+    folder: Path = REAL_ORCHARD,
 ) -> int:
     """`--real-orchard`: each segmenter on the real orchard samples in `folder` (`real_orchard.run_real_orchard`),
     its table printed, overlays in `overlays`/<segmenter> when more than one is run; 0 (a message and nothing run
@@ -688,7 +702,7 @@ def main_real_orchard(
     results = {}
     for name in segmenters:
         where = None if overlays is None else overlays / name if len(segmenters) > 1 else overlays
-        results[name] = run_real_orchard(benchmark_segmenter(name), folder, where)
+        results[name] = run_real_orchard(benchmark_segmenter(name), folder, where, frame_width)
         print_real_orchard(name, results[name])
     print(
         f"\n{time.perf_counter() - start:.0f} s; the 'depth' disparity's scale is picked with the hand mask "

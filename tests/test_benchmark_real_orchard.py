@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
+from branchrange.core.segmentation.choose import make_segmenter
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 sys.path.insert(0, str(BENCHMARKS))
 import real_orchard  # noqa: E402
@@ -112,9 +114,12 @@ def test_the_benchmark_on_two_stand_in_samples_writes_per_sample_figures_and_ove
     folder = tmp_path / "real_orchard_rgbd"
     mask = write_stand_in(folder, ["R01N01", "R02U07"])
     out = tmp_path / "out.json"
-    assert segmenter_benchmark.main_real_orchard(["learned"], tmp_path / "overlays", out, folder) == 0
+    tiles_as_they_are = real_orchard.TILE
+    assert (
+        segmenter_benchmark.main_real_orchard(["learned"], tmp_path / "overlays", out, tiles_as_they_are, folder) == 0
+    )
     result = json.loads(out.read_text())["real_orchard"]["learned"]
-    assert result["samples"] == 2 and result["overlay_ids"] == ["R01N01", "R02U07"]
+    assert result["samples"] == 2 and result["overlay_ids"] == ["R01N01", "R02U07"] and result["frame_width"] == 256
     for season in ("winter", "summer"):
         for mode in ("depth", "none"):
             pooled = result["seasons"][season][mode]["final"]
@@ -133,6 +138,25 @@ def test_the_benchmark_on_two_stand_in_samples_writes_per_sample_figures_and_ove
 
 def test_without_the_data_set_the_benchmark_says_so_and_runs_nothing(tmp_path: Path, capsys) -> None:
     out = tmp_path / "out.json"
-    assert segmenter_benchmark.main_real_orchard(["learned"], None, out, tmp_path / "absent") == 0
+    assert segmenter_benchmark.main_real_orchard(["learned"], None, out, folder=tmp_path / "absent") == 0
     assert "no data set at" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_tiles_are_seen_as_the_products_frame_with_the_scene_scaled_alike(tmp_path: Path) -> None:
+    """Enlarged to 640 px: the image larger, depth and mask by nearest neighbour (no new depth values), the mask's
+    share of the frame kept; the benchmark then counts at that size and still draws tile-sized overlays."""
+    folder = tmp_path / "real_orchard_rgbd"
+    mask = write_stand_in(folder, ["R01N01"])
+    rgb, depth, read_mask = real_orchard.read_sample(folder / "samples" / "R01N01.png")["summer"]
+    big_rgb, big_depth, big_mask = real_orchard.enlarged(rgb, depth, read_mask, 640)
+    assert big_rgb.shape == (640, 640, 3) and big_depth.shape == big_mask.shape == (640, 640)
+    assert set(np.unique(big_depth)) <= set(np.unique(depth))
+    assert big_mask.mean() == pytest.approx(mask.mean(), rel=0.05)
+    assert real_orchard.enlarged(rgb, depth, read_mask, 256)[0] is rgb
+    assert real_orchard.tile_geometry(640).focal_px == 320.0  # the ZED Mini's own at 640 px
+    result = real_orchard.run_real_orchard(make_segmenter("learned"), folder, tmp_path / "overlays")
+    assert result["frame_width"] == real_orchard.PRODUCT_FRAME_WIDTH == 640
+    counted = result["seasons"]["summer"]["none"]["final"]
+    assert counted["labelled"] == int(big_mask.sum())
+    assert cv2.imread(str(tmp_path / "overlays" / "R01N01.jpg")).shape == (512, 512, 3)

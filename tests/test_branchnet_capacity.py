@@ -43,13 +43,25 @@ def test_deep_blocks_add_capacity_at_the_coarse_scales_only():
     assert deep.eval()(x).shape == (1, 3, 2 * STRIDE, 3 * STRIDE)
 
 
-def test_an_inverted_residual_block_adds_to_its_input():
+def test_an_inverted_residual_block_adds_to_its_input_and_starts_as_the_identity():
     block = InvertedResidual(8, dilation=2).eval()
-    with torch.no_grad():
-        block.project[1].weight.zero_()
-        block.project[1].bias.zero_()  # a projection that gives nothing: the block is the identity
     x = torch.randn(1, 8, 16, 16)
-    assert torch.equal(block(x), x)
+    assert torch.equal(block(x), x)  # a fresh block's projection scales by zero
+    with torch.no_grad():
+        block.project[1].weight.fill_(1.0)
+    assert not torch.allclose(block(x), x)  # trained, it adds its branch to the input
+
+
+def test_blocks_added_to_a_trained_network_leave_its_logits_as_they_were():
+    from branchrange.learning.training import load_matching_weights
+
+    plain = branchnet_capacity.random_network(4, 4, 0)
+    deep = BranchNet(4, 4, deep_blocks=2)
+    fresh = load_matching_weights(deep, plain.state_dict())
+    assert fresh and all(".expand." in n or ".depthwise." in n or ".project." in n for n in fresh)
+    x = torch.randn(1, 5, 2 * STRIDE, 3 * STRIDE)
+    with torch.inference_mode():
+        assert torch.allclose(deep.eval()(x), plain(x), atol=1e-6)
 
 
 @pytest.mark.parametrize("deep_blocks", [1, 2])

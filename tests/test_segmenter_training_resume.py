@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import textwrap
+from itertools import chain
 from pathlib import Path
 
 import numpy as np
@@ -25,13 +27,14 @@ from branchrange.cli import main
 from branchrange.commands.train_segmenter import training_config
 from branchrange.learning.resume import CHECKPOINT_NAME
 from branchrange.learning.samples import (
+    DOMAINS,
     cached_randomized_sample,
     randomized_sample_path,
     render_randomized_sample,
     render_samples,
     sample_path,
 )
-from branchrange.learning.training import train_branchnet
+from branchrange.learning.training import TRAINING_DOMAINS, train_branchnet
 from stereo.synth.randomized import RandomizedSwitches
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,7 +57,7 @@ KILLED_RUN = textwrap.dedent(
     import os, signal, sys
     from pathlib import Path
     from branchrange.commands.train_segmenter import training_config
-    from branchrange.learning.training import train_branchnet
+    from branchrange.learning.training import TRAINING_DOMAINS, train_branchnet
 
     def log(line):
         if line.startswith("step {KILLED_AT_STEP} "):
@@ -135,8 +138,23 @@ def test_resume_refuses_a_missing_checkpoint_and_one_of_other_settings(scenes, t
 
 
 def test_the_randomized_domain_is_a_checked_setting() -> None:
-    with pytest.raises(ValueError, match="domain must be one of generator, randomized"):
+    with pytest.raises(ValueError, match="domain must be one of generator, randomized, mixed"):
         training_config(None, ['domain="real"'])
     with pytest.raises(ValueError, match="hardware_seeds are generator scenes"):
         training_config(None, ['domain="randomized"', "hardware_seeds=[5, 7]"])
     assert training_config(None, []).domain == "generator"  # the default is unchanged
+
+
+def test_the_mixed_domain_trains_and_validates_on_both_domains_scenes(scenes, tmp_path):
+    data = shutil.copytree(scenes, tmp_path / "data")  # the module's cache keeps randomized scenes only
+    config = training_config(None, ['domain="mixed"', *(s for s in SETTINGS if not s.startswith("domain"))])
+    log: list[str] = []
+    meta = train_branchnet(config, tmp_path / "run", data, log.append)
+    assert meta["config"]["domain"] == "mixed"
+    assert "rendered 3 generator scenes" in log[0] and not any("randomized scenes" in line for line in log)
+    for seed in (1, 2, 3):  # training seeds 1–2 and validation seed 3, of each domain
+        assert sample_path(data, seed).is_file() and randomized_sample_path(data, seed).is_file()
+    log.clear()
+    train_branchnet(config, tmp_path / "again", data, log.append)
+    assert not any(line.startswith("rendered") for line in log)  # both caches already full
+    assert set(chain.from_iterable(TRAINING_DOMAINS.values())) == set(DOMAINS)

@@ -169,3 +169,18 @@ def test_synth_command_names_a_bad_randomized_flag(tmp_path):
         emcstereo(["synth", "--randomized", "--preview", str(tmp_path / "s.png"), "--supersample", "9"])
     with pytest.raises(SystemExit, match="give --out DIR"):
         emcstereo(["synth", "--randomized"])
+
+
+def test_a_ground_robots_view_stands_back_from_the_tree_with_the_ground_in_front():
+    switches = RandomizedSwitches.only("viewpoint")
+    seeds = seeds_changing("viewpoint")
+    assert all(draw_plan(s, switches).viewpoint == "ground" for s in seeds)
+    assert 0.2 < len(seeds) / 100 < 0.5  # `ground_view_share` of the scenes, 0.35
+    ground, crown = rendered(seeds[0], switches), rendered(seeds[0], NEUTRAL)
+    wood = ground.instances > 0
+    depth_m = CAMERA.focal_px * CAMERA.baseline_m / np.median(ground.exact_disparity[wood])
+    low, high = switches.ground_view_m
+    assert low <= depth_m <= high + 1.0  # the near tree, its trunk's radius and slant beyond `ground_view_m`
+    assert np.count_nonzero(wood) < np.count_nonzero(crown.instances > 0)  # the same tree, smaller in view
+    with pytest.raises(ValueError, match="ground_view_share must lie in 0–1"):
+        RandomizedSwitches(ground_view_share=1.5)

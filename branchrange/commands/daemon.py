@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import signal
 import sys
@@ -117,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
         results_path=cfg.log.results_jsonl or None,
         metrics=metrics,
         observers=[sink] if sink is not None else [],
+        pipeline_factory=functools.partial(pipeline_for, cfg, first.calibration),  # built again in each stereo worker
     )
     previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in (signal.SIGTERM, signal.SIGINT)}
     server = thread = None

@@ -14,7 +14,8 @@ branchnet_int8.onnx (+ .json), an int8 copy with its own calibration (`branchran
 
 A run saves its whole state (model, optimiser, schedule, random generators, step) to --out's checkpoint.pt at
 every validation; killed, the same command with --resume continues it to the weights it would have had.
-`--set domain='"randomized"'` trains on the randomized domain (`BranchNetTrainConfig.domain`).
+`--set domain='"randomized"'` trains on the randomized domain, `'"mixed"'` on it and the generator's scenes alike
+(`BranchNetTrainConfig.domain`).
 
 Reproduce the shipped model exactly (three stages, each starting from the last's weights; the third adds
 the full-resolution feature branch; the first two need no calibration, `--no-calibrate`; 103 min on 2 cores

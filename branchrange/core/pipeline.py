@@ -76,6 +76,8 @@ from stereo.backends.base import MAX_DISP_LIMIT, MAX_DISP_STEP, validate_image, 
 
 #: `stereo.mode`: 'full' matches the whole frame at full resolution; 'roi' coarse-to-fine (`branchrange.core.roi`).
 STEREO_MODES: tuple[str, ...] = ("full", "roi")
+#: The most stereo worker processes `stereo.workers` may ask for (each holds its own pipeline, models included).
+MAX_STEREO_WORKERS = 64
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,10 @@ class StereoConfig(Settings):
     the whole frame. `verify_weights`: check a registered release's weights against its SHA-256 on load.
     `refine_branches`: once the masks are known, match each branch on its own pixels for a sub-pixel
     disparity free of the background's pull (`branchrange.core.branch_disparity`; ~1 ms per branch).
+    `workers`: how many processes of the onboard daemon run the stereo stage, each on the next frame
+    while the others work, their results published in capture order (`branchrange.onboard.stereo_workers`);
+    1 runs it in the daemon's own thread, 0 starts one per CPU core the daemon may use; with keyframes
+    (`roi.keyframe_interval_s` > 0) always 1.
     """
 
     section = "stereo"
@@ -105,6 +111,7 @@ class StereoConfig(Settings):
             enum=STEREO_MODES,
             expected="'roi' (coarse pass + full-resolution regions per branch, see [roi]) or 'full' (whole frame)",
         ),
+        "workers": Limit(minimum=0, maximum=MAX_STEREO_WORKERS, expected=f"0 (one per core) to {MAX_STEREO_WORKERS}"),
     }
 
     backend: str = "sgbm"
@@ -115,6 +122,7 @@ class StereoConfig(Settings):
     mode: str = "roi"
     verify_weights: bool = True
     refine_branches: bool = True
+    workers: int = 1
 
     def checks(self) -> Checks:
         """The backend, its weights, search range and precision, and the mode."""

@@ -117,8 +117,8 @@ def cached_randomized_sample(
     return _cached(path, lambda: render_randomized_sample(seed, size, switches))
 
 
-#: where training scenes come from (`BranchNetTrainConfig.domain`): `render_sample`'s scenes (with orchard
-#: hardware where asked) or `render_randomized_sample`'s (every factor drawn per scene)
+#: the domains a training scene comes from: `render_sample`'s scenes (with orchard hardware where asked) or
+#: `render_randomized_sample`'s (every factor drawn per scene); `training.TRAINING_DOMAINS` trains on one or both
 DOMAINS = ("generator", "randomized")
 
 

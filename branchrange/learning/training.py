@@ -31,8 +31,15 @@ from torch.nn import functional as F
 from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
 from branchrange.learning.calibration import CALIBRATION_SEEDS
 from branchrange.learning.resume import CHECKPOINT_NAME, restore_training_state, save_training_state
-from branchrange.learning.samples import BRANCH, DOMAINS, IGNORE, TRAIN_SEED_LIMIT, render_samples, training_sample
+from branchrange.learning.samples import BRANCH, IGNORE, TRAIN_SEED_LIMIT, render_samples, training_sample
 from stereo.weights import sha256_of
+
+#: `BranchNetTrainConfig.domain`'s values and the scene domains (`samples.DOMAINS`) each trains and validates on
+TRAINING_DOMAINS: dict[str, tuple[str, ...]] = {
+    "generator": ("generator",),
+    "randomized": ("randomized",),
+    "mixed": ("generator", "randomized"),
+}
 
 
 @dataclass(frozen=True)
@@ -62,13 +69,15 @@ class BranchNetTrainConfig:
       the raw input).
     - `deep_blocks`: inverted residual blocks at each of the encoder's 1/4, 1/8 and 1/16 scales (`BranchNet`;
       0: none, the shipped network): capacity for a broad domain where pixels are few. `init_weights` of a
-      network without them leaves the blocks at their random start (each adds to its input, so the start is
-      the old network plus a perturbation).
-    - `domain`: where the training and validation scenes come from (`samples.DOMAINS`): "generator", the
-      `stereo.synth.render_scene` scenes the shipped model learnt, or "randomized", the randomized domain
+      network without them starts with the old network's output exactly (each block adds to its input a branch
+      that starts at zero: `InvertedResidual`).
+    - `domain`: where the training and validation scenes come from (`TRAINING_DOMAINS`): "generator", the
+      `stereo.synth.render_scene` scenes the shipped model learnt, "randomized", the randomized domain
       (`samples.render_randomized_sample`, every factor drawn per scene: tree forms, bark, rows behind, ground,
-      structures, seasons, light, sensor), whose seeds are a space of their own (cached under other names,
-      never mixed with the generator's); `hardware_seeds` are generator scenes, so none with it.
+      structures, seasons, light, sensor), whose seeds are a space of their own (cached under other names), or
+      "mixed": both domains' scenes of `train_seeds` drawn alike (half the crops of each on average) and both
+      domains' `val_seeds` validated together — breadth without forgetting the scenes the shipped figures are
+      measured on; `hardware_seeds` are generator scenes, so none with "randomized".
     """
 
     train_seeds: tuple[int, int] = (1, 1201)
@@ -92,8 +101,8 @@ class BranchNetTrainConfig:
     domain: str = "generator"
 
     def __post_init__(self) -> None:
-        if self.domain not in DOMAINS:
-            raise ValueError(f"domain must be one of {', '.join(DOMAINS)}, not {self.domain!r}")
+        if self.domain not in TRAINING_DOMAINS:
+            raise ValueError(f"domain must be one of {', '.join(TRAINING_DOMAINS)}, not {self.domain!r}")
         if self.domain == "randomized" and self.hardware_seeds != (0, 0):
             raise ValueError("hardware_seeds are generator scenes: the randomized domain draws its own structures")
         drawn_from = ["train_seeds"] + (["hardware_seeds"] if self.hardware_seeds != (0, 0) else [])
@@ -269,14 +278,16 @@ def train_branchnet(
     torch.set_num_threads(config.threads)
     rng = np.random.default_rng(config.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
-    train_seeds = [(s, False) for s in range(*config.train_seeds)]
-    train_seeds += [(s, True) for s in range(*config.hardware_seeds)]
-    scenes = [*train_seeds, *((s, False) for s in range(*config.val_seeds))]
-    rendered = render_samples(data_dir, scenes, workers, config.domain)
-    if rendered:
-        kind = "randomized " if config.domain == "randomized" else ""
-        log(f"rendered {rendered} {kind}scenes into {data_dir} ({workers} process{'es' if workers > 1 else ''})")
-    validation = [training_sample(data_dir, int(s), domain=config.domain) for s in range(*config.val_seeds)]
+    domains = TRAINING_DOMAINS[config.domain]
+    train_seeds = [(s, False, domain) for domain in domains for s in range(*config.train_seeds)]
+    train_seeds += [(s, True, "generator") for s in range(*config.hardware_seeds)]
+    for domain in domains:
+        scenes = [(s, h) for s, h, d in train_seeds if d == domain] + [(s, False) for s in range(*config.val_seeds)]
+        rendered = render_samples(data_dir, scenes, workers, domain)
+        if rendered:
+            processes = f"{workers} process{'es' if workers > 1 else ''}"
+            log(f"rendered {rendered} {domain} scenes into {data_dir} ({processes})")
+    validation = [training_sample(data_dir, s, domain=domain) for domain in domains for s in range(*config.val_seeds)]
     model = BranchNet(config.width, config.fine_width, config.deep_blocks)
     init_sha256 = None
     if config.init_weights:
@@ -300,8 +311,8 @@ def train_branchnet(
     for step in range(done + 1, config.steps + 1):
         crops = []
         for _ in range(config.batch):
-            seed, hardware = train_seeds[int(rng.choice(len(train_seeds)))]  # the draws of np.arange's choice
-            sample = training_sample(data_dir, seed, hardware, config.domain)
+            seed, hardware, domain = train_seeds[int(rng.choice(len(train_seeds)))]  # np.arange's choice's draws
+            sample = training_sample(data_dir, seed, hardware, domain)
             crops.append(training_crop(sample, config, rng))
         inputs = torch.from_numpy(np.stack([c[0] for c in crops])).contiguous(memory_format=torch.channels_last)
         targets = torch.from_numpy(np.stack([c[1] for c in crops]))

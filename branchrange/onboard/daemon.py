@@ -26,7 +26,9 @@ each new file starting with the run header again. Threads:
   A frame whose `timestamp_ns` is not newer than the previous frame's from the same opened camera
   (a frozen driver buffer delivering one image again, frames arriving out of order) is skipped and
   counted (`repeated`): it would pass an old image off as fresh, and the tracker must never go back
-  in time;
+  in time. With `stereo.workers` other than 1 this thread only dispatches: each frame goes to the next free
+  stereo worker process (`stereo_workers`, started with the run and warmed on its first frame or by
+  `warm_up`), whose outputs come back in capture order; a dead worker's frame counts as dropped;
 - **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
   on the newest stereo output (one slot: an output the worker had no time for is replaced by the
   next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
@@ -64,6 +66,7 @@ from branchrange.onboard.load_shedding import LoadShedder
 from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from branchrange.onboard.newest_slot import NewestSlot
 from branchrange.onboard.results_log import ResultsLog
+from branchrange.onboard.stereo_workers import StereoWorkers, WorkerOutput, worker_count
 from camera.sources import CorruptFrameError, LatestFrameSource, SourceDisconnected, SourceError, StereoSource
 from stereo.backends.base import validate_pair
 
@@ -140,6 +143,7 @@ class Daemon:
         results_path: str | Path | None = None,
         metrics: DaemonMetrics | None = None,
         observers: Sequence[ResultObserver] = (),
+        pipeline_factory: Callable[[], Any] | None = None,
     ):
         self.cfg = cfg
         self._open_source = open_source
@@ -166,7 +170,7 @@ class Daemon:
         self.corrupt = 0
         self.rejected = 0
         self.reopens = 0
-        self.dropped = 0
+        self._camera_dropped = 0  # by the open source and those closed before it
         self.dropped_late = 0
         self.late = 0  # results older than mavlink.max_result_age_s when published
         self.repeated = 0  # frames skipped: captured no later than the frame before them
@@ -183,6 +187,31 @@ class Daemon:
         self._light: str | None = None  # the class of light of the last result that measured it
         # (reason, reopens, UTC) of a camera reopening whose marker goes into the log before the next result
         self._reopened: tuple[str, int, str] | None = None
+        self._pipeline_factory = pipeline_factory
+        self.workers = self._worker_count()
+        self._pool: StereoWorkers | None = None
+        self._warmed = False  # whether the workers ran a first frame (`StereoWorkers.warm`)
+
+    def _worker_count(self) -> int:
+        """How many processes run the stereo stage (`stereo.workers`; 1: the run() thread itself)."""
+        count = worker_count(self.cfg.stereo.workers)
+        if count > 1 and self.cfg.roi.keyframe_interval_s > 0:
+            log.warning(
+                "stereo.workers = %d ignored: with keyframes (roi.keyframe_interval_s = %g) each frame carries "
+                "the last frame's instances, so the stereo stage runs in one thread",
+                self.cfg.stereo.workers,
+                self.cfg.roi.keyframe_interval_s,
+            )
+            return 1
+        if count > 1 and self._pipeline_factory is None:
+            raise ValueError(f"stereo.workers = {self.cfg.stereo.workers} needs a pipeline_factory for its workers")
+        return count
+
+    @property
+    def dropped(self) -> int:
+        """Frames never processed: those the camera source dropped (the stereo stage had no time for them)
+        and those a stereo worker took with it when it died."""
+        return self._camera_dropped + (0 if self._pool is None else self._pool.lost)
 
     @property
     def skipped(self) -> int:
@@ -216,6 +245,12 @@ class Daemon:
             "late": self.late,
             "repeated": self.repeated,
         }
+        pool = self._pool
+        workers = {
+            "count": self.workers,
+            "restarts": 0 if pool is None else pool.restarts,
+            "lost_frames": 0 if pool is None else pool.lost,
+        }
         latest = self._latest
         ood = None if latest is None else latest[0].segmenter_ood  # the last frame's: does the model know it?
         model = {
@@ -229,6 +264,7 @@ class Daemon:
         return {
             "model": model,
             "camera": camera,
+            "stereo_workers": workers,
             "shedding": self.shedder.state(),
             "mavlink": None if self.relay is None else self.relay.link_state(),
         }
@@ -284,6 +320,50 @@ class Daemon:
             self._reject(frame.index, error)
             return
         self._slot.put(_StereoOutput(stage, captured_at, started, time.monotonic()))
+
+    def _start_workers(self) -> None:
+        """With `stereo.workers` > 1: the worker processes, started and their pipelines built (once per run)."""
+        if self.workers < 2 or (self._pool is not None and not self._pool.closed):
+            return
+        assert self._pipeline_factory is not None
+        self._pool = StereoWorkers(self.workers, self._pipeline_factory, self._from_worker)
+        self._warmed = False
+        self._pool.wait_ready(self._stop)
+        log.info("stereo stage in %d worker processes", self.workers)
+
+    def warm_up(self, frame: Any) -> None:
+        """Before `run`: start the stereo workers and run `frame` (a `StereoFrame`) once in each, as a caller
+        warms its own pipeline, so that what a pipeline builds on its first frame is not timed; else the
+        first frame of the run does it. Nothing to do with one worker (the caller's pipeline is the one used)."""
+        self._start_workers()
+        if self._pool is not None:
+            self._pool.warm(frame, self._stop)
+            self._warmed = True
+
+    def _dispatch(self, frame: Any, captured_at: float) -> None:
+        """The stereo half of one frame, handed to a worker process (`stereo.workers` > 1)."""
+        if not self._pair_checked:
+            self._check_pair(frame)
+        assert self._pool is not None
+        if not self._warmed:
+            self._warmed = True
+            self._pool.warm(frame, self._stop)
+        self._pool.submit(frame, captured_at, self.shedder.level)
+
+    def _from_worker(self, output: WorkerOutput) -> None:
+        """A worker's output, in capture order: on to the geometry thread, or rejected, or counted as lost."""
+        if output.lost:
+            self._count_error("stereo_worker_lost")
+        elif output.error is not None:
+            self._reject(output.index, output.error)
+        else:
+            self._slot.put(_StereoOutput(output.stage, output.captured_at, output.started_at, output.done_at))
+
+    def _wait_idle(self) -> None:
+        """Until every frame taken so far has been published (or rejected, or lost)."""
+        if self._pool is not None:
+            self._pool.wait_idle()
+        self._slot.wait_idle()
 
     def _geometry_worker(self) -> None:
         """The geometry + send thread: the newest stereo output → result → relay, log, /latest, observers."""
@@ -448,6 +528,7 @@ class Daemon:
         worker = threading.Thread(target=self._geometry_worker, name="geometry-send", daemon=True)
         self._slot = NewestSlot()
         worker.start()
+        self._start_workers()
         timeout = self.cfg.camera.stall_timeout_s
         source = self._try_open()
         stalls = 0
@@ -469,6 +550,8 @@ class Daemon:
                     newest_at = time.monotonic()
                     continue
                 else:
+                    if self._pool is not None:  # the newest frame once a worker can take it, not before
+                        self._pool.wait_free(self._stop)
                     try:
                         wait = max(STALL_GRACE_S, newest_at + timeout - time.monotonic())
                         stamped = source.get_stamped(timeout=wait)
@@ -492,17 +575,22 @@ class Daemon:
                 self._set_camera_lost(False)
                 if not self._is_newer(stamped[0]):
                     continue
-                self.dropped = self._dropped_by_closed_sources + source.dropped
+                self._camera_dropped = self._dropped_by_closed_sources + source.dropped
                 self.dropped_late = self._dropped_late_by_closed_sources + source.dropped_late
                 if max_frames is not None:
-                    self._slot.wait_idle()  # a counted run processes every frame it takes, and no more
+                    self._wait_idle()  # a counted run processes every frame it takes, and no more
                     if self._done(max_frames):
                         break
-                self._stereo(stamped[0], capture_time(*stamped))
+                if self._pool is None:
+                    self._stereo(stamped[0], capture_time(*stamped))
+                else:
+                    self._dispatch(stamped[0], capture_time(*stamped))
         finally:
             if source is not None:
                 source.close()
-            self._slot.wait_idle()  # the last stereo output still gets its geometry and send
+            self._wait_idle()  # the last stereo outputs still get their geometry and send
+            if self._pool is not None:
+                self._pool.close()
             self._slot.close()
             worker.join()
         self._report_speed()  # a run shorter than the warm-up
@@ -557,7 +645,7 @@ class Daemon:
             self._dropped_late_by_closed_sources += source.dropped_late
         self.reopens += 1
         self._pair_checked = False  # a camera plugged in again may be another one
-        self._slot.wait_idle()  # the tracker (and the log's order) is the worker's until then
+        self._wait_idle()  # the tracker (and the log's order) is the geometry thread's until then
         self._reopened = (reason, self.reopens, utc_now())
         self._newest_capture_ns = None  # a new source's timestamps may start again lower
         self.pipeline.reset()

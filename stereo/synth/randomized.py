@@ -67,6 +67,8 @@ _SPACING_M = {
     "whip": (0.8, 1.5),
     "gnarled": (4.0, 8.0),
 }
+#: where the camera stands (`RandomizedSwitches.viewpoint`): among the branches, or on a ground robot
+VIEWPOINTS = ("crown", "ground")
 #: no wood comes nearer the lens than this (m): a shoot across the lens would hide the scene
 MIN_RANGE_M = 0.3
 #: the exposure gain of a daylit scene (the renderer's linear colours are dim): the sensor's analogue gain, which
@@ -100,6 +102,10 @@ class RandomizedSwitches:
     - `capture`: captured at 640×360-like or at HD720 and scaled down (noise and artefacts at that
       size); off: at the output size.
     - `dropout`: disparity dropout, whole frame or regions (`dropout_rates`); off: none.
+    - `viewpoint`: where the camera stands — among the branches (a drone in the crown: the neutral view) or, in
+      `ground_view_share` of the scenes, on a ground robot `ground_camera_height_m` above the ground and
+      `ground_view_m` from the near tree, level to 20° up: the whole tree small in view, the ground in front
+      nearer than the tree and the tree as deep as the row beside it; off: among the branches.
     """
 
     tree_form: bool = True
@@ -119,6 +125,7 @@ class RandomizedSwitches:
     compression: bool = True
     capture: bool = True
     dropout: bool = True
+    viewpoint: bool = True
     rows_behind_m: tuple[float, float] = (1.5, 15.0)
     near_row_m: tuple[float, float] = (0.6, 2.5)
     exposure_drift_ev: float = 0.7
@@ -129,6 +136,9 @@ class RandomizedSwitches:
     jpeg_quality: tuple[int, int] = (35, 95)
     h264_step: tuple[float, float] = (4.0, 24.0)
     dropout_rates: Dropout = field(default_factory=Dropout)
+    ground_view_share: float = 0.35
+    ground_view_m: tuple[float, float] = (1.5, 4.0)
+    ground_camera_height_m: tuple[float, float] = (0.4, 1.5)
 
     def __post_init__(self) -> None:
         low, high = self.rows_behind_m
@@ -136,6 +146,15 @@ class RandomizedSwitches:
             raise ValueError(f"rows_behind_m must be (low, high) within 0.5–40 m, low ≤ high, got {self.rows_behind_m}")
         if not 0.3 <= self.near_row_m[0] <= self.near_row_m[1] <= 6.0:
             raise ValueError(f"near_row_m must be (low, high) within 0.3–6 m, low ≤ high, got {self.near_row_m}")
+        if not 0.0 <= self.ground_view_share <= 1.0:
+            raise ValueError(f"ground_view_share must lie in 0–1, got {self.ground_view_share}")
+        if not 0.5 <= self.ground_view_m[0] <= self.ground_view_m[1] <= 10.0:
+            raise ValueError(f"ground_view_m must be (low, high) within 0.5–10 m, low ≤ high, got {self.ground_view_m}")
+        if not 0.1 <= self.ground_camera_height_m[0] <= self.ground_camera_height_m[1] <= 3.0:
+            raise ValueError(
+                "ground_camera_height_m must be (low, high) within 0.1–3 m, low ≤ high, "
+                f"got {self.ground_camera_height_m}"
+            )
         if not 1 <= self.jpeg_quality[0] <= self.jpeg_quality[1] <= 100:
             raise ValueError(f"jpeg_quality must be (low, high) within 1–100, got {self.jpeg_quality}")
 
@@ -182,6 +201,7 @@ class ScenePlan:
     compression_level: float
     capture: str
     dropout: str
+    viewpoint: str
 
 
 def _stream(seed: int, factor: str, part: int = 0) -> np.random.Generator:
@@ -240,6 +260,7 @@ def draw_plan(seed: int, switches: RandomizedSwitches) -> ScenePlan:
         level,
         pick("capture", s.capture, ("vga", "hd720"), "vga"),
         dropout_kind(_stream(seed, "dropout"), s.dropout_rates) if s.dropout else "none",
+        pick("viewpoint", s.viewpoint, VIEWPOINTS, "crown", (1.0 - s.ground_view_share, s.ground_view_share)),
     )
 
 
@@ -382,12 +403,18 @@ def build_randomized_scene(plan: ScenePlan, camera: SynthCamera, switches: Rando
     lowest_branch = float(-near.start[near.order == 1, 1].max()) if (near.order == 1).any() else 0.5 * height
     # the drone flies among the branches: from just under the crown to near the top
     ground_y = float(np.clip(layout.uniform(0.6 * lowest_branch, 0.9 * height), 0.4, 14.0))
-    pitch = np.radians(layout.uniform(-30.0, 35.0))
-    frame = CameraFrame(pitch, np.radians(layout.uniform(-5.0, 5.0)))
+    pitch, roll = np.radians(layout.uniform(-30.0, 35.0)), np.radians(layout.uniform(-5.0, 5.0))
+    view = _stream(seed, "viewpoint", 1)  # a ground robot's pose replaces the crown's, whose draws stay as they were
+    if plan.viewpoint == "ground":
+        ground_y = float(view.uniform(*switches.ground_camera_height_m))
+        pitch = np.radians(view.uniform(0.0, 20.0))
+    frame = CameraFrame(pitch, roll)
     builder = _Builder(camera, frame, fruit_skin(_stream(seed, "season", 3)))
     yaw_row = np.radians(layout.uniform(-35.0, 35.0))
     row_axis = np.array([np.cos(yaw_row), 0.0, np.sin(yaw_row)])
     distance = layout.uniform(*switches.near_row_m) + float(near.r0.max())
+    if plan.viewpoint == "ground":
+        distance = float(view.uniform(*switches.ground_view_m)) + float(near.r0.max())
     tan_half = (camera.width / 2) / camera.focal_px
     lateral = layout.uniform(-0.5, 0.5) * distance * tan_half
     foot = np.array([0.0, ground_y, distance]) + lateral * row_axis / max(row_axis[0], 0.5)

@@ -102,7 +102,11 @@ class InvertedResidual(nn.Module):
             nn.BatchNorm2d(hidden),
             nn.ReLU(),
         )
-        self.project = nn.Sequential(nn.Conv2d(hidden, channels, 1, bias=False), nn.BatchNorm2d(channels))
+        projection_norm = nn.BatchNorm2d(channels)
+        self.project = nn.Sequential(nn.Conv2d(hidden, channels, 1, bias=False), projection_norm)
+        # The block starts as the identity (its last batch norm scales by zero): blocks added to a trained network
+        # leave its output as it was until training moves them (Goyal et al. 2017's zero-γ residual start).
+        nn.init.zeros_(projection_norm.weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """`(B, channels, h, w)` → the same shape."""
