@@ -13,7 +13,8 @@ frame's `timestamp_ns` is the monotonic time it was captured (a V4L2 driver stam
 the results log keeps: the soak compares it with when a target arrived.
 
 Faults come as JSON datagrams on 127.0.0.1:`--control-port` and apply to whichever camera is open:
-- `{"fault": "stall", "until": T}`: no frame until monotonic time T (the camera still says it is there);
+- `{"fault": "stall", "until": T}`: no frame until monotonic time T (the camera still says it is there; the
+  frame being read when a stall or an unplug begins is not delivered either);
 - `{"fault": "disconnect", "until": T}`: the camera is gone until T (`is_lost`; opening it fails);
 - `{"fault": "corrupt", "frames": N}`: the next N frames cannot be decoded (CorruptFrameError);
 - `{"fault": "identical", "frames": N}`: the next frame is delivered N + 1 times, timestamp and all (a
@@ -105,6 +106,11 @@ class SoakCamera(SourceBase):
             late, self._late = self._late, None
             return late
         frame = self._capture()  # captured even when not delivered: the replay keeps its pace
+        if self.faults.active("disconnect") > 0 or self.faults.active("stall") > 0:
+            # unplugged or stalled while this frame was read (the replay's paced wait and HD720 decoding: up to
+            # a second on a starved CPU): it never arrives, as from a real camera — delivered, it came stamped
+            # 0.9 s into an unplug and the soak judged the daemon's "camera back" a status hiding the fault
+            return next(self)
         if self._repeats > 0 and self._frozen is not None:
             self._repeats -= 1
             return self._frozen

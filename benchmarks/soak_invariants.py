@@ -119,7 +119,7 @@ class Limits:
     stall_timeout_s: float = 1.0
     heartbeat_timeout_s: float = 3.0
     pose_timeout_s: float = 0.5
-    settle_s: float = 3.5  # after a fault ends, the states /health gives are not judged for this long
+    settle_s: float = 3.5  # after a fault ends or a daemon is up, the states /health gives are not judged this long
     tolerance_s: float = 0.6  # a state change may lag its cause by this much (detection, sampling)
     flowing_s: float = 2.0  # targets were flowing before a fault when at least `flowing_min` came in
     flowing_min: int = 4  # the `flowing_s` before it (a daemon meeting its time budget: ≥ 2 Hz of targets)
@@ -340,17 +340,28 @@ def _disturbs(fault: Fault, field_name: str) -> bool:
     return group in ("mavlink", "process")
 
 
+def _up_at(rec: Recording, span: Span) -> float:
+    """When daemon `span` was up: its first HEARTBEAT (sent once its camera, pipeline and link are made, after
+    the interpreter's start and the imports — 3 s on a busy 2-core machine), the instant a restart's fault
+    ends; its process start when it never sent one (a daemon mute on MAVLink is judged from its start)."""
+    beats = (s.at for s in rec.sent if s.kind in ("ok", "lost") and span.holds(s.at))
+    return min(beats, default=span.started)
+
+
 def states(rec: Recording, limits: Limits) -> list[Breach]:
     """/health and /metrics against the schedule: lost camera, link down and camera mode inside the faults
     that must cause them (`…_untrue` when not said: a status that hides a fault); camera up, link up and
     world mode when no fault that could change them is near (`…_not_back` when not: a status, or the
-    daemon, slow to come back — on a loaded machine the world mode waits for results)."""
+    daemon, slow to come back — on a loaded machine the world mode waits for results). A daemon's states
+    are judged from `settle_s` after it was up (`_up_at`), the first one's as a restarted one's: its world
+    mode needs `tracking.target_min_observations` fused results, which cannot begin before it is up."""
     calm = {"camera_lost": False, "link_connected": True, "mode": "world"}
     faults = sorted(rec.faults, key=lambda f: f.start)
+    up = {span: _up_at(rec, span) for span in rec.spans}
     breaches = []
     for state in rec.states:
         span = _span_at(rec.spans, state.at)
-        if span is None or state.at - span.started < limits.settle_s:
+        if span is None or state.at - up[span] < limits.settle_s:
             continue
         expected: dict[str, object] = {}
         near_faults = _near(faults, state.at, limits.tolerance_s)

@@ -306,9 +306,12 @@ def test_latest_frame_source_passes_corrupt_frames_on_and_keeps_capturing(record
 
 
 def test_latest_frame_source_times_out_with_none(recording: Path) -> None:
-    with LatestFrameSource(ReplaySource(recording, pace="recorded", loop=True)) as latest:
+    # the next frame 30 s late (the wait ends at close): a test thread kept off the CPU for the 40 ms of the
+    # next paced frame would find it there
+    stalled = FaultInjectingSource(ReplaySource(recording, pace="recorded", loop=True), FaultPlan(stall={1: 30.0}))
+    with LatestFrameSource(stalled) as latest:
         assert latest.get(timeout=1.0) is not None
-        assert latest.get(timeout=0.001) is None  # the next paced frame is 40 ms away
+        assert latest.get(timeout=0.001) is None
         assert latest.calibration is not None and latest.is_lost is False
 
 

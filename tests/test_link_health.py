@@ -62,6 +62,53 @@ def test_autopilot_connects_within_two_heartbeats_and_names_its_ids():
     assert state["peer_heartbeat_age_s"] < 0.3 and state["received"] >= 1 and state["signature_failures"] == 0
 
 
+class _Heartbeat:
+    """An autopilot's HEARTBEAT (system 1, component 1) as pymavlink hands it over."""
+
+    type, autopilot, base_mode, custom_mode = 2, 3, 0, 4
+
+    def get_type(self) -> str:
+        return "HEARTBEAT"
+
+    def get_srcSystem(self) -> int:  # noqa: N802 - pymavlink's name
+        return 1
+
+    def get_srcComponent(self) -> int:  # noqa: N802 - pymavlink's name
+        return 1
+
+
+class _OneHeartbeatConnection:
+    """Delivers one HEARTBEAT, then, at the poll's next read, takes the link's state as another thread (the
+    API's) may take it in between: on one busy core it said connected with 0 received."""
+
+    def __init__(self) -> None:
+        self.link: connection.MavlinkLink | None = None
+        self.states: list[dict] = []
+        self._delivered = False
+
+    def recv_msg(self) -> _Heartbeat | None:
+        if self._delivered:
+            assert self.link is not None
+            self.states.append(self.link.state())
+            return None
+        self._delivered = True
+        return _Heartbeat()
+
+    def close(self) -> None:
+        pass
+
+
+def test_the_link_state_never_says_connected_with_nothing_received(monkeypatch):
+    fake = _OneHeartbeatConnection()
+    monkeypatch.setattr(connection, "open_connection", lambda url, **options: fake)
+    link = connection.MavlinkLink("udpout:127.0.0.1:9")
+    fake.link = link
+    assert len(link.poll()) == 1
+    (during,) = fake.states
+    assert during["connected"] is True and during["received"] == 1
+    assert link.state()["received"] == 1  # counted once
+
+
 def test_a_ground_station_heartbeat_is_not_the_autopilot():
     with (
         AutopilotSim(HOVER, heartbeat_period_s=0.1, mav_type=MAV_TYPE_GCS, autopilot=MAV_AUTOPILOT_INVALID) as sim,

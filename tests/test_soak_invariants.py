@@ -159,6 +159,23 @@ def test_a_calm_state_not_back_is_a_slow_recovery_not_a_lie_and_only_lies_are_sa
     assert {"slow_recovery", "health_not_back"} <= set(names(rec))
 
 
+def test_a_daemons_start_is_judged_from_its_first_heartbeat_and_a_mute_one_from_its_process_start():
+    # seed 11 at load 6: the interpreter, the imports, the camera and the model took 3.1 s before the first
+    # HEARTBEAT, the 3 fused results of the hand-over 2 s more; /health said camera mode at 4 and 5 s, which
+    # the first daemon's start was judged for from its process start (3.5 s), a restarted one's from its
+    # first HEARTBEAT
+    rec = calm_recording()
+    rec.sent = [s for s in rec.sent if s.at >= 3.1] + [Sent(3.1, "ok")]
+    rec.sent.sort(key=lambda s: s.at)
+    rec.states = [State(float(t), "health", False, True, "camera" if t < 6 else "world") for t in range(4, 120)]
+    assert names(rec) == []
+    rec.states.append(State(6.7, "health", False, True, "camera"))  # 3.6 s after it was up: still not back
+    assert names(rec) == ["health_not_back"]
+    rec.sent = [s for s in rec.sent if s.kind not in ("ok", "lost")]  # a daemon that never sent a HEARTBEAT
+    rec.states.pop()
+    assert names(rec) == ["health_not_back"] * 2  # at 4 and 5 s: judged from its process start
+
+
 def test_the_log_tail_follows_the_daemons_rotation_without_tearing_a_line(tmp_path):
     """The 43-minute soak of 2026-11-29 read the new file at the old file's offset after a rotation: torn
     lines, and every later capture missed (thousands of stale targets that were not)."""
