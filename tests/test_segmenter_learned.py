@@ -211,7 +211,7 @@ def test_training_runs_and_its_export_loads_as_a_segmenter(tmp_path):
     )
     lines: list[str] = []
     meta = train_branchnet(config, tmp_path / "run", tmp_path / "data", log=lines.append)
-    assert lines[0] == f"rendered 3 scenes into {tmp_path / 'data'} (1 process)"
+    assert lines[0] == f"rendered 3 generator scenes into {tmp_path / 'data'} (1 process)"
     assert len(lines) == 3 and "iou_branch" in lines[1]  # then one line per validation
     assert sorted(p.name for p in (tmp_path / "data").iterdir()) == [f"sample_{s:06d}.npz" for s in (1, 2, 3)]
     for name in ("branchnet.onnx", "branchnet.json", "metrics.csv", "training_curve.png", "branchnet.pt"):
