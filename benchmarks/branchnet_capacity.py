@@ -28,9 +28,10 @@ import numpy as np
 import torch
 from machine import cpu_name  # a script's own folder is on its import path
 
-from branchrange.core.segmentation.branchnet import BranchNet, network_input, padded_to_stride
 from branchrange.core.segmentation.learned import SHIPPED_MODEL
+from branchrange.core.segmentation.network_input import network_input, padded_to_stride
 from branchrange.core.segmentation.onnx_model import onnx_session
+from branchrange.learning.branchnet import BranchNet
 from branchrange.learning.quantize import int8_path, quantize_branchnet
 from branchrange.learning.samples import cached_sample
 from branchrange.learning.training import export_onnx

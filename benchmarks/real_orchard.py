@@ -36,8 +36,8 @@ import numpy as np
 
 from branchrange.core.geometry import StereoGeometry
 from branchrange.core.masks import BranchMasks
-from branchrange.core.segmentation.branchnet import CLASSES
 from branchrange.core.segmentation.learned import LearnedSegmenter
+from branchrange.core.segmentation.network_input import CLASSES
 from branchrange.core.segmentation.segmenter import Segmenter
 
 REAL_ORCHARD = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_orchard_rgbd"

@@ -45,8 +45,9 @@ Keys of `--json FILE` (one entry per mode and segmenter under `modes`, e.g. `mod
 - `config_sha256`: the effective configuration's hash (its run header in the results log);
 - `load_average_1min`: the machine's load when the mode started (shared machines: read the timings by it), `wall_s`;
 - `cpu_s`: the process's CPU time (user + system, every thread) while the daemon ran, s, with the stereo workers'
-  (`stereo.workers` other than 1: their whole lifetime, start-up included); `cpu_s_per_fresh_result`: that over
-  the fresh results published (what one result costs, whatever the machine's other load);
+  (`stereo.workers` other than 1: from the clock's start, their start-up and warm-up left out, on Linux);
+  `cpu_s_per_fresh_result`: that over the fresh results published (what one result costs, whatever the machine's
+  other load);
 - `ratio_to_baseline.{fresh_rate,latency_p50}`: against `full-sgbm` with the same segmenter.
 Also `cpu` (model and vector extensions), `threads`, `preloaded` (frames decoded ahead), `sequence`, `flight`
 (the render options when rendered here), `config` (`path`, `sha256` of the file), `overrides`, `results_jsonl`,
@@ -213,7 +214,9 @@ def run_mode(cfg: Config, segmenter: str, preload: bool) -> dict[str, Any]:
         # the stereo workers' pipelines too (`stereo.workers`), before the clock starts
         daemon.warm_up(warm if segmenter == "truth" else dataclasses.replace(warm, mask=None))
         load = cpu_description()["load_average_1min"]  # the other users of a shared machine, at the start
-        started, cpu_started = time.monotonic(), process_cpu_s()
+        # the workers' start-up and warm-up are not the flight's: their CPU so far is taken off at the end
+        cpu_started = process_cpu_s() + sum(child_cpu_s(pid) for pid in daemon.stereo_worker_pids())
+        started = time.monotonic()
         daemon.run()
     finally:
         daemon.close()
@@ -229,9 +232,20 @@ def run_mode(cfg: Config, segmenter: str, preload: bool) -> dict[str, Any]:
 def process_cpu_s() -> float:
     """CPU time so far, s: this process's (user + system over every thread, native ones included) and its
     ended children's — the stereo workers (`stereo.workers` other than 1) once `daemon.close()` has joined
-    them, their start-up and warm-up included."""
+    them, their whole lifetime (`child_cpu_s` reads what they had used when the clock started)."""
     times = os.times()
     return times.user + times.system + times.children_user + times.children_system
+
+
+def child_cpu_s(pid: int) -> float:
+    """The CPU time so far, s, of the running child process `pid` (user + system, every thread), from Linux's
+    /proc/PID/stat (fields 14 and 15, in clock ticks); 0 where there is no /proc (the flight's figure then
+    includes the workers' start-up)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def random_weights() -> Path:

@@ -94,9 +94,9 @@ from branchrange.core.pipeline import (
     untracked_whole_frame,
     with_exact_disparity,
 )
-from branchrange.core.segmentation.branchnet import CLASSES
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.core.segmentation.network_input import CLASSES
 from branchrange.core.segmentation.segmenter import Segmenter
 from branchrange.learning.light_changes import LIGHT_CHANGES
 from branchrange.learning.samples import evaluation_scene, scene_in_light

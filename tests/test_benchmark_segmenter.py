@@ -21,8 +21,8 @@ import pytest
 from result_factory import branch
 
 from branchrange.core.masks import BranchMasks
-from branchrange.core.segmentation.branchnet import CLASSES
 from branchrange.core.segmentation.learned import SHIPPED_MODELS, LearnedSegmenter, LearnedSegmenterConfig
+from branchrange.core.segmentation.network_input import CLASSES
 from branchrange.core.segmentation.structure import StructureSegmenter
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from branchrange.core.segmentation.branchnet import STRIDE, BranchNet, InvertedResidual
 from branchrange.core.segmentation.learned import SHIPPED_MODEL
+from branchrange.core.segmentation.network_input import STRIDE
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
+from branchrange.learning.branchnet import BranchNet, InvertedResidual
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import branchnet_capacity  # noqa: E402

@@ -256,3 +256,28 @@ def test_the_per_frame_core_never_imports_the_workshop_or_the_layers_above():
         if target.startswith((*above, "api", "branchrange.commands", "branchrange.cli"))
     ]
     assert found == []
+
+
+def test_the_shipped_cpu_loop_runs_a_frame_without_torch(tmp_path):
+    """The onboard loop as `deploy/onboard_cpu.toml` ships it (SGBM, the ONNX segmenter on onnxruntime) and the
+    daemon never import torch: each stereo worker process starts in less time and memory on a small companion
+    computer. The network's PyTorch side (`branchrange.learning.branchnet`) is for training and export only."""
+    import subprocess
+    import sys
+
+    script = """
+import sys
+import numpy as np
+from branchrange.config.loader import load_config, pipeline_for
+import branchrange.onboard.daemon
+from camera.calibration import from_rectified
+cfg = load_config("deploy/onboard_cpu.toml")
+pipeline = pipeline_for(cfg, from_rectified(700.0, 640.0, 360.0, 0.063, (1280, 720)))
+rng = np.random.default_rng(0)
+left = rng.integers(0, 255, (720, 1280, 3), dtype=np.uint8)
+pipeline.process(left, np.roll(left, -8, axis=1))
+print("torch" in sys.modules)
+"""
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "False", "the per-frame path imported torch"

@@ -29,7 +29,6 @@ from branchrange.core.geometry import StereoGeometry
 from branchrange.core.light_check import LIGHTS
 from branchrange.core.masks import BranchMasks
 from branchrange.core.pipeline import Pipeline, untracked_whole_frame
-from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, network_input
 from branchrange.core.segmentation.choose import make_segmenter
 from branchrange.core.segmentation.learned import (
     MAX_NETWORK_WIDTH,
@@ -40,7 +39,9 @@ from branchrange.core.segmentation.learned import (
     resampled_logits,
     trunk_and_branch_probabilities,
 )
+from branchrange.core.segmentation.network_input import CLASSES, network_input
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
+from branchrange.learning.branchnet import BranchNet
 from branchrange.learning.samples import BRANCH, IGNORE, TRUNK, classes_from_instances
 
 #: torch's TorchScript exporter builds the ONNX file in the training test; its deprecation notice is not ours

@@ -12,8 +12,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE
 from branchrange.core.segmentation.bundle import BUNDLE_FORMAT, MANIFEST_NAME, MODEL_NAME
+from branchrange.core.segmentation.network_input import CLASSES, IN_CHANNELS, STRIDE
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 from stereo.weights import sha256_of
 

@@ -32,10 +32,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from branchrange.core.segmentation.branchnet import BranchNet
 from branchrange.core.segmentation.bundle import MODEL_NAME
 from branchrange.core.segmentation.learned import verified_metadata
 from branchrange.core.segmentation.ood import MIN_REFERENCE_FRAMES, OOD_KEY
+from branchrange.learning.branchnet import BranchNet
 from branchrange.learning.bundle_writer import write_manifest
 from branchrange.learning.coco_labels import LabelledSample, split_by_image
 from branchrange.learning.depth_factor import DEPTH_FACTOR_SCENES, depth_factor

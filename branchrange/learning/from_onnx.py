@@ -18,8 +18,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from branchrange.core.segmentation.branchnet import IN_CHANNELS, STRIDE, BranchNet
+from branchrange.core.segmentation.network_input import IN_CHANNELS, STRIDE
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError, onnx_session
+from branchrange.learning.branchnet import BranchNet
 
 #: the largest difference (logits) between the ONNX file and the network read from it on a random input
 MATCH_TOLERANCE = 1e-3

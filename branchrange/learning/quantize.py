@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from branchrange.core.segmentation.branchnet import network_input, padded_to_stride
 from branchrange.core.segmentation.learned import verified_metadata
+from branchrange.core.segmentation.network_input import network_input, padded_to_stride
 from branchrange.learning.samples import cached_sample
 from stereo.onnx_runtime import import_onnxruntime
 from stereo.weights import sha256_of

@@ -28,7 +28,8 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from branchrange.core.segmentation.branchnet import CLASSES, BranchNet, disparity_scale, network_input, padded_to_stride
+from branchrange.core.segmentation.network_input import CLASSES, disparity_scale, network_input, padded_to_stride
+from branchrange.learning.branchnet import BranchNet
 from branchrange.learning.calibration import CALIBRATION_SEEDS
 from branchrange.learning.resume import CHECKPOINT_NAME, restore_training_state, save_training_state
 from branchrange.learning.samples import BRANCH, IGNORE, TRAIN_SEED_LIMIT, render_samples, training_sample

@@ -340,6 +340,11 @@ class Daemon:
             self._pool.warm(frame, self._stop)
             self._warmed = True
 
+    def stereo_worker_pids(self) -> list[int]:
+        """The stereo worker processes' ids (`stereo.workers` > 1, once started), else none: for a caller
+        that accounts for their CPU time."""
+        return [] if self._pool is None or self._pool.closed else self._pool.pids()
+
     def _dispatch(self, frame: Any, captured_at: float) -> None:
         """The stereo half of one frame, handed to a worker process (`stereo.workers` > 1)."""
         if not self._pair_checked:

@@ -27,7 +27,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE
+from branchrange.core.segmentation.network_input import CLASSES, IN_CHANNELS, STRIDE
 from branchrange.core.segmentation.onnx_model import OnnxSegmenterError
 from stereo.weights import sha256_of
 

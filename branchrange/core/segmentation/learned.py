@@ -2,9 +2,10 @@
 
 Steps (one frame):
 1. `BranchNet` gives per-pixel background / trunk / branch probabilities from the left image and
-   the disparity (`branchrange.core.segmentation.branchnet`), seen at `network_width` and brought back
-   to the frame's size; the columns around the trunk it finds are seen once more at twice that size
-   (`trunk_band_px`), where the thin stems a pruner cuts leave the trunk;
+   the disparity (its input: `network_input`; the network itself, for training only:
+   `branchrange.learning.branchnet`), seen at `network_width` and brought back to the frame's size; the
+   columns around the trunk it finds are seen once more at twice that size (`trunk_band_px`),
+   where the thin stems a pruner cuts leave the trunk;
 2. the trunk is the trunk region that branches grow from, with its other parts at its depth
    (`trunk.tree_trunk`: other trunks, posts and frames are background to the cut-point stage, and a
    branch in front of the trunk cuts its silhouette in two); trunk pixels nearer than the bark on both
@@ -50,8 +51,8 @@ from branchrange.core.confidence import ConfidenceCalibration
 from branchrange.core.geometry import StereoGeometry, disparity_to_depth
 from branchrange.core.light_check import LIGHTS, LightReading, measure_light
 from branchrange.core.masks import DEFAULT_TRUNK_ID, BranchMasks
-from branchrange.core.segmentation.branchnet import CLASSES, IN_CHANNELS, STRIDE, network_input
 from branchrange.core.segmentation.bundle import bundle_model
+from branchrange.core.segmentation.network_input import CLASSES, IN_CHANNELS, STRIDE, network_input
 from branchrange.core.segmentation.onnx_model import EXECUTION_PROVIDERS, OnnxSegmenterError, onnx_session
 from branchrange.core.segmentation.ood import (
     OodReading,
