@@ -160,10 +160,11 @@ def test_outputs_are_handed_on_in_capture_order_when_a_later_frame_finishes_firs
     assert outputs[1].done_at < outputs[0].done_at  # finished first, handed on second
     assert all(output.stage is not None and output.error is None for output in outputs)
     pipeline = pipeline_for(cfg, CALIBRATION)
-    for frame, output in zip(frames, outputs):
-        assert np.array_equal(
-            output.stage.disparity, pipeline.stereo_stage(frame.left, frame.right, None, frame.index).disparity
-        )
+    for frame, output in zip(frames, outputs):  # each worker ran the stereo half and the cut points
+        here = pipeline.cut_point_stage(pipeline.stereo_stage(frame.left, frame.right, None, frame.index))
+        assert np.array_equal(output.stage.stage.disparity, here.stage.disparity)
+        assert output.stage.reason == here.reason and output.stage.valid_share == here.valid_share
+        assert output.started_at <= output.halfway_at <= output.done_at
 
 
 def test_workers_publish_in_capture_order_with_todays_results(recording, caplog):

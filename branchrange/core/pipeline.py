@@ -254,6 +254,25 @@ class StereoStage:
     keyframe_ns: int | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class CutPointStage:
+    """What `Pipeline.cut_point_stage` hands to `Pipeline.finish_frame`.
+
+    `stage`: the frame's `StereoStage` as the geometry half leaves it: its disparity checked (0 where invalid)
+    and refined on the branches, its confidence likewise, its masks found; no right image or working scale
+    (not needed any more: less to send between processes). `cut`: the cut points, or None when there was
+    nothing to estimate them from, `reason` then saying why; `valid_share`: the share of valid disparity pixels
+    in the frame; `timing_ms`: the stages so far (ms); `compute_ms`: both halves' compute time so far (ms).
+    """
+
+    stage: StereoStage
+    cut: CutPointResult | None
+    reason: str | None
+    valid_share: float
+    timing_ms: dict[str, float]
+    compute_ms: float
+
+
 class Pipeline:
     """Cut points of one stereo frame after another.
 
@@ -639,9 +658,17 @@ class Pipeline:
 
     def geometry_stage(self, stage: StereoStage) -> FrameResult:
         """The second half of a frame: masks (the segmenter when none) → cut points → tracking → target → result.
+        The same as `finish_frame(cut_point_stage(stage))`.
 
         `timing_ms.total` is the compute time of both halves (ms), not including any wait between them.
         """
+        return self.finish_frame(self.cut_point_stage(stage))
+
+    def cut_point_stage(self, stage: StereoStage) -> CutPointStage:
+        """The part of the geometry half that keeps nothing from one frame to the next: the disparity checked,
+        masks (the segmenter when none), the branches' own disparity, the trunk, the cut points. The stereo
+        worker processes (`branchrange.onboard.stereo_workers`) run it beside the stereo half; `finish_frame`,
+        which carries the state across frames (tracking, keyframes), runs in the daemon."""
         start = t = time.perf_counter()
         timing = dict(stage.timing_ms)
         left, geometry, masks, max_disparity = stage.left, stage.geometry, stage.masks, stage.max_disparity
@@ -652,7 +679,7 @@ class Pipeline:
             disparity = offset_disparity(disparity, self.doffs_px)
         confidence = np.where(valid, np.nan_to_num(stage.confidence, nan=0.0), 0.0).astype(np.float32)
         reason = None
-        cut = CutPointResult()
+        cut: CutPointResult | None = None
         if masks is None:
             masks = self.segmenter.segment(left, disparity, geometry, confidence) if valid.any() else None
         t = lap_ms(timing, "masks", t)
@@ -669,7 +696,6 @@ class Pipeline:
                 working_scales=working_scales,
             ).disparity
             t = lap_ms(timing, "branch_disparity", t)
-        self.last = FrameArtifacts(left, disparity, confidence, masks)
         if masks is None or not valid.any():  # no masks only when nothing was valid to segment
             reason = "no valid disparity in the frame (textureless, overexposed or out of the stereo range)"
         elif not masks.branch_ids():
@@ -697,13 +723,27 @@ class Pipeline:
                 trunk_model=trunk_model,
                 working_scales=working_scales,
             )
+        lap_ms(timing, "cutpoints", t)
+        done = replace(stage, disparity=disparity, confidence=confidence, masks=masks, right=None, working_scale=None)
+        compute_ms = stage.compute_ms + (time.perf_counter() - start) * 1000.0
+        return CutPointStage(done, cut, reason, round(float(valid.mean()), 4), timing, compute_ms)
+
+    def finish_frame(self, cut_stage: CutPointStage) -> FrameResult:
+        """The end of a frame, in frame order: keyframe trust, tracking, the target, the `FrameResult`; the frame's
+        images become `last`."""
+        start = time.perf_counter()
+        stage, reason, timing = cut_stage.stage, cut_stage.reason, dict(cut_stage.timing_ms)
+        left, geometry, masks, disparity = stage.left, stage.geometry, stage.masks, stage.disparity
+        cut = CutPointResult() if cut_stage.cut is None else cut_stage.cut
+        if cut_stage.cut is not None:
             if stage.origin is not None:
                 cut = self._without_jumps(cut, stage.origin, stage.keyframe_ns)
             if not cut.branches:
                 reason = f"all {len(cut.dropped)} branch instances were dropped: " + "; ".join(
                     f"{d.mask_id}: {d.reason}" for d in cut.dropped[:5]
                 )
-        t = lap_ms(timing, "cutpoints", t)
+        self.last = FrameArtifacts(left, disparity, stage.confidence, masks)
+        t = time.perf_counter()
         if self.config.cutpoints.tracking:
             self.tracker.update(cut.branches)
         t = lap_ms(timing, "tracking", t)
@@ -713,13 +753,13 @@ class Pipeline:
         )
         if target is None and cut.branches:
             reason = no_target_reason(needed, masks)
-        timing["total"] = round(stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
+        timing["total"] = round(cut_stage.compute_ms + (time.perf_counter() - start) * 1000.0, 3)
         ood = None if masks is None else masks.ood
         self.ood_warnings.note(ood)
         return FrameResult(
             frame=Frame(stage.index, stage.timestamp_ns, int(left.shape[1]), int(left.shape[0])),
             camera=CameraInfo(geometry.focal_px, geometry.baseline_m, geometry.cx, geometry.cy),
-            stereo=StereoInfo(stage.backend, int(max_disparity), round(float(valid.mean()), 4)),
+            stereo=StereoInfo(stage.backend, int(stage.max_disparity), cut_stage.valid_share),
             timing_ms=timing,
             masks=MasksInfo("none", 0, False)
             if masks is None

@@ -29,8 +29,9 @@ each new file starting with the run header again. Threads:
   in time. With `stereo.workers` other than 1 this thread only dispatches: each frame goes to the next free
   stereo worker process (`stereo_workers`, started with the run and warmed on its first frame or by
   `warm_up`), whose outputs come back in capture order; a dead worker's frame counts as dropped;
-- **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`)
-  on the newest stereo output (one slot: an output the worker had no time for is replaced by the
+- **geometry + send** (a worker): masks, cut points, tracking, target (`Pipeline.geometry_stage`; with stereo
+  workers, which find the masks and cut points themselves, only its end, `Pipeline.finish_frame`) on the newest
+  stereo output (one slot: an output the worker had no time for is replaced by the
   next and counted in `skipped`), then the relay (whose own thread sends on a fixed schedule and
   never waits for either), the JSONL log, /latest and the observers.
 Each result carries `latency` (ms from capture to the stereo stage, to the geometry stage, to
@@ -122,12 +123,15 @@ class DaemonMetrics(Protocol):
 
 @dataclass(frozen=True, eq=False)
 class _StereoOutput:
-    """A frame between the two halves: the stereo stage's output and when the frame arrived (monotonic s)."""
+    """A frame between the two halves: the stereo stage's output (`Pipeline.stereo_stage`), or with
+    `cut_points_done` a stereo worker's (`Pipeline.cut_point_stage`); when the frame was captured, its stereo half
+    started and ended (monotonic s)."""
 
     stage: Any
     captured_at: float
     stereo_started_at: float
     stereo_done_at: float
+    cut_points_done: bool = False
 
 
 class Daemon:
@@ -362,7 +366,7 @@ class Daemon:
         elif output.error is not None:
             self._reject(output.index, output.error)
         else:
-            self._slot.put(_StereoOutput(output.stage, output.captured_at, output.started_at, output.done_at))
+            self._slot.put(_StereoOutput(output.stage, output.captured_at, output.started_at, output.halfway_at, True))
 
     def _wait_idle(self) -> None:
         """Until every frame taken so far has been published (or rejected, or lost)."""
@@ -374,7 +378,8 @@ class Daemon:
         """The geometry + send thread: the newest stereo output → result → relay, log, /latest, observers."""
         while (item := self._slot.take()) is not None:
             try:
-                self._publish(self.pipeline.geometry_stage(item.stage), item)
+                finish = self.pipeline.finish_frame if item.cut_points_done else self.pipeline.geometry_stage
+                self._publish(finish(item.stage), item)
             except Exception as error:  # noqa: BLE001 — the next frame may well be fine
                 self._reject(item.stage.index, error)
             finally:

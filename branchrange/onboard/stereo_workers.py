@@ -1,12 +1,15 @@
-"""The stereo stage in worker processes: each takes the next frame while the others work.
+"""The stereo stage and the cut points in worker processes: each takes the next frame while the others work.
 
 On a small CPU the daemon's stereo thread is bound by its own Python work (the interpreter lock):
 more cores do not make one thread faster. Here `count` processes, each with its own pipeline built
-by `pipeline_factory` (picklable: it is called in the new process), run `Pipeline.stereo_stage` on
-one frame each; frames and stereo outputs travel through shared memory (`shm_transport`), the pipe
-carries only their small rest. Outputs are handed on (`on_output`) in **capture order**: a frame
-finished early waits for the frames dispatched before it, so the geometry stage, which keeps the
-tracker's state across frames, sees them as a single thread would.
+by `pipeline_factory` (picklable: it is called in the new process), run `Pipeline.stereo_stage` and
+then `Pipeline.cut_point_stage` (the geometry half's per-frame work: masks, the branches' disparity,
+the trunk, the cut points) on one frame each; frames and outputs travel through shared memory
+(`shm_transport`), the pipe carries only their small rest. Outputs are handed on (`on_output`) in
+**capture order**: a frame finished early waits for the frames dispatched before it, so
+`Pipeline.finish_frame` in the daemon, which keeps the tracker's state across frames, sees them as a
+single thread would. The daemon's own process is then left with the capture, the frame's end and the
+sending: the cores go to the workers.
 
 What a worker needs from earlier frames: nothing, as long as `roi.keyframe_interval_s = 0` (the
 segmenter on every frame; the default): the stereo stage then carries no state from one frame to the
@@ -62,14 +65,16 @@ def worker_count(configured: int) -> int:
 
 @dataclass(frozen=True, eq=False)
 class WorkerOutput:
-    """One dispatched frame, back from its worker: its `StereoStage` (`stage`), or the `error` the pipeline
-    raised, or neither when the worker died with it (`lost`). `captured_at`, `started_at`, `done_at`:
-    monotonic s (a system-wide clock on Linux, so the worker's stamps compare with the daemon's)."""
+    """One dispatched frame, back from its worker: its `CutPointStage` (`stage`), or the `error` the pipeline
+    raised, or neither when the worker died with it (`lost`). `captured_at`, `started_at` (the stereo half),
+    `halfway_at` (the cut points), `done_at`: monotonic s (a system-wide clock on Linux, so the worker's stamps
+    compare with the daemon's)."""
 
     seq: int
     index: int
     captured_at: float
     started_at: float
+    halfway_at: float
     done_at: float
     stage: Any = None
     error: Exception | None = None
@@ -220,13 +225,13 @@ class StereoWorkers:
                 worker.ready = True
                 self._condition.notify_all()
             return
-        kind, seq, payload, started_at, done_at = message
+        kind, seq, payload, started_at, halfway_at, done_at = message
         assert worker.busy is not None and worker.busy[0] == seq, "a worker answers the frame it was given"
-        _, index, captured_at, _ = worker.busy
+        stamps = (seq, worker.busy[1], worker.busy[2], started_at, halfway_at, done_at)
         if kind == "ok":
-            output = WorkerOutput(seq, index, captured_at, started_at, done_at, stage=worker.reader.unpack(payload))
+            output = WorkerOutput(*stamps, stage=worker.reader.unpack(payload))
         else:
-            output = WorkerOutput(seq, index, captured_at, started_at, done_at, error=payload)
+            output = WorkerOutput(*stamps, error=payload)
         self._finish(worker, output)
 
     def _restart(self, worker: _Worker) -> None:
@@ -256,7 +261,8 @@ class StereoWorkers:
             seq, index, captured_at, dispatched_at = busy
             with self._condition:
                 self.lost += 1
-            self._finish(fresh, WorkerOutput(seq, index, captured_at, dispatched_at, time.monotonic(), lost=True))
+            now = time.monotonic()
+            self._finish(fresh, WorkerOutput(seq, index, captured_at, dispatched_at, now, now, lost=True))
 
     def _finish(self, worker: _Worker, output: WorkerOutput) -> None:
         """Note `output`, free its worker, and hand on every output whose predecessors are all in."""
@@ -298,7 +304,8 @@ class StereoWorkers:
 
 
 def _serve(conn: Connection, pipeline_factory: Callable[[], Any], cv_threads: int) -> None:
-    """A worker process: build the pipeline, then the stereo stage of each frame it gets until told to stop.
+    """A worker process: build the pipeline, then the stereo stage and the cut points of each frame it gets until
+    told to stop.
     `cv_threads`: OpenCV's threads here, the usable cores shared among the workers (OpenCV would otherwise
     start one per core in every worker, and the workers' threads would fight for the same cores)."""
     import cv2
@@ -312,13 +319,15 @@ def _serve(conn: Connection, pipeline_factory: Callable[[], Any], cv_threads: in
         while (message := conn.recv()) is not None:
             seq, packed, shed_level = message
             frame = reader.unpack(packed)
-            started = time.monotonic()
+            started = halfway = time.monotonic()
             try:
                 stage = stereo_stage(pipeline, frame, shed_level)
+                halfway = time.monotonic()
+                cut_stage = pipeline.cut_point_stage(stage)
             except Exception as error:  # noqa: BLE001 — the daemon decides (rejects the frame, logs a bug)
-                conn.send(("error", seq, _sendable(error), started, time.monotonic()))
+                conn.send(("error", seq, _sendable(error), started, halfway, time.monotonic()))
                 continue
-            conn.send(("ok", seq, writer.pack(stage), started, time.monotonic()))
+            conn.send(("ok", seq, writer.pack(cut_stage), started, halfway, time.monotonic()))
     except EOFError:  # the daemon is gone
         pass
     finally:
