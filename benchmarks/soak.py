@@ -256,7 +256,36 @@ class Service:
 
 
 def proc_stat(pid: int) -> tuple[int, int, int] | None:
-    """(RSS kB, open descriptors, threads) of a process, None when it is gone or ending."""
+    """(RSS kB, open descriptors, threads) of a process with its child processes (the stereo workers, with
+    `stereo.workers` other than 1: a worker that leaks is the daemon leaking), None when it is gone or ending."""
+    own = _own_stat(pid)
+    if own is None:
+        return None
+    children = [stat for child in child_pids(pid) if (stat := _own_stat(child)) is not None]
+    return (
+        own[0] + sum(c[0] for c in children),
+        own[1] + sum(c[1] for c in children),
+        own[2] + sum(c[2] for c in children),
+    )
+
+
+def child_pids(pid: int) -> list[int]:
+    """The processes whose parent is `pid` (from each /proc/PID/stat's fourth field)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(entry))
+    return found
+
+
+def _own_stat(pid: int) -> tuple[int, int, int] | None:
+    """(RSS kB, open descriptors, threads) of one process, None when it is gone or ending."""
     try:
         status = Path(f"/proc/{pid}/status").read_text()
         fds = len(os.listdir(f"/proc/{pid}/fd"))
