@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -25,7 +26,7 @@ from branchrange.onboard.mavlink import CameraMount, MavlinkRelay
 from branchrange.onboard.shm_transport import ShmReader, ShmWriter
 from branchrange.onboard.stereo_workers import StereoWorkers, worker_count
 from camera.calibration import from_rectified
-from camera.sources import Recorder, ReplaySource, StereoFrame
+from camera.sources import FaultInjectingSource, FaultPlan, Recorder, ReplaySource, StereoFrame
 
 FRAMES = 8
 PERIOD_NS = 250_000_000  # 4 fps
@@ -230,6 +231,46 @@ def test_a_killed_worker_is_started_again_and_its_frame_counted_as_dropped(recor
     died = [r.getMessage() for r in caplog.records if "died" in r.getMessage()]
     assert len(died) == 1 and f"pid {killed[0]}" in died[0] and "counts as dropped" in died[0]
     assert errors.kinds.count("stereo_worker_lost") == 1  # and in /metrics' error counts
+
+
+def test_workers_survive_a_dropped_a_corrupt_frame_and_an_unplugged_camera(recording):
+    """The camera faults of `test_daemon`'s single-thread case, with two workers: a frame dropped, one corrupt,
+    the camera gone for 2 s (HEARTBEAT CRITICAL, reopened, back at frame 6); results stay in capture order and the
+    status is back to camera up at the end."""
+    peer = LoopbackPeer()
+    cfg = config(recording, 2, url=f"udpout:127.0.0.1:{peer.port}")
+    cfg = dataclasses.replace(cfg, camera=CameraConfig(source=f"replay:{recording}", stall_timeout_s=0.3))
+    opened: list = []
+
+    def open_source():
+        plan = FaultPlan(drop={2}, corrupt={4}, disconnect={5: 2.0})
+        opened.append(
+            FaultInjectingSource(ReplaySource(recording), plan) if not opened else ReplaySource(recording, start=6)
+        )
+        return opened[-1]
+
+    published: list = []
+    daemon = Daemon(
+        cfg,
+        open_source=open_source,
+        pipeline=pipeline_for(cfg, CALIBRATION),
+        relay=MavlinkRelay(cfg.mavlink, CameraMount.from_rpy()),
+        observers=[lambda result, _: published.append(result)],
+        pipeline_factory=functools.partial(pipeline_for, cfg, CALIBRATION),
+    )
+    try:
+        daemon.run()
+        got = peer.collect(0.3)
+    finally:
+        daemon.close()
+        peer.close()
+    assert daemon.corrupt == 1 and daemon.reopens == 1 and len(opened) == 2
+    indices = [result.frame.index for result in published]
+    assert indices == sorted(set(indices)) and set(indices) <= {0, 1, 3, 6, 7} and indices[-1] == FRAMES - 1
+    statuses = [h.msg.system_status for h in of_type(got, "HEARTBEAT")]
+    assert 5 in statuses and statuses[-1] == 4, statuses  # CRITICAL while the camera was gone, ACTIVE after
+    health = daemon.health()
+    assert health["camera"]["lost"] is False and health["stereo_workers"]["lost_frames"] == 0
 
 
 def test_keyframes_keep_the_stereo_stage_in_one_thread(recording, caplog):
