@@ -1,7 +1,8 @@
 """The instance step's kernels, rewritten to work on a frame's foreground pixels or their bounding box, against
 the frame-wide implementations they replaced (kept here, named `reference_*`, as the definition of the result):
-`foreground_depth_edges`, `straight_pieces_of`, `_branch_support` and `trunk_gap_m`, on random masks and
-depths and on rendered scenes (branch and trunk pixels of the renderer's own instance masks)."""
+`foreground_depth_edges`, `straight_pieces_of`, `straight_pieces` (its tests in blocks of points),
+`_branch_support` and `trunk_gap_m`, on random masks and depths and on rendered scenes (branch and trunk pixels
+of the renderer's own instance masks)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ import pytest
 
 from branchrange.core.geometry import StereoGeometry, disparity_to_depth, valid_disparity
 from branchrange.core.segmentation.pieces import (
+    BLOCK_POINTS,
     LOCAL_WIDTH_PX,
+    PIECE_MIN_DISPARITY_PX,
     bridged_region_of,
     bridged_regions,
     padded_box,
@@ -241,3 +244,80 @@ def test_straight_pieces_of_a_mask_whose_box_opencv_numbers_otherwise_equal_the_
     assert len(ours) == len(theirs) > 0
     for (u, v), (ru, rv) in zip(ours, theirs, strict=True):
         assert np.array_equal(u, ru) and np.array_equal(v, rv)
+
+
+def reference_straight_pieces(u, v, band_px, min_px, rng, disparity=None, disparity_ratio=0.0, min_gap_px=4.0):
+    """`straight_pieces` as it was: each step's (points × lines) tests over all the remaining points at once."""
+    points = np.stack([u, v], axis=1).astype(np.float64)
+    remaining = np.arange(len(points))
+    pieces = []
+    while len(remaining) >= min_px and len(pieces) < 6:
+        pts = points[remaining]
+        pairs = rng.integers(0, len(pts), size=(80, 2))
+        d = pts[pairs[:, 1]] - pts[pairs[:, 0]]
+        length = np.sqrt(np.add.reduce(d * d, axis=1))
+        ok = length > 2.0
+        if not ok.any():
+            break
+        direction = d[ok] / length[ok, None]
+        normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1)
+        origin = pts[pairs[ok, 0]]
+        remaining_band = band_px[remaining]
+        bands = np.maximum(remaining_band[pairs[ok, 0]], remaining_band[pairs[ok, 1]])
+        inside = np.abs(pts @ normal.T - np.einsum("kc,kc->k", origin, normal)) < bands
+        if disparity is not None and disparity_ratio > 0:
+            known = disparity[remaining]
+            first, second = known[pairs[ok, 0]], known[pairs[ok, 1]]
+            along = (pts @ direction.T - np.einsum("kc,kc->k", origin, direction)) / length[ok]
+            expected = first + along * (second - first)
+            with np.errstate(invalid="ignore"):
+                near = np.abs(known[:, None] - expected) <= np.maximum(
+                    PIECE_MIN_DISPARITY_PX, disparity_ratio * np.abs(expected)
+                )
+            inside &= near | np.isnan(known)[:, None] | np.isnan(expected)
+        best = int(np.argmax(inside.sum(axis=0)))
+        inliers = np.flatnonzero(inside[:, best])
+        gap = max(min_gap_px, 2.0 * float(bands[best]))
+        along_best = (pts[inliers] - origin[best]) @ direction[best]
+        order = np.argsort(along_best)
+        bounds = np.concatenate(([0], np.flatnonzero(np.diff(along_best[order]) > gap) + 1, [len(order)]))
+        longest = int(np.argmax(np.diff(bounds)))
+        run = order[bounds[longest] : bounds[longest + 1]]
+        if len(run) < min_px:
+            break
+        pieces.append(remaining[inliers[run]])
+        unchosen = np.ones(len(remaining), dtype=bool)
+        unchosen[inliers[run]] = False
+        remaining = remaining[unchosen]
+    return pieces
+
+
+@pytest.mark.parametrize("ratio", [0.0, 0.1])
+def test_straight_pieces_tested_in_blocks_of_points_equal_the_whole_arrays_tests(ratio: float) -> None:
+    """Crossing noisy strokes of up to ~20 BLOCK_POINTS pixels (a near branch at HD720), each with its own disparity
+    ramp (a branch receding), 10 % of the pixels without a disparity: the same pieces, pixel for pixel, as the tests
+    over all points at once."""
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        count = int(rng.integers(BLOCK_POINTS // 4, 20 * BLOCK_POINTS))
+        strokes, ramps = [], []
+        for _ in range(int(rng.integers(1, 4))):
+            x0, y0, angle = *rng.uniform(0, 600, 2), rng.uniform(0, np.pi)
+            along, across = rng.uniform(0, rng.uniform(30, 400), count), rng.uniform(-4, 4, count)
+            strokes.append(
+                np.round(
+                    [
+                        x0 + along * np.cos(angle) - across * np.sin(angle),
+                        y0 + along * np.sin(angle) + across * np.cos(angle),
+                    ]
+                )
+            )
+            ramps.append(rng.uniform(10, 50) + rng.uniform(-0.05, 0.05) * along + rng.normal(0, 0.3, count))
+        u, v = np.concatenate(strokes, axis=1).astype(np.int64)
+        band = rng.uniform(1.5, 6.0, u.size)
+        disparity = np.concatenate(ramps)
+        disparity[rng.random(u.size) < 0.1] = np.nan
+        ours = straight_pieces(u, v, band, 20, np.random.default_rng(seed), disparity=disparity, disparity_ratio=ratio)
+        theirs = reference_straight_pieces(u, v, band, 20, np.random.default_rng(seed), disparity, ratio)
+        assert len(ours) == len(theirs) > 0
+        assert all(np.array_equal(a, b) for a, b in zip(ours, theirs, strict=True))
