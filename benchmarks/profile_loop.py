@@ -3,14 +3,17 @@ released at their timestamps through the daemon's own threads) sampled by py-spy
 The frames are decoded into memory before the clock starts, as realtime.py does by default, so a replay's PNG
 decoding (a quarter of the samples on 2 cores) is not counted as the loop's; `--decode-on-the-fly` counts it.
 
-py-spy (`pip install py-spy`) samples every thread of the run `--rate` times a second without stopping it, idle
-threads left out. The table reads its raw stacks: each sample's thread is its stage — the daemon's main thread is
-the stereo stage (`Pipeline.stereo_stage`: coarse pass, segmenter, regions), `geometry-send` the geometry stage
-and the send (`Pipeline.geometry_stage`: branch disparity, cut points, tracking; the relay's publish),
-`latest-frame-capture` the camera, `mavlink-relay` the link, the frames' decoding ahead a stage of its own — and
-each function's share is of the samples that are not that decoding: its own (`self`: the function was running,
-native code it called included) and inclusive (`total`: anywhere on the stack). The flame graph (SVG) is py-spy's
-own, from a second run of the same command.
+py-spy (`pip install py-spy`) samples every thread of the run and of its child processes `--rate` times a second
+without stopping it, idle threads left out. The table reads its raw stacks: each sample's thread is its stage —
+with `stereo.workers` other than 1 (as shipped) the worker processes' main threads are the stereo stage and the
+cut points (`Pipeline.stereo_stage`, `Pipeline.cut_point_stage`) and the daemon's main thread only dispatches;
+with one worker the daemon's main thread is the stereo stage (coarse pass, segmenter, regions); `geometry-send`
+the geometry stage (with workers only its end, `Pipeline.finish_frame`: tracking, target) and the send,
+`latest-frame-capture` the camera, `mavlink-relay` the link. What happens before the clock starts is a stage of its
+own each: the frames' decoding ahead, and the workers' start-up (imports, their pipeline built; their one warm-up
+frame counts as the loop's). Each function's share is of the samples that are not before the clock: its own (`self`:
+the function was running, native code it called included) and inclusive (`total`: anywhere on the stack). The flame
+graph (SVG) is py-spy's own, from a second run of the same command.
 
     .venv/bin/branchrange synth-flight --out out/bench/flight_hd720_150 --seed 1 --frames 150 --start-m 3 --end-m 0.8
     .venv/bin/python benchmarks/profile_loop.py --sequence out/bench/flight_hd720_150 \\
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -33,8 +37,20 @@ from machine import cpu_name  # a script's own folder is on its import path
 BENCHMARKS = Path(__file__).resolve().parent
 #: the function (as py-spy names it) that decodes the replay's frames into memory before the clock starts
 DECODING_AHEAD = "DecodedFrames.__init__ "
+#: a stereo worker's loop (`stereo_workers._serve`), and what it runs before its first frame counts
+WORKER_LOOP, WORKER_SET_UP = "_serve (", "pipeline_for ("
+#: the name `parse_raw` gives the main thread of a child process of the run (a stereo worker)
+WORKER_THREAD = "stereo-worker"
+#: stages of the samples before the clock starts, left out of the functions' shares
+DECODED_AHEAD_STAGE, WORKER_START_STAGE = (
+    "frames decoded ahead (before the clock)",
+    "workers' start-up (before the clock)",
+)
+#: a process at the head of a `--subprocesses` stack: `process PID:"command line";`
+PROCESS = re.compile(r'process \d+:".*?";')
 #: a sampled thread's name → the loop's stage it runs
 STAGES = {
+    WORKER_THREAD: "stereo + cut points (worker processes)",
     "MainThread": "stereo (daemon main thread)",
     "geometry-send": "geometry + send",
     "latest-frame-capture": "camera capture",
@@ -43,17 +59,38 @@ STAGES = {
 
 
 def parse_raw(text: str) -> list[tuple[str, list[str], int]]:
-    """py-spy's raw (collapsed) stacks with thread names (`record -t -f raw`): (thread name, frames root first,
-    samples) per line; a frame is `function (file:line)`."""
+    """py-spy's raw (collapsed) stacks with thread names (`record -t -f raw`, `--subprocesses`: each stack then
+    starts with its process and the processes above it, `process PID:"command"`): (thread name, frames root
+    first, samples) per line; a frame is `function (file:line)`. A child process's main thread is named
+    `WORKER_THREAD` (the run's only children are its stereo workers)."""
     stacks = []
     for line in text.splitlines():
         stack, _, count = line.rpartition(" ")
         if not stack or not count.isdigit():
             continue
+        processes = 0
+        while (process := PROCESS.match(stack)) is not None:  # its command line may hold ";" itself
+            processes, stack = processes + 1, stack[process.end() :]
+        if not stack:
+            continue
         thread, *frames = stack.split(";")
         name = thread.partition(": ")[2] or thread
+        if processes > 1 and name == "MainThread":
+            name = WORKER_THREAD
         stacks.append((name, frames, int(count)))
     return stacks
+
+
+def before_the_clock(thread: str, frames: list[str]) -> str | None:
+    """The stage of a sample taken before the run's clock starts, None for the loop's own."""
+    if any(frame.startswith(DECODING_AHEAD) for frame in frames):
+        return DECODED_AHEAD_STAGE
+    if thread == WORKER_THREAD and (
+        not any(frame.startswith(WORKER_LOOP) for frame in frames)
+        or any(frame.startswith(WORKER_SET_UP) for frame in frames)
+    ):
+        return WORKER_START_STAGE
+    return None
 
 
 def function_of(frame: str) -> str:
@@ -66,15 +103,16 @@ def function_of(frame: str) -> str:
 
 def profile_table(stacks: list[tuple[str, list[str], int]], top: int) -> dict:
     """Shares of all samples per stage, and per function (self and inclusive, the `top` functions by each) of
-    the samples that are not the frames' decoding ahead of the clock (`DECODING_AHEAD`): that work is the
-    replay's, before the loop starts, and would otherwise top the table."""
+    the samples that are not before the clock (`before_the_clock`: the frames' decoding ahead, the workers'
+    start-up): that work is the replay's and the start's, not the loop's, and would otherwise top the table."""
     total = sum(count for _, _, count in stacks) or 1
     stages: Counter[str] = Counter()
     own: Counter[str] = Counter()
     inclusive: Counter[str] = Counter()
     for thread, frames, count in stacks:
-        if any(frame.startswith(DECODING_AHEAD) for frame in frames):
-            stages["frames decoded ahead (before the clock)"] += count
+        early = before_the_clock(thread, frames)
+        if early is not None:
+            stages[early] += count
             continue
         stages[STAGES.get(thread, "other")] += count
         if frames:
@@ -82,7 +120,7 @@ def profile_table(stacks: list[tuple[str, list[str], int]], top: int) -> dict:
         for function in {function_of(frame) for frame in frames}:
             inclusive[function] += count
 
-    loop = total - stages["frames decoded ahead (before the clock)"] or 1
+    loop = total - stages[DECODED_AHEAD_STAGE] - stages[WORKER_START_STAGE] or 1
 
     def shares(counter: Counter[str], n: int | None = None, of: int = total) -> list[dict]:
         return [{"name": k, "share": v / of, "samples": v} for k, v in counter.most_common(n)]
@@ -97,9 +135,9 @@ def profile_table(stacks: list[tuple[str, list[str], int]], top: int) -> dict:
 
 
 def run_py_spy(py_spy: str, fmt: str, out: Path, rate: int, command: list[str]) -> None:
-    """`py-spy record` of `command` (thread names on, idle threads off) into `out` in `fmt`."""
+    """`py-spy record` of `command` and its child processes (thread names on, idle threads off) into `out` in `fmt`."""
     subprocess.run(
-        [py_spy, "record", "-t", "-r", str(rate), "-f", fmt, "-o", str(out), "--", *command],
+        [py_spy, "record", "-t", "--subprocesses", "-r", str(rate), "-f", fmt, "-o", str(out), "--", *command],
         check=True,
         stdout=subprocess.DEVNULL,
     )
@@ -110,7 +148,7 @@ def print_table(table: dict, cpu: str) -> None:
     print(f"{'stage':<32} {'share':>7}")
     for row in table["stages"]:
         print(f"{row['name']:<32} {row['share']:>7.1%}")
-    print(f"\nfunctions: shares of the {table['loop_samples']} samples not decoding frames ahead")
+    print(f"\nfunctions: shares of the {table['loop_samples']} samples after the clock started")
     for kind in ("self", "total"):
         print(f"\n{'function (' + kind + ')':<72} {'share':>7}")
         for row in table[kind]:

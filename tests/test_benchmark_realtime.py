@@ -115,3 +115,40 @@ def test_the_loop_profile_reads_py_spy_stacks_into_stage_and_function_shares():
     inclusive = {r["name"]: r["share"] for r in table["total"]}
     assert inclusive["estimate_cut_points (cutpoints.py)"] == 0.4  # two lines of one function: counted once a stack
     assert inclusive["_geometry_worker (daemon.py)"] == 0.4 and inclusive["run (daemon.py)"] == 0.6
+
+
+def test_the_loop_profile_counts_the_stereo_workers_and_leaves_their_start_up_out():
+    """`--subprocesses` stacks start with the processes: a child's main thread is a stereo worker, its loop the
+    stereo and cut-point stage, its imports and pipeline building before the clock."""
+    import profile_loop
+
+    run, worker = 'process 10:"python realtime.py"', 'process 11:"python -c import spawn_main; spawn_main(fd=4)"'
+    raw = (
+        f"{run};thread (1): MainThread;run (daemon.py:450);submit (stereo_workers.py:190) 1\n"
+        f"{run};{worker};thread (7): MainThread;_serve (stereo_workers.py:320);compute (sgbm.py:60) 6\n"
+        f"{run};{worker};thread (7): MainThread;_serve (stereo_workers.py:315);pipeline_for (frame_results.py:9) 2\n"
+        f"{run};{worker};thread (7): MainThread;spawn_main (spawn.py:120);<module> (torch/__init__.py:1) 1\n"
+        f"{run};thread (2): geometry-send;_geometry_worker (daemon.py:290);finish_frame (pipeline.py:730) 3\n"
+    )
+    stacks = profile_loop.parse_raw(raw)
+    assert [thread for thread, _, _ in stacks] == [
+        "MainThread",
+        "stereo-worker",
+        "stereo-worker",
+        "stereo-worker",
+        "geometry-send",
+    ]
+    table = profile_loop.profile_table(stacks, top=10)
+    assert table["samples"] == 13 and table["loop_samples"] == 10
+    stages = {r["name"]: r["samples"] for r in table["stages"]}
+    assert stages == {
+        "stereo + cut points (worker processes)": 6,
+        "geometry + send": 3,
+        "workers' start-up (before the clock)": 3,
+        "stereo (daemon main thread)": 1,
+    }
+    assert {r["name"] for r in table["self"]} == {
+        "compute (sgbm.py)",
+        "finish_frame (pipeline.py)",
+        "submit (stereo_workers.py)",
+    }
