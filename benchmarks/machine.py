@@ -53,3 +53,13 @@ def cpu_name(cpuinfo: Path = CPUINFO) -> str:
         return "unknown" if present is None else "yes" if present else "no"
 
     return f"{cpu['model']}; AVX2 {said(cpu['avx2'])}, AVX-512 {said(cpu['avx512'])}; {cpu['cores']} cores"
+
+
+def process_stat_fields(pid: int) -> list[str] | None:
+    """The fields of Linux's /proc/PID/stat after the process's name (its third field, the state, first: field
+    k of `man 5 proc` is item k − 3), None when the process is gone or there is no /proc. The name is cut at its
+    last ")": it may hold spaces and brackets itself."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None

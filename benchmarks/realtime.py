@@ -82,7 +82,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from machine import cpu_description, cpu_name  # a script's own folder is on its import path
+from machine import cpu_description, cpu_name, process_stat_fields  # a script's own folder is on its import path
 from score_flight import read_logged_runs, recording_view
 
 from branchrange.commands.config_args import add_config_arguments, config_from_args
@@ -241,11 +241,8 @@ def child_cpu_s(pid: int) -> float:
     """The CPU time so far, s, of the running child process `pid` (user + system, every thread), from Linux's
     /proc/PID/stat (fields 14 and 15, in clock ticks); 0 where there is no /proc (the flight's figure then
     includes the workers' start-up)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    fields = process_stat_fields(pid)
+    return 0.0 if fields is None else (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def random_weights() -> Path:

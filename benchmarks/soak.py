@@ -59,7 +59,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from machine import cpu_name  # a script's own folder is on its import path
+from machine import cpu_name, process_stat_fields  # a script's own folder is on its import path
 from soak_invariants import (
     RESTARTS,
     SAFETY,
@@ -273,13 +273,8 @@ def child_pids(pid: int) -> list[int]:
     """The processes whose parent is `pid` (from each /proc/PID/stat's fourth field)."""
     found = []
     for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:  # ended meanwhile
-            continue
-        if int(fields[1]) == pid:
+        fields = process_stat_fields(int(entry)) if entry.isdigit() else None  # None: ended meanwhile
+        if fields is not None and int(fields[1]) == pid:
             found.append(int(entry))
     return found
 

@@ -9,7 +9,9 @@ folder on the path, so the test puts it there first.
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -152,3 +154,27 @@ def test_the_loop_profile_counts_the_stereo_workers_and_leaves_their_start_up_ou
         "finish_frame (pipeline.py)",
         "submit (stereo_workers.py)",
     }
+
+
+def test_a_child_processs_cpu_and_parent_are_read_from_proc():
+    """`realtime.child_cpu_s` (the workers' CPU at the clock's start) and `soak.child_pids` (the daemon's workers
+    counted with it) on a real child that burns CPU: found as this process's child, with CPU time that grows."""
+    import subprocess
+
+    import soak
+
+    if not Path("/proc/self/stat").exists():
+        pytest.skip("needs Linux's /proc")
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import time\nend = time.time() + 30\nwhile time.time() < end: pass"]
+    )
+    try:
+        time.sleep(0.5)
+        first = realtime.child_cpu_s(child.pid)
+        assert child.pid in soak.child_pids(os.getpid())
+        time.sleep(0.5)
+        assert realtime.child_cpu_s(child.pid) > first > 0
+    finally:
+        child.kill()
+        child.wait()
+    assert realtime.child_cpu_s(child.pid) == 0.0 and child.pid not in soak.child_pids(os.getpid())  # gone
